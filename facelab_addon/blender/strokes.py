@@ -1,0 +1,513 @@
+"""Lip sketches drawn in Blender -> polylines in camera pixels (Dinev et al., §5).
+
+The artist sketches the upper and lower lip contours over the plate, in
+camera view, on two layers named "Upper lip" and "Lower lip". This module
+creates that sketch object, writes strokes at given pixels (tests, demo), and
+reads the strokes back as ``(N,2)`` pixel polylines (top-left origin, y down;
+see ``facelab_addon/core/camera.py``) for ``core.sketch``.
+
+Sources, in order of preference
+-------------------------------
+1. A Grease Pencil (v3) object: ``gp_obj`` if given, else the active object if
+   it has lip layers, else an object named ``FL_LipSketch``, else the first
+   (by name) Grease Pencil object in the scene with lip layers. Points live in
+   layer space; ``layer.to_world`` (object ``matrix_world`` @ layer
+   ``matrix_local``, or the layer parent) maps them to the world, and the
+   camera maps them to pixels. The drawing read is the one *shown* at the
+   frame (``layer.get_frame_at(frame)``: the latest keyframe <= frame).
+2. The scene annotation (``scene.annotation``; Blender 5.0 renamed
+   ``scene.grease_pencil`` and moved legacy annotation data to
+   ``bpy.data.annotations`` / ``bpy.types.Annotation``), layers matched the
+   same way, frame = the latest annotation frame <= ``frame``. What its
+   ``point.co`` means depends on the placement used when drawing in the 3D
+   viewport (verified in Blender 5.0.1 by running ``gpencil.annotate`` and
+   against the 5.0 source, ``annotate_paint.cc``):
+
+   * "3D Cursor" / "Surface": world coordinates (scene units).
+   * "View": screen space, in percent. In camera view, x and y are percent
+     (0..100, y up) of the camera frame *without lens shift*
+     (``ED_view3d_calc_camera_border(..., no_shift=true)``), i.e. of a
+     frame-sized rectangle centred on the principal point; ``z`` is 0.
+     Outside camera view they are percent of the viewport region and cannot
+     be related to the camera (draw in camera view!).
+
+   Blender 5.0.1 does not expose the stroke's space flag to Python (later
+   versions add ``AnnotationStroke.display_mode``, used when present). Without
+   it a stroke is taken as "View" percent space when all its ``z`` are exactly
+   0, which a 3D stroke drawn in camera view only shows when the camera looks
+   along world Z; for such cameras it is read as world points if those lie in
+   front of the camera and near the frame.
+
+Labels: a layer whose name contains "upper" (case-insensitive) is an upper
+lip layer, "lower" a lower lip layer; an exact "upper lip" / "lower lip"
+name wins over partial matches, several partial matches are concatenated.
+
+The sketch object (``new_lip_sketch``) is a child of the camera with origin
+on the optical axis, ``depth`` in front of the camera (just past the near
+clip), rotated so that its X-Z plane is the image plane, and drawn "In Front"
+of the face. With the default stroke placement ("Origin") and any drawing
+plane "View" or "Front (X-Z)", strokes drawn in camera view land on that plane
+and move with the camera; "3D Cursor" / "Surface" placement also keep each
+point on the camera ray under the pen, so every placement yields the pixels
+the artist drew over, as long as the strokes are drawn in camera view.
+"""
+
+from __future__ import annotations
+
+import math
+
+import bpy
+import numpy as np
+from mathutils import Matrix
+
+from ..core.camera import Camera
+from ..core.errors import CameraError, SketchError
+from .camera import evaluated_depsgraph
+
+__all__ = [
+    "UPPER_LAYER",
+    "LOWER_LAYER",
+    "new_lip_sketch",
+    "write_stroke_pixels",
+    "read_lip_strokes",
+]
+
+UPPER_LAYER = "Upper lip"
+LOWER_LAYER = "Lower lip"
+DEFAULT_SKETCH_NAME = "FL_LipSketch"
+_LAYER_TINT = {UPPER_LAYER: (1.0, 0.15, 0.1), LOWER_LAYER: (0.1, 0.35, 1.0)}
+_DEFAULT_GP_RADIUS = 0.01  # Blender's implicit point radius when no "radius" attribute exists
+_HOWTO = (
+    "press New Lip Sketch, then in camera view (Numpad 0) draw the upper lip contour on the "
+    f"'{UPPER_LAYER}' layer and the lower lip contour on the '{LOWER_LAYER}' layer"
+)
+
+
+# --------------------------------------------------------------------------- helpers
+def _label(name: str):
+    """'upper', 'lower' or None for a layer name."""
+    n = name.lower()
+    up, lo = "upper" in n, "lower" in n
+    if up and not lo:
+        return "upper"
+    if lo and not up:
+        return "lower"
+    return None
+
+
+def _lip_layers(layers, name_of):
+    """{'upper': [layers], 'lower': [layers]}; an exact name wins over partial matches."""
+    out = {"upper": [], "lower": []}
+    for layer in layers:
+        lab = _label(name_of(layer))
+        if lab is not None:
+            out[lab].append(layer)
+    for lab, exact in (("upper", UPPER_LAYER.lower()), ("lower", LOWER_LAYER.lower())):
+        hits = [lay for lay in out[lab] if name_of(lay).strip().lower() == exact]
+        if hits:
+            out[lab] = hits[:1]
+    return out
+
+
+def _has_lip_layers(gp_data) -> bool:
+    lips = _lip_layers(gp_data.layers, lambda lay: lay.name)
+    return bool(lips["upper"] or lips["lower"])
+
+
+def _find_layer(gp_data, name):
+    for layer in gp_data.layers:
+        if layer.name.lower() == name.lower():
+            return layer
+    return None
+
+
+def _matrix(m) -> np.ndarray:
+    return np.array(m, dtype=np.float64).reshape(4, 4)
+
+
+def _layer_to_world(layer, obj, depsgraph) -> np.ndarray:
+    """(4,4) layer space -> world (scene units), as ``Layer::to_world_space`` in Blender.
+
+    ``obj`` and the layer's parent are read evaluated (current frame).
+    """
+    local = _matrix(layer.matrix_local)
+    parent = layer.parent
+    if parent is None:
+        return _matrix(obj.evaluated_get(depsgraph).matrix_world) @ local
+    parent = parent.evaluated_get(depsgraph)
+    parent_to_world = _matrix(parent.matrix_world)
+    if parent.type == "ARMATURE" and layer.parent_bone and parent.pose is not None:
+        bone = parent.pose.bones.get(layer.parent_bone)
+        if bone is not None:
+            parent_to_world = parent_to_world @ _matrix(bone.matrix)
+    return parent_to_world @ _matrix(layer.matrix_parent_inverse) @ local
+
+
+def _transform(M, P) -> np.ndarray:
+    return P @ M[:3, :3].T + M[:3, 3]
+
+
+def _drawing_polylines(drawing) -> list:
+    """Layer-space polylines of a GP v3 drawing: list of (n,3) float64 arrays."""
+    n_off = len(drawing.curve_offsets)
+    if n_off < 2:
+        return []
+    offsets = np.empty(n_off, dtype=np.int32)
+    drawing.curve_offsets.foreach_get("value", offsets)
+    n_pts = int(offsets[-1])
+    if n_pts == 0:
+        return []
+    pos = np.empty(n_pts * 3, dtype=np.float32)
+    drawing.attributes["position"].data.foreach_get("vector", pos)
+    pos = pos.reshape(-1, 3).astype(np.float64)
+    return [p for p in np.split(pos, offsets[1:-1]) if len(p)]
+
+
+def _check_in_front(camera: Camera, P, where: str):
+    z = camera.depth(P)
+    if not np.all(z > 1e-9):
+        raise SketchError(
+            f"{where} has {int(np.sum(~(z > 1e-9)))} point(s) at or behind the camera; "
+            "delete those strokes and draw them again in camera view (Numpad 0) over the plate."
+        )
+
+
+def _project_world(camera: Camera, polylines, where: str) -> list:
+    out = []
+    for P in polylines:
+        _check_in_front(camera, P, where)
+        out.append(camera.project(P))
+    return out
+
+
+# --------------------------------------------------------------------------- create
+def _sketch_material():
+    mat = bpy.data.materials.get(DEFAULT_SKETCH_NAME)
+    if mat is None or not mat.is_grease_pencil:
+        mat = bpy.data.materials.new(DEFAULT_SKETCH_NAME)
+        bpy.data.materials.create_gpencil_data(mat)
+        mat.grease_pencil.color = (1.0, 1.0, 1.0, 1.0)
+        mat.grease_pencil.show_fill = False
+    return mat
+
+
+def new_lip_sketch(scene, camera_obj=None, name: str = DEFAULT_SKETCH_NAME, depth: float | None = None):
+    """Create, or complete, the Grease Pencil object the artist sketches the lips on.
+
+    Idempotent: an existing object ``name`` is reused as it is (transform and
+    strokes untouched); only missing pieces are added: the lip layers, a
+    keyframe (empty drawing) on ``scene.frame_current`` on each lip layer, a
+    stroke material, and the link to the scene.
+
+    Parameters
+    ----------
+    scene : bpy.types.Scene
+    camera_obj : bpy.types.Object, optional
+        The camera the sketch is drawn through; defaults to ``scene.camera``.
+    name : str
+        Object and data name.
+    depth : float, optional
+        Distance of the drawing plane in front of the camera, scene units;
+        default ``1.5 * clip_start``. Only used when creating the object.
+
+    Returns
+    -------
+    bpy.types.Object
+        The ``GREASEPENCIL`` object with layers "Upper lip" (active) and
+        "Lower lip".
+
+    Raises
+    ------
+    CameraError
+        No camera given and the scene has none.
+    SketchError
+        ``name`` is taken by an object that is not Grease Pencil.
+    """
+    cam = camera_obj if camera_obj is not None else scene.camera
+    if cam is None:
+        raise CameraError(
+            f"Scene '{scene.name}' has no camera to sketch through; "
+            "add a camera and make it the scene camera."
+        )
+    obj = bpy.data.objects.get(name)
+    if obj is not None and obj.type != "GREASEPENCIL":
+        raise SketchError(
+            f"Object '{name}' exists but is a {obj.type.lower()}, not Grease Pencil; rename or delete it "
+            "and press New Lip Sketch again."
+        )
+    if obj is None:
+        gp = bpy.data.grease_pencils.new(name)
+        obj = bpy.data.objects.new(name, gp)
+        if depth is None:
+            clip = cam.data.clip_start if cam.type == "CAMERA" else 0.1
+            depth = 1.5 * clip
+        scale = float(np.linalg.norm(_matrix(cam.matrix_world)[:3, 2])) or 1.0
+        obj.parent = cam
+        obj.matrix_parent_inverse = Matrix.Identity(4)
+        # Origin on the optical axis (camera -Z); rotate +90 deg about X so the
+        # object's X-Z plane ("Front" drawing plane) is the image plane.
+        offset = Matrix.Translation((0.0, 0.0, -depth / scale))
+        obj.matrix_basis = offset @ Matrix.Rotation(math.pi / 2, 4, "X")
+        obj.show_in_front = True
+    if scene.objects.get(obj.name) is None:
+        scene.collection.objects.link(obj)
+    gp = obj.data
+    if len(gp.materials) == 0:
+        gp.materials.append(_sketch_material())
+
+    frame = scene.frame_current
+    lips = _lip_layers(gp.layers, lambda lay: lay.name)
+    for lab, layer_name in (("upper", UPPER_LAYER), ("lower", LOWER_LAYER)):
+        layer = lips[lab][0] if lips[lab] else None
+        if layer is None:
+            layer = gp.layers.new(layer_name, set_active=False)
+            layer.tint_color = _LAYER_TINT[layer_name]
+            layer.tint_factor = 1.0
+        if not any(f.frame_number == frame for f in layer.frames):
+            layer.frames.new(frame)
+    upper = _lip_layers(gp.layers, lambda lay: lay.name)["upper"]
+    if upper:
+        gp.layers.active = upper[0]
+    return obj
+
+
+# --------------------------------------------------------------------------- write
+def write_stroke_pixels(gp_obj, layer_name: str, frame: int, polylines_px, camera: Camera,
+                        depth: float | None = None, radius_px: float = 1.5, depsgraph=None) -> None:
+    """Add strokes that project exactly onto given pixels.
+
+    Points are put on the camera rays through the pixels at ``depth`` in
+    front of the camera, then converted to the layer's space. Existing
+    strokes are kept; a layer named ``layer_name`` and a keyframe at
+    ``frame`` are created if missing.
+
+    Parameters
+    ----------
+    gp_obj : bpy.types.Object
+        A ``GREASEPENCIL`` object.
+    layer_name : str
+        Matched case-insensitively.
+    frame : int
+        Keyframe to write to.
+    polylines_px : list of (N,2) array_like
+        Pixel polylines (top-left origin, y down), ``N >= 1``.
+    camera : Camera
+        The camera the pixels refer to.
+    depth : float, optional
+        Depth along the viewing axis, scene units; default: the depth of the
+        object's origin if it is in front of the camera, else 1.
+    radius_px : float
+        Stroke radius written to the ``radius`` attribute, in pixels at ``depth``.
+    depsgraph : bpy.types.Depsgraph, optional
+        For the object's evaluated transform at the current scene frame;
+        default: the context's evaluated depsgraph.
+    """
+    if gp_obj is None or gp_obj.type != "GREASEPENCIL":
+        raise SketchError("write_stroke_pixels needs a Grease Pencil object; press New Lip Sketch first.")
+    polys = [np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in polylines_px]
+    if any(len(p) == 0 for p in polys):
+        raise ValueError("every polyline needs at least one point")
+    if not polys:
+        return
+    gp = gp_obj.data
+    layer = _find_layer(gp, layer_name) or gp.layers.new(layer_name, set_active=False)
+    fr = next((f for f in layer.frames if f.frame_number == frame), None) or layer.frames.new(frame)
+    drawing = fr.drawing
+    if depsgraph is None:
+        scenes = gp_obj.users_scene
+        depsgraph = evaluated_depsgraph(scenes[0]) if scenes else bpy.context.evaluated_depsgraph_get()
+    to_world = _layer_to_world(layer, gp_obj, depsgraph)
+
+    if depth is None:
+        depth = float(camera.depth(to_world[:3, 3][None])[0])
+        if not depth > 0:
+            depth = 1.0
+    px = np.vstack(polys)
+    h = np.c_[px, np.ones(len(px))]
+    x_cam = np.linalg.solve(camera.K, h.T).T * depth  # camera coordinates, z == depth
+    X = (x_cam - camera.t) @ camera.R  # world: R^T (x_c - t)
+    to_layer = np.linalg.inv(to_world)
+    P = _transform(to_layer, X)
+
+    n_old = len(drawing.attributes["position"].data)
+    had_radius = drawing.attributes.get("radius") is not None
+    drawing.add_strokes([len(p) for p in polys])
+    n_all = n_old + len(P)
+    pos = np.empty(n_all * 3, dtype=np.float32)
+    attr = drawing.attributes["position"]
+    attr.data.foreach_get("vector", pos)
+    pos = pos.reshape(-1, 3)
+    pos[n_old:] = P
+    attr.data.foreach_set("vector", pos.ravel())
+
+    rad_attr = drawing.attributes.get("radius") or drawing.attributes.new("radius", "FLOAT", "POINT")
+    rad = np.empty(n_all, dtype=np.float32)
+    if had_radius:
+        rad_attr.data.foreach_get("value", rad)
+    else:
+        rad[:] = _DEFAULT_GP_RADIUS
+    layer_scale = float(np.cbrt(abs(np.linalg.det(to_layer[:3, :3])))) or 1.0
+    rad[n_old:] = radius_px * depth / camera.K[0, 0] * layer_scale
+    rad_attr.data.foreach_set("value", rad)
+    drawing.tag_positions_changed()
+    gp_obj.data.update_tag()
+
+
+# --------------------------------------------------------------------------- read
+def _sketch_object(scene, gp_obj):
+    if gp_obj is not None:
+        if gp_obj.type != "GREASEPENCIL":
+            raise SketchError(
+                f"Object '{gp_obj.name}' is a {gp_obj.type.lower()}, not a Grease Pencil sketch; {_HOWTO}."
+            )
+        return gp_obj
+    candidates = [o for o in scene.objects if o.type == "GREASEPENCIL" and _has_lip_layers(o.data)]
+    if not candidates:
+        named = scene.objects.get(DEFAULT_SKETCH_NAME)
+        return named if named is not None and named.type == "GREASEPENCIL" else None
+    active = getattr(bpy.context, "active_object", None)
+    for o in candidates:
+        if o == active:
+            return o
+    for o in candidates:
+        if o.name == DEFAULT_SKETCH_NAME:
+            return o
+    return sorted(candidates, key=lambda o: o.name)[0]
+
+
+def _read_gp_object(obj, camera: Camera, frame: int, depsgraph) -> dict:
+    lips = _lip_layers(obj.data.layers, lambda lay: lay.name)
+    out = {}
+    for lab, nice in (("upper", UPPER_LAYER), ("lower", LOWER_LAYER)):
+        if not lips[lab]:
+            raise SketchError(
+                f"Sketch '{obj.name}' has no '{nice}' layer; add a layer named '{nice}' "
+                f"(or press New Lip Sketch) and draw the {nice.lower()} on it in camera view."
+            )
+        polys = []
+        for layer in lips[lab]:
+            fr = layer.get_frame_at(frame)
+            if fr is None or fr.drawing is None or fr.drawing.type != "DRAWING":
+                continue
+            M = _layer_to_world(layer, obj, depsgraph)
+            world = [_transform(M, P) for P in _drawing_polylines(fr.drawing)]
+            polys += _project_world(camera, world, f"Layer '{layer.name}' of '{obj.name}' on frame {frame}")
+        if not polys:
+            raise SketchError(
+                f"The '{nice}' layer of '{obj.name}' has no strokes on frame {frame}; "
+                f"draw the {nice.lower()} contour on it in camera view on this frame "
+                "(or on an earlier keyframe)."
+            )
+        out[lab] = polys
+    return out
+
+
+def _annotation_frame_at(layer, frame: int):
+    best = None
+    for f in layer.frames:
+        if f.frame_number <= frame and (best is None or f.frame_number > best.frame_number):
+            best = f
+    return best
+
+
+def _view_percent_to_px(P, camera: Camera) -> np.ndarray:
+    """Camera-view screen-space annotation points (percent of the unshifted frame, y up) to pixels."""
+    W, H = camera.width, camera.height
+    cx, cy = camera.K[0, 2], camera.K[1, 2]
+    return np.c_[P[:, 0] / 100.0 * W + (cx - W / 2.0), (1.0 - P[:, 1] / 100.0) * H + (cy - H / 2.0)]
+
+
+def _is_view_space(stroke, P, camera: Camera) -> bool:
+    """Whether annotation points are camera-view percent coordinates (else world points)."""
+    mode = getattr(stroke, "display_mode", None)  # Blender > 5.0 only
+    if mode is not None:
+        return mode != "3DSPACE"
+    if not np.all(P[:, 2] == 0.0):
+        return False
+    # z == 0 everywhere: "View" placement, unless the camera looks along world Z,
+    # where 3D strokes drawn at the 3D cursor on z = 0 also have z == 0.
+    if abs(camera.forward[2]) < 0.9:
+        return True
+    z = camera.depth(P)
+    if not np.all(z > 1e-9):
+        return True
+    big = max(camera.width, camera.height)
+    return not bool(np.all(camera.in_frame(camera.project(P), margin=-big)))
+
+
+def _read_annotation(ann, camera: Camera, frame: int) -> dict:
+    lips = _lip_layers(ann.layers, lambda lay: lay.info)
+    out = {}
+    for lab, nice in (("upper", UPPER_LAYER), ("lower", LOWER_LAYER)):
+        if not lips[lab]:
+            raise SketchError(
+                f"Annotation '{ann.name}' has no '{nice}' layer; add an annotation layer named '{nice}' "
+                f"and draw the {nice.lower()} on it in camera view, or {_HOWTO}."
+            )
+        polys = []
+        for layer in lips[lab]:
+            fr = _annotation_frame_at(layer, frame)
+            if fr is None:
+                continue
+            where = f"Annotation layer '{layer.info}' on frame {frame}"
+            for stroke in fr.strokes:
+                n = len(stroke.points)
+                if n == 0:
+                    continue
+                co = np.empty(n * 3, dtype=np.float32)
+                stroke.points.foreach_get("co", co)
+                P = co.reshape(-1, 3).astype(np.float64)
+                if _is_view_space(stroke, P, camera):
+                    polys.append(_view_percent_to_px(P, camera))
+                else:
+                    polys += _project_world(camera, [P], where)
+        if not polys:
+            raise SketchError(
+                f"The '{nice}' annotation layer has no strokes on frame {frame}; "
+                f"draw the {nice.lower()} contour on it in camera view on this frame (or an earlier one)."
+            )
+        out[lab] = polys
+    return out
+
+
+def read_lip_strokes(scene, camera: Camera, frame: int, gp_obj=None, depsgraph=None) -> dict:
+    """Read the upper and lower lip sketch as pixel polylines.
+
+    Parameters
+    ----------
+    scene : bpy.types.Scene
+    camera : Camera
+        The camera the sketch was drawn through (``camera_from_blender``).
+    frame : int
+        Scene frame; the drawing shown at that frame is read.
+    gp_obj : bpy.types.Object, optional
+        The Grease Pencil sketch; found in the scene if omitted (see module
+        docstring), with the scene annotation as fallback.
+    depsgraph : bpy.types.Depsgraph, optional
+        For the sketch object's evaluated transform; default: the context's
+        evaluated depsgraph. Transforms are those of the current scene
+        frame, so set the scene frame to ``frame`` first when the camera
+        (and the sketch parented to it) is animated.
+
+    Returns
+    -------
+    dict
+        ``{"upper": [(N,2) ndarray, ...], "lower": [...]}``, pixels
+        (top-left origin, y down), one array per stroke, in drawing order.
+        Out-of-frame points are returned as they are.
+
+    Raises
+    ------
+    SketchError
+        No sketch at all, a lip layer missing or empty on this frame, or
+        points at or behind the camera.
+    """
+    obj = _sketch_object(scene, gp_obj)
+    if obj is not None:
+        if depsgraph is None:
+            depsgraph = evaluated_depsgraph(scene)
+        return _read_gp_object(obj, camera, int(frame), depsgraph)
+    ann = getattr(scene, "annotation", None)
+    if ann is not None and any(_label(lay.info) for lay in ann.layers):
+        return _read_annotation(ann, camera, int(frame))
+    raise SketchError(f"No lip sketch found in scene '{scene.name}': {_HOWTO}.")

@@ -1,0 +1,25 @@
+"""Errors raised by the FaceLab core.
+
+Every message names the problem *and* the fix, so an operator can show it to
+an artist verbatim (``self.report({'ERROR'}, str(err))``).
+"""
+
+
+class FaceLabError(Exception):
+    """Base class of every error FaceLab raises on bad input."""
+
+
+class MeshError(FaceLabError):
+    """The mesh is unusable: NaNs, bad indices, degenerate faces, wrong topology."""
+
+
+class CameraError(FaceLabError):
+    """The camera is missing, not calibrated, or cannot see the face."""
+
+
+class SketchError(FaceLabError):
+    """The lip sketch is missing, incomplete or outside the camera frame."""
+
+
+class DataMissingError(FaceLabError):
+    """External data (for example the ICT-FaceKit model) could not be found."""

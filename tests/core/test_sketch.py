@@ -1,0 +1,116 @@
+import numpy as np
+import pytest
+
+from facelab_addon.core.camera import Camera
+from facelab_addon.core.errors import CameraError, MeshError, SketchError
+from facelab_addon.core.silhouette import contour_distance, lip_side, silhouette_edges
+from facelab_addon.core.sketch import press_lips, refine_lips, resample_polyline
+
+from .lipmesh import front_camera, line_px, two_lips
+
+
+def test_resample_polyline_spacing_and_ends():
+    P = np.array([[0.0, 0], [10, 0], [10, 5]])
+    S = resample_polyline(P, 1.0)
+    np.testing.assert_allclose(S[0], P[0])
+    np.testing.assert_allclose(S[-1], P[-1])
+    assert len(S) == 16
+    np.testing.assert_allclose(np.linalg.norm(np.diff(S, axis=0), axis=1), 1.0, atol=1e-12)
+
+
+def test_press_lips_moves_crossing_stretch_to_midline():
+    x = np.arange(0, 11.0)
+    upper = np.c_[x, np.full_like(x, 10.0)]
+    lower = np.c_[x, np.where(x < 5, 14.0, 6.0)]  # right half drawn above the upper lip
+    U, L, pu, pl = press_lips(upper, lower)
+    assert pu.sum() == 6 and pl.sum() == 6  # x = 5..10 (interp at 5 is already 6 < 10)
+    np.testing.assert_allclose(U[pu, 1], 8.0)
+    np.testing.assert_allclose(L[pl, 1], 8.0)
+    np.testing.assert_allclose(U[~pu], upper[~pu])
+    np.testing.assert_allclose(L[~pl], lower[~pl])
+
+
+def test_analytic_mouth_silhouettes_and_sides():
+    V, F, upper = two_lips(gap=0.4)
+    cam = front_camera()
+    E = silhouette_edges(V, F, cam)
+    s = lip_side(V, F, cam, E.ravel()).reshape(-1, 2)
+    assert (s[:, 0] == s[:, 1]).all()
+    np.testing.assert_allclose(V[E[s[:, 0] == 1]][..., 1], 0.2, atol=1e-9)
+    np.testing.assert_allclose(V[E[s[:, 0] == -1]][..., 1], -0.2, atol=1e-9)
+    assert upper[E[s[:, 0] == 1]].all() and not upper[E[s[:, 0] == -1]].any()
+
+
+def test_refine_moves_silhouettes_onto_sketch():
+    V, F, upper = two_lips(gap=0.4)
+    V_in = V.copy()
+    cam = front_camera()
+    X, info = refine_lips(V, F, cam, line_px(cam, 0.1), line_px(cam, -0.1), return_info=True)
+    np.testing.assert_array_equal(V, V_in)  # input untouched
+    cu = contour_distance(X, F, cam, info["upper_samples"], +1)
+    cl = contour_distance(X, F, cam, info["lower_samples"], -1)
+    assert cu.mean() < 0.3 and cl.mean() < 0.3, (cu.mean(), cl.mean())
+    # the mid-lip silhouette vertices moved by exactly the drawn 0.1 (=13.3 px here)
+    mid_u = np.flatnonzero((np.abs(V[:, 0]) < 1e-9) & upper & (np.abs(V[:, 1] - 0.2) < 1e-9))
+    mid_l = np.flatnonzero((np.abs(V[:, 0]) < 1e-9) & ~upper & (np.abs(V[:, 1] + 0.2) < 1e-9))
+    np.testing.assert_allclose((X - V)[mid_u, 1], -0.1, atol=0.004)
+    np.testing.assert_allclose((X - V)[mid_l, 1], +0.1, atol=0.004)
+    # Laplacian editing: the motion decays; the back of the tubes stays put
+    far = np.abs(V[:, 1]) > 0.75
+    assert np.abs(X - V)[far].max() < 0.01
+    # nothing outside the free region moves at all
+    assert (~info["region"]).any()
+    assert np.abs(X - V)[~info["region"]].max() == 0.0
+
+
+def test_lower_drawn_above_upper_presses_lips_together():
+    V, F, upper = two_lips(gap=0.4)
+    cam = front_camera()
+    # crossed sketch: upper drawn at y=-0.05, lower at y=+0.05 -> both go to y=0
+    X, info = refine_lips(V, F, cam, line_px(cam, -0.05), line_px(cam, 0.05), iterations=10, return_info=True)
+    mid = cam.project(np.array([[0.0, 0, 0]]))[0, 1]
+    np.testing.assert_allclose(info["upper_samples"][:, 1], mid, atol=0.5)
+    np.testing.assert_allclose(info["lower_samples"][:, 1], mid, atol=0.5)
+    i_u = np.flatnonzero((np.abs(V[:, 0]) < 1e-9) & upper & (np.abs(V[:, 1] - 0.2) < 1e-9))
+    i_l = np.flatnonzero((np.abs(V[:, 0]) < 1e-9) & ~upper & (np.abs(V[:, 1] + 0.2) < 1e-9))
+    assert abs(X[i_u, 1] - X[i_l, 1]).max() < 0.01  # lips meet
+
+
+def test_fixed_vertices_are_not_lip_candidates_and_barely_move():
+    V, F, upper = two_lips(gap=0.4)
+    cam = front_camera()
+    fixed = ~upper  # the lower lip is "hidden": only the upper may be matched
+    with pytest.raises(SketchError, match="lower-lip silhouette"):
+        refine_lips(V, F, cam, line_px(cam, 0.1), line_px(cam, -0.1), fixed=fixed)
+
+
+def test_bad_input_messages():
+    V, F, _ = two_lips()
+    cam = front_camera()
+    up, lo = line_px(cam, 0.1), line_px(cam, -0.1)
+    with pytest.raises(SketchError, match="No lower-lip stroke"):
+        refine_lips(V, F, cam, up, [])
+    with pytest.raises(SketchError, match="leaves the camera frame"):
+        refine_lips(V, F, cam, up + [0, 2000], lo)
+    with pytest.raises(SketchError, match="NaN"):
+        bad = up.copy()
+        bad[3] = np.nan
+        refine_lips(V, F, cam, bad, lo)
+    Vn = V.copy()
+    Vn[7] = np.nan
+    with pytest.raises(MeshError, match="NaN"):
+        refine_lips(Vn, F, cam, up, lo)
+    Fd = F.copy()
+    Fd[0] = [0, 0, 1]
+    with pytest.raises(MeshError, match="degenerate"):
+        refine_lips(V, Fd, cam, up, lo)
+    with pytest.raises(CameraError, match="No camera"):
+        refine_lips(V, F, None, up, lo)
+    # camera looking at the mouth from behind (on -z, looking at +z)
+    back = Camera.look_at([0, 0, -20], [0, 0, 0], [0, 1, 0], 50, 36, 1920, 1080)
+    with pytest.raises(CameraError, match="behind"):
+        refine_lips(V, F, back, line_px(back, 0.1), line_px(back, -0.1))
+    # face behind the camera: camera at +z looking away from the mouth
+    away = Camera.look_at([0, 0, 20], [0, 0, 40], [0, 1, 0], 50, 36, 1920, 1080)
+    with pytest.raises(CameraError, match="behind the camera"):
+        refine_lips(V, F, away, np.array([[900.0, 500], [1000, 500]]), np.array([[900.0, 560], [1000, 560]]))
