@@ -3,8 +3,10 @@
 import bpy
 from bpy.props import FloatProperty, IntProperty
 
-# The add-on's module name: "facelab_addon" from a checkout, "bl_ext.<repo>.facelab" as an extension.
-ADDON_ID = __package__.rpartition(".ui")[0] or __package__
+# The add-on's module name: "facelab_addon" from a checkout, "bl_ext.<repo>.facelab" as an
+# extension (whose root __init__.py imports the facelab_addon sub-package).
+_parts = __package__.split(".")
+ADDON_ID = ".".join(_parts[: _parts.index("facelab_addon")]) or "facelab_addon"
 
 DEFAULTS = dict(iterations=5, lambda_pos=0.1, lambda_reg=3.0, lambda_silh=1.0)
 

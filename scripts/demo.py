@@ -1,0 +1,249 @@
+"""FaceLab demo: sketch-based lip refinement on the ICT-FaceKit face, headless.
+
+1. Builds a scene: the captured face (the truth with an injected inner-lip gap),
+   a frontal camera, a backplate rendered from the truth, and a lip sketch
+   (Grease Pencil strokes that trace the truth's inner-lip silhouettes).
+2. Runs the Refine Lips operator on the problem frame.
+3. Saves out/demo/lip_refine.blend and before/after renders with the contours
+   overlaid, plus a 3D error heat map, into docs/images/.
+
+Run it with ``bash scripts/demo.sh`` (it sets up its own environment).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+os.environ.setdefault("BLENDER_USER_RESOURCES", tempfile.mkdtemp(prefix="facelab-demo-"))
+
+import numpy as np  # noqa: E402
+
+FRAME = 12
+SCALE = 0.01  # ICT centimetres -> metres
+UNITS_PER_MM = 0.001
+
+
+def scenario(ict):
+    """Truth, capture, camera, sketch and masks for the demo (metres)."""
+    from facelab_addon.core import synthetic as syn
+
+    F = ict.faces
+    truth = ict.pose({"jawOpen": 0.2, "mouthFunnel": 0.3}) * SCALE
+    fixed = syn.ict_fixed_mask(ict) if hasattr(syn, "ict_fixed_mask") else ~ict.part_vertex_mask("M_Face")
+    mouth = syn.find_mouth(truth, F, fixed, loop=syn.ICT_MOUTH_LOOP, units_per_mm=UNITS_PER_MM)
+    cam = syn.frontal_camera(truth, mouth.center, distance=0.40)
+    upper, lower = syn.lip_contours(truth, F, cam, fixed, mouth=mouth)
+    captured, err_mask = syn.inject_lip_error(truth, F, fixed, kind="gap", amount_mm=2.5, mouth=mouth)
+    return dict(F=F, truth=truth, captured=captured, fixed=fixed, cam=cam, upper=upper, lower=lower, lip=err_mask)
+
+
+def render(blend, out, **kw):
+    cmd = [sys.executable, str(ROOT / "scripts" / "render_blend.py"), str(blend), str(out)]
+    for k, v in kw.items():
+        flag = "--" + k.replace("_", "-")
+        if v is True:
+            cmd.append(flag)
+        elif isinstance(v, (list, tuple)):
+            cmd += [flag, *map(str, v)]
+        else:
+            cmd += [flag, str(v)]
+    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--out", default=str(ROOT / "out" / "demo"))
+    ap.add_argument("--images", default=str(ROOT / "docs" / "images"))
+    ap.add_argument("--samples", type=int, default=24)
+    a = ap.parse_args(argv)
+    out, img_dir = Path(a.out), Path(a.images)
+    out.mkdir(parents=True, exist_ok=True)
+    img_dir.mkdir(parents=True, exist_ok=True)
+
+    import bpy
+
+    import facelab_addon
+    from facelab_addon.blender.camera import apply_camera_to_blender, camera_from_blender
+    from facelab_addon.blender.mesh import evaluated_vertices
+    from facelab_addon.blender.scene import new_mesh_object, set_backplate
+    from facelab_addon.blender.strokes import read_lip_strokes, write_stroke_pixels
+    from facelab_addon.core.ict import load_ict
+    from facelab_addon.core.silhouette import contour_distance
+
+    t0 = time.perf_counter()
+    ict = load_ict()
+    s = scenario(ict)
+    print(f"[demo] scenario ready ({time.perf_counter() - t0:.1f} s)")
+
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    facelab_addon.register()
+    scene = bpy.context.scene
+    scene.frame_start, scene.frame_end = 1, 24
+    scene.frame_set(FRAME)
+    mat = bpy.data.materials.new("Skin")
+    mat.use_nodes = True
+    bsdf = mat.node_tree.nodes.get("Principled BSDF")
+    bsdf.inputs["Base Color"].default_value = (0.8, 0.55, 0.45, 1)
+    bsdf.inputs["Roughness"].default_value = 0.55
+    face = new_mesh_object("Face", s["captured"], poly_verts=ict.poly_verts, poly_offsets=ict.poly_offsets)
+    truth = new_mesh_object("Truth", s["truth"], poly_verts=ict.poly_verts, poly_offsets=ict.poly_offsets)
+    for ob in (face, truth):
+        ob.data.materials.append(mat)
+        ob.data.shade_smooth() if hasattr(ob.data, "shade_smooth") else None
+    truth.hide_render = True
+    truth.hide_set(True)
+    vg = face.vertex_groups.new(name="FL_fixed")
+    vg.add(np.flatnonzero(s["fixed"]).tolist(), 1.0, "REPLACE")
+    cam_obj = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
+    scene.collection.objects.link(cam_obj)
+    apply_camera_to_blender(s["cam"], cam_obj, scene)
+    scene.camera = cam_obj
+    for name, rot, energy in (("Key", (0.6, 0.3, 0.4), 3.0), ("Fill", (0.9, -0.2, -0.6), 1.2)):
+        light = bpy.data.objects.new(name, bpy.data.lights.new(name, "SUN"))
+        light.data.energy = energy
+        light.rotation_euler = rot
+        scene.collection.objects.link(light)
+    world = bpy.data.worlds.new("World")
+    world.use_nodes = True
+    world.node_tree.nodes["Background"].inputs["Color"].default_value = (0.05, 0.05, 0.06, 1)
+    scene.world = world
+
+    # backplate: the truth rendered from the capture camera
+    blend = out / "lip_refine.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(blend))
+    cam = s["cam"]
+    pu = np.r_[s["upper"], s["lower"]]
+    lo_px, hi_px = pu.min(0) - [90, 110], pu.max(0) + [90, 110]
+    border = [lo_px[0] / cam.width, hi_px[0] / cam.width, 1 - hi_px[1] / cam.height, 1 - lo_px[1] / cam.height]
+    plate = out / "backplate.png"
+    print("[demo] rendering the backplate (Cycles, CPU)")
+    render(blend, plate, hide=["Face"], show=["Truth"], samples=a.samples)
+    set_backplate(cam_obj, plate)
+
+    # the artist's sketch and the refinement
+    bpy.context.view_layer.objects.active = face
+    face.select_set(True)
+    bpy.ops.facelab.new_lip_sketch()
+    gp = scene.facelab.sketch
+    bcam = camera_from_blender(scene)
+    write_stroke_pixels(gp, "Upper lip", FRAME, [s["upper"]], bcam)
+    write_stroke_pixels(gp, "Lower lip", FRAME, [s["lower"]], bcam)
+    bpy.context.view_layer.objects.active = face
+    t1 = time.perf_counter()
+    bpy.ops.facelab.refine_lips()
+    t_refine = time.perf_counter() - t1
+    dg = bpy.context.evaluated_depsgraph_get()
+    refined = evaluated_vertices(face, dg)
+    strokes = read_lip_strokes(scene, bcam, FRAME, depsgraph=dg)
+    bpy.ops.wm.save_as_mainfile(filepath=str(blend))
+    print(f"[demo] refined in {t_refine:.2f} s; saved {blend}")
+
+    # numbers
+    F, fixed, lip = s["F"], s["fixed"], s["lip"]
+    U, L = np.concatenate(strokes["upper"]), np.concatenate(strokes["lower"])
+
+    def contour(X):
+        return np.r_[contour_distance(X, F, cam, U, +1, candidates=~fixed), contour_distance(X, F, cam, L, -1, candidates=~fixed)]
+
+    def err(X):
+        return np.linalg.norm(X - s["truth"], axis=1) / UNITS_PER_MM
+
+    summary = dict(
+        refine_seconds=round(t_refine, 3),
+        contour_px_before=float(np.mean(contour(s["captured"]))),
+        contour_px_after=float(np.mean(contour(refined))),
+        lip_rms_mm_before=float(np.sqrt(np.mean(err(s["captured"])[lip] ** 2))),
+        lip_rms_mm_after=float(np.sqrt(np.mean(err(refined)[lip] ** 2))),
+        lip_max_mm_before=float(err(s["captured"])[lip].max()),
+        lip_max_mm_after=float(err(refined)[lip].max()),
+    )
+
+    # renders: before (frame FRAME-1: corrective key at 0) and after (FRAME)
+    print("[demo] rendering before/after")
+    r_before, r_after, r_truth = out / "before.png", out / "after.png", out / "truth_crop.png"
+    render(blend, r_before, frame=FRAME - 1, hide=["Truth"], border=border, samples=a.samples)
+    render(blend, r_after, frame=FRAME, hide=["Truth"], border=border, samples=a.samples)
+    render(blend, r_truth, frame=FRAME, hide=["Face"], show=["Truth"], border=border, samples=a.samples)
+    figures(out, img_dir, s, refined, U, L, lo_px, hi_px, r_before, r_after, r_truth, summary, err)
+    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    print(json.dumps(summary, indent=2))
+    return 0
+
+
+def figures(out, img_dir, s, refined, U, L, lo_px, hi_px, r_before, r_after, r_truth, summary, err):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.collections import LineCollection
+
+    from facelab_addon.core.silhouette import lip_side, silhouette_edges
+
+    cam, F, fixed = s["cam"], s["F"], s["fixed"]
+    ext = (lo_px[0], hi_px[0], hi_px[1], lo_px[1])
+
+    def silhouettes(ax, X, color):
+        E = silhouette_edges(X, F, cam)
+        E = E[~fixed[E].any(1)]
+        p = cam.project(X)
+        keep = ((p[E] >= lo_px) & (p[E] <= hi_px)).all(axis=(1, 2))
+        E = E[keep]
+        side = lip_side(X, F, cam, E[:, 0])
+        for sd, ls in ((1, "-"), (-1, "-")):
+            seg = p[E[side == sd]]
+            ax.add_collection(LineCollection(seg, colors=color, linewidths=1.6, linestyles=ls))
+
+    fig, axes = plt.subplots(1, 3, figsize=(18, 5.2))
+    for ax, path, X, title in (
+        (axes[0], r_before, s["captured"], "Capture (before): lips gap open"),
+        (axes[1], r_after, refined, "Refine Lips (after)"),
+        (axes[2], r_truth, s["truth"], "Ground truth"),
+    ):
+        ax.imshow(plt.imread(path), extent=ext)
+        ax.plot(U[:, 0], U[:, 1], color="#ff3b30", lw=1.2, ls="--", label="sketch: upper lip")
+        ax.plot(L[:, 0], L[:, 1], color="#0a84ff", lw=1.2, ls="--", label="sketch: lower lip")
+        silhouettes(ax, X, "#ffd60a")
+        ax.set_xlim(ext[0], ext[1])
+        ax.set_ylim(ext[2], ext[3])
+        ax.set_title(title)
+        ax.axis("off")
+    axes[0].plot([], [], color="#ffd60a", lw=1.6, label="mesh inner-lip silhouette")
+    axes[0].legend(loc="lower left", fontsize=8, framealpha=0.8)
+    fig.suptitle(
+        f"Contour error {summary['contour_px_before']:.1f} px -> {summary['contour_px_after']:.2f} px;  "
+        f"inner-lip RMS {summary['lip_rms_mm_before']:.2f} mm -> {summary['lip_rms_mm_after']:.2f} mm"
+    )
+    fig.tight_layout()
+    fig.savefig(img_dir / "refine_before_after.png", dpi=90)
+    plt.close(fig)
+
+    # 3D error heat map on the lips, before and after (frontal projection)
+    p = cam.project(s["truth"])
+    sel = ~fixed & (p >= lo_px).all(1) & (p <= hi_px).all(1)
+    e0, e1 = err(s["captured"]), err(refined)
+    vmax = max(e0[sel].max(), 1e-6)
+    fig, axes = plt.subplots(1, 2, figsize=(14, 4.6))
+    for ax, e, title in ((axes[0], e0, "before"), (axes[1], e1, "after")):
+        sc = ax.scatter(p[sel, 0], p[sel, 1], c=e[sel], s=6, cmap="inferno", vmin=0, vmax=vmax)
+        ax.set_xlim(ext[0], ext[1])
+        ax.set_ylim(ext[2], ext[3])
+        ax.set_aspect("equal")
+        ax.set_title(f"3D error vs truth, {title} (mm)")
+        ax.axis("off")
+    fig.colorbar(sc, ax=axes, fraction=0.025, label="mm")
+    fig.savefig(img_dir / "refine_error_heatmap.png", dpi=90)
+    plt.close(fig)
+    print(f"[demo] wrote {img_dir / 'refine_before_after.png'} and {img_dir / 'refine_error_heatmap.png'}")
+
+
+if __name__ == "__main__":
+    sys.exit(main())
