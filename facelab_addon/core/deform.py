@@ -26,6 +26,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.linalg
 import scipy.sparse as sp
 
 from .errors import FaceLabError
@@ -240,12 +241,19 @@ class LaplacianDeformer:
             for j in range(k):
                 np.add.at(Q, (pos[:, i], slice(None), pos[:, j]), (b[:, i] * b[:, j])[:, None, None] * H)
         Z = self._columns(used)  # (n_f, u)
-        Zuu = Z[used]  # (u, u)
+        Zuu = Z[used]  # (u, u) = principal block of M^-1, SPD
         Q2 = Q.reshape(3 * u, 3 * u)
-        # (I + (Zuu ⊗ I3) Q) x_U = x0_U + (Zuu ⊗ I3) r
-        ZQ = np.einsum("ab,bidj->aidj", Zuu, Q).reshape(3 * u, 3 * u)
-        lhs = np.eye(3 * u) + ZQ
-        rhs = X0[used].reshape(-1) + (Zuu @ r).reshape(-1)
-        xU = np.linalg.solve(lhs, rhs)
+        # Optimality: x_U = x0_U - (Zuu ⊗ I3)(Q x_U - r). Multiplying by (Zuu ⊗ I3)^-1 gives the
+        # SPD system ((Zuu^-1 ⊗ I3) + Q) x_U = (Zuu^-1 ⊗ I3) x0_U + r, solved by Cholesky.
+        Zc = scipy.linalg.cho_factor(Zuu, lower=True, check_finite=False)
+        Zinv = scipy.linalg.cho_solve(Zc, np.eye(u), check_finite=False)
+        lhs = Q.copy()
+        lhs += Zinv[:, None, :, None] * np.eye(3)[None, :, None, :]
+        rhs = (Zinv @ X0[used] + r).reshape(-1)
+        xU = scipy.linalg.cho_solve(
+            scipy.linalg.cho_factor(lhs.reshape(3 * u, 3 * u), lower=True, overwrite_a=True, check_finite=False),
+            rhs,
+            check_finite=False,
+        )
         G = (Q2 @ xU - r.reshape(-1)).reshape(u, 3)
         return X0 - Z @ G

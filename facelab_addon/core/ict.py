@@ -131,14 +131,14 @@ def find_ict_dir(root=None) -> Path:
         message says how to get the data.
     """
     here = Path(__file__).resolve()
-    cands = []
+    # An explicit root, else FACELAB_ICT_DIR, is the only place looked at: a wrong
+    # setting is reported instead of silently falling back to another copy.
     if root is not None:
-        cands.append(Path(root))
-    if os.environ.get("FACELAB_ICT_DIR"):
-        cands.append(Path(os.environ["FACELAB_ICT_DIR"]))
-    # ../shared/ict-facekit next to the repository (repo = parents[2] of this file)
-    cands.append(here.parents[3] / "shared" / "ict-facekit")
-    cands.append(Path.cwd().parent / "shared" / "ict-facekit")
+        cands = [Path(root)]
+    elif os.environ.get("FACELAB_ICT_DIR"):
+        cands = [Path(os.environ["FACELAB_ICT_DIR"])]
+    else:  # ../shared/ict-facekit next to the repository (repo = parents[2] of this file)
+        cands = [here.parents[3] / "shared" / "ict-facekit", Path.cwd().parent / "shared" / "ict-facekit"]
     for c in cands:
         for d in (c, c.parent):
             if (d / "FaceXModel" / _NEUTRAL).is_file():
