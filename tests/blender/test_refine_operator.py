@@ -159,6 +159,13 @@ def test_refine_lips_bad_input_changes_nothing(tmp_path, ict, addon):
     # only one lip drawn
     with pytest.raises(RuntimeError, match="(?i)lower lip"):
         bpy.ops.facelab.refine_lips()
+    # a camera turned around, looking away from the face: the face is behind it
+    write_stroke_pixels(scene.facelab.sketch, "Lower lip", FRAME, [s["lo_px"]], cam)
+    scene.camera.rotation_mode = "XYZ"
+    scene.camera.rotation_euler.y += np.pi
+    with pytest.raises(RuntimeError, match="(?i)behind"):
+        bpy.ops.facelab.refine_lips()
+    scene.camera.rotation_euler.y -= np.pi
     # a stroke outside the frame
     write_stroke_pixels(scene.facelab.sketch, "Lower lip", FRAME, [s["lo_px"] + [0, 700]], cam)
     with pytest.raises(RuntimeError, match="leaves the camera frame"):
