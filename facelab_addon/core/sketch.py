@@ -14,9 +14,13 @@ We minimise, in the least-squares sense and over 5 iterations,
   vertex ``v_p`` of the matching lip. Silhouette vertices are split into upper
   and lower lip by the sign of the y component of their projected normals.
 
-Silhouettes and correspondences are recomputed at every iteration, and each
-iteration starts from the previous result, so the mesh "deforms slowly into
-position" (the high rigidity ``lambda_reg = 3`` against ``lambda_silh = 1``).
+Silhouettes and correspondences are recomputed at every iteration on the
+current result, while ``E_pos`` and ``E_reg`` keep referring to the captured
+mesh as Eq. 1 is written; the high rigidity (``lambda_reg = 3`` against
+``lambda_silh = 1``) makes the mesh deform slowly into position, so the
+correspondences can follow. (Anchoring ``E_pos`` to the previous iterate
+instead lets the correction spread wider with every iteration; measured in
+``benchmarks/sketch_refine.py``.)
 Where the lower contour is drawn above the upper one, both are constrained to
 the same 2D position (their mid-line), so the lips press together.
 
@@ -40,6 +44,7 @@ from .camera import Camera
 from .deform import LaplacianDeformer, PointConstraints
 from .errors import CameraError, FaceLabError, SketchError
 from .laplacian import laplacian as make_laplacian
+from .linsolve import small_dense_threads
 from .mesh import edge_faces, grow_region, validate_mesh, vertex_adjacency, vertex_normals
 from .silhouette import facing, projected_normals
 
@@ -227,8 +232,9 @@ def refine_lips(
     (V,3) ndarray
         Refined vertices, scene units.
     info : dict, only with ``return_info``
-        ``region`` (V,) bool, ``silhouette`` per-iteration mean ray distance
-        in pixels, ``matched_upper``/``matched_lower`` vertex indices of the
+        ``region`` (V,) bool, ``silhouette_px``: mean distance (pixels) from the
+        sketch rays to their matched silhouette vertices before each iteration
+        and, last, for the result, ``matched_upper``/``matched_lower`` vertex indices of the
         last iteration, ``pressed`` sample count, ``seconds``.
 
     Raises
@@ -303,22 +309,18 @@ def refine_lips(
     o_u, d_u = camera.rays(U)
     o_l, d_l = camera.rays(Lw)
 
-    X = V0.copy()
-    hist = []
-    matched = {}
-    for _ in range(int(iterations)):
+    def correspondences(X):
+        """Silhouette vertices of X matched to every sketch ray; mean ray distance in px."""
         s = facing(X, Fr, camera) > 0
-        sil_e = edges[s[ef[:, 0]] != s[ef[:, 1]]]
-        sil = np.unique(sil_e)
+        sil = np.unique(edges[s[ef[:, 0]] != s[ef[:, 1]]])
         if len(sil) == 0:
             raise SketchError(
                 "The mesh has no lip silhouette near the strokes from this camera; check that the strokes "
                 "follow the inner lips and that the camera looks at the mouth."
             )
         normals = _vertex_normals_subset(X, Fr, sil)
-        side = projected_normals(X[sil], normals, camera)[:, 1] > 0  # True: upper lip
-        cons = []
-        dist_px = []
+        side = projected_normals(X[sil], normals, camera)[:, 1] > 0  # True: upper lip (image y down)
+        cons, dist_px, matched = [], [], {}
         for name, lipmask, o, d in (("upper", side, o_u, d_u), ("lower", ~side, o_l, d_l)):
             ids = sil[lipmask]
             if len(ids) == 0:
@@ -330,15 +332,24 @@ def refine_lips(
             vid = ids[j]
             matched[name] = np.unique(vid)
             cons.append(PointConstraints.rays(vid, o, d, strength=lambda_silh))
-            f_px = camera.K[0, 0] / np.maximum(camera.depth(X[vid]), 1e-12)
-            dist_px.append(dist * f_px)
-        hist.append(float(np.mean(np.concatenate(dist_px))))
-        anchor = np.where(fixed[:, None], V0, X)
-        X = solver.solve(anchor, reference=V0, constraints=cons)
+            dist_px.append(dist * camera.K[0, 0] / np.maximum(camera.depth(X[vid]), 1e-12))
+        return cons, float(np.mean(np.concatenate(dist_px))), matched
+
+    # E_pos ties every vertex to its captured position and E_reg to the captured Laplacian
+    # coordinates (Eq. 1 as written); the iterations re-detect silhouettes and re-match the
+    # sketch on the current result.
+    X = V0
+    hist = []
+    with small_dense_threads(1):
+        for _ in range(int(iterations)):
+            cons, dist, matched = correspondences(X)
+            hist.append(dist)
+            X = solver.solve(V0, reference=V0, constraints=cons)
     if not np.isfinite(X).all():
         raise FaceLabError("The lip solve diverged (non-finite result); check the strokes and the camera.")
     if not return_info:
         return X
+    hist.append(correspondences(X)[1])  # residual of the result itself
     info = dict(
         region=region,
         silhouette_px=hist,

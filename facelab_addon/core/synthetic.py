@@ -181,7 +181,7 @@ def find_mouth(
     near=None,
     up=ICT_UP,
     forward=ICT_FORWARD,
-    band_mm: float = 10.0,
+    band_mm: float = 25.0,
     units_per_mm: float = 0.1,
 ) -> Mouth:
     """Find the mouth loop, corners, lip columns, sides and lip tips.
@@ -194,8 +194,10 @@ def find_mouth(
     faces : (F,3) int
         Triangles.
     fixed : (V,) bool, optional
-        Hidden vertices (mouth bag, teeth, gums, eyes, back of head). Required
-        unless ``loop`` is given. Free triangles are those with no fixed vertex.
+        Hidden vertices (mouth bag, teeth, gums, eyes, back of head). Free
+        triangles are those with no fixed vertex. Required unless ``loop`` or
+        ``near`` is given (a mesh whose mouth is a hole, without a mouth bag,
+        may pass ``near`` and no ``fixed``).
     loop : (K,) int, optional
         Mouth-loop vertex ids (for ICT-FaceKit: ``ICT_MOUTH_LOOP``). Default:
         detected as the border loop of the free triangles nearest to ``near``,
@@ -230,6 +232,11 @@ def find_mouth(
         raise FaceLabError(f"'fixed' must be a mask of {n} vertices, got {fixed.shape}.")
     free_faces = ~fixed[F].any(axis=1)
     Ff = F[free_faces]
+    if loop is None and near is None and not fixed.any():
+        raise FaceLabError(
+            "Cannot tell the mouth from other openings: pass 'fixed' (mouth bag, teeth, gums, eyes: the hidden "
+            "parts), the mouth loop vertex ids, or a point 'near' the mouth."
+        )
     if loop is None:
         loops = [lp for lp in _border_loops(Ff, n) if len(lp) >= 8]
         if not loops:
@@ -318,8 +325,8 @@ def frontal_camera(
     Parameters
     ----------
     vertices : (V,3) float
-        The face, scene units (used to check that the face is in front of the
-        camera, and for ``mouth_center`` given as vertex ids).
+        The face, scene units (used when ``mouth_center`` is given as vertex
+        ids).
     mouth_center : (3,) float, or (k,) int
         The point looked at (scene units), or vertex ids whose mean it is
         (for example ``Mouth.loop``).
@@ -481,7 +488,7 @@ def lip_error_weights(vertices, faces, fixed=None, *, mouth: Mouth | None = None
     G = _edge_graph(V, F[mouth.free_faces])
     g_tip = np.full(n, np.inf)
     for s in (1, -1):
-        tips = mouth.tip[mouth.side[mouth.tip] == s]
+        tips = mouth.tip[(mouth.side[mouth.tip] == s) & (np.abs(mouth.lateral_t[mouth.tip]) < 1.0)]
         if len(tips):
             d = dijkstra(G, directed=False, indices=tips, min_only=True, limit=R)
             sel = mouth.side == s
