@@ -5,7 +5,15 @@ from __future__ import annotations
 import bpy
 import numpy as np
 
-__all__ = ["unique_key_name", "add_corrective_key", "key_spike"]
+__all__ = [
+    "unique_key_name",
+    "add_corrective_key",
+    "key_spike",
+    "shape_key_sequence",
+    "remove_keys",
+    "key_values_bulk",
+    "add_keys_from_deltas",
+]
 
 
 def unique_key_name(obj, base: str) -> str:
@@ -73,3 +81,141 @@ def _find_fcurve(anim_data, data_path):
         pass
     fcurves = getattr(action, "fcurves", None)  # Blender < 5.0
     return fcurves.find(data_path) if fcurves is not None else None
+
+
+# --------------------------------------------------------------------------- sequences
+def _fcurve_for_key(key, kb):
+    ad = key.animation_data
+    if ad is None or ad.action is None:
+        return None
+    return _find_fcurve(ad, f'key_blocks["{bpy.utils.escape_identifier(kb.name)}"].value')
+
+
+def shape_key_sequence(obj, frames, *, skip_prefixes=("FL_",)):
+    """(T,V,3) float32 object-local positions of a shape-key-animated mesh, without frame_set.
+
+    Evaluates each key's value F-curve at ``frames`` and mixes
+    ``basis + sum_k value_k (key_k - relative_k)``, honouring mute,
+    slider limits and relative keys. Keys whose name starts with one of
+    ``skip_prefixes`` (FaceLab's own output) are left out.
+
+    Returns ``None`` when this fast path does not apply (modifiers that
+    deform, drivers, vertex-group-masked keys, absolute keys): use frame-by-frame
+    evaluation then.
+    """
+    key = obj.data.shape_keys
+    frames = np.asarray(frames, dtype=np.float64)
+    n = len(obj.data.vertices)
+    if any(m.show_viewport for m in obj.modifiers):
+        return None
+    if key is None:
+        co = np.empty(n * 3, np.float32)
+        obj.data.vertices.foreach_get("co", co)
+        return np.broadcast_to(co.reshape(1, n, 3), (len(frames), n, 3)).copy()
+    if not key.use_relative:
+        return None
+    ad = key.animation_data
+    if ad is not None and len(ad.drivers):
+        return None
+    basis = key.reference_key
+
+    def coords(kb):
+        c = np.empty(n * 3, np.float32)
+        kb.data.foreach_get("co", c)
+        return c
+
+    base = coords(basis)
+    deltas, weights = [], []
+    for kb in key.key_blocks:
+        if kb == basis or kb.mute or kb.name.startswith(tuple(skip_prefixes)):
+            continue
+        if kb.vertex_group:
+            return None
+        fc = _fcurve_for_key(key, kb)
+        if fc is not None and not fc.mute:
+            w = np.array([fc.evaluate(f) for f in frames])
+        else:
+            w = np.full(len(frames), kb.value)
+        w = np.clip(w, kb.slider_min, kb.slider_max)
+        if not np.any(w):
+            continue
+        deltas.append(coords(kb) - coords(kb.relative_key))
+        weights.append(w)
+    out = np.broadcast_to(base, (len(frames), n * 3)).copy()
+    if deltas:
+        out += (np.stack(weights, 1).astype(np.float32) @ np.stack(deltas)).astype(np.float32)
+    return out.reshape(len(frames), n, 3)
+
+
+def remove_keys(obj, prefix: str) -> int:
+    """Remove the shape keys named ``prefix*`` and their F-curves (FaceLab's own output only)."""
+    key = obj.data.shape_keys
+    if key is None:
+        return 0
+    names = [kb.name for kb in key.key_blocks if kb.name.startswith(prefix)]
+    ad = key.animation_data
+    for name in names:
+        if ad is not None and ad.action is not None:
+            cb = _channelbag(ad, create=False)
+            path = f'key_blocks["{bpy.utils.escape_identifier(name)}"].value'
+            fc = cb.fcurves.find(path) if cb is not None else None
+            if fc is not None:
+                cb.fcurves.remove(fc)
+        obj.shape_key_remove(key.key_blocks[name])
+    return len(names)
+
+
+def _channelbag(anim_data, create: bool):
+    """The channelbag of the assigned action slot (Blender 4.4+), creating the slot if asked."""
+    from bpy_extras import anim_utils
+
+    action = anim_data.action
+    slot = anim_data.action_slot
+    if slot is None:
+        if not create:
+            return None
+        slot = action.slots.new(id_type="KEY", name=anim_data.id_data.name)
+        anim_data.action_slot = slot
+    if create:
+        return anim_utils.action_ensure_channelbag_for_slot(action, slot)
+    return anim_utils.action_get_channelbag_for_slot(action, slot)
+
+
+def key_values_bulk(obj, names, frames, values, action_name: str = "FL_Correctives") -> None:
+    """Key ``values`` (T,K) on ``frames`` (T,) for shape keys ``names`` (K,) in one bulk insert each.
+
+    Uses the Blender 5.0 channelbag API (``keyframe_points.add`` +
+    ``foreach_set``), linear interpolation. An existing action on the shape
+    keys (the artist's animation) is kept; only these keys' F-curves are
+    (re)written.
+    """
+    key = obj.data.shape_keys
+    ad = key.animation_data or key.animation_data_create()
+    if ad.action is None:
+        ad.action = bpy.data.actions.new(action_name)
+    cb = _channelbag(ad, create=True)
+    f = np.asarray(frames, dtype=np.float32)
+    V = np.asarray(values, dtype=np.float32).reshape(len(f), len(names))
+    lin = bpy.types.Keyframe.bl_rna.properties["interpolation"].enum_items["LINEAR"].value
+    for k, name in enumerate(names):
+        path = f'key_blocks["{bpy.utils.escape_identifier(name)}"].value'
+        fc = cb.fcurves.find(path)
+        if fc is not None:
+            cb.fcurves.remove(fc)
+        fc = cb.fcurves.new(path)
+        fc.keyframe_points.add(len(f))
+        co = np.empty(2 * len(f), np.float32)
+        co[0::2], co[1::2] = f, V[:, k]
+        fc.keyframe_points.foreach_set("co", co)
+        fc.keyframe_points.foreach_set("interpolation", np.full(len(f), lin, np.int32))
+        fc.update()
+
+
+def add_keys_from_deltas(obj, prefix: str, deltas) -> list:
+    """Add shape keys ``prefix00``, ``prefix01``... = Basis + deltas[i] (R,V,3), object-local units."""
+    names = []
+    for i, d in enumerate(np.asarray(deltas)):
+        kb = add_corrective_key(obj, f"{prefix}{i:02d}", d)
+        kb.slider_min, kb.slider_max = -10.0, 10.0
+        names.append(kb.name)
+    return names

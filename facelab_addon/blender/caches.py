@@ -1,0 +1,751 @@
+"""Captured sequences in Blender: read them (T,V,3), bake them to PC2 / MDD / Alembic.
+
+A captured performance reaches Blender in one of three ways:
+
+- **shape keys** animated on the timeline (one key per frame, or a solve);
+- a **Mesh Cache** modifier playing a PC2 or MDD file;
+- a **Mesh Sequence Cache** modifier playing an Alembic file.
+
+``sequence_source`` tells which. ``read_mesh_cache_frames`` reads a Mesh
+Cache's file directly (``core.cachefile``), mapping scene frames to samples
+exactly as the modifier does; ``evaluate_frames`` is the generic path (one
+``frame_set`` and evaluated mesh per frame) for everything else, with
+FaceLab's own corrective keys (``FL_*``) muted so it returns the *capture*.
+
+Corrective shape keys only show on top of a cache when the cache does not
+overwrite them: ``cache_to_shape_key_ready`` switches a Mesh Cache to
+``deform_mode='INTEGRATE'`` and, for Alembic (whose modifier always replaces
+the positions), bakes the capture to a PC2 file, turns the Mesh Sequence
+Cache off (it is kept) and plays the PC2 with an INTEGRATE Mesh Cache in its
+place. Note: in INTEGRATE mode Blender carries a key's offset in the local
+frame of the cache's surface (rotated with the head, scaled with the face);
+``core.cachefile.integrate_matrices`` gives that map, and
+``integrate_offsets_to_key`` the key offsets that show a wanted correction.
+
+All positions are object-local (shape-key space), float32, scene units.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+from pathlib import Path
+
+import bpy
+import numpy as np
+
+from ..core import cachefile
+from ..core.errors import FaceLabError, MeshError
+
+__all__ = [
+    "sequence_source",
+    "mesh_cache_modifier",
+    "mesh_cache_direct_read_problem",
+    "read_mesh_cache_frames",
+    "read_captured_frames",
+    "evaluate_frames",
+    "bake_pc2",
+    "bake_mdd",
+    "bake_alembic",
+    "cache_to_shape_key_ready",
+    "scene_fps",
+]
+
+FACELAB_PREFIXES = ("FL_",)
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _prefixes(p):
+    if p is None:
+        return ()
+    if isinstance(p, str):
+        return (p,)
+    return tuple(p)
+
+
+def _frames(scene_frames) -> np.ndarray:
+    f = np.asarray(list(scene_frames) if not isinstance(scene_frames, np.ndarray) else scene_frames, dtype=np.float64)
+    f = f.reshape(-1)
+    if len(f) == 0:
+        raise FaceLabError("No frames given; pass the scene frames to read (for example range(1, 251)).")
+    if not np.isfinite(f).all():
+        raise FaceLabError("Scene frames must be finite numbers.")
+    return f
+
+
+def scene_fps(scene=None) -> float:
+    """Frames per second of ``scene``: ``render.fps / render.fps_base``."""
+    scene = scene or bpy.context.scene
+    return float(scene.render.fps) / float(scene.render.fps_base)
+
+
+def _require_mesh_object(obj):
+    if obj is None or obj.type != "MESH":
+        raise MeshError("No mesh object: select the captured face mesh.")
+    return obj
+
+
+def _enabled(md) -> bool:
+    return bool(md.show_viewport)
+
+
+def _mesh_cache_active(md) -> bool:
+    return md.type == "MESH_CACHE" and _enabled(md) and bool(md.filepath) and md.factor > 0.0
+
+
+def _msc_active(md) -> bool:
+    return md.type == "MESH_SEQUENCE_CACHE" and _enabled(md) and md.cache_file is not None
+
+
+def _cache_path(obj, md) -> str:
+    return bpy.path.abspath(md.filepath, library=obj.library)
+
+
+def _anim_fcurves(id_data):
+    """F-curves and drivers of an ID (Blender 5.0 layered actions and older)."""
+    ad = getattr(id_data, "animation_data", None)
+    if ad is None:
+        return []
+    out = list(ad.drivers)
+    action = ad.action
+    if action is not None:
+        fcurves = None
+        try:
+            from bpy_extras import anim_utils
+
+            cb = anim_utils.action_get_channelbag_for_slot(action, getattr(ad, "action_slot", None))
+            fcurves = cb.fcurves if cb is not None else []
+        except Exception:
+            fcurves = getattr(action, "fcurves", None) or []
+        out.extend(fcurves)
+    return out
+
+
+def _key_name_from_path(path: str):
+    if path.startswith('key_blocks["'):
+        end = path.find('"]')
+        return path[len('key_blocks["') : end].replace('\\"', '"') if end > 0 else None
+    return None
+
+
+def _shape_keys_animated(obj, ignore_prefixes=FACELAB_PREFIXES) -> bool:
+    keys = obj.data.shape_keys if obj.type == "MESH" else None
+    if keys is None or len(keys.key_blocks) < 2:
+        return False
+    pref = _prefixes(ignore_prefixes)
+    for fc in _anim_fcurves(keys):
+        if fc.data_path == "eval_time":
+            return True
+        name = _key_name_from_path(fc.data_path)
+        if name is not None and not name.startswith(pref):
+            return True
+    return False
+
+
+@contextlib.contextmanager
+def _muted_shape_keys(obj, prefixes):
+    """Mute the shape keys whose names start with ``prefixes``; restore on exit."""
+    pref = _prefixes(prefixes)
+    keys = obj.data.shape_keys if obj.type == "MESH" else None
+    saved = []
+    try:
+        if keys is not None and pref:
+            for kb in keys.key_blocks:
+                if kb.name.startswith(pref) and kb != keys.reference_key:
+                    saved.append((kb, kb.mute))
+                    kb.mute = True
+        yield
+    finally:
+        for kb, mute in saved:
+            kb.mute = mute
+
+
+@contextlib.contextmanager
+def _disabled_modifiers(mods):
+    """Turn ``show_viewport`` off for ``mods``; restore on exit."""
+    saved = [(m, m.show_viewport) for m in mods]
+    try:
+        for m in mods:
+            m.show_viewport = False
+        yield
+    finally:
+        for m, v in saved:
+            m.show_viewport = v
+
+
+@contextlib.contextmanager
+def _kept_frame(scene):
+    frame, sub = scene.frame_current, scene.frame_subframe
+    try:
+        yield
+    finally:
+        scene.frame_set(frame, subframe=sub)
+
+
+def _set_frame(scene, f: float):
+    fi = math.floor(f)
+    scene.frame_set(int(fi), subframe=float(f - fi))
+
+
+def _iter_evaluated(obj, frames, *, mute_prefixes=(), progress=None, scene=None):
+    """Yield ``(i, co (V,3) float32)`` of the evaluated mesh on each frame.
+
+    Shape keys with ``mute_prefixes`` are muted and the current frame is
+    restored when the iteration ends (also on errors or early exit).
+    """
+    scene = scene or bpy.context.scene
+    n = len(obj.data.vertices)
+    if bpy.context.view_layer.objects.get(obj.name) is None:
+        raise MeshError(
+            f"'{obj.name}' is not in the active view layer, so Blender does not evaluate it; "
+            "link it to a collection of this scene (and do not exclude that collection)."
+        )
+    T = len(frames)
+    buf = np.empty(n * 3, dtype=np.float32)
+    with _kept_frame(scene), _muted_shape_keys(obj, mute_prefixes):
+        for i, f in enumerate(frames):
+            _set_frame(scene, float(f))
+            dg = bpy.context.evaluated_depsgraph_get()
+            ev = obj.evaluated_get(dg)
+            me = ev.to_mesh()
+            try:
+                m = len(me.vertices)
+                if m != n:
+                    raise MeshError(
+                        f"On frame {f:g} the evaluated '{obj.name}' has {m} vertices instead of {n}; "
+                        "disable modifiers that add or remove vertices (Subdivision, Decimate...) or use a "
+                        "cache with the mesh's topology."
+                    )
+                me.vertices.foreach_get("co", buf)
+            finally:
+                ev.to_mesh_clear()
+            if progress is not None:
+                progress(i, T)
+            yield i, buf.reshape(n, 3)
+
+
+# --------------------------------------------------------------------------- what animates the mesh
+
+
+def sequence_source(obj, *, ignore_prefixes=FACELAB_PREFIXES) -> str:
+    """How the captured performance animates ``obj``.
+
+    Parameters
+    ----------
+    obj : bpy.types.Object
+    ignore_prefixes : tuple of str
+        Shape keys with these name prefixes (FaceLab's correctives) do not
+        count as captured animation.
+
+    Returns
+    -------
+    str
+        ``"mesh_sequence_cache"`` or ``"mesh_cache"`` when the last enabled
+        (viewport) cache modifier of the stack is an Alembic Mesh Sequence
+        Cache or a PC2/MDD Mesh Cache (with a file and factor > 0);
+        ``"shape_keys"`` when shape keys other than the ignored ones are
+        animated (F-curves or drivers on their values, or on ``eval_time``);
+        otherwise ``"static"`` (nothing FaceLab recognises; other animation,
+        an armature for instance, still works with ``evaluate_frames``).
+    """
+    _require_mesh_object(obj)
+    for md in reversed(obj.modifiers):
+        if _msc_active(md):
+            return "mesh_sequence_cache"
+        if _mesh_cache_active(md):
+            return "mesh_cache"
+    if _shape_keys_animated(obj, ignore_prefixes):
+        return "shape_keys"
+    return "static"
+
+
+def mesh_cache_modifier(obj):
+    """The last enabled Mesh Cache modifier of ``obj`` (with a file), or None."""
+    for md in reversed(obj.modifiers):
+        if _mesh_cache_active(md):
+            return md
+    return None
+
+
+def _msc_modifier(obj):
+    for md in reversed(obj.modifiers):
+        if _msc_active(md):
+            return md
+    return None
+
+
+def mesh_cache_direct_read_problem(obj, md=None, *, mute_prefixes=FACELAB_PREFIXES):
+    """Why the Mesh Cache of ``obj`` cannot be read straight from its file (None if it can).
+
+    The direct read reproduces the modifier's output, which is the final mesh
+    when: the modifier is the last enabled one; in ``'OVERWRITE'`` mode
+    (earlier modifiers and shape keys are overwritten) or in ``'INTEGRATE'``
+    mode with no enabled modifier before it and no unmuted shape keys other
+    than the Basis and the muted ``mute_prefixes`` ones; with factor 1 and
+    no vertex group.
+
+    Returns
+    -------
+    str or None
+        A short reason, used to explain the fall back to ``evaluate_frames``.
+    """
+    md = md or mesh_cache_modifier(obj)
+    if md is None:
+        return "no enabled Mesh Cache modifier with a file"
+    mods = list(obj.modifiers)
+    k = mods.index(md)
+    after = [m.name for m in mods[k + 1 :] if _enabled(m)]
+    if after:
+        return f"enabled modifiers after it ({', '.join(after)})"
+    if md.factor != 1.0:
+        return f"influence {md.factor:g} (not 1)"
+    if md.vertex_group:
+        return f"vertex group '{md.vertex_group}'"
+    if md.deform_mode == "INTEGRATE":
+        before = [m.name for m in mods[:k] if _enabled(m)]
+        if before:
+            return f"Integrate mode with enabled modifiers before it ({', '.join(before)})"
+        keys = obj.data.shape_keys
+        if keys is not None:
+            if not keys.use_relative:
+                return "Integrate mode with absolute shape keys"
+            pref = _prefixes(mute_prefixes)
+            live = [
+                kb.name
+                for kb in keys.key_blocks
+                if kb != keys.reference_key and not kb.mute and not kb.name.startswith(pref)
+            ]
+            if live:
+                return f"Integrate mode with other shape keys ({', '.join(live[:3])})"
+    return None
+
+
+def read_mesh_cache_frames(obj, scene_frames, *, modifier=None, mute_shape_keys_prefix=FACELAB_PREFIXES, progress=None):
+    """Positions a Mesh Cache (PC2/MDD) modifier gives ``obj`` on scene frames, read from its file.
+
+    Maps every scene frame to cache samples exactly as the modifier does
+    (``play_mode``, ``time_mode`` FRAME/TIME/FACTOR, ``frame_start``,
+    ``frame_scale``, ``interpolation``, scene fps and time remapping, the
+    axis matrix) and reads only the samples needed. Equals the evaluated
+    mesh with FaceLab's keys muted to float32 rounding (verified in
+    ``tests/blender/test_caches.py``). When the stack is one the direct
+    read cannot reproduce (see ``mesh_cache_direct_read_problem``), falls
+    back to ``evaluate_frames``.
+
+    Parameters
+    ----------
+    obj : bpy.types.Object
+        Mesh object with a Mesh Cache modifier.
+    scene_frames : (T,) array_like of float
+        Scene frames (a fractional part is a subframe).
+    modifier : bpy.types.MeshCacheModifier, optional
+        Default: the last enabled Mesh Cache of the stack.
+    mute_shape_keys_prefix : tuple of str
+        Keys muted by the evaluation fallback (FaceLab's correctives).
+    progress : callable(i, T), optional
+        Called by the evaluation fallback.
+
+    Returns
+    -------
+    (T,V,3) float32 ndarray
+        Object-local positions, scene units.
+
+    Raises
+    ------
+    MeshError
+        No Mesh Cache modifier.
+    cachefile.CacheFileError
+        Missing/bad file or a vertex count that does not match the mesh.
+    """
+    _require_mesh_object(obj)
+    frames = _frames(scene_frames)
+    md = modifier or mesh_cache_modifier(obj)
+    if md is None:
+        raise MeshError(
+            f"'{obj.name}' has no enabled Mesh Cache modifier with a file; add one (PC2 or MDD) or "
+            "read the animation with evaluate_frames."
+        )
+    if mesh_cache_direct_read_problem(obj, md, mute_prefixes=mute_shape_keys_prefix) is not None:
+        return evaluate_frames(obj, frames, mute_shape_keys_prefix=mute_shape_keys_prefix, progress=progress)
+    scene = bpy.context.scene
+    path = _cache_path(obj, md)
+    info = cachefile.cache_info(path, md.cache_format)
+    cachefile.check_vertex_count(info, len(obj.data.vertices), name=f"'{obj.name}'")
+    r = scene.render
+    i0, i1, w = cachefile.mesh_cache_samples(
+        frames,
+        info,
+        fps=scene_fps(scene),
+        time_mode=md.time_mode,
+        play_mode=md.play_mode,
+        frame_start=md.frame_start,
+        frame_scale=md.frame_scale,
+        interpolation=md.interpolation,
+        eval_frame=md.eval_frame,
+        eval_time=md.eval_time,
+        eval_factor=md.eval_factor,
+        frame_length=np.float32(r.frame_map_old) / np.float32(r.frame_map_new),  # measured: old/new
+    )
+    mm = cachefile.read_cache(path, fmt=md.cache_format, mmap=True)
+    out = cachefile.blend_samples(mm, i0, i1, w)
+    del mm
+    M = cachefile.axis_conversion_matrix(md.forward_axis, md.up_axis, tuple(md.flip_axis))
+    if not np.array_equal(M, np.eye(3)):
+        Mf = M.astype(np.float32)
+        for t in range(len(out)):
+            out[t] = out[t] @ Mf.T
+    return out
+
+
+def evaluate_frames(obj, scene_frames, *, mute_shape_keys_prefix=FACELAB_PREFIXES, progress=None) -> np.ndarray:
+    """Evaluated positions of ``obj`` on scene frames (the generic path: Alembic, rigs, anything).
+
+    Sets every frame (``scene.frame_set``), takes the evaluated mesh (shape
+    keys and modifiers) and reads its vertex positions. Shape keys whose
+    names start with ``mute_shape_keys_prefix`` are muted meanwhile, so the
+    result is the capture without FaceLab's corrections; their mute state
+    and the scene's current frame are restored afterwards, also on errors.
+
+    Parameters
+    ----------
+    obj : bpy.types.Object
+        Mesh object in the active view layer.
+    scene_frames : (T,) array_like of float
+        Scene frames (a fractional part is a subframe).
+    mute_shape_keys_prefix : str or tuple of str
+        Default ``("FL_",)``; ``()`` evaluates the final, corrected mesh.
+    progress : callable(i, T), optional
+        Called after each frame.
+
+    Returns
+    -------
+    (T,V,3) float32 ndarray
+        Object-local positions, scene units.
+
+    Raises
+    ------
+    MeshError
+        When the evaluated vertex count differs from the mesh's on some frame,
+        or the object is not in the view layer.
+    """
+    _require_mesh_object(obj)
+    frames = _frames(scene_frames)
+    out = np.empty((len(frames), len(obj.data.vertices), 3), dtype=np.float32)
+    for i, co in _iter_evaluated(obj, frames, mute_prefixes=mute_shape_keys_prefix, progress=progress):
+        out[i] = co
+    return out
+
+
+def read_captured_frames(obj, scene_frames, *, mute_shape_keys_prefix=FACELAB_PREFIXES, progress=None):
+    """The captured sequence of ``obj`` (without FaceLab's keys), by the fastest exact path.
+
+    A Mesh Cache is read from its file when possible; everything else is
+    evaluated frame by frame.
+
+    Parameters
+    ----------
+    obj : bpy.types.Object
+    scene_frames : (T,) array_like of float
+    mute_shape_keys_prefix : tuple of str
+    progress : callable(i, T), optional
+
+    Returns
+    -------
+    (T,V,3) float32 ndarray
+        Object-local positions, scene units.
+    """
+    if sequence_source(obj, ignore_prefixes=mute_shape_keys_prefix) == "mesh_cache":
+        return read_mesh_cache_frames(
+            obj, scene_frames, mute_shape_keys_prefix=mute_shape_keys_prefix, progress=progress
+        )
+    return evaluate_frames(obj, scene_frames, mute_shape_keys_prefix=mute_shape_keys_prefix, progress=progress)
+
+
+# --------------------------------------------------------------------------- bakes
+
+
+def _uniform_step(frames, what):
+    if len(frames) == 1:
+        return 1.0
+    steps = np.diff(frames)
+    if not (steps > 0).all() or not np.allclose(steps, steps[0], rtol=0, atol=1e-6):
+        raise FaceLabError(
+            f"{what} needs increasing, evenly spaced frames (got steps {np.unique(np.round(steps, 6))[:5].tolist()}); "
+            "bake a range such as range(start, end + 1)."
+        )
+    return float(steps[0])
+
+
+def _bake(obj, frames, writer, progress):
+    try:
+        for _, co in _iter_evaluated(obj, frames, mute_prefixes=(), progress=progress):
+            writer.write(co)
+    except BaseException:
+        writer.abort()
+        raise
+    return writer.close()
+
+
+def bake_pc2(obj, scene_frames, path, *, progress=None, mute_shape_keys_prefix=()) -> Path:
+    """Bake the evaluated (corrected) mesh of ``obj`` over ``scene_frames`` to a PC2 file.
+
+    Positions are object-local. The header's start frame is
+    ``scene_frames[0]`` and its sample rate the frame step. The file is
+    written next to its destination and moved in place at the end, so a
+    failed bake leaves any existing file untouched.
+
+    Parameters
+    ----------
+    obj : bpy.types.Object
+    scene_frames : (T,) array_like of float
+        Increasing, evenly spaced scene frames.
+    path : str or os.PathLike
+        Destination (``//`` paths are relative to the .blend).
+    progress : callable(i, T), optional
+    mute_shape_keys_prefix : tuple of str
+        Keys to leave out (default none: the final mesh).
+
+    Returns
+    -------
+    pathlib.Path
+    """
+    _require_mesh_object(obj)
+    frames = _frames(scene_frames)
+    step = _uniform_step(frames, "A PC2 bake")
+    w = cachefile.PointCacheWriter(
+        bpy.path.abspath(os.fspath(path)), "PC2", len(obj.data.vertices), len(frames),
+        start_frame=float(frames[0]), sample_rate=step,
+    )
+    with _muted_shape_keys(obj, mute_shape_keys_prefix):
+        return _bake(obj, frames, w, progress)
+
+
+def bake_mdd(obj, scene_frames, path, *, progress=None, mute_shape_keys_prefix=()) -> Path:
+    """Bake the evaluated (corrected) mesh of ``obj`` to an MDD file.
+
+    Sample ``i`` gets the time ``scene_frames[i] / fps`` seconds (scene fps),
+    Blender's clock, so a Mesh Cache in ``time_mode='TIME'`` with
+    ``frame_start=0`` plays it back on the same frames.
+
+    Parameters
+    ----------
+    obj : bpy.types.Object
+    scene_frames : (T,) array_like of float
+        Increasing scene frames.
+    path : str or os.PathLike
+    progress : callable(i, T), optional
+    mute_shape_keys_prefix : tuple of str
+
+    Returns
+    -------
+    pathlib.Path
+    """
+    _require_mesh_object(obj)
+    frames = _frames(scene_frames)
+    if len(frames) > 1 and not (np.diff(frames) > 0).all():
+        raise FaceLabError("An MDD bake needs increasing scene frames.")
+    w = cachefile.PointCacheWriter(
+        bpy.path.abspath(os.fspath(path)), "MDD", len(obj.data.vertices), len(frames),
+        times=frames / scene_fps(),
+    )
+    with _muted_shape_keys(obj, mute_shape_keys_prefix):
+        return _bake(obj, frames, w, progress)
+
+
+def bake_alembic(obj, scene_frames, path, *, evaluation_mode="VIEWPORT") -> Path:
+    """Export the evaluated (corrected) animation of ``obj`` alone to an Alembic file.
+
+    Runs ``bpy.ops.wm.alembic_export`` with only ``obj`` selected (works in
+    the headless bpy module without a window), over every frame from
+    ``min(scene_frames)`` to ``max(scene_frames)``. Selection, active object
+    and current frame are restored.
+
+    Parameters
+    ----------
+    obj : bpy.types.Object
+        A visible mesh object in the active view layer.
+    scene_frames : array_like of int
+        Frames to cover (the export is the whole integer range).
+    path : str or os.PathLike
+        Destination ``.abc``.
+    evaluation_mode : {"VIEWPORT", "RENDER"}
+        Which modifier visibility the export uses; ``"VIEWPORT"`` matches
+        ``evaluate_frames``.
+
+    Returns
+    -------
+    pathlib.Path
+
+    Raises
+    ------
+    FaceLabError
+        When the object is hidden or the exporter fails.
+    """
+    _require_mesh_object(obj)
+    frames = _frames(scene_frames)
+    start, end = int(math.floor(frames.min())), int(math.ceil(frames.max()))
+    out = Path(bpy.path.abspath(os.fspath(path)))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    vl = bpy.context.view_layer
+    if vl.objects.get(obj.name) is None or not obj.visible_get():
+        raise FaceLabError(f"'{obj.name}' is hidden or not in this view layer; unhide it to export it to Alembic.")
+    scene = bpy.context.scene
+    prev_sel = [o for o in vl.objects if o.select_get()]
+    prev_active = vl.objects.active
+    try:
+        with _kept_frame(scene):
+            for o in prev_sel:
+                o.select_set(False)
+            obj.select_set(True)
+            vl.objects.active = obj
+            with bpy.context.temp_override(active_object=obj, object=obj, selected_objects=[obj]):
+                res = bpy.ops.wm.alembic_export(
+                    filepath=str(out),
+                    start=start,
+                    end=end,
+                    selected=True,
+                    evaluation_mode=evaluation_mode,
+                    as_background_job=False,
+                    init_scene_frame_range=False,
+                )
+    finally:
+        for o in vl.objects:
+            o.select_set(False)
+        for o in prev_sel:
+            o.select_set(True)
+        vl.objects.active = prev_active
+    if "FINISHED" not in res or not out.is_file():
+        raise FaceLabError(f"Alembic export of '{obj.name}' to '{out}' failed ({res}); check the path is writable.")
+    return out
+
+
+# --------------------------------------------------------------------------- corrective keys on top of caches
+
+
+def _unique_file(path: Path) -> Path:
+    if not path.exists():
+        return path
+    i = 1
+    while True:
+        p = path.with_name(f"{path.stem}.{i:03d}{path.suffix}")
+        if not p.exists():
+            return p
+        i += 1
+
+
+def _unique_modifier_name(obj, base):
+    names = {m.name for m in obj.modifiers}
+    if base not in names:
+        return base
+    i = 1
+    while f"{base}.{i:03d}" in names:
+        i += 1
+    return f"{base}.{i:03d}"
+
+
+def cache_to_shape_key_ready(obj, *, directory=None, scene_frames=None, progress=None) -> str:
+    """Make shape keys (FaceLab's correctives) show on top of ``obj``'s captured cache.
+
+    - Mesh Cache (PC2/MDD): sets its ``deform_mode`` to ``'INTEGRATE'``
+      (in ``'OVERWRITE'`` the cache replaces the keyed positions).
+    - Mesh Sequence Cache (Alembic), which always replaces the positions:
+      bakes the captured sequence (the modifier's output, later modifiers
+      off) to ``<object>_capture.pc2`` in ``directory`` (default: the
+      .blend's folder; never overwriting a file), turns the Alembic modifier
+      off in viewport and render (it is kept) and adds, right after it, a
+      Mesh Cache playing that PC2 in ``'INTEGRATE'`` mode (sample 0 on
+      ``scene_frames[0]``), so the mesh looks the same and keys add on top.
+    - Shape-key animation or a static mesh: nothing to change.
+
+    Nothing is deleted. Keys show *in the local frame* of the cache surface
+    (``core.cachefile.integrate_matrices``).
+
+    Parameters
+    ----------
+    obj : bpy.types.Object
+    directory : str or os.PathLike, optional
+        Where to write the PC2 for an Alembic cache.
+    scene_frames : array_like of float, optional
+        Frames to bake for an Alembic cache, evenly spaced. Default: the
+        scene's frame range.
+    progress : callable(i, T), optional
+
+    Returns
+    -------
+    str
+        What was changed, one sentence, for the operator's report.
+
+    Raises
+    ------
+    MeshError
+        The mesh has no faces (Integrate needs them) or the cache changes the
+        vertex count.
+    FaceLabError
+        Unsaved .blend and no ``directory``.
+    """
+    _require_mesh_object(obj)
+    src = sequence_source(obj)
+    if src in ("mesh_cache", "mesh_sequence_cache") and len(obj.data.polygons) == 0:
+        raise MeshError(f"'{obj.name}' has no faces; the Mesh Cache 'Integrate' mode needs faces to carry shape keys.")
+    if src == "mesh_cache":
+        md = mesh_cache_modifier(obj)
+        if md.deform_mode == "INTEGRATE":
+            return f"Mesh Cache '{md.name}' already integrates shape keys; nothing changed."
+        md.deform_mode = "INTEGRATE"
+        return f"Mesh Cache '{md.name}': deform mode Overwrite -> Integrate, so shape keys now add on top of the cache."
+    if src == "shape_keys":
+        return f"'{obj.name}' is animated by shape keys; corrective keys already add on top. Nothing changed."
+    if src == "static":
+        return f"'{obj.name}' has no captured cache; corrective keys already show. Nothing changed."
+
+    # Alembic
+    msc = _msc_modifier(obj)
+    scene = bpy.context.scene
+    frames = _frames(range(scene.frame_start, scene.frame_end + 1) if scene_frames is None else scene_frames)
+    step = _uniform_step(frames, "Baking the Alembic cache")
+    if directory is None:
+        if not bpy.data.filepath:
+            raise FaceLabError(
+                "Save the .blend first (the capture is baked to a PC2 file next to it), or give a directory."
+            )
+        directory = os.path.dirname(bpy.data.filepath)
+    directory = Path(bpy.path.abspath(os.fspath(directory)))
+    base = bpy.path.clean_name(obj.name) or "capture"
+    path = _unique_file(directory / f"{base}_capture.pc2")
+
+    mods = list(obj.modifiers)
+    k = mods.index(msc)
+    later = [m for m in mods[k + 1 :] if _enabled(m)]
+    w = cachefile.PointCacheWriter(
+        path, "PC2", len(obj.data.vertices), len(frames), start_frame=float(frames[0]), sample_rate=step
+    )
+    with _disabled_modifiers(later):
+        _bake(obj, frames, w, progress)
+
+    msc.show_viewport = False
+    msc.show_render = False
+    mc = obj.modifiers.new(_unique_modifier_name(obj, "FL Capture (PC2)"), "MESH_CACHE")
+    mc.cache_format = "PC2"
+    fp = str(path)
+    if bpy.data.filepath:
+        try:
+            fp = bpy.path.relpath(fp)
+        except ValueError:  # another drive on Windows
+            pass
+    mc.filepath = fp
+    mc.play_mode = "SCENE"
+    mc.time_mode = "FRAME"
+    mc.frame_scale = 1.0 / step
+    mc.frame_start = float(frames[0]) / step  # sample = f/step - f0/step
+    mc.interpolation = "LINEAR"
+    mc.deform_mode = "INTEGRATE"
+    mc.forward_axis, mc.up_axis = "POS_Y", "POS_Z"
+    obj.modifiers.move(len(obj.modifiers) - 1, k + 1)
+    return (
+        f"Baked Alembic modifier '{msc.name}' ({len(frames)} frames, {frames[0]:g}-{frames[-1]:g}) to '{path}', "
+        f"turned it off (kept) and added Mesh Cache '{mc.name}' (PC2, Integrate) after it, "
+        "so shape keys now add on top of the capture."
+    )
