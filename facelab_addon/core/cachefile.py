@@ -68,7 +68,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import FaceLabError, MeshError
+from .errors import CacheFileError, CacheVertexCountError, FaceLabError, MeshError  # noqa: F401
 
 __all__ = [
     "CacheFileError",
@@ -105,14 +105,6 @@ _PC2_HEADER = np.dtype(
     ]
 )
 _FRAME_SNAP_EPS = np.float32(0.0001)  # MOD_meshcache_util.hh
-
-
-class CacheFileError(FaceLabError):
-    """A PC2/MDD file is missing, truncated, of the wrong format or inconsistent."""
-
-
-class CacheVertexCountError(CacheFileError, MeshError):
-    """The cache stores a different number of points than the mesh has vertices."""
 
 
 @dataclass(frozen=True)

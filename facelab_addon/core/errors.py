@@ -23,3 +23,15 @@ class SketchError(FaceLabError):
 
 class DataMissingError(FaceLabError):
     """External data (for example the ICT-FaceKit model) could not be found."""
+
+
+class RegionError(FaceLabError):
+    """The mouth/lip regions are unusable: empty, overlapping, no border, no loop."""
+
+
+class CacheFileError(FaceLabError):
+    """A PC2/MDD file is missing, truncated, of the wrong format or inconsistent."""
+
+
+class CacheVertexCountError(CacheFileError, MeshError):
+    """The cache stores a different number of points than the mesh has vertices."""

@@ -30,11 +30,14 @@ class SPDFactor:
     A : (n,n) sparse matrix
         Symmetric positive definite.
     backend : {"auto", "cholespy", "splu"}
+    what : str
+        Name of the system, for error messages.
     """
 
-    def __init__(self, A, backend: str = "auto"):
+    def __init__(self, A, backend: str = "auto", what: str = "deformation system"):
         A = sp.csr_matrix(A)
         self.n = A.shape[0]
+        self.what = what
         if backend == "auto":
             backend = "cholespy" if _HAVE_CHOLESPY else "splu"
         self.backend = backend
@@ -46,7 +49,8 @@ class SPDFactor:
                 )
             except Exception as e:  # not positive definite
                 raise FaceLabError(
-                    f"The deformation system is singular ({e}); add position weights or fixed vertices."
+                    f"The {what} is singular ({e}); add position weights or fixed vertices, "
+                    "or check the regions for a part with no border."
                 ) from e
         elif backend == "splu":
             from scipy.sparse.linalg import splu
@@ -57,7 +61,8 @@ class SPDFactor:
                 )
             except RuntimeError as e:
                 raise FaceLabError(
-                    f"The deformation system is singular ({e}); add position weights or fixed vertices."
+                    f"The {what} is singular ({e}); add position weights or fixed vertices, "
+                    "or check the regions for a part with no border."
                 ) from e
         else:
             raise ValueError(f"unknown backend {backend!r}")
@@ -73,7 +78,7 @@ class SPDFactor:
         else:
             X = self._lu.solve(B2)
         if not np.all(np.isfinite(X)):
-            raise FaceLabError("The deformation system is singular; add position weights or fixed vertices.")
+            raise FaceLabError(f"The {self.what} is singular; add position weights or fixed vertices.")
         return X.ravel() if one else X
 
 

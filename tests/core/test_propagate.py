@@ -1,0 +1,230 @@
+"""Regression propagation of lip corrections (Dinev et al. 2018 §4)."""
+
+import numpy as np
+import pytest
+import scipy.sparse.linalg as spla
+
+from facelab_addon.core.errors import DataMissingError, FaceLabError, MeshError
+from facelab_addon.core.gradients import deformation_gradients
+from facelab_addon.core.propagate import LipRegressor, poisson_operator, suggest_frames
+from facelab_addon.core.regions import RegionError, faces_in_region, region_border
+
+NX, NY = 24, 16
+LIP_ROWS = (6, 9)  # lip region: rows 6..9, border rows 6 and 9
+
+
+def grid(bumpy=False):
+    x, y = np.meshgrid(np.arange(NX, dtype=float), np.arange(NY, dtype=float), indexing="ij")
+    z = 0.8 * np.sin(0.3 * x) * np.cos(0.25 * y) if bumpy else np.zeros_like(x)
+    V = np.stack([x, y, z], -1).reshape(-1, 3)
+    F = []
+    for i in range(NX - 1):
+        for j in range(NY - 1):
+            a, b, c, d = i * NY + j, (i + 1) * NY + j, (i + 1) * NY + j + 1, i * NY + j + 1
+            F += [[a, b, c], [a, c, d]]
+    F = np.array(F)
+    y = V[:, 1]
+    lips = (y >= LIP_ROWS[0]) & (y <= LIP_ROWS[1])
+    mouth = (y <= LIP_ROWS[0]) | (y >= LIP_ROWS[1])
+    return V, F, faces_in_region(F, mouth), faces_in_region(F, lips)
+
+
+def row_shift(V, f):
+    """x += f(y): on this grid every triangle keeps its area, so gradients are linear in f."""
+    out = V.copy()
+    out[:, 0] += f(V[:, 1])
+    return out
+
+
+fA = lambda y: 0.3 * np.sin(0.4 * y)  # noqa: E731
+fB = lambda y: 0.2 * (y / NY) ** 2 + 0.05 * y  # noqa: E731
+fD = lambda y: 0.25 * np.cos(0.7 * y)  # noqa: E731  (not in span{fA, fB})
+
+
+def lip_bump(V):
+    """A capture error on the interior lip rows (z bump), zero on the border rows."""
+    e = np.zeros_like(V)
+    inner = (V[:, 1] > LIP_ROWS[0]) & (V[:, 1] < LIP_ROWS[1])
+    e[inner, 2] = 0.3 * np.sin(np.pi * V[inner, 0] / (NX - 1))
+    return e
+
+
+def smooth_random_deformation(V, seed):
+    rng = np.random.default_rng(seed)
+    c = rng.standard_normal((4, 3)) * 0.3
+    x, y = V[:, 0] / NX, V[:, 1] / NY
+    basis = np.stack([np.sin(3 * x + 1), np.cos(2 * y), x * y, np.sin(2 * x) * np.cos(3 * y)], 1)
+    return V + basis @ c
+
+
+# ---------------------------------------------------------------- Poisson
+
+
+def test_poisson_solve_from_own_gradients_reproduces_the_mesh():
+    V, F, _, lips = grid(bumpy=True)
+    D = smooth_random_deformation(V, 1)
+    G = deformation_gradients(V, D, F[lips])
+    L, Div = poisson_operator(V, F, lips)
+    border = region_border(F, lips, len(V))
+    inner = np.setdiff1d(np.unique(F[lips]), border)
+    rhs = Div[inner] @ G.transpose(0, 2, 1).reshape(-1, 3) - L[inner][:, border] @ D[border]
+    X = np.column_stack([spla.spsolve(L[inner][:, inner].tocsc(), rhs[:, c]) for c in range(3)])
+    np.testing.assert_allclose(X, D[inner], atol=1e-10)
+    # L is the cotangent Laplacian of the region: L @ rest = div of identity gradients, and L 1 = 0
+    assert np.abs(L @ np.ones(len(V))).max() < 1e-12
+
+
+def test_training_frames_are_reproduced_exactly_and_outside_is_untouched():
+    V, F, mouth, lips = grid(bumpy=True)
+    train = np.stack([smooth_random_deformation(V, s) for s in range(3)])
+    reg = LipRegressor(V, F, mouth, lips).fit(train)
+    cap = train + np.stack([lip_bump(V)] * 3)
+    out = reg.predict(cap)
+    np.testing.assert_allclose(out, train, atol=1e-9)
+    assert np.abs(out - cap).max() > 0.1  # the capture error was really removed
+    # vertices outside the interior lip vertices are returned bit-for-bit, border included
+    keep = np.setdiff1d(np.arange(len(V)), reg.interior_vertices)
+    assert np.array_equal(out[:, keep], cap[:, keep])
+    assert set(reg.border_vertices.tolist()) == set(np.flatnonzero(np.isin(V[:, 1], LIP_ROWS)).tolist())
+    np.testing.assert_allclose(reg.extrapolation(train), 0.0, atol=1e-9)
+
+
+@pytest.mark.parametrize(
+    "kwargs, a, b",
+    [({}, 0.3, 0.6), ({"patches": 1}, 0.3, 0.6), ({"patches": 1, "center": None}, 0.4, 0.6)],
+    ids=["local-patches", "global", "paper-uncentred"],
+)
+def test_regression_is_exact_in_the_span_of_the_training_frames(kwargs, a, b):
+    V, F, mouth, lips = grid()
+    reg = LipRegressor(V, F, mouth, lips, **kwargs).fit([row_shift(V, fA), row_shift(V, fB)])
+    # the uncentred paper model spans affine combinations (a + b = 1); the rest-centred one any
+    truth = row_shift(V, lambda y: a * fA(y) + b * fB(y))
+    cap = truth + lip_bump(V)
+    np.testing.assert_allclose(reg.predict(cap)[0], truth, atol=1e-9)
+    np.testing.assert_allclose(reg.predict_lip_gradients(cap)[0], deformation_gradients(V, truth, F[lips]), atol=1e-9)
+    assert reg.extrapolation(cap)[0] < 1e-9
+    # a frame outside the span is not reproduced (the test above can fail)
+    other = row_shift(V, fD)
+    assert np.abs(reg.predict(other + lip_bump(V))[0] - other).max() > 1e-3
+    assert reg.extrapolation(other)[0] > 0.05
+
+
+def test_extrapolation_is_scale_free_and_grows_outside_the_span():
+    V, F, mouth, lips = grid()
+    frames = [row_shift(V, fA), row_shift(V, fB)]
+    e = []
+    for s in (1.0, 100.0):
+        reg = LipRegressor(V * s, F, mouth, lips).fit(np.stack(frames) * s)
+        e.append(reg.extrapolation(np.stack([frames[0], row_shift(V, fD), row_shift(V, lambda y: 2 * fD(y))]) * s))
+    np.testing.assert_allclose(e[0], e[1], rtol=1e-6, atol=1e-12)
+    assert e[0][0] < 1e-9 and 0 < e[0][1] < e[0][2]
+
+
+def test_incremental_add_equals_refit():
+    V, F, mouth, lips = grid(bumpy=True)
+    train = np.stack([smooth_random_deformation(V, s) for s in range(4)])
+    test = np.stack([smooth_random_deformation(V, s) for s in (10, 11)]) + lip_bump(V)
+    full = LipRegressor(V, F, mouth, lips).fit(train)
+    inc = LipRegressor(V, F, mouth, lips).fit(train[:1])
+    inc.add(train[1]).add(train[2:])
+    assert inc.k == full.k == 4
+    np.testing.assert_allclose(inc.predict(test), full.predict(test), atol=1e-10)
+    np.testing.assert_allclose(inc.extrapolation(test), full.extrapolation(test), atol=1e-10)
+    # add() on an empty regressor is fit()
+    np.testing.assert_allclose(LipRegressor(V, F, mouth, lips).add(train).predict(test), full.predict(test), atol=1e-10)
+
+
+def test_chunks_in_place_and_solver_backends_agree():
+    V, F, mouth, lips = grid(bumpy=True)
+    train = np.stack([smooth_random_deformation(V, s) for s in range(3)])
+    cap = np.stack([smooth_random_deformation(V, s) + lip_bump(V) for s in range(5, 10)])
+    reg = LipRegressor(V, F, mouth, lips).fit(train)
+    ref = reg.predict(cap)
+    np.testing.assert_allclose(reg.predict(cap, chunk=2), ref, atol=1e-12)
+    buf = cap.copy()
+    assert reg.predict(buf, out=buf) is buf
+    np.testing.assert_allclose(buf, ref, atol=1e-12)
+    lu = LipRegressor(V, F, mouth, lips, backend="splu").fit(train)
+    np.testing.assert_allclose(lu.predict(cap), ref, atol=1e-9)
+    assert reg.predict(cap[0]).shape == (1,) + V.shape
+    loo = LipRegressor(V, F, mouth, lips, ridge="loo").fit(train)
+    assert all(r >= 0 for r in loo.ridges_used)
+
+
+def test_suggest_frames_picks_extreme_and_new_poses():
+    V, F, mouth, lips = grid()
+    seq = np.stack([row_shift(V, lambda y, w=w: w * fA(y)) for w in (0.1, 0.2, 0.3, 0.4, 0.5)]
+                   + [row_shift(V, lambda y, w=w: w * fB(y)) for w in (0.1, 0.2, 0.3)])
+    kw = dict(rest_vertices=V, faces=F, mouth_faces=mouth)
+    # most extreme pose first, then the largest pose outside its span; nothing else is new
+    np.testing.assert_array_equal(suggest_frames(seq, 3, **kw), [4, 7])
+    np.testing.assert_array_equal(suggest_frames(seq, 1, exclude=[4], **kw), [7])
+    reg = LipRegressor(V, F, mouth, lips).fit(seq[4])
+    np.testing.assert_array_equal(suggest_frames(seq, 1, regressor=reg), [7])
+    assert np.argmax(reg.extrapolation(seq)) == 7
+    with pytest.raises(FaceLabError, match="rest_vertices, faces and mouth_faces"):
+        suggest_frames(seq, 1)
+
+
+def test_errors_name_the_problem_and_the_fix():
+    V, F, mouth, lips = grid()
+    reg = LipRegressor(V, F, mouth, lips)
+    with pytest.raises(FaceLabError, match="call fit"):
+        reg.predict(V)
+    with pytest.raises(FaceLabError, match="at least one frame"):
+        reg.fit(np.zeros((0,) + V.shape))
+    with pytest.raises(MeshError, match="topology differs"):
+        reg.fit(V[None, :-1])
+    bad = V.copy()
+    bad[F[lips[0], 0], 2] = np.nan
+    with pytest.raises(MeshError, match="NaN.*frames \\[1\\]"):
+        reg.fit(np.stack([V, bad]))
+    reg.fit(V[None])
+    with pytest.raises(MeshError, match="topology differs"):
+        reg.predict(np.zeros((2, len(V) + 1, 3)))
+    with pytest.raises(RegionError, match="inner-lip region is empty"):
+        LipRegressor(V, F, mouth, [])
+    with pytest.raises(RegionError, match="overlap"):
+        LipRegressor(V, F, mouth, np.r_[lips, mouth[:3]])
+    tet_v = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]]) + 50.0
+    tet_f = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]) + len(V)
+    with pytest.raises(RegionError, match="no border"):  # the lip region is a whole closed piece
+        LipRegressor(np.r_[V, tet_v], np.r_[F, tet_f], mouth, np.arange(len(F), len(F) + 4))
+    degen = V.copy()
+    degen[F[lips[5], 1]] = degen[F[lips[5], 0]]
+    with pytest.raises(MeshError, match="degenerate"):
+        LipRegressor(degen, F, mouth, lips)
+
+
+# ---------------------------------------------------------------- ICT-FaceKit
+
+
+@pytest.fixture(scope="module")
+def ict():
+    from facelab_addon.core import regions
+    from facelab_addon.core.ict import load_ict
+
+    try:
+        m = load_ict()
+    except DataMissingError as e:  # pragma: no cover
+        pytest.skip(str(e))
+    mouth, lip = regions.auto_regions(m.neutral, m.faces)
+    return m, faces_in_region(m.faces, mouth), faces_in_region(m.faces, lip), lip
+
+
+def test_ict_blend_of_training_poses_is_corrected(ict):
+    m, mf, lf, lip = ict
+    poses = [{"jawOpen": 0.4}, {"mouthSmile_L": 0.6, "mouthSmile_R": 0.6}, {"mouthPucker": 0.5},
+             {"mouthPress_L": 0.5, "mouthPress_R": 0.5}]
+    train = np.stack([m.pose(p) for p in poses])
+    reg = LipRegressor(m.neutral, m.faces, mf, lf).fit(train)
+    truth = m.pose({"jawOpen": 0.2, "mouthSmile_L": 0.3, "mouthSmile_R": 0.3})  # in span up to gradient nonlinearity
+    err = np.zeros_like(truth)
+    err[lip, 1] = 0.1 * np.sign(truth[lip, 1] - truth[lip, 1].mean())  # lips pulled 1 mm apart
+    inner = np.setdiff1d(np.flatnonzero(lip), reg.border_vertices)
+    err[np.setdiff1d(np.arange(len(truth)), inner)] = 0.0
+    out = reg.predict(truth + err)[0]
+    rms = lambda d: np.sqrt(np.mean(np.sum(d[lip] ** 2, axis=1)))  # noqa: E731
+    assert rms(out - truth) < 0.03 * rms(err)
+    e = reg.extrapolation(np.stack([truth, m.pose({"mouthFunnel": 0.6})]))
+    assert e[0] < 0.1 < e[1]
