@@ -12,6 +12,7 @@ __all__ = [
     "shape_key_sequence",
     "remove_keys",
     "key_values_bulk",
+    "key_property_bulk",
     "add_keys_from_deltas",
 ]
 
@@ -174,41 +175,46 @@ def _channelbag(anim_data, create: bool):
     if slot is None:
         if not create:
             return None
-        slot = action.slots.new(id_type="KEY", name=anim_data.id_data.name)
+        idd = anim_data.id_data
+        slot = action.slots.new(id_type=idd.id_type, name=idd.name)
         anim_data.action_slot = slot
     if create:
         return anim_utils.action_ensure_channelbag_for_slot(action, slot)
     return anim_utils.action_get_channelbag_for_slot(action, slot)
 
 
-def key_values_bulk(obj, names, frames, values, action_name: str = "FL_Correctives") -> None:
-    """Key ``values`` (T,K) on ``frames`` (T,) for shape keys ``names`` (K,) in one bulk insert each.
+def key_property_bulk(id_data, data_path: str, frames, values, action_name: str = "FL_Correctives") -> None:
+    """Key ``values`` (T,) of ``id_data.<data_path>`` on ``frames`` (T,) in one bulk insert.
 
     Uses the Blender 5.0 channelbag API (``keyframe_points.add`` +
-    ``foreach_set``), linear interpolation. An existing action on the shape
-    keys (the artist's animation) is kept; only these keys' F-curves are
-    (re)written.
+    ``foreach_set``) with linear interpolation. An existing action (the
+    artist's animation) is kept; only this one F-curve is (re)written.
     """
-    key = obj.data.shape_keys
-    ad = key.animation_data or key.animation_data_create()
+    ad = id_data.animation_data or id_data.animation_data_create()
     if ad.action is None:
         ad.action = bpy.data.actions.new(action_name)
     cb = _channelbag(ad, create=True)
     f = np.asarray(frames, dtype=np.float32)
-    V = np.asarray(values, dtype=np.float32).reshape(len(f), len(names))
+    v = np.asarray(values, dtype=np.float32).reshape(len(f))
+    fc = cb.fcurves.find(data_path)
+    if fc is not None:
+        cb.fcurves.remove(fc)
+    fc = cb.fcurves.new(data_path)
+    fc.keyframe_points.add(len(f))
+    co = np.empty(2 * len(f), np.float32)
+    co[0::2], co[1::2] = f, v
+    fc.keyframe_points.foreach_set("co", co)
     lin = bpy.types.Keyframe.bl_rna.properties["interpolation"].enum_items["LINEAR"].value
+    fc.keyframe_points.foreach_set("interpolation", np.full(len(f), lin, np.int32))
+    fc.update()
+
+
+def key_values_bulk(obj, names, frames, values) -> None:
+    """Key shape-key values ``values`` (T,K) on ``frames`` (T,) for keys ``names`` (K,), in bulk."""
+    key = obj.data.shape_keys
+    V = np.asarray(values, dtype=np.float32).reshape(len(frames), len(names))
     for k, name in enumerate(names):
-        path = f'key_blocks["{bpy.utils.escape_identifier(name)}"].value'
-        fc = cb.fcurves.find(path)
-        if fc is not None:
-            cb.fcurves.remove(fc)
-        fc = cb.fcurves.new(path)
-        fc.keyframe_points.add(len(f))
-        co = np.empty(2 * len(f), np.float32)
-        co[0::2], co[1::2] = f, V[:, k]
-        fc.keyframe_points.foreach_set("co", co)
-        fc.keyframe_points.foreach_set("interpolation", np.full(len(f), lin, np.int32))
-        fc.update()
+        key_property_bulk(key, f'key_blocks["{bpy.utils.escape_identifier(name)}"].value', frames, V[:, k])
 
 
 def add_keys_from_deltas(obj, prefix: str, deltas) -> list:

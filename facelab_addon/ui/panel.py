@@ -4,6 +4,9 @@ import bpy
 
 from .ops import face_object
 
+# Extrapolation scores above this are flagged (the frame's mouth lies well outside the training poses).
+EXTRAPOLATING = 0.5
+
 
 class FACELAB_UL_training_frames(bpy.types.UIList):
     def draw_item(self, context, layout, data, item, icon, active_data, active_propname, index):
@@ -51,16 +54,86 @@ class FACELAB_PT_sketch(bpy.types.Panel):
         col.operator("facelab.new_lip_sketch", icon="GREASEPENCIL")
         col.prop(s, "sketch")
         col.operator("facelab.refine_lips", icon="MOD_SMOOTH")
+
+
+class FACELAB_PT_propagate(bpy.types.Panel):
+    bl_label = "3. Train & Propagate"
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "FaceLab"
+    bl_parent_id = "FACELAB_PT_main"
+
+    def draw(self, context):
+        layout = self.layout
         ob = face_object(context)
-        if ob is not None and len(ob.facelab.training_frames):
-            col.label(text="Training frames")
-            col.template_list(
-                "FACELAB_UL_training_frames", "", ob.facelab, "training_frames", ob.facelab, "active_training_index",
-                rows=3,
-            )
+        col = layout.column()
+        col.operator("facelab.auto_regions", icon="GROUP_VERTEX")
+        if ob is None:
+            col.label(text="No face mesh selected", icon="INFO")
+            return
+        col.label(text="Training frames")
+        row = col.row()
+        row.template_list("FACELAB_UL_training_frames", "", ob.facelab, "training_frames", ob.facelab,
+                          "active_training_index", rows=3)
+        sub = row.column(align=True)
+        sub.operator("facelab.mark_training_frame", icon="ADD", text="")
+        sub.operator("facelab.remove_training_frame", icon="REMOVE", text="")
+        sub.operator("facelab.jump_training_frame", icon="TIME", text="")
+        col.operator("facelab.propagate", icon="MOD_DATA_TRANSFER")
+        score = ob.get("FL_extrapolation")
+        if score is not None:
+            box = col.box()
+            flag = "ERROR" if score > EXTRAPOLATING else "CHECKMARK"
+            box.label(text=f"Extrapolation here: {score:.2f}", icon=flag)
+            sug = [m.frame for m in context.scene.timeline_markers if m.name.startswith("FL suggest")]
+            if sug:
+                box.label(text="Correct next: " + ", ".join(map(str, sorted(sug))), icon="MARKER_HLT")
 
 
-classes = (FACELAB_UL_training_frames, FACELAB_PT_main, FACELAB_PT_setup, FACELAB_PT_sketch)
+class FACELAB_PT_bake(bpy.types.Panel):
+    bl_label = "5. Bake / Export"
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "FaceLab"
+    bl_parent_id = "FACELAB_PT_main"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    def draw(self, context):
+        col = self.layout.column(align=True)
+        for fmt, label in (("PC2", "Bake PC2"), ("MDD", "Bake MDD"), ("ABC", "Export Alembic")):
+            col.operator("facelab.bake", text=label, icon="EXPORT").format = fmt
+
+
+class FACELAB_OT_jump_training_frame(bpy.types.Operator):
+    """Go to the selected training frame"""
+
+    bl_idname = "facelab.jump_training_frame"
+    bl_label = "Jump to Training Frame"
+
+    @classmethod
+    def poll(cls, context):
+        ob = face_object(context)
+        if ob is None or not len(ob.facelab.training_frames):
+            cls.poll_message_set("No training frames on the face mesh")
+            return False
+        return True
+
+    def execute(self, context):
+        ob = face_object(context)
+        tf = ob.facelab.training_frames
+        context.scene.frame_set(tf[min(ob.facelab.active_training_index, len(tf) - 1)].frame)
+        return {"FINISHED"}
+
+
+classes = (
+    FACELAB_UL_training_frames,
+    FACELAB_OT_jump_training_frame,
+    FACELAB_PT_main,
+    FACELAB_PT_setup,
+    FACELAB_PT_sketch,
+    FACELAB_PT_propagate,
+    FACELAB_PT_bake,
+)
 
 
 def register():

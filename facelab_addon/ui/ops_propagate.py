@@ -1,0 +1,380 @@
+"""Operators for regression propagation (Dinev et al. 2018 §4): regions, training
+frames, Propagate, bakes. They gather inputs, call core, write, report."""
+
+import time
+from pathlib import Path
+
+import bpy
+import numpy as np
+from bpy.props import BoolProperty, EnumProperty, IntProperty, StringProperty
+
+from ..blender import caches
+from ..blender.mesh import mesh_triangles, require_mesh, vertex_group_mask
+from ..blender.shapekeys import add_keys_from_deltas, key_property_bulk, key_values_bulk, remove_keys
+from ..core.compress import compress
+from ..core.errors import FaceLabError, RegionError
+from ..core.propagate import LipRegressor, suggest_frames
+from ..core.regions import auto_regions, faces_in_region, validate_regions
+from .ops import face_object, record_training_frame
+
+PROP_PREFIX = "FL_Prop_"
+SUGGEST_MARKER = "FL suggest"
+EXTRAPOLATION_PROP = "FL_extrapolation"
+MOUTH_GROUP, LIPS_GROUP = "FL_mouth", "FL_lips"
+
+# Fitted regressors kept between Propagate runs, so adding a frame is incremental.
+_REGRESSORS: dict = {}
+
+
+def rest_vertices(obj) -> np.ndarray:
+    """(V,3) float64 object-local rest positions (the Basis key, else the mesh)."""
+    n = len(obj.data.vertices)
+    co = np.empty(n * 3, np.float64)
+    key = obj.data.shape_keys
+    (key.reference_key.data if key else obj.data.vertices).foreach_get("co", co)
+    return co.reshape(n, 3)
+
+
+def region_faces(obj, tris):
+    """(mouth_faces, lip_faces) from the FL_mouth / FL_lips vertex groups, validated."""
+    mouth = vertex_group_mask(obj, MOUTH_GROUP)
+    lips = vertex_group_mask(obj, LIPS_GROUP)
+    missing = [g for g, m in ((MOUTH_GROUP, mouth), (LIPS_GROUP, lips)) if m is None]
+    if missing:
+        raise RegionError(
+            f"'{obj.name}' has no vertex group {' or '.join(missing)}; press Auto Regions (or paint the "
+            "groups: FL_mouth = trusted mouth area, FL_lips = inner lips to predict)."
+        )
+    mf, lf = faces_in_region(tris, mouth), faces_in_region(tris, lips)
+    validate_regions(tris, mf, lf, len(obj.data.vertices))
+    return mf, lf
+
+
+def training_frames(obj):
+    """Sorted unique training frames whose correction still exists."""
+    key = obj.data.shape_keys
+    names = set(key.key_blocks.keys()) if key else set()
+    frames = {t.frame for t in obj.facelab.training_frames if t.source != "sketch" or t.shape_key in names}
+    return sorted(frames)
+
+
+def _progress(context, T):
+    wm = context.window_manager
+    wm.progress_begin(0, max(T, 1))
+    return lambda i, n=T: wm.progress_update(i)
+
+
+class FACELAB_OT_auto_regions(bpy.types.Operator):
+    """Propose the trusted mouth region (FL_mouth) and the inner-lip region to predict (FL_lips) as geodesic bands around the inner-lip contact loop; refine them by weight painting"""
+
+    bl_idname = "facelab.auto_regions"
+    bl_label = "Auto Regions"
+    bl_options = {"REGISTER", "UNDO"}
+
+    replace: BoolProperty(name="Replace Existing Groups", default=False,
+                          description="Overwrite FL_mouth / FL_lips if they exist (otherwise refuse)")
+    use_selection: BoolProperty(name="Use Selected Edge Loop", default=False,
+                                description="Take the inner-lip loop from the selected vertices instead of finding it")
+
+    @classmethod
+    def poll(cls, context):
+        if face_object(context) is None:
+            cls.poll_message_set("Select the captured face mesh (or set it in FaceLab > Setup)")
+            return False
+        return True
+
+    def execute(self, context):
+        obj = face_object(context)
+        if context.mode == "EDIT_MESH":
+            bpy.ops.object.mode_set(mode="OBJECT")
+        existing = [g for g in (MOUTH_GROUP, LIPS_GROUP) if obj.vertex_groups.get(g) is not None]
+        if existing and not self.replace:
+            self.report({"ERROR"}, f"{', '.join(existing)} already exist on '{obj.name}'; enable 'Replace Existing "
+                                   "Groups' to overwrite them, or edit them by weight painting.")
+            return {"CANCELLED"}
+        try:
+            require_mesh(obj)
+            tris = mesh_triangles(obj.data)
+            V = rest_vertices(obj)
+            loop = None
+            if self.use_selection:
+                sel = np.zeros(len(V), bool)
+                obj.data.vertices.foreach_get("select", sel)
+                loop = np.flatnonzero(sel)
+                if len(loop) < 4:
+                    raise RegionError("Select the inner-lip edge loop (at least 4 vertices) in Edit Mode first.")
+            mouth, lips = auto_regions(V, tris, loop=loop)
+        except FaceLabError as e:
+            self.report({"ERROR"}, str(e))
+            return {"CANCELLED"}
+        for name, mask in ((MOUTH_GROUP, mouth), (LIPS_GROUP, lips)):
+            vg = obj.vertex_groups.get(name)
+            if vg is not None:
+                obj.vertex_groups.remove(vg)
+            vg = obj.vertex_groups.new(name=name)
+            vg.add(np.flatnonzero(mask).tolist(), 1.0, "REPLACE")
+        self.report({"INFO"}, f"Regions on '{obj.name}': {int(mouth.sum())} mouth and {int(lips.sum())} inner-lip "
+                              f"vertices (vertex groups {MOUTH_GROUP}, {LIPS_GROUP})")
+        return {"FINISHED"}
+
+
+class FACELAB_OT_mark_training_frame(bpy.types.Operator):
+    """Use the current frame's mesh (for example corrected by sculpting a shape key) as a training frame for propagation"""
+
+    bl_idname = "facelab.mark_training_frame"
+    bl_label = "Mark Training Frame"
+    bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context):
+        if face_object(context) is None:
+            cls.poll_message_set("Select the captured face mesh (or set it in FaceLab > Setup)")
+            return False
+        return True
+
+    def execute(self, context):
+        obj, f = face_object(context), context.scene.frame_current
+        if f in training_frames(obj):
+            self.report({"WARNING"}, f"Frame {f} is already a training frame")
+            return {"CANCELLED"}
+        record_training_frame(context.scene, obj, f, "", "sculpt")
+        self.report({"INFO"}, f"Frame {f} marked as a training frame of '{obj.name}'")
+        return {"FINISHED"}
+
+
+class FACELAB_OT_remove_training_frame(bpy.types.Operator):
+    """Remove the selected training frame from the list (its shape key is kept)"""
+
+    bl_idname = "facelab.remove_training_frame"
+    bl_label = "Remove Training Frame"
+    bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context):
+        obj = face_object(context)
+        if obj is None or not len(obj.facelab.training_frames):
+            cls.poll_message_set("No training frames on the face mesh")
+            return False
+        return True
+
+    def execute(self, context):
+        obj = face_object(context)
+        tf = obj.facelab.training_frames
+        i = min(obj.facelab.active_training_index, len(tf) - 1)
+        frame = tf[i].frame
+        tf.remove(i)
+        obj.facelab.active_training_index = max(0, i - 1)
+        if frame not in {t.frame for t in tf}:
+            for m in list(context.scene.timeline_markers):
+                if m.frame == frame and m.name.startswith("FL train"):
+                    context.scene.timeline_markers.remove(m)
+        self.report({"INFO"}, f"Removed training frame {frame}")
+        return {"FINISHED"}
+
+
+class FACELAB_OT_propagate(bpy.types.Operator):
+    """Learn how the inner lips follow the mouth from the training frames (Dinev et al. 2018 §4) and correct every frame; the result is a small set of corrective shape keys keyed on the timeline"""
+
+    bl_idname = "facelab.propagate"
+    bl_label = "Propagate"
+    bl_options = {"REGISTER", "UNDO"}
+
+    frame_start: IntProperty(name="Start", default=-1, description="First frame (-1: the scene's start)")
+    frame_end: IntProperty(name="End", default=-1, description="Last frame (-1: the scene's end)")
+    suggestions: IntProperty(name="Suggestions", default=3, min=0, max=20,
+                             description="How many frames to suggest correcting next")
+
+    @classmethod
+    def poll(cls, context):
+        obj = face_object(context)
+        if obj is None:
+            cls.poll_message_set("Select the captured face mesh (or set it in FaceLab > Setup)")
+            return False
+        if not len(obj.facelab.training_frames):
+            cls.poll_message_set("Correct at least one frame first (Refine Lips, or sculpt and Mark Training Frame)")
+            return False
+        return True
+
+    def execute(self, context):
+        scene = context.scene
+        obj = face_object(context)
+        t0 = time.perf_counter()
+        f0 = scene.frame_start if self.frame_start < 0 else self.frame_start
+        f1 = scene.frame_end if self.frame_end < 0 else self.frame_end
+        frames = np.arange(f0, f1 + 1)
+        try:
+            summary = propagate(context, obj, frames, self.suggestions)
+        except FaceLabError as e:
+            self.report({"ERROR"}, str(e))
+            return {"CANCELLED"}
+        finally:
+            context.window_manager.progress_end()
+        self.report(
+            {"INFO"},
+            f"Propagated to {len(frames):,} frames in {time.perf_counter() - t0:.1f} s, {summary['rank']} corrective "
+            f"shapes from {summary['training']} training frames"
+            + (f"; {summary['note']}" if summary["note"] else "")
+            + (f"; suggested next: {', '.join(map(str, summary['suggested']))}" if summary["suggested"] else ""),
+        )
+        return {"FINISHED"}
+
+
+def propagate(context, obj, frames, n_suggest=3) -> dict:
+    """Fit (or update) the regressor, predict every frame, write corrective keys. Returns a summary."""
+    scene = context.scene
+    require_mesh(obj)
+    tris = mesh_triangles(obj.data)
+    mouth_faces, lip_faces = region_faces(obj, tris)
+    train = training_frames(obj)
+    if len(train) < 1:
+        raise FaceLabError("No training frame: correct at least one frame (Refine Lips, or sculpt and Mark Training Frame).")
+    outside = [f for f in train if f < frames[0] or f > frames[-1]]
+    if outside:
+        raise FaceLabError(f"Training frames {outside} lie outside the range {frames[0]}-{frames[-1]}; widen the range.")
+    source = caches.sequence_source(obj)
+    note = ""
+    if source in ("mesh_cache", "mesh_sequence_cache"):
+        note = caches.cache_to_shape_key_ready(obj, scene_frames=frames)
+    rest = rest_vertices(obj)
+    prog = _progress(context, len(frames))
+    captured = caches.read_captured_frames(obj, frames, progress=prog)  # FaceLab keys muted
+    corrected = caches.evaluate_frames(obj, train, mute_shape_keys_prefix=(PROP_PREFIX,))
+    reg = _regressor(obj, rest, tris, mouth_faces, lip_faces, train, corrected)
+
+    lipv = np.unique(tris[lip_faces])
+    before = captured[:, lipv].astype(np.float64)
+    pred = reg.predict(captured, out=captured)  # in place: 1000 frames stay within memory
+    corr = (pred[:, lipv] - before).astype(np.float64)  # (T, n_lip, 3) correction, object local
+    corr[np.isin(frames, train)] = 0.0  # training frames keep the artist's own correction
+    if source in ("mesh_cache", "mesh_sequence_cache"):
+        from ..core.cachefile import integrate_matrices, integrate_offsets_to_key
+
+        offs = np.array([p.loop_start for p in obj.data.polygons] + [len(obj.data.loops)])
+        cv = np.empty(len(obj.data.loops), np.int32)
+        obj.data.loops.foreach_get("vertex_index", cv)
+        for t in range(len(frames)):
+            if np.any(corr[t]):
+                full = np.zeros_like(rest)
+                full[lipv] = corr[t]
+                M = integrate_matrices(rest, before_full(pred[t], lipv, before[t]), offs, cv)
+                corr[t] = integrate_offsets_to_key(M, full)[lipv]
+    basis_lip, weights = compress(corr, metres_per_unit=scene.unit_settings.scale_length or 1.0)
+    remove_keys(obj, PROP_PREFIX)
+    names = []
+    if len(basis_lip):
+        basis = np.zeros((len(basis_lip), len(rest), 3))
+        basis[:, lipv] = basis_lip
+        names = add_keys_from_deltas(obj, PROP_PREFIX, basis)
+        key_values_bulk(obj, names, frames, weights)
+    # where the model guesses: the extrapolation score keyed on the object, suggestions as markers
+    score = reg.extrapolation(before_seq(pred, lipv, before))
+    obj[EXTRAPOLATION_PROP] = 0.0
+    key_property_bulk(obj, f'["{EXTRAPOLATION_PROP}"]', frames, score)
+    for m in [m for m in scene.timeline_markers if m.name.startswith(SUGGEST_MARKER)]:
+        scene.timeline_markers.remove(m)
+    suggested = []
+    if n_suggest:
+        idx = suggest_frames(before_seq(pred, lipv, before), n_suggest, regressor=reg,
+                             exclude=np.flatnonzero(np.isin(frames, train)))
+        suggested = [int(frames[i]) for i in idx]
+        for f in suggested:
+            scene.timeline_markers.new(f"{SUGGEST_MARKER} {f}", frame=f)
+    obj.data.update()
+    return dict(rank=len(names), training=len(train), suggested=suggested, note=note,
+                extrapolation=score, keys=names)
+
+
+def before_full(pred_t, lipv, before_t):
+    """The captured frame: the prediction with the lip vertices put back."""
+    out = np.array(pred_t, dtype=np.float64)
+    out[lipv] = before_t
+    return out
+
+
+def before_seq(pred, lipv, before):
+    """(T,V,3) captured sequence rebuilt in place from the prediction (no second copy)."""
+    pred[:, lipv] = before
+    return pred
+
+
+def _regressor(obj, rest, tris, mouth_faces, lip_faces, train, corrected):
+    key = (obj.name, len(rest), hash(tris.tobytes()), hash(mouth_faces.tobytes()), hash(lip_faces.tobytes()),
+           hash(rest.tobytes()))
+    cached = _REGRESSORS.get(key)
+    if cached is not None:
+        reg, frames_fit, data = cached
+        if frames_fit == train[: len(frames_fit)] and np.array_equal(data, corrected[: len(frames_fit)]):
+            if len(train) > len(frames_fit):
+                reg.add(corrected[len(frames_fit):])  # incremental: only the new frames
+                _REGRESSORS[key] = (reg, list(train), corrected)
+            return reg
+    reg = LipRegressor(rest, tris, mouth_faces, lip_faces)
+    reg.fit(corrected)
+    _REGRESSORS.clear()  # keep one model in memory
+    _REGRESSORS[key] = (reg, list(train), corrected)
+    return reg
+
+
+class FACELAB_OT_bake(bpy.types.Operator):
+    """Bake the corrected performance to a PC2, MDD or Alembic file for other packages"""
+
+    bl_idname = "facelab.bake"
+    bl_label = "Bake Corrected Sequence"
+    bl_options = {"REGISTER"}
+
+    filepath: StringProperty(subtype="FILE_PATH")
+    format: EnumProperty(items=[("PC2", "PC2", ""), ("MDD", "MDD", ""), ("ABC", "Alembic", "")], default="PC2")
+    overwrite: BoolProperty(name="Overwrite", default=False)
+
+    @classmethod
+    def poll(cls, context):
+        if face_object(context) is None:
+            cls.poll_message_set("Select the face mesh to bake")
+            return False
+        return True
+
+    def invoke(self, context, event):
+        if not self.filepath:
+            ext = {"PC2": ".pc2", "MDD": ".mdd", "ABC": ".abc"}[self.format]
+            self.filepath = bpy.path.abspath("//") + face_object(context).name + "_corrected" + ext
+        context.window_manager.fileselect_add(self)
+        return {"RUNNING_MODAL"}
+
+    def execute(self, context):
+        obj, scene = face_object(context), context.scene
+        path = Path(bpy.path.abspath(self.filepath))
+        if not self.filepath:
+            self.report({"ERROR"}, "Choose a file to bake to.")
+            return {"CANCELLED"}
+        if path.exists() and not self.overwrite:
+            self.report({"ERROR"}, f"{path} exists; enable Overwrite or choose another file.")
+            return {"CANCELLED"}
+        frames = np.arange(scene.frame_start, scene.frame_end + 1)
+        t0 = time.perf_counter()
+        try:
+            fn = {"PC2": caches.bake_pc2, "MDD": caches.bake_mdd, "ABC": caches.bake_alembic}[self.format]
+            out = fn(obj, frames, path)
+        except FaceLabError as e:
+            self.report({"ERROR"}, str(e))
+            return {"CANCELLED"}
+        self.report({"INFO"}, f"Baked {len(frames):,} frames of '{obj.name}' to {out} in {time.perf_counter() - t0:.1f} s")
+        return {"FINISHED"}
+
+
+classes = (
+    FACELAB_OT_auto_regions,
+    FACELAB_OT_mark_training_frame,
+    FACELAB_OT_remove_training_frame,
+    FACELAB_OT_propagate,
+    FACELAB_OT_bake,
+)
+
+
+def register():
+    for c in classes:
+        bpy.utils.register_class(c)
+
+
+def unregister():
+    for c in reversed(classes):
+        bpy.utils.unregister_class(c)

@@ -1,0 +1,151 @@
+"""Headless end to end: an animated ICT capture with a systematic inner-lip error,
+a few corrected frames, Auto Regions, Propagate -> corrective keys on the timeline."""
+
+import numpy as np
+import pytest
+
+import bpy
+
+import facelab_addon
+from facelab_addon.blender import caches
+from facelab_addon.blender.mesh import mesh_triangles, vertex_group_mask
+from facelab_addon.blender.scene import new_mesh_object
+from facelab_addon.blender.shapekeys import add_corrective_key, key_spike, key_values_bulk
+from facelab_addon.core.propagate import LipRegressor
+from facelab_addon.core.regions import faces_in_region
+
+pytestmark = pytest.mark.blender
+
+SCALE = 0.01  # metres
+EXPR = ["jawOpen", "mouthClose", "mouthFunnel", "mouthSmile_L", "mouthSmile_R"]
+FRAMES = np.arange(1, 41)
+TRAIN = [5, 18, 31]
+
+
+@pytest.fixture(scope="module")
+def addon():
+    facelab_addon.register()
+    yield
+    facelab_addon.unregister()
+
+
+def weights_at(f):
+    t = (np.asarray(f, float) - 1) / 39.0
+    return np.stack([
+        0.25 + 0.25 * np.sin(2 * np.pi * t),
+        0.1 + 0.1 * np.cos(3 * np.pi * t),
+        0.3 * np.sin(np.pi * t) ** 2,
+        0.3 * np.clip(np.sin(2 * np.pi * t + 1), 0, None),
+        0.3 * np.clip(np.sin(2 * np.pi * t + 2), 0, None),
+    ], -1)
+
+
+def build(ict):
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    scene = bpy.context.scene
+    scene.frame_start, scene.frame_end = int(FRAMES[0]), int(FRAMES[-1])
+    obj = new_mesh_object("Face", ict.neutral * SCALE, poly_verts=ict.poly_verts, poly_offsets=ict.poly_offsets)
+    obj.shape_key_add(name="Basis", from_mix=False)
+    for name in EXPR:
+        add_corrective_key(obj, name, (ict.expressions[name] - ict.neutral) * SCALE)
+    # systematic capture error: the inner lips fail to close as jawOpen falls (an artist's key);
+    # smooth, zero at the lip region's border (core.synthetic's realistic error shape)
+    from facelab_addon.core import synthetic as syn
+
+    fixed = ~ict.part_vertex_mask("M_Face")
+    mouth = syn.find_mouth(ict.neutral, ict.faces, fixed, loop=syn.ICT_MOUTH_LOOP)
+    w, side = syn.lip_error_weights(ict.neutral, ict.faces, fixed, mouth=mouth)
+    err = np.zeros_like(ict.neutral)
+    err[:, 1] = side * w * 0.08 * SCALE
+    add_corrective_key(obj, "CaptureError", err)
+    W = weights_at(FRAMES)
+    cap_w = 1.0 - 1.5 * W[:, 0]
+    key_values_bulk(obj, EXPR + ["CaptureError"], FRAMES, np.c_[W, cap_w])
+    bpy.context.view_layer.objects.active = obj
+    obj.select_set(True)
+    return scene, obj, err, cap_w
+
+
+def test_propagate_end_to_end(ict, addon):
+    scene, obj, err, cap_w = build(ict)
+    artist_keys = {kb.name: np.array([d.co[:] for d in kb.data]) for kb in obj.data.shape_keys.key_blocks}
+
+    # Auto Regions writes the two vertex groups (and refuses to overwrite them silently)
+    assert bpy.ops.facelab.auto_regions() == {"FINISHED"}
+    mouth, lips = vertex_group_mask(obj, "FL_mouth"), vertex_group_mask(obj, "FL_lips")
+    tris = mesh_triangles(obj.data)
+    assert mouth.sum() > 100 and lips.sum() > 100
+    assert not np.intersect1d(faces_in_region(tris, mouth), faces_in_region(tris, lips)).size  # share only a border
+    with pytest.raises(RuntimeError, match="already exist"):
+        bpy.ops.facelab.auto_regions()
+
+    # the artist corrects a few frames by sculpting (a key that cancels the error there) and marks them
+    i = np.searchsorted(FRAMES, TRAIN)
+    for f, w in zip(TRAIN, cap_w[i]):
+        scene.frame_set(f)
+        kb = add_corrective_key(obj, f"Sculpt_{f}", -w * err)
+        key_spike(kb, f)
+        assert bpy.ops.facelab.mark_training_frame() == {"FINISHED"}
+    assert bpy.ops.facelab.propagate(suggestions=2) == {"FINISHED"}
+
+    key = obj.data.shape_keys
+    prop = [kb.name for kb in key.key_blocks if kb.name.startswith("FL_Prop_")]
+    assert 1 <= len(prop) <= 10
+    # the artist's keys are untouched
+    for name, co in artist_keys.items():
+        np.testing.assert_array_equal(np.array([d.co[:] for d in key.key_blocks[name].data]), co)
+
+    # independent computation of the regressor's prediction at held-out frames
+    tris = mesh_triangles(obj.data)
+    rest = np.array([d.co[:] for d in key.reference_key.data], dtype=np.float64)
+    captured = caches.evaluate_frames(obj, FRAMES, mute_shape_keys_prefix=("FL_",))
+    corrected = caches.evaluate_frames(obj, TRAIN, mute_shape_keys_prefix=("FL_Prop_",))
+    reg = LipRegressor(rest, tris, faces_in_region(tris, mouth), faces_in_region(tris, lips))
+    reg.fit(corrected)
+    held = [2, 11, 24, 37]
+    expect = reg.predict(captured[np.searchsorted(FRAMES, held)].astype(np.float64))
+    got = caches.evaluate_frames(obj, held, mute_shape_keys_prefix=())
+    tol = 1e-5 + 1e-6  # 0.01 mm in metres, plus float32 storage
+    assert np.abs(got - expect).max() < tol, np.abs(got - expect).max()
+    # and it does correct: closer to the truth than the capture
+    truth = captured[np.searchsorted(FRAMES, held)] - cap_w[np.searchsorted(FRAMES, held), None, None] * err
+    e_cap = np.linalg.norm(captured[np.searchsorted(FRAMES, held)] - truth, axis=2)[:, lips].mean()
+    e_fix = np.linalg.norm(got - truth, axis=2)[:, lips].mean()
+    assert e_fix < 0.5 * e_cap, (e_cap, e_fix)
+
+    # training frames show exactly the artist's correction (propagation is zero there)
+    at_train = caches.evaluate_frames(obj, TRAIN, mute_shape_keys_prefix=())
+    np.testing.assert_allclose(at_train, corrected, atol=1e-7)
+    # extrapolation keyed on the object: 0 on training frames; suggestions marked
+    scene.frame_set(TRAIN[1])
+    assert abs(obj["FL_extrapolation"]) < 1e-6
+    assert sum(m.name.startswith("FL suggest") for m in scene.timeline_markers) == 2
+
+    # one more training frame, propagate again: only FaceLab's own keys are replaced
+    f = 24
+    scene.frame_set(f)
+    kb = add_corrective_key(obj, f"Sculpt_{f}", -cap_w[np.searchsorted(FRAMES, f)] * err)
+    key_spike(kb, f)
+    bpy.ops.facelab.mark_training_frame()
+    assert bpy.ops.facelab.propagate(suggestions=0) == {"FINISHED"}
+    names = [kb.name for kb in obj.data.shape_keys.key_blocks]
+    assert all(n in names for n in artist_keys) and all(f"Sculpt_{t}" in names for t in TRAIN + [24])
+    assert not any(n.startswith("FL_Prop_") and "." in n for n in names)  # replaced, not duplicated
+    assert not any(m.name.startswith("FL suggest") for m in scene.timeline_markers)
+
+
+def test_propagate_bad_input(ict, addon):
+    scene, obj, err, cap_w = build(ict)
+    # no training frames: poll explains
+    assert not bpy.ops.facelab.propagate.poll()
+    scene.frame_set(5)
+    bpy.ops.facelab.mark_training_frame()
+    # no regions yet
+    with pytest.raises(RuntimeError, match="FL_mouth"):
+        bpy.ops.facelab.propagate()
+    # overlapping regions
+    for g in ("FL_mouth", "FL_lips"):
+        obj.vertex_groups.new(name=g).add(list(range(6000, 7000)), 1.0, "REPLACE")
+    with pytest.raises(RuntimeError, match="(?i)overlap"):
+        bpy.ops.facelab.propagate()
+    assert not any(kb.name.startswith("FL_Prop_") for kb in obj.data.shape_keys.key_blocks)
