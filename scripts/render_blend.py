@@ -24,6 +24,8 @@ def main(argv=None):
     ap.add_argument("--border", nargs=4, type=float, default=None, metavar=("XMIN", "XMAX", "YMIN", "YMAX"),
                     help="render region in 0..1 camera-frame coordinates (y up), cropped")
     ap.add_argument("--samples", type=int, default=16)
+    ap.add_argument("--mute-keys", nargs="*", default=[], metavar="PREFIX",
+                    help="mute shape keys whose names start with these prefixes (e.g. FL_ for 'before')")
     ap.add_argument("--no-backplate", action="store_true", help="transparent film instead of the world")
     a = ap.parse_args(argv)
     os.environ.setdefault("BLENDER_USER_RESOURCES", tempfile.mkdtemp(prefix="facelab-render-"))
@@ -39,6 +41,12 @@ def main(argv=None):
     for name in a.show:
         if name in bpy.data.objects:
             bpy.data.objects[name].hide_render = False
+    for ob in bpy.data.objects:
+        keys = getattr(getattr(ob, "data", None), "shape_keys", None)
+        if keys is not None and a.mute_keys:
+            for kb in keys.key_blocks:
+                if kb.name.startswith(tuple(a.mute_keys)):
+                    kb.mute = True
     for ob in bpy.data.objects:  # sketches are overlays, not geometry
         if ob.type in {"GREASEPENCIL", "GPENCIL"}:
             ob.hide_render = True

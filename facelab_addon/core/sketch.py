@@ -195,6 +195,7 @@ def refine_lips(
     laplacian: str = "uniform",
     region_rings: int = 12,
     reach_px: float | None = None,
+    silhouette_rays: str = "nearest",
     return_info: bool = False,
 ):
     """Deform a face mesh so its inner-lip silhouettes match sketched contours.
@@ -224,6 +225,18 @@ def refine_lips(
     reach_px : float, optional
         Silhouette vertices farther than this (pixels) from the sketch are
         ignored; default ``max(40, 0.25 * sketch width)``.
+    silhouette_rays : {"nearest", "pixel"}
+        Which ray a matched silhouette vertex is pulled to. Matching is always
+        the paper's: every sketch pixel picks the closest silhouette vertex of
+        its lip, and ``E_silh`` sums point-to-ray distances over the pixels.
+        ``"pixel"`` uses each pixel's own ray, literally; pixels on either side
+        of a vertex then also pull it *along* the contour, which slides the
+        lips sideways. ``"nearest"`` (default) uses, for all the pixels that
+        picked a vertex, the ray through the sketch sample nearest to the
+        vertex's projection (the same number of terms), which removes that
+        sideways pull: on the sketch benchmark the 3D inner-lip error falls
+        60-71 % instead of 57-61 %, and a mesh that already matches its
+        sketch moves 0.015 mm RMS instead of 0.056 mm.
     return_info : bool
         Also return a dict of diagnostics.
 
@@ -249,6 +262,8 @@ def refine_lips(
         raise CameraError("No camera given: set the scene camera (the one the backplate belongs to).")
     if iterations < 1:
         raise FaceLabError("iterations must be at least 1.")
+    if silhouette_rays not in ("nearest", "pixel"):
+        raise ValueError("silhouette_rays must be 'nearest' or 'pixel'")
     fixed = np.zeros(n, bool) if fixed is None else np.asarray(fixed, dtype=bool)
     if fixed.shape != (n,):
         raise FaceLabError(f"'fixed' must be a mask of {n} vertices, got {fixed.shape}.")
@@ -331,7 +346,15 @@ def refine_lips(
             j, dist = _closest_to_rays(X, ids, o, d)
             vid = ids[j]
             matched[name] = np.unique(vid)
-            cons.append(PointConstraints.rays(vid, o, d, strength=lambda_silh))
+            if silhouette_rays == "nearest":
+                uv, cnt = np.unique(vid, return_counts=True)
+                samples = U if name == "upper" else Lw
+                pv = camera.project(X[uv])
+                k = np.argmin(((pv[:, None, :] - samples[None]) ** 2).sum(-1), axis=1)
+                oo, dd = camera.rays(samples[k])
+                cons.append(PointConstraints.rays(uv, oo, dd, strength=lambda_silh * cnt))
+            else:
+                cons.append(PointConstraints.rays(vid, o, d, strength=lambda_silh))
             dist_px.append(dist * camera.K[0, 0] / np.maximum(camera.depth(X[vid]), 1e-12))
         return cons, float(np.mean(np.concatenate(dist_px))), matched
 

@@ -115,3 +115,14 @@ def test_bad_input_messages():
     away = Camera.look_at([0, 0, 20], [0, 0, 40], [0, 1, 0], 50, 36, 1920, 1080)
     with pytest.raises(CameraError, match="behind the camera"):
         refine_lips(V, F, away, np.array([[900.0, 500], [1000, 500]]), np.array([[900.0, 560], [1000, 560]]))
+
+
+def test_sketch_on_the_current_silhouette_barely_moves_the_mesh():
+    # the sketch traces the mesh's own inner silhouettes (y = +-0.2, x in [-1.5, 1.5])
+    V, F, _ = two_lips(gap=0.4)
+    cam = front_camera()
+    X = refine_lips(V, F, cam, line_px(cam, 0.2), line_px(cam, -0.2))
+    assert np.abs(X - V).max() < 0.004  # < 0.5 px; only the stroke ends pull at the lip ends
+    # the literal per-pixel rays also pull along the contour (x), sliding the lips sideways
+    Xp = refine_lips(V, F, cam, line_px(cam, 0.2), line_px(cam, -0.2), silhouette_rays="pixel")
+    assert np.abs(Xp - V)[:, 0].max() > 5 * np.abs(X - V)[:, 0].max()
