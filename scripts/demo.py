@@ -6,6 +6,8 @@
 2. Runs the Refine Lips operator on the problem frame.
 3. Saves out/demo/lip_refine.blend and before/after renders with the contours
    overlaid, plus a 3D error heat map, into docs/images/.
+4. Propagation (scripts/demo_propagate.py): sketches a few frames of a 48-frame
+   performance, propagates, renders held-out frames and plots the error per frame.
 
 Run it with ``bash scripts/demo.sh`` (it sets up its own environment).
 """
@@ -74,7 +76,7 @@ def main(argv=None):
     import facelab_addon
     from facelab_addon.blender.camera import apply_camera_to_blender, camera_from_blender
     from facelab_addon.blender.mesh import evaluated_vertices
-    from facelab_addon.blender.scene import new_mesh_object, set_backplate
+    from facelab_addon.blender.scene import add_studio_lights, new_mesh_object, set_backplate
     from facelab_addon.blender.strokes import read_lip_strokes, write_stroke_pixels
     from facelab_addon.core.ict import load_ict
     from facelab_addon.core.silhouette import contour_distance
@@ -107,15 +109,7 @@ def main(argv=None):
     scene.collection.objects.link(cam_obj)
     apply_camera_to_blender(s["cam"], cam_obj, scene)
     scene.camera = cam_obj
-    for name, rot, energy in (("Key", (0.6, 0.3, 0.4), 3.0), ("Fill", (0.9, -0.2, -0.6), 1.2)):
-        light = bpy.data.objects.new(name, bpy.data.lights.new(name, "SUN"))
-        light.data.energy = energy
-        light.rotation_euler = rot
-        scene.collection.objects.link(light)
-    world = bpy.data.worlds.new("World")
-    world.use_nodes = True
-    world.node_tree.nodes["Background"].inputs["Color"].default_value = (0.05, 0.05, 0.06, 1)
-    scene.world = world
+    add_studio_lights(scene)
 
     # backplate: the truth rendered from the capture camera
     blend = out / "lip_refine.blend"
@@ -176,6 +170,12 @@ def main(argv=None):
     figures(out, img_dir, s, refined, U, L, lo_px, hi_px, r_before, r_after, r_truth, summary, err)
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     print(json.dumps(summary, indent=2))
+
+    print("[demo] step 2: sketch a few frames of a performance, propagate to all, render held-out frames")
+    from demo_propagate import run as run_propagation
+
+    summary2 = run_propagation(ict, out, img_dir, render, a.samples)
+    print(json.dumps(summary2, indent=2))
     return 0
 
 

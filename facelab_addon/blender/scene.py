@@ -58,3 +58,16 @@ def set_backplate(cam_obj, image_path: str, alpha: float = 1.0):
     bg.display_depth = "BACK"
     bg.frame_method = "FIT"
     return img
+
+
+def add_studio_lights(scene, *, background=(0.05, 0.05, 0.06)):
+    """A key and a fill sun lighting a face that looks along +Y-up/+Z-forward, and a dark world."""
+    for name, rot, energy in (("Key", (-0.55, 0.35, 0.0), 3.5), ("Fill", (-0.15, -0.7, 0.0), 1.0)):
+        light = bpy.data.objects.new(name, bpy.data.lights.new(name, "SUN"))
+        light.data.energy = energy
+        light.rotation_euler = rot
+        scene.collection.objects.link(light)
+    world = bpy.data.worlds.new("World")
+    world.use_nodes = True
+    world.node_tree.nodes["Background"].inputs["Color"].default_value = (*background, 1)
+    scene.world = world

@@ -1,0 +1,728 @@
+"""Benchmark: the Propagate operator end to end in Blender (Dinev et al. 2018, §4) on ICT-FaceKit.
+
+Scene (as ``tests/blender/test_propagate_operator.py``, at scale): the
+ICT-FaceKit face in metres (26,719 vertices) with eight mouth expressions as
+shape keys (jawOpen, mouthClose, mouthFunnel, mouthPucker, mouthSmile_L/R,
+mouthPress_L/R), keyed with ``key_values_bulk`` on N frames of smooth,
+speech-like weights (``benchmarks/propagate.py``'s ``speech_weights``). The
+capture error is one shape key, ``CaptureError`` (``core.synthetic.
+lip_error_weights``: the inner lips pulled apart, 1 mm per lip at value 1,
+faded to zero at the border of the ``FL_lips`` group so that the trusted
+mouth region and the Dirichlet border are error-free), keyed with a
+non-linear function of the pose: lips fail to close when the jaw is nearly
+shut, and cross (negative values; the key's slider minimum is lowered) when
+pressed. The truth is the capture minus that key. Auto Regions writes the
+regions; 10 training frames are chosen by ``core.propagate.suggest_frames``
+on the captured sequence (no regressor: extreme poses first); each is
+"sculpted" (``add_corrective_key`` cancelling the error + ``key_spike``) and
+marked (``bpy.ops.facelab.mark_training_frame``). Then
+``bpy.ops.facelab.propagate`` runs once, and once more after the frame it
+suggests first is corrected too (incremental).
+
+Reported: .blend sizes before/after (uncompressed and zstd), FL_Prop_* keys
+and keyframes written, operator wall time split into its parts (the parts of
+``ops_propagate.propagate`` are wrapped with timers; "self" times add up to
+the wall time), peak RSS of each part and of the process, held-out inner-lip
+error against the truth on the evaluated mesh, the deviation of the evaluated
+mesh from ``LipRegressor.predict``, and two prototypes run on the same
+training set (their result is compared with the frame_set run): the shape-key
+fast path for reading the capture (``shapekeys.shape_key_sequence`` instead of
+``caches.read_captured_frames``'s frame_set loop), and a low-memory variant
+(see ``lowmem_patches``).
+
+Usage: ``PYTHONPATH=. python benchmarks/propagate_blender.py [--frames 1000] [--quick]``.
+Prints one JSON object on stdout; Blender's own output goes to stderr.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import os
+import platform
+import sys
+import tempfile
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+SCALE = 0.01  # ICT centimetres -> metres
+M_TO_MM = 1000.0
+EXPR = ["jawOpen", "mouthClose", "mouthFunnel", "mouthPucker", "mouthSmile_L", "mouthSmile_R", "mouthPress_L",
+        "mouthPress_R"]
+N_TRAIN = 10
+ERR_CM = 0.1  # CaptureError amplitude at weight 1 (per lip), cm
+TARGET_GROWTH_MB = 30.0
+TARGET_CORE_RSS_MB = 1024.0
+COMPRESS_TOL_MM = 0.01
+
+
+# --------------------------------------------------------------------------- memory
+def _status(field):
+    for ln in Path("/proc/self/status").read_text().splitlines():
+        if ln.startswith(field + ":"):
+            return int(ln.split()[1]) / 1024.0  # MB
+    return float("nan")
+
+
+class Mem:
+    """Peak-RSS bookkeeping with per-phase resets (Linux ``clear_refs``), keeping the process maximum."""
+
+    def __init__(self):
+        self.process_peak = _status("VmHWM")
+        self.window = 0.0  # peak since start_window(), across resets
+        self.can_reset = True
+
+    def start_window(self):
+        self.window = _status("VmRSS")
+
+    def window_peak(self):
+        return max(self.window, self.peak())
+
+    def reset(self):
+        h = _status("VmHWM")
+        self.process_peak = max(self.process_peak, h)
+        self.window = max(self.window, h)
+        try:
+            Path("/proc/self/clear_refs").write_text("5")
+        except OSError:
+            self.can_reset = False
+
+    def peak(self):
+        p = _status("VmHWM")
+        self.process_peak = max(self.process_peak, p)
+        return p
+
+    @staticmethod
+    def rss():
+        return _status("VmRSS")
+
+
+MEM = Mem()
+
+
+# --------------------------------------------------------------------------- timers
+class Timers:
+    """Inclusive/self wall time and peak RSS of wrapped functions (nested calls are attributed to children)."""
+
+    def __init__(self):
+        self.incl = defaultdict(float)
+        self.self_ = defaultdict(float)
+        self.calls = defaultdict(int)
+        self.peak = defaultdict(float)
+        self.stack = []
+        self.patches = []
+
+    def wrap(self, label, fn, *, inside_passthrough=()):
+        timers = self
+
+        def wrapped(*a, **k):
+            if timers.stack and timers.stack[-1][0] in inside_passthrough:
+                return fn(*a, **k)
+            rss0 = MEM.peak()
+            MEM.reset()
+            t0 = time.perf_counter()
+            timers.stack.append([label, 0.0])
+            try:
+                return fn(*a, **k)
+            finally:
+                dt = time.perf_counter() - t0
+                _, child = timers.stack.pop()
+                timers.incl[label] += dt
+                timers.self_[label] += dt - child
+                timers.calls[label] += 1
+                p = MEM.peak()
+                timers.peak[label] = max(timers.peak[label], p)
+                if timers.stack:
+                    timers.stack[-1][1] += dt
+                # the parent's peak so far must survive this reset
+                for lab, _ in timers.stack:
+                    timers.peak[lab] = max(timers.peak[lab], p, rss0)
+
+        return wrapped
+
+    def patch(self, owner, name, label, **kw):
+        orig = getattr(owner, name)
+        setattr(owner, name, self.wrap(label, orig, **kw))
+        self.patches.append((owner, name, orig))
+
+    def restore(self):
+        for owner, name, orig in reversed(self.patches):
+            setattr(owner, name, orig)
+        self.patches.clear()
+
+    def report(self, wall):
+        out = {}
+        for lab in sorted(self.incl, key=lambda x: -self.self_[x]):
+            out[lab] = dict(self_s=round(self.self_[lab], 3), incl_s=round(self.incl[lab], 3), calls=self.calls[lab],
+                            peak_rss_mb=round(self.peak[lab], 1))
+        out["other (operator, depsgraph, numpy glue)"] = dict(self_s=round(wall - sum(self.self_.values()), 3))
+        return out
+
+
+def instrument(timers):
+    """Wrap the parts of ``ops_propagate.propagate`` (module attributes it looks up at call time)."""
+    from facelab_addon.blender import caches
+    from facelab_addon.core import propagate as cprop
+    from facelab_addon.ui import ops_propagate as op
+
+    timers.patch(caches, "read_captured_frames", "read_captured (frame_set x T)")
+    timers.patch(caches, "evaluate_frames", "read_corrected (training frames)",
+                 inside_passthrough=("read_captured (frame_set x T)",))
+    timers.patch(op, "mesh_triangles", "setup: mesh_triangles")
+    timers.patch(op, "region_faces", "setup: region_faces")
+    timers.patch(op, "rest_vertices", "setup: rest_vertices")
+    timers.patch(op, "_regressor", "regressor (cache lookup)")
+    timers.patch(cprop.LipRegressor, "__init__", "regressor: LipRegressor.__init__ (Poisson factor, patches)")
+    timers.patch(cprop.LipRegressor, "fit", "regressor: fit")
+    timers.patch(cprop.LipRegressor, "add", "regressor: add (incremental)")
+    timers.patch(cprop.LipRegressor, "predict", "predict (T frames, in place)")
+    timers.patch(cprop.LipRegressor, "extrapolation", "extrapolation score")
+    timers.patch(op, "suggest_frames", "suggest_frames (3 markers)")
+    timers.patch(op, "compress", "compress (SVD basis, 0.01 mm)")
+    timers.patch(op, "remove_keys", "write: remove old FL_Prop keys")
+    timers.patch(op, "add_keys_from_deltas", "write: add FL_Prop keys")
+    timers.patch(op, "key_values_bulk", "write: key FL_Prop values")
+    timers.patch(op, "key_property_bulk", "write: key FL_extrapolation")
+
+
+# --------------------------------------------------------------------------- scene
+def load_speech_weights(n_frames):
+    spec = importlib.util.spec_from_file_location("facelab_bench_propagate", ROOT / "benchmarks" / "propagate.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    names = [n for n, _ in mod.CHANNELS]
+    W = mod.speech_weights(n_frames)
+    return W[:, [names.index(n) for n in EXPR]]
+
+
+def capture_error_weight(W):
+    """(T,) CaptureError key value: + gap when the lips should be closed, - crossing when pressed (non-linear)."""
+    jaw, close = W[:, 0], W[:, 1]
+    press = 0.5 * (W[:, 6] + W[:, 7])
+    closed = np.clip(1.0 - jaw / 0.25, 0.0, 1.0) ** 2 + 2.0 * close * np.clip(jaw, 0, 1)
+    return np.tanh(1.5 * closed) - 1.4 * np.tanh((press / 0.35) ** 2)
+
+
+def build(bpy, ict, frames, W):
+    """The animated capture: expression keys, Auto Regions, then the CaptureError key inside the lip region."""
+    from facelab_addon.blender.mesh import mesh_triangles, vertex_group_mask
+    from facelab_addon.blender.scene import new_mesh_object
+    from facelab_addon.blender.shapekeys import add_corrective_key, key_values_bulk
+    from facelab_addon.core import regions
+    from facelab_addon.core import synthetic as syn
+
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    scene = bpy.context.scene
+    scene.frame_start, scene.frame_end = int(frames[0]), int(frames[-1])
+    obj = new_mesh_object("Face", ict.neutral * SCALE, poly_verts=ict.poly_verts, poly_offsets=ict.poly_offsets)
+    bpy.context.view_layer.objects.active = obj
+    obj.select_set(True)
+    obj.shape_key_add(name="Basis", from_mix=False)
+    for name in EXPR:
+        add_corrective_key(obj, name, (ict.expressions[name] - ict.neutral) * SCALE)
+    t0 = time.perf_counter()
+    assert bpy.ops.facelab.auto_regions() == {"FINISHED"}
+    t_regions = time.perf_counter() - t0
+
+    # error shape: synthetic.lip_error_weights (1 mm per lip at weight 1), faded to zero at the FL_lips border.
+    # Unfaded it reaches 6 mm from the lip tips, i.e. 1 mm on the lip border (held at the capture by the
+    # Poisson solve) and on FL_mouth (the trusted input): no regression could remove that part.
+    V = ict.neutral * SCALE
+    fixed = ~ict.part_vertex_mask("M_Face")
+    mouth = syn.find_mouth(V, ict.faces, fixed, loop=syn.ICT_MOUTH_LOOP)
+    w, side = syn.lip_error_weights(V, ict.faces, fixed, mouth=mouth)
+    tris = mesh_triangles(obj.data)
+    lips = vertex_group_mask(obj, "FL_lips")
+    border = regions.region_border(tris, regions.faces_in_region(tris, lips), len(V))
+    interior = lips.copy()
+    interior[border] = False
+    width = regions.DEFAULT_LIP_WIDTH * mouth.width
+    db = regions.geodesic_distance(V, tris, border, limit=width)
+    u = np.clip(np.where(np.isfinite(db), db, width) / (0.35 * width), 0.0, 1.0)
+    fade = u * u * (3 - 2 * u) * interior
+    err = np.zeros_like(V)
+    err[:, 1] = side * w * fade * ERR_CM * SCALE
+    leak_unfaded = float(np.max(np.abs(w[~interior]))) * ERR_CM * 10  # mm per unit key value
+    kb = add_corrective_key(obj, "CaptureError", err)
+    kb.slider_min = -2.0  # negative values (lips crossing) would otherwise be clamped to 0 by Blender
+    cap_w = capture_error_weight(W)
+    assert cap_w.min() >= kb.slider_min and cap_w.max() <= kb.slider_max
+    key_values_bulk(obj, EXPR + ["CaptureError"], frames, np.c_[W, cap_w])
+    info = dict(auto_regions_s=round(t_regions, 2), error_vertices=int((np.abs(err).max(axis=1) > 0).sum()),
+                lip_vertices=int(lips.sum()), lip_border_vertices=int(len(border)),
+                unfaded_error_outside_lip_interior_mm=round(leak_unfaded, 3))
+    return scene, obj, err, cap_w, info
+
+
+def blend_sizes(bpy, directory, tag):
+    out = {}
+    for comp in (False, True):
+        p = Path(directory) / f"{tag}_{'zstd' if comp else 'raw'}.blend"
+        t0 = time.perf_counter()
+        bpy.ops.wm.save_as_mainfile(filepath=str(p), compress=comp, copy=True)
+        out["zstd_mb" if comp else "raw_mb"] = p.stat().st_size / 2**20
+        out["zstd_save_s" if comp else "raw_save_s"] = time.perf_counter() - t0
+        p.unlink()
+    return out
+
+
+def count_prop(obj):
+    from facelab_addon.blender.caches import _anim_fcurves
+
+    key = obj.data.shape_keys
+    names = [kb.name for kb in key.key_blocks if kb.name.startswith("FL_Prop_")]
+    kf_keys = sum(len(fc.keyframe_points) for fc in _anim_fcurves(key) if fc.data_path.startswith('key_blocks["FL_Prop_'))
+    kf_extra = sum(len(fc.keyframe_points) for fc in _anim_fcurves(obj) if "FL_extrapolation" in fc.data_path)
+    return names, kf_keys, kf_extra
+
+
+def prop_state(obj):
+    """FL_Prop key offsets (r,V,3) and their keyed values (T,r), for comparing two runs."""
+    from facelab_addon.blender.caches import _anim_fcurves
+
+    key = obj.data.shape_keys
+    n = len(obj.data.vertices)
+    base = np.empty(n * 3, np.float32)
+    key.reference_key.data.foreach_get("co", base)
+    B, Wt = [], []
+    fcs = {fc.data_path: fc for fc in _anim_fcurves(key)}
+    for kb in key.key_blocks:
+        if kb.name.startswith("FL_Prop_"):
+            c = np.empty(n * 3, np.float32)
+            kb.data.foreach_get("co", c)
+            B.append((c - base).reshape(n, 3))
+            fc = fcs[f'key_blocks["{kb.name}"].value']
+            co = np.empty(2 * len(fc.keyframe_points), np.float32)
+            fc.keyframe_points.foreach_get("co", co)
+            Wt.append(co[1::2])
+    return np.array(B), np.array(Wt).T
+
+
+def reconstruct_mm_diff(a, b):
+    """Largest per-vertex, per-frame difference (mm) between two (basis, weights) results."""
+    (Ba, Wa), (Bb, Wb) = a, b
+    if Ba.shape != Bb.shape:
+        return None
+    d = 0.0
+    for s in range(0, len(Wa), 100):
+        ca = np.tensordot(Wa[s : s + 100], Ba, 1)
+        cb = np.tensordot(Wb[s : s + 100], Bb, 1)
+        d = max(d, float(np.linalg.norm(ca - cb, axis=-1).max()))
+    return d * M_TO_MM
+
+
+# --------------------------------------------------------------------------- operator runs
+def run_operator(bpy, label, **kw):
+    timers = Timers()
+    instrument(timers)
+    rss0 = MEM.rss()
+    MEM.reset()
+    MEM.start_window()
+    t0 = time.perf_counter()
+    try:
+        res = bpy.ops.facelab.propagate(**kw)
+    finally:
+        wall = time.perf_counter() - t0
+        timers.restore()
+    peak = MEM.window_peak()
+    return dict(result=sorted(res), wall_s=round(wall, 3), rss_before_mb=round(rss0, 1), peak_rss_mb=round(peak, 1),
+                peak_rss_growth_mb=round(peak - rss0, 1), split=timers.report(wall))
+
+
+def fast_read_captured_frames(obj, scene_frames, *, mute_shape_keys_prefix=("FL_",), progress=None):
+    """Prototype: the shape-key fast path first, frame-by-frame evaluation only where it does not apply."""
+    from facelab_addon.blender import caches
+    from facelab_addon.blender.shapekeys import shape_key_sequence
+
+    if caches.sequence_source(obj, ignore_prefixes=mute_shape_keys_prefix) == "shape_keys":
+        seq = shape_key_sequence(obj, scene_frames, skip_prefixes=tuple(mute_shape_keys_prefix))
+        if seq is not None:
+            return seq
+    return _ORIG_READ(obj, scene_frames, mute_shape_keys_prefix=mute_shape_keys_prefix, progress=progress)
+
+
+_ORIG_READ = None
+
+
+# --------------------------------------------------------------------------- low-memory prototype
+# Three changes, each keeping the operator's result (checked against the frame_set run):
+#  (a) read: shape_key_sequence with one (T,V,3) array (the key mix is written into it, the basis added in
+#      place; the current code holds three: the broadcast copy, the matmul result and its astype copy);
+#  (b) core.propagate._as_frames keeps float32 frames as they are (it upcasts the whole (T,V,3) sequence to a
+#      float64 copy in predict, extrapolation and suggest_frames; only 1,640 of the 26,719 vertices are
+#      used), and the per-frame gathers of the used vertices are made in float64 (same arithmetic as now);
+#  (c) suggest_frames: project out the training span and deflate the residuals in place, in row blocks
+#      (now: a second (T,9m) array for the projection plus a (T,9m) np.outer temporary per deflation).
+
+
+def shape_key_sequence_inplace(obj, frames, *, skip_prefixes=("FL_",)):
+    """``shapekeys.shape_key_sequence`` with a single (T,V,3) float32 result array (same values)."""
+    from facelab_addon.blender.shapekeys import _fcurve_for_key
+
+    key = obj.data.shape_keys
+    frames = np.asarray(frames, dtype=np.float64)
+    n = len(obj.data.vertices)
+    if key is None or not key.use_relative or any(m.show_viewport for m in obj.modifiers):
+        return None
+    if key.animation_data is not None and len(key.animation_data.drivers):
+        return None
+    basis = key.reference_key
+
+    def coords(kb):
+        c = np.empty(n * 3, np.float32)
+        kb.data.foreach_get("co", c)
+        return c
+
+    deltas, weights = [], []
+    for kb in key.key_blocks:
+        if kb == basis or kb.mute or kb.name.startswith(tuple(skip_prefixes)):
+            continue
+        if kb.vertex_group:
+            return None
+        fc = _fcurve_for_key(key, kb)
+        w = np.array([fc.evaluate(f) for f in frames]) if fc is not None and not fc.mute else np.full(len(frames), kb.value)
+        w = np.clip(w, kb.slider_min, kb.slider_max)
+        if np.any(w):
+            deltas.append(coords(kb) - coords(kb.relative_key))
+            weights.append(w)
+    out = np.empty((len(frames), n * 3), np.float32)
+    if deltas:
+        np.matmul(np.stack(weights, 1).astype(np.float32), np.stack(deltas), out=out)
+        out += coords(basis)
+    else:
+        out[:] = coords(basis)
+    return out.reshape(len(frames), n, 3)
+
+
+def _lowmem_read(obj, scene_frames, *, mute_shape_keys_prefix=("FL_",), progress=None):
+    from facelab_addon.blender import caches
+
+    if caches.sequence_source(obj, ignore_prefixes=mute_shape_keys_prefix) == "shape_keys":
+        seq = shape_key_sequence_inplace(obj, scene_frames, skip_prefixes=tuple(mute_shape_keys_prefix))
+        if seq is not None:
+            return seq
+    return _ORIG_READ(obj, scene_frames, mute_shape_keys_prefix=mute_shape_keys_prefix, progress=progress)
+
+
+def _as_frames_keep_dtype(a, n_vertices, what, used=None):
+    """``core.propagate._as_frames`` without the float64 copy of float32 input (NaN check in row blocks)."""
+    from facelab_addon.core.errors import FaceLabError, MeshError
+
+    A = np.asarray(a)
+    if A.dtype not in (np.float32, np.float64):
+        A = A.astype(np.float64)
+    if A.ndim == 2:
+        A = A[None]
+    if A.ndim != 3 or A.shape[1:] != (n_vertices, 3):
+        raise MeshError(f"The {what} have shape {np.asarray(a).shape}; expected (T,{n_vertices},3).")
+    if A.shape[0] == 0:
+        raise FaceLabError(f"No {what} given (0 frames); pass at least one frame.")
+    fin = np.empty(len(A), bool)
+    for s in range(0, len(A), 256):
+        blk = A[s : s + 256] if used is None else A[s : s + 256][:, used]
+        fin[s : s + 256] = np.isfinite(blk).reshape(len(blk), -1).all(axis=1)
+    if not fin.all():
+        raise MeshError(f"The {what} contain NaN or infinite coordinates in frames {np.flatnonzero(~fin)[:5].tolist()}.")
+    return A
+
+
+def _suggest_frames_inplace(captured, count=1, *, regressor=None, exclude=(), **kw):
+    """``core.propagate.suggest_frames`` (regressor branch) with in-place, row-blocked projection/deflation."""
+    from facelab_addon.core import propagate as cprop
+
+    if regressor is None:
+        return _ORIG_SUGGEST(captured, count, regressor=regressor, exclude=exclude, **kw)
+    A = cprop._as_frames(captured, regressor.n_vertices, "captured frames", regressor._used)
+    Y = np.concatenate([regressor._feat(regressor.mouth_gradients(A[s : s + 256])) for s in range(0, len(A), 256)])
+    T, B = len(Y), 256
+    scale = max(float(np.sqrt(np.mean(np.einsum("ij,ij->i", Y, Y)))), 1e-300)
+    Q = regressor._UY
+    Rz = Y  # projected in place
+    for s in range(0, T, B):
+        Rz[s : s + B] -= (Rz[s : s + B] @ Q) @ Q.T
+
+    def deflate(q):
+        for s in range(0, T, B):
+            blk = Rz[s : s + B]
+            blk -= np.outer(blk @ q, q)
+
+    excl = np.zeros(T, dtype=bool)
+    ex = np.asarray(list(exclude), dtype=np.int64)
+    if ex.size:
+        excl[ex[(ex >= 0) & (ex < T)]] = True
+    for i in np.flatnonzero(excl):
+        v = Rz[i]
+        nv = np.linalg.norm(v)
+        if nv > 1e-10 * scale:
+            deflate(v / nv)
+    picks = []
+    for _ in range(int(count)):
+        norms = np.linalg.norm(Rz, axis=1)
+        norms[excl] = -1.0
+        if picks:
+            norms[picks] = -1.0
+        i = int(np.argmax(norms))
+        if norms[i] <= 1e-10 * scale:
+            break
+        picks.append(i)
+        deflate(Rz[i] / norms[i])
+    return np.asarray(picks, dtype=np.int64)
+
+
+_ORIG_SUGGEST = None
+
+
+def lowmem_patches():
+    """Apply (a), (b), (c); returns a function that undoes them."""
+    global _ORIG_READ, _ORIG_SUGGEST
+    from facelab_addon.blender import caches
+    from facelab_addon.core import propagate as cprop
+    from facelab_addon.ui import ops_propagate as op
+
+    saved = [(caches, "read_captured_frames", caches.read_captured_frames), (cprop, "_as_frames", cprop._as_frames),
+             (cprop, "_shape_components", cprop._shape_components), (cprop.LipRegressor, "_grad", cprop.LipRegressor._grad),
+             (op, "suggest_frames", op.suggest_frames)]
+    _ORIG_READ = caches.read_captured_frames
+    _ORIG_SUGGEST = op.suggest_frames
+    orig_sc, orig_grad = cprop._shape_components, cprop.LipRegressor._grad
+
+    def shape_components(frames, verts, local):
+        return orig_sc(np.asarray(frames[:, verts, :], dtype=np.float64), np.arange(len(verts)), local)
+
+    def grad(self, frames, rinv, verts, local):
+        return orig_grad(self, np.asarray(frames[:, verts, :], dtype=np.float64), rinv, np.arange(len(verts)), local)
+
+    caches.read_captured_frames = _lowmem_read
+    cprop._as_frames = _as_frames_keep_dtype
+    cprop._shape_components = shape_components
+    cprop.LipRegressor._grad = grad
+    op.suggest_frames = _suggest_frames_inplace
+
+    def undo():
+        for owner, name, f in saved:
+            setattr(owner, name, f)
+
+    return undo
+
+
+# --------------------------------------------------------------------------- accuracy
+def accuracy(bpy, obj, frames, train, err, cap_w, chunk=100):
+    """Held-out inner-lip error vs the truth on the evaluated mesh, and its deviation from LipRegressor.predict."""
+    from facelab_addon.blender import caches
+    from facelab_addon.blender.mesh import mesh_triangles, vertex_group_mask
+    from facelab_addon.blender.shapekeys import shape_key_sequence
+    from facelab_addon.core.propagate import LipRegressor
+    from facelab_addon.core.regions import faces_in_region
+    from facelab_addon.ui.ops_propagate import rest_vertices
+
+    tris = mesh_triangles(obj.data)
+    mouth, lips = vertex_group_mask(obj, "FL_mouth"), vertex_group_mask(obj, "FL_lips")
+    rest = rest_vertices(obj)
+    corrected = caches.evaluate_frames(obj, train, mute_shape_keys_prefix=("FL_Prop_",))
+    reg = LipRegressor(rest, tris, faces_in_region(tris, mouth), faces_in_region(tris, lips))
+    reg.fit(corrected)
+    held = np.setdiff1d(frames, train)
+    idx = np.searchsorted(frames, held)
+    s2b = s2a = 0.0
+    mxb = mxa = dev = 0.0
+    n = 0
+    t_eval = 0.0
+    for s in range(0, len(held), chunk):
+        f, i = held[s : s + chunk], idx[s : s + chunk]
+        cap = shape_key_sequence(obj, f, skip_prefixes=("FL_",))  # the capture (validated against frame_set below)
+        truth = cap.astype(np.float64) - cap_w[i, None, None] * err[None]
+        t0 = time.perf_counter()
+        got = caches.evaluate_frames(obj, f, mute_shape_keys_prefix=())
+        t_eval += time.perf_counter() - t0
+        expect = reg.predict(cap)
+        dev = max(dev, float(np.abs(got - expect).max()))
+        eb = np.linalg.norm(cap[:, lips] - truth[:, lips], axis=-1) * M_TO_MM
+        ea = np.linalg.norm(got[:, lips] - truth[:, lips], axis=-1) * M_TO_MM
+        s2b += float(np.sum(eb**2))
+        s2a += float(np.sum(ea**2))
+        mxb, mxa = max(mxb, float(eb.max())), max(mxa, float(ea.max()))
+        n += eb.size
+    rb, ra = np.sqrt(s2b / n), np.sqrt(s2a / n)
+    return dict(
+        held_out_frames=int(len(held)),
+        lip_vertices=int(lips.sum()),
+        before=dict(rms_mm=round(rb, 4), max_mm=round(mxb, 4)),
+        after=dict(rms_mm=round(ra, 4), max_mm=round(mxa, 4)),
+        rms_reduction_pct=round(100 * (1 - ra / rb), 1),
+        max_dev_evaluated_vs_predict_mm=round(dev * M_TO_MM, 5),
+        within_compression_tol=bool(dev * M_TO_MM <= COMPRESS_TOL_MM + 1e-3),
+        evaluate_frames_s=round(t_eval, 2),
+    )
+
+
+# --------------------------------------------------------------------------- main
+def main(argv=None):
+    global _ORIG_READ
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--frames", type=int, default=1000, help="sequence length (default 1000)")
+    ap.add_argument("--quick", action="store_true", help="200 frames")
+    ap.add_argument("--no-fast-path", action="store_true", help="skip the shape-key fast-path prototype run")
+    args = ap.parse_args(argv)
+    T = 200 if args.quick else args.frames
+
+    sys.stdout.flush()
+    json_fd = os.dup(1)
+    os.dup2(2, 1)  # Blender and libraries print to stdout; keep it for the JSON alone
+    tmp = tempfile.mkdtemp(prefix="facelab-propbench-")
+    os.environ.setdefault("BLENDER_USER_RESOURCES", tempfile.mkdtemp(prefix="facelab-bl-user-"))
+    out = dict(frames=T, training_frames_n=N_TRAIN, platform=platform.platform(), cpus=os.cpu_count())
+    t_all = time.perf_counter()
+
+    t0 = time.perf_counter()
+    import bpy
+
+    import facelab_addon
+    from facelab_addon.blender import caches
+    from facelab_addon.blender.mesh import mesh_triangles
+    from facelab_addon.blender.shapekeys import add_corrective_key, key_spike, shape_key_sequence
+    from facelab_addon.core.ict import load_ict
+    from facelab_addon.core.propagate import suggest_frames
+    from facelab_addon.ui import ops_propagate as op
+
+    out["bpy_version"] = bpy.app.version_string
+    out["bpy_import_s"] = round(time.perf_counter() - t0, 2)
+    out["rss_after_bpy_import_mb"] = round(MEM.rss(), 1)
+    facelab_addon.register()
+    ict = load_ict()
+    frames = np.arange(1, T + 1)
+    W = load_speech_weights(T)
+
+    t0 = time.perf_counter()
+    scene, obj, err, cap_w, info = build(bpy, ict, frames, W)
+    out["build_scene_s"] = round(time.perf_counter() - t0, 2)
+    out["vertices"] = len(obj.data.vertices)
+    out["capture_error"] = dict(amplitude_mm_per_lip=ERR_CM * 10, key_value_min=round(float(cap_w.min()), 3),
+                                key_value_max=round(float(cap_w.max()), 3), **info)
+
+    # ----- training frames: suggest_frames on the captured sequence (shape-key fast path, checked vs frame_set)
+    tris = mesh_triangles(obj.data)
+    mouth_faces, lip_faces = op.region_faces(obj, tris)
+    rest = op.rest_vertices(obj)
+    t0 = time.perf_counter()
+    captured = shape_key_sequence(obj, frames)
+    t_fast = time.perf_counter() - t0
+    probe = frames[:: max(1, T // 20)]
+    t0 = time.perf_counter()
+    slow = caches.evaluate_frames(obj, probe)
+    t_slow = (time.perf_counter() - t0) / len(probe)
+    fast_dev = float(np.abs(slow - captured[probe - 1]).max())
+    t0 = time.perf_counter()
+    picks = suggest_frames(captured, N_TRAIN, rest_vertices=rest, faces=tris, mouth_faces=mouth_faces)
+    t_suggest = time.perf_counter() - t0
+    train = sorted(int(frames[i]) for i in picks)
+    del captured, slow
+    out["training_frames"] = dict(method="suggest_frames(captured, 10) without a regressor (extreme poses first)",
+                                  frames=train, suggest_s=round(t_suggest, 2))
+    out["read_capture"] = dict(
+        frame_set_per_frame_ms=round(1e3 * t_slow, 2),
+        frame_set_extrapolated_s=round(t_slow * T, 2),
+        shape_key_sequence_s=round(t_fast, 3),
+        max_abs_diff_mm=fast_dev * M_TO_MM,
+    )
+
+    for f in train:
+        scene.frame_set(f)
+        kb = add_corrective_key(obj, f"Sculpt_{f}", -cap_w[f - 1] * err)
+        key_spike(kb, f)
+        assert bpy.ops.facelab.mark_training_frame() == {"FINISHED"}
+    scene.frame_set(1)
+
+    sizes = {"before": blend_sizes(bpy, tmp, "before")}
+    out["rss_before_propagate_mb"] = round(MEM.rss(), 1)
+
+    # ----- Propagate, one run
+    run1 = run_operator(bpy, "first", suggestions=3)
+    names, kf_keys, kf_extra = count_prop(obj)
+    run1["fl_prop_keys"] = len(names)
+    run1["keyframes"] = dict(fl_prop_values=kf_keys, fl_extrapolation=kf_extra, total=kf_keys + kf_extra)
+    run1["suggested"] = sorted(int(m.frame) for m in scene.timeline_markers if m.name.startswith("FL suggest"))
+    out["propagate"] = run1
+    sizes["after"] = blend_sizes(bpy, tmp, "after")
+
+    t0 = time.perf_counter()
+    out["accuracy"] = accuracy(bpy, obj, frames, train, err, cap_w)
+    out["accuracy"]["seconds"] = round(time.perf_counter() - t0, 1)
+
+    # ----- incremental: correct the first suggested frame, propagate again
+    f_new = [int(m.name.split()[-1]) for m in scene.timeline_markers if m.name.startswith("FL suggest")][0]
+    scene.frame_set(f_new)
+    kb = add_corrective_key(obj, f"Sculpt_{f_new}", -cap_w[f_new - 1] * err)
+    key_spike(kb, f_new)
+    assert bpy.ops.facelab.mark_training_frame() == {"FINISHED"}
+    scene.frame_set(1)
+    run2 = run_operator(bpy, "incremental", suggestions=3)
+    names2, kf2, kfe2 = count_prop(obj)
+    run2.update(added_frame=f_new, fl_prop_keys=len(names2), keyframes=kf2 + kfe2,
+                incremental_path_used="regressor: add (incremental)" in run2["split"]
+                and "regressor: LipRegressor.__init__ (Poisson factor, patches)" not in run2["split"])
+    out["propagate_incremental"] = run2
+    sizes["after_incremental"] = blend_sizes(bpy, tmp, "after_incremental")
+    train2 = sorted(train + [f_new])
+    t0 = time.perf_counter()
+    acc2 = accuracy(bpy, obj, frames, train2, err, cap_w)
+    out["accuracy_incremental"] = dict(after=acc2["after"], before=acc2["before"],
+                                       max_dev_evaluated_vs_predict_mm=acc2["max_dev_evaluated_vs_predict_mm"],
+                                       seconds=round(time.perf_counter() - t0, 1))
+
+    # ----- prototype: the shape-key fast path for reading the capture (same training set -> same result)
+    if not args.no_fast_path:
+        state_slow = prop_state(obj)
+        _ORIG_READ = caches.read_captured_frames
+        caches.read_captured_frames = fast_read_captured_frames
+        try:
+            run3 = run_operator(bpy, "fast", suggestions=3)
+        finally:
+            caches.read_captured_frames = _ORIG_READ
+        state_fast = prop_state(obj)
+        run3["fl_prop_keys"] = len(state_fast[0])
+        run3["max_diff_vs_frame_set_result_mm"] = reconstruct_mm_diff(state_slow, state_fast)
+        run3["speedup_vs_incremental_run"] = round(run2["wall_s"] / run3["wall_s"], 2)
+        out["propagate_fast_read_prototype"] = run3
+
+        sugg_slow = sorted(int(m.frame) for m in scene.timeline_markers if m.name.startswith("FL suggest"))
+        undo = lowmem_patches()
+        try:
+            run4 = run_operator(bpy, "lowmem", suggestions=3)
+        finally:
+            undo()
+        state_low = prop_state(obj)
+        run4["fl_prop_keys"] = len(state_low[0])
+        run4["max_diff_vs_frame_set_result_mm"] = reconstruct_mm_diff(state_slow, state_low)
+        run4["same_suggestions"] = sugg_slow == sorted(
+            int(m.frame) for m in scene.timeline_markers if m.name.startswith("FL suggest"))
+        run4["speedup_vs_incremental_run"] = round(run2["wall_s"] / run4["wall_s"], 2)
+        out["propagate_lowmem_prototype"] = run4
+
+    b, a = sizes["before"], sizes["after"]
+    sizes = {k: {kk: round(vv, 2) for kk, vv in v.items()} for k, v in sizes.items()}
+    sizes["growth_raw_mb"] = round(a["raw_mb"] - b["raw_mb"], 2)
+    sizes["growth_zstd_mb"] = round(a["zstd_mb"] - b["zstd_mb"], 2)
+    sizes["target_growth_mb"] = TARGET_GROWTH_MB if T >= 1000 else round(TARGET_GROWTH_MB * T / 1000, 1)
+    sizes["growth_ok"] = sizes["growth_raw_mb"] <= sizes["target_growth_mb"]
+    out["blend"] = sizes
+    MEM.peak()
+    out["process_peak_rss_mb"] = round(MEM.process_peak, 1)
+    out["peak_rss_reset_supported"] = MEM.can_reset
+    out["target_core_rss_mb"] = TARGET_CORE_RSS_MB
+    out["total_s"] = round(time.perf_counter() - t_all, 1)
+
+    facelab_addon.unregister()
+    sys.stdout.flush()
+    os.write(json_fd, (json.dumps(out, indent=1) + "\n").encode())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
