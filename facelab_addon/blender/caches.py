@@ -442,8 +442,9 @@ def evaluate_frames(obj, scene_frames, *, mute_shape_keys_prefix=FACELAB_PREFIXE
 def read_captured_frames(obj, scene_frames, *, mute_shape_keys_prefix=FACELAB_PREFIXES, progress=None):
     """The captured sequence of ``obj`` (without FaceLab's keys), by the fastest exact path.
 
-    A Mesh Cache is read from its file when possible; everything else is
-    evaluated frame by frame.
+    A Mesh Cache is read from its file when possible, shape-key animation is
+    mixed from its F-curves directly (``shapekeys.shape_key_sequence``);
+    everything else is evaluated frame by frame.
 
     Parameters
     ----------
@@ -457,10 +458,17 @@ def read_captured_frames(obj, scene_frames, *, mute_shape_keys_prefix=FACELAB_PR
     (T,V,3) float32 ndarray
         Object-local positions, scene units.
     """
-    if sequence_source(obj, ignore_prefixes=mute_shape_keys_prefix) == "mesh_cache":
+    source = sequence_source(obj, ignore_prefixes=mute_shape_keys_prefix)
+    if source == "mesh_cache":
         return read_mesh_cache_frames(
             obj, scene_frames, mute_shape_keys_prefix=mute_shape_keys_prefix, progress=progress
         )
+    if source in ("shape_keys", "static"):
+        from .shapekeys import shape_key_sequence
+
+        seq = shape_key_sequence(obj, _frames(scene_frames), skip_prefixes=_prefixes(mute_shape_keys_prefix))
+        if seq is not None:  # F-curves mixed directly, 7-9x faster than frame by frame
+            return seq
     return evaluate_frames(obj, scene_frames, mute_shape_keys_prefix=mute_shape_keys_prefix, progress=progress)
 
 

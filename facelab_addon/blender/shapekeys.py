@@ -116,8 +116,9 @@ def shape_key_sequence(obj, frames, *, skip_prefixes=("FL_",)):
     if not key.use_relative:
         return None
     ad = key.animation_data
-    if ad is not None and len(ad.drivers):
-        return None
+    if ad is not None and (len(ad.drivers) or len(ad.nla_tracks) or ad.action_influence != 1.0
+                           or ad.action_blend_type != "REPLACE"):
+        return None  # drivers / NLA / layered blending: evaluate frame by frame instead
     basis = key.reference_key
 
     def coords(kb):
@@ -125,7 +126,6 @@ def shape_key_sequence(obj, frames, *, skip_prefixes=("FL_",)):
         kb.data.foreach_get("co", c)
         return c
 
-    base = coords(basis)
     deltas, weights = [], []
     for kb in key.key_blocks:
         if kb == basis or kb.mute or kb.name.startswith(tuple(skip_prefixes)):
@@ -142,9 +142,12 @@ def shape_key_sequence(obj, frames, *, skip_prefixes=("FL_",)):
             continue
         deltas.append(coords(kb) - coords(kb.relative_key))
         weights.append(w)
-    out = np.broadcast_to(base, (len(frames), n * 3)).copy()
+    out = np.empty((len(frames), n * 3), np.float32)
     if deltas:
-        out += (np.stack(weights, 1).astype(np.float32) @ np.stack(deltas)).astype(np.float32)
+        np.matmul(np.stack(weights, 1).astype(np.float32), np.stack(deltas), out=out)
+        out += coords(basis)
+    else:
+        out[:] = coords(basis)
     return out.reshape(len(frames), n, 3)
 
 

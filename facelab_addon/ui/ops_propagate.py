@@ -298,15 +298,21 @@ def before_seq(pred, lipv, before):
 
 
 def _regressor(obj, rest, tris, mouth_faces, lip_faces, train, corrected):
+    """The fitted regressor for these regions and training frames, updated incrementally when
+    the previous fit's frames (same corrections) are a subset of ``train``."""
     key = (obj.name, len(rest), hash(tris.tobytes()), hash(mouth_faces.tobytes()), hash(lip_faces.tobytes()),
            hash(rest.tobytes()))
     cached = _REGRESSORS.get(key)
     if cached is not None:
-        reg, frames_fit, data = cached
-        if frames_fit == train[: len(frames_fit)] and np.array_equal(data, corrected[: len(frames_fit)]):
-            if len(train) > len(frames_fit):
-                reg.add(corrected[len(frames_fit):])  # incremental: only the new frames
-                _REGRESSORS[key] = (reg, list(train), corrected)
+        reg, fit_frames, fit_data = cached
+        row = {f: i for i, f in enumerate(train)}
+        same = all(f in row and np.array_equal(fit_data[j], corrected[row[f]]) for j, f in enumerate(fit_frames))
+        if same:
+            new = [row[f] for f in train if f not in set(fit_frames)]
+            if new:
+                reg.add(corrected[new])  # incremental: only the new frames
+                order = list(fit_frames) + [train[i] for i in new]
+                _REGRESSORS[key] = (reg, order, np.concatenate([fit_data, corrected[new]]))
             return reg
     reg = LipRegressor(rest, tris, mouth_faces, lip_faces)
     reg.fit(corrected)
