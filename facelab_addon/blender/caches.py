@@ -757,3 +757,43 @@ def cache_to_shape_key_ready(obj, *, directory=None, scene_frames=None, progress
         f"turned it off (kept) and added Mesh Cache '{mc.name}' (PC2, Integrate) after it, "
         "so shape keys now add on top of the capture."
     )
+
+
+def polygon_corners(mesh):
+    """``(face_offsets (P+1,), corner_verts (C,))`` int arrays of a Blender mesh's polygons."""
+    offs = np.empty(len(mesh.polygons), np.int32)
+    mesh.polygons.foreach_get("loop_start", offs)
+    cv = np.empty(len(mesh.loops), np.int32)
+    mesh.loops.foreach_get("vertex_index", cv)
+    return np.r_[offs, len(cv)].astype(np.int64), cv.astype(np.int64)
+
+
+def correction_to_key_offsets(obj, cache_positions, deltas, corners=None):
+    """Shape-key offsets that show as ``deltas`` (V,3) on a frame whose cache output is ``cache_positions``.
+
+    Without a cache (shape keys, static mesh) this is ``deltas`` itself. Over a
+    Mesh Cache in ``'INTEGRATE'`` mode Blender carries key offsets in the
+    local frame of the cache surface (``core.cachefile.integrate_matrices``),
+    so the offsets are mapped back through those matrices.
+
+    Parameters
+    ----------
+    obj : bpy.types.Object
+    cache_positions : (V,3) float
+        The captured positions on that frame (FaceLab keys muted), object-local.
+    deltas : (V,3) float
+        Wanted displacement of the evaluated mesh, object-local scene units.
+    corners : tuple, optional
+        Precomputed ``polygon_corners(obj.data)``.
+    """
+    if sequence_source(obj) not in ("mesh_cache", "mesh_sequence_cache"):
+        return np.asarray(deltas, dtype=np.float64)
+    from ..core.cachefile import integrate_matrices, integrate_offsets_to_key
+
+    n = len(obj.data.vertices)
+    key = obj.data.shape_keys
+    rest = np.empty(n * 3, np.float64)
+    (key.reference_key.data if key else obj.data.vertices).foreach_get("co", rest)
+    offs, cv = polygon_corners(obj.data) if corners is None else corners
+    M = integrate_matrices(rest.reshape(n, 3), cache_positions, offs, cv)
+    return integrate_offsets_to_key(M, deltas)

@@ -6,6 +6,7 @@ import time
 import bpy
 import numpy as np
 
+from ..blender import caches
 from ..blender.camera import camera_from_blender
 from ..blender.mesh import (
     default_fixed_mask,
@@ -100,6 +101,7 @@ class FACELAB_OT_refine_lips(bpy.types.Operator):
         scene = context.scene
         frame = scene.frame_current
         t0 = time.perf_counter()
+        note = ""
         try:
             obj = require_mesh(face_object(context))
             dg = context.evaluated_depsgraph_get()
@@ -111,11 +113,17 @@ class FACELAB_OT_refine_lips(bpy.types.Operator):
             X, info = refine_lips(
                 V, tris, cam, strokes["upper"], strokes["lower"], fixed=fixed, return_info=True, **get_prefs(context)
             )
+            if caches.sequence_source(obj) in ("mesh_cache", "mesh_sequence_cache"):
+                note = "; " + caches.cache_to_shape_key_ready(obj)  # so the corrective key shows on the cache
         except FaceLabError as e:
             self.report({"ERROR"}, str(e))
             return {"CANCELLED"}
         d_world = X - V
-        kb = add_corrective_key(obj, f"FL_Refine_{frame:04d}", world_to_local_deltas(obj, d_world))
+        d_local = world_to_local_deltas(obj, d_world)
+        if note:
+            captured = caches.read_captured_frames(obj, [frame])[0]
+            d_local = caches.correction_to_key_offsets(obj, captured, d_local)
+        kb = add_corrective_key(obj, f"FL_Refine_{frame:04d}", d_local)
         key_spike(kb, frame)
         record_training_frame(scene, obj, frame, kb.name, "sketch")
         moved = np.linalg.norm(d_world, axis=1)
@@ -123,7 +131,7 @@ class FACELAB_OT_refine_lips(bpy.types.Operator):
             {"INFO"},
             f"Refined lips on frame {frame} in {time.perf_counter() - t0:.2f} s: shape key '{kb.name}', "
             f"{int((moved > 1e-9).sum())} vertices moved (max {moved.max():.4g} scene units), "
-            f"fixed: {fixed_src}",
+            f"fixed: {fixed_src}{note}",
         )
         return {"FINISHED"}
 

@@ -246,18 +246,14 @@ def propagate(context, obj, frames, n_suggest=3) -> dict:
     pred = reg.predict(captured, out=captured)  # in place: 1000 frames stay within memory
     corr = (pred[:, lipv] - before).astype(np.float64)  # (T, n_lip, 3) correction, object local
     corr[np.isin(frames, train)] = 0.0  # training frames keep the artist's own correction
-    if source in ("mesh_cache", "mesh_sequence_cache"):
-        from ..core.cachefile import integrate_matrices, integrate_offsets_to_key
-
-        offs = np.array([p.loop_start for p in obj.data.polygons] + [len(obj.data.loops)])
-        cv = np.empty(len(obj.data.loops), np.int32)
-        obj.data.loops.foreach_get("vertex_index", cv)
+    if source in ("mesh_cache", "mesh_sequence_cache"):  # keys ride on the cache surface (INTEGRATE)
+        corners = caches.polygon_corners(obj.data)
         for t in range(len(frames)):
             if np.any(corr[t]):
                 full = np.zeros_like(rest)
                 full[lipv] = corr[t]
-                M = integrate_matrices(rest, before_full(pred[t], lipv, before[t]), offs, cv)
-                corr[t] = integrate_offsets_to_key(M, full)[lipv]
+                corr[t] = caches.correction_to_key_offsets(obj, before_full(pred[t], lipv, before[t]), full,
+                                                           corners)[lipv]
     basis_lip, weights = compress(corr, metres_per_unit=scene.unit_settings.scale_length or 1.0)
     remove_keys(obj, PROP_PREFIX)
     names = []

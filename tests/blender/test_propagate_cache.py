@@ -1,0 +1,108 @@
+"""Headless: a capture played by a Mesh Cache (PC2) -> Refine Lips on a few frames ->
+Propagate. Corrective keys must show on top of the cache (Integrate) and match the core."""
+
+import numpy as np
+import pytest
+
+import bpy
+
+import facelab_addon
+from facelab_addon.blender import caches
+from facelab_addon.blender.camera import apply_camera_to_blender, camera_from_blender
+from facelab_addon.blender.mesh import mesh_triangles, vertex_group_mask
+from facelab_addon.blender.scene import new_mesh_object
+from facelab_addon.blender.strokes import write_stroke_pixels
+from facelab_addon.core import synthetic as syn
+from facelab_addon.core.cachefile import write_pc2
+from facelab_addon.core.propagate import LipRegressor
+from facelab_addon.core.regions import faces_in_region
+from facelab_addon.core.silhouette import contour_distance
+
+pytestmark = pytest.mark.blender
+
+SCALE, UPM = 0.01, 0.001
+T = 16
+TRAIN = [3, 9, 14]
+
+
+@pytest.fixture(scope="module")
+def addon():
+    facelab_addon.register()
+    yield
+    facelab_addon.unregister()
+
+
+def test_refine_and_propagate_on_a_mesh_cache(tmp_path, ict, addon):
+    F = ict.faces
+    neutral = ict.neutral * SCALE
+    t = np.linspace(0, 1, T)
+    jaw = 0.15 + 0.12 * np.sin(2 * np.pi * t)
+    funnel = 0.15 + 0.1 * np.cos(2 * np.pi * t)
+    truth = np.stack([ict.pose({"jawOpen": a, "mouthFunnel": b}) * SCALE for a, b in zip(jaw, funnel)])
+    fixed = ~ict.part_vertex_mask("M_Face")
+    mouth = syn.find_mouth(neutral, F, fixed, loop=syn.ICT_MOUTH_LOOP, units_per_mm=UPM)
+    w, side = syn.lip_error_weights(neutral, F, fixed, mouth=mouth)
+    err = np.zeros_like(neutral)
+    err[:, 1] = side * w * 1.0 * UPM
+    strength = 1.5 - jaw / 0.3  # the error grows as the jaw closes: learnable from the mouth
+    captured = truth + strength[:, None, None] * err[None]
+    pc2 = write_pc2(tmp_path / "capture.pc2", captured.astype(np.float32))
+
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    scene = bpy.context.scene
+    scene.frame_start, scene.frame_end = 1, T
+    obj = new_mesh_object("Face", neutral, poly_verts=ict.poly_verts, poly_offsets=ict.poly_offsets)
+    md = obj.modifiers.new("Capture", "MESH_CACHE")
+    md.cache_format, md.filepath, md.frame_start = "PC2", str(pc2), 1.0  # frame 1 plays sample 0
+    obj.vertex_groups.new(name="FL_fixed").add(np.flatnonzero(fixed).tolist(), 1.0, "REPLACE")
+    cam = syn.frontal_camera(neutral, mouth.center, distance=0.40)
+    cam_obj = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
+    scene.collection.objects.link(cam_obj)
+    apply_camera_to_blender(cam, cam_obj, scene)
+    scene.camera = cam_obj
+    bpy.context.view_layer.objects.active = obj
+    np.testing.assert_allclose(caches.read_captured_frames(obj, np.arange(1, T + 1)), captured, atol=1e-6)
+
+    bcam = camera_from_blender(scene)
+    for f in TRAIN:
+        scene.frame_set(f)
+        m_f = syn.find_mouth(truth[f - 1], F, fixed, loop=syn.ICT_MOUTH_LOOP, units_per_mm=UPM)
+        up, lo = syn.lip_contours(truth[f - 1], F, cam, fixed, mouth=m_f)
+        bpy.context.view_layer.objects.active = obj
+        bpy.ops.facelab.new_lip_sketch()
+        write_stroke_pixels(scene.facelab.sketch, "Upper lip", f, [up], bcam)
+        write_stroke_pixels(scene.facelab.sketch, "Lower lip", f, [lo], bcam)
+        bpy.context.view_layer.objects.active = obj
+        assert bpy.ops.facelab.refine_lips() == {"FINISHED"}
+        assert md.deform_mode == "INTEGRATE"  # made ready so the corrective key shows over the cache
+        X = caches.evaluate_frames(obj, [f], mute_shape_keys_prefix=())[0]
+        d = np.r_[contour_distance(X, F, cam, up, +1, candidates=~fixed), contour_distance(X, F, cam, lo, -1, candidates=~fixed)]
+        assert d.mean() < 1.0, d.mean()  # the key shows on the cached frame, on the strokes
+
+    bpy.context.view_layer.objects.active = obj
+    assert bpy.ops.facelab.auto_regions() == {"FINISHED"}
+    assert bpy.ops.facelab.propagate(suggestions=0) == {"FINISHED"}
+
+    tris = mesh_triangles(obj.data)
+    frames = np.arange(1, T + 1)
+    cap = caches.read_captured_frames(obj, frames)
+    corrected = caches.evaluate_frames(obj, TRAIN, mute_shape_keys_prefix=("FL_Prop_",))
+    reg = LipRegressor(neutral, tris, faces_in_region(tris, vertex_group_mask(obj, "FL_mouth")),
+                       faces_in_region(tris, vertex_group_mask(obj, "FL_lips")))
+    reg.fit(corrected)
+    held = [1, 6, 12, 16]
+    expect = reg.predict(cap[np.array(held) - 1].astype(np.float64))
+    got = caches.evaluate_frames(obj, held, mute_shape_keys_prefix=())
+    assert np.abs(got - expect).max() < 2.5e-5, np.abs(got - expect).max()  # 0.01 mm key tolerance, carried by the cache
+
+    # bake the corrected performance for other packages; never overwrite silently
+    from facelab_addon.core.cachefile import read_pc2
+
+    out = tmp_path / "corrected.pc2"
+    assert bpy.ops.facelab.bake(filepath=str(out), format="PC2") == {"FINISHED"}
+    baked, start, rate = read_pc2(out)
+    np.testing.assert_allclose(baked, caches.evaluate_frames(obj, frames, mute_shape_keys_prefix=()), atol=1e-6)
+    with pytest.raises(RuntimeError, match="exists"):
+        bpy.ops.facelab.bake(filepath=str(out), format="PC2")
+    assert bpy.ops.facelab.bake(filepath=str(tmp_path / "corrected.abc"), format="ABC") == {"FINISHED"}
+    assert (tmp_path / "corrected.abc").stat().st_size > 1000
