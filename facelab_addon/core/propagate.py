@@ -38,6 +38,12 @@ Implementation notes (deviations are marked):
   (``benchmarks/propagate.py``, k = 10) the held-out inner-lip RMS error is
   22% of the uncorrected capture's with the defaults, 31% with one
   rest-centred map and 39% with the paper's uncentred map.
+* Memory: frames are read in their own dtype (a float32 sequence is not
+  upcast as a whole); only the mouth and lip vertices are gathered and
+  converted to float64, a block of frames at a time. ``predict(captured, out=captured)``
+  writes only the interior lip vertices. For :meth:`LipRegressor.extrapolation`
+  and :func:`suggest_frames` on the same sequence, compute
+  :meth:`LipRegressor.mouth_features` once and pass it as ``features=``.
 * ``ridge`` (default 0, the paper): Tikhonov term ``λ ||θ̄||²`` in the
   reduced normal equations; ``ridge="loo"`` picks λ by leave-one-out
   prediction error of the lip gradients. Singular values below ``rtol``
@@ -102,9 +108,20 @@ def poisson_operator(rest_vertices, faces, region_faces):
     return L, D
 
 
+_BLOCK = 64  # frames per block of the per-frame loops (working memory ~ block x region size)
+
+
 def _as_frames(a, n_vertices, what, used=None):
-    """Validate frames as a (T,V,3) float64 array; NaNs are looked for in ``used`` vertices only."""
-    A = np.asarray(a, dtype=np.float64)
+    """Validate frames as a (T,V,3) float32 or float64 array, without copying them.
+
+    float32 and float64 arrays are returned as they are (a (V,3) frame as a
+    (1,V,3) view); other dtypes are converted to float64. Callers convert
+    only the vertices they read to float64. NaNs are looked for in ``used``
+    vertices only, a block of frames at a time.
+    """
+    A = np.asarray(a)
+    if A.dtype != np.float32 and A.dtype != np.float64:
+        A = A.astype(np.float64)
     if A.ndim == 2:
         A = A[None]
     if A.ndim != 3 or A.shape[1:] != (n_vertices, 3):
@@ -115,13 +132,27 @@ def _as_frames(a, n_vertices, what, used=None):
         )
     if A.shape[0] == 0:
         raise FaceLabError(f"No {what} given (0 frames); pass at least one frame.")
-    fin = np.isfinite(A if used is None else A[:, used]).reshape(len(A), -1).all(axis=1)
-    if not fin.all():
+    bad = []
+    for s in range(0, len(A), _BLOCK):
+        blk = A[s : s + _BLOCK] if used is None else A[s : s + _BLOCK, used]
+        fin = np.isfinite(blk).reshape(len(blk), -1).all(axis=1)
+        bad.extend((s + np.flatnonzero(~fin)).tolist())
+        if len(bad) >= 5:
+            break
+    if bad:
         raise MeshError(
-            f"The {what} contain NaN or infinite coordinates in frames {np.flatnonzero(~fin)[:5].tolist()}; "
+            f"The {what} contain NaN or infinite coordinates in frames {bad[:5]}; "
             "fix or re-import those frames."
         )
     return A
+
+
+def _same_array(a, b):
+    """True when ``a`` and ``b`` are the same elements of the same buffer (e.g. ``out`` is the input)."""
+    return a is b or (
+        isinstance(a, np.ndarray) and a.shape == b.shape and a.dtype == b.dtype and a.strides == b.strides
+        and a.__array_interface__["data"][0] == b.__array_interface__["data"][0]
+    )
 
 
 _OVERLAP = 1.0
@@ -334,6 +365,56 @@ class LipRegressor:
             G = G - np.eye(3)
         return G.reshape(T, -1)
 
+    def _mouth_feat(self, frames):
+        """(T, 9m) mouth features of validated frames (any float dtype; computed in float64)."""
+        return self._feat(self._grad(frames, self._mouth_rinv, self._mouth_verts, self._mouth_local))
+
+    def mouth_features(self, captured) -> np.ndarray:
+        """Whole-mouth feature vectors ``y`` of frames, one row per frame.
+
+        The deformation gradients of the mouth triangles (order of
+        ``mouth_faces``, each 3×3 flattened row-major), minus the identity
+        when ``center="rest"``. They are what :meth:`extrapolation` and
+        :func:`suggest_frames` compare with the training span: compute them
+        once and pass them to both as ``features=`` so the sequence is read
+        once. Needs no fit.
+
+        Parameters
+        ----------
+        captured : (T,V,3) or (V,3) array_like
+            Frames, scene units. float32 frames are read in place (only the
+            mouth vertices are converted to float64, a block at a time).
+
+        Returns
+        -------
+        (T, 9m) float64 ndarray
+            Unitless; ``m = len(mouth_faces)``. 72·m bytes a frame (about
+            0.1 MB on ICT-FaceKit, 100 MB for 1000 frames).
+
+        Raises
+        ------
+        FaceLabError
+            If no frames are given, or they have a different topology or NaN
+            coordinates in the mouth or lip region (``MeshError``).
+        """
+        A = _as_frames(captured, self.n_vertices, "captured frames", self._used)
+        out = np.empty((len(A), 9 * len(self.mouth_faces)))
+        for s in range(0, len(A), _BLOCK):
+            out[s : s + _BLOCK] = self._mouth_feat(A[s : s + _BLOCK])
+        return out
+
+    def _check_features(self, features):
+        Y = np.asarray(features)
+        d = 9 * len(self.mouth_faces)
+        if Y.ndim != 2 or Y.shape[1] != d:
+            raise FaceLabError(
+                f"features have shape {Y.shape}, expected (T, {d}) (9 per mouth triangle); compute them with "
+                "mouth_features() of this regressor."
+            )
+        if len(Y) == 0:
+            raise FaceLabError("No features given (0 frames); pass at least one frame.")
+        return Y
+
     # ------------------------------------------------------------------ training
     def fit(self, corrected):
         """Fit the reduced regression(s) on corrected frames, replacing any earlier training.
@@ -509,10 +590,9 @@ class LipRegressor:
             zs.append(z)
         return np.concatenate(zs, axis=1) - self._z_ident
 
-    def _residuals(self, frames):
-        """(T,) norms of the whole-mouth features outside the global training span."""
-        y = self._feat(self._grad(frames, self._mouth_rinv, self._mouth_verts, self._mouth_local))
-        r = y - (y @ self._UY) @ self._UY.T
+    def _residual_norms(self, Y):
+        """(T,) norms of mouth features ``Y`` (T, 9m) outside the global training span."""
+        r = Y - (Y @ self._UY) @ self._UY.T
         return np.sqrt(np.sum(r * r, axis=1))
 
     def predict_lip_gradients(self, captured) -> np.ndarray:
@@ -551,22 +631,29 @@ class LipRegressor:
         ----------
         captured : (T,V,3) or (V,3) array_like
             Captured frames, scene units, same topology as the rest mesh.
+            float32 or float64 arrays are read without a copy; only the
+            mouth and lip vertices are converted to float64, a chunk at a
+            time, so float32 gives the same result as float64 (up to float32
+            rounding of the written vertices).
         out : (T,V,3) ndarray, optional
-            Where to write the result (may be ``captured`` itself, for
-            in-place correction of long sequences: only the interior lip
-            vertices are written, and they are never read). Default: a new
-            array. In place, 1000 ICT frames (611 MB) peak at about 850 MB
-            resident; the working memory of a chunk is a few tens of MB.
+            Where to write the result, any float dtype. It may be
+            ``captured`` itself, for in-place correction of long sequences:
+            then only the interior lip vertices are written (and they are
+            never read). Another array first receives a copy of
+            ``captured``. Default: a new float64 array. In place, the
+            working memory is a few tens of MB whatever the sequence length
+            and dtype (about 50 MB with the default chunk on ICT-FaceKit).
         chunk : int
             Frames per batch (working memory ~ chunk × lip size).
 
         Returns
         -------
-        (T,V,3) float64 ndarray
-            Captured positions everywhere except the interior lip vertices,
-            which are the Poisson reconstruction from ``θ y`` with the border
-            vertices held at their captured positions (scene units). A single
-            (V,3) frame gives a (1,V,3) result.
+        (T,V,3) ndarray
+            ``out`` (float64 when not given): captured positions everywhere
+            except the interior lip vertices, which are the Poisson
+            reconstruction from ``θ y`` with the border vertices held at
+            their captured positions (scene units). A single (V,3) frame
+            gives a (1,V,3) result.
 
         Raises
         ------
@@ -578,8 +665,8 @@ class LipRegressor:
         A = _as_frames(captured, self.n_vertices, "captured frames", self._used)
         T = len(A)
         if out is None:
-            out = A.copy()
-        elif out is not A:
+            out = A.astype(np.float64)  # always a copy
+        elif not _same_array(out, A):
             if out.shape != A.shape:
                 raise FaceLabError(f"out has shape {out.shape}, expected {A.shape}; pass an array like the frames.")
             out[...] = A
@@ -592,13 +679,13 @@ class LipRegressor:
             rhs = (self._Zdiv @ z.T).reshape(nI, 3, t).transpose(0, 2, 1)  # (nI, t, 3)
             if self.center == "rest":
                 rhs = rhs + self._b_ident[:, None, :]
-            xb = A[s:e][:, bv, :].transpose(1, 0, 2).reshape(len(bv), 3 * t)
+            xb = np.asarray(A[s:e][:, bv, :], dtype=np.float64).transpose(1, 0, 2).reshape(len(bv), 3 * t)
             rhs = rhs.reshape(nI, 3 * t) - self._L_IB @ xb
             xi = self._factor.solve(rhs).reshape(nI, t, 3)
             out[s:e, iv, :] = xi.transpose(1, 0, 2)
         return out
 
-    def extrapolation(self, captured) -> np.ndarray:
+    def extrapolation(self, captured=None, *, features=None) -> np.ndarray:
         """How far each frame's mouth gradients lie outside the span of the training frames.
 
         ``e = ||y - U_Y U_Yᵀ y|| / σ`` where ``y`` is the frame's whole-mouth
@@ -612,18 +699,28 @@ class LipRegressor:
 
         Parameters
         ----------
-        captured : (T,V,3) or (V,3) array_like
-            Frames, scene units.
+        captured : (T,V,3) or (V,3) array_like, optional
+            Frames, scene units (read a block at a time, never copied whole).
+        features : (T, 9m) array_like, optional
+            Instead of ``captured``: their :meth:`mouth_features`, for
+            example to share them with :func:`suggest_frames`. Not modified.
 
         Returns
         -------
         (T,) float64 ndarray
         """
         self._require_fit()
-        A = _as_frames(captured, self.n_vertices, "captured frames", self._used)
+        if (captured is None) == (features is None):
+            raise ValueError("extrapolation() takes captured frames or their features, not both or neither")
+        if features is None:
+            A = _as_frames(captured, self.n_vertices, "captured frames", self._used)
+            block = lambda s: self._mouth_feat(A[s : s + _BLOCK])  # noqa: E731
+        else:
+            A = self._check_features(features)
+            block = lambda s: A[s : s + _BLOCK]  # noqa: E731
         out = np.empty(len(A))
-        for s in range(0, len(A), 256):
-            out[s : s + 256] = self._residuals(A[s : s + 256])
+        for s in range(0, len(A), _BLOCK):
+            out[s : s + _BLOCK] = self._residual_norms(block(s))
         return out / max(self._sigma, 1e-12)
 
     def training_span(self) -> np.ndarray:
@@ -633,13 +730,13 @@ class LipRegressor:
 
 
 def _shape_components(frames, verts, local):
-    """Shape-matrix columns of triangles ``local`` over vertices ``verts`` for frames (T,V,3).
+    """Shape-matrix columns of triangles ``local`` over vertices ``verts`` for frames (T,V,3), in float64.
 
     Returns three (3,T,f) arrays ``e[k][i]``: column k (edge 1, edge 2,
     phantom offset), coordinate i. Component-major layout keeps every
     operation contiguous (about 3x faster than (T,f,3,3) for many frames).
     """
-    Xt = np.ascontiguousarray(frames[:, verts, :].transpose(2, 0, 1))  # (3, T, nv)
+    Xt = np.ascontiguousarray(frames[:, verts, :].transpose(2, 0, 1), dtype=np.float64)  # (3, T, nv)
     p0 = Xt[:, :, local[:, 0]]
     e1 = Xt[:, :, local[:, 1]] - p0
     e2 = Xt[:, :, local[:, 2]] - p0
@@ -652,7 +749,8 @@ def _shape_components(frames, verts, local):
     return e1, e2, c
 
 
-def _mouth_features(frames, rest_vertices, faces, mouth_faces, chunk=256):
+def _mouth_features(frames, rest_vertices, faces, mouth_faces, chunk=_BLOCK):
+    """(T, 9m) mouth gradients minus the identity of validated frames (any float dtype), float64."""
     F = np.asarray(faces, dtype=np.int64)[np.asarray(mouth_faces, dtype=np.int64)]
     verts, inv = np.unique(F, return_inverse=True)
     local = inv.reshape(-1, 3)
@@ -660,13 +758,21 @@ def _mouth_features(frames, rest_vertices, faces, mouth_faces, chunk=256):
     T = len(frames)
     out = np.empty((T, 9 * len(F)))
     for s in range(0, T, chunk):
-        P = np.asarray(frames[s : s + chunk], dtype=np.float64)[:, verts, :]
+        P = frames[s : s + chunk][:, verts, :]  # shape_matrices converts these to float64
         out[s : s + chunk] = (np.matmul(shape_matrices(P, local), rinv) - np.eye(3)).reshape(len(P), -1)
     return out
 
 
-def suggest_frames(captured, count: int = 1, *, regressor: LipRegressor | None = None, rest_vertices=None,
-                   faces=None, mouth_faces=None, exclude=()) -> np.ndarray:
+def _deflate(R, q, block=_BLOCK):
+    """``R -= (R q) qᵀ`` in place, a block of rows at a time (no full-size temporary)."""
+    for s in range(0, len(R), block):
+        b = R[s : s + block]
+        b -= np.outer(b @ q, q)
+
+
+def suggest_frames(captured=None, count: int = 1, *, regressor: LipRegressor | None = None, rest_vertices=None,
+                   faces=None, mouth_faces=None, exclude=(), features=None,
+                   overwrite_features: bool = False) -> np.ndarray:
     """Propose the next frames worth correcting.
 
     Greedy pivoted Gram-Schmidt in mouth-gradient space (Dinev et al. 2018,
@@ -679,24 +785,42 @@ def suggest_frames(captured, count: int = 1, *, regressor: LipRegressor | None =
     regressor the span starts as its training span, so the first pick is the
     frame of largest :meth:`LipRegressor.extrapolation`.
 
+    Memory: one (T, 9m) float64 array of mouth features (``m`` mouth
+    triangles; about 0.1 MB a frame on ICT-FaceKit), projected and deflated
+    in place a block of rows at a time. With ``features=...`` and
+    ``overwrite_features=True`` the given array is that working array, so
+    nothing of full size is allocated.
+
     Parameters
     ----------
-    captured : (T,V,3) array_like
-        The captured sequence, scene units.
+    captured : (T,V,3) array_like, optional
+        The captured sequence, scene units (float32 is read in place, a block
+        of frames at a time). Required unless ``features`` is given.
     count : int
         Number of frames to propose.
     regressor : LipRegressor, optional
         A fitted regressor; supplies the rest mesh, faces, mouth region,
         feature centring and training span.
     rest_vertices : (V,3) array_like, optional
-        Rest positions (needed without ``regressor``).
+        Rest positions (needed without ``regressor`` and ``features``).
     faces : (F,3) int array_like, optional
-        Triangles (needed without ``regressor``).
+        Triangles (needed without ``regressor`` and ``features``).
     mouth_faces : (m,) int array_like, optional
-        Mouth-region triangles (needed without ``regressor``).
+        Mouth-region triangles (needed without ``regressor`` and ``features``).
     exclude : sequence of int
         Frames never to propose (for example the ones already corrected);
         their directions are added to the starting span.
+    features : (T, 9m) array_like, optional
+        Instead of ``captured``: precomputed mouth features of the sequence,
+        one row per frame. With a regressor, ``regressor.mouth_features(captured)``
+        (the same array can first go to ``regressor.extrapolation(features=...)``,
+        so the sequence is read once). Without one, the mouth deformation
+        gradients minus the identity (any fixed order of the 9m entries), i.e.
+        ``mouth_features`` of a ``center="rest"`` regressor on these mouth
+        triangles. The result equals passing ``captured``.
+    overwrite_features : bool
+        Use ``features`` (if a C-contiguous float64 ndarray) as the working
+        array instead of copying it; its contents are then undefined.
 
     Returns
     -------
@@ -704,10 +828,23 @@ def suggest_frames(captured, count: int = 1, *, regressor: LipRegressor | None =
         Frame indices in order of priority, ``c = min(count, frames left)``;
         fewer when the remaining frames already lie in the span.
     """
-    if regressor is not None:
-        A = _as_frames(captured, regressor.n_vertices, "captured frames", regressor._used)
-        Y = np.concatenate([regressor._feat(regressor.mouth_gradients(A[s : s + 256])) for s in range(0, len(A), 256)])
-        Q = regressor._UY.copy() if regressor._Y is not None else np.zeros((Y.shape[1], 0))
+    if (captured is None) == (features is None):
+        raise ValueError("suggest_frames() takes captured frames or their features, not both or neither")
+    if features is not None:
+        if regressor is not None:
+            F0 = regressor._check_features(features)
+        else:
+            F0 = np.asarray(features)
+            if F0.ndim != 2 or F0.shape[1] % 9 or len(F0) == 0:
+                raise FaceLabError(f"features have shape {F0.shape}, expected (T, 9m) with T >= 1 (9 per mouth "
+                                   "triangle).")
+            if mouth_faces is not None and F0.shape[1] != 9 * len(np.asarray(mouth_faces).ravel()):
+                raise FaceLabError(f"features have {F0.shape[1]} columns but there are {len(mouth_faces)} mouth "
+                                   "triangles (9 columns each); compute them on the same mouth region.")
+        own = overwrite_features and isinstance(F0, np.ndarray) and F0.dtype == np.float64 and F0.flags.c_contiguous
+        Rz = F0 if own else np.array(F0, dtype=np.float64, order="C")
+    elif regressor is not None:
+        Rz = regressor.mouth_features(captured)
     else:
         if rest_vertices is None or faces is None or mouth_faces is None:
             raise FaceLabError(
@@ -715,25 +852,31 @@ def suggest_frames(captured, count: int = 1, *, regressor: LipRegressor | None =
             )
         R = np.asarray(rest_vertices, dtype=np.float64)
         A = _as_frames(captured, len(R), "captured frames")
-        Y = _mouth_features(A, R, faces, mouth_faces)
-        Q = np.zeros((Y.shape[1], 0))
-    T = len(Y)
+        Rz = _mouth_features(A, R, faces, mouth_faces)
+    Q = regressor._UY if regressor is not None and regressor._Y is not None else None
+    T = len(Rz)
+    # feature scale (threshold of "already in the span"), then residuals after projecting on Q, in place
+    sq = np.empty(T)
+    for s in range(0, T, _BLOCK):
+        b = Rz[s : s + _BLOCK]
+        sq[s : s + _BLOCK] = np.sum(b * b, axis=1)
+        if Q is not None and Q.shape[1]:
+            b -= (b @ Q) @ Q.T
+    scale = max(float(np.sqrt(np.mean(sq))), 1e-300)
     excl = np.zeros(T, dtype=bool)
     ex = np.asarray(list(exclude), dtype=np.int64)
     if ex.size:
         excl[ex[(ex >= 0) & (ex < T)]] = True
-    # residuals after projecting on Q (and on excluded frames)
-    Rz = Y - (Y @ Q) @ Q.T if Q.shape[1] else Y.copy()
-    scale = max(float(np.sqrt(np.mean(np.sum(Y * Y, axis=1)))), 1e-300)
+    # ... and on the excluded frames
     for i in np.flatnonzero(excl):
-        v = Rz[i]
-        nv = np.linalg.norm(v)
+        nv = np.linalg.norm(Rz[i])
         if nv > 1e-10 * scale:
-            q = v / nv
-            Rz -= np.outer(Rz @ q, q)
+            _deflate(Rz, Rz[i] / nv)
     picks = []
+    norms = np.empty(T)
     for _ in range(int(count)):
-        norms = np.linalg.norm(Rz, axis=1)
+        for s in range(0, T, _BLOCK):
+            norms[s : s + _BLOCK] = np.linalg.norm(Rz[s : s + _BLOCK], axis=1)
         norms[excl] = -1.0
         if picks:
             norms[picks] = -1.0
@@ -741,6 +884,5 @@ def suggest_frames(captured, count: int = 1, *, regressor: LipRegressor | None =
         if norms[i] <= 1e-10 * scale:
             break
         picks.append(i)
-        q = Rz[i] / norms[i]
-        Rz -= np.outer(Rz @ q, q)
+        _deflate(Rz, Rz[i] / norms[i])
     return np.asarray(picks, dtype=np.int64)

@@ -262,16 +262,18 @@ def propagate(context, obj, frames, n_suggest=3) -> dict:
         basis[:, lipv] = basis_lip
         names = add_keys_from_deltas(obj, PROP_PREFIX, basis)
         key_values_bulk(obj, names, frames, weights)
-    # where the model guesses: the extrapolation score keyed on the object, suggestions as markers
-    score = reg.extrapolation(before_seq(pred, lipv, before))
+    # where the model guesses: the extrapolation score keyed on the object, suggestions as markers.
+    # Mouth features are computed once (mouth triangles never touch the predicted interior lip vertices).
+    feats = reg.mouth_features(pred)
+    score = reg.extrapolation(features=feats)
     obj[EXTRAPOLATION_PROP] = 0.0
     key_property_bulk(obj, f'["{EXTRAPOLATION_PROP}"]', frames, score)
     for m in [m for m in scene.timeline_markers if m.name.startswith(SUGGEST_MARKER)]:
         scene.timeline_markers.remove(m)
     suggested = []
     if n_suggest:
-        idx = suggest_frames(before_seq(pred, lipv, before), n_suggest, regressor=reg,
-                             exclude=np.flatnonzero(np.isin(frames, train)))
+        idx = suggest_frames(None, n_suggest, regressor=reg, exclude=np.flatnonzero(np.isin(frames, train)),
+                             features=feats, overwrite_features=True)
         suggested = [int(frames[i]) for i in idx]
         for f in suggested:
             scene.timeline_markers.new(f"{SUGGEST_MARKER} {f}", frame=f)
@@ -285,12 +287,6 @@ def before_full(pred_t, lipv, before_t):
     out = np.array(pred_t, dtype=np.float64)
     out[lipv] = before_t
     return out
-
-
-def before_seq(pred, lipv, before):
-    """(T,V,3) captured sequence rebuilt in place from the prediction (no second copy)."""
-    pred[:, lipv] = before
-    return pred
 
 
 def _regressor(obj, rest, tris, mouth_faces, lip_faces, train, corrected):

@@ -228,3 +228,97 @@ def test_ict_blend_of_training_poses_is_corrected(ict):
     assert rms(out - truth) < 0.03 * rms(err)
     e = reg.extrapolation(np.stack([truth, m.pose({"mouthFunnel": 0.6})]))
     assert e[0] < 0.1 < e[1]
+
+
+# ---------------------------------------------------------------- dtype, in place, shared features
+
+
+def _sequence(V, n, seed=5):
+    return np.stack([smooth_random_deformation(V, seed + s) + lip_bump(V) for s in range(n)])
+
+
+def test_float32_frames_are_read_without_upcasting_and_match_float64():
+    V, F, mouth, lips = grid(bumpy=True)
+    reg = LipRegressor(V, F, mouth, lips).fit(np.stack([smooth_random_deformation(V, s) for s in range(3)]))
+    cap32 = _sequence(V, 6).astype(np.float32)
+    cap64 = cap32.astype(np.float64)  # the same positions
+    ref = reg.predict(cap64)
+    out = reg.predict(cap32, chunk=4)
+    assert out.dtype == np.float64 and out.shape == cap32.shape
+    np.testing.assert_allclose(out, ref, rtol=0, atol=1e-12)
+    # against the float64 originals: equal up to float32 rounding of the input
+    np.testing.assert_allclose(reg.predict(_sequence(V, 6)), ref, rtol=0, atol=1e-5)
+    np.testing.assert_allclose(reg.extrapolation(cap32), reg.extrapolation(cap64), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(reg.predict_lip_gradients(cap32), reg.predict_lip_gradients(cap64), atol=1e-12)
+    # NaNs are still found, block by block, in the region actually read
+    long = np.repeat(cap32[:1], 150, axis=0)
+    long[[3, 140], F[lips[0], 0], 1] = np.nan
+    with pytest.raises(MeshError, match="NaN.*frames \\[3, 140\\]"):
+        reg.predict(long)
+    # out given as another view of the input's buffer is in place too
+    long = np.ascontiguousarray(cap32)
+    res = reg.predict(long[1:4], out=long[1:4])
+    np.testing.assert_allclose(long[1:4], out[1:4], rtol=0, atol=1e-5)
+    assert np.shares_memory(res, long)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_predict_in_place_writes_only_the_interior_lip_vertices(dtype):
+    V, F, mouth, lips = grid(bumpy=True)
+    reg = LipRegressor(V, F, mouth, lips).fit(np.stack([smooth_random_deformation(V, s) for s in range(3)]))
+    cap = _sequence(V, 5).astype(dtype)
+    orig = cap.copy()
+    ref = reg.predict(orig)
+    res = reg.predict(cap, out=cap, chunk=2)
+    assert res is cap and res.dtype == dtype
+    keep = np.setdiff1d(np.arange(len(V)), reg.interior_vertices)
+    assert np.array_equal(cap[:, keep], orig[:, keep])  # untouched, border and mouth included
+    np.testing.assert_allclose(cap, ref, rtol=0, atol=1e-6 if dtype == np.float32 else 1e-12)
+    assert np.abs(cap[:, reg.interior_vertices] - orig[:, reg.interior_vertices]).max() > 1e-3
+    # another array as out receives the whole result, in its own dtype
+    buf = np.zeros(orig.shape, np.float64)
+    assert reg.predict(orig, out=buf) is buf
+    np.testing.assert_allclose(buf, ref, atol=1e-12)
+    with pytest.raises(FaceLabError, match="out has shape"):
+        reg.predict(orig, out=buf[:2])
+
+
+def test_mouth_features_are_shared_by_extrapolation_and_suggest_frames():
+    V, F, mouth, lips = grid()
+    seq = np.stack([row_shift(V, lambda y, w=w: w * fA(y)) for w in (0.1, 0.2, 0.3, 0.4, 0.5)]
+                   + [row_shift(V, lambda y, w=w: w * fB(y)) for w in (0.1, 0.2, 0.3)]
+                   + [row_shift(V, lambda y, w=w: w * fD(y) + 0.1 * fA(y)) for w in (0.2, 0.1)])
+    reg = LipRegressor(V, F, mouth, lips).fit(seq[4])
+    Y = reg.mouth_features(seq.astype(np.float32))
+    assert Y.shape == (len(seq), 9 * len(reg.mouth_faces)) and Y.dtype == np.float64
+    np.testing.assert_allclose(Y, reg.mouth_features(seq), atol=1e-5)  # float32 rounding of the positions
+    Y = reg.mouth_features(seq)
+    Y0 = Y.copy()
+    np.testing.assert_allclose(reg.extrapolation(features=Y), reg.extrapolation(seq), rtol=0, atol=1e-14)
+    for kw in (dict(), dict(exclude=[8]), dict(exclude=[4, 7])):
+        ref = suggest_frames(seq, 4, regressor=reg, **kw)
+        np.testing.assert_array_equal(suggest_frames(None, 4, regressor=reg, features=Y, **kw), ref)
+        np.testing.assert_array_equal(Y, Y0)  # not modified without overwrite_features
+        np.testing.assert_array_equal(suggest_frames(features=Y.copy(), count=4, regressor=reg,
+                                                     overwrite_features=True, **kw), ref)
+    np.testing.assert_array_equal(suggest_frames(seq, 4, regressor=reg), [8, 7])
+    # the same through a float32 capture and a work array that is consumed (float32 rounding puts every
+    # frame slightly outside the span, so only the first picks are meaningful)
+    work = reg.mouth_features(seq.astype(np.float32))
+    np.testing.assert_array_equal(suggest_frames(features=work, count=2, regressor=reg, overwrite_features=True),
+                                  [8, 7])
+    assert np.abs(work @ reg.training_span()).max() < 1e-10  # consumed: projected in place
+    # without a regressor: features of a rest-centred regressor on the same mouth
+    kw = dict(rest_vertices=V, faces=F, mouth_faces=mouth)
+    for ex in ((), [4]):
+        ref = suggest_frames(seq, 4, exclude=ex, **kw)
+        np.testing.assert_array_equal(suggest_frames(features=Y, count=4, exclude=ex), ref)
+        np.testing.assert_array_equal(suggest_frames(features=Y, count=4, exclude=ex, mouth_faces=mouth), ref)
+    with pytest.raises(ValueError, match="not both"):
+        suggest_frames(seq, 1, regressor=reg, features=Y)
+    with pytest.raises(ValueError, match="neither"):
+        reg.extrapolation()
+    with pytest.raises(FaceLabError, match="expected \\(T, "):
+        reg.extrapolation(features=Y[:, :-9])
+    with pytest.raises(FaceLabError, match="mouth triangles"):
+        suggest_frames(features=Y, count=1, mouth_faces=mouth[:-1])
