@@ -33,6 +33,14 @@ def face_object(context):
     return ob if ob is not None and ob.type == "MESH" else None
 
 
+def poll_face(cls, context) -> bool:
+    """Shared ``poll``: a face mesh must be selected (or set in Setup); explains itself otherwise."""
+    if face_object(context) is None:
+        cls.poll_message_set("Select the captured face mesh (or set it in FaceLab > Setup)")
+        return False
+    return True
+
+
 def record_training_frame(scene, obj, frame: int, shape_key: str, source: str) -> None:
     """Remember ``frame`` as a corrected (training) frame and mark it on the timeline."""
     item = obj.facelab.training_frames.add()
@@ -86,8 +94,7 @@ class FACELAB_OT_refine_lips(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        if face_object(context) is None:
-            cls.poll_message_set("Select the captured face mesh (or set it in FaceLab > Setup)")
+        if not poll_face(cls, context):
             return False
         if context.scene.camera is None:
             cls.poll_message_set("Set a scene camera first (the camera the sketch was drawn in)")

@@ -15,7 +15,7 @@ from ..core.compress import compress
 from ..core.errors import FaceLabError, RegionError
 from ..core.propagate import LipRegressor, suggest_frames
 from ..core.regions import auto_regions, faces_in_region, validate_regions
-from .ops import face_object, record_training_frame
+from .ops import face_object, poll_face, record_training_frame
 
 PROP_PREFIX = "FL_Prop_"
 SUGGEST_MARKER = "FL suggest"
@@ -78,10 +78,7 @@ class FACELAB_OT_auto_regions(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        if face_object(context) is None:
-            cls.poll_message_set("Select the captured face mesh (or set it in FaceLab > Setup)")
-            return False
-        return True
+        return poll_face(cls, context)
 
     def execute(self, context):
         obj = face_object(context)
@@ -127,10 +124,7 @@ class FACELAB_OT_mark_training_frame(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        if face_object(context) is None:
-            cls.poll_message_set("Select the captured face mesh (or set it in FaceLab > Setup)")
-            return False
-        return True
+        return poll_face(cls, context)
 
     def execute(self, context):
         obj, f = face_object(context), context.scene.frame_current
@@ -186,11 +180,9 @@ class FACELAB_OT_propagate(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        obj = face_object(context)
-        if obj is None:
-            cls.poll_message_set("Select the captured face mesh (or set it in FaceLab > Setup)")
+        if not poll_face(cls, context):
             return False
-        if not len(obj.facelab.training_frames):
+        if not len(face_object(context).facelab.training_frames):
             cls.poll_message_set("Correct at least one frame first (Refine Lips, or sculpt and Mark Training Frame)")
             return False
         return True
@@ -326,10 +318,7 @@ class FACELAB_OT_bake(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        if face_object(context) is None:
-            cls.poll_message_set("Select the face mesh to bake")
-            return False
-        return True
+        return poll_face(cls, context)
 
     def invoke(self, context, event):
         if not self.filepath:

@@ -15,23 +15,26 @@ class FACELAB_UL_training_frames(bpy.types.UIList):
         row.label(text=item.shape_key)
 
 
-class FACELAB_PT_main(bpy.types.Panel):
-    bl_idname = "FACELAB_PT_main"
-    bl_label = "FaceLab"
+class _SidebarTab:
     bl_space_type = "VIEW_3D"
     bl_region_type = "UI"
     bl_category = "FaceLab"
+
+
+class _Section(_SidebarTab):
+    bl_parent_id = "FACELAB_PT_main"
+
+
+class FACELAB_PT_main(_SidebarTab, bpy.types.Panel):
+    bl_idname = "FACELAB_PT_main"
+    bl_label = "FaceLab"
 
     def draw(self, context):
         pass
 
 
-class FACELAB_PT_setup(bpy.types.Panel):
+class FACELAB_PT_setup(_Section, bpy.types.Panel):
     bl_label = "1. Setup"
-    bl_space_type = "VIEW_3D"
-    bl_region_type = "UI"
-    bl_category = "FaceLab"
-    bl_parent_id = "FACELAB_PT_main"
 
     def draw(self, context):
         s = context.scene.facelab
@@ -41,12 +44,8 @@ class FACELAB_PT_setup(bpy.types.Panel):
         col.prop(s, "fixed_group")
 
 
-class FACELAB_PT_sketch(bpy.types.Panel):
+class FACELAB_PT_sketch(_Section, bpy.types.Panel):
     bl_label = "2. Sketch & Refine"
-    bl_space_type = "VIEW_3D"
-    bl_region_type = "UI"
-    bl_category = "FaceLab"
-    bl_parent_id = "FACELAB_PT_main"
 
     def draw(self, context):
         s = context.scene.facelab
@@ -56,12 +55,8 @@ class FACELAB_PT_sketch(bpy.types.Panel):
         col.operator("facelab.refine_lips", icon="MOD_SMOOTH")
 
 
-class FACELAB_PT_propagate(bpy.types.Panel):
+class FACELAB_PT_propagate(_Section, bpy.types.Panel):
     bl_label = "3. Train & Propagate"
-    bl_space_type = "VIEW_3D"
-    bl_region_type = "UI"
-    bl_category = "FaceLab"
-    bl_parent_id = "FACELAB_PT_main"
 
     def draw(self, context):
         layout = self.layout
@@ -90,12 +85,8 @@ class FACELAB_PT_propagate(bpy.types.Panel):
                 box.label(text="Correct next: " + ", ".join(map(str, sorted(sug))), icon="MARKER_HLT")
 
 
-class FACELAB_PT_bake(bpy.types.Panel):
+class FACELAB_PT_bake(_Section, bpy.types.Panel):
     bl_label = "5. Bake / Export"
-    bl_space_type = "VIEW_3D"
-    bl_region_type = "UI"
-    bl_category = "FaceLab"
-    bl_parent_id = "FACELAB_PT_main"
     bl_options = {"DEFAULT_CLOSED"}
 
     def draw(self, context):
