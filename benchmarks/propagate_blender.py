@@ -24,11 +24,7 @@ and keyframes written, operator wall time split into its parts (the parts of
 ``ops_propagate.propagate`` are wrapped with timers; "self" times add up to
 the wall time), peak RSS of each part and of the process, held-out inner-lip
 error against the truth on the evaluated mesh, the deviation of the evaluated
-mesh from ``LipRegressor.predict``, and two prototypes run on the same
-training set (their result is compared with the frame_set run): the shape-key
-fast path for reading the capture (``shapekeys.shape_key_sequence`` instead of
-``caches.read_captured_frames``'s frame_set loop), and a low-memory variant
-(see ``lowmem_patches``).
+mesh from ``LipRegressor.predict``.
 
 Usage: ``PYTHONPATH=. python benchmarks/propagate_blender.py [--frames 1000] [--quick]``.
 Prints one JSON object on stdout; Blender's own output goes to stderr.
@@ -283,41 +279,6 @@ def count_prop(obj):
     return names, kf_keys, kf_extra
 
 
-def prop_state(obj):
-    """FL_Prop key offsets (r,V,3) and their keyed values (T,r), for comparing two runs."""
-    from facelab_addon.blender.caches import _anim_fcurves
-
-    key = obj.data.shape_keys
-    n = len(obj.data.vertices)
-    base = np.empty(n * 3, np.float32)
-    key.reference_key.data.foreach_get("co", base)
-    B, Wt = [], []
-    fcs = {fc.data_path: fc for fc in _anim_fcurves(key)}
-    for kb in key.key_blocks:
-        if kb.name.startswith("FL_Prop_"):
-            c = np.empty(n * 3, np.float32)
-            kb.data.foreach_get("co", c)
-            B.append((c - base).reshape(n, 3))
-            fc = fcs[f'key_blocks["{kb.name}"].value']
-            co = np.empty(2 * len(fc.keyframe_points), np.float32)
-            fc.keyframe_points.foreach_get("co", co)
-            Wt.append(co[1::2])
-    return np.array(B), np.array(Wt).T
-
-
-def reconstruct_mm_diff(a, b):
-    """Largest per-vertex, per-frame difference (mm) between two (basis, weights) results."""
-    (Ba, Wa), (Bb, Wb) = a, b
-    if Ba.shape != Bb.shape:
-        return None
-    d = 0.0
-    for s in range(0, len(Wa), 100):
-        ca = np.tensordot(Wa[s : s + 100], Ba, 1)
-        cb = np.tensordot(Wb[s : s + 100], Bb, 1)
-        d = max(d, float(np.linalg.norm(ca - cb, axis=-1).max()))
-    return d * M_TO_MM
-
-
 # --------------------------------------------------------------------------- operator runs
 def run_operator(bpy, label, **kw):
     timers = Timers()
@@ -334,182 +295,6 @@ def run_operator(bpy, label, **kw):
     peak = MEM.window_peak()
     return dict(result=sorted(res), wall_s=round(wall, 3), rss_before_mb=round(rss0, 1), peak_rss_mb=round(peak, 1),
                 peak_rss_growth_mb=round(peak - rss0, 1), split=timers.report(wall))
-
-
-def fast_read_captured_frames(obj, scene_frames, *, mute_shape_keys_prefix=("FL_",), progress=None):
-    """Prototype: the shape-key fast path first, frame-by-frame evaluation only where it does not apply."""
-    from facelab_addon.blender import caches
-    from facelab_addon.blender.shapekeys import shape_key_sequence
-
-    if caches.sequence_source(obj, ignore_prefixes=mute_shape_keys_prefix) == "shape_keys":
-        seq = shape_key_sequence(obj, scene_frames, skip_prefixes=tuple(mute_shape_keys_prefix))
-        if seq is not None:
-            return seq
-    return _ORIG_READ(obj, scene_frames, mute_shape_keys_prefix=mute_shape_keys_prefix, progress=progress)
-
-
-_ORIG_READ = None
-
-
-# --------------------------------------------------------------------------- low-memory prototype
-# Three changes, each keeping the operator's result (checked against the frame_set run):
-#  (a) read: shape_key_sequence with one (T,V,3) array (the key mix is written into it, the basis added in
-#      place; the current code holds three: the broadcast copy, the matmul result and its astype copy);
-#  (b) core.propagate._as_frames keeps float32 frames as they are (it upcasts the whole (T,V,3) sequence to a
-#      float64 copy in predict, extrapolation and suggest_frames; only 1,640 of the 26,719 vertices are
-#      used), and the per-frame gathers of the used vertices are made in float64 (same arithmetic as now);
-#  (c) suggest_frames: project out the training span and deflate the residuals in place, in row blocks
-#      (now: a second (T,9m) array for the projection plus a (T,9m) np.outer temporary per deflation).
-
-
-def shape_key_sequence_inplace(obj, frames, *, skip_prefixes=("FL_",)):
-    """``shapekeys.shape_key_sequence`` with a single (T,V,3) float32 result array (same values)."""
-    from facelab_addon.blender.shapekeys import _fcurve_for_key
-
-    key = obj.data.shape_keys
-    frames = np.asarray(frames, dtype=np.float64)
-    n = len(obj.data.vertices)
-    if key is None or not key.use_relative or any(m.show_viewport for m in obj.modifiers):
-        return None
-    if key.animation_data is not None and len(key.animation_data.drivers):
-        return None
-    basis = key.reference_key
-
-    def coords(kb):
-        c = np.empty(n * 3, np.float32)
-        kb.data.foreach_get("co", c)
-        return c
-
-    deltas, weights = [], []
-    for kb in key.key_blocks:
-        if kb == basis or kb.mute or kb.name.startswith(tuple(skip_prefixes)):
-            continue
-        if kb.vertex_group:
-            return None
-        fc = _fcurve_for_key(key, kb)
-        w = np.array([fc.evaluate(f) for f in frames]) if fc is not None and not fc.mute else np.full(len(frames), kb.value)
-        w = np.clip(w, kb.slider_min, kb.slider_max)
-        if np.any(w):
-            deltas.append(coords(kb) - coords(kb.relative_key))
-            weights.append(w)
-    out = np.empty((len(frames), n * 3), np.float32)
-    if deltas:
-        np.matmul(np.stack(weights, 1).astype(np.float32), np.stack(deltas), out=out)
-        out += coords(basis)
-    else:
-        out[:] = coords(basis)
-    return out.reshape(len(frames), n, 3)
-
-
-def _lowmem_read(obj, scene_frames, *, mute_shape_keys_prefix=("FL_",), progress=None):
-    from facelab_addon.blender import caches
-
-    if caches.sequence_source(obj, ignore_prefixes=mute_shape_keys_prefix) == "shape_keys":
-        seq = shape_key_sequence_inplace(obj, scene_frames, skip_prefixes=tuple(mute_shape_keys_prefix))
-        if seq is not None:
-            return seq
-    return _ORIG_READ(obj, scene_frames, mute_shape_keys_prefix=mute_shape_keys_prefix, progress=progress)
-
-
-def _as_frames_keep_dtype(a, n_vertices, what, used=None):
-    """``core.propagate._as_frames`` without the float64 copy of float32 input (NaN check in row blocks)."""
-    from facelab_addon.core.errors import FaceLabError, MeshError
-
-    A = np.asarray(a)
-    if A.dtype not in (np.float32, np.float64):
-        A = A.astype(np.float64)
-    if A.ndim == 2:
-        A = A[None]
-    if A.ndim != 3 or A.shape[1:] != (n_vertices, 3):
-        raise MeshError(f"The {what} have shape {np.asarray(a).shape}; expected (T,{n_vertices},3).")
-    if A.shape[0] == 0:
-        raise FaceLabError(f"No {what} given (0 frames); pass at least one frame.")
-    fin = np.empty(len(A), bool)
-    for s in range(0, len(A), 256):
-        blk = A[s : s + 256] if used is None else A[s : s + 256][:, used]
-        fin[s : s + 256] = np.isfinite(blk).reshape(len(blk), -1).all(axis=1)
-    if not fin.all():
-        raise MeshError(f"The {what} contain NaN or infinite coordinates in frames {np.flatnonzero(~fin)[:5].tolist()}.")
-    return A
-
-
-def _suggest_frames_inplace(captured, count=1, *, regressor=None, exclude=(), **kw):
-    """``core.propagate.suggest_frames`` (regressor branch) with in-place, row-blocked projection/deflation."""
-    from facelab_addon.core import propagate as cprop
-
-    if regressor is None:
-        return _ORIG_SUGGEST(captured, count, regressor=regressor, exclude=exclude, **kw)
-    A = cprop._as_frames(captured, regressor.n_vertices, "captured frames", regressor._used)
-    Y = np.concatenate([regressor._feat(regressor.mouth_gradients(A[s : s + 256])) for s in range(0, len(A), 256)])
-    T, B = len(Y), 256
-    scale = max(float(np.sqrt(np.mean(np.einsum("ij,ij->i", Y, Y)))), 1e-300)
-    Q = regressor._UY
-    Rz = Y  # projected in place
-    for s in range(0, T, B):
-        Rz[s : s + B] -= (Rz[s : s + B] @ Q) @ Q.T
-
-    def deflate(q):
-        for s in range(0, T, B):
-            blk = Rz[s : s + B]
-            blk -= np.outer(blk @ q, q)
-
-    excl = np.zeros(T, dtype=bool)
-    ex = np.asarray(list(exclude), dtype=np.int64)
-    if ex.size:
-        excl[ex[(ex >= 0) & (ex < T)]] = True
-    for i in np.flatnonzero(excl):
-        v = Rz[i]
-        nv = np.linalg.norm(v)
-        if nv > 1e-10 * scale:
-            deflate(v / nv)
-    picks = []
-    for _ in range(int(count)):
-        norms = np.linalg.norm(Rz, axis=1)
-        norms[excl] = -1.0
-        if picks:
-            norms[picks] = -1.0
-        i = int(np.argmax(norms))
-        if norms[i] <= 1e-10 * scale:
-            break
-        picks.append(i)
-        deflate(Rz[i] / norms[i])
-    return np.asarray(picks, dtype=np.int64)
-
-
-_ORIG_SUGGEST = None
-
-
-def lowmem_patches():
-    """Apply (a), (b), (c); returns a function that undoes them."""
-    global _ORIG_READ, _ORIG_SUGGEST
-    from facelab_addon.blender import caches
-    from facelab_addon.core import propagate as cprop
-    from facelab_addon.ui import ops_propagate as op
-
-    saved = [(caches, "read_captured_frames", caches.read_captured_frames), (cprop, "_as_frames", cprop._as_frames),
-             (cprop, "_shape_components", cprop._shape_components), (cprop.LipRegressor, "_grad", cprop.LipRegressor._grad),
-             (op, "suggest_frames", op.suggest_frames)]
-    _ORIG_READ = caches.read_captured_frames
-    _ORIG_SUGGEST = op.suggest_frames
-    orig_sc, orig_grad = cprop._shape_components, cprop.LipRegressor._grad
-
-    def shape_components(frames, verts, local):
-        return orig_sc(np.asarray(frames[:, verts, :], dtype=np.float64), np.arange(len(verts)), local)
-
-    def grad(self, frames, rinv, verts, local):
-        return orig_grad(self, np.asarray(frames[:, verts, :], dtype=np.float64), rinv, np.arange(len(verts)), local)
-
-    caches.read_captured_frames = _lowmem_read
-    cprop._as_frames = _as_frames_keep_dtype
-    cprop._shape_components = shape_components
-    cprop.LipRegressor._grad = grad
-    op.suggest_frames = _suggest_frames_inplace
-
-    def undo():
-        for owner, name, f in saved:
-            setattr(owner, name, f)
-
-    return undo
 
 
 # --------------------------------------------------------------------------- accuracy
@@ -568,7 +353,6 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=1000, help="sequence length (default 1000)")
     ap.add_argument("--quick", action="store_true", help="200 frames")
-    ap.add_argument("--no-fast-path", action="store_true", help="skip the shape-key fast-path prototype run")
     args = ap.parse_args(argv)
     T = 200 if args.quick else args.frames
 
@@ -675,35 +459,6 @@ def main(argv=None):
     out["accuracy_incremental"] = dict(after=acc2["after"], before=acc2["before"],
                                        max_dev_evaluated_vs_predict_mm=acc2["max_dev_evaluated_vs_predict_mm"],
                                        seconds=round(time.perf_counter() - t0, 1))
-
-    # ----- prototype: the shape-key fast path for reading the capture (same training set -> same result)
-    if not args.no_fast_path:
-        state_slow = prop_state(obj)
-        _ORIG_READ = caches.read_captured_frames
-        caches.read_captured_frames = fast_read_captured_frames
-        try:
-            run3 = run_operator(bpy, "fast", suggestions=3)
-        finally:
-            caches.read_captured_frames = _ORIG_READ
-        state_fast = prop_state(obj)
-        run3["fl_prop_keys"] = len(state_fast[0])
-        run3["max_diff_vs_frame_set_result_mm"] = reconstruct_mm_diff(state_slow, state_fast)
-        run3["speedup_vs_incremental_run"] = round(run2["wall_s"] / run3["wall_s"], 2)
-        out["propagate_fast_read_prototype"] = run3
-
-        sugg_slow = sorted(int(m.frame) for m in scene.timeline_markers if m.name.startswith("FL suggest"))
-        undo = lowmem_patches()
-        try:
-            run4 = run_operator(bpy, "lowmem", suggestions=3)
-        finally:
-            undo()
-        state_low = prop_state(obj)
-        run4["fl_prop_keys"] = len(state_low[0])
-        run4["max_diff_vs_frame_set_result_mm"] = reconstruct_mm_diff(state_slow, state_low)
-        run4["same_suggestions"] = sugg_slow == sorted(
-            int(m.frame) for m in scene.timeline_markers if m.name.startswith("FL suggest"))
-        run4["speedup_vs_incremental_run"] = round(run2["wall_s"] / run4["wall_s"], 2)
-        out["propagate_lowmem_prototype"] = run4
 
     b, a = sizes["before"], sizes["after"]
     sizes = {k: {kk: round(vv, 2) for kk, vv in v.items()} for k, v in sizes.items()}
