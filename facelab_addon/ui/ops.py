@@ -146,11 +146,4 @@ class FACELAB_OT_refine_lips(bpy.types.Operator):
 classes = (FACELAB_OT_new_lip_sketch, FACELAB_OT_refine_lips)
 
 
-def register():
-    for c in classes:
-        bpy.utils.register_class(c)
-
-
-def unregister():
-    for c in reversed(classes):
-        bpy.utils.unregister_class(c)
+register, unregister = bpy.utils.register_classes_factory(classes)
