@@ -35,3 +35,11 @@ class CacheFileError(FaceLabError):
 
 class CacheVertexCountError(CacheFileError, MeshError):
     """The cache stores a different number of points than the mesh has vertices."""
+
+
+class BundleError(FaceLabError):
+    """The bundles are unusable: off the mesh, NaN, unbound, or not moved by any shape."""
+
+
+class DatasetError(FaceLabError):
+    """The dataset of shapes is unusable: too few, duplicates, wrong vertex count, NaN."""

@@ -1,8 +1,8 @@
 """Blender UI: properties, preferences, operators and panels (registered in this order)."""
 
-from . import ops, ops_propagate, panel, prefs, props
+from . import ops, ops_propagate, ops_reconstruct, panel, prefs, props
 
-modules = (props, prefs, ops, ops_propagate, panel)
+modules = (props, prefs, ops, ops_propagate, ops_reconstruct, panel)
 
 
 def register():

@@ -85,6 +85,16 @@ class FACELAB_PT_propagate(_Section, bpy.types.Panel):
                 box.label(text="Correct next: " + ", ".join(map(str, sorted(sug))), icon="MARKER_HLT")
 
 
+class FACELAB_PT_reconstruct(_Section, bpy.types.Panel):
+    bl_label = "4. Reconstruct from Bundles"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    def draw(self, context):
+        col = self.layout.column()
+        col.label(text="Select the bundle empties (or a 'FL_bundles' collection)")
+        col.operator("facelab.reconstruct_from_bundles", icon="EMPTY_DATA")
+
+
 class FACELAB_PT_bake(_Section, bpy.types.Panel):
     bl_label = "5. Bake / Export"
     bl_options = {"DEFAULT_CLOSED"}
@@ -123,6 +133,7 @@ classes = (
     FACELAB_PT_setup,
     FACELAB_PT_sketch,
     FACELAB_PT_propagate,
+    FACELAB_PT_reconstruct,
     FACELAB_PT_bake,
 )
 

@@ -9,8 +9,9 @@ import facelab_addon
 pytestmark = pytest.mark.blender
 
 OPERATORS = ["new_lip_sketch", "refine_lips", "auto_regions", "mark_training_frame", "remove_training_frame",
-             "jump_training_frame", "propagate", "bake"]
-PANELS = ["FACELAB_PT_main", "FACELAB_PT_setup", "FACELAB_PT_sketch", "FACELAB_PT_propagate", "FACELAB_PT_bake"]
+             "jump_training_frame", "propagate", "bake", "reconstruct_from_bundles"]
+PANELS = ["FACELAB_PT_main", "FACELAB_PT_setup", "FACELAB_PT_sketch", "FACELAB_PT_propagate", "FACELAB_PT_reconstruct",
+          "FACELAB_PT_bake"]
 
 
 def test_register_unregister_register():
