@@ -645,13 +645,9 @@ def _unique_file(path: Path) -> Path:
 
 
 def _unique_modifier_name(obj, base):
-    names = {m.name for m in obj.modifiers}
-    if base not in names:
-        return base
-    i = 1
-    while f"{base}.{i:03d}" in names:
-        i += 1
-    return f"{base}.{i:03d}"
+    from .shapekeys import unique_name
+
+    return unique_name(base, (m.name for m in obj.modifiers))
 
 
 def cache_to_shape_key_ready(obj, *, directory=None, scene_frames=None, progress=None) -> str:

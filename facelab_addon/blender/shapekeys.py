@@ -17,16 +17,21 @@ __all__ = [
 ]
 
 
-def unique_key_name(obj, base: str) -> str:
-    """``base``, or ``base.001``... so that an existing key is never overwritten."""
-    keys = obj.data.shape_keys
-    names = set(keys.key_blocks.keys()) if keys else set()
+def unique_name(base: str, names) -> str:
+    """``base``, or ``base.001``, ``base.002``... the first not in ``names`` (Blender's own scheme)."""
+    names = set(names)
     if base not in names:
         return base
     i = 1
     while f"{base}.{i:03d}" in names:
         i += 1
     return f"{base}.{i:03d}"
+
+
+def unique_key_name(obj, base: str) -> str:
+    """``base``, or ``base.001``... so that an existing key is never overwritten."""
+    keys = obj.data.shape_keys
+    return unique_name(base, keys.key_blocks.keys() if keys else ())
 
 
 def add_corrective_key(obj, name: str, deltas_local) -> "bpy.types.ShapeKey":
