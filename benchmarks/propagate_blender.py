@@ -305,7 +305,7 @@ def accuracy(bpy, obj, frames, train, err, cap_w, chunk=100):
     from facelab_addon.blender.shapekeys import shape_key_sequence
     from facelab_addon.core.propagate import LipRegressor
     from facelab_addon.core.regions import faces_in_region
-    from facelab_addon.ui.ops_propagate import rest_vertices
+    from facelab_addon.blender.shapekeys import rest_vertices
 
     tris = mesh_triangles(obj.data)
     mouth, lips = vertex_group_mask(obj, "FL_mouth"), vertex_group_mask(obj, "FL_lips")

@@ -786,10 +786,8 @@ def correction_to_key_offsets(obj, cache_positions, deltas, corners=None):
         return np.asarray(deltas, dtype=np.float64)
     from ..core.cachefile import integrate_matrices, integrate_offsets_to_key
 
-    n = len(obj.data.vertices)
-    key = obj.data.shape_keys
-    rest = np.empty(n * 3, np.float64)
-    (key.reference_key.data if key else obj.data.vertices).foreach_get("co", rest)
+    from .shapekeys import rest_vertices
+
     offs, cv = polygon_corners(obj.data) if corners is None else corners
-    M = integrate_matrices(rest.reshape(n, 3), cache_positions, offs, cv)
+    M = integrate_matrices(rest_vertices(obj), cache_positions, offs, cv)
     return integrate_offsets_to_key(M, deltas)

@@ -14,6 +14,7 @@ __all__ = [
     "key_values_bulk",
     "key_property_bulk",
     "add_keys_from_deltas",
+    "rest_vertices",
 ]
 
 
@@ -233,3 +234,12 @@ def add_keys_from_deltas(obj, prefix: str, deltas) -> list:
         kb.slider_min, kb.slider_max = -10.0, 10.0
         names.append(kb.name)
     return names
+
+
+def rest_vertices(obj) -> np.ndarray:
+    """(V,3) float64 object-local rest positions (the Basis key, else the mesh)."""
+    n = len(obj.data.vertices)
+    co = np.empty(n * 3, np.float64)
+    key = obj.data.shape_keys
+    (key.reference_key.data if key else obj.data.vertices).foreach_get("co", co)
+    return co.reshape(n, 3)

@@ -10,7 +10,7 @@ from bpy.props import BoolProperty, EnumProperty, IntProperty, StringProperty
 
 from ..blender import caches
 from ..blender.mesh import mesh_triangles, require_mesh, vertex_group_mask
-from ..blender.shapekeys import add_keys_from_deltas, key_property_bulk, key_values_bulk, remove_keys
+from ..blender.shapekeys import add_keys_from_deltas, key_property_bulk, key_values_bulk, remove_keys, rest_vertices
 from ..core.compress import compress
 from ..core.errors import FaceLabError, RegionError
 from ..core.propagate import LipRegressor, suggest_frames
@@ -24,15 +24,6 @@ MOUTH_GROUP, LIPS_GROUP = "FL_mouth", "FL_lips"
 
 # Fitted regressors kept between Propagate runs, so adding a frame is incremental.
 _REGRESSORS: dict = {}
-
-
-def rest_vertices(obj) -> np.ndarray:
-    """(V,3) float64 object-local rest positions (the Basis key, else the mesh)."""
-    n = len(obj.data.vertices)
-    co = np.empty(n * 3, np.float64)
-    key = obj.data.shape_keys
-    (key.reference_key.data if key else obj.data.vertices).foreach_get("co", co)
-    return co.reshape(n, 3)
 
 
 def region_faces(obj, tris):
@@ -136,6 +127,36 @@ class FACELAB_OT_mark_training_frame(bpy.types.Operator):
         return {"FINISHED"}
 
 
+def poll_training_list(cls, context) -> bool:
+    """Shared ``poll`` of the training-list buttons: the face mesh has training frames."""
+    obj = face_object(context)
+    if obj is None or not len(obj.facelab.training_frames):
+        cls.poll_message_set("No training frames on the face mesh")
+        return False
+    return True
+
+
+def selected_training_index(obj) -> int:
+    """Index of the training frame selected in the panel's list (clamped to the list)."""
+    return min(obj.facelab.active_training_index, len(obj.facelab.training_frames) - 1)
+
+
+class FACELAB_OT_jump_training_frame(bpy.types.Operator):
+    """Go to the selected training frame"""
+
+    bl_idname = "facelab.jump_training_frame"
+    bl_label = "Jump to Training Frame"
+
+    @classmethod
+    def poll(cls, context):
+        return poll_training_list(cls, context)
+
+    def execute(self, context):
+        obj = face_object(context)
+        context.scene.frame_set(obj.facelab.training_frames[selected_training_index(obj)].frame)
+        return {"FINISHED"}
+
+
 class FACELAB_OT_remove_training_frame(bpy.types.Operator):
     """Remove the selected training frame from the list (its shape key is kept)"""
 
@@ -145,16 +166,12 @@ class FACELAB_OT_remove_training_frame(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        obj = face_object(context)
-        if obj is None or not len(obj.facelab.training_frames):
-            cls.poll_message_set("No training frames on the face mesh")
-            return False
-        return True
+        return poll_training_list(cls, context)
 
     def execute(self, context):
         obj = face_object(context)
         tf = obj.facelab.training_frames
-        i = min(obj.facelab.active_training_index, len(tf) - 1)
+        i = selected_training_index(obj)
         frame = tf[i].frame
         tf.remove(i)
         obj.facelab.active_training_index = max(0, i - 1)
@@ -352,6 +369,7 @@ classes = (
     FACELAB_OT_auto_regions,
     FACELAB_OT_mark_training_frame,
     FACELAB_OT_remove_training_frame,
+    FACELAB_OT_jump_training_frame,
     FACELAB_OT_propagate,
     FACELAB_OT_bake,
 )

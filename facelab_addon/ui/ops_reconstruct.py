@@ -9,12 +9,11 @@ from bpy.props import IntProperty
 
 from ..blender.bundles import bundle_objects, read_bundles
 from ..blender.mesh import mesh_triangles, require_mesh
-from ..blender.shapekeys import add_keys_from_deltas, key_values_bulk, remove_keys
+from ..blender.shapekeys import add_keys_from_deltas, key_values_bulk, remove_keys, rest_vertices
 from ..core.compress import compress
 from ..core.errors import FaceLabError
 from ..core.geometric_indexing import GeometricIndexer, bind_points
 from .ops import face_object, poll_face
-from .ops_propagate import rest_vertices
 
 RECON_PREFIX = "FL_Recon_"
 

@@ -105,30 +105,8 @@ class FACELAB_PT_bake(_Section, bpy.types.Panel):
             col.operator("facelab.bake", text=label, icon="EXPORT").format = fmt
 
 
-class FACELAB_OT_jump_training_frame(bpy.types.Operator):
-    """Go to the selected training frame"""
-
-    bl_idname = "facelab.jump_training_frame"
-    bl_label = "Jump to Training Frame"
-
-    @classmethod
-    def poll(cls, context):
-        ob = face_object(context)
-        if ob is None or not len(ob.facelab.training_frames):
-            cls.poll_message_set("No training frames on the face mesh")
-            return False
-        return True
-
-    def execute(self, context):
-        ob = face_object(context)
-        tf = ob.facelab.training_frames
-        context.scene.frame_set(tf[min(ob.facelab.active_training_index, len(tf) - 1)].frame)
-        return {"FINISHED"}
-
-
 classes = (
     FACELAB_UL_training_frames,
-    FACELAB_OT_jump_training_frame,
     FACELAB_PT_main,
     FACELAB_PT_setup,
     FACELAB_PT_sketch,

@@ -80,7 +80,7 @@ def test_reconstruct_from_bundles_end_to_end(ict, addon):
     # the core, called directly, gives the same (within the 0.01 mm key compression tolerance)
     # (from the same Blender data: float32 keys and empties, as the operator reads them)
     from facelab_addon.blender.bundles import read_bundles
-    from facelab_addon.ui.ops_propagate import rest_vertices
+    from facelab_addon.blender.shapekeys import rest_vertices
     from facelab_addon.ui.ops_reconstruct import dataset_shapes
 
     n0 = rest_vertices(obj)
