@@ -1,0 +1,268 @@
+"""Build FaceLab's Blender extension zips, one per platform, with their wheels.
+
+    python scripts/build_extension.py                       # all four platforms -> dist/
+    python scripts/build_extension.py --platform linux-x64  # just one
+    python scripts/build_extension.py --update-manifest     # after bumping scipy/libigl/cholespy
+
+Steps:
+
+1. ``pip download --only-binary=:all: --no-deps --python-version 3.11 --platform TAG`` of the
+   versions pinned in requirements.txt (scipy, libigl, cholespy) into ``build/wheels/<platform>/``
+   (a cache: already-downloaded wheels are reused, so a rebuild needs no network). numpy is NOT
+   bundled: Blender supplies it (Blender 5.0: numpy 1.26, see docs/install.md).
+2. Check the downloaded file names against the ``wheels = [...]`` list of blender_manifest.toml
+   (``--update-manifest`` rewrites that list instead).
+3. Stage the extension in ``build/extension/``: the root ``__init__.py``, the manifest (restricted
+   to the requested platforms), ``facelab_addon/`` and ``wheels/``.
+4. Run Blender's extension CLI (shipped in the bpy wheel, no Blender binary needed):
+   ``blender_ext.py build --split-platforms`` -> ``dist/facelab-<version>-<platform>.zip``; the CLI
+   keeps only each platform's wheels and appends ``[build.generated] platforms/wheels`` to the
+   zip's manifest.
+5. Check every zip: ``blender_ext.py validate``, the expected files, exactly that platform's three
+   wheels, nothing from tests/, benchmarks/, docs/, scripts/, .venv/.
+
+Prints a JSON summary on stdout (progress goes to stderr). Exit 0 on success, 1 on any failure.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+MANIFEST = ROOT / "blender_manifest.toml"
+PACKAGES = ("scipy", "libigl", "cholespy")  # bundled; numpy comes with Blender
+
+# Blender platform -> pip --platform tags (pip also accepts older manylinux / macOS versions).
+# Linux: Blender 5.0 needs glibc >= 2.28. macOS arm64: SciPy 1.17's oldest arm64 wheel needs macOS 12.
+PIP_PLATFORMS = {
+    "linux-x64": ["manylinux_2_28_x86_64"],
+    "windows-x64": ["win_amd64"],
+    "macos-arm64": ["macosx_12_0_arm64"],
+    "macos-x64": ["macosx_11_0_x86_64"],
+}
+
+FORBIDDEN_PREFIXES = ("tests/", "benchmarks/", "docs/", "scripts/", "out/", ".venv/", ".git/", "build/", "dist/")
+REQUIRED_FILES = ("blender_manifest.toml", "__init__.py", "facelab_addon/__init__.py",
+                  "facelab_addon/core/deform.py", "facelab_addon/ui/panel.py", "facelab_addon/cli/__init__.py")
+
+
+def log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def extension_cli() -> Path:
+    """Blender's extension CLI inside the installed bpy wheel (found without importing bpy)."""
+    spec = importlib.util.find_spec("bpy")
+    if spec is None or not spec.submodule_search_locations:
+        raise SystemExit("The bpy module is not installed in this Python; run from the project's .venv "
+                         "(source scripts/env.sh).")
+    for base in spec.submodule_search_locations:
+        hits = sorted(Path(base).glob("*/scripts/addons_core/bl_pkg/cli/blender_ext.py"))
+        if hits:
+            return hits[-1]
+    raise SystemExit("blender_ext.py not found inside the bpy package; reinstall bpy==5.0.1.")
+
+
+def pinned_versions() -> dict[str, str]:
+    """The versions of PACKAGES pinned in requirements.txt (the ones the tests run against)."""
+    pins = {}
+    for line in (ROOT / "requirements.txt").read_text().splitlines():
+        m = re.match(r"^\s*([A-Za-z0-9_.-]+)\s*==\s*([^\s;#]+)", line)
+        if m and m.group(1).lower() in PACKAGES:
+            pins[m.group(1).lower()] = m.group(2)
+    missing = [p for p in PACKAGES if p not in pins]
+    if missing:
+        raise SystemExit(f"requirements.txt pins no version of {missing}; pin them (name==version).")
+    return pins
+
+
+def manifest_text() -> str:
+    return MANIFEST.read_text()
+
+
+def manifest_wheels(text: str) -> list[str]:
+    import tomllib
+
+    return list(tomllib.loads(text).get("wheels", []))
+
+
+def manifest_version(text: str) -> str:
+    import tomllib
+
+    return tomllib.loads(text)["version"]
+
+
+def with_wheels(text: str, wheels: list[str]) -> str:
+    """The manifest text with its ``wheels = [...]`` block replaced."""
+    block = "wheels = [\n" + "".join(f'  "{w}",\n' for w in wheels) + "]\n"
+    new, n = re.subn(r"(?ms)^wheels = \[\n.*?^\]\n", block, text)
+    if n != 1:
+        raise SystemExit("blender_manifest.toml: could not find exactly one 'wheels = [' ... ']' block.")
+    return new
+
+
+def with_platforms(text: str, platforms: list[str]) -> str:
+    line = "platforms = [" + ", ".join(f'"{p}"' for p in platforms) + "]"
+    new, n = re.subn(r"(?m)^platforms = \[.*\]$", line, text)
+    if n != 1:
+        raise SystemExit("blender_manifest.toml: could not find the 'platforms = [...]' line.")
+    return new
+
+
+def download(platform: str, pins: dict[str, str], cache: Path, offline: bool) -> list[Path]:
+    """The platform's wheels for PACKAGES in ``cache/platform`` (downloaded unless already there)."""
+    dest = cache / platform
+    dest.mkdir(parents=True, exist_ok=True)
+
+    def have():
+        out = []
+        for pkg in PACKAGES:
+            hits = sorted(dest.glob(f"{pkg}-{pins[pkg]}-cp311-*.whl"))
+            if hits:
+                out.append(hits[0])
+        return out
+
+    found = have()
+    if len(found) == len(PACKAGES):
+        log(f"[{platform}] cached: {', '.join(p.name for p in found)}")
+        return found
+    if offline:
+        raise SystemExit(f"[{platform}] wheels missing from {dest} and --offline given; run once with network.")
+    cmd = [sys.executable, "-m", "pip", "download", "--only-binary=:all:", "--no-deps", "--python-version", "3.11",
+           "--implementation", "cp", "--abi", "cp311", "--dest", str(dest), "--disable-pip-version-check"]
+    for tag in PIP_PLATFORMS[platform]:
+        cmd += ["--platform", tag]
+    cmd += [f"{pkg}=={pins[pkg]}" for pkg in PACKAGES]
+    log(f"[{platform}] pip download {' '.join(f'{p}=={pins[p]}' for p in PACKAGES)} ({', '.join(PIP_PLATFORMS[platform])})")
+    r = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    if r.returncode != 0:
+        raise SystemExit(f"[{platform}] pip download failed:\n{r.stdout[-3000:]}")
+    found = have()
+    if len(found) != len(PACKAGES):
+        raise SystemExit(f"[{platform}] expected wheels of {PACKAGES} in {dest}, found {[p.name for p in found]}")
+    return found
+
+
+def stage(stage_dir: Path, text: str, wheels: dict[str, list[Path]]) -> None:
+    """Copy the extension sources and wheels into ``stage_dir`` (recreated)."""
+    if stage_dir.exists():
+        shutil.rmtree(stage_dir)
+    stage_dir.mkdir(parents=True)
+    (stage_dir / "blender_manifest.toml").write_text(text)
+    shutil.copy2(ROOT / "__init__.py", stage_dir / "__init__.py")
+    for extra in ("README.md", "LICENSE"):
+        if (ROOT / extra).exists():
+            shutil.copy2(ROOT / extra, stage_dir / extra)
+    shutil.copytree(ROOT / "facelab_addon", stage_dir / "facelab_addon",
+                    ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+    wdir = stage_dir / "wheels"
+    wdir.mkdir()
+    for files in wheels.values():
+        for f in files:
+            try:
+                os.link(f, wdir / f.name)
+            except OSError:
+                shutil.copy2(f, wdir / f.name)
+
+
+def run_cli(cli: Path, *args: str) -> str:
+    r = subprocess.run([sys.executable, str(cli), *args], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    if r.returncode != 0:
+        raise SystemExit(f"blender_ext.py {' '.join(args)} failed:\n{r.stdout}")
+    return r.stdout
+
+
+def check_zip(cli: Path, path: Path, platform: str, expected_wheels: list[str]) -> dict:
+    """Validate one built zip and list what it holds."""
+    run_cli(cli, "validate", str(path))
+    with zipfile.ZipFile(path) as z:
+        names = z.namelist()
+        manifest = z.read("blender_manifest.toml").decode()
+    problems = [f"missing {f}" for f in REQUIRED_FILES if f not in names]
+    problems += [f"should not ship {n}" for n in names if n.startswith(FORBIDDEN_PREFIXES) or "__pycache__" in n]
+    got = sorted(n for n in names if n.endswith(".whl"))
+    want = sorted(f"wheels/{w}" for w in expected_wheels)
+    if got != want:
+        problems.append(f"wheels {got} != expected {want}")
+    if f'platforms = ["{platform}"]' not in manifest:
+        problems.append("the zip's manifest does not declare its platform")
+    if problems:
+        raise SystemExit(f"{path.name}: " + "; ".join(problems))
+    return {"zip": str(path), "platform": platform, "bytes": path.stat().st_size, "files": len(names),
+            "wheels": [Path(w).name for w in got]}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--platform", action="append", choices=sorted(PIP_PLATFORMS),
+                    help="build only this platform (repeatable; default: every platform of the manifest)")
+    ap.add_argument("--wheels-dir", type=Path, default=ROOT / "build" / "wheels", help="wheel cache (build/wheels)")
+    ap.add_argument("--stage-dir", type=Path, default=ROOT / "build" / "extension", help="staging dir")
+    ap.add_argument("--out", type=Path, default=ROOT / "dist", help="where the zips go (dist/)")
+    ap.add_argument("--offline", action="store_true", help="use only wheels already in the cache")
+    ap.add_argument("--update-manifest", action="store_true",
+                    help="rewrite the manifest's wheels list from the downloaded wheels (all platforms)")
+    args = ap.parse_args(argv)
+
+    cli = extension_cli()
+    text = manifest_text()
+    run_cli(cli, "validate", str(ROOT))
+    import tomllib
+
+    declared = tomllib.loads(text)["platforms"]
+    platforms = args.platform or declared
+    if args.update_manifest:
+        platforms = declared
+    unknown = [p for p in platforms if p not in declared]
+    if unknown:
+        raise SystemExit(f"{unknown} not in the manifest's platforms {declared}")
+
+    pins = pinned_versions()
+    wheels = {p: download(p, pins, args.wheels_dir, args.offline) for p in platforms}
+    listed = sorted(f"./wheels/{f.name}" for files in wheels.values() for f in files)
+
+    if args.update_manifest:
+        new = with_wheels(text, listed)
+        if new != text:
+            MANIFEST.write_text(new)
+            log(f"blender_manifest.toml: wheels list rewritten ({len(listed)} wheels)")
+        text = new
+        run_cli(cli, "validate", str(ROOT))
+    else:
+        in_manifest = manifest_wheels(text)
+        missing = sorted(set(listed) - set(in_manifest))
+        if missing:
+            raise SystemExit(f"blender_manifest.toml does not list {missing}; run with --update-manifest "
+                             "(the pinned versions in requirements.txt changed?).")
+
+    staged = with_platforms(with_wheels(text, listed), platforms)
+    stage(args.stage_dir, staged, wheels)
+    args.out.mkdir(parents=True, exist_ok=True)
+    log(f"building {', '.join(platforms)} -> {args.out}")
+    run_cli(cli, "build", "--split-platforms", "--source-dir", str(args.stage_dir), "--output-dir", str(args.out))
+
+    version = manifest_version(text)
+    results = []
+    for p in platforms:
+        z = args.out / f"facelab-{version}-{p.replace('-', '_')}.zip"
+        if not z.exists():
+            raise SystemExit(f"the CLI did not produce {z}")
+        results.append(check_zip(cli, z, p, [f.name for f in wheels[p]]))
+        log(f"ok {z.name}: {results[-1]['bytes'] / 2**20:.1f} MB, {results[-1]['files']} files, "
+            f"wheels {', '.join(results[-1]['wheels'])}")
+    print(json.dumps({"version": version, "zips": results}, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
