@@ -1,0 +1,190 @@
+"""The zip users download works: build this platform's extension zip, install it into a fresh
+Blender user folder with ``bpy.ops.extensions.package_install_files``, enable it and run Refine
+Lips from the *installed* copy, with SciPy/libigl/cholespy coming from the zip's wheels.
+
+The install runs in a subprocess (a fresh user folder is read when bpy starts; a fresh
+``sys.modules``). That process hides the venv's scipy, igl and cholespy, like Blender's own Python
+which has numpy but none of them, so the add-on can only work if Blender installed the bundled
+wheels (into ``<user>/extensions/.local/lib/python3.11/site-packages``). The repository checkout is
+not importable there either: every FaceLab module must come from the extension folder.
+"""
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+pytestmark = [pytest.mark.blender, pytest.mark.slow]
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def this_platform():
+    import platform
+
+    machine = {"x86_64": "x64", "amd64": "x64", "aarch64": "arm64", "arm64": "arm64"}[platform.machine().lower()]
+    system = {"linux": "linux", "windows": "windows", "darwin": "macos"}[platform.system().lower()]
+    return f"{system}-{machine}"
+
+
+@pytest.fixture(scope="session")
+def extension_zip(tmp_path_factory):
+    """This platform's zip, built by scripts/build_extension.py (wheels cached in build/wheels/)."""
+    out = tmp_path_factory.mktemp("dist")
+    r = subprocess.run(
+        [sys.executable, str(ROOT / "scripts" / "build_extension.py"), "--platform", this_platform(),
+         "--stage-dir", str(out / "stage"), "--out", str(out)],
+        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, timeout=600,
+    )
+    assert r.returncode == 0, r.stderr[-3000:]
+    summary = json.loads(r.stdout)
+    (z,) = summary["zips"]
+    assert z["platform"] == this_platform()
+    assert sorted(w.split("-")[0] for w in z["wheels"]) == ["cholespy", "libigl", "scipy"]
+    return Path(z["zip"])
+
+
+INSTALL_SCRIPT = textwrap.dedent(r'''
+    import importlib.abc, importlib.machinery, importlib.util, json, os, sys, sysconfig
+    # Blender's own Python has numpy but no scipy/libigl/cholespy: hide the venv's copies, so they can
+    # only be found where Blender installs an extension's wheels.
+    VENV = os.path.realpath(sysconfig.get_paths()["purelib"])
+    HIDDEN = {"scipy", "igl", "cholespy"}
+
+    class HideVenv(importlib.abc.MetaPathFinder):
+        def find_spec(self, name, path=None, target=None):
+            if name.split(".")[0] not in HIDDEN or "." in name:
+                return None
+            paths = [p for p in sys.path if os.path.realpath(p or ".") != VENV]
+            spec = importlib.machinery.PathFinder.find_spec(name, paths)
+            if spec is None:
+                raise ModuleNotFoundError(f"No module named {name!r} (hidden: not in Blender's Python)", name=name)
+            return spec
+
+    sys.meta_path.insert(0, HideVenv())
+    out = {"checkout_importable": importlib.util.find_spec("facelab_addon") is not None}
+    try:
+        import scipy  # noqa: F401
+        out["scipy_before_install"] = scipy.__file__
+    except ImportError:
+        out["scipy_before_install"] = None
+
+    import bpy
+    import numpy as np
+
+    out["install"] = sorted(bpy.ops.extensions.package_install_files(
+        filepath=sys.argv[1], repo="user_default", enable_on_install=True))
+    out["addons"] = [a.module for a in bpy.context.preferences.addons if "facelab" in a.module]
+    ext_dir = bpy.utils.user_resource("EXTENSIONS")
+    out["ext_dir"] = ext_dir
+
+    import importlib
+    pkg = importlib.import_module("bl_ext.user_default.facelab")
+    fl = importlib.import_module("bl_ext.user_default.facelab.facelab_addon")
+    Camera = importlib.import_module(fl.__name__ + ".core.camera").Camera
+    new_mesh_object = importlib.import_module(fl.__name__ + ".blender.scene").new_mesh_object
+    strokes = importlib.import_module(fl.__name__ + ".blender.strokes")
+    bcam = importlib.import_module(fl.__name__ + ".blender.camera")
+
+    # A tiny mouth: two half tubes with a 0.4 gap; the sketch says the inner lips meet at y = +-0.1.
+    def tube(yc, t0, t1, r, nx=41, nt=29, half=2.0):
+        X, T = np.meshgrid(np.linspace(-half, half, nx), np.linspace(t0, t1, nt), indexing="ij")
+        V = np.stack([X, yc + r * np.sin(T), r * np.cos(T)], -1).reshape(-1, 3)
+        F = []
+        for i in range(nx - 1):
+            for j in range(nt - 1):
+                a, b, c, d = i * nt + j, (i + 1) * nt + j, (i + 1) * nt + j + 1, i * nt + j + 1
+                F += [[a, b, c], [a, c, d]]
+        F = np.array(F)
+        n = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+        c = V[F].mean(1) - [0, yc, 0]
+        c[:, 0] = 0
+        return V, (F[:, ::-1] if (np.einsum("ij,ij->i", n, c) < 0).mean() > 0.5 else F)
+
+    s = np.pi / 24
+    Vu, Fu = tube(0.2 + 0.5, -np.pi / 2 - 4 * s, np.pi / 2, 0.5)
+    Vl, Fl = tube(-0.2 - 0.5, -np.pi / 2, np.pi / 2 + 4 * s, 0.5)
+    V, F = np.vstack([Vu, Vl]), np.vstack([Fu, Fl + len(Vu)])
+    upper = np.r_[np.ones(len(Vu), bool), np.zeros(len(Vl), bool)]
+
+    bpy.ops.wm.read_homefile(use_empty=True)  # keeps the preferences (the enabled add-on)
+    scene = bpy.context.scene
+    scene.frame_set(1)
+    obj = new_mesh_object("Face", V, F)
+    obj.vertex_groups.new(name="FL_fixed").add(np.flatnonzero(np.abs(V[:, 0]) > 1.9).tolist(), 1.0, "REPLACE")
+    cam_obj = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
+    scene.collection.objects.link(cam_obj)
+    bcam.apply_camera_to_blender(Camera.look_at([0, 0, 20], [0, 0, 0], [0, 1, 0], 50, 36, 1920, 1080), cam_obj, scene)
+    scene.camera = cam_obj
+    bpy.context.view_layer.objects.active = obj
+    obj.select_set(True)
+
+    out["new_lip_sketch"] = sorted(bpy.ops.facelab.new_lip_sketch())
+    cam = bcam.camera_from_blender(scene)
+    line = lambda y: cam.project(np.stack([np.linspace(-1.5, 1.5, 30), np.full(30, y), np.zeros(30)], 1))
+    strokes.write_stroke_pixels(scene.facelab.sketch, "Upper lip", 1, [line(0.1)], cam)
+    strokes.write_stroke_pixels(scene.facelab.sketch, "Lower lip", 1, [line(-0.1)], cam)
+    out["refine_lips"] = sorted(bpy.ops.facelab.refine_lips())
+
+    dg = bpy.context.evaluated_depsgraph_get()
+    X = np.array([v.co[:] for v in obj.evaluated_get(dg).data.vertices])
+    front = np.abs(V[:, 0]) < 1.5
+    out["upper_inner_y"] = [float(V[upper & front, 1].min()), float(X[upper & front, 1].min())]
+    out["lower_inner_y"] = [float(V[~upper & front, 1].max()), float(X[~upper & front, 1].max())]
+    out["keys"] = [kb.name for kb in obj.data.shape_keys.key_blocks]
+    out["training"] = [t.frame for t in obj.facelab.training_frames]
+
+    import cholespy, igl, scipy
+    op_module = bpy.types.FACELAB_OT_refine_lips.__module__
+    out["files"] = {
+        "extension": pkg.__file__,
+        "addon": fl.__file__,
+        "operator": sys.modules[op_module].__file__,
+        "core": sys.modules[fl.__name__ + ".core.sketch"].__file__,
+        "scipy": scipy.__file__, "igl": igl.__file__, "cholespy": cholespy.__file__,
+        "numpy": np.__file__,
+    }
+    out["checkout_modules"] = sorted(m for m in sys.modules if m.split(".")[0] == "facelab_addon")
+    print("RESULT " + json.dumps(out))
+''')
+
+
+def test_installed_zip_runs_refine_lips(extension_zip, tmp_path):
+    user = tmp_path / "blender-user"
+    user.mkdir()
+    script = tmp_path / "install_and_run.py"
+    script.write_text(INSTALL_SCRIPT)
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "FACELAB_CACHE_DIR")}
+    env["BLENDER_USER_RESOURCES"] = str(user)
+    r = subprocess.run([sys.executable, str(script), str(extension_zip)], cwd=tmp_path, env=env,
+                       stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, timeout=300)
+    lines = [ln for ln in r.stdout.splitlines() if ln.startswith("RESULT ")]
+    assert r.returncode == 0 and lines, r.stdout[-3000:] + r.stderr[-3000:]
+    out = json.loads(lines[-1][len("RESULT "):])
+
+    # a Python like Blender's: no checkout, no scipy until the extension brings it
+    assert not out["checkout_importable"] and out["scipy_before_install"] is None
+    assert out["install"] == ["FINISHED"]
+    assert out["addons"] == ["bl_ext.user_default.facelab"]
+
+    ext = Path(out["ext_dir"]).resolve()
+    installed = ext / "user_default" / "facelab"
+    assert (installed / "blender_manifest.toml").exists()
+    for what in ("extension", "addon", "operator", "core"):
+        assert Path(out["files"][what]).resolve().is_relative_to(installed), (what, out["files"][what])
+    wheels_site = ext / ".local" / "lib" / "python3.11" / "site-packages"
+    for what in ("scipy", "igl", "cholespy"):
+        assert Path(out["files"][what]).resolve().is_relative_to(wheels_site), (what, out["files"][what])
+    assert not Path(out["files"]["numpy"]).resolve().is_relative_to(ext)  # numpy is Blender's
+    assert out["checkout_modules"] == []
+
+    # Refine Lips ran from the installed add-on and moved the inner lips onto the sketch (y = +-0.1)
+    assert out["new_lip_sketch"] == ["FINISHED"] and out["refine_lips"] == ["FINISHED"]
+    assert "FL_Refine_0001" in out["keys"] and out["training"] == [1]
+    (u0, u1), (l0, l1) = out["upper_inner_y"], out["lower_inner_y"]
+    assert u0 == pytest.approx(0.2, abs=1e-6) and l0 == pytest.approx(-0.2, abs=1e-6)
+    assert abs(u1 - 0.1) < 0.03 and abs(l1 + 0.1) < 0.03, (u1, l1)
