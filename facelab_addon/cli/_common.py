@@ -1,0 +1,398 @@
+"""Plumbing shared by the subcommands: common options, inputs, the face object, outputs, exit codes.
+
+Nothing here does FaceLab work: the subcommands call the registered operators (``bpy.ops.facelab.*``),
+exactly what the sidebar buttons run, and read the result back from the scene for the JSON summary.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import re
+import sys
+import time
+import traceback
+from pathlib import Path
+
+EXIT_OK = 0
+EXIT_FAILED = 1  # FaceLab refused the data (operator error / FaceLabError)
+EXIT_USAGE = 2  # bad arguments (argparse uses 2 too)
+EXIT_INPUT = 3  # input file missing or unreadable
+EXIT_OBJECT = 4  # object missing or not a mesh
+EXIT_OUTPUT = 5  # output not writable
+EXIT_BPY = 6  # bpy not importable
+EXIT_INTERNAL = 70  # a bug
+
+MESH_EXTS = (".obj", ".abc")
+CACHE_EXTS = (".pc2", ".mdd")
+
+
+class CliError(Exception):
+    """A failure with a message for the user (problem + fix) and an exit code."""
+
+    def __init__(self, message: str, code: int = EXIT_FAILED):
+        super().__init__(message)
+        self.code = code
+
+
+def log(msg: str) -> None:
+    """Progress line on stderr (stdout carries only the JSON summary)."""
+    print(f"[facelab] {msg}", file=sys.stderr, flush=True)
+
+
+def add_common_arguments(p, inputs=("blend", "mesh")) -> None:
+    g = p.add_argument_group("input (a .blend, or a mesh with an optional cache)")
+    g.add_argument("blend", nargs="?", metavar="SHOT.blend",
+                   help="the .blend to work on (inside Blender: omit it to use the open file)")
+    if "mesh" in inputs:
+        g.add_argument("--mesh", metavar="FILE",
+                       help="build a scene from a mesh instead: .obj (coordinates kept as in the file, Z up) "
+                            "or .abc (Alembic, imported with its animation)")
+        g.add_argument("--cache", metavar="FILE",
+                       help="captured performance for --mesh: .pc2 or .mdd, played by a Mesh Cache modifier")
+    p.add_argument("--object", metavar="NAME",
+                   help="the face mesh (default: FaceLab > Setup > Face of the scene, else the only mesh)")
+    p.add_argument("--frames", metavar="RANGE",
+                   help="frames to work on: 'A-B' or 'N' (default: the scene's frame range)")
+    p.add_argument("--out", metavar="FILE.blend",
+                   help="save the result here (default: nothing is saved, only the summary is printed)")
+    p.add_argument("--json", metavar="FILE", dest="json_path",
+                   help="write the JSON summary to FILE instead of stdout")
+    p.add_argument("--quiet", action="store_true", help="no progress on stderr")
+
+
+def parse_frames(text: str | None, scene) -> list[int]:
+    """``'A-B'`` / ``'N'`` / ``'A,B,C'`` -> sorted frames; None -> the scene's range."""
+    if text is None or text == "":
+        return list(range(scene.frame_start, scene.frame_end + 1))
+    frames = set()
+    for part in text.split(","):
+        part = part.strip()
+        m = re.fullmatch(r"(-?\d+)\s*(?:-|\.\.|:)\s*(-?\d+)", part)
+        if m:
+            a, b = int(m.group(1)), int(m.group(2))
+            if b < a:
+                raise CliError(f"--frames {text!r}: the range {a}-{b} ends before it starts; write it as "
+                               f"{b}-{a}.", EXIT_USAGE)
+            frames.update(range(a, b + 1))
+        elif re.fullmatch(r"-?\d+", part):
+            frames.add(int(part))
+        else:
+            raise CliError(f"--frames {text!r}: expected 'A-B', 'N' or a comma list such as '1-100,120'.", EXIT_USAGE)
+    return sorted(frames)
+
+
+def contiguous(frames: list[int], what: str) -> tuple[int, int]:
+    """(first, last) of a gap-free frame list (the operators take a range)."""
+    if frames != list(range(frames[0], frames[-1] + 1)):
+        raise CliError(f"{what} works on one frame range; give --frames as 'A-B'.", EXIT_USAGE)
+    return frames[0], frames[-1]
+
+
+class Session:
+    """The open scene and the face object the subcommand works on, plus helpers."""
+
+    def __init__(self, args):
+        self.args = args
+        self.quiet = getattr(args, "quiet", False)
+        self.t0 = time.perf_counter()
+        self.inputs: dict = {}
+        import bpy
+
+        self.bpy = bpy
+
+    # -- messages ---------------------------------------------------------------------------------
+    def log(self, msg: str) -> None:
+        if not self.quiet:
+            log(msg)
+
+    def progress(self, label: str, total: int):
+        """A callable ``(i, n=total)`` printing ``label i/n (p %)`` on stderr about every 10 %."""
+        state = {"last": -1}
+
+        def update(i, n=total):
+            if self.quiet or not n:
+                return
+            pct = int(100 * (i + 1) / n)
+            if pct // 10 != state["last"] // 10 or i + 1 == n:
+                state["last"] = pct
+                log(f"{label}: {i + 1}/{n} ({pct} %)")
+
+        return update
+
+    @property
+    def scene(self):
+        return self.bpy.context.scene
+
+    # -- inputs -----------------------------------------------------------------------------------
+    def open_inputs(self) -> None:
+        a = self.args
+        mesh, cache = getattr(a, "mesh", None), getattr(a, "cache", None)
+        if a.blend and mesh:
+            raise CliError("Give either SHOT.blend or --mesh, not both.", EXIT_USAGE)
+        if cache and not mesh:
+            raise CliError("--cache needs --mesh (the mesh the cache animates).", EXIT_USAGE)
+        if a.blend:
+            self.open_blend(a.blend)
+        elif mesh:
+            self.build_scene(mesh, cache)
+        elif not self.bpy.data.filepath and not self.bpy.app.background:
+            pass  # inside an interactive Blender: the open (unsaved) scene
+        elif not self.bpy.data.filepath and not any(o.type == "MESH" for o in self.bpy.data.objects):
+            raise CliError("No input: give SHOT.blend, or --mesh FILE (with --cache FILE), or run inside "
+                           "'blender -b SHOT.blend --python-expr ...'.", EXIT_USAGE)
+        else:
+            self.inputs["blend"] = self.bpy.data.filepath or None  # inside Blender: the open file
+
+    def open_blend(self, path) -> None:
+        p = Path(path)
+        if not p.is_file():
+            raise CliError(f"{path}: no such .blend file; check the path.", EXIT_INPUT)
+        self.log(f"opening {p}")
+        try:
+            with quiet_stdout():
+                self.bpy.ops.wm.open_mainfile(filepath=str(p.resolve()), load_ui=False)
+        except RuntimeError as e:
+            raise CliError(f"{path}: Blender cannot read it ({first_line(e)}); is it a .blend from Blender 5.0 "
+                           "or older?", EXIT_INPUT) from None
+        self.inputs["blend"] = str(p.resolve())
+
+    def build_scene(self, mesh_path, cache_path) -> None:
+        bpy = self.bpy
+        mp = Path(mesh_path)
+        if not mp.is_file():
+            raise CliError(f"--mesh {mesh_path}: no such file; check the path.", EXIT_INPUT)
+        if mp.suffix.lower() not in MESH_EXTS:
+            raise CliError(f"--mesh {mesh_path}: unsupported type; give an .obj or an Alembic .abc.", EXIT_INPUT)
+        cp = Path(cache_path) if cache_path else None
+        if cp is not None:
+            if not cp.is_file():
+                raise CliError(f"--cache {cache_path}: no such file; check the path.", EXIT_INPUT)
+            if cp.suffix.lower() not in CACHE_EXTS:
+                raise CliError(f"--cache {cache_path}: unsupported type; give a .pc2 or .mdd point cache.", EXIT_INPUT)
+        with quiet_stdout():
+            bpy.ops.wm.read_homefile(use_empty=True)
+        scene = bpy.context.scene
+        self.log(f"building a scene from {mp.name}" + (f" + {cp.name}" if cp else ""))
+        if mp.suffix.lower() == ".obj":
+            obj = self.import_obj(mp, "Face")
+        else:
+            before = set(bpy.data.objects)
+            try:
+                with quiet_stdout():
+                    bpy.ops.wm.alembic_import(filepath=str(mp.resolve()), set_frame_range=True)
+            except RuntimeError as e:
+                raise CliError(f"--mesh {mesh_path}: the Alembic importer failed ({first_line(e)}).", EXIT_INPUT) \
+                    from None
+            meshes = [o for o in bpy.data.objects if o not in before and o.type == "MESH"]
+            if not meshes:
+                raise CliError(f"--mesh {mesh_path}: the Alembic file has no mesh.", EXIT_INPUT)
+            obj = max(meshes, key=lambda o: len(o.data.vertices))
+        if cp is not None:
+            self.add_cache(obj, cp)
+        bpy.context.view_layer.objects.active = obj
+        obj.select_set(True)
+        self.inputs.update(mesh=str(mp.resolve()), cache=str(cp.resolve()) if cp else None)
+
+    def import_obj(self, path: Path, name: str):
+        """A mesh object from an OBJ, vertex order and coordinates exactly as in the file."""
+        from ..blender.scene import new_mesh_object
+        from ..core.ict import _read_obj_full
+
+        try:
+            V, _, cv, _, off, _, _ = _read_obj_full(path)
+        except (OSError, ValueError, IndexError) as e:
+            raise CliError(f"{path}: cannot read it as an OBJ ({e}).", EXIT_INPUT) from None
+        if not len(V) or len(off) < 2:
+            raise CliError(f"{path}: the OBJ has no vertices or no faces.", EXIT_INPUT)
+        return new_mesh_object(name, V, poly_verts=cv, poly_offsets=off)
+
+    def import_obj_vertices(self, path: Path):
+        """(V,3) float64 vertex positions of an OBJ, in file order."""
+        from ..core.ict import _read_obj_vertices
+
+        try:
+            V = _read_obj_vertices(Path(path))
+        except (OSError, ValueError, IndexError) as e:
+            raise CliError(f"{path}: cannot read it as an OBJ ({e}).", EXIT_INPUT) from None
+        if not len(V):
+            raise CliError(f"{path}: the OBJ has no vertices.", EXIT_INPUT)
+        return V
+
+    def add_cache(self, obj, path: Path) -> None:
+        from ..core import cachefile
+        from ..core.errors import FaceLabError
+
+        try:
+            info = cachefile.cache_info(str(path))
+            cachefile.check_vertex_count(info, len(obj.data.vertices), name=f"'{obj.name}'")
+        except FaceLabError as e:
+            raise CliError(f"--cache {path}: {e}", EXIT_INPUT) from None
+        md = obj.modifiers.new("Capture", "MESH_CACHE")
+        md.cache_format = info.format
+        md.filepath = str(path.resolve())
+        md.play_mode, md.time_mode = "SCENE", "FRAME"
+        start = int(round(info.start_frame)) if info.start_frame is not None else 1
+        md.frame_start = float(start)
+        step = info.sample_rate or 1.0
+        scene = self.scene
+        scene.frame_start, scene.frame_end = start, start + int(round((info.num_samples - 1) * step))
+        self.log(f"cache {path.name}: {info.num_samples} samples of {info.num_points} points, frames "
+                 f"{scene.frame_start}-{scene.frame_end}")
+
+    # -- the face ---------------------------------------------------------------------------------
+    def face(self):
+        """The face object (``--object``, else Setup > Face, else the only mesh), made active and selected."""
+        bpy, scene, name = self.bpy, self.scene, self.args.object
+        meshes = [o.name for o in scene.objects if o.type == "MESH"]
+        if name:
+            obj = bpy.data.objects.get(name)
+            if obj is None:
+                raise CliError(f"--object {name!r}: no such object; meshes in the scene: {meshes[:20]}.", EXIT_OBJECT)
+            if obj.type != "MESH":
+                raise CliError(f"--object {name!r} is a {obj.type.lower()}, not a mesh; give the face mesh "
+                               f"({meshes[:20]}).", EXIT_OBJECT)
+        elif scene.facelab.face is not None:
+            obj = scene.facelab.face
+        elif len(meshes) == 1:
+            obj = scene.objects[meshes[0]]
+        else:
+            raise CliError(f"Which mesh is the face? Give --object NAME (meshes: {meshes[:20]}).", EXIT_OBJECT)
+        if scene.objects.get(obj.name) is None:
+            raise CliError(f"'{obj.name}' is not in the scene '{scene.name}'; link it or give another --object.",
+                           EXIT_OBJECT)
+        scene.facelab.face = obj
+        vl = bpy.context.view_layer
+        if vl.objects.get(obj.name) is not None:
+            vl.objects.active = obj
+            obj.select_set(True)
+        return obj
+
+    # -- running operators ------------------------------------------------------------------------
+    def call(self, op, **kw):
+        """Run ``bpy.ops.facelab.<op>`` (stdout kept clean); its error report becomes a CliError."""
+        fn = getattr(self.bpy.ops.facelab, op)
+        try:
+            with quiet_stdout():
+                return fn(**kw)
+        except RuntimeError as e:
+            raise CliError(clean_report(e), EXIT_FAILED) from None
+
+    # -- outputs ----------------------------------------------------------------------------------
+    def save(self, out) -> str | None:
+        if not out:
+            return None
+        p = Path(out).resolve()
+        if p.suffix.lower() != ".blend":
+            raise CliError(f"--out {out}: give a .blend path.", EXIT_USAGE)
+        if not p.parent.is_dir():
+            raise CliError(f"--out {out}: the folder {p.parent} does not exist; create it first.", EXIT_OUTPUT)
+        self.log(f"saving {p}")
+        try:
+            with quiet_stdout():
+                self.bpy.ops.wm.save_as_mainfile(filepath=str(p), copy=False, check_existing=False)
+        except RuntimeError as e:
+            raise CliError(f"--out {out}: cannot write it ({first_line(e)}).", EXIT_OUTPUT) from None
+        return str(p)
+
+
+def first_line(e) -> str:
+    return str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+
+
+def clean_report(e) -> str:
+    """An operator's RuntimeError text without Blender's 'Error: ' prefixes and poll boilerplate."""
+    lines = [ln.strip() for ln in str(e).strip().splitlines() if ln.strip()]
+    lines = [re.sub(r"^(Error|Warning|Info):\s*", "", ln) for ln in lines]
+    return " ".join(lines)
+
+
+@contextlib.contextmanager
+def quiet_stdout():
+    """Send everything written to stdout (Python and Blender's C code) to stderr meanwhile."""
+    try:
+        fd = sys.stdout.fileno()
+    except (AttributeError, OSError, ValueError):  # no real stdout (some embeddings)
+        yield
+        return
+    sys.stdout.flush()
+    saved = os.dup(fd)
+    try:
+        os.dup2(sys.stderr.fileno(), fd)
+        yield
+    finally:
+        sys.stdout.flush()
+        os.dup2(saved, fd)
+        os.close(saved)
+
+
+def ensure_registered(bpy) -> str:
+    """Register FaceLab's operators unless Blender already has them (an enabled extension)."""
+    if hasattr(bpy.types, "FACELAB_OT_propagate"):
+        return "already registered (enabled add-on)"
+    from .. import register
+
+    register()
+    return f"registered from {Path(__file__).resolve().parents[1]}"
+
+
+def execute(args) -> int:
+    """Run the parsed subcommand: returns the exit code; prints/writes the JSON summary."""
+    t0 = time.perf_counter()
+    summary = {"command": args.command, "ok": False}
+    code = EXIT_INTERNAL
+    try:
+        with quiet_stdout():
+            try:
+                import bpy
+            except ImportError as e:
+                raise CliError(f"Cannot import bpy ({e}); run with the project's Python (.venv with bpy==5.0.1) "
+                               "or inside Blender.", EXIT_BPY) from None
+            reg = ensure_registered(bpy)
+        session = Session(args)
+        session.log(f"{args.command}: FaceLab {reg}")
+        session.open_inputs()
+        result = args._module.run(args, session)
+        summary.update(result)
+        summary.update(ok=True, inputs=session.inputs)
+        code = EXIT_OK
+    except CliError as e:
+        code = e.code
+        summary.update(error=str(e))
+        log(f"error: {e}")
+    except Exception as e:  # noqa: BLE001  (a bug: report it, never a silent success)
+        from ..core.errors import FaceLabError
+
+        if isinstance(e, FaceLabError):
+            code = EXIT_FAILED
+            summary.update(error=str(e))
+            log(f"error: {e}")
+        else:
+            summary.update(error=f"internal error: {type(e).__name__}: {e}")
+            traceback.print_exc()
+            log("internal error: please report it with the traceback above")
+    summary.update(exit_code=code, seconds=round(time.perf_counter() - t0, 3))
+    text = json.dumps(summary, indent=2, default=_json_default)
+    if getattr(args, "json_path", None):
+        try:
+            Path(args.json_path).write_text(text + "\n")
+        except OSError as e:
+            log(f"error: --json {args.json_path}: cannot write it ({e})")
+            return code or EXIT_OUTPUT
+    else:
+        print(text, flush=True)
+    return code
+
+
+def _json_default(o):
+    try:
+        import numpy as np
+
+        if isinstance(o, np.generic):
+            return o.item()
+        if isinstance(o, np.ndarray):
+            return o.tolist()
+    except ImportError:
+        pass
+    return str(o)

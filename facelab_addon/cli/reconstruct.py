@@ -1,0 +1,58 @@
+"""Reconstruct from Bundles (Cong, Lan & Fedkiw, local geometric indexing), like the sidebar's
+section 4: rebuild the face on every frame from animated 3D bundles (the selected empties or a
+``FL_bundles`` collection) and the face's own shape keys; the result is a few corrective keys
+``FL_Recon_*`` keyed on every frame.
+
+    python -m facelab_addon reconstruct SHOT.blend --object Face --frames 1-300 --out SHOT_recon.blend
+"""
+
+from __future__ import annotations
+
+from ._common import CliError, contiguous, parse_frames
+
+HELP = "rebuild the face from animated 3D bundles (corrective shape keys)"
+INPUTS = ("blend",)
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--bind-frame", type=int, default=-1, metavar="F",
+                   help="frame where the face is neutral (bundles are bound there); default: the first frame")
+    p.add_argument("--smooth", type=int, default=1, metavar="N",
+                   help="moving average of the barycentric weights over N frames (1 = off)")
+    p.add_argument("--bundles", metavar="COLLECTION",
+                   help="collection holding the bundle empties (default: 'FL_bundles', else the selected empties)")
+
+
+def run(args, session) -> dict:
+    import time
+
+    bpy = session.bpy
+    scene = session.scene
+    obj = session.face()
+    frames = parse_frames(args.frames, scene)
+    f0, f1 = contiguous(frames, "reconstruct")
+    if args.bundles:
+        coll = bpy.data.collections.get(args.bundles)
+        if coll is None:
+            raise CliError(f"--bundles {args.bundles!r}: no such collection.")
+        for o in scene.objects:
+            o.select_set(False)
+        for o in coll.all_objects:
+            if bpy.context.view_layer.objects.get(o.name) is not None:
+                o.select_set(True)
+        bpy.context.view_layer.objects.active = obj
+    session.log(f"reconstructing frames {f0}-{f1} ({len(frames):,})")
+    t0 = time.perf_counter()
+    session.call("reconstruct_from_bundles", frame_start=f0, frame_end=f1, bind_frame=args.bind_frame,
+                 smooth=max(1, args.smooth))
+    dt = time.perf_counter() - t0
+    keys = [kb.name for kb in obj.data.shape_keys.key_blocks if kb.name.startswith("FL_Recon_")]
+    session.log(f"Reconstructed {len(frames):,} frames in {dt:.1f} s, {len(keys)} corrective shapes")
+    return {
+        "object": obj.name,
+        "frames": [f0, f1],
+        "frame_count": len(frames),
+        "corrective_keys": keys,
+        "reconstruct_seconds": round(dt, 3),
+        "saved": session.save(args.out),
+    }

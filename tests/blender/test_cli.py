@@ -1,0 +1,193 @@
+"""The batch CLI (``python -m facelab_addon``) in a subprocess, on small scenes made here: JSON
+summary, the saved .blend's content, corrections that really correct, and exit codes."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import bpy
+
+import facelab_addon
+from facelab_addon.blender import caches
+from facelab_addon.blender.shapekeys import add_corrective_key, key_spike
+from facelab_addon.core.cachefile import write_pc2
+
+from .test_propagate_operator import FRAMES, SCALE, TRAIN, build
+
+pytestmark = [pytest.mark.blender, pytest.mark.slow]
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def cli(*args, cwd=None):
+    """Run the CLI; returns (exit code, JSON summary or None, stderr)."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    r = subprocess.run([sys.executable, "-m", "facelab_addon", *map(str, args)], cwd=cwd or ROOT, env=env,
+                       stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, timeout=600)
+    try:
+        summary = json.loads(r.stdout)  # stdout is the JSON summary and nothing else
+    except json.JSONDecodeError:
+        summary = None
+    return r.returncode, summary, r.stderr
+
+
+@pytest.fixture(scope="module")
+def addon():
+    facelab_addon.register()
+    yield
+    facelab_addon.unregister()
+
+
+@pytest.fixture(scope="module")
+def shot(ict, addon, tmp_path_factory):
+    """SHOT.blend: a 40-frame ICT capture with a lip error, corrected by sculpting on 3 frames."""
+    scene, obj, err, cap_w = build(ict)
+    i = np.searchsorted(FRAMES, TRAIN)
+    for f, w in zip(TRAIN, cap_w[i]):
+        scene.frame_set(f)
+        key_spike(add_corrective_key(obj, f"Sculpt_{f}", -w * err), f)
+        assert bpy.ops.facelab.mark_training_frame() == {"FINISHED"}
+    bpy.ops.object.select_all(action="DESELECT")
+    bpy.ops.object.empty_add()  # a second object, so --object matters
+    bpy.context.active_object.name = "NotAMesh"
+    path = tmp_path_factory.mktemp("shot") / "SHOT.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(path))
+    return dict(path=path, err=err, cap_w=cap_w)
+
+
+def lip_error(obj, frames, err, cap_w):
+    """Mean inner-lip error against the truth (capture minus the injected error) at ``frames``."""
+    captured = caches.evaluate_frames(obj, frames, mute_shape_keys_prefix=("FL_", "Sculpt_"))
+    got = caches.evaluate_frames(obj, frames, mute_shape_keys_prefix=())
+    truth = captured - cap_w[np.searchsorted(FRAMES, frames), None, None] * err
+    lips = np.linalg.norm(err, axis=1) > 0
+    e = lambda X: np.linalg.norm(X - truth, axis=2)[:, lips].mean()
+    return e(captured), e(got)
+
+
+def test_propagate_blend(shot, tmp_path, addon):
+    out = tmp_path / "SHOT_fixed.blend"
+    code, s, log = cli("propagate", shot["path"], "--object", "Face", "--frames", "1-40", "--suggestions", "2",
+                       "--out", out)
+    assert code == 0, log
+    assert s["ok"] and s["exit_code"] == 0 and s["command"] == "propagate"
+    assert s["object"] == "Face" and s["frames"] == [1, 40] and s["frame_count"] == 40
+    assert s["training_frames"] == TRAIN and s["regions"] == "auto"
+    assert 1 <= len(s["corrective_keys"]) <= 10 and all(k.startswith("FL_Prop_") for k in s["corrective_keys"])
+    assert len(s["suggested_frames"]) == 2 and not set(s["suggested_frames"]) & set(TRAIN)
+    assert 0 < s["extrapolation"]["max"] and s["saved"] == str(out.resolve())
+    assert "Propagated to 40 frames" in log and "propagating frames 1-40" in log  # progress on stderr
+
+    bpy.ops.wm.open_mainfile(filepath=str(out))
+    obj = bpy.data.objects["Face"]
+    names = [kb.name for kb in obj.data.shape_keys.key_blocks]
+    assert [n for n in names if n.startswith("FL_Prop_")] == s["corrective_keys"]
+    assert all(f"Sculpt_{f}" in names for f in TRAIN)  # the artist's keys stay
+    assert obj.vertex_groups.get("FL_mouth") and obj.vertex_groups.get("FL_lips")
+    assert sorted(m.frame for m in bpy.context.scene.timeline_markers if m.name.startswith("FL suggest")) == \
+        s["suggested_frames"]
+    before, after = lip_error(obj, [2, 11, 24, 37], shot["err"], shot["cap_w"])
+    assert after < 0.5 * before, (before, after)  # held-out frames really corrected
+
+
+def test_json_file_and_frame_subset(shot, tmp_path):
+    js = tmp_path / "summary.json"
+    code, s, log = cli("propagate", shot["path"], "--object", "Face", "--frames", "1-32", "--suggestions", "0",
+                       "--json", js, "--quiet")
+    assert code == 0, log
+    assert s is None  # --json FILE: nothing on stdout
+    s = json.loads(js.read_text())
+    assert s["ok"] and s["frame_count"] == 32 and s["saved"] is None and s["suggested_frames"] == []
+    assert "[facelab]" not in log  # --quiet
+
+
+@pytest.mark.parametrize("args, code, message", [
+    (["--object", "Nose"], 4, "no such object"),
+    (["--object", "NotAMesh"], 4, "not a mesh"),
+    (["--object", "Face", "--frames", "40-1"], 2, "ends before it starts"),
+    (["--object", "Face", "--frames", "abc"], 2, "expected 'A-B'"),
+    (["--object", "Face", "--frames", "10-20"], 1, "outside the range"),  # training frame 5 and 31
+])
+def test_bad_input_exit_codes(shot, args, code, message):
+    got, s, log = cli("propagate", shot["path"], *args)
+    assert got == code, log
+    assert s["ok"] is False and s["exit_code"] == code and message in s["error"], s["error"]
+    assert "Traceback" not in log
+
+
+def test_missing_files_and_usage(tmp_path):
+    code, s, _ = cli("propagate", tmp_path / "missing.blend", "--object", "Face")
+    assert code == 3 and "no such .blend" in s["error"]
+    code, s, _ = cli("propagate", "--mesh", tmp_path / "face.obj")
+    assert code == 3 and "no such file" in s["error"]
+    code, s, _ = cli("propagate", "--cache", tmp_path / "perf.pc2")
+    assert code == 2 and "--cache needs --mesh" in s["error"]
+    code, s, err = cli("propagate", "--no-such-option")
+    assert code == 2 and s is None and "unrecognized arguments" in err  # argparse's usage error
+    code, _, _ = cli("solve-everything")
+    assert code == 2
+
+
+def write_obj(path, V, poly_verts, poly_offsets):
+    with open(path, "w") as f:
+        f.writelines(f"v {x:.9g} {y:.9g} {z:.9g}\n" for x, y, z in V)
+        for a, b in zip(poly_offsets[:-1], poly_offsets[1:]):
+            f.write("f " + " ".join(str(i + 1) for i in poly_verts[a:b]) + "\n")
+
+
+def test_mesh_and_pc2_inputs_with_corrected_objs(ict, tmp_path, addon):
+    """Pipeline inputs: face.obj + perf.pc2 + corrected OBJs on 3 frames -> a corrected .blend and PC2."""
+    from .test_propagate_operator import weights_at
+
+    from facelab_addon.core import synthetic as syn
+    from facelab_addon.core.regions import auto_regions, faces_in_region, geodesic_distance, region_border
+
+    expr = ["jawOpen", "mouthClose", "mouthFunnel", "mouthSmile_L", "mouthSmile_R"]
+    N = ict.neutral * SCALE
+    D = np.stack([(ict.expressions[n] - ict.neutral) * SCALE for n in expr])
+    W = weights_at(FRAMES)
+    fixed = ~ict.part_vertex_mask("M_Face")
+    w, side = syn.lip_error_weights(ict.neutral, ict.faces, fixed,
+                                    mouth=syn.find_mouth(ict.neutral, ict.faces, fixed, loop=syn.ICT_MOUTH_LOOP))
+    _, lip_mask = auto_regions(ict.neutral, ict.faces)
+    d = geodesic_distance(ict.neutral, ict.faces, region_border(ict.faces, faces_in_region(ict.faces, lip_mask)))
+    fade = np.clip(d / (0.35 * np.nanmax(np.where(lip_mask, d, np.nan))), 0, 1) * lip_mask
+    err = np.zeros_like(N)
+    err[:, 1] = side * w * fade * 0.08 * SCALE
+    cap_w = 1.0 - 1.5 * W[:, 0]
+    truth = N + np.einsum("ts,svk->tvk", W, D)
+    capture = truth + cap_w[:, None, None] * err
+    write_obj(tmp_path / "face.obj", N, ict.poly_verts, ict.poly_offsets)
+    write_pc2(tmp_path / "perf.pc2", capture.astype(np.float32), start=1.0)
+    corrected = []
+    for f in TRAIN:
+        write_obj(tmp_path / f"fix{f}.obj", truth[f - 1], ict.poly_verts, ict.poly_offsets)
+        corrected += ["--corrected", f"{f}:{tmp_path / f'fix{f}.obj'}"]
+
+    out = tmp_path / "fixed.blend"
+    code, s, log = cli("propagate", "--mesh", tmp_path / "face.obj", "--cache", tmp_path / "perf.pc2", *corrected,
+                       "--out", out, "--bake", tmp_path / "fixed.pc2", "--suggestions", "0")
+    assert code == 0, log
+    assert s["frames"] == [1, 40] and s["training_frames"] == TRAIN
+    assert s["corrected_keys_added"] == [f"FL_Corrected_{f:04d}" for f in TRAIN]
+    from facelab_addon.core.cachefile import read_pc2
+
+    baked = read_pc2(tmp_path / "fixed.pc2")
+    baked = baked[0] if isinstance(baked, tuple) else baked
+    assert baked.shape == capture.shape
+    lips = np.linalg.norm(err, axis=1) > 0
+    held = [i for i in range(40) if i + 1 not in TRAIN]
+    e_cap = np.linalg.norm(capture[held] - truth[held], axis=2)[:, lips].mean()
+    e_fix = np.linalg.norm(baked[held] - truth[held], axis=2)[:, lips].mean()
+    assert e_fix < 0.5 * e_cap, (e_cap, e_fix)
+    # training frames show the corrected OBJ exactly (float32 cache + key storage)
+    assert np.abs(baked[np.array(TRAIN) - 1] - truth[np.array(TRAIN) - 1]).max() < 1e-5
+
+    bpy.ops.wm.open_mainfile(filepath=str(out))
+    obj = bpy.data.objects["Face"]
+    assert obj.modifiers["Capture"].type == "MESH_CACHE" and obj.modifiers["Capture"].deform_mode == "INTEGRATE"
