@@ -1,6 +1,7 @@
 """Operators for regression propagation (Dinev et al. 2018 §4): regions, training
 frames, Propagate, bakes. They gather inputs, call core, write, report."""
 
+import sys
 import time
 from pathlib import Path
 
@@ -49,10 +50,23 @@ def training_frames(obj):
     return sorted(frames)
 
 
-def _progress(context, T):
+def _progress(context, T, label="FaceLab"):
+    """A ``progress(i, n)`` callback: the window's progress cursor, and in background mode
+    (``blender -b``, the bpy module) a line on stderr about every 10 %. Callers end it with
+    ``context.window_manager.progress_end()``."""
     wm = context.window_manager
     wm.progress_begin(0, max(T, 1))
-    return lambda i, n=T: wm.progress_update(i)
+    last = [-1]
+
+    def update(i, n=T):
+        wm.progress_update(i)
+        if bpy.app.background and n:
+            pct = int(100 * (i + 1) / n)
+            if pct // 10 != last[0] // 10:
+                last[0] = pct
+                print(f"{label}: {i + 1}/{n} frames ({pct} %)", file=sys.stderr, flush=True)
+
+    return update
 
 
 class FACELAB_OT_auto_regions(bpy.types.Operator):
@@ -157,6 +171,19 @@ class FACELAB_OT_jump_training_frame(bpy.types.Operator):
         return {"FINISHED"}
 
 
+class FACELAB_OT_jump_to_frame(bpy.types.Operator):
+    """Go to this frame (a suggested frame, or one where the model extrapolates)"""
+
+    bl_idname = "facelab.jump_to_frame"
+    bl_label = "Jump to Frame"
+
+    frame: IntProperty(name="Frame")
+
+    def execute(self, context):
+        context.scene.frame_set(self.frame)
+        return {"FINISHED"}
+
+
 class FACELAB_OT_remove_training_frame(bpy.types.Operator):
     """Remove the selected training frame from the list (its shape key is kept)"""
 
@@ -245,7 +272,7 @@ def propagate(context, obj, frames, n_suggest=3) -> dict:
     if source in ("mesh_cache", "mesh_sequence_cache"):
         note = caches.cache_to_shape_key_ready(obj, scene_frames=frames)
     rest = rest_vertices(obj)
-    prog = _progress(context, len(frames))
+    prog = _progress(context, len(frames), "FaceLab Propagate: reading the capture")
     captured = caches.read_captured_frames(obj, frames, progress=prog)  # FaceLab keys muted
     corrected = caches.evaluate_frames(obj, train, mute_shape_keys_prefix=(PROP_PREFIX,))
     reg = _regressor(obj, rest, tris, mouth_faces, lip_faces, train, corrected)
@@ -356,11 +383,16 @@ class FACELAB_OT_bake(bpy.types.Operator):
         frames = np.arange(scene.frame_start, scene.frame_end + 1)
         t0 = time.perf_counter()
         try:
-            fn = {"PC2": caches.bake_pc2, "MDD": caches.bake_mdd, "ABC": caches.bake_alembic}[self.format]
-            out = fn(obj, frames, path)
+            if self.format == "ABC":
+                out = caches.bake_alembic(obj, frames, path)
+            else:
+                fn = caches.bake_pc2 if self.format == "PC2" else caches.bake_mdd
+                out = fn(obj, frames, path, progress=_progress(context, len(frames), f"FaceLab Bake {self.format}"))
         except FaceLabError as e:
             self.report({"ERROR"}, str(e))
             return {"CANCELLED"}
+        finally:
+            context.window_manager.progress_end()
         self.report({"INFO"}, f"Baked {len(frames):,} frames of '{obj.name}' to {out} in {time.perf_counter() - t0:.1f} s")
         return {"FINISHED"}
 
@@ -370,6 +402,7 @@ classes = (
     FACELAB_OT_mark_training_frame,
     FACELAB_OT_remove_training_frame,
     FACELAB_OT_jump_training_frame,
+    FACELAB_OT_jump_to_frame,
     FACELAB_OT_propagate,
     FACELAB_OT_bake,
 )
