@@ -21,7 +21,7 @@ EXIT_USAGE = 2  # bad arguments (argparse uses 2 too)
 EXIT_INPUT = 3  # input file missing or unreadable
 EXIT_OBJECT = 4  # object missing or not a mesh
 EXIT_OUTPUT = 5  # output not writable
-EXIT_BPY = 6  # bpy not importable
+EXIT_BPY = 6  # bpy, or a module FaceLab needs (SciPy...), not importable
 EXIT_INTERNAL = 70  # a bug
 
 MESH_EXTS = (".obj", ".abc")
@@ -36,9 +36,12 @@ class CliError(Exception):
         self.code = code
 
 
+_T0 = time.perf_counter()
+
+
 def log(msg: str) -> None:
-    """Progress line on stderr (stdout carries only the JSON summary)."""
-    print(f"[facelab] {msg}", file=sys.stderr, flush=True)
+    """Progress line on stderr, with the seconds since start (stdout carries only the JSON summary)."""
+    print(f"[facelab {time.perf_counter() - _T0:6.1f}s] {msg}", file=sys.stderr, flush=True)
 
 
 def add_common_arguments(p, inputs=("blend", "mesh")) -> None:
@@ -349,7 +352,12 @@ def execute(args) -> int:
             except ImportError as e:
                 raise CliError(f"Cannot import bpy ({e}); run with the project's Python (.venv with bpy==5.0.1) "
                                "or inside Blender.", EXIT_BPY) from None
-            reg = ensure_registered(bpy)
+            try:
+                reg = ensure_registered(bpy)
+            except ImportError as e:  # Blender's Python without the extension's wheels
+                raise CliError(f"FaceLab cannot load: {e}. Install the FaceLab extension zip in this Blender (it "
+                               "brings SciPy, libigl and cholespy), or use the project's Python (.venv).",
+                               EXIT_BPY) from None
         session = Session(args)
         session.log(f"{args.command}: FaceLab {reg}")
         session.open_inputs()

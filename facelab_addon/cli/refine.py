@@ -71,7 +71,8 @@ def run(args, session) -> dict:
             session.call("refine_lips")
         except CliError as e:
             raise CliError(f"frame {f}: {e}", e.code) from None
-        new = [kb.name for kb in obj.data.shape_keys.key_blocks if kb.name not in before]
+        keys = obj.data.shape_keys
+        new = [kb.name for kb in keys.key_blocks if kb.name not in before and kb != keys.reference_key]
         done.append({"frame": f, "shape_key": new[0] if new else None, "seconds": round(time.perf_counter() - t, 3)})
         session.log(f"refine {i + 1}/{len(frames)}: frame {f} -> {new[0] if new else '?'} "
                     f"({time.perf_counter() - t:.2f} s)")

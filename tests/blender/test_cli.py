@@ -150,7 +150,8 @@ def test_mesh_and_pc2_inputs_with_corrected_objs(ict, tmp_path, addon):
     expr = ["jawOpen", "mouthClose", "mouthFunnel", "mouthSmile_L", "mouthSmile_R"]
     N = ict.neutral * SCALE
     D = np.stack([(ict.expressions[n] - ict.neutral) * SCALE for n in expr])
-    W = weights_at(FRAMES)
+    frames, train = FRAMES[:16], [3, 9, 14]  # a Mesh Cache maps every frame's correction: keep it short
+    W = weights_at(frames)
     fixed = ~ict.part_vertex_mask("M_Face")
     w, side = syn.lip_error_weights(ict.neutral, ict.faces, fixed,
                                     mouth=syn.find_mouth(ict.neutral, ict.faces, fixed, loop=syn.ICT_MOUTH_LOOP))
@@ -165,7 +166,7 @@ def test_mesh_and_pc2_inputs_with_corrected_objs(ict, tmp_path, addon):
     write_obj(tmp_path / "face.obj", N, ict.poly_verts, ict.poly_offsets)
     write_pc2(tmp_path / "perf.pc2", capture.astype(np.float32), start=1.0)
     corrected = []
-    for f in TRAIN:
+    for f in train:
         write_obj(tmp_path / f"fix{f}.obj", truth[f - 1], ict.poly_verts, ict.poly_offsets)
         corrected += ["--corrected", f"{f}:{tmp_path / f'fix{f}.obj'}"]
 
@@ -173,21 +174,117 @@ def test_mesh_and_pc2_inputs_with_corrected_objs(ict, tmp_path, addon):
     code, s, log = cli("propagate", "--mesh", tmp_path / "face.obj", "--cache", tmp_path / "perf.pc2", *corrected,
                        "--out", out, "--bake", tmp_path / "fixed.pc2", "--suggestions", "0")
     assert code == 0, log
-    assert s["frames"] == [1, 40] and s["training_frames"] == TRAIN
-    assert s["corrected_keys_added"] == [f"FL_Corrected_{f:04d}" for f in TRAIN]
+    assert s["frames"] == [1, 16] and s["training_frames"] == train
+    assert s["corrected_keys_added"] == [f"FL_Corrected_{f:04d}" for f in train]
     from facelab_addon.core.cachefile import read_pc2
 
     baked = read_pc2(tmp_path / "fixed.pc2")
     baked = baked[0] if isinstance(baked, tuple) else baked
     assert baked.shape == capture.shape
     lips = np.linalg.norm(err, axis=1) > 0
-    held = [i for i in range(40) if i + 1 not in TRAIN]
+    held = [i for i in range(16) if i + 1 not in train]
     e_cap = np.linalg.norm(capture[held] - truth[held], axis=2)[:, lips].mean()
     e_fix = np.linalg.norm(baked[held] - truth[held], axis=2)[:, lips].mean()
     assert e_fix < 0.5 * e_cap, (e_cap, e_fix)
     # training frames show the corrected OBJ exactly (float32 cache + key storage)
-    assert np.abs(baked[np.array(TRAIN) - 1] - truth[np.array(TRAIN) - 1]).max() < 1e-5
+    assert np.abs(baked[np.array(train) - 1] - truth[np.array(train) - 1]).max() < 1e-5
 
     bpy.ops.wm.open_mainfile(filepath=str(out))
     obj = bpy.data.objects["Face"]
     assert obj.modifiers["Capture"].type == "MESH_CACHE" and obj.modifiers["Capture"].deform_mode == "INTEGRATE"
+
+
+def test_inside_blender_on_the_open_file(shot, tmp_path):
+    """``blender -b SHOT.blend --python-expr "...c.main([...])"``: no SHOT.blend argument, the open file is used.
+    Blender prints its own lines on stdout there ("Read blend: ..."), hence --json FILE."""
+    out, js = tmp_path / "inside.blend", tmp_path / "inside.json"
+    expr = (f"import bpy, sys; bpy.ops.wm.open_mainfile(filepath={str(shot['path'])!r}); "
+            "import facelab_addon.cli as c; "
+            f"sys.exit(c.main(['propagate', '--object', 'Face', '--suggestions', '0', '--out', {str(out)!r}, "
+            f"'--json', {str(js)!r}]))")
+    r = subprocess.run([sys.executable, "-c", expr], cwd=ROOT, env=dict(os.environ, PYTHONPATH=str(ROOT)),
+                       stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    s = json.loads(js.read_text())
+    assert s["ok"] and s["inputs"]["blend"] == str(shot["path"]) and s["frames"] == [1, 40]
+    assert s["saved"] == str(out.resolve()) and out.exists()
+
+
+def test_refine_sketched_frames(ict, addon, tmp_path):
+    from facelab_addon.blender.camera import camera_from_blender
+    from facelab_addon.blender.strokes import write_stroke_pixels
+
+    from .test_refine_operator import FRAME, scene_setup
+
+    s = scene_setup(tmp_path, ict)
+    scene = s["scene"]
+    assert bpy.ops.facelab.new_lip_sketch() == {"FINISHED"}
+    cam = camera_from_blender(scene)
+    write_stroke_pixels(scene.facelab.sketch, "Upper lip", FRAME, [s["up_px"]], cam)
+    write_stroke_pixels(scene.facelab.sketch, "Lower lip", FRAME, [s["lo_px"]], cam)
+    shot = tmp_path / "sketched.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(shot))
+    out = tmp_path / "refined.blend"
+    code, summary, log = cli("refine", shot, "--object", "Face", "--out", out)
+    assert code == 0, log
+    assert summary["sketch"] == scene.facelab.sketch.name
+    assert [r["frame"] for r in summary["refined"]] == [FRAME] and summary["training_frames"] == [FRAME]
+    assert summary["refined"][0]["shape_key"] == f"FL_Refine_{FRAME:04d}"
+    bpy.ops.wm.open_mainfile(filepath=str(out))
+    obj = bpy.data.objects["Face"]
+    kb = obj.data.shape_keys.key_blocks[f"FL_Refine_{FRAME:04d}"]
+    d = np.array([p.co[:] for p in kb.data]) - np.array([p.co[:] for p in obj.data.shape_keys.reference_key.data])
+    assert 0.0005 < np.linalg.norm(d, axis=1).max() < 0.005  # the lips moved by about the 1.25 mm gap
+    # a frame before the first sketch keyframe has no strokes: FaceLab's message, exit 1
+    code, summary, _ = cli("refine", shot, "--object", "Face", "--frames", str(FRAME - 5))
+    assert code == 1 and f"frame {FRAME - 5}:" in summary["error"] and "no strokes" in summary["error"]
+
+
+def test_reconstruct_from_bundles(ict, addon, tmp_path):
+    from facelab_addon.blender.mesh import mesh_triangles
+    from facelab_addon.blender.scene import new_mesh_object
+
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    scene = bpy.context.scene
+    from .test_reconstruct_operator import EXPR as expr
+
+    T = 4
+    scene.frame_start, scene.frame_end = 0, T
+    neutral = ict.neutral * SCALE
+    obj = new_mesh_object("Face", neutral, poly_verts=ict.poly_verts, poly_offsets=ict.poly_offsets)
+    obj.shape_key_add(name="Basis", from_mix=False)
+    for n in expr:
+        add_corrective_key(obj, n, (ict.expressions[n] - ict.neutral) * SCALE)
+    tris = mesh_triangles(obj.data)
+    rng = np.random.default_rng(0)
+    front = np.flatnonzero(ict.part_face_mask("M_Face")[: len(tris)] & (neutral[tris].mean(1)[:, 2] > 0.07))
+    pick, bary = rng.choice(front, 40, replace=False), rng.dirichlet([4, 4, 4], 40)
+    shapes = np.stack([(ict.expressions[n] - ict.neutral) * SCALE for n in expr])
+    W = np.zeros((T + 1, len(expr)))
+    for t in range(1, T + 1):
+        W[t, t % len(expr)] = 0.7
+    truth = neutral[None] + np.einsum("ts,svd->tvd", W, shapes)
+    pts = np.einsum("bk,tbkd->tbd", bary, truth[:, tris[pick]])
+    coll = bpy.data.collections.new("Tracked")
+    scene.collection.children.link(coll)
+    for b in range(40):
+        e = bpy.data.objects.new(f"B{b:02d}", None)
+        coll.objects.link(e)
+        for t in range(T + 1):
+            e.location = pts[t, b]
+            e.keyframe_insert("location", frame=t)
+    shot = tmp_path / "bundles.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(shot))
+    out = tmp_path / "recon.blend"
+    code, s, log = cli("reconstruct", shot, "--object", "Face", "--bundles", "Tracked", "--bind-frame", "0",
+                       "--out", out)
+    assert code == 0, log
+    assert s["frames"] == [0, T] and s["corrective_keys"] and s["saved"] == str(out.resolve())
+    bpy.ops.wm.open_mainfile(filepath=str(out))
+    obj = bpy.data.objects["Face"]
+    got = caches.evaluate_frames(obj, range(T + 1), mute_shape_keys_prefix=())
+    # through the bundles (Cong et al.: the reconstruction interpolates them)
+    rebuilt = np.einsum("bk,tbkd->tbd", bary, got[:, tris[pick]])
+    assert np.abs(rebuilt - pts).max() < 2e-4  # 0.2 mm: key compression + float32
+    code, s, _ = cli("reconstruct", shot, "--object", "Face", "--bundles", "Nope")
+    assert code == 1 and "no such collection" in s["error"]
