@@ -54,6 +54,7 @@ def add_common_arguments(p, inputs=("blend", "mesh")) -> None:
                             "or .abc (Alembic, imported with its animation)")
         g.add_argument("--cache", metavar="FILE",
                        help="captured performance for --mesh: .pc2 or .mdd, played by a Mesh Cache modifier")
+    p.add_argument("--from-open-scene", action="store_true", help=argparse_suppress())
     p.add_argument("--object", metavar="NAME",
                    help="the face mesh (default: FaceLab > Setup > Face of the scene, else the only mesh)")
     p.add_argument("--frames", metavar="RANGE",
@@ -63,6 +64,12 @@ def add_common_arguments(p, inputs=("blend", "mesh")) -> None:
     p.add_argument("--json", metavar="FILE", dest="json_path",
                    help="write the JSON summary to FILE instead of stdout")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
+
+
+def argparse_suppress():
+    import argparse
+
+    return argparse.SUPPRESS
 
 
 def parse_frames(text: str | None, scene) -> list[int]:
@@ -140,11 +147,10 @@ class Session:
             self.open_blend(a.blend)
         elif mesh:
             self.build_scene(mesh, cache)
-        elif not self.bpy.data.filepath and not self.bpy.app.background:
-            pass  # inside an interactive Blender: the open (unsaved) scene
-        elif not self.bpy.data.filepath and not any(o.type == "MESH" for o in self.bpy.data.objects):
-            raise CliError("No input: give SHOT.blend, or --mesh FILE (with --cache FILE), or run inside "
-                           "'blender -b SHOT.blend --python-expr ...'.", EXIT_USAGE)
+        elif getattr(self.bpy.app, "module", False) and not self.bpy.data.filepath and not a.from_open_scene:
+            # plain Python: the bpy module starts on Blender's default scene, never what was meant
+            raise CliError("No input: give SHOT.blend, or --mesh FILE (with --cache FILE); inside Blender "
+                           "('blender -b SHOT.blend --python-expr ...') the open file is used.", EXIT_USAGE)
         else:
             self.inputs["blend"] = self.bpy.data.filepath or None  # inside Blender: the open file
 
@@ -380,6 +386,7 @@ def execute(args) -> int:
             summary.update(error=f"internal error: {type(e).__name__}: {e}")
             traceback.print_exc()
             log("internal error: please report it with the traceback above")
+    _release_solvers()
     summary.update(exit_code=code, seconds=round(time.perf_counter() - t0, 3))
     text = json.dumps(summary, indent=2, default=_json_default)
     if getattr(args, "json_path", None):
@@ -391,6 +398,17 @@ def execute(args) -> int:
     else:
         print(text, flush=True)
     return code
+
+
+def _release_solvers() -> None:
+    """Drop the fitted model Propagate keeps between runs: its native Cholesky factor would otherwise
+    outlive the interpreter and nanobind prints a 'leaked instance' warning at exit."""
+    import gc
+
+    mod = sys.modules.get(__name__.rsplit(".", 2)[0] + ".ui.ops_propagate")
+    if mod is not None and hasattr(mod, "_REGRESSORS"):
+        mod._REGRESSORS.clear()
+    gc.collect()
 
 
 def _json_default(o):

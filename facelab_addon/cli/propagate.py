@@ -118,7 +118,7 @@ def run(args, session) -> dict:
         "propagate_seconds": round(dt, 3),
     }
     if score is not None:
-        result["extrapolation"] = {"max": float(np.max(score)), "mean": float(np.mean(score)),
+        result["extrapolation"] = {"max": round(float(np.max(score)), 4), "mean": round(float(np.mean(score)), 4),
                                    "frames_over_0.5": [int(f) for f, s in zip(frames, score) if s > 0.5][:100]}
     if args.bake:
         fmt = {".pc2": "PC2", ".mdd": "MDD", ".abc": "ABC"}[Path(args.bake).suffix.lower()]

@@ -127,6 +127,8 @@ def test_missing_files_and_usage(tmp_path):
     assert code == 3 and "no such file" in s["error"]
     code, s, _ = cli("propagate", "--cache", tmp_path / "perf.pc2")
     assert code == 2 and "--cache needs --mesh" in s["error"]
+    code, s, _ = cli("propagate", "--object", "Face")  # plain Python and no input: never Blender's default scene
+    assert code == 2 and "No input" in s["error"]
     code, s, err = cli("propagate", "--no-such-option")
     assert code == 2 and s is None and "unrecognized arguments" in err  # argparse's usage error
     code, _, _ = cli("solve-everything")
