@@ -210,8 +210,49 @@ class FACELAB_OT_remove_training_frame(bpy.types.Operator):
         return {"FINISHED"}
 
 
+class StepJob:
+    """Drives a long job written as a generator of ``(stage, done, total)`` steps, one step per call,
+    so a modal operator can run it on timer events (progress in the panel, Esc cancels between
+    steps) while scripts, ``blender -b`` and the CLI run the same generator to the end at once.
+    Nothing but plain Python: testable headless, where timers and modal handlers never run."""
+
+    def __init__(self, steps):
+        self._steps = steps
+        self.stage, self.done, self.total = "starting", 0, 1
+        self.result = None
+        self.finished = False
+
+    @property
+    def factor(self) -> float:
+        return min(1.0, self.done / self.total) if self.total else 0.0
+
+    def step(self) -> bool:
+        """Run one step; False once the job has finished (``result`` holds its return value)."""
+        try:
+            self.stage, self.done, self.total = next(self._steps)
+            return True
+        except StopIteration as stop:
+            self.result, self.finished = stop.value, True
+            return False
+
+    def run(self, progress=None):
+        """Run every remaining step; ``progress(done, total)`` after each. Returns the result."""
+        while self.step():
+            if progress is not None:
+                progress(self.done, self.total)
+        return self.result
+
+    def cancel(self) -> None:
+        """Stop between two steps (the generator's ``finally`` blocks run)."""
+        self._steps.close()
+
+
+# The job a modal Propagate is running, for the panel's progress bar (None when idle).
+RUNNING: dict = {"job": None, "label": ""}
+
+
 class FACELAB_OT_propagate(bpy.types.Operator):
-    """Learn how the inner lips follow the mouth from the training frames (Dinev et al. 2018 §4) and correct every frame; the result is a small set of corrective shape keys keyed on the timeline"""
+    """Learn how the inner lips follow the mouth from the training frames (Dinev et al. 2018 §4) and correct every frame; the result is a small set of corrective shape keys keyed on the timeline. Esc cancels while it reads the frames"""
 
     bl_idname = "facelab.propagate"
     bl_label = "Propagate"
@@ -224,6 +265,9 @@ class FACELAB_OT_propagate(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
+        if RUNNING["job"] is not None:
+            cls.poll_message_set("Propagate is already running (Esc cancels it)")
+            return False
         if not poll_face(cls, context):
             return False
         if not len(face_object(context).facelab.training_frames):
@@ -231,13 +275,26 @@ class FACELAB_OT_propagate(bpy.types.Operator):
             return False
         return True
 
-    def execute(self, context):
+    def _frames(self, context):
         scene = context.scene
-        obj = face_object(context)
-        t0 = time.perf_counter()
         f0 = scene.frame_start if self.frame_start < 0 else self.frame_start
         f1 = scene.frame_end if self.frame_end < 0 else self.frame_end
-        frames = np.arange(f0, f1 + 1)
+        return np.arange(f0, f1 + 1)
+
+    def _report_done(self, frames, summary, seconds):
+        self.report(
+            {"INFO"},
+            f"Propagated to {len(frames):,} frames in {seconds:.1f} s, {summary['rank']} corrective "
+            f"shapes from {summary['training']} training frames"
+            + (f"; {summary['note']}" if summary["note"] else "")
+            + (f"; suggested next: {', '.join(map(str, summary['suggested']))}" if summary["suggested"] else ""),
+        )
+
+    def execute(self, context):
+        """Synchronous: scripts, ``blender -b``, the CLI (timers and modal handlers never run there)."""
+        obj = face_object(context)
+        t0 = time.perf_counter()
+        frames = self._frames(context)
         try:
             summary = propagate(context, obj, frames, self.suggestions)
         except FaceLabError as e:
@@ -245,18 +302,88 @@ class FACELAB_OT_propagate(bpy.types.Operator):
             return {"CANCELLED"}
         finally:
             context.window_manager.progress_end()
-        self.report(
-            {"INFO"},
-            f"Propagated to {len(frames):,} frames in {time.perf_counter() - t0:.1f} s, {summary['rank']} corrective "
-            f"shapes from {summary['training']} training frames"
-            + (f"; {summary['note']}" if summary["note"] else "")
-            + (f"; suggested next: {', '.join(map(str, summary['suggested']))}" if summary["suggested"] else ""),
-        )
+        self._report_done(frames, summary, time.perf_counter() - t0)
+        return {"FINISHED"}
+
+    def invoke(self, context, event):
+        """From a button: step through the job on a timer, progress in the panel, Esc cancels."""
+        if bpy.app.background or context.window is None:
+            return self.execute(context)
+        self._obj, self._frames_run, self._t0 = face_object(context), self._frames(context), time.perf_counter()
+        self._job = StepJob(propagate_steps(context, self._obj, self._frames_run, self.suggestions))
+        RUNNING.update(job=self._job, label=f"Propagate {len(self._frames_run):,} frames")
+        wm = context.window_manager
+        self._timer = wm.event_timer_add(0.01, window=context.window)
+        wm.modal_handler_add(self)
+        wm.progress_begin(0, 1000)
+        return {"RUNNING_MODAL"}
+
+    def _finish(self, context):
+        wm = context.window_manager
+        wm.event_timer_remove(self._timer)
+        wm.progress_end()
+        RUNNING.update(job=None, label="")
+        for area in context.screen.areas if context.screen else ():
+            area.tag_redraw()
+
+    def modal(self, context, event):
+        if event.type == "ESC":
+            self._job.cancel()
+            self._finish(context)
+            self.report({"WARNING"}, f"Propagate cancelled while {self._job.stage} ({self._job.done:,}/"
+                                     f"{self._job.total:,}); no corrective key was changed")
+            return {"CANCELLED"}
+        if event.type != "TIMER":
+            return {"PASS_THROUGH"}
+        try:
+            t_end = time.perf_counter() + 0.05  # stay responsive: a few steps per timer tick
+            running = True
+            while running and time.perf_counter() < t_end:
+                running = self._job.step()
+        except FaceLabError as e:
+            self._finish(context)
+            self.report({"ERROR"}, str(e))
+            return {"CANCELLED"}
+        context.window_manager.progress_update(int(1000 * self._job.factor))
+        for area in context.screen.areas if context.screen else ():
+            if area.type == "VIEW_3D":
+                area.tag_redraw()
+        if running:
+            return {"RUNNING_MODAL"}
+        self._finish(context)
+        self._report_done(self._frames_run, self._job.result, time.perf_counter() - self._t0)
         return {"FINISHED"}
 
 
 def propagate(context, obj, frames, n_suggest=3) -> dict:
-    """Fit (or update) the regressor, predict every frame, write corrective keys. Returns a summary."""
+    """Fit (or update) the regressor, predict every frame, write corrective keys. Returns a summary.
+
+    Runs :func:`propagate_steps` to the end at once, with the window's progress (and a line on
+    stderr per stage and every 10 % in background mode)."""
+    wm = context.window_manager
+    wm.progress_begin(0, 1000)
+    job = StepJob(propagate_steps(context, obj, frames, n_suggest))
+    shown = (None, -1)
+    while job.step():
+        wm.progress_update(int(999 * job.factor))
+        tenth = int(10 * job.factor)
+        if bpy.app.background and (job.stage, tenth) != shown and (job.stage != shown[0] or tenth > shown[1]):
+            shown = (job.stage, tenth)
+            print(f"FaceLab Propagate: {job.stage} ({int(100 * job.factor)} %)", file=sys.stderr, flush=True)
+    return job.result
+
+
+def _chunks(n, size):
+    return [(i, min(n, i + size)) for i in range(0, n, size)]
+
+
+def propagate_steps(context, obj, frames, n_suggest=3):
+    """Propagate as a generator: yields ``(stage, done, total)`` between steps and returns the summary.
+
+    Steps: read the capture in chunks of frames; fit; predict in chunks; (a cache: map every frame's
+    correction onto the cache surface); compress and write. Nothing in the scene changes before the
+    last step, except that a Mesh Cache is switched to Integrate (or an Alembic baked to a PC2) first,
+    so cancelling between steps leaves the corrective keys as they were."""
     scene = context.scene
     require_mesh(obj)
     tris = mesh_triangles(obj.data)
@@ -267,29 +394,43 @@ def propagate(context, obj, frames, n_suggest=3) -> dict:
     outside = [f for f in train if f < frames[0] or f > frames[-1]]
     if outside:
         raise FaceLabError(f"Training frames {outside} lie outside the range {frames[0]}-{frames[-1]}; widen the range.")
+    T = len(frames)
+    # progress units: T frames read + T predicted (+ T mapped onto a cache) + 2 (fit, write)
     source = caches.sequence_source(obj)
+    on_cache = source in ("mesh_cache", "mesh_sequence_cache")
+    total = 2 * T + 2 + (T if on_cache else 0)
     note = ""
-    if source in ("mesh_cache", "mesh_sequence_cache"):
+    if on_cache:
         note = caches.cache_to_shape_key_ready(obj, scene_frames=frames)
     rest = rest_vertices(obj)
-    prog = _progress(context, len(frames), "FaceLab Propagate: reading the capture")
-    captured = caches.read_captured_frames(obj, frames, progress=prog)  # FaceLab keys muted
+    chunk = max(4, T // 40)
+    captured = np.empty((T, len(rest), 3), np.float32)
+    for i, j in _chunks(T, chunk):
+        yield "reading the capture", i, total
+        captured[i:j] = caches.read_captured_frames(obj, frames[i:j])  # FaceLab keys muted
+    yield "fitting", T, total
     corrected = caches.evaluate_frames(obj, train, mute_shape_keys_prefix=(PROP_PREFIX,))
     reg = _regressor(obj, rest, tris, mouth_faces, lip_faces, train, corrected)
 
     lipv = np.unique(tris[lip_faces])
     before = captured[:, lipv].astype(np.float64)
-    pred = reg.predict(captured, out=captured)  # in place: 1000 frames stay within memory
+    for i, j in _chunks(T, max(chunk, 16)):
+        yield "predicting", T + 1 + i, total
+        reg.predict(captured[i:j], out=captured[i:j])  # in place: 1000 frames stay within memory
+    pred = captured
     corr = (pred[:, lipv] - before).astype(np.float64)  # (T, n_lip, 3) correction, object local
     corr[np.isin(frames, train)] = 0.0  # training frames keep the artist's own correction
-    if source in ("mesh_cache", "mesh_sequence_cache"):  # keys ride on the cache surface (INTEGRATE)
+    if on_cache:  # keys ride on the cache surface (INTEGRATE)
         corners = caches.polygon_corners(obj.data)
-        for t in range(len(frames)):
+        for t in range(T):
+            if t % 4 == 0:
+                yield "mapping onto the cache", 2 * T + 1 + t, total
             if np.any(corr[t]):
                 full = np.zeros_like(rest)
                 full[lipv] = corr[t]
                 corr[t] = caches.correction_to_key_offsets(obj, before_full(pred[t], lipv, before[t]), full,
                                                            corners)[lipv]
+    yield "writing the corrective keys", total - 1, total
     basis_lip, weights = compress(corr, metres_per_unit=scene.unit_settings.scale_length or 1.0)
     remove_keys(obj, PROP_PREFIX)
     names = []

@@ -11,6 +11,7 @@ import bpy
 import numpy as np
 
 from .ops import face_object
+from .ops_propagate import RUNNING
 
 # --- sections drawn by other modules (they may not exist yet in this branch) -------------------
 # Issue 4 (Solve from Markers, Retarget): ui/panel_solve.py provides draw_solve_section(layout, context)
@@ -167,7 +168,11 @@ class FACELAB_PT_propagate(_Section, bpy.types.Panel):
         sub.operator("facelab.remove_training_frame", icon="REMOVE", text="")
         sub.separator()
         sub.operator("facelab.jump_training_frame", icon="TIME", text="")
-        col.operator("facelab.propagate", icon="MOD_DATA_TRANSFER")
+        job = RUNNING["job"]
+        if job is not None:  # a Propagate started from this button is stepping on a timer
+            col.progress(factor=job.factor, type="BAR", text=f"{RUNNING['label']}: {job.stage} (Esc cancels)")
+        else:
+            col.operator("facelab.propagate", icon="MOD_DATA_TRANSFER")
 
         score = ob.get(EXTRAPOLATION_PROP)
         if score is None:

@@ -219,3 +219,41 @@ def test_extrapolation_helpers(addon):
     np.testing.assert_allclose(sc, score, atol=1e-6)
     assert panel.extrapolating_ranges(obj) == ([(5, 8), (15, 15)], 5)
     assert panel.EXTRAPOLATING == 0.5 and ops_propagate.EXTRAPOLATION_PROP == panel.EXTRAPOLATION_PROP
+
+
+def test_propagate_job_steps_and_cancels(ict, addon):
+    """The modal Propagate's job, driven by hand (timers never run headless): it reports stages in
+    order with growing progress, Esc between steps changes no key, and run to the end it writes keys."""
+    from facelab_addon.blender.shapekeys import add_corrective_key, key_spike
+
+    from .test_propagate_operator import FRAMES, TRAIN, build
+
+    scene, obj, err, cap_w = build(ict)
+    for f, w in zip(TRAIN, cap_w[np.searchsorted(FRAMES, TRAIN)]):
+        scene.frame_set(f)
+        key_spike(add_corrective_key(obj, f"Sculpt_{f}", -w * err), f)
+        bpy.ops.facelab.mark_training_frame()
+    bpy.ops.facelab.auto_regions()
+    keys_before = [kb.name for kb in obj.data.shape_keys.key_blocks]
+
+    job = ops_propagate.StepJob(ops_propagate.propagate_steps(bpy.context, obj, FRAMES, 2))
+    for _ in range(3):
+        assert job.step()
+    assert job.stage == "reading the capture" and 0 < job.factor < 0.5
+    job.cancel()  # Esc
+    assert not job.step() and job.result is None
+    assert [kb.name for kb in obj.data.shape_keys.key_blocks] == keys_before
+    assert not any(m.name.startswith("FL suggest") for m in scene.timeline_markers)
+
+    job = ops_propagate.StepJob(ops_propagate.propagate_steps(bpy.context, obj, FRAMES, 2))
+    stages, factors = [], []
+    while job.step():
+        factors.append(job.factor)
+        if not stages or stages[-1] != job.stage:
+            stages.append(job.stage)
+    assert stages == ["reading the capture", "fitting", "predicting", "writing the corrective keys"]
+    assert factors == sorted(factors) and factors[-1] < 1.0
+    summary = job.result
+    assert summary["rank"] >= 1 and summary["keys"] == [kb.name for kb in obj.data.shape_keys.key_blocks
+                                                        if kb.name.startswith("FL_Prop_")]
+    assert len(summary["suggested"]) == 2 and ops_propagate.RUNNING["job"] is None
