@@ -41,6 +41,19 @@ def poll_face(cls, context) -> bool:
     return True
 
 
+def has_lip_sketch(scene) -> bool:
+    """A sketch Refine Lips can read: Setup > Sketch, a Grease Pencil object with lip layers, or
+    annotation layers named after the lips (cheap enough for ``poll``)."""
+    if scene.facelab.sketch is not None:
+        return True
+    from ..blender.strokes import _has_lip_layers, _label
+
+    if any(o.type == "GREASEPENCIL" and _has_lip_layers(o.data) for o in scene.objects):
+        return True
+    ann = getattr(scene, "annotation", None)
+    return ann is not None and any(_label(lay.info) for lay in ann.layers)
+
+
 def record_training_frame(scene, obj, frame: int, shape_key: str, source: str) -> None:
     """Remember ``frame`` as a corrected (training) frame and mark it on the timeline."""
     item = obj.facelab.training_frames.add()
@@ -101,6 +114,9 @@ class FACELAB_OT_refine_lips(bpy.types.Operator):
             return False
         if context.mode != "OBJECT":
             cls.poll_message_set("Switch to Object Mode to refine")
+            return False
+        if not has_lip_sketch(context.scene):
+            cls.poll_message_set("No lip sketch yet: press New Lip Sketch and draw the inner lips in camera view")
             return False
         return True
 

@@ -129,13 +129,16 @@ class FACELAB_OT_mark_training_frame(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        return poll_face(cls, context)
+        if not poll_face(cls, context):
+            return False
+        f = context.scene.frame_current
+        if f in {t.frame for t in face_object(context).facelab.training_frames}:
+            cls.poll_message_set(f"Frame {f} is already a training frame")
+            return False
+        return True
 
     def execute(self, context):
         obj, f = face_object(context), context.scene.frame_current
-        if f in training_frames(obj):
-            self.report({"WARNING"}, f"Frame {f} is already a training frame")
-            return {"CANCELLED"}
         record_training_frame(context.scene, obj, f, "", "sculpt")
         self.report({"INFO"}, f"Frame {f} marked as a training frame of '{obj.name}'")
         return {"FINISHED"}

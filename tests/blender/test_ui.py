@@ -126,7 +126,11 @@ def test_with_a_face_polls_and_messages(addon):
     cam = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
     scene.collection.objects.link(cam)
     scene.camera = cam
-    assert bpy.ops.facelab.new_lip_sketch.poll() and bpy.ops.facelab.refine_lips.poll()
+    assert bpy.ops.facelab.new_lip_sketch.poll()
+    with pytest.raises(RuntimeError, match="No lip sketch yet"):
+        bpy.ops.facelab.refine_lips()
+    assert bpy.ops.facelab.new_lip_sketch() == {"FINISHED"}
+    assert bpy.ops.facelab.refine_lips.poll()
     bpy.context.view_layer.objects.active = obj
     bpy.ops.object.mode_set(mode="EDIT")
     with pytest.raises(RuntimeError, match="Object Mode"):
@@ -147,7 +151,8 @@ def test_training_list_markers_jump_remove_undo(addon):
     bpy.ops.ed.undo_push(message="Mark Training Frame")  # headless: the UI would push it
     assert [(t.frame, t.source) for t in obj.facelab.training_frames] == [(7, "sculpt")]
     assert [(m.name, m.frame) for m in scene.timeline_markers] == [("FL train 7", 7)]
-    assert bpy.ops.facelab.mark_training_frame() == {"CANCELLED"}  # already a training frame
+    with pytest.raises(RuntimeError, match="already a training frame"):  # the button is disabled, with why
+        bpy.ops.facelab.mark_training_frame()
     scene.frame_set(20)
     bpy.ops.facelab.mark_training_frame()
     obj.facelab.active_training_index = 0
