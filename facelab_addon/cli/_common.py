@@ -289,14 +289,22 @@ class Session:
             raise CliError(clean_report(e), EXIT_FAILED) from None
 
     # -- outputs ----------------------------------------------------------------------------------
-    def save(self, out) -> str | None:
+    def check_out(self) -> None:
+        """Refuse a bad ``--out`` before any work is done."""
+        out = getattr(self.args, "out", None)
         if not out:
-            return None
+            return
         p = Path(out).resolve()
         if p.suffix.lower() != ".blend":
             raise CliError(f"--out {out}: give a .blend path.", EXIT_USAGE)
         if not p.parent.is_dir():
             raise CliError(f"--out {out}: the folder {p.parent} does not exist; create it first.", EXIT_OUTPUT)
+
+    def save(self, out) -> str | None:
+        if not out:
+            return None
+        self.check_out()
+        p = Path(out).resolve()
         self.log(f"saving {p}")
         try:
             with quiet_stdout():
@@ -366,6 +374,7 @@ def execute(args) -> int:
                                EXIT_BPY) from None
         session = Session(args)
         session.log(f"{args.command}: FaceLab {reg}")
+        session.check_out()
         session.open_inputs()
         result = args._module.run(args, session)
         summary.update(result)

@@ -12,6 +12,7 @@ from bpy.props import BoolProperty, EnumProperty, IntProperty, StringProperty
 from ..blender import caches
 from ..blender.mesh import mesh_triangles, require_mesh, vertex_group_mask
 from ..blender.shapekeys import add_keys_from_deltas, key_property_bulk, key_values_bulk, remove_keys, rest_vertices
+from ..core.cachefile import integrate_matrices, integrate_offsets_to_key
 from ..core.compress import compress
 from ..core.errors import FaceLabError, RegionError
 from ..core.propagate import LipRegressor, suggest_frames
@@ -423,16 +424,14 @@ def propagate_steps(context, obj, frames, n_suggest=3):
     pred = captured
     corr = (pred[:, lipv] - before).astype(np.float64)  # (T, n_lip, 3) correction, object local
     corr[np.isin(frames, train)] = 0.0  # training frames keep the artist's own correction
-    if on_cache:  # keys ride on the cache surface (INTEGRATE)
-        corners = caches.polygon_corners(obj.data)
+    if on_cache:  # keys ride on the cache surface (INTEGRATE): map each frame's offsets through it
+        sub_off, sub_cv = _polygons_around(caches.polygon_corners(obj.data), lipv)
         for t in range(T):
             if t % 4 == 0:
                 yield "mapping onto the cache", 2 * T + 1 + t, total
             if np.any(corr[t]):
-                full = np.zeros_like(rest)
-                full[lipv] = corr[t]
-                corr[t] = caches.correction_to_key_offsets(obj, before_full(pred[t], lipv, before[t]), full,
-                                                           corners)[lipv]
+                M = integrate_matrices(rest, before_full(pred[t], lipv, before[t]), sub_off, sub_cv)[lipv]
+                corr[t] = integrate_offsets_to_key(M, corr[t])
     yield "writing the corrective keys", total - 1, total
     basis_lip, weights = compress(corr, metres_per_unit=scene.unit_settings.scale_length or 1.0)
     remove_keys(obj, PROP_PREFIX)
@@ -460,6 +459,20 @@ def propagate_steps(context, obj, frames, n_suggest=3):
     obj.data.update()
     return dict(rank=len(names), training=len(train), suggested=suggested, note=note,
                 extrapolation=score, keys=names)
+
+
+def _polygons_around(corners, verts):
+    """``(face_offsets, corner_verts)`` of only the polygons touching ``verts``.
+
+    The Integrate map of a vertex averages over its own corners, all in polygons that touch it, so
+    on this subset it is exactly the whole mesh's (``core.cachefile.integrate_matrices``), at a
+    fraction of the cost: the lips are ~4 % of a face."""
+    offs, cv = corners
+    sizes = np.diff(offs)
+    face_of = np.repeat(np.arange(len(sizes)), sizes)
+    touch = np.zeros(len(sizes), bool)
+    touch[face_of[np.isin(cv, verts)]] = True
+    return np.r_[0, np.cumsum(sizes[touch])], cv[touch[face_of]]
 
 
 def before_full(pred_t, lipv, before_t):

@@ -111,28 +111,55 @@ def test_json_file_and_frame_subset(shot, tmp_path):
     (["--object", "NotAMesh"], 4, "not a mesh"),
     (["--object", "Face", "--frames", "40-1"], 2, "ends before it starts"),
     (["--object", "Face", "--frames", "abc"], 2, "expected 'A-B'"),
-    (["--object", "Face", "--frames", "10-20"], 1, "outside the range"),  # training frame 5 and 31
+    (["--object", "Face", "--frames", "1-10,20-30"], 2, "one frame range"),
+    (["--object", "Face", "--frames", "10-20"], 1, "outside the range"),  # training frames 5 and 31
+    (["--object", "Face", "--no-auto-regions"], 1, "no FL_mouth / FL_lips"),
+    (["--object", "Face", "--corrected", "12"], 2, "expected FRAME:FILE.obj"),
+    (["--object", "Face", "--out", "/no/such/dir/x.blend"], 5, "does not exist"),
 ])
-def test_bad_input_exit_codes(shot, args, code, message):
-    got, s, log = cli("propagate", shot["path"], *args)
-    assert got == code, log
+def test_bad_input_exit_codes(shot, args, code, message, tmp_path, addon):
+    """In this process (the same code path as the subprocess runs, minus starting Python)."""
+    from facelab_addon import cli as facelab_cli
+
+    js = tmp_path / "s.json"
+    assert facelab_cli.main(["propagate", str(shot["path"]), *args, "--json", str(js), "--quiet"]) == code
+    s = json.loads(js.read_text())
     assert s["ok"] is False and s["exit_code"] == code and message in s["error"], s["error"]
-    assert "Traceback" not in log
+
+
+def test_exit_codes_in_a_subprocess(shot, tmp_path):
+    """The process's exit status itself, stdout = the JSON only, no traceback."""
+    for args, code, message in ((["--object", "Nose"], 4, "no such object"),
+                                (["--object", "Face", "--frames", "40-1"], 2, "ends before it starts"),
+                                (["--object", "Face", "--frames", "10-20"], 1, "outside the range")):
+        got, s, log = cli("propagate", shot["path"], *args)
+        assert got == code, log
+        assert s["ok"] is False and s["exit_code"] == code and message in s["error"], s["error"]
+        assert "Traceback" not in log
 
 
 def test_missing_files_and_usage(tmp_path):
     code, s, _ = cli("propagate", tmp_path / "missing.blend", "--object", "Face")
     assert code == 3 and "no such .blend" in s["error"]
-    code, s, _ = cli("propagate", "--mesh", tmp_path / "face.obj")
-    assert code == 3 and "no such file" in s["error"]
-    code, s, _ = cli("propagate", "--cache", tmp_path / "perf.pc2")
-    assert code == 2 and "--cache needs --mesh" in s["error"]
     code, s, _ = cli("propagate", "--object", "Face")  # plain Python and no input: never Blender's default scene
     assert code == 2 and "No input" in s["error"]
     code, s, err = cli("propagate", "--no-such-option")
     assert code == 2 and s is None and "unrecognized arguments" in err  # argparse's usage error
-    code, _, _ = cli("solve-everything")
-    assert code == 2
+
+
+def test_inputs_usage_in_process(tmp_path, addon):
+    from facelab_addon import cli as facelab_cli
+
+    js = tmp_path / "s.json"
+    (tmp_path / "face.txt").write_text("v 0 0 0\n")
+    for args, code, message in (
+        (["--mesh", str(tmp_path / "face.obj")], 3, "no such file"),
+        (["--mesh", str(tmp_path / "face.txt")], 3, "unsupported type"),
+        (["--cache", str(tmp_path / "perf.pc2")], 2, "--cache needs --mesh"),
+    ):
+        assert facelab_cli.main(["propagate", *args, "--json", str(js), "--quiet"]) == code, args
+        assert message in json.loads(js.read_text())["error"]
+    assert facelab_cli.main(["solve-everything"]) == 2
 
 
 def write_obj(path, V, poly_verts, poly_offsets):
