@@ -203,14 +203,15 @@ class FACELAB_OT_remove_training_frame(bpy.types.Operator):
         obj = face_object(context)
         tf = obj.facelab.training_frames
         i = selected_training_index(obj)
-        frame = tf[i].frame
+        frame, removed_key = tf[i].frame, tf[i].shape_key
         tf.remove(i)
         obj.facelab.active_training_index = max(0, i - 1)
         if frame not in {t.frame for t in tf}:
             for m in list(context.scene.timeline_markers):
                 if m.frame == frame and m.name.startswith("FL train"):
                     context.scene.timeline_markers.remove(m)
-        self.report({"INFO"}, f"Removed training frame {frame}")
+        kept = f" (its shape key '{removed_key}' is kept)" if removed_key else ""
+        self.report({"INFO"}, f"Removed training frame {frame}{kept}; Propagate again to update the correction")
         return {"FINISHED"}
 
 
