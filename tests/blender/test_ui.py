@@ -262,3 +262,19 @@ def test_propagate_job_steps_and_cancels(ict, addon):
     assert summary["rank"] >= 1 and summary["keys"] == [kb.name for kb in obj.data.shape_keys.key_blocks
                                                         if kb.name.startswith("FL_Prop_")]
     assert len(summary["suggested"]) == 2 and ops_propagate.RUNNING["job"] is None
+
+
+def test_every_registered_operator_explains_a_refusal(addon):
+    """All FACELAB_OT_* registered (including ones other modules add later): on an empty scene, an
+    operator that refuses says why through poll_message_set, never Blender's generic message."""
+    empty_scene()
+    names = sorted(n for n in dir(bpy.types) if n.startswith("FACELAB_OT_"))
+    assert len(names) >= len(OPERATORS)
+    for n in names:
+        idname = getattr(bpy.types, n).bl_idname.split(".")[1]
+        fn = getattr(bpy.ops.facelab, idname)
+        if fn.poll():
+            continue
+        with pytest.raises(RuntimeError) as e:
+            fn()
+        assert "context is incorrect" not in str(e.value), f"{n}: poll() without poll_message_set"
