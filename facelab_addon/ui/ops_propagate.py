@@ -252,11 +252,59 @@ class StepJob:
         self._steps.close()
 
 
-# The job a modal Propagate is running, for the panel's progress bar (None when idle).
+# The job a modal operator (Propagate, Bake) is running, for the panel's progress bar (None when idle).
 RUNNING: dict = {"job": None, "label": ""}
 
 
-class FACELAB_OT_propagate(bpy.types.Operator):
+class _ModalJob:
+    """Mixin: run a StepJob on timer events (progress in the panel and the cursor, Esc cancels).
+    The operator defines ``_job_done(context)`` (report, return its set) and ``_job_cancelled()``."""
+
+    def _start_job(self, context, steps, label):
+        self._job = StepJob(steps)
+        RUNNING.update(job=self._job, label=label)
+        wm = context.window_manager
+        self._timer = wm.event_timer_add(0.01, window=context.window)
+        wm.modal_handler_add(self)
+        wm.progress_begin(0, 1000)
+        return {"RUNNING_MODAL"}
+
+    def _finish(self, context):
+        wm = context.window_manager
+        wm.event_timer_remove(self._timer)
+        wm.progress_end()
+        RUNNING.update(job=None, label="")
+        for area in context.screen.areas if context.screen else ():
+            area.tag_redraw()
+
+    def modal(self, context, event):
+        if event.type == "ESC":
+            self._job.cancel()
+            self._finish(context)
+            self._job_cancelled()
+            return {"CANCELLED"}
+        if event.type != "TIMER":
+            return {"PASS_THROUGH"}
+        try:
+            t_end = time.perf_counter() + 0.05  # stay responsive: a few steps per timer tick
+            running = True
+            while running and time.perf_counter() < t_end:
+                running = self._job.step()
+        except FaceLabError as e:
+            self._finish(context)
+            self.report({"ERROR"}, str(e))
+            return {"CANCELLED"}
+        context.window_manager.progress_update(int(1000 * self._job.factor))
+        for area in context.screen.areas if context.screen else ():
+            if area.type == "VIEW_3D":
+                area.tag_redraw()
+        if running:
+            return {"RUNNING_MODAL"}
+        self._finish(context)
+        return self._job_done(context)
+
+
+class FACELAB_OT_propagate(_ModalJob, bpy.types.Operator):
     """Learn how the inner lips follow the mouth from the training frames (Dinev et al. 2018 §4) and correct every frame; the result is a small set of corrective shape keys keyed on the timeline. Esc cancels while it reads the frames"""
 
     bl_idname = "facelab.propagate"
@@ -314,48 +362,15 @@ class FACELAB_OT_propagate(bpy.types.Operator):
         """From a button: step through the job on a timer, progress in the panel, Esc cancels."""
         if bpy.app.background or context.window is None:
             return self.execute(context)
-        self._obj, self._frames_run, self._t0 = face_object(context), self._frames(context), time.perf_counter()
-        self._job = StepJob(propagate_steps(context, self._obj, self._frames_run, self.suggestions))
-        RUNNING.update(job=self._job, label=f"Propagate {len(self._frames_run):,} frames")
-        wm = context.window_manager
-        self._timer = wm.event_timer_add(0.01, window=context.window)
-        wm.modal_handler_add(self)
-        wm.progress_begin(0, 1000)
-        return {"RUNNING_MODAL"}
+        self._frames_run, self._t0 = self._frames(context), time.perf_counter()
+        steps = propagate_steps(context, face_object(context), self._frames_run, self.suggestions)
+        return self._start_job(context, steps, f"Propagate {len(self._frames_run):,} frames")
 
-    def _finish(self, context):
-        wm = context.window_manager
-        wm.event_timer_remove(self._timer)
-        wm.progress_end()
-        RUNNING.update(job=None, label="")
-        for area in context.screen.areas if context.screen else ():
-            area.tag_redraw()
+    def _job_cancelled(self):
+        self.report({"WARNING"}, f"Propagate cancelled while {self._job.stage} ({self._job.done:,}/"
+                                 f"{self._job.total:,}); no corrective key was changed")
 
-    def modal(self, context, event):
-        if event.type == "ESC":
-            self._job.cancel()
-            self._finish(context)
-            self.report({"WARNING"}, f"Propagate cancelled while {self._job.stage} ({self._job.done:,}/"
-                                     f"{self._job.total:,}); no corrective key was changed")
-            return {"CANCELLED"}
-        if event.type != "TIMER":
-            return {"PASS_THROUGH"}
-        try:
-            t_end = time.perf_counter() + 0.05  # stay responsive: a few steps per timer tick
-            running = True
-            while running and time.perf_counter() < t_end:
-                running = self._job.step()
-        except FaceLabError as e:
-            self._finish(context)
-            self.report({"ERROR"}, str(e))
-            return {"CANCELLED"}
-        context.window_manager.progress_update(int(1000 * self._job.factor))
-        for area in context.screen.areas if context.screen else ():
-            if area.type == "VIEW_3D":
-                area.tag_redraw()
-        if running:
-            return {"RUNNING_MODAL"}
-        self._finish(context)
+    def _job_done(self, context):
         self._report_done(self._frames_run, self._job.result, time.perf_counter() - self._t0)
         return {"FINISHED"}
 
@@ -507,8 +522,40 @@ def _regressor(obj, rest, tris, mouth_faces, lip_faces, train, corrected):
     return reg
 
 
-class FACELAB_OT_bake(bpy.types.Operator):
-    """Bake the corrected performance to a PC2, MDD or Alembic file for other packages"""
+def bake_steps(obj, frames, path, fmt):
+    """A PC2 or MDD bake of the evaluated mesh as a generator, one frame a step; returns the path.
+
+    Same file as ``blender.caches.bake_pc2`` / ``bake_mdd`` (header, object-local positions). The
+    writer writes beside the destination and moves the file in place at the end, so cancelling
+    (closing the generator) leaves an existing file untouched; the scene frame is restored."""
+    from ..core import cachefile
+
+    frames = np.asarray(frames, dtype=np.float64)
+    n = len(obj.data.vertices)
+    if fmt == "PC2":
+        step = caches._uniform_step(frames, "A PC2 bake")
+        w = cachefile.PointCacheWriter(str(path), "PC2", n, len(frames), start_frame=float(frames[0]),
+                                       sample_rate=step)
+    else:
+        if len(frames) > 1 and not (np.diff(frames) > 0).all():
+            raise FaceLabError("An MDD bake needs increasing scene frames.")
+        w = cachefile.PointCacheWriter(str(path), "MDD", n, len(frames), times=frames / caches.scene_fps())
+    it = caches._iter_evaluated(obj, frames)
+    ok = False
+    try:
+        for i, co in it:
+            w.write(co)
+            yield f"baking frame {int(frames[i])}", i + 1, len(frames)
+        ok = True
+    finally:
+        it.close()  # restores the scene frame
+        if not ok:
+            w.abort()
+    return w.close()
+
+
+class FACELAB_OT_bake(_ModalJob, bpy.types.Operator):
+    """Bake the corrected performance to a PC2, MDD or Alembic file for other packages (PC2/MDD: Esc cancels)"""
 
     bl_idname = "facelab.bake"
     bl_label = "Bake Corrected Sequence"
@@ -520,6 +567,9 @@ class FACELAB_OT_bake(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
+        if RUNNING["job"] is not None:
+            cls.poll_message_set("A FaceLab job is running (Esc cancels it)")
+            return False
         return poll_face(cls, context)
 
     def invoke(self, context, event):
@@ -538,21 +588,38 @@ class FACELAB_OT_bake(bpy.types.Operator):
         if path.exists() and not self.overwrite:
             self.report({"ERROR"}, f"{path} exists; enable Overwrite or choose another file.")
             return {"CANCELLED"}
-        frames = np.arange(scene.frame_start, scene.frame_end + 1)
-        t0 = time.perf_counter()
+        self._frames_run = np.arange(scene.frame_start, scene.frame_end + 1)
+        self._obj, self._t0 = obj, time.perf_counter()
         try:
-            if self.format == "ABC":
-                out = caches.bake_alembic(obj, frames, path)
-            else:
-                fn = caches.bake_pc2 if self.format == "PC2" else caches.bake_mdd
-                out = fn(obj, frames, path, progress=_progress(context, len(frames), f"FaceLab Bake {self.format}"))
+            if self.format == "ABC":  # one call of Blender's exporter: not steppable
+                out = caches.bake_alembic(obj, self._frames_run, path)
+                return self._report_baked(out)
+            caches._require_mesh_object(obj)
+            steps = bake_steps(obj, self._frames_run, path, self.format)
+            if not bpy.app.background and context.window is not None:  # after the file browser
+                return self._start_job(context, steps, f"Bake {self.format}")
+            job = StepJob(steps)
+            prog = _progress(context, len(self._frames_run), f"FaceLab Bake {self.format}")
+            out = job.run(lambda done, total: prog(done - 1, total))
         except FaceLabError as e:
             self.report({"ERROR"}, str(e))
             return {"CANCELLED"}
         finally:
-            context.window_manager.progress_end()
-        self.report({"INFO"}, f"Baked {len(frames):,} frames of '{obj.name}' to {out} in {time.perf_counter() - t0:.1f} s")
+            if RUNNING["job"] is None:
+                context.window_manager.progress_end()
+        return self._report_baked(out)
+
+    def _report_baked(self, out):
+        self.report({"INFO"}, f"Baked {len(self._frames_run):,} frames of '{self._obj.name}' to {out} in "
+                              f"{time.perf_counter() - self._t0:.1f} s")
         return {"FINISHED"}
+
+    def _job_cancelled(self):
+        self.report({"WARNING"}, f"Bake cancelled after {self._job.done:,} of {self._job.total:,} frames; "
+                                 "no file was written")
+
+    def _job_done(self, context):
+        return self._report_baked(self._job.result)
 
 
 classes = (

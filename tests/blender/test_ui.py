@@ -278,3 +278,32 @@ def test_every_registered_operator_explains_a_refusal(addon):
         with pytest.raises(RuntimeError) as e:
             fn()
         assert "context is incorrect" not in str(e.value), f"{n}: poll() without poll_message_set"
+
+
+def test_bake_job_matches_the_bake_and_cancels_cleanly(addon, tmp_path):
+    from facelab_addon.blender import caches
+    from facelab_addon.blender.shapekeys import add_corrective_key, key_values_bulk
+    from facelab_addon.core.cachefile import read_mdd, read_pc2
+
+    scene = empty_scene()
+    obj = small_face(scene)
+    add_corrective_key(obj, "Up", np.tile([0.0, 0.0, 0.1], (36, 1)))
+    key_values_bulk(obj, ["Up"], np.arange(1, 7), np.linspace(0, 1, 6)[:, None])
+    frames = np.arange(1, 7)
+    scene.frame_set(3)
+    for fmt, bake, read in (("PC2", caches.bake_pc2, read_pc2), ("MDD", caches.bake_mdd, read_mdd)):
+        ref = bake(obj, frames, tmp_path / f"ref.{fmt}")
+        got = ops_propagate.StepJob(ops_propagate.bake_steps(obj, frames, tmp_path / f"job.{fmt}", fmt)).run()
+        assert ref.read_bytes() == got.read_bytes()  # the same file, header included
+        data = read(got)
+        data = data[0] if isinstance(data, tuple) else data
+        np.testing.assert_allclose(data[:, 0, 2], np.linspace(0, 0.1, 6), atol=1e-6)
+    # Esc after two frames: the existing file stays as it was, no temporary file is left, frame restored
+    target = tmp_path / "keep.pc2"
+    target.write_bytes(b"artist's file")
+    job = ops_propagate.StepJob(ops_propagate.bake_steps(obj, frames, target, "PC2"))
+    assert job.step() and job.step() and job.stage == "baking frame 2" and job.factor == pytest.approx(2 / 6)
+    job.cancel()
+    assert target.read_bytes() == b"artist's file"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["job.MDD", "job.PC2", "keep.pc2", "ref.MDD", "ref.PC2"]
+    assert scene.frame_current == 3
