@@ -229,6 +229,9 @@ class FACELAB_PT_bake(_Section, bpy.types.Panel):
         col = self.layout.column(align=True)
         scene = context.scene
         col.label(text=f"Frames {scene.frame_start}-{scene.frame_end} of the scene")
+        job = RUNNING["job"]
+        if job is not None:
+            col.progress(factor=job.factor, type="BAR", text=f"{RUNNING['label']}: {job.stage} (Esc cancels)")
         for fmt, label in (("PC2", "Bake PC2"), ("MDD", "Bake MDD"), ("ABC", "Export Alembic")):
             col.operator("facelab.bake", text=label, icon="EXPORT").format = fmt
 
