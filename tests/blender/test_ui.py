@@ -307,3 +307,94 @@ def test_bake_job_matches_the_bake_and_cancels_cleanly(addon, tmp_path):
     assert target.read_bytes() == b"artist's file"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["job.MDD", "job.PC2", "keep.pc2", "ref.MDD", "ref.PC2"]
     assert scene.frame_current == 3
+
+
+class RecordingLayout:
+    """Stands in for bpy.types.UILayout (drawing needs a window): records every call, checks that
+    every ``prop`` names a real property and every ``operator`` a registered operator."""
+
+    def __init__(self, log=None):
+        self.log = [] if log is None else log
+
+    def __getattr__(self, name):
+        def call(*args, **kw):
+            self.log.append((name, args, kw))
+            if name == "prop":
+                data, prop = args[0], args[1]
+                assert prop in data.bl_rna.properties, f"{type(data).__name__} has no property {prop!r}"
+            if name == "operator":
+                cat, op = args[0].split(".")
+                assert hasattr(getattr(bpy.types, "FACELAB_OT_" + op, None), "bl_idname"), args[0]
+                return type("OpProps", (), {})()  # takes any attribute, like OperatorProperties
+            if name == "template_list":
+                assert hasattr(bpy.types, args[0]) and args[3] in args[2].bl_rna.properties and args[5] in args[4].bl_rna.properties
+            return RecordingLayout(self.log)
+
+        return call
+
+    def texts(self, method=None):
+        return [kw.get("text", "") for m, a, kw in self.log if method in (None, m)]
+
+
+def draw(panel_cls, context):
+    fake = type("FakePanel", (), {"layout": RecordingLayout()})()
+    panel_cls.draw(fake, context)
+    return fake.layout
+
+
+def test_panels_draw_the_workflow(addon):
+    from facelab_addon.blender.shapekeys import key_property_bulk
+
+    scene = empty_scene()
+    ctx = bpy.context
+    # no face yet: the tab says so, sections still draw
+    assert draw(bpy.types.FACELAB_PT_main, ctx).texts("label") == ["Select the captured face mesh"]
+    assert "No face mesh selected" in draw(bpy.types.FACELAB_PT_propagate, ctx).texts("label")
+    obj = small_face(scene)
+    cam = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
+    scene.collection.objects.link(cam)
+    scene.camera = cam
+    setup = draw(bpy.types.FACELAB_PT_setup, ctx)
+    assert "No plate: Camera > Background Images" in setup.texts("label")
+    assert ("facelab.auto_regions",) in [a for m, a, kw in setup.log if m == "operator"]
+    img = bpy.data.images.new("plate.png", 4, 4)
+    bg = cam.data.background_images.new()
+    bg.image = img
+    assert "Plate: plate.png" in draw(bpy.types.FACELAB_PT_setup, ctx).texts("label")
+
+    for f in (5, 30):
+        scene.frame_set(f)
+        bpy.ops.facelab.mark_training_frame()
+    frames = np.arange(1, 41)
+    obj[panel.EXTRAPOLATION_PROP] = 0.0
+    key_property_bulk(obj, f'["{panel.EXTRAPOLATION_PROP}"]', frames, np.where((frames > 10) & (frames < 14), 0.9, 0.1))
+    scene.timeline_markers.new("FL suggest 12", frame=12)
+    scene.frame_set(12)
+    lay = draw(bpy.types.FACELAB_PT_propagate, ctx)
+    labels = lay.texts("label")
+    assert "Training frames (2)" in labels
+    assert "Extrapolation on this frame: 0.90" in labels and "Model extrapolates on 3 frames:" in labels
+    ops_drawn = [(a[0], kw.get("text")) for m, a, kw in lay.log if m == "operator"]
+    assert ("facelab.jump_to_frame", "11-13") in ops_drawn and ("facelab.jump_to_frame", "12") in ops_drawn
+    assert ("facelab.propagate", None) in ops_drawn
+    # the training list's rows
+    ul = bpy.types.FACELAB_UL_training_frames
+    row = RecordingLayout()
+    ul.draw_item(None, ctx, row, obj.facelab, obj.facelab.training_frames[0], 0, None, "", 0)
+    assert row.texts("label") == ["Frame 5", "sculpted mesh"]
+    # a running job: a progress bar instead of the button
+    job = ops_propagate.StepJob(iter([("reading the capture", 3, 10)]))
+    job.step()
+    ops_propagate.RUNNING.update(job=job, label="Propagate 40 frames")
+    try:
+        lay = draw(bpy.types.FACELAB_PT_propagate, ctx)
+        (bar,) = [kw for m, a, kw in lay.log if m == "progress"]
+        assert bar["factor"] == pytest.approx(0.3) and "Esc" in bar["text"]
+        assert "facelab.propagate" not in [a[0] for m, a, kw in lay.log if m == "operator"]
+        assert not bpy.ops.facelab.propagate.poll() and not bpy.ops.facelab.bake.poll()
+    finally:
+        ops_propagate.RUNNING.update(job=None, label="")
+    for p in ("FACELAB_PT_sketch", "FACELAB_PT_reconstruct", "FACELAB_PT_bake"):
+        assert draw(getattr(bpy.types, p), ctx).log
+    if bpy.types.FACELAB_PT_solve.poll(ctx):
+        assert draw(bpy.types.FACELAB_PT_solve, ctx).log
