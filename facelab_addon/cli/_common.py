@@ -54,6 +54,9 @@ def add_common_arguments(p, inputs=("blend", "mesh")) -> None:
                             "or .abc (Alembic, imported with its animation)")
         g.add_argument("--cache", metavar="FILE",
                        help="captured performance for --mesh: .pc2 or .mdd, played by a Mesh Cache modifier")
+        g.add_argument("--rest", metavar="FILE.obj",
+                       help="for an Alembic --mesh: the neutral face (same vertex order) as the rest pose; "
+                            "otherwise the file's first frame is the rest pose")
     p.add_argument("--from-open-scene", action="store_true", help=argparse_suppress())
     p.add_argument("--object", metavar="NAME",
                    help="the face mesh (default: FaceLab > Setup > Face of the scene, else the only mesh)")
@@ -168,6 +171,8 @@ class Session:
         self.inputs["blend"] = str(p.resolve())
 
     def build_scene(self, mesh_path, cache_path) -> None:
+        import numpy as np
+
         bpy = self.bpy
         mp = Path(mesh_path)
         if not mp.is_file():
@@ -200,6 +205,15 @@ class Session:
             obj = max(meshes, key=lambda o: len(o.data.vertices))
         if cp is not None:
             self.add_cache(obj, cp)
+        rest = getattr(self.args, "rest", None)
+        if rest:
+            V = self.import_obj_vertices(rest)
+            if len(V) != len(obj.data.vertices):
+                raise CliError(f"--rest {rest}: {len(V)} vertices, the mesh has {len(obj.data.vertices)}; give the "
+                               "neutral of the same topology.", EXIT_INPUT)
+            obj.data.vertices.foreach_set("co", V.astype(np.float32).ravel())
+            obj.data.update()
+            self.inputs["rest"] = str(Path(rest).resolve())
         bpy.context.view_layer.objects.active = obj
         obj.select_set(True)
         self.inputs.update(mesh=str(mp.resolve()), cache=str(cp.resolve()) if cp else None)

@@ -320,8 +320,9 @@ def test_reconstruct_from_bundles(ict, addon, tmp_path):
 
 
 def test_alembic_input(ict, addon, tmp_path):
-    """--mesh shot.abc: imported with its animation; the capture is baked to a PC2 beside --out (saved
-    first), corrected OBJs train the model, held-out frames come out closer to the truth."""
+    """--mesh shot.abc --rest neutral.obj: imported with its animation; the capture is baked to a PC2 beside
+    --out (saved first), corrected OBJs train the model, held-out frames come out closer to the truth.
+    (Without --rest the first frame is the rest pose: measured 42 % lower error instead of >50 %.)"""
     scene, obj, err, cap_w = build(ict)
     scene.frame_end = 16
     caches.bake_alembic(obj, range(1, 17), tmp_path / "shot.abc")
@@ -331,6 +332,8 @@ def test_alembic_input(ict, addon, tmp_path):
     for f in train:
         write_obj(tmp_path / f"fix{f}.obj", truth[f - 1], ict.poly_verts, ict.poly_offsets)
         args += ["--corrected", f"{f}:{tmp_path / f'fix{f}.obj'}"]
+    write_obj(tmp_path / "neutral.obj", ict.neutral * SCALE, ict.poly_verts, ict.poly_offsets)
+    args += ["--rest", tmp_path / "neutral.obj"]
     out = tmp_path / "out" / "fixed.blend"
     out.parent.mkdir()
     code, s, log = cli("propagate", "--mesh", tmp_path / "shot.abc", *args, "--out", out, "--suggestions", "0")
@@ -346,6 +349,4 @@ def test_alembic_input(ict, addon, tmp_path):
     lips = np.linalg.norm(err, axis=1) > 0
     held = [i for i in range(16) if i + 1 not in train]
     e = lambda X: np.linalg.norm(X[held] - truth[held], axis=2)[:, lips].mean()
-    # measured 0.58: less than the OBJ + PC2 case (0.5) because an Alembic file has no neutral: its
-    # mesh is the first frame's pose, which becomes the rest pose of the regions and the regression
-    assert e(got) < 0.75 * e(cap), (e(cap), e(got))
+    assert e(got) < 0.5 * e(cap), (e(cap), e(got))
