@@ -150,11 +150,12 @@ def box_least_squares(H, g, lo, hi, w0=None, *, max_iter: int | None = None):
         if free.any():
             fi = np.flatnonzero(free)
             rhs = g[fi] - H[np.ix_(fi, np.flatnonzero(~free))] @ w[~free]
+            Hff = H[np.ix_(fi, fi)]
             try:
-                c = scipy.linalg.cho_factor(H[np.ix_(fi, fi)], lower=True, check_finite=False)
+                c = scipy.linalg.cho_factor(Hff, lower=True, check_finite=False)
                 target[fi] = scipy.linalg.cho_solve(c, rhs, check_finite=False)
-            except np.linalg.LinAlgError:
-                break
+            except np.linalg.LinAlgError:  # singular (no ridge, unobserved shapes): least-norm step
+                target[fi] = np.linalg.lstsq(Hff, rhs, rcond=1e-12)[0]
         d = target - w
         # longest feasible step along d
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -181,8 +182,10 @@ def box_least_squares(H, g, lo, hi, w0=None, *, max_iter: int | None = None):
     # fallback (should not happen for SPD H)
     from scipy.optimize import lsq_linear
 
-    R = scipy.linalg.cholesky(H, lower=False)
-    b = scipy.linalg.solve_triangular(R, g, trans="T")
+    ev, U = np.linalg.eigh(0.5 * (H + H.T))
+    ev = np.maximum(ev, 1e-14 * max(float(ev.max()), 1e-300))
+    R = (U * np.sqrt(ev)).T  # RᵀR = H
+    b = (U.T @ g) / np.sqrt(ev)
     res = lsq_linear(R, b, bounds=(lo, hi), method="bvls")
     return np.clip(res.x, lo, hi), max_iter
 
@@ -259,12 +262,16 @@ class BlendshapeSolver:
         ``omega`` of each energy (paper: 1).
     regularization : float
         Ridge, relative to the mean diagonal of the normal matrix.
+    eyelids : {"3d", "2d", "both"}
+        How eyelid curves are fitted (``contours.match_contours``): lifted
+        onto the eyeball as 3D targets (paper), as 2D curves, or both.
     """
 
     def __init__(self, neutral, deltas, faces, cameras, markers: SurfacePoints | None, bundles: SurfacePoints | None,
                  loops=None, *, bounds=(-1.0, 1.0), marker_weight: float = 1.0, contour_weight: float = 1.0,
-                 bundle_weight: float = 1.0, regularization: float = 1e-6):
+                 bundle_weight: float = 1.0, regularization: float = 1e-6, eyelids: str = "3d"):
         V0, F = validate_mesh(neutral, faces, name="neutral mesh")
+        self.eyelids = eyelids
         D = np.asarray(deltas, dtype=np.float64)
         if D.ndim != 3 or D.shape[1:] != V0.shape or D.shape[0] == 0:
             raise FaceLabError(
@@ -444,44 +451,19 @@ class BlendshapeSolver:
         corr = []
         it_done = 0
         with small_dense_threads(1):
+            if use_curves and (md or bd is not None):
+                # markers/bundles first: the contour correspondence is then built on a close mesh
+                for _ in range(2):
+                    w = self._solve_linear(w, *self._system(w, md, bd, None))
             for it in range(max(1, int(iterations))):
-                Js, rs = [], []
-                for c, sel, px in md:
-                    x0, B = self._mk["x0"][sel], self._mk["B"][sel]
-                    J, r = self._proj_rows(c, x0, B, px, x0 + B @ w, self.marker_weight)
-                    Js.append(J)
-                    rs.append(r)
-                if bd is not None:
-                    sel, p = bd
-                    s = np.sqrt(self.bundle_weight)
-                    Js.append(s * self._bd["B"][sel].reshape(-1, self.S))
-                    rs.append(s * (p - self._bd["x0"][sel]).reshape(-1))
                 if use_curves:
                     from .contours import match_contours
 
                     Vc = self._partial_vertices(w)
                     corr = match_contours(Vc, self.faces, self.cameras, curves, self.loops, sliding=sliding,
-                                          previous=prev_corr)
-                    for cc in corr:
-                        x0, B = self._edge_model(cc)
-                        if getattr(cc, "pixels", None) is not None and cc.camera >= 0:
-                            J, r = self._proj_rows(cc.camera, x0, B, np.asarray(cc.pixels, float), x0 + B @ w,
-                                                   self.contour_weight)
-                        elif getattr(cc, "targets", None) is not None:
-                            s = np.sqrt(self.contour_weight)
-                            J = s * B.reshape(-1, self.S)
-                            r = s * (np.asarray(cc.targets, float) - x0).reshape(-1)
-                        else:
-                            continue
-                        Js.append(J)
-                        rs.append(r)
+                                          previous=prev_corr, eyelids=self.eyelids)
                     prev_corr = corr
-                J = np.concatenate(Js) if Js else np.zeros((0, self.S))
-                r = np.concatenate(rs) if rs else np.zeros(0)
-                H = J.T @ J
-                ridge = self.regularization * max(float(np.trace(H)) / self.S, 1e-12)
-                H[np.diag_indices_from(H)] += ridge
-                w_new, _ = box_least_squares(H, J.T @ r, self.lo, self.hi, w)
+                w_new = self._solve_linear(w, *self._system(w, md, bd, corr))
                 change = float(np.abs(w_new - w).max())
                 w = w_new
                 it_done = it + 1
@@ -493,6 +475,57 @@ class BlendshapeSolver:
         info.update(self.residuals(w, markers_px, bundles, corr))
         info["time_s"] = time.perf_counter() - t0
         return FrameResult(weights=w, correspondences=list(corr), info=info)
+
+    def _solve_linear(self, w, J, r):
+        """Bounded least squares ``min |J w - r|^2 + ridge |w|^2`` in the bounds, warm-started at ``w``."""
+        H = J.T @ J
+        ridge = self.regularization * max(float(np.trace(H)) / self.S, 1e-12)
+        H[np.diag_indices_from(H)] += ridge
+        w_new, _ = box_least_squares(H, J.T @ r, self.lo, self.hi, w)
+        return w_new
+
+    def _system(self, w, md, bd, corr):
+        """Weighted rows (J, r) of all residuals linearised at ``w``: residual ``J w - r``."""
+        Js, rs = [], []
+        for c, sel, px in md:
+            x0, B = self._mk["x0"][sel], self._mk["B"][sel]
+            J, r = self._proj_rows(c, x0, B, px, x0 + B @ w, self.marker_weight)
+            Js.append(J)
+            rs.append(r)
+        if bd is not None:
+            sel, p = bd
+            s = np.sqrt(self.bundle_weight)
+            Js.append(s * self._bd["B"][sel].reshape(-1, self.S))
+            rs.append(s * (p - self._bd["x0"][sel]).reshape(-1))
+        for cc in corr or []:
+            x0, B = self._edge_model(cc)
+            if getattr(cc, "pixels", None) is not None and cc.camera >= 0:
+                J, r = self._proj_rows(cc.camera, x0, B, np.asarray(cc.pixels, float), x0 + B @ w,
+                                       self.contour_weight)
+            elif getattr(cc, "targets", None) is not None:
+                s = np.sqrt(self.contour_weight)
+                J = s * B.reshape(-1, self.S)
+                r = s * (np.asarray(cc.targets, float) - x0).reshape(-1)
+            else:
+                continue
+            Js.append(J)
+            rs.append(r)
+        J = np.concatenate(Js) if Js else np.zeros((0, self.S))
+        r = np.concatenate(rs) if rs else np.zeros(0)
+        return J, r
+
+    def linear_system(self, weights, markers_px, bundles=None, correspondences=None):
+        """The weighted least-squares system linearised at ``weights``.
+
+        Returns
+        -------
+        J : (n,S) float64
+        r : (n,) float64
+            The solve minimises ``|J w - r|^2`` (+ ridge) in the bounds;
+            marker and 2D contour rows are in pixels (depth-normalised Eq. 1).
+        """
+        md, _ = self._marker_data(markers_px)
+        return self._system(np.asarray(weights, float), md, self._bundle_data(bundles), correspondences)
 
     # ------------------------------------------------------------------ metrics
     def residuals(self, w, markers_px, bundles=None, correspondences=None, delta=None) -> dict:
