@@ -143,10 +143,13 @@ class ContourLoops:
         ``'left'`` / ``'right'`` -> eyelid loops, from the eye opening
         outward (empty dict when the mesh has no eyes).
     mouth_corners : (K,2) int64
-        The two corner vertices of every mouth loop (smallest, largest
-        coordinate along ``lateral`` in the rest pose).
+        The two corner vertices of every mouth loop: on the thinnest loop
+        (where the lips meet) its smallest and largest coordinate along
+        ``lateral`` in the rest pose; on the other loops the vertices reached
+        from there along the mesh edges crossing the loops (the corner's
+        column), so all loops split at the same anatomical corner.
     eye_corners : dict str -> (K,2) int64
-        The same for the eyelid loops.
+        The same for the eyelid loops (eye corners).
     eyeballs : dict str -> (n,) int64
         Eyeball (cornea) vertices the sphere is fitted to on each frame.
     eye_spheres : dict str -> (center (3,), radius float)
@@ -416,11 +419,53 @@ def _split_half_points(V, chain, lateral, with_mid):
     return pv.astype(np.int64), pb, np.asarray(sorted(set(splits)), dtype=np.int64)
 
 
-def _halves_of_loop(V, F_all, edge_index, loop, lateral, up, with_mid):
-    """(corners (2,), upper _Half, lower _Half) of one closed loop."""
+def _ring_corners(V, F, rings, lateral, up):
+    """(K,2) corner vertices of concentric rings, following the corner's mesh column.
+
+    The reference ring is the thinnest one (smallest extent along ``up``
+    relative to ``lateral``: the line where the lips or lids meet); its
+    corners are its lateral extremes. Each further ring takes, for each
+    corner, the vertex next to the previous ring's corner (joined by an edge,
+    the closest if several), so every ring is split at the same anatomical
+    corner. Rings far out on the lip fronts would otherwise put their lateral
+    extremes beyond the mouth corner, on the cheek side of the lip.
+    """
+    from .mesh import vertex_adjacency
+
+    def extremes(r):
+        lat = V[r] @ lateral
+        return [int(r[np.argmin(lat)]), int(r[np.argmax(lat)])]
+
+    thin = [np.ptp(V[r] @ up) / max(np.ptp(V[r] @ lateral), 1e-300) for r in rings]
+    ref = int(np.argmin(thin))
+    corners = [None] * len(rings)
+    corners[ref] = extremes(rings[ref])
+    A = vertex_adjacency(F, len(V)).tocsr()
+    for step in (1, -1):
+        k = ref
+        while 0 <= k + step < len(rings):
+            nxt = rings[k + step]
+            on = np.zeros(len(V), dtype=bool)
+            on[nxt] = True
+            new = []
+            for c in corners[k]:
+                nb = A.indices[A.indptr[c] : A.indptr[c + 1]]
+                cand = nb[on[nb]]
+                if len(cand) == 0:
+                    cand = nxt
+                new.append(int(cand[np.argmin(np.linalg.norm(V[cand] - V[c], axis=1))]))
+            if new[0] == new[1]:
+                new = extremes(nxt)
+            corners[k + step] = new
+            k += step
+    return np.asarray(corners, dtype=np.int64)
+
+
+def _halves_of_loop(V, F_all, edge_index, loop, corners, up, lateral, with_mid):
+    """(upper _Half, lower _Half) of one closed loop split at its two corner vertices."""
     n = len(loop)
-    lat = V[loop] @ lateral
-    i0, i1 = int(np.argmin(lat)), int(np.argmax(lat))
+    pos = {int(v): i for i, v in enumerate(loop)}
+    i0, i1 = pos[int(corners[0])], pos[int(corners[1])]
     a = np.roll(loop, -i0)
     j1 = (i1 - i0) % n
     p1 = a[: j1 + 1]
@@ -435,7 +480,7 @@ def _halves_of_loop(V, F_all, edge_index, loop, lateral, up, with_mid):
         tris = np.where(ef[..., None] >= 0, F_all[np.maximum(ef, 0)], -1)
         pv, pb, splits = _split_half_points(V, chain, lateral, with_mid)
         out.append(_Half(vertices=pv, bary=pb, splits=splits, chain=chain.astype(np.int64), edge_tris=tris))
-    return np.array([loop[i0], loop[i1]], dtype=np.int64), out[0], out[1]
+    return out[0], out[1]
 
 
 def _pack(loops: ContourLoops):
@@ -593,27 +638,24 @@ def contour_loops(
 
     lookup = _edge_lookup(F)
     halves = {"mouth_upper": [], "mouth_lower": []}
-    mouth_corners = []
-    for lp in mouth:
-        cor, hu, hl = _halves_of_loop(V, F, lookup, lp, lateral, up, with_mid=True)
-        mouth_corners.append(cor)
+    mouth_corners = _ring_corners(V, F, mouth, lateral, up)
+    for lp, cor in zip(mouth, mouth_corners):
+        hu, hl = _halves_of_loop(V, F, lookup, lp, cor, up, lateral, with_mid=True)
         halves["mouth_upper"].append(hu)
         halves["mouth_lower"].append(hl)
     eye_corners = {}
     for side, rings in eyes.items():
         halves[f"eyelid_{side}_upper"], halves[f"eyelid_{side}_lower"] = [], []
-        cors = []
-        for lp in rings:
-            cor, hu, hl = _halves_of_loop(V, F, lookup, lp, lateral, up, with_mid=False)
-            cors.append(cor)
+        eye_corners[side] = _ring_corners(V, F, rings, lateral, up)
+        for lp, cor in zip(rings, eye_corners[side]):
+            hu, hl = _halves_of_loop(V, F, lookup, lp, cor, up, lateral, with_mid=False)
             halves[f"eyelid_{side}_upper"].append(hu)
             halves[f"eyelid_{side}_lower"].append(hl)
-        eye_corners[side] = np.array(cors, dtype=np.int64)
 
     out = ContourLoops(
         mouth=mouth,
         eyes=eyes,
-        mouth_corners=np.array(mouth_corners, dtype=np.int64).reshape(-1, 2),
+        mouth_corners=np.asarray(mouth_corners, dtype=np.int64).reshape(-1, 2),
         eye_corners=eye_corners,
         eyeballs=eyeball_ids,
         eye_spheres=spheres,

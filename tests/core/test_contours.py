@@ -333,6 +333,15 @@ def test_ict_loops(ict, ict_loops):
     # corners of the lip-contact ring are the mouth corners: far apart laterally, at the same height
     cl, cr = ict.neutral[L.mouth_corners[7]]
     assert 4.0 < cr[0] - cl[0] < 5.5 and abs(cl[0] + cr[0]) < 1e-6 and abs(cl[1] - cr[1]) < 1e-6
+    # every ring is split at the same anatomical corner: consecutive rings' corners are joined by a mesh edge
+    from facelab_addon.core.mesh import vertex_adjacency
+
+    A = vertex_adjacency(ict.faces, len(ict.neutral))
+    for cor in (L.mouth_corners, L.eye_corners["left"], L.eye_corners["right"]):
+        for k in range(len(cor) - 1):
+            assert A[cor[k, 0], cor[k + 1, 0]] and A[cor[k, 1], cor[k + 1, 1]]
+    lat = ict.neutral[L.mouth_corners, 0]
+    assert np.ptp(lat[:, 0]) < 0.5 and np.ptp(lat[:, 1]) < 0.5  # within 5 mm across the lip roll
     need = L.needed_vertices()
     assert len(need) < 4000 and np.isin(np.concatenate(L.mouth), need).all()
 
