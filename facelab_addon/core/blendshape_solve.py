@@ -62,6 +62,7 @@ __all__ = [
     "OutOfSubspaceCorrective",
     "solve_performance",
     "box_least_squares",
+    "contour_curve_distance",
 ]
 
 
@@ -102,12 +103,16 @@ class PerformanceResult:
     info : dict
         ``frames`` (list of per-frame info dicts, None for skipped),
         ``time_s``, ``offscreen_markers`` {frame: count}.
+    correspondences : list (T) of list of CurveCorrespondence
+        The contour correspondences each frame was solved with (empty lists
+        without curves or for skipped frames).
     """
 
     weights: np.ndarray
     correctives: np.ndarray | None
     skipped: dict
     info: dict
+    correspondences: list = field(default_factory=list)
 
 
 # --------------------------------------------------------------------------- bounded LS
@@ -221,6 +226,36 @@ def _check_cameras(cameras):
                 "intrinsics and pose (solve the camera in the Movie Clip editor or set the lens)."
             )
     return cams
+
+
+def contour_curve_distance(vertices, cameras, correspondences, curves) -> np.ndarray:
+    """Pixel distance of every 2D contour point to its tracked curve (polyline).
+
+    Unlike the matched-point residual, sliding along the curve is not an
+    error here: this is how far the mesh's contour lies from the drawn curve.
+
+    Parameters
+    ----------
+    vertices : (V,3) float
+    cameras : list of Camera
+    correspondences : list of CurveCorrespondence
+    curves : list of TrackedCurve
+
+    Returns
+    -------
+    (n,) float64
+        Distances (pixels) of all points of the 2D correspondences.
+    """
+    V = np.asarray(vertices, float)
+    by = {(c.name, int(c.camera)): np.asarray(c.pixels, float) for c in curves or []}
+    out = []
+    for cc in correspondences or []:
+        if getattr(cc, "pixels", None) is None or cc.camera < 0 or (cc.name, int(cc.camera)) not in by:
+            continue
+        v, b = np.asarray(cc.vertices), np.asarray(cc.bary, float)
+        X = np.einsum("ck,ckd->cd", b, V[v])
+        out.append(_point_to_polyline(cameras[cc.camera].project(X), by[(cc.name, int(cc.camera))]))
+    return np.concatenate(out) if out else np.zeros(0)
 
 
 def _point_to_polyline(p, poly):
@@ -581,12 +616,17 @@ class OutOfSubspaceCorrective:
     warm_vertices : (k,) int, optional
         Vertices whose Woodbury columns are computed up front (e.g. all
         candidate contour-loop vertices), so the first frames are not slower.
+    pixel_units : bool
+        Measure the 2D (marker and contour) ray distances in pixels (the
+        scene-unit distance times ``f / depth`` at the blendshape solution),
+        as the blendshape fit does, so the weights do not depend on the
+        scene scale. False: scene units, as ``PointConstraints.rays`` gives.
     """
 
     def __init__(self, neutral, faces, cameras, markers: SurfacePoints | None, bundles: SurfacePoints | None, *,
                  boundary=None, marker_weight: float = 1.0, bundle_weight: float = 1.0,
                  contour_weight: float = 0.5, eyelid_weight: float = 0.5, laplacian_weight: float = 1.0,
-                 warm_vertices=None):
+                 warm_vertices=None, pixel_units: bool = True):
         V0, F = validate_mesh(neutral, faces, name="neutral mesh")
         self.neutral, self.faces = V0, F
         self.cameras = _check_cameras(cameras)
@@ -595,6 +635,7 @@ class OutOfSubspaceCorrective:
         self.bundle_weight = float(bundle_weight)
         self.contour_weight = float(contour_weight)
         self.eyelid_weight = float(eyelid_weight)
+        self.pixel_units = bool(pixel_units)
         n = len(V0)
         if boundary is None:
             boundary = self.default_boundary(V0, F, markers, bundles)
@@ -629,8 +670,17 @@ class OutOfSubspaceCorrective:
         keep = np.isin(lab, np.unique(lab[used])) if used.any() else np.ones(n, bool)
         return b | ~keep
 
+    def _px_scale(self, cam, X):
+        """(n,) squared pixels per squared scene unit at points X, or 1 without ``pixel_units``."""
+        if not self.pixel_units:
+            return 1.0
+        z = np.maximum(cam.depth(X), 1e-12)
+        f = 0.5 * (cam.K[0, 0] + cam.K[1, 1])
+        return (f / z) ** 2
+
     def constraints(self, vertices_blend, markers_px, bundles, correspondences) -> PointConstraints | None:
         """The frame's point constraints (marker rays, bundles, contour rays, eyelid points)."""
+        Vb = np.asarray(vertices_blend, float)
         items = []
         if self.markers is not None and markers_px is not None:
             mp = np.asarray(markers_px, float)
@@ -641,7 +691,8 @@ class OutOfSubspaceCorrective:
                 sel = np.flatnonzero(np.isfinite(mp[c]).all(axis=1) & cam.in_frame(mp[c]) & ok)
                 if len(sel):
                     o, d = cam.rays(mp[c, sel])
-                    items.append(PointConstraints.rays(self.markers.vertices[sel], o, d, self.marker_weight,
+                    s = self.marker_weight * self._px_scale(cam, self.markers.subset(sel).evaluate(Vb))
+                    items.append(PointConstraints.rays(self.markers.vertices[sel], o, d, s,
                                                        bary=self.markers.bary[sel]))
         if self.bundles is not None and bundles is not None:
             b = np.asarray(bundles, float).reshape(-1, 3)
@@ -653,8 +704,10 @@ class OutOfSubspaceCorrective:
             v = np.asarray(cc.vertices, np.int64)
             bb = np.asarray(cc.bary, float)
             if getattr(cc, "pixels", None) is not None and cc.camera >= 0:
-                o, d = self.cameras[cc.camera].rays(np.asarray(cc.pixels, float))
-                items.append(PointConstraints.rays(v, o, d, self.contour_weight, bary=bb))
+                cam = self.cameras[cc.camera]
+                o, d = cam.rays(np.asarray(cc.pixels, float))
+                s = self.contour_weight * self._px_scale(cam, np.einsum("ck,ckd->cd", bb, Vb[v]))
+                items.append(PointConstraints.rays(v, o, d, s, bary=bb))
             elif getattr(cc, "targets", None) is not None:
                 items.append(PointConstraints.points(v, np.asarray(cc.targets, float), self.eyelid_weight, bary=bb))
         return PointConstraints.concat(items)
@@ -707,7 +760,7 @@ def solve_performance(solver: BlendshapeSolver, corrective: OutOfSubspaceCorrect
     V = len(solver.neutral)
     W = np.full((T, solver.S), np.nan)
     D = np.zeros((T, V, 3)) if corrective is not None else None
-    skipped, frames, offs = {}, [], {}
+    skipped, frames, offs, corrs = {}, [], {}, []
     prev = None
     t0 = time.perf_counter()
     for i in range(T):
@@ -718,6 +771,7 @@ def solve_performance(solver: BlendshapeSolver, corrective: OutOfSubspaceCorrect
         if why is not None:
             skipped[i] = why
             frames.append(None)
+            corrs.append([])
         else:
             res = solver.solve_frame(mp, bd, cv, previous=prev, iterations=iterations, sliding=sliding)
             W[i] = res.weights
@@ -728,8 +782,10 @@ def solve_performance(solver: BlendshapeSolver, corrective: OutOfSubspaceCorrect
                 D[i] = corrective.solve(solver.vertices(res.weights), mp, bd, res.correspondences)
                 res.info["corrective_time_s"] = time.perf_counter() - t1
             frames.append(res.info)
+            corrs.append(res.correspondences)
             prev = res
         if progress is not None:
             progress(i, T)
     return PerformanceResult(weights=W, correctives=D, skipped=skipped,
-                             info=dict(frames=frames, time_s=time.perf_counter() - t0, offscreen_markers=offs))
+                             info=dict(frames=frames, time_s=time.perf_counter() - t0, offscreen_markers=offs),
+                             correspondences=corrs)
