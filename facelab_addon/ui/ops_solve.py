@@ -258,6 +258,23 @@ def _curve_values(key, names, frames):
     return out
 
 
+def _scene_vector_values(scene, path, current, frames):
+    """(T,n) values of a scene vector property on ``frames``: its F-curves if keyed, else ``current``."""
+    from bpy_extras import anim_utils
+
+    cur = np.array(current, dtype=np.float64)
+    out = np.broadcast_to(cur, (len(frames), len(cur))).copy()
+    ad = scene.animation_data
+    if ad is None or ad.action is None or ad.action_slot is None:
+        return out
+    cb = anim_utils.action_get_channelbag_for_slot(ad.action, ad.action_slot)
+    for i in range(len(cur)):
+        fc = cb.fcurves.find(path, index=i) if cb is not None else None
+        if fc is not None and not fc.mute:
+            out[:, i] = [fc.evaluate(float(f)) for f in frames]
+    return out
+
+
 # --------------------------------------------------------------------------- bind
 def bind_tracks(context, obj, bind_frame: int) -> dict:
     """Bind every track (and bundle) to the face surface on ``bind_frame``; store on ``obj``."""
@@ -565,9 +582,10 @@ def retarget(context, actor, creature, progress=None) -> dict:
                                                     P_local)
         how = f"{len(common)} markers"
     ep = None
-    if s.use_end_points:
-        e = EndPoints(np.array(s.end_points_upper), np.array(s.end_points_lower))
-        ep = {t: e for t in range(len(frames))}
+    if s.lip_sync and s.use_end_points:
+        up_ = _scene_vector_values(scene, "facelab_solve.end_points_upper", s.end_points_upper, frames)
+        lo_ = _scene_vector_values(scene, "facelab_solve.end_points_lower", s.end_points_lower, frames)
+        ep = {t: EndPoints(up_[t], lo_[t]) for t in range(len(frames))}
     kw = {}
     views = [v for v in scene.facelab_solve.views if v.camera is not None and v.clip is not None]
     if views:

@@ -279,6 +279,20 @@ def test_solve_and_retarget_end_to_end(ict, addon, tmp_path):
     print("chin jawOpen delta actor", d_actor[chin], "creature", d_cre)
     assert np.linalg.norm(d_actor[chin]) > 0.005
     assert np.linalg.norm(d_cre - d_actor[chin]) < 0.2 * np.linalg.norm(d_actor[chin])
+    # artist-set end points, keyed on the timeline (frame 4 differs), are used frame by frame
+    from facelab_addon.ui import ops_solve
+
+    s.use_end_points = True
+    s.end_points_upper, s.end_points_lower = (0.2, 0.8), (0.2, 0.8)
+    scene.keyframe_insert("facelab_solve.end_points_upper", frame=0)
+    s.end_points_upper = (0.3, 0.7)
+    scene.keyframe_insert("facelab_solve.end_points_upper", frame=4)
+    r = ops_solve.retarget(bpy.context, obj, cre)
+    eps = r["result"].end_points
+    np.testing.assert_allclose(eps[0].upper, [0.2, 0.8], atol=1e-6)
+    np.testing.assert_allclose(eps[4].upper, [0.3, 0.7], atol=1e-6)
+    np.testing.assert_allclose(eps[2].upper, [0.25, 0.75], atol=0.03)  # Bezier in between
+    np.testing.assert_allclose(eps[4].lower, [0.2, 0.8], atol=1e-6)
     print(f"solve {t_solve:.1f} s, retarget {t_ret:.1f} s, test total {time.perf_counter() - t_start:.1f} s")
 
 
@@ -335,3 +349,40 @@ def test_bad_input_messages(ict, addon, tmp_path):
     s.creature = blob
     msg = run(bpy.ops.facelab.retarget)
     assert "no correspondence" in msg and "Creature Markers" in msg
+
+
+def test_bundles_bind_and_solve(ict, addon, tmp_path):
+    """Empties as 3D bundles: bound to their nearest surface point, then the solve from bundles alone."""
+    from facelab_addon.core.markers import SurfacePoints
+    from facelab_addon.ui.ops_solve import _curve_values
+    from facelab_addon.ui.props_solve import read_bindings, write_bindings
+
+    scene, obj, cams, markers, truth, views = build(ict, tmp_path)
+    bpy.context.view_layer.objects.active = obj
+    scene.facelab.face = obj
+    s = scene.facelab_solve
+    coll = bpy.data.collections.new("FL_bundles")
+    scene.collection.children.link(coll)
+    P = markers.evaluate(truth)[:, ::2]  # 25 bundles on the truth surface
+    for j in range(P.shape[1]):
+        e = bpy.data.objects.new(f"B{j:02d}", None)
+        coll.objects.link(e)
+        for t in range(T):
+            e.location = P[t, j]
+            e.keyframe_insert("location", frame=t)
+    s.bundles = "EMPTIES"
+    assert bpy.ops.facelab.bind_tracks(frame=0) == {"FINISHED"}
+    names, bv, bb = read_bindings(obj, "BUNDLE")
+    assert names == [f"B{j:02d}" for j in range(P.shape[1])]
+    np.testing.assert_allclose(SurfacePoints(bv, bb).evaluate(truth[0]), P[0], atol=1e-6)
+    # bundles alone (marker bindings cleared) recover the weights in the rig's span
+    write_bindings(obj, "MARKER", [], np.zeros((0, 3)), np.zeros((0, 3)))
+    s.use_contours = s.use_corrective = False
+    assert bpy.ops.facelab.solve_performance() == {"FINISHED"}
+    W = _curve_values(obj.data.shape_keys, EXPR, np.arange(T))
+    print("bundles only: weight error per frame:", np.abs(W - W_TRUTH).max(axis=1))
+    assert np.abs(W[:3] - W_TRUTH[:3]).max() < 1e-4
+    # a bound bundle that disappears is reported
+    bpy.data.objects.remove(bpy.data.objects["B03"])
+    with pytest.raises(RuntimeError, match="B03.*no longer exist.*Bind Tracks"):
+        bpy.ops.facelab.solve_performance()
