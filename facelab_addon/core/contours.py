@@ -885,11 +885,6 @@ def _dist_to_polyline(Q, C):
     return np.sqrt(((Q[:, None, :] - foot) ** 2).sum(-1).min(axis=1))
 
 
-def _eye_sphere(V, loops: ContourLoops, side):
-    ids = loops.eyeballs[side]
-    return fit_sphere(V[ids])
-
-
 def match_contours(
     vertices,
     faces,
@@ -900,6 +895,7 @@ def match_contours(
     sliding: bool = True,
     previous=None,
     eyelids: str = "3d",
+    eyelid_min_cos: float = 0.25,
 ) -> list:
     """Occluding contours of the current mesh matched to the tracked curves (Bhat et al. 2013, §4.2).
 
@@ -933,12 +929,19 @@ def match_contours(
         Eyelid constraints as 3D targets on the eyeball (``camera=-1``; the
         paper's corrective), as 2D pixel targets (the paper's blendshape
         fit), or both.
+    eyelid_min_cos : float
+        3D eyelid targets are kept only where the camera ray meets the
+        eyeball at an angle whose cosine (ray against sphere normal) is at
+        least this: towards the eyeball's limb seen from that camera the lift
+        is ill-conditioned, and lid points beyond it are hidden by the eye.
 
     Returns
     -------
     list of CurveCorrespondence
         One per curve (two per eyelid curve with ``eyelids='both'``: 2D
-        first, then 3D), in the order of ``curves``.
+        first, then 3D), in the order of ``curves``. A 3D eyelid
+        correspondence holds only the kept points (``eyelid_min_cos``), and
+        is left out when fewer than two remain.
 
     Raises
     ------
@@ -960,7 +963,8 @@ def match_contours(
         key = (pc.name, pc.source_camera if pc.source_camera >= 0 else pc.camera, pc.camera < 0)
         prev[key] = pc
     counts_cache = {}
-    spheres = {}
+    Pcache = {}
+    lift = []  # (index into out, eye side, camera) of the 3D eyelid correspondences to lift
     out = []
     for cv in curves:
         name = cv.name
@@ -978,6 +982,9 @@ def match_contours(
                 "assign the curve to one of the solve's cameras."
             )
         cam = cameras[ci]
+        if ci not in Pcache:
+            Pcache[ci] = cam.P
+        Pm = Pcache[ci]
         C, S = _canonical(cv.pixels, name)
         is_eye = name.startswith("eyelid")
         kinds = [False] if not is_eye else {"3d": [True], "2d": [False], "both": [False, True]}[eyelids]
@@ -1002,29 +1009,66 @@ def match_contours(
             proj = {}
             if len(best) > 1:
                 for kk in best:
-                    proj[int(kk)] = _project(cam, _eval_points(V, halves[kk]), name)
+                    proj[int(kk)] = _project(Pm, _eval_points(V, halves[kk]), name)
             k = _choose(counts, proj, C, p0.loop if p0 is not None else None, loops.default_loop[name])
             half = halves[k]
             P = proj.get(k)
             if P is None:
-                P = _project(cam, _eval_points(V, half), name)
+                P = _project(Pm, _eval_points(V, half), name)
             s = _match_half(half, P, C, S)
             pv, pb = half.vertices, half.bary
             t = s / S[-1]
         px = _eval_curve(C, S, s)
-        base = (k, pv, pb, t, px)
         for want3d in kinds:
             if not want3d:
                 out.append(CurveCorrespondence(name, ci, pv, pb, pixels=px, loop=k, curve_t=t, source_camera=ci))
             else:
-                side = name.split("_")[1]
-                if side not in spheres:
-                    spheres[side] = _eye_sphere(V, loops, side)
-                c, r = spheres[side]
-                dr = pb[:, 0] * loops.eyelid_offset[pv[:, 0]] + pb[:, 1] * loops.eyelid_offset[pv[:, 1]]
-                X, _ = project_to_sphere(cam, px, c, r + dr)
-                out.append(CurveCorrespondence(name, -1, pv, pb, targets=X, loop=k, curve_t=t, source_camera=ci))
+                lift.append((len(out), name.split("_")[1], ci))
+                out.append(CurveCorrespondence(name, -1, pv, pb, targets=None, loop=k, curve_t=t, source_camera=ci,
+                                               pixels=px))
+    if lift:
+        _lift_eyelids(V, cameras, loops, out, lift, eyelid_min_cos)
+        out = [c for c in out if not (c.camera < 0 and c.targets is None)]
     return out
+
+
+def _lift_eyelids(V, cameras, loops, out, lift, min_cos):
+    """Project the 2D targets of the 3D eyelid correspondences onto the eyeball (batched per eye and camera)."""
+    groups = {}
+    for i, side, ci in lift:
+        groups.setdefault((side, ci), []).append(i)
+    spheres = {}
+    for (side, ci), idx in groups.items():
+        if side not in spheres:
+            spheres[side] = fit_sphere(V[loops.eyeballs[side]])
+        c, r = spheres[side]
+        cam = cameras[ci]
+        cs = [out[i] for i in idx]
+        px = np.concatenate([cc.pixels for cc in cs])
+        pv = np.concatenate([cc.vertices for cc in cs])
+        pb = np.concatenate([cc.bary for cc in cs])
+        off = loops.eyelid_offset
+        X, hit = project_to_sphere(cam, px, c, r + pb[:, 0] * off[pv[:, 0]] + pb[:, 1] * off[pv[:, 1]])
+        # keep points whose ray meets the eyeball clearly: near the limb seen from this camera the lift is
+        # ill-conditioned (and a lid point beyond the limb is hidden by the eye itself)
+        ray = X - cam.center
+        nrm = X - c
+        cos = -np.einsum("ij,ij->i", ray, nrm) / (
+            np.sqrt(np.einsum("ij,ij->i", ray, ray) * np.maximum(np.einsum("ij,ij->i", nrm, nrm), 1e-300)))
+        keep = hit & (cos >= min_cos)
+        start = 0
+        for i, cc in zip(idx, cs):
+            n = len(cc.vertices)
+            kp = keep[start : start + n]
+            Xi = X[start : start + n]
+            start += n
+            cc.pixels = None
+            if kp.sum() < 2:
+                continue  # dropped by the caller
+            if kp.all():
+                cc.targets = Xi
+            else:
+                cc.vertices, cc.bary, cc.curve_t, cc.targets = cc.vertices[kp], cc.bary[kp], cc.curve_t[kp], Xi[kp]
 
 
 def _eval_points(V, half: _Half):
@@ -1032,13 +1076,14 @@ def _eval_points(V, half: _Half):
     return b[:, 0, None] * V[half.vertices[:, 0]] + b[:, 1, None] * V[half.vertices[:, 1]]
 
 
-def _project(cam, X, name):
-    z = cam.depth(X)
-    if (z <= 0).any():
+def _project(P, X, name):
+    """(n,2) pixels of world points X (n,3) by the (3,4) projection P; raises when a point is behind the camera."""
+    h = X @ P[:, :3].T + P[:, 3]
+    if (h[:, 2] <= 0).any():
         raise FaceLabError(
             f"The contour for '{name}' is behind the camera; check the camera calibration and the curve's camera."
         )
-    return cam.project(X)
+    return h[:, :2] / h[:, 2:3]
 
 
 def contour_residuals(vertices, cameras, correspondences) -> list:

@@ -63,7 +63,12 @@ def fit_sphere(points):
     A[:, :3] = 2.0 * Q
     A[:, 3] = 1.0
     b = (Q**2).sum(axis=1)
-    x, _, rank, _ = np.linalg.lstsq(A, b, rcond=None)
+    # normal equations (4x4): conditioned by the centring, much cheaper than an SVD for per-frame refits
+    N = A.T @ A
+    ev = np.linalg.eigvalsh(N)
+    rank = int((ev > 1e-12 * max(ev[-1], 1e-300)).sum())
+    if rank == 4:
+        x = np.linalg.solve(N, A.T @ b)
     if rank < 4:
         raise FaceLabError(
             "The eyeball points are coplanar, so no sphere fits them; pass the vertices of the eyeball "

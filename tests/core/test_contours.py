@@ -370,8 +370,16 @@ def test_truth_curves_matched_to_the_truth_have_near_zero_residual(ict, ict_loop
     assert len(pairs) == 8
     for c2, c3 in pairs:
         assert c2.name == c3.name and c2.camera == c3.source_camera and c2.loop == c3.loop
-        np.testing.assert_array_equal(c2.vertices, c3.vertices)
-        np.testing.assert_allclose(cams[c2.camera].project(c3.targets), c2.pixels, atol=1e-6)
+        # the 3D points are the 2D ones minus those lifted at a grazing angle
+        row = {(a, b, t): i for i, ((a, b), t) in enumerate(zip(c2.vertices.tolist(), c2.curve_t.tolist()))}
+        idx = [row[(a, b, t)] for (a, b), t in zip(c3.vertices.tolist(), c3.curve_t.tolist())]
+        assert len(idx) >= 0.5 * len(c2)
+        np.testing.assert_allclose(cams[c2.camera].project(c3.targets), c2.pixels[idx], atol=1e-6)
+        ctr, _ = ict_loops.eye_spheres[c2.name.split("_")[1]]
+        ray = c3.targets - cams[c2.camera].center
+        nrm = c3.targets - ctr
+        cos = -(ray * nrm).sum(1) / np.linalg.norm(ray, axis=1) / np.linalg.norm(nrm, axis=1)
+        assert cos.min() >= 0.25
 
 
 def test_ict_selection_moves_with_the_lip_roll(ict, ict_loops):
