@@ -129,8 +129,13 @@ def add_contours(ict, scene, obj, views, truth, cams):
     from facelab_addon.core.contours import contour_loops, synthetic_tracked_curves
 
     fixed = ~ict.part_vertex_mask("M_Face")
-    loops = contour_loops(truth[0], ict.faces, fixed=fixed, mouth_loop=ICT_MOUTH_LOOP)
-    curves = [synthetic_tracked_curves(truth[t], ict.faces, cams, loops, names=["mouth_upper", "mouth_lower"])
+    eyeballs = {"left": np.flatnonzero(ict.part_vertex_mask("M_ScleraLeft")),
+                "right": np.flatnonzero(ict.part_vertex_mask("M_ScleraRight"))}
+    for side, ids in eyeballs.items():
+        obj.vertex_groups.new(name=f"FL_eyeball_{side}").add(ids.tolist(), 1.0, "REPLACE")
+    loops = contour_loops(truth[0], ict.faces, fixed=fixed, mouth_loop=ICT_MOUTH_LOOP, eyeballs=eyeballs)
+    curves = [synthetic_tracked_curves(truth[t], ict.faces, cams, loops,
+                                       names=["mouth_upper", "mouth_lower", "eyelid_left_upper", "eyelid_left_lower"])
               for t in range(T)]
     s = scene.facelab_solve
     mask = bpy.data.masks.new("Lips")
@@ -160,6 +165,10 @@ def add_contours(ict, scene, obj, views, truth, cams):
             got[t, key, 0] = P
             write_stroke_pixels(gp, n, t, [by[key, 1]], cams[1])
             got[t, key, 1] = by[key, 1]
+        for n, key in (("Eyelid L upper", "eyelid_left_upper"), ("Eyelid L lower", "eyelid_left_lower")):
+            if (key, 1) in by:
+                write_stroke_pixels(gp, n, t, [by[key, 1]], cams[1])
+                got[t, key, 1] = by[key, 1]
         for lay in mask.layers:
             mask.layers.active = lay
             with bpy.context.temp_override(**ctx):
@@ -186,7 +195,8 @@ def test_solve_and_retarget_end_to_end(ict, addon, tmp_path):
     vd = read_views(scene, vws, [2])
     np.testing.assert_allclose(vd.markers[0, 0], cams[0].project(markers.evaluate(truth[2])), atol=2e-3)
     curves, stats = read_curves(scene, vws, vd.cameras, [2, 3], resolution=1)
-    assert stats["by_name"] == {"mouth_upper": 4, "mouth_lower": 4}
+    assert {k: v for k, v in stats["by_name"].items() if k.startswith("mouth")} == {"mouth_upper": 4, "mouth_lower": 4}
+    print("curves read:", stats)
     c = {(k.name, k.camera): k.pixels for k in curves[0]}
     np.testing.assert_allclose(c["mouth_upper", 0], got_curves[2, "mouth_upper", 0], atol=2e-3)
     np.testing.assert_allclose(c["mouth_lower", 1], got_curves[2, "mouth_lower", 1], atol=2e-3)
@@ -212,7 +222,11 @@ def test_solve_and_retarget_end_to_end(ict, addon, tmp_path):
     t0 = time.perf_counter()
     assert bpy.ops.facelab.solve_performance() == {"FINISHED"}
     t_solve = time.perf_counter() - t0
-    from facelab_addon.ui.ops_solve import SOLVE_ACTION, _curve_values
+    from facelab_addon.ui.ops_solve import LAST, SOLVE_ACTION, _curve_values
+
+    per_frame = LAST["info"]["frames"]
+    print("contour points per frame:", [f.get("contour_points") for f in per_frame])
+    assert all(f["contour_points"] > 0 for f in per_frame)  # the mask / sketch contours were fitted
 
     act = key.animation_data.action
     assert act is not artist_action and act.name == SOLVE_ACTION  # the artist's action is kept...
