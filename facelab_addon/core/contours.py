@@ -187,6 +187,7 @@ class ContourLoops:
     halves: dict = field(default_factory=dict, repr=False)  # curve name -> list[_Half], one per loop
     info: dict = field(default_factory=dict)
     _pack: tuple | None = field(default=None, repr=False)
+    _sphere_cache: dict = field(default_factory=dict, repr=False)
 
     def needed_vertices(self) -> np.ndarray:
         """(n,) int64 sorted ids of every vertex :func:`match_contours` reads.
@@ -1032,6 +1033,17 @@ def match_contours(
     return out
 
 
+def _eyeball_sphere(V, loops, side):
+    """Sphere fitted to the eyeball vertices of ``V``; refitted only when they moved."""
+    P = V[loops.eyeballs[side]]
+    hit = loops._sphere_cache.get(side)
+    if hit is not None and hit[0].shape == P.shape and np.array_equal(hit[0], P):
+        return hit[1]
+    cr = fit_sphere(P)
+    loops._sphere_cache[side] = (P.copy(), cr)
+    return cr
+
+
 def _lift_eyelids(V, cameras, loops, out, lift, min_cos):
     """Project the 2D targets of the 3D eyelid correspondences onto the eyeball (batched per eye and camera)."""
     groups = {}
@@ -1040,7 +1052,7 @@ def _lift_eyelids(V, cameras, loops, out, lift, min_cos):
     spheres = {}
     for (side, ci), idx in groups.items():
         if side not in spheres:
-            spheres[side] = fit_sphere(V[loops.eyeballs[side]])
+            spheres[side] = _eyeball_sphere(V, loops, side)
         c, r = spheres[side]
         cam = cameras[ci]
         cs = [out[i] for i in idx]
