@@ -436,3 +436,25 @@ def test_bad_input_messages(band, ict, ict_loops):
         ct.contour_loops(V, F, mouth_loop=rings[3])
     with pytest.raises(FaceLabError, match="eyeball needs at least 4"):
         ct.contour_loops(V, F, mouth_loop=rings[0], eyeballs={"left": [1, 2]})
+
+
+def test_default_mouth_loop_is_found_and_loops_do_not_depend_on_scale(ict, ict_loops):
+    L = ct.contour_loops(ict.neutral * 0.01, ict.faces, fixed=~ict.part_vertex_mask("M_Face"))  # metres
+    assert [set(a.tolist()) for a in L.mouth] == [set(a.tolist()) for a in ict_loops.mouth]
+    np.testing.assert_array_equal(L.mouth_corners, ict_loops.mouth_corners)
+    assert L.eyes == {}  # no eyeballs given: no eyelid contours
+
+
+def test_synthetic_curves_noise_and_off_screen(band):
+    V, F, rings, loops = band
+    cam = axis_camera()
+    clean = ct.synthetic_tracked_curves(V, F, [cam], loops)
+    noisy = ct.synthetic_tracked_curves(V, F, [cam], loops, noise_px=0.5, seed=3)
+    d = np.concatenate([n.pixels - c.pixels for n, c in zip(noisy, clean)])
+    assert abs(d.std() - 0.5) < 0.05
+    # spacing: consecutive samples 0.25 px apart along the polyline (ends kept)
+    step = np.linalg.norm(np.diff(clean[0].pixels, axis=0), axis=1)
+    assert step.max() <= 0.25 + 1e-9 and step.mean() > 0.2
+    # a camera that sees the mouth only partly (narrow image) delivers no curve
+    narrow = Camera(cam.K, cam.R, cam.t, 1000, 1080)
+    assert ct.synthetic_tracked_curves(V, F, [narrow], loops) == []
