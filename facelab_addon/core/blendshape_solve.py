@@ -33,7 +33,7 @@ Implementation notes (deviations, all documented in docs/solve.md):
   skin markers only) zero instead of arbitrary.
 * The corrective's 2D terms use the linear form of a pixel residual: the
   distance (scene units) of the surface point to the camera ray through the
-  pixel (``PointConstraints.rays``).
+  pixel (``PointConstraints.rays``); ``pixel_units=True`` measures it in pixels.
 
 Conventions: vertices (V,3) float64 scene units; pixels top-left origin,
 y down; cameras ``camera.Camera`` (OpenCV).
@@ -488,7 +488,7 @@ class BlendshapeSolver:
         with small_dense_threads(1):
             if use_curves and (md or bd is not None):
                 # markers/bundles first: the contour correspondence is then built on a close mesh
-                for _ in range(2):
+                for _ in range(1 if previous is not None else 2):  # 2: re-linearise the depths from the neutral
                     w = self._solve_linear(w, *self._system(w, md, bd, None))
             for it in range(max(1, int(iterations))):
                 if use_curves:
@@ -617,16 +617,18 @@ class OutOfSubspaceCorrective:
         Vertices whose Woodbury columns are computed up front (e.g. all
         candidate contour-loop vertices), so the first frames are not slower.
     pixel_units : bool
-        Measure the 2D (marker and contour) ray distances in pixels (the
-        scene-unit distance times ``f / depth`` at the blendshape solution),
-        as the blendshape fit does, so the weights do not depend on the
-        scene scale. False: scene units, as ``PointConstraints.rays`` gives.
+        False (default, the paper's form): 2D marker / contour terms are
+        scene-unit distances to the camera rays; with the dimensionless
+        cotangent Laplacian the balance does not depend on the scene scale.
+        True: the distances are converted to pixels (times ``f / depth``),
+        which weights the 2D terms ~(f/depth)^2 more: tighter contours, but
+        the corrective then also fits the marker noise.
     """
 
     def __init__(self, neutral, faces, cameras, markers: SurfacePoints | None, bundles: SurfacePoints | None, *,
                  boundary=None, marker_weight: float = 1.0, bundle_weight: float = 1.0,
                  contour_weight: float = 0.5, eyelid_weight: float = 0.5, laplacian_weight: float = 1.0,
-                 warm_vertices=None, pixel_units: bool = True):
+                 warm_vertices=None, pixel_units: bool = False):
         V0, F = validate_mesh(neutral, faces, name="neutral mesh")
         self.neutral, self.faces = V0, F
         self.cameras = _check_cameras(cameras)

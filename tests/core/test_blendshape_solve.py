@@ -101,7 +101,7 @@ def test_corrective_is_zero_when_constraints_hold_and_fits_them_when_not(ict, ca
     X = cap.markers.evaluate(Vb + bump)
     px = np.stack([cam.project(X) for cam in cap.cameras])
     strong = OutOfSubspaceCorrective(ict.neutral, ict.faces, cap.cameras, cap.markers, None, boundary=~face,
-                                     marker_weight=100.0)
+                                     marker_weight=1e5)
     d = strong.solve(Vb, px)
     Y = cap.markers.evaluate(Vb + d)
     err = np.concatenate([np.linalg.norm(cam.project(Y) - px[i], axis=1) for i, cam in enumerate(cap.cameras)])
