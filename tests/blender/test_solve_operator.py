@@ -400,3 +400,52 @@ def test_bundles_bind_and_solve(ict, addon, tmp_path):
     bpy.data.objects.remove(bpy.data.objects["B03"])
     with pytest.raises(RuntimeError, match="B03.*no longer exist.*Bind Tracks"):
         bpy.ops.facelab.solve_performance()
+
+
+class _RecordingLayout:
+    """Stands in for bpy.types.UILayout (not constructible headless): checks every property and operator drawn."""
+
+    def __init__(self, seen):
+        self.seen = seen
+
+    def _sub(self, *a, **k):
+        return self
+
+    column = row = box = _sub
+
+    def separator(self, *a, **k):
+        pass
+
+    def label(self, *a, **k):
+        pass
+
+    def prop(self, data, name, **k):
+        assert name in data.bl_rna.properties, f"{type(data).__name__} has no property {name!r}"
+        self.seen.append(name)
+
+    def operator(self, idname, **k):
+        mod, op = idname.split(".")
+        assert hasattr(getattr(bpy.ops, mod), op) and getattr(getattr(bpy.ops, mod), op).get_rna_type(), idname
+        self.seen.append(idname)
+        return type("OpProps", (), {})()
+
+    def template_list(self, listtype, list_id, data, prop, active_data, active_prop, **k):
+        assert hasattr(bpy.types, listtype)
+        assert prop in data.bl_rna.properties and active_prop in active_data.bl_rna.properties
+        self.seen.append(prop)
+
+
+def test_panel_sections_draw(addon):
+    """The lead's panels call draw_solve_section / draw_retarget_section: every property and operator exists."""
+    from facelab_addon.ui.panel_solve import draw_retarget_section, draw_solve_section
+
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    s = bpy.context.scene.facelab_solve
+    s.views.add()
+    s.bundles, s.use_end_points = "EMPTIES", True
+    seen = []
+    draw_solve_section(_RecordingLayout(seen), bpy.context)
+    draw_retarget_section(_RecordingLayout(seen), bpy.context)
+    for want in ("views", "mask", "sketch", "bundle_collection", "facelab.bind_tracks", "facelab.solve_performance",
+                 "existing_animation", "creature", "creature_markers", "end_points_upper", "facelab.retarget"):
+        assert want in seen, want
