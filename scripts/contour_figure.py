@@ -41,7 +41,7 @@ def main(out="docs/images/contours_selection.png"):
             q = P[np.r_[lp, lp[:1]]]
             ax.plot(q[:, 0], q[:, 1], color="0.75", lw=0.6, zorder=1)
         # silhouette edges on the candidates
-        (tri, inv), ok, hid, _, _ = loops._pack
+        (tri, inv), ok, hid = loops._pack[:3]
         s = ct._facing_sign(V, tri, cam)[inv]
         sil = ok & (s[:, 0] != s[:, 1])
         for name in ct.MOUTH_CURVES:

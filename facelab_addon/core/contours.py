@@ -501,7 +501,9 @@ def _pack(loops: ContourLoops):
     hid = np.concatenate(half_of) if half_of else np.zeros(0, np.int64)
     # unique triangles (neighbouring rings share their strip) and each edge's two entries into them
     tri, inv = np.unique(np.maximum(T, 0).reshape(-1, 3), axis=0, return_inverse=True)
-    return (np.ascontiguousarray(tri), inv.reshape(-1, 2)), ok, hid, k, offsets
+    # flat indices into vertices.ravel() of (a_x, a_y, a_z, b_x, ..., c_z) of every unique triangle: (9,n)
+    flat = np.ascontiguousarray((3 * tri[:, [0, 0, 0, 1, 1, 1, 2, 2, 2]] + np.tile([0, 1, 2], 3)).T)
+    return (np.ascontiguousarray(tri), inv.reshape(-1, 2)), ok, hid, k, offsets, flat
 
 
 def _edge_lookup(F):
@@ -709,21 +711,37 @@ def ict_contour_loops(model, **kwargs) -> ContourLoops:
 # --------------------------------------------------------------------------
 
 
+def _facing_from_coords(G, center):
+    """(k,) bool facing test from gathered corner coordinates G (9,k) (a_xyz, b_xyz, c_xyz rows).
+
+    ``n . (center - a)`` has the sign of ``n . (center - centroid)`` (the centroid is in the plane).
+    """
+    ax, ay, az = G[0], G[1], G[2]
+    ux, uy, uz = G[3] - ax, G[4] - ay, G[5] - az
+    vx, vy, vz = G[6] - ax, G[7] - ay, G[8] - az
+    return ((uy * vz - uz * vy) * (center[0] - ax) + (uz * vx - ux * vz) * (center[1] - ay)
+            + (ux * vy - uy * vx) * (center[2] - az)) > 0
+
+
 def _facing_sign(V, tris, camera):
-    """(k,) bool: triangle (k,3) faces the camera (perspective test)."""
-    a, b, c = V[tris[:, 0]], V[tris[:, 1]], V[tris[:, 2]]
-    u, v = b - a, c - a
-    w = camera.center[None] - (a + b + c) / 3.0
-    nx = u[:, 1] * v[:, 2] - u[:, 2] * v[:, 1]
-    ny = u[:, 2] * v[:, 0] - u[:, 0] * v[:, 2]
-    nz = u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]
-    return nx * w[:, 0] + ny * w[:, 1] + nz * w[:, 2] > 0
+    """(k,) bool: triangle (k,3) faces the camera (perspective test, ``n . (c - x) > 0``)."""
+    T = np.asarray(tris, dtype=np.int64)
+    G = np.concatenate([V[T[:, j]].T for j in range(3)])
+    return _facing_from_coords(G, camera.center)
 
 
-def _half_counts(V, camera, loops: ContourLoops):
+def _gather(V, loops: ContourLoops):
+    """(9,k) corner coordinates of the candidate triangles (one gather for all cameras)."""
+    return np.ascontiguousarray(V).reshape(-1)[loops._pack[5]]
+
+
+def _half_counts(V, camera, loops: ContourLoops, G=None):
     """(H,) silhouette-edge count of every candidate half (all curve names packed)."""
-    (tri, inv), ok, hid, H, _ = loops._pack
-    s = _facing_sign(V, tri, camera)[inv]
+    _, ok, hid, H, _, _ = loops._pack
+    inv = loops._pack[0][1]
+    if G is None:
+        G = _gather(V, loops)
+    s = _facing_from_coords(G, camera.center)[inv]
     sil = ok & (s[:, 0] != s[:, 1])
     return np.bincount(hid[sil], minlength=H)
 
@@ -872,7 +890,8 @@ def _choose(counts, proj, C, prev_loop, default):
     if prev_loop is not None and prev_loop in best:
         return int(prev_loop)
     if C is not None:
-        d = [float(np.mean(_dist_to_polyline(proj[int(k)], C))) for k in best]
+        Cs = C if len(C) <= 128 else np.concatenate([C[:: len(C) // 64], C[-1:]])  # coarse: enough to rank
+        d = [float(np.mean(_dist_to_polyline(proj[int(k)], Cs))) for k in best]
         return int(best[int(np.argmin(d))])
     return int(best[np.argmin(np.abs(best - default))])
 
@@ -964,6 +983,7 @@ def match_contours(
         key = (pc.name, pc.source_camera if pc.source_camera >= 0 else pc.camera, pc.camera < 0)
         prev[key] = pc
     counts_cache = {}
+    G = None
     Pcache = {}
     lift = []  # (index into out, eye side, camera) of the 3D eyelid correspondences to lift
     out = []
@@ -1003,7 +1023,9 @@ def match_contours(
         else:
             lo, hi = loops._pack[4][name]
             if ci not in counts_cache:
-                counts_cache[ci] = _half_counts(V, cam, loops)
+                if G is None:
+                    G = _gather(V, loops)
+                counts_cache[ci] = _half_counts(V, cam, loops, G)
             counts = counts_cache[ci][lo:hi]
             halves = loops.halves[name]
             best = np.flatnonzero(counts == counts.max())
