@@ -106,7 +106,8 @@ def _tracks(clip, tracking_object=None):
     return tracking_object.tracks
 
 
-def read_track_markers(clip, frames, *, names=None, tracking_object=None, margin: float = 0.0):
+def read_track_markers(clip, frames, *, names=None, tracking_object=None, margin: float = 0.0,
+                       skip_zero_weight: bool = True):
     """Pixel positions of a clip's tracks on scene frames, in bulk.
 
     Parameters
@@ -122,6 +123,9 @@ def read_track_markers(clip, frames, *, names=None, tracking_object=None, margin
     margin : float
         Markers closer than this to the frame border (pixels) count as
         off-screen; negative values accept markers slightly outside.
+    skip_zero_weight : bool
+        Tracks whose *Weight* (Track > Weight, "influence on the solve") is 0
+        are left out (all NaN), as Blender's camera solver leaves them out.
 
     Returns
     -------
@@ -153,7 +157,7 @@ def read_track_markers(clip, frames, *, names=None, tracking_object=None, margin
     lut[cframes - lo] = np.arange(T)
     for j, name in enumerate(names):
         track = tracks.get(name)
-        if track is None:
+        if track is None or (skip_zero_weight and track.weight == 0.0):
             continue
         mk = track.markers
         n = len(mk)

@@ -38,6 +38,7 @@ RETARGET_PREFIX = "FL_Retarget_"
 SOLVE_ACTION = "FL_Solve"
 RETARGET_ACTION = "FL_Retarget"
 ACTION_TAG = "facelab_solve"  # custom property marking actions FaceLab made (re-runs replace them in place)
+DISAGREE_PX = 3.0  # Bind Tracks flags tracks whose bound point misses their marker in another view by more
 EYEBALL_GROUPS = {"left": "FL_eyeball_left", "right": "FL_eyeball_right"}
 
 # Last solve's timings and counts (for tests and the benchmark).
@@ -323,8 +324,11 @@ def bind_tracks(context, obj, bind_frame: int) -> dict:
         obj.facelab_solve.bind_frame = int(bind_frame)
     finally:
         scene.frame_set(keep)
+    # tracks whose chosen surface point reprojects far from their marker in another view: mislabelled or
+    # mis-tracked (or the mesh does not match the footage on the bind frame)
+    disagree = [n for n, b, e in zip(vd.names, bound, best_e) if b and e > DISAGREE_PX]
     return dict(bound=names, untracked=untracked, missed=missed, bundles=n_bundles, warnings=vd.warnings,
-                max_err_px=float(best_e[bound].max()) if bound.any() and len(views) > 1 else 0.0)
+                disagree=disagree, max_err_px=float(best_e[bound].max()) if bound.any() else 0.0)
 
 
 # --------------------------------------------------------------------------- solve
@@ -715,9 +719,14 @@ class FACELAB_OT_bind_tracks(bpy.types.Operator):
         if r["untracked"]:
             msg += (f"; no marker on frame {f}: {', '.join(r['untracked'][:8])}"
                     f"{'...' if len(r['untracked']) > 8 else ''} (bind on a frame where they are tracked)")
+        if r["disagree"]:
+            msg += (f"; the views disagree by more than {DISAGREE_PX:g} px on {', '.join(r['disagree'][:8])}"
+                    f"{'...' if len(r['disagree']) > 8 else ''} (same name for different markers, a tracking slip, "
+                    "or the mesh does not match the footage on this frame)")
         if r["warnings"]:
             msg += "; " + "; ".join(r["warnings"])
-        self.report({"WARNING"} if (r["missed"] or r["untracked"] or r["warnings"]) else {"INFO"}, msg)
+        warn = r["missed"] or r["untracked"] or r["warnings"] or r["disagree"]
+        self.report({"WARNING"} if warn else {"INFO"}, msg)
         return {"FINISHED"} if r["bound"] or r["bundles"] else {"CANCELLED"}
 
 

@@ -323,13 +323,20 @@ def test_bad_input_messages(ict, addon, tmp_path):
 
     # tracks with no mesh binding
     assert "no track is bound" in run(bpy.ops.facelab.solve_performance)
+    # a track whose marker in the second view belongs to another point is flagged when binding
+    from facelab_addon.ui import ops_solve
+
+    t2 = s.views[1].clip.tracking.tracks
+    co = np.array(t2["M07"].markers.find_frame(1).co)
+    t2["M07"].markers.find_frame(1).co = co + [0.02, 0.0]  # 10.8 px off
+    r = ops_solve.bind_tracks(bpy.context, obj, 0)
+    assert r["disagree"] == ["M07"] and len(r["bound"]) == len(markers)
+    t2["M07"].markers.find_frame(1).co = co
     # markers missing on some frames: skipped and reported
     clip = s.views[0].clip
     for tr in list(clip.tracking.tracks)[:5]:
         tr.markers.find_frame(3).mute = True  # clip frame 3 = scene frame 2
     assert bpy.ops.facelab.bind_tracks(frame=0) == {"FINISHED"}
-    from facelab_addon.ui import ops_solve
-
     r = ops_solve.solve(bpy.context, obj)
     assert r["missing"] == {} and not r["skipped"]  # the other camera still sees them
     clip2 = s.views[1].clip

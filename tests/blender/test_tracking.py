@@ -82,6 +82,11 @@ def test_markers_pixels_missing_muted_offscreen_and_clip_start(scene, tmp_path):
     np.testing.assert_allclose(px2[0, 0], [32, 39], atol=1e-4)
     np.testing.assert_allclose(px2[0, 2], [40, 30], atol=1e-4)
     assert np.isnan(px2[1:]).all() and np.isnan(px2[:, 1]).all()
+    # a track with weight 0 ("no influence on the solve") is left out
+    clip.tracking.tracks["B"].weight = 0.0
+    assert np.isnan(tracking.read_track_markers(clip, frames)[0][:, 1]).all()
+    assert np.isfinite(tracking.read_track_markers(clip, frames, skip_zero_weight=False)[0][1:3, 1]).all()
+    clip.tracking.tracks["B"].weight = 1.0
     # margin: a marker 2 px from the border is off-screen with a 3 px margin
     add_track(clip, "C", {1: (2 / W, 0.5)})
     assert np.isfinite(tracking.read_track_markers(clip, [11], names=["C"])[0]).all()
