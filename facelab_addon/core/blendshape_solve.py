@@ -79,7 +79,9 @@ class FrameResult:
         Contour correspondences used in the last iteration (empty without curves).
     info : dict
         ``iterations``, ``markers_used``, ``markers_offscreen``, ``bundles_used``,
-        ``contour_points``, ``marker_rms_px``, ``contour_rms_px``, ``time_s``.
+        ``contour_points``, ``marker_rms_px``, ``contour_rms_px``, ``time_s`` (wall),
+        ``cpu_s`` (process CPU time; with ``solve_performance`` also
+        ``corrective_time_s`` / ``corrective_cpu_s``).
     """
 
     weights: np.ndarray
@@ -471,6 +473,7 @@ class BlendshapeSolver:
         FrameResult
         """
         t0 = time.perf_counter()
+        c0 = time.process_time()
         md, offscreen = self._marker_data(markers_px)
         bd = self._bundle_data(bundles)
         use_curves = bool(curves) and self.loops is not None
@@ -509,6 +512,7 @@ class BlendshapeSolver:
                     contour_points=int(sum(len(c.vertices) for c in corr)))
         info.update(self.residuals(w, markers_px, bundles, corr))
         info["time_s"] = time.perf_counter() - t0
+        info["cpu_s"] = time.process_time() - c0
         return FrameResult(weights=w, correspondences=list(corr), info=info)
 
     def _solve_linear(self, w, J, r):
@@ -780,9 +784,10 @@ def solve_performance(solver: BlendshapeSolver, corrective: OutOfSubspaceCorrect
             if res.info.get("markers_offscreen"):
                 offs[i] = res.info["markers_offscreen"]
             if corrective is not None:
-                t1 = time.perf_counter()
+                t1, c1 = time.perf_counter(), time.process_time()
                 D[i] = corrective.solve(solver.vertices(res.weights), mp, bd, res.correspondences)
                 res.info["corrective_time_s"] = time.perf_counter() - t1
+                res.info["corrective_cpu_s"] = time.process_time() - c1
             frames.append(res.info)
             corrs.append(res.correspondences)
             prev = res

@@ -133,7 +133,7 @@ def test_contours_recover_the_truth(ict, deltas):
         V = solver.vertices(res.weights)
         assert contour_curve_distance(V, cap.cameras, res.correspondences, cap.curves[t]).max() < 0.1
     res = solver.solve_frame(cap.markers_px_clean[1], None, cap.curves[1], previous=prev, iterations=3)
-    assert len(res.correspondences) == len(cap.curves[1]) > 4
+    assert len(res.correspondences) > 4  # eyelid 3D blocks may drop grazing points (contours.md)
     np.testing.assert_allclose(res.weights, cap.weights[1], atol=0.05)
     # the partial evaluation used for matching agrees with the full mesh where matching looks
     w = cap.weights[0]
