@@ -592,8 +592,13 @@ def retarget(context, actor, creature, progress=None) -> dict:
         ep = {t: EndPoints(up_[t], lo_[t]) for t in range(len(frames))}
     kw = {}
     views = [v for v in scene.facelab_solve.views if v.camera is not None and v.clip is not None]
-    if views:
-        cams = [tracking.clip_camera(scene, v.camera, v.clip)[0] for v in views]
+    cams = []
+    for v in views:  # the face's up / forward axes from the tracking cameras when they can be read
+        try:
+            cams.append(tracking.clip_camera(scene, v.camera, v.clip)[0])
+        except FaceLabError:
+            pass
+    if cams:
         up, fwd = face_axes(cams)
         A = np.array(actor.matrix_world, dtype=np.float64)[:3, :3]
         Ai = np.linalg.inv(A)
