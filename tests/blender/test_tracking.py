@@ -27,7 +27,7 @@ def make_clip(tmp_path, name="plate", n=NFRAMES, size=(W, H)):
     d.mkdir()
     for i in range(1, n + 1):
         img = np.zeros((size[1], size[0], 3), np.uint8)
-        img[..., 0] = 30 * i
+        img[..., 0] = (30 * i) % 256
         Image.fromarray(img).save(d / f"{name}_{i:04d}.png")
     clip = bpy.data.movieclips.load(str(d / f"{name}_0001.png"))
     assert tuple(clip.size) == size
@@ -227,6 +227,51 @@ def test_clip_bundles_needs_a_solve(scene, tmp_path):
     add_track(clip, "A", {1: (0.5, 0.5)})
     with pytest.raises(BundleError, match="Solve Camera Motion"):
         tracking.clip_bundles(clip)
+
+
+def test_clip_bundles_and_intrinsics_agree_with_blenders_camera_solve(scene, tmp_path):
+    """Blender's own solver (libmv) on synthetic tracks with an off-centre principal point: its bundles, seen by its
+    reconstructed cameras through FaceLab's clip intrinsics, land on the markers FaceLab reads."""
+    from facelab_addon.core.camera import Camera
+
+    w, h, n = 320, 240, 12
+    clip = make_clip(tmp_path, n=n, size=(w, h))
+    tc = clip.tracking.camera
+    tc.sensor_width, tc.focal_length = 36.0, 30.0
+    tc.principal_point_pixels = (w / 2 + 12.0, h / 2 - 7.0)  # bottom-left origin
+    K, _, _ = tracking.clip_intrinsics(clip)
+    rng = np.random.default_rng(0)
+    X = rng.uniform([-1, -1, 4], [1, 1, 7], (24, 3))
+    for j in range(len(X)):
+        tr = clip.tracking.tracks.new(name=f"P{j:02d}", frame=1)
+        for k in range(2, n + 1):
+            tr.markers.insert_frame(k)
+        co = []
+        for k in range(n):
+            th = 0.03 * k
+            R = np.array([[np.cos(th), 0, np.sin(th)], [0, 1, 0], [-np.sin(th), 0, np.cos(th)]])
+            p = Camera(K, R, [-0.15 * k, 0.02 * k, 0.0], w, h).project(X[j][None])[0]
+            co.append([p[0] / w, 1 - p[1] / h])
+        tr.markers.foreach_set("co", np.array(co, np.float32).ravel())
+    obj = clip.tracking.objects.active
+    obj.keyframe_a, obj.keyframe_b = 1, n
+    win = bpy.context.window_manager.windows[0]
+    area = win.screen.areas[-1]
+    area.type = "CLIP_EDITOR"
+    space = area.spaces.active
+    space.clip = clip
+    region = next(r for r in area.regions if r.type == "WINDOW")
+    with bpy.context.temp_override(window=win, area=area, region=region, space_data=space):
+        assert bpy.ops.clip.solve_camera() == {"FINISHED"}
+    assert obj.reconstruction.is_valid
+    P, names = tracking.clip_bundles(clip)
+    assert P.shape == (24, 3) and names == [f"P{j:02d}" for j in range(24)]
+    px, _ = tracking.read_track_markers(clip, np.arange(1, n + 1))
+    for rc in obj.reconstruction.cameras:
+        M = np.array(rc.matrix, dtype=np.float64)  # camera to reconstruction space, Blender camera axes
+        R = (M[:3, :3] @ np.diag([1.0, -1.0, -1.0])).T
+        cam = Camera(K, R, -R @ M[:3, 3], w, h)
+        np.testing.assert_allclose(cam.project(P), px[rc.frame - 1], atol=0.05)
 
 
 # --------------------------------------------------------------------------- contours
