@@ -186,7 +186,7 @@ class ContourLoops:
     n_vertices: int
     halves: dict = field(default_factory=dict, repr=False)  # curve name -> list[_Half], one per loop
     info: dict = field(default_factory=dict)
-    _pack: tuple | None = field(default=None, repr=False)
+    _pack: _Pack | None = field(default=None, repr=False)
     _sphere_cache: dict = field(default_factory=dict, repr=False)
 
     def needed_vertices(self) -> np.ndarray:
@@ -196,7 +196,7 @@ class ContourLoops:
         solver may keep only these vertices up to date between iterations
         (about 3,300 of ICT-FaceKit's 26,719).
         """
-        (tri, _), *_ = self._pack
+        tri = self._pack.tri
         parts = [tri.ravel()] + [np.asarray(v, np.int64) for v in self.eyeballs.values()]
         for hs in self.halves.values():
             parts += [h.vertices.ravel() for h in hs]
@@ -484,9 +484,28 @@ def _halves_of_loop(V, F_all, edge_index, loop, corners, up, lateral, with_mid):
     return out[0], out[1]
 
 
-def _pack(loops: ContourLoops):
+@dataclass
+class _Pack:
+    """Every candidate half's edges stacked, for one-shot silhouette tests of all candidates."""
+
+    tri: np.ndarray  # (u,3) unique triangles next to candidate edges
+    inv: np.ndarray  # (N,2) each edge's two triangles as rows of tri
+    ok: np.ndarray  # (N,) the edge has two triangles
+    hid: np.ndarray  # (N,) packed half index of each edge
+    n_halves: int
+    offsets: dict  # curve name -> (first, end) packed half indices
+    flat: np.ndarray  # (9,u) flat indices into vertices.ravel() of the triangles' corners
+    edges: np.ndarray  # (N,2) edge vertices
+    third: np.ndarray  # (N,) the vertex of the edge's first triangle that is not on the edge
+    upper: np.ndarray  # (N,) the edge belongs to an upper half (lip or lid above the opening)
+
+    def __getitem__(self, i):  # old tuple layout: (tri, inv), ok, hid, n_halves, offsets, flat
+        return ((self.tri, self.inv), self.ok, self.hid, self.n_halves, self.offsets, self.flat)[i]
+
+
+def _pack(loops: ContourLoops) -> _Pack:
     """Stack the triangles next to every candidate half's edges for one-shot facing tests."""
-    names, tris, half_of = [], [], []
+    tris, half_of, edges, upper = [], [], [], []
     offsets = {}
     k = 0
     for name, halves in loops.halves.items():
@@ -494,16 +513,23 @@ def _pack(loops: ContourLoops):
         for h in halves:
             tris.append(h.edge_tris)
             half_of.append(np.full(len(h.edge_tris), k))
+            edges.append(np.stack([h.chain[:-1], h.chain[1:]], axis=1))
+            upper.append(np.full(len(h.edge_tris), name.endswith("upper")))
             k += 1
-        names.append(name)
     T = np.concatenate(tris) if tris else np.zeros((0, 2, 3), np.int64)
+    E = np.concatenate(edges) if edges else np.zeros((0, 2), np.int64)
     ok = (T >= 0).all(axis=(1, 2))
     hid = np.concatenate(half_of) if half_of else np.zeros(0, np.int64)
     # unique triangles (neighbouring rings share their strip) and each edge's two entries into them
     tri, inv = np.unique(np.maximum(T, 0).reshape(-1, 3), axis=0, return_inverse=True)
     # flat indices into vertices.ravel() of (a_x, a_y, a_z, b_x, ..., c_z) of every unique triangle: (9,n)
     flat = np.ascontiguousarray((3 * tri[:, [0, 0, 0, 1, 1, 1, 2, 2, 2]] + np.tile([0, 1, 2], 3)).T)
-    return (np.ascontiguousarray(tri), inv.reshape(-1, 2)), ok, hid, k, offsets, flat
+    T0 = np.maximum(T[:, 0], 0)
+    not_edge = (T0 != E[:, :1]) & (T0 != E[:, 1:])
+    third = T0[np.arange(len(T0)), np.argmax(not_edge, axis=1)]
+    return _Pack(tri=np.ascontiguousarray(tri), inv=inv.reshape(-1, 2), ok=ok, hid=hid, n_halves=k, offsets=offsets,
+                 flat=flat, edges=E, third=third,
+                 upper=np.concatenate(upper) if upper else np.zeros(0, bool))
 
 
 def _edge_lookup(F):
@@ -679,7 +705,7 @@ def contour_loops(
         ctr = P.mean(axis=0)
         ext = float(np.ptp(P, axis=0).max())
         cam = Camera.look_at(ctr + 20.0 * ext * forward, ctr, up, 50.0, 36.0, 1920, 1080)
-        counts = _half_counts(V, cam, out)[slice(*out._pack[4][name])]
+        counts = _half_counts(V, cam, out)[slice(*out._pack.offsets[name])]
         best = np.flatnonzero(counts == counts.max())
         out.default_loop[name] = int(best[len(best) // 2])
     return out
@@ -732,18 +758,107 @@ def _facing_sign(V, tris, camera):
 
 def _gather(V, loops: ContourLoops):
     """(9,k) corner coordinates of the candidate triangles (one gather for all cameras)."""
-    return np.ascontiguousarray(V).reshape(-1)[loops._pack[5]]
+    return np.ascontiguousarray(V).reshape(-1)[loops._pack.flat]
 
 
-def _half_counts(V, camera, loops: ContourLoops, G=None):
-    """(H,) silhouette-edge count of every candidate half (all curve names packed)."""
-    _, ok, hid, H, _, _ = loops._pack
-    inv = loops._pack[0][1]
+def _silhouettes(V, camera, loops: ContourLoops, G=None, inner: bool = True):
+    """Silhouette edges of all candidate halves seen from ``camera``.
+
+    With ``inner`` only silhouette edges that bound the opening are kept: the
+    lip (lid) lies on the far side of the edge from the opening in the image,
+    i.e. above the edge for upper halves and below it for lower halves, with
+    "above" along the projected face ``up`` axis. A silhouette where the
+    surface folds the other way (the lower lip's outline against the chin,
+    seen from below) is an outer silhouette, not the inner-lip line a
+    tracker follows.
+
+    Returns
+    -------
+    idx : (k,) int64
+        Packed edge indices (into ``loops._pack``).
+    mid : (k,2) float64
+        Projected edge midpoints, pixels.
+    ends : (k,2,2) float64
+        Projected edge end points, pixels.
+    up : (k,2) float64
+        Projected face ``up`` direction at each edge (pixels per edge length).
+    """
+    pk = loops._pack
     if G is None:
         G = _gather(V, loops)
-    s = _facing_from_coords(G, camera.center)[inv]
-    sil = ok & (s[:, 0] != s[:, 1])
-    return np.bincount(hid[sil], minlength=H)
+    s = _facing_from_coords(G, camera.center)[pk.inv]
+    idx = np.flatnonzero(pk.ok & (s[:, 0] != s[:, 1]))
+    e = pk.edges[idx]
+    a, b, r = V[e[:, 0]], V[e[:, 1]], V[pk.third[idx]]
+    h = np.sqrt(((b - a) ** 2).sum(axis=1, keepdims=True))
+    P = camera.P
+    pts = np.concatenate([a, b, r, 0.5 * (a + b), 0.5 * (a + b) + h * loops.up])
+    q = pts @ P[:, :3].T + P[:, 3]
+    q = (q[:, :2] / q[:, 2:3]).reshape(5, len(idx), 2)
+    up = q[4] - q[3]
+    if inner and len(idx):
+        t = q[1] - q[0]
+        n = np.stack([-t[:, 1], t[:, 0]], axis=1)  # a normal of the projected edge
+        side_body = np.einsum("ij,ij->i", q[2] - q[0], n)  # where the surface lies (both triangles: a fold)
+        side_up = np.einsum("ij,ij->i", up, n)
+        keep = ((side_body * side_up) > 0) == pk.upper[idx]
+        idx, q, up = idx[keep], q[:, keep], up[keep]
+    return idx, q[3], np.stack([q[0], q[1]], axis=1), up
+
+
+def _half_counts(V, camera, loops: ContourLoops, G=None, inner: bool = True):
+    """(H,) silhouette-edge count of every candidate half (all curve names packed); see :func:`_silhouettes`."""
+    idx = _silhouettes(V, camera, loops, G, inner)[0]
+    return np.bincount(loops._pack.hid[idx], minlength=loops._pack.n_halves)
+
+
+def _envelope_counts(V, camera, loops: ContourLoops, G=None):
+    """(H,) per half, its inner silhouette edges that bound the opening in the image (nothing nearer to it).
+
+    For the lower lip (lid) an edge counts when no silhouette edge of another
+    candidate of the same curve lies above it at the same lateral image
+    position; for the upper lip, none below it: the line an artist draws
+    along the dark opening (ignoring occlusion by other parts).
+    """
+    pk = loops._pack
+    idx, mid, ends, up = _silhouettes(V, camera, loops, G)
+    counts = np.zeros(pk.n_halves, dtype=np.int64)
+    if len(idx) == 0:
+        return counts
+    for name, (lo, hi) in pk.offsets.items():
+        sel = (pk.hid[idx] >= lo) & (pk.hid[idx] < hi)
+        if not sel.any():
+            continue
+        u = up[sel].mean(axis=0)
+        u /= max(np.linalg.norm(u), 1e-300)
+        lat = np.array([-u[1], u[0]])
+        hs = pk.hid[idx[sel]]
+        m_lat, m_up = mid[sel] @ lat, mid[sel] @ u
+        e_lat, e_up = ends[sel] @ lat, ends[sel] @ u  # (k,2)
+        lo_l, hi_l = e_lat.min(axis=1), e_lat.max(axis=1)
+        # height of every edge j at every midpoint i's lateral position (where j spans it)
+        span = (m_lat[:, None] >= lo_l[None]) & (m_lat[:, None] <= hi_l[None]) & (hs[:, None] != hs[None])
+        dl = e_lat[:, 1] - e_lat[:, 0]
+        w = (m_lat[:, None] - e_lat[None, :, 0]) / np.where(np.abs(dl) < 1e-12, 1e-12, dl)[None]
+        hj = e_up[None, :, 0] + np.clip(w, 0, 1) * (e_up[:, 1] - e_up[:, 0])[None]
+        sign = -1.0 if name.endswith("upper") else 1.0  # nearer the opening: below an upper lip, above a lower
+        beaten = (span & (sign * (hj - m_up[:, None]) > 0.5)).any(axis=1)
+        counts += np.bincount(hs[~beaten], minlength=pk.n_halves)
+    return counts
+
+
+def _near_curve_counts(idx, mid, loops: ContourLoops, lo, hi, C, tol):
+    """(hi-lo,) per candidate half, its silhouette edges whose projection lies within ``tol`` px of curve C."""
+    hid = loops._pack.hid[idx]
+    sel = (hid >= lo) & (hid < hi)
+    if not sel.any():
+        return np.zeros(hi - lo, dtype=np.int64)
+    Cs = C if len(C) <= 128 else np.concatenate([C[:: len(C) // 64], C[-1:]])
+    M, h = mid[sel], hid[sel]
+    box = ((M >= Cs.min(axis=0) - tol) & (M <= Cs.max(axis=0) + tol)).all(axis=1)  # cheap rejection first
+    M, h = M[box], h[box]
+    near = _dist_to_polyline(M, Cs) <= tol if len(M) else np.zeros(0, bool)
+    return np.bincount(h[near] - lo, minlength=hi - lo)
 
 
 def silhouette_edge_counts(vertices, faces, camera, loops, *, closed: bool = True) -> np.ndarray:
@@ -882,9 +997,21 @@ def _match_half(half: _Half, P, C, S):
 # --------------------------------------------------------------------------
 
 
-def _choose(counts, proj, C, prev_loop, default):
-    """Index of the half with the most silhouette edges; ties: previous loop, then closest to the curve."""
-    best = np.flatnonzero(counts == counts.max())
+def _candidates(counts, near_tie):
+    """Halves whose silhouette count is within ``near_tie`` (fraction) of the best (all of them when all are 0)."""
+    top = counts.max()
+    if top == 0:
+        return np.arange(len(counts))
+    return np.flatnonzero(counts >= max(1, int(np.ceil((1.0 - near_tie) * top))))
+
+
+def _choose(counts, proj, C, prev_loop, default, near_tie=0.0):
+    """Index of the half with the most silhouette edges.
+
+    Ties (counts within ``near_tie`` of the best): the previous loop, then the
+    half whose projection is closest to the curve, then the default.
+    """
+    best = _candidates(counts, near_tie) if near_tie > 0 else np.flatnonzero(counts == counts.max())
     if len(best) == 1:
         return int(best[0])
     if prev_loop is not None and prev_loop in best:
@@ -897,12 +1024,16 @@ def _choose(counts, proj, C, prev_loop, default):
 
 
 def _dist_to_polyline(Q, C):
-    a, b = C[:-1], C[1:]
-    ab = b - a
-    L2 = np.maximum((ab**2).sum(axis=1), 1e-300)
-    t = np.clip(((Q[:, None, :] - a[None]) * ab[None]).sum(-1) / L2[None], 0.0, 1.0)
-    foot = a[None] + t[..., None] * ab[None]
-    return np.sqrt(((Q[:, None, :] - foot) ** 2).sum(-1).min(axis=1))
+    """(k,) distance of points Q (k,2) to the polyline C (m,2)."""
+    ax, ay = C[:-1, 0], C[:-1, 1]
+    bx, by = C[1:, 0] - ax, C[1:, 1] - ay
+    L2 = np.maximum(bx * bx + by * by, 1e-300)
+    qx = Q[:, 0, None] - ax[None]
+    qy = Q[:, 1, None] - ay[None]
+    t = np.clip((qx * bx + qy * by) / L2, 0.0, 1.0)
+    ex = qx - t * bx
+    ey = qy - t * by
+    return np.sqrt((ex * ex + ey * ey).min(axis=1))
 
 
 def match_contours(
@@ -916,6 +1047,8 @@ def match_contours(
     previous=None,
     eyelids: str = "3d",
     eyelid_min_cos: float = 0.25,
+    curve_tolerance: float = 0.02,
+    near_tie: float = 0.25,
 ) -> list:
     """Occluding contours of the current mesh matched to the tracked curves (Bhat et al. 2013, §4.2).
 
@@ -949,6 +1082,17 @@ def match_contours(
         Eyelid constraints as 3D targets on the eyeball (``camera=-1``; the
         paper's corrective), as 2D pixel targets (the paper's blendshape
         fit), or both.
+    curve_tolerance : float
+        Only silhouette edges within this fraction of the tracked curve's
+        length (at least 2 px) of the curve count for the selection: a
+        silhouette elsewhere (an outer outline of the lip, a fold) cannot be
+        what the tracker followed. When no candidate has a silhouette edge
+        near the curve, the one closest to the curve is used.
+    near_tie : float
+        Halves whose count is within this fraction of the best count are
+        treated as tied; ties go to the previous loop, then to the half whose
+        projection is closest to the curve (silhouettes of a tangled lip can
+        spread over several rings with similar counts).
     eyelid_min_cos : float
         3D eyelid targets are kept only where the camera ray meets the
         eyeball at an angle whose cosine (ray against sphere normal) is at
@@ -1021,19 +1165,21 @@ def match_contours(
             pv, pb, t = p0.vertices, p0.bary, p0.curve_t
             s = t * S[-1]
         else:
-            lo, hi = loops._pack[4][name]
+            lo, hi = loops._pack.offsets[name]
             if ci not in counts_cache:
                 if G is None:
                     G = _gather(V, loops)
-                counts_cache[ci] = _half_counts(V, cam, loops, G)
-            counts = counts_cache[ci][lo:hi]
+                counts_cache[ci] = _silhouettes(V, cam, loops, G)
+            sil_idx, sil_mid = counts_cache[ci][:2]
+            tol = max(2.0, curve_tolerance * S[-1])
+            counts = _near_curve_counts(sil_idx, sil_mid, loops, lo, hi, C, tol)
             halves = loops.halves[name]
-            best = np.flatnonzero(counts == counts.max())
+            best = _candidates(counts, near_tie)
             proj = {}
             if len(best) > 1:
                 for kk in best:
                     proj[int(kk)] = _project(Pm, _eval_points(V, halves[kk]), name)
-            k = _choose(counts, proj, C, p0.loop if p0 is not None else None, loops.default_loop[name])
+            k = _choose(counts, proj, C, p0.loop if p0 is not None else None, loops.default_loop[name], near_tie)
             half = halves[k]
             P = proj.get(k)
             if P is None:
@@ -1199,11 +1345,11 @@ def synthetic_tracked_curves(
     rng = np.random.default_rng(seed)
     out = []
     for ci, cam in enumerate(cameras):
-        counts = _half_counts(V, cam, loops)
+        counts = _envelope_counts(V, cam, loops)
         for name in names:
             if name not in loops.halves:
                 raise FaceLabError(f"The loops have no '{name}' candidates; use one of {loops.curve_names()}.")
-            lo, hi = loops._pack[4][name]
+            lo, hi = loops._pack.offsets[name]
             c = counts[lo:hi]
             best = np.flatnonzero(c == c.max())
             k = int(best[np.argmin(np.abs(best - loops.default_loop[name]))])

@@ -29,14 +29,14 @@ PHI_SIL = np.pi + np.arctan2(R_TORUS, DIST) - np.arcsin(R_TUBE / np.hypot(DIST, 
 STEP = np.pi / 14
 
 
-def torus_band(k_sil=3, n_rings=9, n_around=50, roll=0.0):
+def torus_band(k_sil=3, n_rings=9, n_around=50, roll=0.0, phi_sil=PHI_SIL):
     """Band of the torus with latitude loops phi_k = PHI_SIL + (k_sil - k) STEP - roll, k = 0..n_rings-1.
 
     Ring 0 (deepest inside the mouth) is the band's inner border; ring k_sil is the silhouette from the
     axis camera when roll = 0. ``roll`` rotates every cross-section (a lip roll moving the silhouette).
     Returns V (n_rings*n_around, 3), F, ring vertex ids (list).
     """
-    phis = PHI_SIL + (k_sil - np.arange(n_rings)) * STEP - roll
+    phis = phi_sil + (k_sil - np.arange(n_rings)) * STEP - roll
     th = np.linspace(0, 2 * np.pi, n_around, endpoint=False)
     P, T = np.meshgrid(phis, th, indexing="ij")
     rho = R_TORUS + R_TUBE * np.cos(P)
@@ -128,11 +128,27 @@ def test_selection_picks_the_analytic_silhouette_loop(k_sil):
     assert [c.loop for c in corr] == [k_sil, k_sil]
 
 
+def test_only_silhouettes_bounding_the_opening_count():
+    """The torus's outer equator is a silhouette too, but there the surface lies on the opening's side of it."""
+    cam = axis_camera()
+    phi_out = np.arctan2(R_TORUS, DIST) + np.arcsin(R_TUBE / np.hypot(DIST, R_TORUS))  # D sin - R cos = r, near 0
+    V, F, rings = torus_band(k_sil=3, phi_sil=phi_out)
+    assert ct.silhouette_edge_counts(V, F, cam, rings)[3] == 50
+    loops = ct.contour_loops(V, F, mouth_loop=rings[0], n_mouth_loops=len(rings))
+    assert ct._half_counts(V, cam, loops, inner=False).max() == 25  # each half of ring 3
+    assert ct._half_counts(V, cam, loops).max() == 0  # an outer outline, not an inner-lip line
+    # the inner silhouette of the same torus counts fully
+    V, F, rings = torus_band(k_sil=3)
+    loops = ct.contour_loops(V, F, mouth_loop=rings[0], n_mouth_loops=len(rings))
+    np.testing.assert_array_equal(ct._half_counts(V, cam, loops), ct._half_counts(V, cam, loops, inner=False))
+    assert ct._half_counts(V, cam, loops)[[3, 3 + len(rings)]].tolist() == [25, 25]
+
+
 def test_fast_counts_match_brute_force_silhouettes_on_ict(ict, ict_loops):
     V = ict.pose({"jawOpen": 0.4, "mouthFunnel": 0.6})
     cam = Camera.look_at(V[6632:6706].mean(0) + [3, -5, 30], V[6632:6706].mean(0), [0, 1, 0], 35, 36, 1920, 1080)
     E = {tuple(e) for e in silhouette_edges(V, ict.faces, cam)}
-    fast = ct._half_counts(V, cam, ict_loops)
+    fast = ct._half_counts(V, cam, ict_loops, inner=False)
     for name in ict_loops.curve_names():
         lo, hi = ict_loops._pack[4][name]
         brute = [sum(tuple(sorted(e)) in E for e in zip(h.chain[:-1], h.chain[1:])) for h in ict_loops.halves[name]]
