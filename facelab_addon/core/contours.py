@@ -24,7 +24,11 @@ points that project onto them change as the lips roll. Following the paper:
    different rings (neutral: rings 7 and 6; rolling the upper lip moves its
    silhouette to ring 11), and so do the eyelid silhouettes (rings 1 and 2).
    The paper's "edge contour" is "a subset of connected edges from an
-   edge-loop"; the half-loop is that subset.
+   edge-loop"; the half-loop is that subset. Only silhouette edges that can
+   be the tracked line count: those bounding the opening (the lip lies on
+   the far side of the edge from the opening in the image) and, when a
+   tracked curve is given, those near it; near-ties go to the previous loop,
+   then to the half closest to the curve.
 3. **Correspondence** (:func:`match_contours`). The contour's points are
    projected into the camera; the contour is split at the corners and at the
    middle of the lips (eyelids: at the eye corners); each split point is
@@ -1312,9 +1316,12 @@ def synthetic_tracked_curves(
     """The truth's occluding contours as a tracker would deliver them.
 
     For every camera and curve name, the half loop with the most silhouette
-    edges on ``vertices`` (the same rule as :func:`match_contours`; ties go
-    to the rest-pose default) is projected and resampled every
-    ``spacing_px`` pixels, corner to corner, ordered from image-left.
+    edges on the *envelope of the opening* (silhouette edges that bound the
+    mouth or eye opening with no other candidate's silhouette nearer to the
+    opening at the same lateral image position: the line an artist traces
+    along the dark opening; ties go to the rest-pose default) is projected
+    and resampled every ``spacing_px`` pixels, corner to corner, ordered
+    from image-left.
 
     Parameters
     ----------
