@@ -474,3 +474,24 @@ def test_synthetic_curves_noise_and_off_screen(band):
     # a camera that sees the mouth only partly (narrow image) delivers no curve
     narrow = Camera(cam.K, cam.R, cam.t, 1000, 1080)
     assert ct.synthetic_tracked_curves(V, F, [narrow], loops) == []
+
+
+def test_silhouettes_far_from_the_tracked_curve_do_not_count(ict, ict_loops):
+    """Open funnelled mouth seen from the helmet cameras (below): the lower lip has inner-lip silhouettes on
+    ring 5 and an outline on the lip front (ring 13). A curve traced along either is matched to that ring."""
+    w = {"jawOpen": 0.53, "mouthFunnel": 0.47, "mouthLowerDown_L": 0.21, "mouthLowerDown_R": 0.24,
+         "mouthSmile_L": 0.55, "mouthSmile_R": 0.24, "mouthUpperUp_R": 0.18}
+    from facelab_addon.core.capture_sim import helmet_cameras
+
+    X = ict.pose(w)
+    cams = helmet_cameras()  # 3 cm below the mouth, 19 cm away, 6 cm either side
+    lo, hi = ict_loops._pack.offsets["mouth_lower"]
+    for cam in cams:
+        c = ct._half_counts(X, cam, ict_loops)[lo:hi]
+        assert c[5] == c.max() and c[13] >= 0.5 * c[5]  # both are real silhouettes; the count alone says 5
+    for k in (5, 13):
+        for ci, cam in enumerate(cams):
+            P = ct.resample_polyline(cam.project(ct._eval_points(X, ict_loops.halves["mouth_lower"][k])), 0.25)
+            corr = ct.match_contours(X, ict.faces, cams, [ct.TrackedCurve("mouth_lower", ci, P)], ict_loops)[0]
+            assert corr.loop == k
+            assert ct.contour_residuals(X, cams, [corr])[0].max() < 0.1
