@@ -38,7 +38,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from facelab_addon.core.deformation_transfer import DeformationTransfer  # noqa: E402
+from facelab_addon.core.deformation_transfer import (  # noqa: E402
+    DeformationTransfer,
+    triangle_correspondence_from_markers,
+)
 from facelab_addon.core.ict import load_ict  # noqa: E402
 from facelab_addon.core.retarget import (  # noqa: E402
     EndPoints,
@@ -191,6 +194,8 @@ def run(quick: bool = False, render: bool = True, samples: int = 24, png=None) -
         per_frame=rows,
         note="timings measured on a 2-core machine shared with other jobs (noisy)",
     )
+    if not quick:
+        res["different_topology_marker_correspondence"] = marker_correspondence_check(m, C)
     if render:
         gaps = np.array([r["actor_max_gap_mm"] for r in rows])
         pick = [int(np.argmax(gaps)), int(np.argsort(gaps)[len(gaps) // 2])]
@@ -201,6 +206,37 @@ def run(quick: bool = False, render: bool = True, samples: int = 24, png=None) -
         res["picture"] = str(png.relative_to(ROOT)) if png.is_relative_to(ROOT) else str(png)
         res["picture_frames"] = pick
         res["timing_s"]["render"] = round(time.perf_counter() - t0, 1)
+    return res
+
+
+def marker_correspondence_check(m, C, names=("jawOpen", "mouthFunnel")) -> dict:
+    """Different topology: the creature's quads split along the other diagonal, correspondence from the 68
+    ICT landmarks (with the ICT materials as part labels); transferred shapes against the vertex-map transfer."""
+    V, F = m.neutral, m.faces
+    off, pv = m.poly_offsets, m.poly_verts
+    tris, tpoly = [], []
+    for p in range(len(off) - 1):
+        c = pv[off[p] : off[p + 1]]
+        new = [[c[1], c[2], c[3]], [c[1], c[3], c[0]]] if len(c) == 4 else [[c[0], c[i], c[i + 1]]
+                                                                            for i in range(1, len(c) - 1)]
+        tris += new
+        tpoly += [p] * len(new)
+    Ft = np.array(tris, dtype=np.int64)
+    tpoly = np.array(tpoly)
+    t0 = time.perf_counter()
+    corr = triangle_correspondence_from_markers(V, F, C, Ft, m.landmarks, m.landmarks,
+                                                source_groups=m.poly_part[m.tri_poly], target_groups=m.poly_part[tpoly])
+    t_corr = time.perf_counter() - t0
+    d = m.deltas(list(names))
+    ref = DeformationTransfer(V, F, C, F).transfer_deltas(d)
+    out = DeformationTransfer(V, F, C, Ft, corr).transfer_deltas(d)
+    face = m.part_vertex_mask("M_Face")
+    res = dict(creature="same vertices, quads split along the other diagonal", markers=int(len(m.landmarks)),
+               correspondence_s=round(t_corr, 2))
+    for k, n in enumerate(names):
+        e = np.linalg.norm(out[k] - ref[k], axis=1)[face] * MM
+        res[n] = dict(face_err_mean_mm=float(e.mean()), face_err_p95_mm=float(np.percentile(e, 95)),
+                      face_err_max_mm=float(e.max()), motion_max_mm=float(np.linalg.norm(ref[k], axis=1).max() * MM))
     return res
 
 
@@ -226,22 +262,23 @@ def render_comparison(m, frames_out, pick, rows, png, samples=16):
                  parts=np.array(m.parts), rows=len(pick), **arrays)
         blend = tmp / "retarget.blend"
         subprocess.run([sys.executable, __file__, "--build-blend", str(tmp / "scene.npz"), str(blend)], check=True,
-                       cwd=ROOT)
+                       cwd=ROOT, stdout=subprocess.DEVNULL)
         raw = tmp / "render.png"
         subprocess.run([sys.executable, str(ROOT / "scripts" / "render_blend.py"), str(blend), str(raw),
                         "--samples", str(samples)], check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
         img = plt.imread(raw)
     h, w = img.shape[:2]
-    fig = plt.figure(figsize=(w / 100, h / 100 + 0.9), dpi=100)
-    ax = fig.add_axes([0, 0, 1, h / (h + 90)])
+    top = 60  # title band, pixels
+    fig = plt.figure(figsize=(w / 100, (h + top) / 100), dpi=100)
+    ax = fig.add_axes([0, 0, 1, h / (h + top)])
     ax.imshow(img)
     ax.axis("off")
     titles = ["actor (ICT)", "creature: deformation transfer only", "creature: + lip-sync heuristic"]
     for c, ttl in enumerate(titles):
-        fig.text((c + 0.5) / 3, 1 - 0.35 * 90 / (h + 90), ttl, ha="center", va="center", fontsize=15)
+        fig.text((c + 0.5) / 3, 1 - 0.5 * top / (h + top), ttl, ha="center", va="center", fontsize=15)
     for r, t in enumerate(pick):
         row = rows[t]
-        y = 1 - (90 + (r + 1) * h / len(pick)) / (h + 90) + 0.02
+        y = 1 - (top + (r + 1) * h / len(pick)) / (h + top) + 0.02
         fig.text(1 / 3 + 0.005, y, f"frame {t}: lip-distance error mean {row['without_mean']:.1f} mm, "
                  f"sides open up to {row['sealed_without_max']:.1f} mm", fontsize=10, color="w")
         fig.text(2 / 3 + 0.005, y, f"mean {row['with_mean']:.2f} mm, sealed sides {row['sealed_with_max']:.2f} mm",
@@ -250,6 +287,14 @@ def render_comparison(m, frames_out, pick, rows, png, samples=16):
     png.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(png, dpi=100)
     plt.close(fig)
+    try:  # Cycles noise makes big PNGs: 1200 px wide, 128 colours (about 0.35 MB instead of 1.5 MB)
+        from PIL import Image
+
+        im = Image.open(png).convert("RGB")
+        im = im.resize((1200, round(im.size[1] * 1200 / im.size[0])), Image.LANCZOS)
+        im.quantize(colors=128, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE).save(png, optimize=True)
+    except ImportError:
+        pass
 
 
 def build_blend(npz_path, blend_path):
@@ -270,7 +315,8 @@ def build_blend(npz_path, blend_path):
     for name, col, rough in (("Skin", (0.8, 0.55, 0.45), 0.5), ("Mouth", (0.35, 0.08, 0.08), 0.6),
                              ("Teeth", (0.9, 0.88, 0.8), 0.3)):
         mt = bpy.data.materials.new(name)
-        mt.use_nodes = True
+        if mt.node_tree is None:
+            mt.use_nodes = True
         bsdf = mt.node_tree.nodes["Principled BSDF"]
         bsdf.inputs["Base Color"].default_value = (*col, 1)
         bsdf.inputs["Roughness"].default_value = rough

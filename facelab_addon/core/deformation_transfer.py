@@ -66,6 +66,14 @@ def _check_mesh(V, F, name):
     return V, F
 
 
+def _inv3(M):
+    """Inverses of a stack of 3x3 matrices by cofactors (batched LAPACK calls can crawl on a busy machine)."""
+    a, b, c = M[:, 0], M[:, 1], M[:, 2]  # rows
+    r0, r1, r2 = np.cross(b, c), np.cross(c, a), np.cross(a, b)
+    det = np.einsum("ij,ij->i", a, r0)
+    return np.stack([r0, r1, r2], axis=2) / det[:, None, None]
+
+
 def _nondegenerate(V, F, rel=1e-12):
     e1 = V[F[:, 1]] - V[F[:, 0]]
     e2 = V[F[:, 2]] - V[F[:, 0]]
@@ -147,7 +155,7 @@ class DeformationTransfer:
         Dr = shape_matrices(Vs, Fs[used])
         ok = _nondegenerate(Vs, Fs[used])
         inv = np.zeros_like(Dr)
-        inv[ok] = np.linalg.inv(Dr[ok])
+        inv[ok] = _inv3(Dr[ok])
         self._src_inv = inv
         self._src_ok = ok
         pos = -np.ones(len(Fs), np.int64)
@@ -422,7 +430,8 @@ def _closest_points(P, V, F):
 
 def triangle_correspondence_from_markers(source_rest, source_faces, target_rest, target_faces, source_markers,
                                          target_markers, *, iterations: int = 4, max_distance=None,
-                                         normal_dot: float = 0.3, return_fitted: bool = False):
+                                         normal_dot: float = 0.3, source_groups=None, target_groups=None,
+                                         return_fitted: bool = False):
     """Triangle correspondence between meshes of different topology from markers.
 
     Sumner & Popović 2004 §5: the source is deformed onto the target with the
@@ -452,13 +461,18 @@ def triangle_correspondence_from_markers(source_rest, source_faces, target_rest,
     normal_dot : float
         Minimum cosine between source and target normals for closest points
         and for the final triangle pairing.
+    source_groups, target_groups : (F_s,), (F_t,) int array_like, optional
+        Labels of matching parts (for example materials: skin, teeth, eyes).
+        Closest points and the pairing stay within the same label, which
+        keeps layered parts (lips over teeth, lashes over eyes) apart.
     return_fitted : bool
         Also return the fitted source positions (target units).
 
     Returns
     -------
     (F_t,) int64 ndarray
-        Source triangle of every target triangle (never ``-1`` here).
+        Source triangle of every target triangle; ``-1`` only for target
+        triangles whose group has no source triangle.
     fitted : (V,3) ndarray
         Only with ``return_fitted``.
 
@@ -490,6 +504,17 @@ def triangle_correspondence_from_markers(source_rest, source_faces, target_rest,
         )
     if sm.min() < 0 or sm.max() >= len(Vs):
         raise FaceLabError(f"Source marker vertices must be in 0..{len(Vs) - 1}; re-place the actor markers.")
+    if (source_groups is None) != (target_groups is None):
+        raise FaceLabError("Give part labels for both meshes (source_groups and target_groups) or for neither.")
+    sg = np.zeros(len(Fs), np.int64) if source_groups is None else np.asarray(source_groups).astype(np.int64).ravel()
+    tg = np.zeros(len(Ft), np.int64) if target_groups is None else np.asarray(target_groups).astype(np.int64).ravel()
+    if sg.shape != (len(Fs),) or tg.shape != (len(Ft),):
+        raise FaceLabError(
+            f"Part labels must have one entry per triangle ({len(Fs)} actor, {len(Ft)} creature), got "
+            f"{sg.size} and {tg.size}; label the triangles again."
+        )
+    vlab = np.full(len(Vs), -1, np.int64)
+    vlab[Fs.ravel()] = np.repeat(sg, 3)
     s, R, t = _similarity(Vs[sm], Q)
     X = s * Vs @ R.T + t
     diag = float(np.linalg.norm(np.ptp(Vt, axis=0)))
@@ -502,7 +527,16 @@ def triangle_correspondence_from_markers(source_rest, source_faces, target_rest,
     X = LaplacianDeformer(L, lambda_reg=1.0, pos_weights=1e-3).solve(X, ref, marks)
     for k in range(int(iterations)):
         w = 0.01 * 10.0**k
-        dist, tri, C = _closest_points(X, Vt, Ft)
+        dist = np.full(len(X), np.inf)
+        tri = np.zeros(len(X), np.int64)
+        C = X.copy()
+        for g in np.unique(vlab[vlab >= 0]):
+            sel = vlab == g
+            tids = np.flatnonzero(tg == g)
+            if len(tids) == 0:
+                continue
+            d_, t_, c_ = _closest_points(X[sel], Vt, Ft[tids])
+            dist[sel], tri[sel], C[sel] = d_, tids[t_], c_
         vn = vertex_normals(X, Fs)
         ok = (dist <= dmax) & (np.einsum("ij,ij->i", vn, tn_face[tri]) >= normal_dot)
         anchor = np.where(ok[:, None], C, X)
@@ -513,10 +547,16 @@ def triangle_correspondence_from_markers(source_rest, source_faces, target_rest,
     sc = X[Fs].mean(axis=1)
     sn = face_normals(X, Fs)
     tc = Vt[Ft].mean(axis=1)
-    k = min(16, len(Fs))
-    _, nb = cKDTree(sc).query(tc, k=k)
-    nb = nb.reshape(len(Ft), -1)
-    compat = np.einsum("tkj,tj->tk", sn[nb], tn_face) >= normal_dot
-    first = np.where(compat.any(axis=1), np.argmax(compat, axis=1), 0)
-    corr = nb[np.arange(len(Ft)), first].astype(np.int64)
+    corr = -np.ones(len(Ft), np.int64)
+    for g in np.unique(tg):
+        ti = np.flatnonzero(tg == g)
+        si = np.flatnonzero(sg == g)
+        if len(si) == 0:
+            continue
+        k = min(16, len(si))
+        _, nb = cKDTree(sc[si]).query(tc[ti], k=k)
+        nb = si[nb.reshape(len(ti), -1)]
+        compat = np.einsum("tkj,tj->tk", sn[nb], tn_face[ti]) >= normal_dot
+        first = np.where(compat.any(axis=1), np.argmax(compat, axis=1), 0)
+        corr[ti] = nb[np.arange(len(ti)), first]
     return (corr, X) if return_fitted else corr

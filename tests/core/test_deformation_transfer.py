@@ -170,3 +170,21 @@ def test_marker_correspondence_between_different_topologies():
     assert np.linalg.norm(e, axis=1).max() < 0.06 * mot
     with pytest.raises(FaceLabError, match="at least 4"):
         triangle_correspondence_from_markers(Vs, Fs, Vt, Ft, [0, 1], [0, 1])
+
+
+def test_part_labels_keep_layered_parts_apart():
+    """Two close parallel layers (like lips in front of teeth): labels keep each layer's pairing inside it."""
+    Va, Fa = grid(11)
+    Vt, Ft = grid(14, 12)
+    Vs = np.r_[Va, Va - [0, 0, 0.03]]
+    Fs = np.r_[Fa, Fa + len(Va)]
+    Vc = np.r_[Vt, Vt - [0, 0, 0.03]] * [1.1, 1.0, 1.0]
+    Fc = np.r_[Ft, Ft + len(Vt)]
+    sg = np.r_[np.zeros(len(Fa), int), np.ones(len(Fa), int)]
+    tg = np.r_[np.zeros(len(Ft), int), np.ones(len(Ft), int)]
+    mk_s = np.array([0, 10, 110, 120, 60])
+    mk_t = np.array([0, 11, 13 * 12, 14 * 12 - 1, 7 * 12 + 6])
+    corr = triangle_correspondence_from_markers(Vs, Fs, Vc, Fc, mk_s, mk_t, source_groups=sg, target_groups=tg)
+    np.testing.assert_array_equal(sg[corr], tg)
+    with pytest.raises(FaceLabError, match="both meshes"):
+        triangle_correspondence_from_markers(Vs, Fs, Vc, Fc, mk_s, mk_t, source_groups=sg)
