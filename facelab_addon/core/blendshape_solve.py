@@ -498,8 +498,10 @@ class BlendshapeSolver:
                     from .contours import match_contours
 
                     Vc = self._partial_vertices(w)
+                    # sliding: select and match afresh on the current mesh (a previous loop would win silhouette
+                    # ties against the loop closest to the curve); fixed: keep the previous assignment
                     corr = match_contours(Vc, self.faces, self.cameras, curves, self.loops, sliding=sliding,
-                                          previous=prev_corr, eyelids=self.eyelids)
+                                          previous=None if sliding else prev_corr, eyelids=self.eyelids)
                     prev_corr = corr
                 w_new = self._solve_linear(w, *self._system(w, md, bd, corr))
                 change = float(np.abs(w_new - w).max())
