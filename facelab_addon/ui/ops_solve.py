@@ -408,8 +408,11 @@ def gather_solve_inputs(context, obj) -> dict:
                 notes.append(f"eyelid curves ignored: add vertex groups {EYEBALL_GROUPS['left']} / "
                              f"{EYEBALL_GROUPS['right']} with the eyeball vertices")
                 curves = [[c for c in fr if not c.name.startswith("eyelid")] for fr in curves]
-            loops = contour_loops(neutral, tris, fixed=fixed if fixed.any() else None, eyeballs=eyeballs or None,
-                                  up=up, forward=fwd)
+            try:
+                loops = contour_loops(neutral, tris, fixed=fixed if fixed.any() else None,
+                                      eyeballs=eyeballs or None, up=up, forward=fwd)
+            except FaceLabError as e:
+                raise type(e)(f"{e} (or turn off Contours in FaceLab > Solve to solve from markers only)") from e
         else:
             curves = None
     return dict(frames=frames, views=views, cameras=vd.cameras, names=names, neutral=neutral, deltas=deltas,
