@@ -184,7 +184,9 @@ class DeformationTransfer:
         self._free = np.flatnonzero(~pinned)
         self._piece_of = comp
         Lc = L.tocsr()
-        self._Lff = Lc[self._free][:, self._free]
+        Lrows = Lc[self._free]
+        self._Lff = Lrows[:, self._free]
+        self._Lfp = Lrows[:, self._pinned].tocsr()
         self.factor = SPDFactor(self._Lff, backend=backend, what="deformation-transfer Poisson system")
         self._Dfree = D.tocsr()[self._free]
         self._Lrest = (L @ Vt)[self._free]  # gradient of the rest shape (in-plane identity) pushed through D
@@ -278,9 +280,8 @@ class DeformationTransfer:
         hint += np.einsum("bwij,wj->bwi", Fv, self._offset)
         Y = np.zeros((B, len(self.target_rest), 3))
         Y[:, self._pinned] = hint[:, self._pinned]
-        Lfp = self._L.tocsr()[self._free][:, self._pinned]
-        if Lfp.nnz:
-            rhs = rhs - np.concatenate([Lfp @ Y[b, self._pinned] for b in range(B)], axis=1)
+        if self._Lfp.nnz:
+            rhs = rhs - np.concatenate([self._Lfp @ Y[b, self._pinned] for b in range(B)], axis=1)
         Xf = self.factor.solve(rhs).reshape(len(self._free), B, 3)
         Y[:, self._free] = Xf.transpose(1, 0, 2)
         # place every piece: mean displacement = mean hint over its vertices

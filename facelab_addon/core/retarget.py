@@ -675,7 +675,8 @@ class Retargeter:
             if creature_contours is not None:
                 cc = creature_contours
             elif creature_loop is None and self.transfer.same_topology:
-                cc = lip_contours(Vc, Fc, np.r_[ac.upper, ac.lower[1:-1][::-1]], up=up, forward=forward)
+                cc = lip_contours(Vc, Fc, np.r_[ac.upper, ac.lower[1:-1][::-1]], corners=ac.corners, up=up,
+                                  forward=forward)
             else:
                 cc = lip_contours(Vc, Fc, creature_loop, up=up, forward=forward)
             self.lip_sync = LipSync(Vc, Fc, cc, ac, radius=radius, strength=strength)
