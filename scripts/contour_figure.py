@@ -27,7 +27,8 @@ def main(out="docs/images/contours_selection.png"):
     tgt = m.neutral[6632:6706].mean(0) + [0, 2.0, 0]
     cam = Camera.look_at(tgt + [-5.0, -6.0, 30.0], tgt, [0, 1, 0], 100, 36, 3840, 2160)  # zoomed on the mouth
     fig, axes = plt.subplots(1, 2, figsize=(15, 5.5))
-    poses = {"jawOpen 0.25": {"jawOpen": 0.25}, "jawOpen 0.25 + mouthRollUpper 0.9": {"jawOpen": 0.25, "mouthRollUpper": 0.9}}
+    poses = {"jawOpen 0.25": {"jawOpen": 0.25},
+             "jawOpen 0.25 + mouthRollUpper 0.9": {"jawOpen": 0.25, "mouthRollUpper": 0.9}}
     for ax, (expr, w) in zip(axes, poses.items()):
         V = m.pose(w)
         # the "tracked" curves: the truth's occluding contours, displaced by 8 px so the matching shows

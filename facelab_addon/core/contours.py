@@ -1158,7 +1158,6 @@ def match_contours(
         is_eye = name.startswith("eyelid")
         kinds = [False] if not is_eye else {"3d": [True], "2d": [False], "both": [False, True]}[eyelids]
         # the 2D correspondence (selection + arc-length matching), shared by the 2D and 3D outputs
-        base = None
         p0 = None
         for want3d in kinds:
             p0 = prev.get((name, ci, want3d))

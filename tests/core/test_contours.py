@@ -495,3 +495,30 @@ def test_silhouettes_far_from_the_tracked_curve_do_not_count(ict, ict_loops):
             corr = ct.match_contours(X, ict.faces, cams, [ct.TrackedCurve("mouth_lower", ci, P)], ict_loops)[0]
             assert corr.loop == k
             assert ct.contour_residuals(X, cams, [corr])[0].max() < 0.1
+
+
+def test_synthetic_tracker_follows_the_opening_not_the_lip_front_outline(ict, ict_loops):
+    """A pose where the lower lip's front outline (ring 13) has about as many inner silhouette edges as the
+    inner-lip line (ring 6): only the edges nearest the opening make the synthetic tracker's curve."""
+    from facelab_addon.core.capture_sim import helmet_cameras
+
+    w = {"browInnerUp_L": 0.496, "eyeBlink_L": 0.272, "eyeBlink_R": 0.596, "jawLeft": -0.049, "jawOpen": 0.526,
+         "mouthFunnel": 0.473, "mouthLowerDown_L": 0.209, "mouthLowerDown_R": 0.243, "mouthPucker": 0.066,
+         "mouthRollLower": 0.072, "mouthSmile_L": 0.548, "mouthSmile_R": 0.244, "mouthUpperUp_L": 0.085,
+         "mouthUpperUp_R": 0.18}
+    X = ict.pose(w)
+    cams = helmet_cameras()
+    lo, hi = ict_loops._pack.offsets["mouth_lower"]
+    curves = ct.synthetic_tracked_curves(X, ict.faces, cams, ict_loops, names=["mouth_lower"])
+    for cam, cv in zip(cams, curves):
+        inner = ct._half_counts(X, cam, ict_loops)[lo:hi]
+        env = ct._envelope_counts(X, cam, ict_loops)[lo:hi]
+        assert (env <= inner).all()
+        assert inner[13] >= 0.75 * inner.max() and env[13] <= 0.5 * inner[13]
+        # ring 13 lies below the chosen ring in the image, away from the opening
+        k = int(np.argmax(env))
+        assert k in (5, 6)
+        y = [cam.project(ct._eval_points(X, ict_loops.halves["mouth_lower"][j]))[:, 1].mean() for j in (k, 13)]
+        assert y[1] > y[0]
+        ends = cam.project(X[ict_loops.halves["mouth_lower"][k].chain[[0, -1]]])
+        np.testing.assert_allclose(cv.pixels[[0, -1]], ends, atol=1e-9)
