@@ -15,14 +15,15 @@ points that project onto them change as the lips roll. Following the paper:
    A loop is grown by one ring of triangles at a time, so it follows the
    mesh's edge flow (on ICT-FaceKit: 14 rings of 74 vertices around the
    mouth, 4 rings of 42-46 vertices around each eye).
-2. **Occluding contour** (:func:`select_occluding_loop`). Per frame and
+2. **Occluding contour** (:func:`select_occluding_loop` for whole loops;
+   :func:`match_contours` per half, as described here). Per frame and
    camera, the edge contour with the most *silhouette edges* (an edge shared
    by a triangle facing the camera and one facing away). Each loop is split at
    the two mouth (eye) corners into an upper and a lower half, and each
    tracked curve (upper lip, lower lip, upper lid, lower lid) chooses its half
    independently: on ICT-FaceKit the upper- and lower-lip silhouettes lie on
    different rings (neutral: rings 7 and 6; rolling the upper lip moves its
-   silhouette to ring 11), and so do the eyelid silhouettes (rings 1 and 2).
+   silhouette to ring 10), and so do the eyelid silhouettes (rings 1 and 2).
    The paper's "edge contour" is "a subset of connected edges from an
    edge-loop"; the half-loop is that subset. Only silhouette edges that can
    be the tracked line count: those bounding the opening (the lip lies on
@@ -857,7 +858,7 @@ def _near_curve_counts(idx, mid, loops: ContourLoops, lo, hi, C, tol):
     sel = (hid >= lo) & (hid < hi)
     if not sel.any():
         return np.zeros(hi - lo, dtype=np.int64)
-    Cs = C if len(C) <= 128 else np.concatenate([C[:: len(C) // 64], C[-1:]])
+    Cs = C if len(C) <= 128 else np.concatenate([C[:: len(C) // 64], C[-1:]])  # C may already be coarse
     M, h = mid[sel], hid[sel]
     box = ((M >= Cs.min(axis=0) - tol) & (M <= Cs.max(axis=0) + tol)).all(axis=1)  # cheap rejection first
     M, h = M[box], h[box]
@@ -1172,22 +1173,36 @@ def match_contours(
             if ci not in counts_cache:
                 if G is None:
                     G = _gather(V, loops)
-                counts_cache[ci] = _silhouettes(V, cam, loops, G)
-            sil_idx, sil_mid = counts_cache[ci][:2]
+                sil = _silhouettes(V, cam, loops, G)
+                n_all = np.bincount(loops._pack.hid[sil[0]], minlength=loops._pack.n_halves)
+                counts_cache[ci] = (sil[0], sil[1], n_all)
+            sil_idx, sil_mid, all_counts = counts_cache[ci]
             tol = max(2.0, curve_tolerance * S[-1])
-            counts = _near_curve_counts(sil_idx, sil_mid, loops, lo, hi, C, tol)
+            Cs = C if len(C) <= 128 else np.concatenate([C[:: len(C) // 64], C[-1:]])  # coarse, for ranking
             halves = loops.halves[name]
-            best = _candidates(counts, near_tie)
-            proj = {}
-            if len(best) > 1:
-                for kk in best:
-                    proj[int(kk)] = _project(Pm, _eval_points(V, halves[kk]), name)
-            k = _choose(counts, proj, C, p0.loop if p0 is not None else None, loops.default_loop[name], near_tie)
+            # shortcut: a clear winner by count whose matched points already lie along the curve needs no more
+            ic = all_counts[lo:hi]
+            k = int(np.argmax(ic))
+            s = None
+            if ic[k] > 0 and len(_candidates(ic, near_tie)) == 1:
+                P = _project(Pm, _eval_points(V, halves[k]), name)
+                s = _match_half(halves[k], P, C, S)
+                d = P - _eval_curve(C, S, s)
+                if np.median(d[:, 0] ** 2 + d[:, 1] ** 2) > tol * tol:
+                    s = None
+            if s is None:
+                counts = _near_curve_counts(sil_idx, sil_mid, loops, lo, hi, Cs, tol)
+                best = _candidates(counts, near_tie)
+                proj = {}
+                if len(best) > 1:
+                    for kk in best:
+                        proj[int(kk)] = _project(Pm, _eval_points(V, halves[kk]), name)
+                k = _choose(counts, proj, Cs, p0.loop if p0 is not None else None, loops.default_loop[name], near_tie)
+                P = proj.get(k)
+                if P is None:
+                    P = _project(Pm, _eval_points(V, halves[k]), name)
+                s = _match_half(halves[k], P, C, S)
             half = halves[k]
-            P = proj.get(k)
-            if P is None:
-                P = _project(Pm, _eval_points(V, half), name)
-            s = _match_half(half, P, C, S)
             pv, pb = half.vertices, half.bary
             t = s / S[-1]
         px = _eval_curve(C, S, s)
