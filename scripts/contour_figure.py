@@ -5,6 +5,8 @@ among them (red), the chosen occluding half-loops (yellow), a tracked curve (blu
 every contour point (green ticks), for a slightly open mouth with and without mouthRollUpper (the upper lip's occluding
 contour moves outward by several rings).
 
+Also the eyelids of the left eye (docs/images/contours_eyelids.png).
+
 Run:  PYTHONPATH=. .venv/bin/python scripts/contour_figure.py [out.png]
 """
 
@@ -75,5 +77,52 @@ def main(out="docs/images/contours_selection.png"):
     print(out)
 
 
+def eyelids(out="docs/images/contours_eyelids.png"):
+    """The left eye from the right helmet camera: eyelid loops, occluding halves, 3D targets on the eyeball."""
+    from facelab_addon.core.capture_sim import helmet_cameras
+
+    m = load_ict()
+    loops = ct.ict_contour_loops(m)
+    cam = helmet_cameras()[1]
+    fig, axes = plt.subplots(1, 2, figsize=(14, 5))
+    poses = {"neutral": {}, "eyeBlink 0.5 + eyeLookDown_L 0.4": {"eyeBlink_L": 0.5, "eyeLookDown_L": 0.4}}
+    for ax, (title, w) in zip(axes, poses.items()):
+        X = m.pose(w)
+        curves = ct.synthetic_tracked_curves(X, m.faces, [cam], loops, names=["eyelid_left_upper", "eyelid_left_lower"])
+        for c in curves:  # moved 3 px away from the lid so the pairing shows
+            c.pixels = c.pixels + [0.0, -3.0 if c.name.endswith("upper") else 3.0]
+        corr = ct.match_contours(X, m.faces, [cam], curves, loops, eyelids="both")
+        P = cam.project(X)
+        for lp in loops.eyes["left"]:
+            q = P[np.r_[lp, lp[:1]]]
+            ax.plot(q[:, 0], q[:, 1], color="0.7", lw=0.6)
+        for c in corr:
+            Xp = cam.project(c.evaluate(X))
+            if c.camera >= 0:
+                ax.plot(Xp[:, 0], Xp[:, 1], color="gold", lw=3)
+                for a, b in zip(Xp, c.pixels):
+                    ax.plot([a[0], b[0]], [a[1], b[1]], color="green", lw=0.7)
+            else:
+                T = cam.project(c.targets)
+                ax.plot(T[:, 0], T[:, 1], ".", color="magenta", ms=3)
+        for c in curves:
+            ax.plot(c.pixels[:, 0], c.pixels[:, 1], color="royalblue", lw=1)
+        cor = cam.project(X[loops.eye_corners["left"].ravel()])
+        ax.plot(cor[:, 0], cor[:, 1], "k.", ms=5)
+        box = P[np.concatenate(loops.eyes["left"])]
+        ax.set_xlim(box[:, 0].min() - 10, box[:, 0].max() + 10)
+        ax.set_ylim(box[:, 1].max() + 10, box[:, 1].min() - 10)
+        ax.set_aspect("equal")
+        rings = [c.loop for c in corr if c.camera >= 0]
+        ax.set_title(f"{title}: occluding halves on rings {rings}", fontsize=10)
+    fig.suptitle("Left eye, right helmet camera: 4 eyelid loops (grey), occluding halves (yellow), tracked curves "
+                 "(blue), correspondences (green),\n3D targets on the eyeball reprojected (magenta), corners (black)",
+                 fontsize=10)
+    fig.tight_layout()
+    fig.savefig(out, dpi=100)
+    print(out)
+
+
 if __name__ == "__main__":
     main(*sys.argv[1:])
+    eyelids()
