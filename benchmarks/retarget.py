@@ -114,6 +114,7 @@ def run(quick: bool = False, render: bool = True, samples: int = 24, png=None) -
     rows = []
     t_corr, t_ls = [], []
     frames_out = {}
+    eps = {}
     for t in range(T):
         corr = pout(V, center, amount[t])
         ta = time.perf_counter()
@@ -141,6 +142,7 @@ def run(quick: bool = False, render: bool = True, samples: int = 24, png=None) -
             talking_fraction=float(np.mean([ep.upper[1] - ep.upper[0], ep.lower[1] - ep.lower[0]])),
         ))
         frames_out[t] = (A, X0, X1)
+        eps[t] = ep
 
     # the artist's knob: a distance threshold lets the talking portion be longer than the actor's lips
     thresholds = {}
@@ -196,11 +198,15 @@ def run(quick: bool = False, render: bool = True, samples: int = 24, png=None) -
     )
     if not quick:
         res["different_topology_marker_correspondence"] = marker_correspondence_check(m, C)
-    if render:
-        gaps = np.array([r["actor_max_gap_mm"] for r in rows])
-        pick = [int(np.argmax(gaps)), int(np.argsort(gaps)[len(gaps) // 2])]
-        pick = sorted(set(pick), key=lambda i: -gaps[i])
-        png = Path(png) if png else ROOT / "docs" / "images" / "retarget_lipsync.png"
+    gaps = np.array([r["actor_max_gap_mm"] for r in rows])
+    pick = [int(np.argmax(gaps)), int(np.argsort(gaps)[len(gaps) // 2])]
+    pick = sorted(set(pick), key=lambda i: -gaps[i])
+    png = Path(png) if png else (None if quick else ROOT / "docs" / "images" / "retarget_lipsync.png")
+    if png is not None:
+        cpng = png.with_name(png.stem + "_contours.png")
+        contour_figure(frames_out, pick, rows, ac, cc, eps, cpng)
+        res["contour_picture"] = str(cpng.relative_to(ROOT)) if cpng.is_relative_to(ROOT) else str(cpng)
+    if render and png is not None:
         t0 = time.perf_counter()
         render_comparison(m, frames_out, pick, rows, png, samples=samples)
         res["picture"] = str(png.relative_to(ROOT)) if png.is_relative_to(ROOT) else str(png)
@@ -295,6 +301,40 @@ def render_comparison(m, frames_out, pick, rows, png, samples=16):
         im.quantize(colors=128, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE).save(png, optimize=True)
     except ImportError:
         pass
+
+
+def contour_figure(frames_out, pick, rows, ac, cc, end_points, png):
+    """Front view (x, y in mm) of the inner-lip contours: actor, creature by transfer, creature with lip sync."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from facelab_addon.core.retarget import contour_points
+
+    fig, axes = plt.subplots(len(pick), 1, figsize=(8.0, 3.4 * len(pick)))
+    axes = np.atleast_1d(axes)
+    for ax, t in zip(axes, pick):
+        A, X0, X1 = frames_out[t]
+        for X, cont, col, lab in ((X0, cc, "tab:blue", "creature: transfer only"),
+                                  (X1, cc, "tab:red", "creature: + lip sync"), (A, ac, "k", "actor")):
+            for j, ch in enumerate((cont.upper, cont.lower)):
+                ax.plot(X[ch, 0] * MM, X[ch, 1] * MM, "-", color=col, lw=1.6, label=lab if j == 0 else None)
+        ep = end_points[t]
+        for ch, f in ((cc.upper, ep.upper), (cc.lower, ep.lower)):
+            e, b, _ = contour_points(X0, ch, f)  # end points are placed on the transferred frame
+            P = b[:, :1] * X1[e[:, 0]] + b[:, 1:] * X1[e[:, 1]]
+            ax.plot(P[:, 0] * MM, P[:, 1] * MM, "o", color="tab:red", ms=5, mfc="w")
+        ax.set_title(f"frame {t}: talking portion {100 * rows[t]['talking_fraction']:.0f} % of the creature's lips "
+                     "(o = new end points)", fontsize=9)
+        ax.set_aspect("equal")
+        ax.set_xlabel("x (mm)")
+        ax.set_ylabel("y (mm)")
+    axes[0].legend(frameon=False, fontsize=8, loc="upper center", ncol=3, bbox_to_anchor=(0.5, -0.18))
+    fig.tight_layout()
+    png.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(png, dpi=80)
+    plt.close(fig)
 
 
 def build_blend(npz_path, blend_path):
