@@ -444,7 +444,7 @@ class BlendshapeSolver:
 
     # ------------------------------------------------------------------ solve
     def solve_frame(self, markers_px, bundles=None, curves=None, *, previous: FrameResult | None = None,
-                    iterations: int = 2, sliding: bool = True, tol: float = 1e-6) -> FrameResult:
+                    iterations: int = 1, sliding: bool = True, tol: float = 1e-6) -> FrameResult:
         """Fit the weights of one frame.
 
         Parameters
@@ -460,8 +460,9 @@ class BlendshapeSolver:
             The previous frame: warm start of the weights and initial contour
             correspondence (§4.2).
         iterations : int
-            Correspondence / solve alternations (each one re-linearises the
-            projective residuals at the current estimate).
+            Correspondence / solve alternations after the marker pre-fit (each
+            one re-linearises the projective residuals at the current
+            estimate). The paper finds one sufficient (§4.2); so do we.
         sliding : bool
             Sliding contours (paper); False keeps the previous correspondence
             (fixed contours, Fig. 6).
@@ -493,7 +494,8 @@ class BlendshapeSolver:
                 # markers/bundles first: the contour correspondence is then built on a close mesh
                 for _ in range(1 if previous is not None else 2):  # 2: re-linearise the depths from the neutral
                     w = self._solve_linear(w, *self._system(w, md, bd, None))
-            for it in range(max(1, int(iterations))):
+            n_it = max(1, int(iterations)) if use_curves else max(2, int(iterations))  # markers: re-linearise once
+            for it in range(n_it):
                 if use_curves:
                     from .contours import match_contours
 
@@ -736,7 +738,7 @@ class OutOfSubspaceCorrective:
 # --------------------------------------------------------------------------- sequence
 def solve_performance(solver: BlendshapeSolver, corrective: OutOfSubspaceCorrective | None, markers_px,
                       bundles=None, curves_per_frame=None, *, progress=None, sliding: bool = True,
-                      iterations: int = 2) -> PerformanceResult:
+                      iterations: int = 1) -> PerformanceResult:
     """Solve a whole sequence, warm-starting every frame from the previous one.
 
     Parameters
