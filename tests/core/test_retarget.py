@@ -188,5 +188,11 @@ def test_retargeter_copies_weights_transfers_correctives_and_applies_lip_sync():
                                actor_loop=loop_ids())
     np.testing.assert_allclose(res.correctives[0], c_ls, atol=1e-6)  # float32 storage
     np.testing.assert_allclose(res.weights, np.stack([w, 0 * w]))
+    # artist override on one frame, automatic end points on the other
+    res2 = retarget_performance(Va, F, deltas, np.stack([w, w]), Vc, F, actor_loop=loop_ids(), end_points={1: (0.2, 0.8)})
+    np.testing.assert_allclose(res2.end_points[1].upper, [0.2, 0.8])
+    _, auto = rt.frame(w)
+    np.testing.assert_allclose(res2.end_points[0].upper, auto["end_points"].upper)
+    assert np.abs(res2.correctives[1] - res2.correctives[0]).max() > 1e-3
     with pytest.raises(FaceLabError, match="shape keys"):
         Retargeter(Va, F, np.zeros((0,) + Va.shape), Vc, F, lip_sync=False)
