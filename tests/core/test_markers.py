@@ -1,7 +1,6 @@
 """Surface-point binding (Bhat et al. 2013 §4.1): ray cast and nearest point against hand-computed geometry."""
 
 import numpy as np
-import pytest
 
 from facelab_addon.core.camera import Camera
 from facelab_addon.core.markers import SurfacePoints, bind_surface_points, nearest_surface_points, ray_triangle_hits
