@@ -168,3 +168,22 @@ def test_bad_input_messages(ict, cap, deltas):
     with pytest.raises(FaceLabError, match="nothing to fit"):
         solver.solve_frame(np.full_like(cap.markers_px[0], np.nan))
     assert isinstance(solver.solve_frame(cap.markers_px[0]), FrameResult)
+
+
+def test_default_boundary_holds_the_border_and_parts_without_markers():
+    from facelab_addon.core.markers import SurfacePoints
+
+    # a 4x4-vertex grid (border: 12 vertices, interior: 4) plus a separate triangle with no marker
+    g = np.array([[x, y, 0.0] for y in range(4) for x in range(4)])
+    F = []
+    for y in range(3):
+        for x in range(3):
+            a = 4 * y + x
+            F += [[a, a + 1, a + 5], [a, a + 5, a + 4]]
+    V = np.vstack([g, [[10, 0, 0], [11, 0, 0], [10, 1, 0]]])
+    F = np.array(F + [[16, 17, 18]])
+    mk = SurfacePoints([[5, 6, 10]], [[1 / 3, 1 / 3, 1 / 3]])
+    b = OutOfSubspaceCorrective.default_boundary(V, F, mk, None)
+    interior = {5, 6, 9, 10}
+    assert set(np.flatnonzero(~b)) == interior
+    assert b[16:].all()
