@@ -1,8 +1,8 @@
 """Blender UI: properties, preferences, operators and panels (registered in this order)."""
 
-from . import ops, ops_propagate, ops_reconstruct, panel, prefs, props
+from . import ops, ops_propagate, ops_reconstruct, ops_solve, panel, panel_solve, prefs, props, props_solve
 
-modules = (props, prefs, ops, ops_propagate, ops_reconstruct, panel)
+modules = (props, props_solve, prefs, ops, ops_propagate, ops_reconstruct, ops_solve, panel_solve, panel)
 
 
 def register():

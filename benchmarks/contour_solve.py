@@ -1,0 +1,243 @@
+"""Benchmark: contour-based blendshape solve with out-of-subspace correctives (Bhat et al. 2013, §4).
+
+Set-up (``core.capture_sim``): ICT-FaceKit (26,719 vertices, centimetres), the
+rig is all 57 ICT expressions; a helmet-like stereo pair (1080x1920, f=1200 px,
+~20 cm in front of the face, left and right of the mouth); 80 painted markers
+on the skin projected into both cameras with 0.5 px Gaussian noise; the
+tracked inner-lip and eyelid curves are the truth's occluding contours
+(``contours.synthetic_tracked_curves``). The ground truth is a smooth ICT
+weight sequence plus a smooth out-of-subspace inner-lip error
+(``synthetic.inject_lip_error`` "gap", amount varying over the sequence), which
+the rig cannot express.
+
+Configurations:
+
+1. ``markers``: markers only;
+2. ``markers+contours``: markers plus sliding contours;
+3. ``markers+contours+corrective``: 2 plus the per-frame corrective ΔV;
+4. ``fixed_contours+corrective``: 3 with fixed contour correspondences
+   (``sliding=False``; the paper's Fig. 6 comparison);
+5. (extra) ``markers+contours+corrective_no_eyelid3d``: 3 with the 3D
+   eyelid-curve weight set to 0.
+
+Metrics (means over frames):
+
+* ``weight_mae`` / ``weight_max``: |w - w_truth| over all 57 weights;
+* ``vertex_mm_face`` / ``vertex_mm_lips``: mean 3D distance to the truth
+  over the skin (``M_Face``) and the inner lips (``synthetic.inner_lip_mask``);
+* ``marker_rms_px``: reprojection of the solved marker points against the
+  noisy tracks;
+* ``contour_rms_px``: RMS pixel distance from the contour points the solve
+  used (the occluding contour matched to each 2D mouth curve; for config 1,
+  matched on the final mesh) to the tracked curve polyline (sliding along the
+  curve is no error); ``contour_rms_px_rematched``: the same after selecting
+  and matching the occluding contour afresh on the final mesh (a contour
+  that moves to another edge loop after the corrective shows here);
+  ``contour_matched_point_rms_px``: distance to the arc-length matched curve
+  point; ``eyelid_rms_mm``: 3D eyelid residual;
+* ``ms_per_frame``: blendshape solve, corrective, total (median over frames,
+  first frame excluded; ``ms_per_frame_min``: the fastest frame; the machine
+  is shared, wall times are noisy); ``cpu_ms_*``: the same as process CPU
+  time (less sensitive to other jobs, but it exceeds the wall time when the
+  sparse solves use both cores).
+
+Targets: contour reprojection with the corrective < 1 px; <= 50 ms a frame
+without the corrective, <= 200 ms with it.
+
+Usage: ``PYTHONPATH=. python benchmarks/contour_solve.py [--frames N] [--quick]``
+(writes benchmarks/results/contour_solve.json and
+docs/images/contour_solve_bars.png).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+
+import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+from facelab_addon.core.blendshape_solve import (  # noqa: E402
+    BlendshapeSolver,
+    contour_curve_distance,
+    OutOfSubspaceCorrective,
+    solve_performance,
+)
+from facelab_addon.core.capture_sim import make_capture  # noqa: E402
+from facelab_addon.core.contours import contour_residuals, ict_contour_loops, match_contours  # noqa: E402
+from facelab_addon.core.ict import load_ict  # noqa: E402
+from facelab_addon.core.synthetic import ICT_MOUTH_LOOP, find_mouth, inner_lip_mask  # noqa: E402
+
+TARGET_CONTOUR_PX = 1.0
+TARGET_MS_NO_CORRECTIVE = 50.0
+TARGET_MS_CORRECTIVE = 200.0
+HERE = os.path.dirname(os.path.abspath(__file__))
+LABELS = ["1 markers", "2 +contours", "3 +corrective", "4 fixed contours", "5 = 3 w/o eyelid 3D"]
+ROOT = os.path.dirname(HERE)
+
+
+def evaluate(model, cap, loops, names, res, face, lip):
+    """Mean per-frame metrics of a solved sequence (``PerformanceResult``)."""
+    D = model.deltas(names)
+    W, Dc = res.weights, res.correctives
+    rows = []
+    for t in range(len(W)):
+        X = model.neutral + np.einsum("s,svd->vd", W[t], D)
+        if Dc is not None:
+            X = X + Dc[t]
+        err = np.linalg.norm(X - cap.truth[t], axis=1) * 10.0  # cm -> mm
+        mk = []
+        for c, cam in enumerate(cap.cameras):
+            px = cap.markers_px[t, c]
+            ok = np.isfinite(px).all(axis=1)
+            mk.append(np.linalg.norm(cam.project(cap.markers.evaluate(X)[ok]) - px[ok], axis=1))
+        fresh = match_contours(X, model.faces, cap.cameras, cap.curves[t], loops)
+        used = res.correspondences[t] if res.correspondences[t] else fresh
+        res_used = contour_residuals(X, cap.cameras, used)
+        c2 = [r for c, r in zip(used, res_used) if c.camera >= 0]
+        c3 = [r for c, r in zip(used, res_used) if c.camera < 0]
+        rms = lambda a: float(np.sqrt(np.mean(a ** 2))) if len(a) else float("nan")  # noqa: E731
+        rows.append(dict(
+            weight_mae=float(np.abs(W[t] - cap.weights[t]).mean()),
+            weight_max=float(np.abs(W[t] - cap.weights[t]).max()),
+            vertex_mm_face=float(err[face].mean()),
+            vertex_mm_lips=float(err[lip].mean()),
+            vertex_mm_lips_max=float(err[lip].max()),
+            marker_rms_px=rms(np.concatenate(mk)),
+            contour_rms_px=rms(contour_curve_distance(X, cap.cameras, used, cap.curves[t])),
+            contour_rms_px_rematched=rms(contour_curve_distance(X, cap.cameras, fresh, cap.curves[t])),
+            contour_matched_point_rms_px=rms(np.concatenate(c2)) if c2 else float("nan"),
+            eyelid_rms_mm=rms(np.concatenate(c3)) * 10.0 if c3 else float("nan"),
+        ))
+    return {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--frames", type=int, default=40)
+    ap.add_argument("--quick", action="store_true", help="8 frames")
+    ap.add_argument("--lip-error-mm", type=float, default=3.0)
+    ap.add_argument("--no-plot", action="store_true")
+    ap.add_argument("--corrective-units", choices=("scene", "pixels"), default="scene",
+                    help="2D corrective residuals as scene-unit ray distances (paper) or pixels")
+    ap.add_argument("--out", default=os.path.join(HERE, "results", "contour_solve.json"))
+    args = ap.parse_args(argv)
+    T = 8 if args.quick else args.frames
+
+    model = load_ict()
+    names = model.expression_names
+    t0 = time.perf_counter()
+    cap = make_capture(model, names=names, n_frames=T, n_markers=80, noise_px=0.5, seed=0,
+                       lip_error_mm=args.lip_error_mm, curves=True)
+    t_sim = time.perf_counter() - t0
+    loops = ict_contour_loops(model)
+    face = model.part_vertex_mask("M_Face")
+    mouth = find_mouth(model.neutral, model.faces, ~face, loop=ICT_MOUTH_LOOP)
+    lip = inner_lip_mask(model.neutral, model.faces, ~face, mouth=mouth)
+    D = model.deltas(names)
+
+    t0 = time.perf_counter()
+    solver = BlendshapeSolver(model.neutral, D, model.faces, cap.cameras, cap.markers, None, loops=loops)
+    t_solver = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    warm = np.concatenate(list(loops.mouth) + [x for v in loops.eyes.values() for x in v])
+    corrective = OutOfSubspaceCorrective(model.neutral, model.faces, cap.cameras, cap.markers, None,
+                                         boundary=~face, warm_vertices=warm,
+                                         pixel_units=args.corrective_units == "pixels")
+    t_corr = time.perf_counter() - t0
+
+    configs = {
+        "markers": dict(curves=False, corrective=False, sliding=True),
+        "markers+contours": dict(curves=True, corrective=False, sliding=True),
+        "markers+contours+corrective": dict(curves=True, corrective=True, sliding=True),
+        "fixed_contours+corrective": dict(curves=True, corrective=True, sliding=False),
+        # extra: the corrective without the 3D eyelid-on-cornea terms (they are approximate on ICT, see docs)
+        "markers+contours+corrective_no_eyelid3d": dict(curves=True, corrective=True, sliding=True, eyelid_weight=0.0),
+    }
+    out = {}
+    for name, cfg in configs.items():
+        corrective.eyelid_weight = cfg.get("eyelid_weight", 0.5)
+        res = solve_performance(solver, corrective if cfg["corrective"] else None, cap.markers_px, None,
+                                cap.curves if cfg["curves"] else None, sliding=cfg["sliding"])
+        m = evaluate(model, cap, loops, names, res, face, lip)
+        fr = [f for f in res.info["frames"] if f is not None][1:]
+        ms_bs = 1000 * float(np.median([f["time_s"] for f in fr]))
+        ms_c = 1000 * float(np.median([f.get("corrective_time_s", 0.0) for f in fr]))
+        ms_tot = 1000 * float(np.median([f["time_s"] + f.get("corrective_time_s", 0.0) for f in fr]))
+        cpu = [f["cpu_s"] + f.get("corrective_cpu_s", 0.0) for f in fr]
+        m.update(cpu_ms_blendshape=1000 * float(np.median([f["cpu_s"] for f in fr])),
+                 cpu_ms_corrective=1000 * float(np.median([f.get("corrective_cpu_s", 0.0) for f in fr])),
+                 cpu_ms_per_frame=1000 * float(np.median(cpu)))
+        m.update(ms_blendshape=ms_bs, ms_corrective=ms_c, ms_per_frame=ms_tot,
+                 ms_per_frame_min=1000 * float(min(f["time_s"] + f.get("corrective_time_s", 0.0) for f in fr)),
+                 ms_per_frame_max=1000 * float(max(f["time_s"] + f.get("corrective_time_s", 0.0) for f in fr)),
+                 skipped=len(res.skipped))
+        target = TARGET_MS_CORRECTIVE if cfg["corrective"] else TARGET_MS_NO_CORRECTIVE
+        m["ms_ratio_to_target"] = ms_tot / target
+        m["cpu_ms_ratio_to_target"] = m["cpu_ms_per_frame"] / target
+        if cfg["corrective"]:
+            m["contour_px_ratio_to_target"] = m["contour_rms_px"] / TARGET_CONTOUR_PX
+        out[name] = m
+
+    result = dict(
+        benchmark="contour_solve",
+        paper="Bhat et al. 2013, High fidelity facial animation capture and retargeting with contours, §4",
+        setup=dict(frames=T, vertices=int(len(model.neutral)), shapes=len(names), markers=len(cap.markers),
+                   cameras=len(cap.cameras), image=[cap.cameras[0].width, cap.cameras[0].height],
+                   noise_px=0.5, lip_error_mm_peak=args.lip_error_mm, corrective_units=args.corrective_units,
+                   corrective_free_vertices=int((~corrective.boundary).sum()), inner_lip_vertices=int(lip.sum()),
+                   seconds=dict(simulate=t_sim, solver_init=t_solver, corrective_factor_and_warm=t_corr)),
+        targets=dict(contour_px_with_corrective=TARGET_CONTOUR_PX, ms_without_corrective=TARGET_MS_NO_CORRECTIVE,
+                     ms_with_corrective=TARGET_MS_CORRECTIVE),
+        configs=out,
+        machine=dict(python=platform.python_version(), cpu_count=os.cpu_count(),
+                     note="2 cores shared with other jobs: times are noisy"),
+    )
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+    with open(args.out, "w") as fh:
+        json.dump(result, fh, indent=2)
+    if not args.no_plot:
+        plot(out, os.path.join(ROOT, "docs", "images", "contour_solve_bars.png"))
+    print(json.dumps(result, indent=2))
+
+
+def plot(out, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    keys = [("vertex_mm_face", "face error (mm)"), ("vertex_mm_lips", "inner-lip error (mm)"),
+            ("marker_rms_px", "marker reproj. (px)"), ("contour_rms_px", "contour reproj. (px)"),
+            ("ms_per_frame", "wall time / frame (ms, median)")]
+    names = list(out)
+    colors = ["#888888", "#4c72b0", "#55a868", "#c44e52", "#8172b2"]
+    fig, axes = plt.subplots(1, len(keys), figsize=(17, 3.8))
+    for ax, (k, label) in zip(axes, keys):
+        vals = [out[n][k] for n in names]
+        ax.bar(range(len(names)), vals, color=colors)
+        ax.set_title(label, fontsize=10)
+        ax.set_xticks(range(len(names)))
+        ax.set_xticklabels(LABELS[:len(names)], rotation=30, fontsize=8, ha="right")
+        for i, v in enumerate(vals):
+            ax.text(i, v, f"{v:.2f}" if v < 10 else f"{v:.0f}", ha="center", va="bottom", fontsize=8)
+        if k == "contour_rms_px":
+            ax.axhline(TARGET_CONTOUR_PX, color="k", ls="--", lw=0.8)
+        if k == "ms_per_frame":
+            ax.axhline(TARGET_MS_NO_CORRECTIVE, color="k", ls=":", lw=0.8)
+            ax.axhline(TARGET_MS_CORRECTIVE, color="k", ls="--", lw=0.8)
+    fig.suptitle("Contour solve on ICT-FaceKit (Bhat et al. 2013), 40 frames: dashed lines = targets",
+                 fontsize=11)
+    fig.tight_layout()
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,189 @@
+"""Blendshape fit and out-of-subspace corrective (Bhat et al. 2013 §4.1-4.3) against generated ground truth."""
+
+import numpy as np
+import pytest
+from scipy.optimize import lsq_linear
+
+from facelab_addon.core.blendshape_solve import (
+    BlendshapeSolver,
+    FrameResult,
+    OutOfSubspaceCorrective,
+    box_least_squares,
+    contour_curve_distance,
+    solve_performance,
+)
+from facelab_addon.core.capture_sim import make_capture
+from facelab_addon.core.errors import FaceLabError
+from facelab_addon.core.markers import nearest_surface_points
+
+NAMES = ["jawOpen", "mouthSmile_L", "mouthSmile_R", "mouthFunnel", "mouthPucker", "browInnerUp_L", "eyeBlink_L",
+         "jawLeft", "mouthLowerDown_L"]
+
+
+@pytest.fixture(scope="module")
+def cap(ict):
+    return make_capture(ict, names=NAMES, n_frames=4, n_markers=60, noise_px=0.5, seed=1, curves=False)
+
+
+@pytest.fixture(scope="module")
+def deltas(ict):
+    return ict.deltas(NAMES)
+
+
+def test_box_least_squares_matches_bvls_and_kkt():
+    rng = np.random.default_rng(0)
+    for trial in range(5):
+        J = rng.normal(size=(40, 12))
+        w_true = rng.uniform(-2.0, 2.0, 12)  # several outside the box
+        r = J @ w_true + 0.1 * rng.normal(size=40)
+        H, g = J.T @ J, J.T @ r
+        w, _ = box_least_squares(H, g, -1.0, 1.0, w0=rng.uniform(-1, 1, 12))
+        ref = lsq_linear(J, r, bounds=(-1.0, 1.0), method="bvls", tol=1e-14).x
+        np.testing.assert_allclose(w, ref, atol=1e-9)
+        grad = H @ w - g
+        free = (w > -1 + 1e-12) & (w < 1 - 1e-12)
+        assert np.abs(grad[free]).max(initial=0) < 1e-8
+        assert (grad[w <= -1 + 1e-12] >= -1e-8).all() and (grad[w >= 1 - 1e-12] <= 1e-8).all()
+        assert (np.abs(w) == 1.0).any()
+
+
+def test_markers_give_back_the_true_weights_without_noise(ict, cap, deltas):
+    solver = BlendshapeSolver(ict.neutral, deltas, ict.faces, cap.cameras, cap.markers, None, regularization=0.0)
+    prev = None
+    for t in range(len(cap.weights)):
+        res = solver.solve_frame(cap.markers_px_clean[t], previous=prev, iterations=4)
+        np.testing.assert_allclose(res.weights, cap.weights[t], atol=1e-6)
+        assert res.info["marker_rms_px"] < 1e-5
+        prev = res
+
+
+def test_bundles_give_back_the_true_weights(ict, cap, deltas):
+    X = cap.markers.evaluate(ict.neutral)
+    bundles = nearest_surface_points(ict.neutral, ict.faces, X)
+    np.testing.assert_allclose(bundles.evaluate(ict.neutral), X, atol=1e-9)
+    solver = BlendshapeSolver(ict.neutral, deltas, ict.faces, cap.cameras, None, bundles, regularization=0.0)
+    B = bundles.evaluate(cap.truth[2])
+    B[::7] = np.nan  # some bundles not reconstructed on this frame
+    res = solver.solve_frame(None, B)
+    np.testing.assert_allclose(res.weights, cap.weights[2], atol=1e-8)
+    assert res.info["bundles_used"] == len(B) - len(B[::7])
+
+
+def test_bounds_clip_and_the_solution_stays_optimal(ict, cap, deltas):
+    w_true = cap.weights[1].copy()
+    w_true[NAMES.index("jawOpen")] = 1.6
+    w_true[NAMES.index("mouthSmile_L")] = -1.4
+    V = ict.neutral + np.einsum("s,svd->vd", w_true, deltas)
+    X = cap.markers.evaluate(V)
+    px = np.stack([c.project(X) for c in cap.cameras])
+    solver = BlendshapeSolver(ict.neutral, deltas, ict.faces, cap.cameras, cap.markers, None, regularization=0.0)
+    res = solver.solve_frame(px, iterations=6)
+    w = res.weights
+    assert w[NAMES.index("jawOpen")] == 1.0 and w[NAMES.index("mouthSmile_L")] == -1.0
+    assert (w >= -1.0).all() and (w <= 1.0).all()
+    assert res.info["marker_rms_px"] > 1.0  # the truth is outside the box: it cannot be matched
+    # optimal for the (converged) linearisation: the same as SciPy's bounded least squares
+    J, r = solver.linear_system(w, px)
+    ref = lsq_linear(J, r, bounds=(-1.0, 1.0), method="bvls", tol=1e-14).x
+    np.testing.assert_allclose(w, ref, atol=1e-6)
+
+
+def test_corrective_is_zero_when_constraints_hold_and_fits_them_when_not(ict, cap, deltas):
+    face = ict.part_vertex_mask("M_Face")
+    corr = OutOfSubspaceCorrective(ict.neutral, ict.faces, cap.cameras, cap.markers, None, boundary=~face)
+    Vb = cap.truth[0]  # in the rig's span: the markers are met exactly
+    d = corr.solve(Vb, cap.markers_px_clean[0])
+    assert np.abs(d).max() < 1e-7  # scene units (cm): 1e-6 mm
+    # a smooth out-of-subspace bump on the cheek: move the marker tracks, the corrective follows them
+    c = ict.neutral[face].mean(axis=0) + np.array([3.0, -2.0, 2.0])
+    bump = np.exp(-np.sum((Vb - c) ** 2, axis=1) / 4.0)[:, None] * np.array([0.0, 0.0, 0.3])
+    bump[~face] = 0.0
+    X = cap.markers.evaluate(Vb + bump)
+    px = np.stack([cam.project(X) for cam in cap.cameras])
+    strong = OutOfSubspaceCorrective(ict.neutral, ict.faces, cap.cameras, cap.markers, None, boundary=~face,
+                                     marker_weight=1e5)
+    d = strong.solve(Vb, px)
+    Y = cap.markers.evaluate(Vb + d)
+    err = np.concatenate([np.linalg.norm(cam.project(Y) - px[i], axis=1) for i, cam in enumerate(cap.cameras)])
+    before = np.concatenate([np.linalg.norm(cam.project(cap.markers.evaluate(Vb)) - px[i], axis=1)
+                             for i, cam in enumerate(cap.cameras)])
+    assert before.max() > 5.0 and err.max() < 0.05
+    # the fixed boundary does not move at all
+    assert np.abs(d[~face]).max() == 0.0
+    assert np.abs(d[face]).max() > 0.05
+
+
+def test_contours_recover_the_truth(ict, deltas):
+    from facelab_addon.core.contours import ict_contour_loops
+
+    cap = make_capture(ict, names=NAMES, n_frames=2, n_markers=40, noise_px=0.0, seed=2, curves=True)
+    loops = ict_contour_loops(ict)
+    solver = BlendshapeSolver(ict.neutral, deltas, ict.faces, cap.cameras, cap.markers, None, loops=loops,
+                              regularization=0.0)
+    prev = None
+    for t in range(2):
+        # mouth curves: exact in the rig's span (the eyelid curves are lifted onto a fitted eyeball
+        # sphere, an approximation of the lid margin: checked loosely below)
+        mouth = [c for c in cap.curves[t] if c.name.startswith("mouth")]
+        assert len(mouth) == 4
+        res = solver.solve_frame(cap.markers_px_clean[t], None, mouth, previous=prev, iterations=3)
+        prev = res
+        assert len(res.correspondences) == 4
+        np.testing.assert_allclose(res.weights, cap.weights[t], atol=2e-3)
+        V = solver.vertices(res.weights)
+        assert contour_curve_distance(V, cap.cameras, res.correspondences, cap.curves[t]).max() < 0.1
+    res = solver.solve_frame(cap.markers_px_clean[1], None, cap.curves[1], previous=prev, iterations=3)
+    assert len(res.correspondences) > 4  # eyelid 3D blocks may drop grazing points (contours.md)
+    np.testing.assert_allclose(res.weights, cap.weights[1], atol=0.05)
+    # the partial evaluation used for matching agrees with the full mesh where matching looks
+    w = cap.weights[0]
+    np.testing.assert_allclose(solver._partial_vertices(w)[solver._need], solver.vertices(w)[solver._need])
+
+
+def test_solve_performance_skips_frames_without_data_and_counts_offscreen(ict, cap, deltas):
+    mp = cap.markers_px_clean.copy()
+    mp[1] = np.nan  # nothing tracked on frame 1
+    mp[2, 0, :5] = [5000.0, 5000.0]  # 5 markers off-screen in camera 0
+    solver = BlendshapeSolver(ict.neutral, deltas, ict.faces, cap.cameras, cap.markers, None, regularization=0.0)
+    seen = []
+    res = solve_performance(solver, None, mp, progress=lambda i, n: seen.append((i, n)))
+    assert list(res.skipped) == [1] and "no tracked markers" in res.skipped[1]
+    assert np.isnan(res.weights[1]).all()
+    np.testing.assert_allclose(res.weights[[0, 2, 3]], cap.weights[[0, 2, 3]], atol=1e-6)
+    assert res.info["offscreen_markers"] == {2: 5}
+    assert seen == [(i, 4) for i in range(4)]
+    assert res.correctives is None
+
+
+def test_bad_input_messages(ict, cap, deltas):
+    with pytest.raises(FaceLabError, match="calibration"):
+        BlendshapeSolver(ict.neutral, deltas, ict.faces, [object()], cap.markers, None)
+    with pytest.raises(FaceLabError, match="shape keys"):
+        BlendshapeSolver(ict.neutral, np.zeros((0, len(ict.neutral), 3)), ict.faces, cap.cameras, cap.markers, None)
+    solver = BlendshapeSolver(ict.neutral, deltas, ict.faces, cap.cameras, cap.markers, None)
+    with pytest.raises(FaceLabError, match="expected"):
+        solver.solve_frame(cap.markers_px[0][:, :10])
+    with pytest.raises(FaceLabError, match="contour loops"):
+        solver.solve_frame(cap.markers_px[0], None, [object()])
+    with pytest.raises(FaceLabError, match="nothing to fit"):
+        solver.solve_frame(np.full_like(cap.markers_px[0], np.nan))
+    assert isinstance(solver.solve_frame(cap.markers_px[0]), FrameResult)
+
+
+def test_default_boundary_holds_the_border_and_parts_without_markers():
+    from facelab_addon.core.markers import SurfacePoints
+
+    # a 4x4-vertex grid (border: 12 vertices, interior: 4) plus a separate triangle with no marker
+    g = np.array([[x, y, 0.0] for y in range(4) for x in range(4)])
+    F = []
+    for y in range(3):
+        for x in range(3):
+            a = 4 * y + x
+            F += [[a, a + 1, a + 5], [a, a + 5, a + 4]]
+    V = np.vstack([g, [[10, 0, 0], [11, 0, 0], [10, 1, 0]]])
+    F = np.array(F + [[16, 17, 18]])
+    mk = SurfacePoints([[5, 6, 10]], [[1 / 3, 1 / 3, 1 / 3]])
+    b = OutOfSubspaceCorrective.default_boundary(V, F, mk, None)
+    interior = {5, 6, 9, 10}
+    assert set(np.flatnonzero(~b)) == interior
+    assert b[16:].all()

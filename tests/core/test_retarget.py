@@ -1,0 +1,198 @@
+"""Lip-sync retargeting heuristic (Bhat et al. 2013 §5.1, Fig. 8) on hand-built elliptic mouths."""
+
+import numpy as np
+import pytest
+
+from facelab_addon.core.errors import FaceLabError, RegionError
+from facelab_addon.core.retarget import (
+    EndPoints,
+    LipSync,
+    Retargeter,
+    contour_points,
+    end_points_from_vertices,
+    lip_contours,
+    lip_distances,
+    lip_sync_end_points,
+    retarget_performance,
+    widen_mouth,
+)
+
+N = 40  # vertices around the mouth (corners at angles 0 and pi)
+
+
+def mouth_mesh(a, b=0.3, rings=8, dr=0.3):
+    """Planar face patch with an elliptic mouth hole of half-width ``a``, half-height ``b``.
+
+    Ring 0 (vertices 0..N-1) is the inner-lip loop; angle 0 is the right corner (x = +a), pi the left.
+    The patch bulges a little in z so it is not flat.
+    """
+    th = 2 * np.pi * np.arange(N) / N
+    V = []
+    for k in range(rings + 1):
+        r = 1.0 + k * dr
+        V.append(np.c_[a * r * np.cos(th), b * r * np.sin(th) * (1 + 0.5 * k), 0.1 * np.sin(0.3 * k) * np.ones(N)])
+    V = np.concatenate(V)
+    F = []
+    for k in range(rings):
+        for j in range(N):
+            p, q = k * N + j, k * N + (j + 1) % N
+            F += [[p, q, q + N], [p, q + N, p + N]]
+    return V, np.array(F, dtype=np.int64)
+
+
+def open_mouth(V, amount):
+    """Open the lips: move vertices near the loop vertically, most in the middle (like a jaw drop)."""
+    X = V.copy()
+    a = np.abs(V[:N, 0]).max()
+    r = np.hypot(V[:, 0] / a, V[:, 1] / np.abs(V[:N, 1]).max())
+    mid = np.clip(1 - (V[:, 0] / a) ** 2, 0, None)
+    X[:, 1] += np.sign(V[:, 1]) * amount * mid * np.exp(-2 * (r - 1) ** 2)
+    return X
+
+
+def loop_ids():
+    return np.arange(N)
+
+
+def arc_between(X, chain, f0, f1):
+    """Arc length of a contour between two fractions (independent of contour_points' internals)."""
+    s = np.r_[0, np.cumsum(np.linalg.norm(np.diff(X[chain], axis=0), axis=1))]
+    q0, q1 = f0 * s[-1], f1 * s[-1]
+    inner = (s > q0) & (s < q1)
+    pts = np.r_[[np.interp(q0, s, X[chain, d]) for d in range(3)]][None]
+    pts = np.r_[pts, X[chain[inner]], np.r_[[np.interp(q1, s, X[chain, d]) for d in range(3)]][None]]
+    return np.linalg.norm(np.diff(pts, axis=0), axis=1).sum()
+
+
+def test_lip_contours_split_the_loop_at_the_corners():
+    V, F = mouth_mesh(2.0)
+    rng = np.random.default_rng(0)
+    c = lip_contours(V, F, rng.permutation(loop_ids()))  # a selection in any order
+    assert c.corners.tolist() == [N // 2, 0]  # left corner x = -a (angle pi), right x = +a
+    assert len(c.upper) == len(c.lower) == N // 2 + 1
+    assert (V[c.upper[1:-1], 1] > 0).all() and (V[c.lower[1:-1], 1] < 0).all()
+    assert np.all(np.diff(V[c.upper, 0]) > 0) and np.all(np.diff(V[c.lower, 0]) > 0)  # left to right
+    # explicit corners are honoured (and ordered left/right)
+    c2 = lip_contours(V, F, loop_ids(), corners=[0, N // 2])
+    assert c2.corners.tolist() == [N // 2, 0]
+    with pytest.raises(RegionError, match="corners"):
+        lip_contours(V, F, loop_ids(), corners=[0, N + 3])
+
+
+def test_contour_points_interpolate_by_arc_length():
+    V, F = mouth_mesh(2.0)
+    c = lip_contours(V, F, loop_ids())
+    e, b, p = contour_points(V, c.upper, [0.0, 0.5, 1.0])
+    np.testing.assert_allclose(p[0], V[c.upper[0]])
+    np.testing.assert_allclose(p[2], V[c.upper[-1]])
+    np.testing.assert_allclose(p[1], [0.0, 0.3, 0.0], atol=1e-12)  # top of the symmetric ellipse
+    np.testing.assert_allclose(b.sum(1), 1.0)
+
+
+@pytest.mark.parametrize("threshold", [0.0, 0.5])
+def test_end_points_give_a_talking_portion_as_long_as_the_actor_lips(threshold):
+    Va, F = mouth_mesh(1.0)
+    Vc, _ = mouth_mesh(2.2)
+    A, C = open_mouth(Va, 0.3), open_mouth(Vc, 0.3)
+    ac, cc = lip_contours(Va, F, loop_ids()), lip_contours(Vc, F, loop_ids())
+    ep = lip_sync_end_points(A, ac, C, cc, threshold=threshold)
+    for lip in ("upper", "lower"):
+        la = arc_between(A, getattr(ac, lip), 0.0, 1.0)
+        lc = arc_between(C, getattr(cc, lip), 0.0, 1.0)
+        talk = arc_between(C, getattr(cc, lip), *getattr(ep, lip))
+        assert lc > la + 1.0
+        assert abs(talk - (la + threshold)) < 1e-9 * lc
+        f = getattr(ep, lip)
+        assert abs(f[0] - (1 - f[1])) < 1e-12  # centred
+    # a creature mouth no longer than the actor's (plus threshold) keeps its corners
+    ep2 = lip_sync_end_points(A, ac, A, ac, threshold=threshold)
+    np.testing.assert_allclose(ep2.upper, [0, 1])
+    np.testing.assert_allclose(ep2.lower, [0, 1])
+
+
+def _scene():
+    Va, F = mouth_mesh(1.0)
+    Vc, _ = mouth_mesh(2.2)
+    A = open_mouth(Va, 0.4)  # actor talks: lips apart in the middle, closed at the corners
+    C = open_mouth(Vc, 0.4)  # deformation-transferred creature: its whole wide mouth opens
+    ac, cc = lip_contours(Va, F, loop_ids()), lip_contours(Vc, F, loop_ids())
+    return Va, Vc, F, A, C, ac, cc
+
+
+def test_lip_sync_matches_the_actor_distances_and_seals_the_sides():
+    Va, Vc, F, A, C, ac, cc = _scene()
+    ls = LipSync(Vc, F, cc, ac)
+    X, info = ls.solve(A, C)
+    ep = info["end_points"]
+    assert 0.1 < ep.upper[0] < 0.4  # the creature is 2.2x wider: a good part of each side is sealed
+    before = lip_distances(A, ac, C, cc, ep)
+    after = lip_distances(A, ac, X, cc, ep, reference=C)
+    opening = before["actor"].max()
+    assert before["abs_diff"].max() > 0.25 * opening  # without the heuristic the lip shape is wrong
+    assert before["sealed"].max() > 0.2 * opening
+    assert after["abs_diff"].mean() < 0.02 * opening  # 73 % before
+    assert after["abs_diff"].max() < 0.04 * opening
+    assert after["sealed"].max() < 0.03 * opening  # zero length from each corner to its new end point
+    # the constraints hold where they were placed: every (upper, lower) pair
+    cons = ls.constraints(A, C, ep)
+    res = np.einsum("ck,ckd->cd", cons.bary, X[cons.vertices]) - cons.targets
+    assert np.linalg.norm(res, axis=1).max() < 0.03 * opening
+    # far from the mouth nothing moves
+    far = ~ls.free
+    assert far.any() and np.abs(X[far] - C[far]).max() == 0.0
+
+
+def test_artist_end_points_override_the_automatic_ones():
+    Va, Vc, F, A, C, ac, cc = _scene()
+    ls = LipSync(Vc, F, cc, ac)
+    left, right = cc.upper[3], cc.lower[-4]  # three edges in from each corner
+    ep = end_points_from_vertices(C, cc, left, right)
+    s = np.r_[0, np.cumsum(np.linalg.norm(np.diff(C[cc.upper], axis=0), axis=1))]
+    assert abs(ep.upper[0] - s[3] / s[-1]) < 1e-12
+    X, info = ls.solve(A, C, end_points=ep)
+    assert info["end_points"] is ep
+    after = lip_distances(A, ac, X, cc, ep, reference=C)
+    opening = after["actor"].max()
+    assert after["abs_diff"].mean() < 0.02 * opening and after["sealed"].max() < 0.03 * opening
+    # plain fractions work too
+    X2, info2 = ls.solve(A, C, end_points=(0.2, 0.8))
+    np.testing.assert_allclose(info2["end_points"].lower, [0.2, 0.8])
+    with pytest.raises(FaceLabError, match="end points"):
+        EndPoints([0.6, 0.4], [0.1, 0.9])
+    with pytest.raises(FaceLabError, match="not on the creature"):
+        end_points_from_vertices(C, cc, N + 1, 0)
+
+
+def test_retargeter_copies_weights_transfers_correctives_and_applies_lip_sync():
+    Va, F = mouth_mesh(1.0)
+    Vc = widen_mouth(Va, [0, 0, 0], factor=1.8, sigma=(1.5, 1.0, 1.0))
+    assert np.abs(Vc[0, 0]) > 1.4  # the corner moved out
+    deltas = np.stack([open_mouth(Va, 0.4) - Va, np.c_[np.zeros(len(Va)), np.zeros(len(Va)), 0.1 * Va[:, 0]]])
+    rt = Retargeter(Va, F, deltas, Vc, F, actor_loop=loop_ids())
+    assert rt.creature_deltas.shape == (2,) + Vc.shape
+    w = np.array([1.0, 0.5])
+    corr = 0.01 * np.sin(Va)
+    c_off, _ = rt.frame(w, corr, lip_sync=False)
+    # without lip sync: the corrective is the exact transfer of the corrective on this frame's blendshapes ...
+    base = np.tensordot(w, deltas, 1)
+    np.testing.assert_allclose(c_off, rt.transfer.transfer(Va + base + corr) - rt.transfer.transfer(Va + base),
+                               atol=1e-12)
+    # ... and copied weights plus corrective give the transfer of the whole actor frame up to the small
+    # non-linearity of the phantom-vertex normals (the transfer is exactly linear only in the in-plane part)
+    full = rt.transfer.transfer(Va + base + corr)
+    motion = np.abs(full - Vc).max()
+    assert np.abs(Vc + np.tensordot(w, rt.creature_deltas, 1) + c_off - full).max() < 1e-3 * motion
+    c_ls, info = rt.frame(w, corr)
+    assert info["end_points"] is not None and np.abs(c_ls - c_off).max() > 1e-3
+    res = retarget_performance(Va, F, deltas, np.stack([w, 0 * w]), Vc, F, correctives=np.stack([corr, 0 * corr]),
+                               actor_loop=loop_ids())
+    np.testing.assert_allclose(res.correctives[0], c_ls, atol=1e-6)  # float32 storage
+    np.testing.assert_allclose(res.weights, np.stack([w, 0 * w]))
+    # artist override on one frame, automatic end points on the other
+    res2 = retarget_performance(Va, F, deltas, np.stack([w, w]), Vc, F, actor_loop=loop_ids(), end_points={1: (0.2, 0.8)})
+    np.testing.assert_allclose(res2.end_points[1].upper, [0.2, 0.8])
+    _, auto = rt.frame(w)
+    np.testing.assert_allclose(res2.end_points[0].upper, auto["end_points"].upper)
+    assert np.abs(res2.correctives[1] - res2.correctives[0]).max() > 1e-3
+    with pytest.raises(FaceLabError, match="shape keys"):
+        Retargeter(Va, F, np.zeros((0,) + Va.shape), Vc, F, lip_sync=False)
