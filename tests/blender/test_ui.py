@@ -13,10 +13,11 @@ from facelab_addon.ui import ops, ops_propagate, panel, prefs
 pytestmark = pytest.mark.blender
 
 OPERATORS = ["new_lip_sketch", "refine_lips", "auto_regions", "mark_training_frame", "remove_training_frame",
-             "jump_training_frame", "jump_to_frame", "propagate", "bake", "reconstruct_from_bundles"]
+             "jump_training_frame", "jump_to_frame", "propagate", "bake", "reconstruct_from_bundles",
+             "bind_tracks", "solve_performance", "retarget"]
 # operators that change the scene: they must support undo
 UNDOABLE = ["new_lip_sketch", "refine_lips", "auto_regions", "mark_training_frame", "remove_training_frame",
-            "propagate", "reconstruct_from_bundles"]
+            "propagate", "reconstruct_from_bundles", "bind_tracks", "solve_performance", "retarget"]
 PANELS = ["FACELAB_PT_main", "FACELAB_PT_setup", "FACELAB_PT_sketch", "FACELAB_PT_propagate", "FACELAB_PT_solve",
           "FACELAB_PT_reconstruct", "FACELAB_PT_bake"]
 
@@ -117,9 +118,13 @@ def test_with_a_face_polls_and_messages(addon):
         "propagate": False,  # no training frames
         "bake": True,
         "reconstruct_from_bundles": True,
+        "bind_tracks": False,  # no tracking views yet
+        "solve_performance": False,  # no tracking views yet
+        "retarget": False,  # no creature picked
     }
     for op, msg in (("refine_lips", "camera"), ("new_lip_sketch", "camera"), ("propagate", "Correct at least one"),
-                    ("remove_training_frame", "No training frames"), ("jump_training_frame", "No training frames")):
+                    ("remove_training_frame", "No training frames"), ("jump_training_frame", "No training frames"),
+                    ("bind_tracks", "Add a view"), ("solve_performance", "Add a view"), ("retarget", "creature")):
         with pytest.raises(RuntimeError, match=msg):
             getattr(bpy.ops.facelab, op)()
     # a camera enables the sketch; Edit Mode disables Refine with a reason
