@@ -29,7 +29,8 @@ Build once (:class:`GeometricIndexer`), then reconstruct every frame:
   ``min_tets_per_point`` tetrahedra. Flat clouds use triangles, two-point
   clouds a segment. ``stats`` says how many are kept and their memory.
 * **Uniform grid** per bundle ([18, 32]) for point-in-tetrahedron queries
-  (float32 affine maps screen the candidates, float64 weights decide).
+  (float32 bounding boxes screen the candidates, precomputed float64 affine
+  maps give the barycentric weights).
 * **Eq. 1**: the chosen tetrahedron's barycentric weights blend its four
   shapes. When no tetrahedron holds the bundle it is projected to the closest
   point of the tetrahedralized volume (§4): the closest facet of the cloud's
@@ -91,6 +92,7 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from .errors import BundleError, DatasetError, FaceLabError, MeshError  # noqa: F401
+from .linsolve import small_dense_threads
 from .mesh import validate_mesh
 from .natural_neighbor import gaussian_rbf_weights, natural_neighbor_weights, surface_points
 
@@ -197,8 +199,10 @@ class JawRig:
         X = np.asarray(X, dtype=np.float64)
         w = self.weights if weights is None else np.asarray(weights, dtype=np.float64)
         R, t = self.transform(theta)
-        Y = X @ R.T + t
-        return X + w[:, None] * (Y - X)
+        # (X R^T + t - X) without BLAS: a (V,3)x(3,3) product would wake multithreaded BLAS, whose
+        # spinning threads cost more than the product on a busy machine
+        D = X[:, :1] * (R[:, 0] - [1, 0, 0]) + X[:, 1:2] * (R[:, 1] - [0, 1, 0]) + X[:, 2:] * (R[:, 2] - [0, 0, 1]) + t
+        return X + w[:, None] * D
 
     def unskin(self, X, theta, weights=None):
         """Invert :meth:`skin`: ``T_v(theta)^-1 x`` at every point.
@@ -840,9 +844,8 @@ class GeometricIndexer:
         self.tet_bundle = np.repeat(np.arange(B), counts).astype(np.int32)
         Xt = P[self.tets, self.tet_bundle[:, None]]  # (N,4,3)
         inv = _tet_inverse(Xt)
-        # float32 affine maps q -> (w1, w2, w3) for the containment screen; NaN rows for flat tetrahedra
-        aff = np.concatenate([inv, -np.einsum("nij,nj->ni", inv, Xt[:, 0])[:, :, None]], axis=2)
-        self._tet_aff = aff.astype(np.float32)
+        # float64 affine maps q -> (w1, w2, w3) (w0 = 1 - sum); NaN rows for flat tetrahedra
+        self._tet_aff = np.concatenate([inv, -np.einsum("nij,nj->ni", inv, Xt[:, 0])[:, :, None]], axis=2)
         self._tet_flat = ~np.isfinite(inv).all(axis=(1, 2))
         del inv
         # float32 boxes rounded outwards, so a box always holds its tetrahedron
@@ -1185,13 +1188,14 @@ class GeometricIndexer:
         cnt = np.where(inbox, self._cell_start[cell + 1] - s0, 0)
         pos, bund = _ragged_arange(s0, cnt)
         cand = self._cell_tets[pos]
-        q4 = np.c_[q, np.ones(B)].astype(np.float32)
-        w3 = np.einsum("nij,nj->ni", self._tet_aff[cand], q4[bund])
-        ok = (w3 >= -1e-4).all(axis=1) & (w3.sum(axis=1) <= 1 + 1e-4)
+        # box screen (float32 boxes rounded outwards), then the exact float64 affine maps of the survivors
+        q32 = q.astype(np.float32)
+        qb = q32[bund]
+        ok = ((self._tet_lo[cand] <= qb) & (qb <= self._tet_hi[cand])).all(axis=1)
         cand, bund = cand[ok], bund[ok]
         tid = self.tets[cand].astype(np.int64)
-        X = self.points_all[tid, bund[:, None]]
-        w = barycentric_tetrahedron(q[bund], X) if len(cand) else np.zeros((0, 4))
+        w3 = np.einsum("nij,nj->ni", self._tet_aff[cand], np.c_[q, np.ones(B)][bund])
+        w = np.column_stack([1 - w3.sum(1), w3])
         inside = (w >= -1e-9).all(axis=1)
         bund, tid, w = bund[inside], tid[inside], np.clip(w[inside], 0.0, None)
         w /= np.maximum(w.sum(axis=1, keepdims=True), 1e-300)
@@ -1396,12 +1400,28 @@ class GeometricIndexer:
         A = sp.csr_matrix((C.data.astype(np.float32), idx, C.indptr), shape=(n, self._Dact.shape[0]))
         return A @ self._Dact
 
+    def _blend_active(self, sid, coef, split: bool = True):
+        """(n_active,3) float32 unskinned deltas of the moving vertices for per-bundle shape weights."""
+        sid = np.asarray(sid, dtype=np.int64)
+        coef = np.asarray(coef, dtype=np.float64)
+        K = sid.shape[1]
+        Beta = sp.csr_matrix((coef.ravel(), (np.repeat(np.arange(self.B), K), sid.ravel())), shape=(self.B, self.S1))
+        if not split:
+            return self._blend_part(self._w_full, Beta)
+        if self._pool is not None and len(self._w_parts) > 1:
+            futs = [self._pool.submit(self._blend_part, part, Beta) for part in self._w_parts]
+            parts = [f.result() for f in futs]
+        else:
+            parts = [self._blend_part(part, Beta) for part in self._w_parts]
+        return parts[0] if len(parts) == 1 else np.vstack(parts)
+
     def blend(self, sid, coef, *, split: bool = True):
         """Unskinned natural-neighbour blend of per-bundle shape weights (Eq. 1 sewn with §5).
 
         ``x0 + sum_i W[:, i] sum_k coef_ik b*_{sid_ik}``, evaluated as one
         sparse product per row block (one block per thread) over the moving
-        vertices.
+        vertices. The blend is linear in ``coef``: the blend of averaged
+        weights is the average of the blends (temporal smoothing uses this).
 
         Parameters
         ----------
@@ -1409,7 +1429,6 @@ class GeometricIndexer:
             Shape ids per bundle (0 = neutral).
         coef : (B,K) array_like
             Their weights (each row sums to 1).
-
         split : bool
             Spread the row blocks over the indexer's threads (``False`` when
             the caller already runs frames in parallel).
@@ -1419,19 +1438,8 @@ class GeometricIndexer:
         (V,3) float64 ndarray
             Scene units.
         """
-        sid = np.asarray(sid, dtype=np.int64)
-        coef = np.asarray(coef, dtype=np.float64)
-        K = sid.shape[1]
-        Beta = sp.csr_matrix((coef.ravel(), (np.repeat(np.arange(self.B), K), sid.ravel())), shape=(self.B, self.S1))
-        if not split:
-            parts = [self._blend_part(self._w_full, Beta)]
-        elif self._pool is not None and len(self._w_parts) > 1:
-            futs = [self._pool.submit(self._blend_part, part, Beta) for part in self._w_parts]
-            parts = [f.result() for f in futs]
-        else:
-            parts = [self._blend_part(part, Beta) for part in self._w_parts]
         out = self.neutral.copy()
-        out[self._active] += parts[0] if len(parts) == 1 else np.vstack(parts)
+        out[self._active] += self._blend_active(sid, coef, split)
         return out
 
     def _blend_dense(self, Wd, sid, coef):
@@ -1531,14 +1539,17 @@ class GeometricIndexer:
             self._voronoi = sp.csr_matrix((np.ones(self.V), (np.arange(self.V), self.nn.cell)), shape=(self.V, self.B))
         return self._voronoi
 
-    def reconstruct_sequence(self, bundles, jaw=None, *, smooth: int = 1, exact=None, progress=None):
+    def reconstruct_sequence(self, bundles, jaw=None, *, smooth: int = 1, exact=None, progress=None,
+                             pipeline: bool = True):
         """Rebuild every frame of an animated bundle sequence.
 
         Frames are indexed in order, each preferring tetrahedra that share
         shapes with the previous frame's (§5.1). With ``smooth > 1`` the
         barycentric shape weights of every bundle are averaged over a
         centred window of ``smooth`` frames (§7, "Temporal Smoothing"), relative
-        to the jaw-skinned neutral (the jaw itself is not smoothed).
+        to the jaw-skinned neutral (the jaw itself is not smoothed). The
+        stitching is linear in the weights, so the average is taken over the
+        frames' unskinned blends: smoothing costs no extra blending.
 
         Parameters
         ----------
@@ -1549,11 +1560,22 @@ class GeometricIndexer:
             Jaw parameters per frame (required with a jaw rig).
         smooth : int
             Moving-average window in frames (1 = off; even values are
-            rounded up to the next odd one).
+            rounded up to the next odd one). Frames skipped for NaN bundles
+            leave the window (it shrinks at gaps and at the ends).
         exact : bool, optional
-            Residual correction through the bundles (default: the indexer's).
+            Residual correction (default: the indexer's). Without smoothing
+            the surface passes exactly through each frame's bundles; with
+            smoothing it passes exactly through the moving average of the
+            bundles over the same window (with the jaw motion removed, so the
+            jaw is not smoothed): the positions that the averaged weights
+            index wherever a tetrahedron holds the bundles. So the noise of
+            single frames is not put back (§7: smoothing the weights has a
+            "negligible impact on the ability to interpolate the bundles").
         progress : callable, optional
             Called as ``progress(done, total)`` after every frame is indexed.
+        pipeline : bool
+            Blend and finish frames on a worker thread while the next frames
+            are indexed (with ``threads > 1``).
 
         Returns
         -------
@@ -1562,6 +1584,10 @@ class GeometricIndexer:
         skipped : list of int
             Frames skipped because of NaN bundle positions.
         """
+        with small_dense_threads(1):  # BLAS threads would spin against the pipeline's own threads
+            return self._reconstruct_sequence(bundles, jaw, smooth, exact, progress, pipeline)
+
+    def _reconstruct_sequence(self, bundles, jaw, smooth, exact, progress, pipeline):
         Q = np.asarray(bundles, dtype=np.float64)
         if Q.ndim != 3 or Q.shape[1:] != (self.B, 3):
             raise BundleError(f"Expected bundles as a (T,{self.B},3) array, got {Q.shape}.")
@@ -1582,35 +1608,53 @@ class GeometricIndexer:
         out = np.full((T, self.V, 3), np.nan)
         half = max(int(smooth), 1) // 2
         valid = np.flatnonzero(ok)
+        deltas, q_unskinned = {}, {}
+
+        def blend(t):
+            deltas[t] = self._blend_active(ids_t[t], bary_t[t], split=False)
 
         def finish(t):
-            if half == 0:
-                sid, coef = ids_t[t], bary_t[t]
+            # The blend is linear in the barycentric weights, so the blend of the weights averaged over the
+            # window is the average of the frames' blends: each frame is blended once (no extra cost).
+            win = valid[(valid >= t - half) & (valid <= t + half)]
+            if len(win) == 1:
+                d, target = deltas[t], Q[t]
             else:
-                win = valid[(valid >= t - half) & (valid <= t + half)]
-                sid, coef = self._average_weights(ids_t[win], bary_t[win])
-            out[t] = self._finish(self.blend(sid, coef, split=False), Q[t], J[t], ex)
+                d = np.add.reduce([deltas[s].astype(np.float64) for s in win]) / len(win)
+                # exact: through the moving average of the (jaw-unskinned) bundles, which is what the
+                # averaged weights index where a tetrahedron holds the bundles
+                target = np.mean([q_unskinned[s] for s in win], axis=0)
+                if self.jaw is not None:
+                    target = self.jaw.skin(target, J[t], self.bundle_jaw_weights)
+            Xu = self.neutral.copy()
+            Xu[self._active] += d
+            out[t] = self._finish(Xu, target, J[t], ex)
+            for s in [s for s in deltas if s <= t - half]:
+                del deltas[s]
+                q_unskinned.pop(s, None)
 
-        # Two-stage pipeline on two cores: frames are indexed in order on this thread while a worker
-        # blends every frame whose smoothing window is complete.
-        worker = ThreadPoolExecutor(1) if self.threads > 1 else None
+        # Two-stage pipeline: frames are indexed in order on this thread while a worker blends each indexed
+        # frame and finishes every frame whose smoothing window is complete (one worker: FIFO order).
+        worker = ThreadPoolExecutor(1) if (self.threads > 1 and pipeline) else None
         futs = []
-        run = (lambda t: futs.append(worker.submit(finish, t))) if worker is not None else finish
+        run = (lambda f, t: futs.append(worker.submit(f, t))) if worker is not None else (lambda f, t: f(t))
         prev = None
         nxt = 0
         try:
             for t in range(T):
                 if ok[t]:
                     qu = self.unskinned_bundles(Q[t], J[t])
+                    q_unskinned[t] = qu
                     ids_t[t], bary_t[t], _ = self.locate(qu, prev)
                     prev = ids_t[t]
+                    run(blend, t)
                 while nxt < len(valid) and valid[nxt] + half <= t:
-                    run(valid[nxt])
+                    run(finish, valid[nxt])
                     nxt += 1
                 if progress is not None:
                     progress(t + 1, T)
             while nxt < len(valid):
-                run(valid[nxt])
+                run(finish, valid[nxt])
                 nxt += 1
             for f in futs:
                 f.result()
@@ -1619,24 +1663,6 @@ class GeometricIndexer:
                 worker.shutdown(wait=True)
         self.last_sequence = {"shape_ids": ids_t, "bary": bary_t, "skipped": skipped}
         return out, skipped
-
-    def _average_weights(self, ids, bary):
-        """Average sparse per-bundle shape weights over frames: (n,B,4) -> (B,K) ids and weights."""
-        n, B, _ = ids.shape
-        flat_b = np.broadcast_to(np.arange(B)[None, :, None], ids.shape).ravel()
-        key = flat_b * self.S1 + ids.ravel()
-        uk, inv = np.unique(key, return_inverse=True)
-        val = np.bincount(inv, weights=bary.ravel() / n)
-        bb = uk // self.S1
-        ss = uk % self.S1
-        cnt = np.bincount(bb, minlength=B)
-        K = int(cnt.max())
-        slot = np.arange(len(uk)) - np.repeat(np.cumsum(cnt) - cnt, cnt)
-        sid = np.zeros((B, K), dtype=np.int64)
-        coef = np.zeros((B, K))
-        sid[bb, slot] = ss
-        coef[bb, slot] = val
-        return sid, coef
 
     def explain(self, bundle: int):
         """Human-readable description of a bundle's last chosen shapes (for UI reports)."""
