@@ -138,8 +138,10 @@ class JawRig:
     The jaw transform for parameters ``theta = (angle, tx, ty, tz)`` rotates
     by ``angle`` radians about ``axis`` through ``pivot`` and then translates
     by ``(tx, ty, tz)`` (scene units): ``T(x) = R (x - pivot) + pivot + t``.
-    Vertex ``v`` follows ``(1 - w_v) x + w_v T(x)`` (linear blend skinning
-    with the skull, which stays put).
+    ``theta`` may also be a general rigid jaw pose, a (4,4) matrix ``[R t]``
+    (for example a jaw bone's motion from its rest pose, in the mesh's
+    space). Vertex ``v`` follows ``(1 - w_v) x + w_v T(x)`` (linear blend
+    skinning with the skull, which stays put).
 
     Attributes
     ----------
@@ -166,8 +168,8 @@ class JawRig:
 
         Parameters
         ----------
-        theta : (4,) array_like
-            ``(angle rad, tx, ty, tz)``.
+        theta : (4,) or (4,4) array_like
+            ``(angle rad, tx, ty, tz)``, or a rigid matrix.
 
         Returns
         -------
@@ -175,7 +177,10 @@ class JawRig:
         t : (3,) float64
             ``T(x) = R x + t``, scene units.
         """
-        th = np.asarray(theta, dtype=np.float64).reshape(4)
+        th = np.asarray(theta, dtype=np.float64)
+        if th.shape == (4, 4):
+            return th[:3, :3].copy(), th[:3, 3].copy()
+        th = th.reshape(4)
         R = _axis_angle(self.axis, th[0])
         return R, self.pivot - R @ self.pivot + th[1:]
 
@@ -228,6 +233,47 @@ class JawRig:
         A, b = self._affine(theta, w)
         inv, _ = _inv3(A)
         return np.einsum("nij,nj->ni", inv, X - b)
+
+    def fit_pose(self, shape, neutral, *, min_weight: float = 0.99):
+        """Estimate a shape's jaw pose: the rigid motion of its jaw vertices (Kabsch fit).
+
+        Every dataset shape needs its jaw parameters (§6); the vertices that
+        follow the jaw rigidly (skinning weight >= ``min_weight``: lower teeth,
+        chin) give them.
+
+        Parameters
+        ----------
+        shape, neutral : (V,3) array_like
+            Positions, scene units.
+        min_weight : float
+
+        Returns
+        -------
+        (4,4) float64 ndarray
+            Rigid matrix ``[R t]`` (identity when the jaw did not move).
+
+        Raises
+        ------
+        DatasetError
+            When fewer than 3 vertices follow the jaw rigidly.
+        """
+        A = np.asarray(neutral, dtype=np.float64)
+        Bp = np.asarray(shape, dtype=np.float64)
+        m = self.weights >= min_weight
+        if m.sum() < 3:
+            raise DatasetError(
+                f"Only {int(m.sum())} vertices follow the jaw rigidly (weight >= {min_weight}); paint the jaw "
+                "vertex group to 1 on the lower teeth and chin."
+            )
+        A, Bp = A[m], Bp[m]
+        ca, cb = A.mean(0), Bp.mean(0)
+        U, _, Vt = np.linalg.svd((A - ca).T @ (Bp - cb))
+        d = np.sign(np.linalg.det(U @ Vt))
+        R = (U @ np.diag([1.0, 1.0, d]) @ Vt).T
+        M = np.eye(4)
+        M[:3, :3] = R
+        M[:3, 3] = cb - R @ ca
+        return M
 
     def unskin_shape(self, shape, neutral, theta):
         """Unskinned delta of a dataset shape (Eq. 2): ``T(theta)^-1 (x0 + b) - x0``.
@@ -580,8 +626,9 @@ class GeometricIndexer:
         Force the natural-neighbour method.
     jaw : JawRig, optional
         Jaw articulation (§6, Eq. 2). Requires ``shape_jaw``.
-    shape_jaw : (S,4) array_like, optional
-        Jaw parameters ``(angle rad, tx, ty, tz)`` of every dataset shape.
+    shape_jaw : (S,4) or (S,4,4) array_like, optional
+        Jaw parameters ``(angle rad, tx, ty, tz)`` or rigid jaw poses of
+        every dataset shape (:meth:`JawRig.fit_pose` estimates them).
     merge_tolerance : float, optional
         Shapes that put a bundle within this distance of each other (scene
         units) share one cloud point; the neighbouring bundles pick which of
@@ -702,8 +749,8 @@ class GeometricIndexer:
                     "or build the indexer without the jaw."
                 )
             sj = np.asarray(shape_jaw, dtype=np.float64)
-            if sj.shape != (S, 4):
-                raise DatasetError(f"shape_jaw must be (S,4)=({S},4), got {sj.shape}.")
+            if sj.shape not in ((S, 4), (S, 4, 4)):
+                raise DatasetError(f"shape_jaw must be (S,4) or (S,4,4) with S={S}, got {sj.shape}.")
             if len(jaw.weights) != nv:
                 raise DatasetError(f"The jaw rig has {len(jaw.weights)} skinning weights for {nv} vertices.")
             D = np.stack([jaw.unskin_shape(X[s], x0, sj[s]) for s in range(S)])
@@ -1561,8 +1608,9 @@ class GeometricIndexer:
         bundles : (T,B,3) array_like
             Bundle positions per frame, scene units. A frame with any NaN
             bundle is skipped.
-        jaw : (T,4) array_like, optional
-            Jaw parameters per frame (required with a jaw rig).
+        jaw : (T,4) or (T,4,4) array_like, optional
+            Jaw parameters or rigid jaw poses per frame (required with a jaw
+            rig). A frame with NaN jaw parameters is skipped.
         smooth : int
             Moving-average window in frames (1 = off; even values are
             rounded up to the next odd one). Frames skipped for NaN bundles
@@ -1600,12 +1648,14 @@ class GeometricIndexer:
         if self.jaw is not None:
             if jaw is None:
                 raise BundleError("This indexer has a jaw rig; pass jaw parameters per frame, (T,4).")
-            J = np.asarray(jaw, dtype=np.float64).reshape(T, 4)
+            J = np.asarray(jaw, dtype=np.float64)
+            if J.shape not in ((T, 4), (T, 4, 4)):
+                raise BundleError(f"Expected jaw parameters per frame, (T,4) or (T,4,4) with T={T}, got {J.shape}.")
         else:
             J = [None] * T
         ok = np.isfinite(Q).all(axis=(1, 2))
         if self.jaw is not None:
-            ok &= np.isfinite(J).all(axis=1)
+            ok &= np.isfinite(J.reshape(T, -1)).all(axis=1)
         skipped = [int(t) for t in np.flatnonzero(~ok)]
         ex = self.exact if exact is None else bool(exact)
         ids_t = np.zeros((T, self.B, 4), dtype=np.int64)

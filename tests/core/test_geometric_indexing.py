@@ -180,6 +180,40 @@ def test_jaw_indexer_reproduces_jaw_articulated_shapes():
         gi.reconstruct(P[0])
 
 
+def test_jaw_poses_as_matrices_estimated_from_the_shapes():
+    V, F = plane()
+    rig = jaw_rig(V)
+    W, X0 = dataset(V)
+    rng = np.random.default_rng(7)
+    theta = np.c_[rng.uniform(0, 0.3, len(W)), rng.uniform(-0.01, 0.01, (len(W), 3))]
+    X = np.stack([rig.skin(X0[k], theta[k]) for k in range(len(W))])
+    # the rigid jaw part (weight 1) does not move in the toy shapes except by the jaw: Kabsch recovers the pose
+    lower = rig.weights >= 0.99
+    X0j = np.stack([rig.skin(V, theta[k]) for k in range(len(W))])  # jaw only
+    for k in (0, 5, 11):
+        R, t = rig.transform(theta[k])
+        M = rig.fit_pose(X0j[k], V)
+        np.testing.assert_allclose(M[:3, :3], R, atol=1e-12)
+        np.testing.assert_allclose(M[:3, 3], t, atol=1e-12)
+        np.testing.assert_allclose(rig.skin(V, M), rig.skin(V, theta[k]), atol=1e-12)
+    # an indexer with (S,4,4) jaw poses reproduces its shapes from their bundles and (4,4) frame poses
+    mats = np.stack([np.vstack([np.c_[rig.transform(th)], [0, 0, 0, 1]]) for th in theta])
+    bf = np.arange(5, len(F), 31)
+    bb = np.full((len(bf), 3), 1 / 3)
+    gi = GeometricIndexer(V, F, X, bf, bb, uvs=V[:, :2], jaw=rig, shape_jaw=mats, threads=1)
+    P = surface_points(X, F, bf, bb)
+    out, skipped = gi.reconstruct_sequence(P[[2, 7, 9]], mats[[2, 7, 9]])
+    assert skipped == []
+    np.testing.assert_allclose(out, X[[2, 7, 9]], atol=FTOL)
+    bad = mats[[2, 7, 9]].copy()
+    bad[1] = np.nan  # a frame without a jaw pose is skipped
+    _, skipped = gi.reconstruct_sequence(P[[2, 7, 9]], bad)
+    assert skipped == [1]
+    with pytest.raises(DatasetError, match="paint the jaw"):
+        JawRig([0, 0, 0], [1, 0, 0], np.zeros(len(V))).fit_pose(X[0], V)
+    assert lower.sum() > 3
+
+
 # ---------------------------------------------------------------- binding
 
 
