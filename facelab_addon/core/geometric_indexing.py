@@ -299,7 +299,7 @@ class JawRig:
 # --------------------------------------------------------------------------
 
 
-def bind_points(neutral, faces, points, *, max_distance=None):
+def bind_points(neutral, faces, points, *, max_distance=None, bundle_names=None):
     """Bind 3D points (bundles in the rest pose) to the closest surface points.
 
     Parameters
@@ -314,6 +314,8 @@ def bind_points(neutral, faces, points, *, max_distance=None):
         Largest allowed distance from a bundle to the surface, scene units.
         Default 0.5 percent of the mesh's bounding-box diagonal (about 2 mm on
         ICT-FaceKit).
+    bundle_names : list of str, optional
+        Names of the bundles for messages (default their indices).
 
     Returns
     -------
@@ -338,7 +340,7 @@ def bind_points(neutral, faces, points, *, max_distance=None):
     bad = ~np.isfinite(P).all(axis=1)
     if bad.any():
         raise BundleError(
-            f"{int(bad.sum())} bundles have NaN rest positions (first: {np.flatnonzero(bad)[:5].tolist()}); "
+            f"{int(bad.sum())} bundles have NaN rest positions ({_labels(bundle_names, np.flatnonzero(bad))}); "
             "bind bundles on a frame where all of them are tracked."
         )
     diag = float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
@@ -351,7 +353,7 @@ def bind_points(neutral, faces, points, *, max_distance=None):
     if far.any():
         idx = np.flatnonzero(far)
         raise BundleError(
-            f"{len(idx)} bundles are off the mesh: bundle {idx[:5].tolist()} lie "
+            f"{len(idx)} bundles are off the mesh: {_labels(bundle_names, idx)} lie "
             f"{np.round(dist[idx[:5]], 4).tolist()} scene units from the neutral surface (allowed "
             f"{max_distance:.4g}). Align the bundles rigidly to the neutral face (same units, same rest "
             "frame) or raise max_distance."
@@ -359,6 +361,14 @@ def bind_points(neutral, faces, points, *, max_distance=None):
     C = np.asarray(C, dtype=np.float64)
     bary = _triangle_barycentric(C, V[F[fi, 0]], V[F[fi, 1]], V[F[fi, 2]])
     return fi, bary, dist
+
+
+def _labels(names, idx, n: int = 5):
+    """'bundle [3, 7]' or "'B03', 'B07'" for messages (the first ``n``)."""
+    idx = [int(i) for i in np.asarray(idx).ravel()[:n]]
+    if names is None:
+        return f"bundle {idx}"
+    return ", ".join(repr(str(names[i])) for i in idx)
 
 
 def _triangle_barycentric(p, a, b, c):
@@ -679,6 +689,8 @@ class GeometricIndexer:
         exactly through every bundle.
     threads : int
         Threads for the final blend (2 on a 2-core machine).
+    bundle_names : list of str, optional
+        Bundle names for messages (default their indices).
 
     Attributes
     ----------
@@ -697,7 +709,7 @@ class GeometricIndexer:
                  min_quality: float = 0.05, max_edge=None, forbidden=(), min_tets_per_point: int = 4,
                  temporal_bias: float = 0.25, tie_tolerance=None, neighbor_rings: int = 1, grid_density: float = 1.0,
                  exact: bool = True,
-                 threads: int = 2):
+                 threads: int = 2, bundle_names=None):
         t0 = time.perf_counter()
         x0, F = validate_mesh(neutral, faces, name="neutral mesh")
         nv = len(x0)
@@ -739,6 +751,7 @@ class GeometricIndexer:
         self.B, self.S, self.V = B, S, nv
         self.exact = bool(exact)
         self.threads = max(1, int(threads))
+        self.bundle_names = None if bundle_names is None else [str(n) for n in bundle_names]
 
         # ---- jaw (Eq. 2): unskinned deltas b*
         self.jaw = jaw
@@ -809,7 +822,7 @@ class GeometricIndexer:
         still_b = np.flatnonzero(moved <= dup_tol)
         if len(still_b):
             raise BundleError(
-                f"{len(still_b)} bundles are not moved by any dataset shape (bundle {still_b[:5].tolist()}, for "
+                f"{len(still_b)} bundles are not moved by any dataset shape ({_labels(self.bundle_names, still_b)}, for "
                 "example on the back of the head or a rigid part); remove them, bind them on the moving face, or "
                 "add shapes that move them."
             )
@@ -850,7 +863,8 @@ class GeometricIndexer:
                     mem_list.append(mem)
             if len(reps) < 2:
                 raise BundleError(
-                    f"Bundle {i} is not moved by any dataset shape by more than {self.merge_tolerance:.3g} scene "
+                    f"{_labels(self.bundle_names, [i])} is not moved by any dataset shape by more than "
+                    f"{self.merge_tolerance:.3g} scene "
                     "units; remove it, bind it on the moving face, or add shapes that move it."
                 )
             T = self._tetrahedralize(P[ids[reps], i], ids[reps], int(neighbors), float(min_quality), max_edge,
@@ -1194,7 +1208,7 @@ class GeometricIndexer:
         bad = ~np.isfinite(q).all(axis=1)
         if bad.any():
             raise BundleError(
-                f"{int(bad.sum())} bundles have NaN positions (bundle {np.flatnonzero(bad)[:5].tolist()}); "
+                f"{int(bad.sum())} bundles have NaN positions ({_labels(self.bundle_names, np.flatnonzero(bad))}); "
                 "skip the frame or fill the track gaps."
             )
         return q

@@ -3,6 +3,7 @@
 import bpy
 
 from .ops import face_object
+from .panel_reconstruct import draw_reconstruct_section
 
 # Extrapolation scores above this are flagged (the frame's mouth lies well outside the training poses).
 EXTRAPOLATING = 0.5
@@ -90,9 +91,7 @@ class FACELAB_PT_reconstruct(_Section, bpy.types.Panel):
     bl_options = {"DEFAULT_CLOSED"}
 
     def draw(self, context):
-        col = self.layout.column()
-        col.label(text="Select the bundle empties (or a 'FL_bundles' collection)")
-        col.operator("facelab.reconstruct_from_bundles", icon="EMPTY_DATA")
+        draw_reconstruct_section(self.layout, context)
 
 
 class FACELAB_PT_bake(_Section, bpy.types.Panel):
