@@ -1331,6 +1331,7 @@ class GeometricIndexer:
         B, S1 = self.B, self.S1
         sub = np.tile(np.arange(S1, dtype=np.int64), B)
         mp = self._multi_pts
+        mp = mp[np.isfinite(pc[mp])]  # members without a cost keep their representative (the default)
         if len(mp):
             o = np.lexsort((pc[mp], self._pt_key[mp]))
             k = self._pt_key[mp][o]
