@@ -71,6 +71,41 @@ def timed(fn, repeats=3):
     return best
 
 
+def speed(gi, Q, thetas, SQ, seq_jaw, args):
+    """ms per frame for single frames and whole sequences (best of ``args.repeats`` runs)."""
+    load0 = os.getloadavg()[0]
+    q0, th0 = Q[:20], thetas[:20]
+    single = timed(lambda: [gi.reconstruct(q0[k], th0[k]) for k in range(20)]) / 20
+    loc = timed(lambda: [gi.locate(gi.unskinned_bundles(q0[k], th0[k])) for k in range(20)]) / 20
+    ids_b = [gi.locate(gi.unskinned_bundles(q0[k], th0[k]))[:2] for k in range(20)]
+    blend = timed(lambda: [gi.blend(*ids_b[k]) for k in range(20)]) / 20
+    SQc = SQ.copy()
+    seq_t = timed(lambda: gi.reconstruct_sequence(SQc, seq_jaw, pipeline=True), repeats=args.repeats) / args.frames
+    seq_t5 = timed(lambda: gi.reconstruct_sequence(SQc, seq_jaw, smooth=5, pipeline=True),
+                   repeats=args.repeats) / args.frames
+    seq_serial = timed(lambda: gi.reconstruct_sequence(SQc, seq_jaw, smooth=5, pipeline=False),
+                       repeats=args.repeats) / args.frames
+    seq_serial1 = timed(lambda: gi.reconstruct_sequence(SQc, seq_jaw, smooth=1, pipeline=False),
+                        repeats=args.repeats) / args.frames
+    return {
+        "target": 20.0,
+        "best_of_runs": args.repeats,
+        "load_average_1min_at_end": os.getloadavg()[0],
+        "note": "wall clock, best of the runs, on a 2-core machine shared with other jobs",
+        "sequence_pipelined_two_cores": seq_t * 1e3,
+        "sequence_pipelined_two_cores_smooth_5": seq_t5 * 1e3,
+        "sequence_one_thread": seq_serial1 * 1e3,
+        "sequence_one_thread_smooth_5": seq_serial * 1e3,
+        "load_average_1min_at_start": load0,
+        "single_frame": single * 1e3,
+        "single_frame_locate": loc * 1e3,
+        "single_frame_blend": blend * 1e3,
+        "bundles": args.bundles,
+        "vertices": int(gi.V),
+        "shapes": int(gi.S),
+    }
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--outdir", default=str(ROOT / "out" / "benchmarks"))
@@ -79,6 +114,7 @@ def main():
     ap.add_argument("--bundles", type=int, default=100)
     ap.add_argument("--noise-mm", type=float, default=0.5)
     ap.add_argument("--repeats", type=int, default=5, help="timing runs (the best is kept)")
+    ap.add_argument("--speed-only", action="store_true", help="only the timing section (build + speed)")
     args = ap.parse_args()
     outdir = Path(args.outdir)
     outdir.mkdir(parents=True, exist_ok=True)
@@ -102,6 +138,16 @@ def main():
     res["indexer"] = gi.stats
     fs = gi.face_size
     res["face_size_cm"] = fs
+
+    if args.speed_only:
+        H = ds.held_out_weights(20, seed=11)
+        Q = surface_points(np.stack([gen(w) for w in H]), F, bf, bb)
+        thetas = np.stack([gen.jaw_parameters(w) for w in H])
+        AW = ds.animated_weights(args.frames, seed=3)
+        SQ = surface_points(np.stack([gen(w) for w in AW]), F, bf, bb)
+        res["speed_ms_per_frame"] = speed(gi, Q, thetas, SQ, np.stack([gen.jaw_parameters(w) for w in AW]), args)
+        print(json.dumps(res["speed_ms_per_frame"], indent=1, default=float))
+        return
 
     # ---- verification (§7, Fig. 2)
     P = surface_points(data.shapes, F, bf, bb)
@@ -196,31 +242,7 @@ def main():
     res["sequence"] = seq
 
     # ---- speed
-    q0, th0 = Q[:20], thetas[:20]
-    single = timed(lambda: [gi.reconstruct(q0[k], th0[k]) for k in range(20)]) / 20
-    loc = timed(lambda: [gi.locate(gi.unskinned_bundles(q0[k], th0[k])) for k in range(20)]) / 20
-    ids_b = [gi.locate(gi.unskinned_bundles(q0[k], th0[k]))[:2] for k in range(20)]
-    blend = timed(lambda: [gi.blend(*ids_b[k]) for k in range(20)]) / 20
-    SQc = SQ.copy()
-    seq_t = timed(lambda: gi.reconstruct_sequence(SQc, seq_jaw), repeats=args.repeats) / args.frames
-    seq_t5 = timed(lambda: gi.reconstruct_sequence(SQc, seq_jaw, smooth=5), repeats=args.repeats) / args.frames
-    seq_serial = timed(lambda: gi.reconstruct_sequence(SQc, seq_jaw, smooth=5, pipeline=False),
-                       repeats=args.repeats) / args.frames
-    res["speed_ms_per_frame"] = {
-        "target": 20.0,
-        "best_of_runs": args.repeats,
-        "load_average_1min_at_end": os.getloadavg()[0],
-        "note": "wall clock, best of the runs, on a 2-core machine shared with other jobs",
-        "sequence_pipelined_two_cores": seq_t * 1e3,
-        "sequence_pipelined_two_cores_smooth_5": seq_t5 * 1e3,
-        "sequence_one_thread_smooth_5": seq_serial * 1e3,
-        "single_frame": single * 1e3,
-        "single_frame_locate": loc * 1e3,
-        "single_frame_blend": blend * 1e3,
-        "bundles": args.bundles,
-        "vertices": int(len(ict.neutral)),
-        "shapes": len(data.names),
-    }
+    res["speed_ms_per_frame"] = speed(gi, Q, thetas, SQ, seq_jaw, args)
 
     # ---- actor-specific corrective shapes (§7, Fig. 7): combinations that are not in the dataset
     rig = {n: ict.expressions[n] for n in ict.expressions}

@@ -589,6 +589,16 @@ def _closest_point_triangles(p, a, b, c):
     return np.linalg.norm(p - x, axis=1), w
 
 
+def _idle_core() -> bool:
+    """True when the machine has an idle core (1-minute load average below ``cpu_count - 0.5``)."""
+    import os
+
+    try:
+        return os.getloadavg()[0] < (os.cpu_count() or 1) - 0.5
+    except (OSError, AttributeError):  # no load average (Windows): assume idle cores
+        return True
+
+
 def _ragged_arange(starts, counts):
     """Concatenation of ``arange(s, s + c)`` for every pair; and the group of each entry."""
     counts = np.asarray(counts, dtype=np.int64)
@@ -1607,7 +1617,7 @@ class GeometricIndexer:
         return self._voronoi
 
     def reconstruct_sequence(self, bundles, jaw=None, *, smooth: int = 1, exact=None, progress=None,
-                             pipeline: bool = True):
+                             pipeline="auto"):
         """Rebuild every frame of an animated bundle sequence.
 
         Frames are indexed in order, each preferring tetrahedra that share
@@ -1641,9 +1651,12 @@ class GeometricIndexer:
             "negligible impact on the ability to interpolate the bundles").
         progress : callable, optional
             Called as ``progress(done, total)`` after every frame is indexed.
-        pipeline : bool
+        pipeline : bool or "auto"
             Blend and finish frames on a worker thread while the next frames
-            are indexed (with ``threads > 1``).
+            are indexed (with ``threads > 1``). ``"auto"``: only when a core
+            is idle (1-minute load average below ``cpu_count - 0.5``): on an
+            oversubscribed machine the two threads wait on each other for the
+            interpreter lock and run 2-4 times slower than one (measured).
 
         Returns
         -------
@@ -1705,7 +1718,10 @@ class GeometricIndexer:
 
         # Two-stage pipeline: frames are indexed in order on this thread while a worker blends each indexed
         # frame and finishes every frame whose smoothing window is complete (one worker: FIFO order).
+        if pipeline == "auto":
+            pipeline = _idle_core()
         worker = ThreadPoolExecutor(1) if (self.threads > 1 and pipeline) else None
+        self.last_pipeline = worker is not None
         futs = []
         run = (lambda f, t: futs.append(worker.submit(f, t))) if worker is not None else (lambda f, t: f(t))
         prev = None
