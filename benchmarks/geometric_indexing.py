@@ -360,16 +360,16 @@ def draw(ict, gi, pics, curves, cor, outdir):
     files.append(str(f))
 
     # Fig. 7: corrective for a rig combination
-    fig, ax = plt.subplots(1, 3, figsize=(16, 7))
-    for a, (title, x) in zip(ax[:2], (("linear combination of the rig shapes", cor["linear"]),
-                                       ("with the generated corrective", cor["corrected"]))):
+    fig, ax = plt.subplots(1, 3, figsize=(16, 6.5))
+    for a, (title, x) in zip(ax[:2], (("linear combination\nof the rig shapes", cor["linear"]),
+                                       ("linear combination\n+ generated corrective", cor["corrected"]))):
         e = np.linalg.norm(x - cor["truth"], axis=1) * CM_TO_MM
         m = a.tripcolor(tri, e, cmap="inferno", vmin=0, vmax=2.0, shading="gouraud")
-        a.set_title(f"{title}\nerror vs the actor's combination: mean {e[np.unique(Ff)].mean():.2f} mm")
+        a.set_title(f"{title}\nerror vs the actor's shape: mean {e[np.unique(Ff)].mean():.2f} mm", fontsize=10)
     fig.colorbar(m, ax=ax[:2], shrink=0.6, label="vertex error (mm)")
     c = np.linalg.norm(cor["corrective"], axis=1) * CM_TO_MM
     m = ax[2].tripcolor(tri, c, cmap="viridis", shading="gouraud")
-    ax[2].set_title(f"corrective {cor['key']}\n(magnitude, mm)", fontsize=10)
+    ax[2].set_title("corrective for\n" + cor["key"].replace("+", " + ") + "\n(magnitude, mm)", fontsize=10)
     fig.colorbar(m, ax=ax[2], shrink=0.6)
     for a in ax:
         a.set_aspect("equal")

@@ -1485,7 +1485,7 @@ class GeometricIndexer:
         Beta = sp.csr_matrix((coef.ravel(), (np.repeat(np.arange(self.B), K), sid.ravel())), shape=(self.B, self.S1))
         if not split:
             return self._blend_part(self._w_full, Beta)
-        if self._pool is not None and len(self._w_parts) > 1:
+        if self._pool is not None and len(self._w_parts) > 1 and _idle_core():
             futs = [self._pool.submit(self._blend_part, part, Beta) for part in self._w_parts]
             parts = [f.result() for f in futs]
         else:
@@ -1507,8 +1507,8 @@ class GeometricIndexer:
         coef : (B,K) array_like
             Their weights (each row sums to 1).
         split : bool
-            Spread the row blocks over the indexer's threads (``False`` when
-            the caller already runs frames in parallel).
+            Spread the row blocks over the indexer's threads when a core is
+            idle (``False`` when the caller already runs frames in parallel).
 
         Returns
         -------
