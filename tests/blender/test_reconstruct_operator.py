@@ -471,3 +471,18 @@ def test_panel_section_draws_existing_properties(addon):
             draw_reconstruct_section(Layout(), bpy.context)
     assert {"facelab.reconstruct_from_bundles", "facelab.generate_correctives", "jaw_bone", "bundle_mesh",
             "combinations", "smooth"} <= set(drawn)
+
+
+def test_bundles_from_tracking_explains_an_unsolved_clip(addon, tmp_path):
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    img = bpy.data.images.new("plate", 8, 8)
+    path = tmp_path / "plate_0001.png"
+    img.filepath_raw = str(path)
+    img.file_format = "PNG"
+    img.save()
+    clip = bpy.data.movieclips.load(str(path))
+    clip.tracking.tracks.new(name="chin", frame=1)
+    with pytest.raises(RuntimeError, match="no valid camera solve; press Solve Camera Motion"):
+        bpy.ops.facelab.bundles_from_clip(clip=clip.name)
+    with pytest.raises(RuntimeError, match="No Movie Clip"):
+        bpy.ops.facelab.bundles_from_clip()

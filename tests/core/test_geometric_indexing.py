@@ -230,6 +230,8 @@ def test_bind_points_recovers_surface_points_and_rejects_points_off_the_mesh():
         bind_points(V, F, P + [[0, 0, 0], [0, 0, 0.5], [0, 0, 0], [0, 0, 0], [0, 0, 0], [0, 0, 0]])
     with pytest.raises(BundleError, match="NaN"):
         bind_points(V, F, np.where(np.arange(6)[:, None] == 2, np.nan, P))
+    with pytest.raises(BundleError, match="off the mesh: 'chin'"):  # named bundles in the message
+        bind_points(V, F, P + np.array([[0, 0, 0.5]] + [[0, 0, 0]] * 5), bundle_names=["chin", "a", "b", "c", "d", "e"])
 
 
 # ---------------------------------------------------------------- reconstruction
