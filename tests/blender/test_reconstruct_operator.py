@@ -331,6 +331,18 @@ def test_jaw_bone_drives_the_jaw(ict, addon, gen):
     d = np.linalg.norm(got - ref, axis=2)[:, front].mean() * 1e3
     print("operator vs core with the true jaw: mean %.4f mm" % d)
     assert d < 0.05
+    # an object (an empty at the hinge) driving the jaw gives the same as the bone
+    ctl = bpy.data.objects.new("JawCtl", None)
+    scene.collection.objects.link(ctl)
+    ctl.location = tuple(gen.jaw.pivot * SCALE)
+    ctl.rotation_mode = "QUATERNION"
+    for t, w in enumerate(fw):
+        ctl.rotation_quaternion = Matrix(gen.jaw.transform(gen.jaw_parameters(w))[0].tolist()).to_quaternion()
+        ctl.keyframe_insert("rotation_quaternion", frame=t)
+    ctl.select_set(False)
+    r.jaw_source, r.jaw_object, r.jaw_group = "OBJECT", ctl, "jaw"
+    assert bpy.ops.facelab.reconstruct_from_bundles(bind_frame=0) == {"FINISHED"}
+    np.testing.assert_allclose(evaluate_frames(obj, range(T), mute_shape_keys_prefix=()), got, atol=1e-5)  # 0.01 mm
     # the jaw weights must exist
     r.jaw_source, r.jaw_group = "BONE", "nope"
     with pytest.raises(RuntimeError, match="no vertex group 'nope'"):
