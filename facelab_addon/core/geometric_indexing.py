@@ -1692,6 +1692,7 @@ class GeometricIndexer:
         half = max(int(smooth), 1) // 2
         valid = np.flatnonzero(ok)
         deltas, q_unskinned = {}, {}
+        acc, in_sum = [None], set()
 
         def blend(t):
             deltas[t] = self._blend_active(ids_t[t], bary_t[t], split=False)
@@ -1703,7 +1704,14 @@ class GeometricIndexer:
             if len(win) == 1:
                 d, target = deltas[t], Q[t]
             else:
-                d = np.add.reduce([deltas[s].astype(np.float64) for s in win]) / len(win)
+                # running sum over the window: frames enter and leave once (frames finish in order)
+                for s in set(win) - in_sum:
+                    acc[0] = deltas[s].astype(np.float64) if acc[0] is None else acc[0] + deltas[s]
+                    in_sum.add(s)
+                for s in in_sum - set(win):
+                    acc[0] -= deltas[s]
+                    in_sum.discard(s)
+                d = acc[0] / len(win)
                 # exact: through the moving average of the (jaw-unskinned) bundles, which is what the
                 # averaged weights index where a tetrahedron holds the bundles
                 target = np.mean([q_unskinned[s] for s in win], axis=0)
@@ -1712,7 +1720,7 @@ class GeometricIndexer:
             Xu = self.neutral.copy()
             Xu[self._active] += d
             out[t] = self._finish(Xu, target, J[t], ex)
-            for s in [s for s in deltas if s <= t - half]:
+            for s in [s for s in deltas if s <= t - half and s not in in_sum]:
                 del deltas[s]
                 q_unskinned.pop(s, None)
 
