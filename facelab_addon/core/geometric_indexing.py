@@ -62,15 +62,18 @@ Build once (:class:`GeometricIndexer`), then reconstruct every frame:
   blend is skinned back by linear blend skinning.
 * **Temporal smoothing** (§7): a central moving average of every bundle's
   barycentric shape weights (relative to the jaw-skinned neutral, so the jaw
-  is not smoothed). With noisy bundles, ``exact=True`` passes the noise of
-  each frame's bundles through; ``exact=False`` keeps only the smoothed
-  weights (see the benchmark).
+  is not smoothed), applied as the average of the frames' blends (the
+  stitching is linear in the weights: no extra blending). With
+  ``exact=True`` the surface then passes through the moving average of the
+  bundles, so the noise of single frames is not put back.
 * **Corrective shapes** (§7, Fig. 7): :class:`RigCorrectives` indexes the
   dataset's residuals from the linear rig with the bundles of a rig-shape
   combination (a deviation from indexing the shapes themselves, which does
   worse than the linear combination on combinations the dataset lacks).
-* **Sequences** run on two cores: frames are indexed in order on the calling
-  thread while a worker blends the frames whose smoothing window is complete.
+* **Sequences** run on two cores when one is idle: frames are indexed in
+  order on the calling thread while a worker blends them and finishes the
+  frames whose smoothing window is complete. BLAS is kept to one thread (its
+  spinning threads cost more than they give per frame).
 
 The paper's baselines (§7, Fig. 4) are here too: :class:`BlendshapeFit`
 (dataset blendshapes fit to the bundles with soft [0,1] bounds) and
@@ -638,10 +641,10 @@ def _ragged_arange(starts, counts):
 class GeometricIndexer:
     """Local geometric indexing of a shape dataset by surface-bound bundles.
 
-    Build once per (mesh, dataset, bundle binding; about 2.5 s for 110 shapes
+    Build once per (mesh, dataset, bundle binding; about 3 s for 110 shapes
     and 100 bundles on the 26,719-vertex ICT face); :meth:`reconstruct` and
-    :meth:`reconstruct_sequence` are then cheap (about 20 ms a frame, 18 ms in
-    a sequence on two cores; see ``benchmarks/geometric_indexing.py``).
+    :meth:`reconstruct_sequence` are then cheap (about 20 ms a frame on one
+    core, 13.5-15 ms in a sequence on two; see ``benchmarks/geometric_indexing.py``).
 
     Parameters
     ----------
