@@ -29,7 +29,8 @@ Build once (:class:`GeometricIndexer`), then reconstruct every frame:
   ``min_tets_per_point`` tetrahedra. Flat clouds use triangles, two-point
   clouds a segment. ``stats`` says how many are kept and their memory.
 * **Uniform grid** per bundle ([18, 32]) for point-in-tetrahedron queries
-  (float32 affine maps screen the candidates, float64 weights decide).
+  (float32 bounding boxes screen the candidates, precomputed float64 affine
+  maps give the barycentric weights).
 * **Eq. 1**: the chosen tetrahedron's barycentric weights blend its four
   shapes. When no tetrahedron holds the bundle it is projected to the closest
   point of the tetrahedralized volume (§4): the closest facet of the cloud's
@@ -61,13 +62,18 @@ Build once (:class:`GeometricIndexer`), then reconstruct every frame:
   blend is skinned back by linear blend skinning.
 * **Temporal smoothing** (§7): a central moving average of every bundle's
   barycentric shape weights (relative to the jaw-skinned neutral, so the jaw
-  is not smoothed). With noisy bundles, ``exact=True`` passes the noise of
-  each frame's bundles through; ``exact=False`` keeps only the smoothed
-  weights (see the benchmark).
-* **Corrective shapes** (§7, Fig. 7): :func:`rig_correctives` rebuilds rig
-  shapes and their combinations from their bundles.
-* **Sequences** run on two cores: frames are indexed in order on the calling
-  thread while a worker blends the frames whose smoothing window is complete.
+  is not smoothed), applied as the average of the frames' blends (the
+  stitching is linear in the weights: no extra blending). With
+  ``exact=True`` the surface then passes through the moving average of the
+  bundles, so the noise of single frames is not put back.
+* **Corrective shapes** (§7, Fig. 7): :class:`RigCorrectives` indexes the
+  dataset's residuals from the linear rig with the bundles of a rig-shape
+  combination (a deviation from indexing the shapes themselves, which does
+  worse than the linear combination on combinations the dataset lacks).
+* **Sequences** run on two cores when one is idle: frames are indexed in
+  order on the calling thread while a worker blends them and finishes the
+  frames whose smoothing window is complete. BLAS is kept to one thread (its
+  spinning threads cost more than they give per frame).
 
 The paper's baselines (§7, Fig. 4) are here too: :class:`BlendshapeFit`
 (dataset blendshapes fit to the bundles with soft [0,1] bounds) and
@@ -104,6 +110,9 @@ __all__ = [
     "tetrahedron_quality",
     "GeometricIndexer",
     "BlendshapeFit",
+    "RigCorrectives",
+    "fit_rig_weights",
+    "moving_bundle_layout",
     "rig_correctives",
 ]
 
@@ -131,8 +140,10 @@ class JawRig:
     The jaw transform for parameters ``theta = (angle, tx, ty, tz)`` rotates
     by ``angle`` radians about ``axis`` through ``pivot`` and then translates
     by ``(tx, ty, tz)`` (scene units): ``T(x) = R (x - pivot) + pivot + t``.
-    Vertex ``v`` follows ``(1 - w_v) x + w_v T(x)`` (linear blend skinning
-    with the skull, which stays put).
+    ``theta`` may also be a general rigid jaw pose, a (4,4) matrix ``[R t]``
+    (for example a jaw bone's motion from its rest pose, in the mesh's
+    space). Vertex ``v`` follows ``(1 - w_v) x + w_v T(x)`` (linear blend
+    skinning with the skull, which stays put).
 
     Attributes
     ----------
@@ -159,8 +170,8 @@ class JawRig:
 
         Parameters
         ----------
-        theta : (4,) array_like
-            ``(angle rad, tx, ty, tz)``.
+        theta : (4,) or (4,4) array_like
+            ``(angle rad, tx, ty, tz)``, or a rigid matrix.
 
         Returns
         -------
@@ -168,7 +179,10 @@ class JawRig:
         t : (3,) float64
             ``T(x) = R x + t``, scene units.
         """
-        th = np.asarray(theta, dtype=np.float64).reshape(4)
+        th = np.asarray(theta, dtype=np.float64)
+        if th.shape == (4, 4):
+            return th[:3, :3].copy(), th[:3, 3].copy()
+        th = th.reshape(4)
         R = _axis_angle(self.axis, th[0])
         return R, self.pivot - R @ self.pivot + th[1:]
 
@@ -197,8 +211,10 @@ class JawRig:
         X = np.asarray(X, dtype=np.float64)
         w = self.weights if weights is None else np.asarray(weights, dtype=np.float64)
         R, t = self.transform(theta)
-        Y = X @ R.T + t
-        return X + w[:, None] * (Y - X)
+        # (X R^T + t - X) without BLAS: a (V,3)x(3,3) product would wake multithreaded BLAS, whose
+        # spinning threads cost more than the product on a busy machine
+        D = X[:, :1] * (R[:, 0] - [1, 0, 0]) + X[:, 1:2] * (R[:, 1] - [0, 1, 0]) + X[:, 2:] * (R[:, 2] - [0, 0, 1]) + t
+        return X + w[:, None] * D
 
     def unskin(self, X, theta, weights=None):
         """Invert :meth:`skin`: ``T_v(theta)^-1 x`` at every point.
@@ -219,6 +235,47 @@ class JawRig:
         A, b = self._affine(theta, w)
         inv, _ = _inv3(A)
         return np.einsum("nij,nj->ni", inv, X - b)
+
+    def fit_pose(self, shape, neutral, *, min_weight: float = 0.99):
+        """Estimate a shape's jaw pose: the rigid motion of its jaw vertices (Kabsch fit).
+
+        Every dataset shape needs its jaw parameters (§6); the vertices that
+        follow the jaw rigidly (skinning weight >= ``min_weight``: lower teeth,
+        chin) give them.
+
+        Parameters
+        ----------
+        shape, neutral : (V,3) array_like
+            Positions, scene units.
+        min_weight : float
+
+        Returns
+        -------
+        (4,4) float64 ndarray
+            Rigid matrix ``[R t]`` (identity when the jaw did not move).
+
+        Raises
+        ------
+        DatasetError
+            When fewer than 3 vertices follow the jaw rigidly.
+        """
+        A = np.asarray(neutral, dtype=np.float64)
+        Bp = np.asarray(shape, dtype=np.float64)
+        m = self.weights >= min_weight
+        if m.sum() < 3:
+            raise DatasetError(
+                f"Only {int(m.sum())} vertices follow the jaw rigidly (weight >= {min_weight}); paint the jaw "
+                "vertex group to 1 on the lower teeth and chin."
+            )
+        A, Bp = A[m], Bp[m]
+        ca, cb = A.mean(0), Bp.mean(0)
+        U, _, Vt = np.linalg.svd((A - ca).T @ (Bp - cb))
+        d = np.sign(np.linalg.det(U @ Vt))
+        R = (U @ np.diag([1.0, 1.0, d]) @ Vt).T
+        M = np.eye(4)
+        M[:3, :3] = R
+        M[:3, 3] = cb - R @ ca
+        return M
 
     def unskin_shape(self, shape, neutral, theta):
         """Unskinned delta of a dataset shape (Eq. 2): ``T(theta)^-1 (x0 + b) - x0``.
@@ -244,7 +301,7 @@ class JawRig:
 # --------------------------------------------------------------------------
 
 
-def bind_points(neutral, faces, points, *, max_distance=None):
+def bind_points(neutral, faces, points, *, max_distance=None, bundle_names=None):
     """Bind 3D points (bundles in the rest pose) to the closest surface points.
 
     Parameters
@@ -259,6 +316,8 @@ def bind_points(neutral, faces, points, *, max_distance=None):
         Largest allowed distance from a bundle to the surface, scene units.
         Default 0.5 percent of the mesh's bounding-box diagonal (about 2 mm on
         ICT-FaceKit).
+    bundle_names : list of str, optional
+        Names of the bundles for messages (default their indices).
 
     Returns
     -------
@@ -283,7 +342,7 @@ def bind_points(neutral, faces, points, *, max_distance=None):
     bad = ~np.isfinite(P).all(axis=1)
     if bad.any():
         raise BundleError(
-            f"{int(bad.sum())} bundles have NaN rest positions (first: {np.flatnonzero(bad)[:5].tolist()}); "
+            f"{int(bad.sum())} bundles have NaN rest positions ({_labels(bundle_names, np.flatnonzero(bad))}); "
             "bind bundles on a frame where all of them are tracked."
         )
     diag = float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
@@ -296,7 +355,7 @@ def bind_points(neutral, faces, points, *, max_distance=None):
     if far.any():
         idx = np.flatnonzero(far)
         raise BundleError(
-            f"{len(idx)} bundles are off the mesh: bundle {idx[:5].tolist()} lie "
+            f"{len(idx)} bundles are off the mesh: {_labels(bundle_names, idx)} lie "
             f"{np.round(dist[idx[:5]], 4).tolist()} scene units from the neutral surface (allowed "
             f"{max_distance:.4g}). Align the bundles rigidly to the neutral face (same units, same rest "
             "frame) or raise max_distance."
@@ -304,6 +363,14 @@ def bind_points(neutral, faces, points, *, max_distance=None):
     C = np.asarray(C, dtype=np.float64)
     bary = _triangle_barycentric(C, V[F[fi, 0]], V[F[fi, 1]], V[F[fi, 2]])
     return fi, bary, dist
+
+
+def _labels(names, idx, n: int = 5):
+    """'bundle [3, 7]' or "'B03', 'B07'" for messages (the first ``n``)."""
+    idx = [int(i) for i in np.asarray(idx).ravel()[:n]]
+    if names is None:
+        return f"bundle {idx}"
+    return ", ".join(repr(str(names[i])) for i in idx)
 
 
 def _triangle_barycentric(p, a, b, c):
@@ -524,6 +591,36 @@ def _closest_point_triangles(p, a, b, c):
     return np.linalg.norm(p - x, axis=1), w
 
 
+_BLAS = []
+
+
+def _one_blas_thread():
+    """Context limiting BLAS to one thread: per frame, multithreaded BLAS only spins (measured: frames 2x
+    slower on a busy machine). A cached threadpoolctl controller (0.01 ms a call); no-op without it."""
+    if not _BLAS:
+        try:
+            from threadpoolctl import ThreadpoolController
+
+            _BLAS.append(ThreadpoolController())
+        except Exception:  # optional dependency
+            _BLAS.append(None)
+    if _BLAS[0] is None:
+        import contextlib
+
+        return contextlib.nullcontext()
+    return _BLAS[0].limit(limits=1, user_api="blas")
+
+
+def _idle_core() -> bool:
+    """True when the machine has an idle core (1-minute load average below ``cpu_count - 0.5``)."""
+    import os
+
+    try:
+        return os.getloadavg()[0] < (os.cpu_count() or 1) - 0.5
+    except (OSError, AttributeError):  # no load average (Windows): assume idle cores
+        return True
+
+
 def _ragged_arange(starts, counts):
     """Concatenation of ``arange(s, s + c)`` for every pair; and the group of each entry."""
     counts = np.asarray(counts, dtype=np.int64)
@@ -544,10 +641,10 @@ def _ragged_arange(starts, counts):
 class GeometricIndexer:
     """Local geometric indexing of a shape dataset by surface-bound bundles.
 
-    Build once per (mesh, dataset, bundle binding; about 2.5 s for 110 shapes
+    Build once per (mesh, dataset, bundle binding; about 3 s for 110 shapes
     and 100 bundles on the 26,719-vertex ICT face); :meth:`reconstruct` and
-    :meth:`reconstruct_sequence` are then cheap (about 20 ms a frame, 18 ms in
-    a sequence on two cores; see ``benchmarks/geometric_indexing.py``).
+    :meth:`reconstruct_sequence` are then cheap (about 20 ms a frame on one
+    core, 13.5-15 ms in a sequence on two; see ``benchmarks/geometric_indexing.py``).
 
     Parameters
     ----------
@@ -571,8 +668,9 @@ class GeometricIndexer:
         Force the natural-neighbour method.
     jaw : JawRig, optional
         Jaw articulation (§6, Eq. 2). Requires ``shape_jaw``.
-    shape_jaw : (S,4) array_like, optional
-        Jaw parameters ``(angle rad, tx, ty, tz)`` of every dataset shape.
+    shape_jaw : (S,4) or (S,4,4) array_like, optional
+        Jaw parameters ``(angle rad, tx, ty, tz)`` or rigid jaw poses of
+        every dataset shape (:meth:`JawRig.fit_pose` estimates them).
     merge_tolerance : float, optional
         Shapes that put a bundle within this distance of each other (scene
         units) share one cloud point; the neighbouring bundles pick which of
@@ -623,6 +721,8 @@ class GeometricIndexer:
         exactly through every bundle.
     threads : int
         Threads for the final blend (2 on a 2-core machine).
+    bundle_names : list of str, optional
+        Bundle names for messages (default their indices).
 
     Attributes
     ----------
@@ -641,7 +741,7 @@ class GeometricIndexer:
                  min_quality: float = 0.05, max_edge=None, forbidden=(), min_tets_per_point: int = 4,
                  temporal_bias: float = 0.25, tie_tolerance=None, neighbor_rings: int = 1, grid_density: float = 1.0,
                  exact: bool = True,
-                 threads: int = 2):
+                 threads: int = 2, bundle_names=None):
         t0 = time.perf_counter()
         x0, F = validate_mesh(neutral, faces, name="neutral mesh")
         nv = len(x0)
@@ -683,6 +783,7 @@ class GeometricIndexer:
         self.B, self.S, self.V = B, S, nv
         self.exact = bool(exact)
         self.threads = max(1, int(threads))
+        self.bundle_names = None if bundle_names is None else [str(n) for n in bundle_names]
 
         # ---- jaw (Eq. 2): unskinned deltas b*
         self.jaw = jaw
@@ -693,8 +794,8 @@ class GeometricIndexer:
                     "or build the indexer without the jaw."
                 )
             sj = np.asarray(shape_jaw, dtype=np.float64)
-            if sj.shape != (S, 4):
-                raise DatasetError(f"shape_jaw must be (S,4)=({S},4), got {sj.shape}.")
+            if sj.shape not in ((S, 4), (S, 4, 4)):
+                raise DatasetError(f"shape_jaw must be (S,4) or (S,4,4) with S={S}, got {sj.shape}.")
             if len(jaw.weights) != nv:
                 raise DatasetError(f"The jaw rig has {len(jaw.weights)} skinning weights for {nv} vertices.")
             D = np.stack([jaw.unskin_shape(X[s], x0, sj[s]) for s in range(S)])
@@ -753,7 +854,7 @@ class GeometricIndexer:
         still_b = np.flatnonzero(moved <= dup_tol)
         if len(still_b):
             raise BundleError(
-                f"{len(still_b)} bundles are not moved by any dataset shape (bundle {still_b[:5].tolist()}, for "
+                f"{len(still_b)} bundles are not moved by any dataset shape ({_labels(self.bundle_names, still_b)}, for "
                 "example on the back of the head or a rigid part); remove them, bind them on the moving face, or "
                 "add shapes that move them."
             )
@@ -794,7 +895,8 @@ class GeometricIndexer:
                     mem_list.append(mem)
             if len(reps) < 2:
                 raise BundleError(
-                    f"Bundle {i} is not moved by any dataset shape by more than {self.merge_tolerance:.3g} scene "
+                    f"{_labels(self.bundle_names, [i])} is not moved by any dataset shape by more than "
+                    f"{self.merge_tolerance:.3g} scene "
                     "units; remove it, bind it on the moving face, or add shapes that move it."
                 )
             T = self._tetrahedralize(P[ids[reps], i], ids[reps], int(neighbors), float(min_quality), max_edge,
@@ -840,9 +942,8 @@ class GeometricIndexer:
         self.tet_bundle = np.repeat(np.arange(B), counts).astype(np.int32)
         Xt = P[self.tets, self.tet_bundle[:, None]]  # (N,4,3)
         inv = _tet_inverse(Xt)
-        # float32 affine maps q -> (w1, w2, w3) for the containment screen; NaN rows for flat tetrahedra
-        aff = np.concatenate([inv, -np.einsum("nij,nj->ni", inv, Xt[:, 0])[:, :, None]], axis=2)
-        self._tet_aff = aff.astype(np.float32)
+        # float64 affine maps q -> (w1, w2, w3) (w0 = 1 - sum); NaN rows for flat tetrahedra
+        self._tet_aff = np.concatenate([inv, -np.einsum("nij,nj->ni", inv, Xt[:, 0])[:, :, None]], axis=2)
         self._tet_flat = ~np.isfinite(inv).all(axis=(1, 2))
         del inv
         # float32 boxes rounded outwards, so a box always holds its tetrahedron
@@ -1139,7 +1240,7 @@ class GeometricIndexer:
         bad = ~np.isfinite(q).all(axis=1)
         if bad.any():
             raise BundleError(
-                f"{int(bad.sum())} bundles have NaN positions (bundle {np.flatnonzero(bad)[:5].tolist()}); "
+                f"{int(bad.sum())} bundles have NaN positions ({_labels(self.bundle_names, np.flatnonzero(bad))}); "
                 "skip the frame or fill the track gaps."
             )
         return q
@@ -1185,13 +1286,14 @@ class GeometricIndexer:
         cnt = np.where(inbox, self._cell_start[cell + 1] - s0, 0)
         pos, bund = _ragged_arange(s0, cnt)
         cand = self._cell_tets[pos]
-        q4 = np.c_[q, np.ones(B)].astype(np.float32)
-        w3 = np.einsum("nij,nj->ni", self._tet_aff[cand], q4[bund])
-        ok = (w3 >= -1e-4).all(axis=1) & (w3.sum(axis=1) <= 1 + 1e-4)
+        # box screen (float32 boxes rounded outwards), then the exact float64 affine maps of the survivors
+        q32 = q.astype(np.float32)
+        qb = q32[bund]
+        ok = ((self._tet_lo[cand] <= qb) & (qb <= self._tet_hi[cand])).all(axis=1)
         cand, bund = cand[ok], bund[ok]
         tid = self.tets[cand].astype(np.int64)
-        X = self.points_all[tid, bund[:, None]]
-        w = barycentric_tetrahedron(q[bund], X) if len(cand) else np.zeros((0, 4))
+        w3 = np.einsum("nij,nj->ni", self._tet_aff[cand], np.c_[q, np.ones(B)][bund])
+        w = np.column_stack([1 - w3.sum(1), w3])
         inside = (w >= -1e-9).all(axis=1)
         bund, tid, w = bund[inside], tid[inside], np.clip(w[inside], 0.0, None)
         w /= np.maximum(w.sum(axis=1, keepdims=True), 1e-300)
@@ -1261,6 +1363,7 @@ class GeometricIndexer:
         B, S1 = self.B, self.S1
         sub = np.tile(np.arange(S1, dtype=np.int64), B)
         mp = self._multi_pts
+        mp = mp[np.isfinite(pc[mp])]  # members without a cost keep their representative (the default)
         if len(mp):
             o = np.lexsort((pc[mp], self._pt_key[mp]))
             k = self._pt_key[mp][o]
@@ -1396,12 +1499,28 @@ class GeometricIndexer:
         A = sp.csr_matrix((C.data.astype(np.float32), idx, C.indptr), shape=(n, self._Dact.shape[0]))
         return A @ self._Dact
 
+    def _blend_active(self, sid, coef, split: bool = True):
+        """(n_active,3) float32 unskinned deltas of the moving vertices for per-bundle shape weights."""
+        sid = np.asarray(sid, dtype=np.int64)
+        coef = np.asarray(coef, dtype=np.float64)
+        K = sid.shape[1]
+        Beta = sp.csr_matrix((coef.ravel(), (np.repeat(np.arange(self.B), K), sid.ravel())), shape=(self.B, self.S1))
+        if not split:
+            return self._blend_part(self._w_full, Beta)
+        if self._pool is not None and len(self._w_parts) > 1 and _idle_core():
+            futs = [self._pool.submit(self._blend_part, part, Beta) for part in self._w_parts]
+            parts = [f.result() for f in futs]
+        else:
+            parts = [self._blend_part(part, Beta) for part in self._w_parts]
+        return parts[0] if len(parts) == 1 else np.vstack(parts)
+
     def blend(self, sid, coef, *, split: bool = True):
         """Unskinned natural-neighbour blend of per-bundle shape weights (Eq. 1 sewn with §5).
 
         ``x0 + sum_i W[:, i] sum_k coef_ik b*_{sid_ik}``, evaluated as one
         sparse product per row block (one block per thread) over the moving
-        vertices.
+        vertices. The blend is linear in ``coef``: the blend of averaged
+        weights is the average of the blends (temporal smoothing uses this).
 
         Parameters
         ----------
@@ -1409,29 +1528,17 @@ class GeometricIndexer:
             Shape ids per bundle (0 = neutral).
         coef : (B,K) array_like
             Their weights (each row sums to 1).
-
         split : bool
-            Spread the row blocks over the indexer's threads (``False`` when
-            the caller already runs frames in parallel).
+            Spread the row blocks over the indexer's threads when a core is
+            idle (``False`` when the caller already runs frames in parallel).
 
         Returns
         -------
         (V,3) float64 ndarray
             Scene units.
         """
-        sid = np.asarray(sid, dtype=np.int64)
-        coef = np.asarray(coef, dtype=np.float64)
-        K = sid.shape[1]
-        Beta = sp.csr_matrix((coef.ravel(), (np.repeat(np.arange(self.B), K), sid.ravel())), shape=(self.B, self.S1))
-        if not split:
-            parts = [self._blend_part(self._w_full, Beta)]
-        elif self._pool is not None and len(self._w_parts) > 1:
-            futs = [self._pool.submit(self._blend_part, part, Beta) for part in self._w_parts]
-            parts = [f.result() for f in futs]
-        else:
-            parts = [self._blend_part(part, Beta) for part in self._w_parts]
         out = self.neutral.copy()
-        out[self._active] += parts[0] if len(parts) == 1 else np.vstack(parts)
+        out[self._active] += self._blend_active(sid, coef, split)
         return out
 
     def _blend_dense(self, Wd, sid, coef):
@@ -1488,6 +1595,10 @@ class GeometricIndexer:
         BundleError
             On a wrong shape or NaN bundle positions, or a missing jaw pose.
         """
+        with _one_blas_thread():
+            return self._reconstruct(bundles, jaw, stitching, exact, prev)
+
+    def _reconstruct(self, bundles, jaw, stitching, exact, prev):
         q = self._check_bundles(bundles)
         qu = self.unskinned_bundles(q, jaw)
         ids, bary, dist = self.locate(qu, prev)
@@ -1531,29 +1642,47 @@ class GeometricIndexer:
             self._voronoi = sp.csr_matrix((np.ones(self.V), (np.arange(self.V), self.nn.cell)), shape=(self.V, self.B))
         return self._voronoi
 
-    def reconstruct_sequence(self, bundles, jaw=None, *, smooth: int = 1, exact=None, progress=None):
+    def reconstruct_sequence(self, bundles, jaw=None, *, smooth: int = 1, exact=None, progress=None,
+                             pipeline="auto"):
         """Rebuild every frame of an animated bundle sequence.
 
         Frames are indexed in order, each preferring tetrahedra that share
         shapes with the previous frame's (§5.1). With ``smooth > 1`` the
         barycentric shape weights of every bundle are averaged over a
         centred window of ``smooth`` frames (§7, "Temporal Smoothing"), relative
-        to the jaw-skinned neutral (the jaw itself is not smoothed).
+        to the jaw-skinned neutral (the jaw itself is not smoothed). The
+        stitching is linear in the weights, so the average is taken over the
+        frames' unskinned blends: smoothing costs no extra blending.
 
         Parameters
         ----------
         bundles : (T,B,3) array_like
             Bundle positions per frame, scene units. A frame with any NaN
             bundle is skipped.
-        jaw : (T,4) array_like, optional
-            Jaw parameters per frame (required with a jaw rig).
+        jaw : (T,4) or (T,4,4) array_like, optional
+            Jaw parameters or rigid jaw poses per frame (required with a jaw
+            rig). A frame with NaN jaw parameters is skipped.
         smooth : int
             Moving-average window in frames (1 = off; even values are
-            rounded up to the next odd one).
+            rounded up to the next odd one). Frames skipped for NaN bundles
+            leave the window (it shrinks at gaps and at the ends).
         exact : bool, optional
-            Residual correction through the bundles (default: the indexer's).
+            Residual correction (default: the indexer's). Without smoothing
+            the surface passes exactly through each frame's bundles; with
+            smoothing it passes exactly through the moving average of the
+            bundles over the same window (with the jaw motion removed, so the
+            jaw is not smoothed): the positions that the averaged weights
+            index wherever a tetrahedron holds the bundles. So the noise of
+            single frames is not put back (§7: smoothing the weights has a
+            "negligible impact on the ability to interpolate the bundles").
         progress : callable, optional
             Called as ``progress(done, total)`` after every frame is indexed.
+        pipeline : bool or "auto"
+            Blend and finish frames on a worker thread while the next frames
+            are indexed (with ``threads > 1``). ``"auto"``: only when a core
+            is idle (1-minute load average below ``cpu_count - 0.5``): on an
+            oversubscribed machine the two threads wait on each other for the
+            interpreter lock and run 2-4 times slower than one (measured).
 
         Returns
         -------
@@ -1562,6 +1691,10 @@ class GeometricIndexer:
         skipped : list of int
             Frames skipped because of NaN bundle positions.
         """
+        with _one_blas_thread():  # BLAS threads would spin against the pipeline's own threads
+            return self._reconstruct_sequence(bundles, jaw, smooth, exact, progress, pipeline)
+
+    def _reconstruct_sequence(self, bundles, jaw, smooth, exact, progress, pipeline):
         Q = np.asarray(bundles, dtype=np.float64)
         if Q.ndim != 3 or Q.shape[1:] != (self.B, 3):
             raise BundleError(f"Expected bundles as a (T,{self.B},3) array, got {Q.shape}.")
@@ -1569,12 +1702,14 @@ class GeometricIndexer:
         if self.jaw is not None:
             if jaw is None:
                 raise BundleError("This indexer has a jaw rig; pass jaw parameters per frame, (T,4).")
-            J = np.asarray(jaw, dtype=np.float64).reshape(T, 4)
+            J = np.asarray(jaw, dtype=np.float64)
+            if J.shape not in ((T, 4), (T, 4, 4)):
+                raise BundleError(f"Expected jaw parameters per frame, (T,4) or (T,4,4) with T={T}, got {J.shape}.")
         else:
             J = [None] * T
         ok = np.isfinite(Q).all(axis=(1, 2))
         if self.jaw is not None:
-            ok &= np.isfinite(J).all(axis=1)
+            ok &= np.isfinite(J.reshape(T, -1)).all(axis=1)
         skipped = [int(t) for t in np.flatnonzero(~ok)]
         ex = self.exact if exact is None else bool(exact)
         ids_t = np.zeros((T, self.B, 4), dtype=np.int64)
@@ -1582,35 +1717,64 @@ class GeometricIndexer:
         out = np.full((T, self.V, 3), np.nan)
         half = max(int(smooth), 1) // 2
         valid = np.flatnonzero(ok)
+        deltas, q_unskinned = {}, {}
+        acc, in_sum = [None], set()
+
+        def blend(t):
+            deltas[t] = self._blend_active(ids_t[t], bary_t[t], split=False)
 
         def finish(t):
-            if half == 0:
-                sid, coef = ids_t[t], bary_t[t]
+            # The blend is linear in the barycentric weights, so the blend of the weights averaged over the
+            # window is the average of the frames' blends: each frame is blended once (no extra cost).
+            win = valid[(valid >= t - half) & (valid <= t + half)]
+            if len(win) == 1:
+                d, target = deltas[t], Q[t]
             else:
-                win = valid[(valid >= t - half) & (valid <= t + half)]
-                sid, coef = self._average_weights(ids_t[win], bary_t[win])
-            out[t] = self._finish(self.blend(sid, coef, split=False), Q[t], J[t], ex)
+                # running sum over the window: frames enter and leave once (frames finish in order)
+                for s in set(win) - in_sum:
+                    acc[0] = deltas[s].astype(np.float64) if acc[0] is None else acc[0] + deltas[s]
+                    in_sum.add(s)
+                for s in in_sum - set(win):
+                    acc[0] -= deltas[s]
+                    in_sum.discard(s)
+                d = acc[0] / len(win)
+                # exact: through the moving average of the (jaw-unskinned) bundles, which is what the
+                # averaged weights index where a tetrahedron holds the bundles
+                target = np.mean([q_unskinned[s] for s in win], axis=0)
+                if self.jaw is not None:
+                    target = self.jaw.skin(target, J[t], self.bundle_jaw_weights)
+            Xu = self.neutral.copy()
+            Xu[self._active] += d
+            out[t] = self._finish(Xu, target, J[t], ex)
+            for s in [s for s in deltas if s <= t - half and s not in in_sum]:
+                del deltas[s]
+                q_unskinned.pop(s, None)
 
-        # Two-stage pipeline on two cores: frames are indexed in order on this thread while a worker
-        # blends every frame whose smoothing window is complete.
-        worker = ThreadPoolExecutor(1) if self.threads > 1 else None
+        # Two-stage pipeline: frames are indexed in order on this thread while a worker blends each indexed
+        # frame and finishes every frame whose smoothing window is complete (one worker: FIFO order).
+        if pipeline == "auto":
+            pipeline = _idle_core()
+        worker = ThreadPoolExecutor(1) if (self.threads > 1 and pipeline) else None
+        self.last_pipeline = worker is not None
         futs = []
-        run = (lambda t: futs.append(worker.submit(finish, t))) if worker is not None else finish
+        run = (lambda f, t: futs.append(worker.submit(f, t))) if worker is not None else (lambda f, t: f(t))
         prev = None
         nxt = 0
         try:
             for t in range(T):
                 if ok[t]:
                     qu = self.unskinned_bundles(Q[t], J[t])
+                    q_unskinned[t] = qu
                     ids_t[t], bary_t[t], _ = self.locate(qu, prev)
                     prev = ids_t[t]
+                    run(blend, t)
                 while nxt < len(valid) and valid[nxt] + half <= t:
-                    run(valid[nxt])
+                    run(finish, valid[nxt])
                     nxt += 1
                 if progress is not None:
                     progress(t + 1, T)
             while nxt < len(valid):
-                run(valid[nxt])
+                run(finish, valid[nxt])
                 nxt += 1
             for f in futs:
                 f.result()
@@ -1619,24 +1783,6 @@ class GeometricIndexer:
                 worker.shutdown(wait=True)
         self.last_sequence = {"shape_ids": ids_t, "bary": bary_t, "skipped": skipped}
         return out, skipped
-
-    def _average_weights(self, ids, bary):
-        """Average sparse per-bundle shape weights over frames: (n,B,4) -> (B,K) ids and weights."""
-        n, B, _ = ids.shape
-        flat_b = np.broadcast_to(np.arange(B)[None, :, None], ids.shape).ravel()
-        key = flat_b * self.S1 + ids.ravel()
-        uk, inv = np.unique(key, return_inverse=True)
-        val = np.bincount(inv, weights=bary.ravel() / n)
-        bb = uk // self.S1
-        ss = uk % self.S1
-        cnt = np.bincount(bb, minlength=B)
-        K = int(cnt.max())
-        slot = np.arange(len(uk)) - np.repeat(np.cumsum(cnt) - cnt, cnt)
-        sid = np.zeros((B, K), dtype=np.int64)
-        coef = np.zeros((B, K))
-        sid[bb, slot] = ss
-        coef[bb, slot] = val
-        return sid, coef
 
     def explain(self, bundle: int):
         """Human-readable description of a bundle's last chosen shapes (for UI reports)."""
@@ -1733,49 +1879,270 @@ class BlendshapeFit:
 # --------------------------------------------------------------------------
 
 
-def rig_correctives(indexer: GeometricIndexer, rig_shapes: dict, combinations, *, jaw=None):
-    """Actor-specific shapes and corrective shapes for combinations of rig shapes.
+def moving_bundle_layout(neutral, faces, shapes, n: int = 100, *, min_motion: float = 0.05):
+    """Bundles spread over the part of the mesh that the shapes move (farthest-point sampling).
 
-    For every combination (a tuple of rig shape names; a single name gives an
-    actor-specific version of that shape), the linear combination
-    ``x_lin = x0 + sum_k (rig_k - x0)`` gives bundle positions, which are
-    reconstructed from the dataset; the corrective is the difference
-    (Cong et al. 2019, §7 "Generating/Correcting Rigs", Fig. 7; a corrective
-    shape in the sense of [6]).
+    For tools that place their own bundles (the corrective-shape tool): one
+    bundle at the centroid of each chosen triangle, among the triangles whose
+    three vertices all move by more than ``min_motion`` times the largest
+    motion in some shape.
 
     Parameters
     ----------
-    indexer : GeometricIndexer
-        Built from the actor's dataset.
+    neutral : (V,3) array_like
+    faces : (F,3) int array_like
+    shapes : (S,V,3) array_like
+        Positions, scene units.
+    n : int
+        Number of bundles (fewer if fewer triangles move).
+    min_motion : float
+        Fraction of the largest vertex motion, unitless.
+
+    Returns
+    -------
+    bundle_faces : (n,) int64 ndarray
+    bundle_bary : (n,3) float64 ndarray
+    """
+    x0, F = validate_mesh(neutral, faces, name="neutral mesh")
+    X = np.asarray(shapes, dtype=np.float64)
+    mv = np.linalg.norm(X - x0, axis=2).max(axis=0)
+    ok = np.flatnonzero((mv[F] > min_motion * mv.max()).all(axis=1))
+    if len(ok) == 0:
+        raise DatasetError("The shapes move no triangle of the mesh; check that they are shapes of this mesh.")
+    C = x0[F[ok]].mean(axis=1)
+    chosen = [int(np.argmax(mv[F[ok]].min(axis=1)))]
+    d = np.linalg.norm(C - C[chosen[0]], axis=1)
+    for _ in range(min(int(n), len(ok)) - 1):
+        k = int(np.argmax(d))
+        chosen.append(k)
+        d = np.minimum(d, np.linalg.norm(C - C[k], axis=1))
+    return ok[np.array(chosen)].astype(np.int64), np.full((len(chosen), 3), 1.0 / 3.0)
+
+
+def fit_rig_weights(neutral, rig_deltas, shapes, *, bounds=(0.0, 1.0)):
+    """Bounded least-squares rig weights of shapes: ``min |sum_k w_k d_k - (x - x0)|^2``, ``lo <= w <= hi``.
+
+    Parameters
+    ----------
+    neutral : (V,3) array_like
+    rig_deltas : (K,V,3) array_like
+        Rig shape deltas, scene units.
+    shapes : (S,V,3) array_like
+        Positions, scene units.
+    bounds : (float, float)
+
+    Returns
+    -------
+    (S,K) float64 ndarray
+        Unitless weights.
+    """
+    from scipy.optimize import lsq_linear
+
+    A = np.asarray(rig_deltas, dtype=np.float64).reshape(len(rig_deltas), -1)
+    Y = (np.asarray(shapes, dtype=np.float64) - np.asarray(neutral, dtype=np.float64)).reshape(len(shapes), -1)
+    G = A @ A.T
+    G += 1e-12 * np.trace(G) / len(G) * np.eye(len(G))
+    L = np.linalg.cholesky(G)  # |A^T w - y|^2 = |L^T w - L^-1 A y|^2 + const
+    rhs = sla.solve_triangular(L, A @ Y.T, lower=True)  # (K,S)
+    return np.stack([lsq_linear(L.T, rhs[:, s], bounds=bounds, method="bvls").x for s in range(len(Y))])
+
+
+class RigCorrectives:
+    """Actor-specific corrective shapes for combinations of rig shapes (§7, Fig. 7).
+
+    The paper rebuilds a combination of template rig shapes from the bundles
+    of their linear combination, with local geometric indexing on the
+    actor's dataset. Indexing the actor's *shapes* with those bundles puts
+    the result through the linear combination's bundles and leaves it in the
+    convex hull of the dataset, so a combination that the dataset does not
+    hold comes out worse than the plain linear combination (measured in
+    ``benchmarks/geometric_indexing.py``). So the same machinery indexes the
+    dataset's *nonlinear residuals* instead:
+
+    1. every dataset shape ``x_s`` gets rig weights ``w_s`` (bounded least
+       squares, :func:`fit_rig_weights`, or given), its linear rig
+       counterpart ``l_s = x0 + sum_k w_sk d_k`` and its residual
+       ``r_s = x_s - l_s`` (what the linear rig misses: combination bulges,
+       jaw arcs, in-between bunching);
+    2. a :class:`GeometricIndexer` is built on the ``l_s``: point clouds of
+       bundle positions on the linear counterparts, tetrahedra, grid, natural
+       neighbours (§4, §5);
+    3. a combination's linear shape ``l_c`` gives bundle positions, which are
+       located in those clouds exactly as a frame of bundles is (§4, §5.1),
+       and the chosen tetrahedra's barycentric weights blend the *residuals*,
+       stitched with the natural-neighbour weights (§5).
+
+    The corrective is that blend; ``l_c`` + corrective is the actor-specific
+    combination. A combination the dataset holds is rebuilt exactly; a
+    single rig shape gets the residual of the dataset shape it indexes.
+
+    Parameters
+    ----------
+    neutral : (V,3) array_like
+    faces : (F,3) int array_like
     rig_shapes : dict str -> (V,3) array_like
-        Template rig shapes on the actor's neutral (positions, scene units).
+        Template rig shapes on the actor's neutral, positions, scene units.
+    dataset_shapes : (S,V,3) array_like
+        The actor's shapes, positions, scene units.
+    dataset_names : list of str, optional
+    dataset_weights : (S,K) array_like, optional
+        Rig weights of the dataset shapes (columns in ``rig_shapes`` order);
+        fitted when not given.
+    bundle_faces, bundle_bary : optional
+        Bundles; default :func:`moving_bundle_layout` with ``n_bundles``.
+    n_bundles : int
+    uvs : optional
+        UV map for the natural-neighbour weights (§5).
+    **indexer_options
+        Passed to :class:`GeometricIndexer`.
+
+    Attributes
+    ----------
+    rig_names : list of str
+    weights : (S,K) float64
+        Rig weights of the dataset shapes used.
+    residuals : (S,V,3) float64
+        ``x_s - l_s``, scene units.
+    dropped : list of str
+        Dataset shapes left out: no rig content (``l_s`` is the neutral) or
+        the same rig weights as an earlier shape.
+    indexer : GeometricIndexer
+    """
+
+    def __init__(self, neutral, faces, rig_shapes: dict, dataset_shapes, *, dataset_names=None, dataset_weights=None,
+                 bundle_faces=None, bundle_bary=None, n_bundles: int = 100, uvs=None, **indexer_options):
+        x0, F = validate_mesh(neutral, faces, name="neutral mesh")
+        self.neutral, self.faces = x0, F
+        if not rig_shapes:
+            raise DatasetError("No rig shapes; give the template rig's shapes (shape keys of the rig object).")
+        self.rig_names = list(rig_shapes)
+        Dr = np.stack([np.asarray(rig_shapes[n], dtype=np.float64) - x0 for n in self.rig_names])
+        if Dr.shape[1:] != x0.shape:
+            raise DatasetError(f"Rig shapes must be (V,3) with V={len(x0)}; the rig must share the face's topology.")
+        self.rig_deltas = Dr
+        X = np.asarray(dataset_shapes, dtype=np.float64)
+        if X.ndim != 3 or X.shape[1:] != x0.shape:
+            raise DatasetError(f"Dataset shapes must be (S,V,3) with V={len(x0)}, got {X.shape}.")
+        names = list(dataset_names) if dataset_names is not None else [f"shape {i}" for i in range(len(X))]
+        if dataset_weights is None:
+            Wt = fit_rig_weights(x0, Dr, X)
+        else:
+            Wt = np.asarray(dataset_weights, dtype=np.float64).reshape(len(X), len(self.rig_names))
+        L = x0 + np.einsum("sk,kvd->svd", Wt, Dr)
+        size = float(np.linalg.norm(x0.max(0) - x0.min(0)))
+        moves = np.linalg.norm(L - x0, axis=2).max(axis=1) > 1e-7 * size
+        keep = moves.copy()
+        # shapes with the same rig weights index the same point: keep the first
+        _, first = np.unique(np.round(Wt / 1e-9), axis=0, return_index=True)
+        uniq = np.zeros(len(X), dtype=bool)
+        uniq[first] = True
+        keep &= uniq
+        self.dropped = [names[i] for i in np.flatnonzero(~keep)]
+        if keep.sum() < 4:
+            raise DatasetError(
+                f"Only {int(keep.sum())} dataset shapes have distinct rig content; the corrective tool needs at "
+                "least 4 (add the actor's expressions, in-betweens and combinations as shape keys)."
+            )
+        self.dataset_names = [names[i] for i in np.flatnonzero(keep)]
+        self.weights = Wt[keep]
+        self.residuals = X[keep] - L[keep]
+        if bundle_faces is None:
+            bundle_faces, bundle_bary = moving_bundle_layout(x0, F, L[keep], n_bundles)
+        self.indexer = GeometricIndexer(x0, F, L[keep], bundle_faces, bundle_bary, names=self.dataset_names, uvs=uvs,
+                                        **{"threads": 1, "exact": False, **indexer_options})
+        R = np.zeros((len(self.residuals) + 1,) + x0.shape)
+        R[1:] = self.residuals
+        self._R = R
+
+    def linear(self, weights):
+        """(V,3) linear rig shape ``x0 + sum_k w_k d_k`` for ``{rig name: weight}``, scene units."""
+        w = self._weight_vector(weights)
+        return self.neutral + np.tensordot(w, self.rig_deltas, axes=1)
+
+    def _weight_vector(self, weights):
+        if isinstance(weights, str):
+            weights = (weights,)
+        if not isinstance(weights, dict):
+            weights = {n: 1.0 for n in weights}
+        missing = [n for n in weights if n not in self.rig_names]
+        if missing:
+            raise FaceLabError(f"Unknown rig shapes {missing}; available: {self.rig_names[:10]}...")
+        return np.array([float(weights.get(n, 0.0)) for n in self.rig_names])
+
+    def corrective(self, weights):
+        """Corrective delta for a combination, to add on top of its linear rig shape.
+
+        Parameters
+        ----------
+        weights : dict str -> float, or iterable of str
+            The combination (names at weight 1, or explicit weights).
+
+        Returns
+        -------
+        corrective : (V,3) float64 ndarray
+            Scene units.
+        info : dict
+            ``projected``: bundles outside the dataset's clouds (the
+            combination goes beyond the dataset there); ``shapes``: the
+            dataset shapes used, by total weight.
+        """
+        gi = self.indexer
+        lin = self.linear(weights)
+        q = surface_points(lin, self.faces, gi.bundle_faces, gi.bundle_bary)
+        ids, bary, dist = gi.locate(q)
+        Beta = sp.csr_matrix((bary.ravel(), (np.repeat(np.arange(gi.B), 4), ids.ravel())), shape=(gi.B, gi.S1))
+        C = (gi.W @ Beta).tocsc()
+        out = np.zeros_like(self.neutral)
+        for s in np.flatnonzero(np.diff(C.indptr)[1:]) + 1:
+            rows = C.indices[C.indptr[s] : C.indptr[s + 1]]
+            out[rows] += C.data[C.indptr[s] : C.indptr[s + 1], None] * self._R[s, rows]
+        used = np.bincount(ids.ravel(), weights=bary.ravel(), minlength=gi.S1)[1:]
+        order = np.argsort(-used)
+        info = {"projected": int((dist > 0).sum()),
+                "shapes": [(self.dataset_names[k], float(used[k] / gi.B)) for k in order[:5] if used[k] > 0]}
+        return out, info
+
+    def close(self):
+        self.indexer.close()
+
+
+def rig_correctives(neutral, faces, rig_shapes: dict, dataset_shapes, combinations, **options):
+    """Actor-specific corrective shapes for combinations of rig shapes (§7, Fig. 7; :class:`RigCorrectives`).
+
+    Parameters
+    ----------
+    neutral : (V,3) array_like
+    faces : (F,3) int array_like
+    rig_shapes : dict str -> (V,3) array_like
+        Template rig shapes (positions, scene units).
+    dataset_shapes : (S,V,3) array_like
+        The actor's dataset (positions, scene units).
     combinations : iterable of tuple of str
-        Combinations to correct, e.g. ``[("noseSneer_L", "mouthUpperUp_L")]``.
-    jaw : dict tuple -> (4,) array_like, optional
-        Jaw parameters for combinations (required with a jaw rig).
+        E.g. ``[("noseSneer_L", "mouthUpperUp_L")]``.
+    **options
+        Passed to :class:`RigCorrectives`.
 
     Returns
     -------
     dict str -> dict
-        Keyed by ``"+".join(combination)``: ``"reconstruction"`` (V,3)
-        positions, ``"corrective"`` (V,3) delta to add on top of the linear
-        combination, ``"linear"`` (V,3) the linear combination, scene units.
+        Keyed by ``"+".join(combination)``: ``"linear"`` (V,3) the linear
+        combination, ``"corrective"`` (V,3) the delta to add on top of it,
+        ``"reconstruction"`` (V,3) their sum, scene units; ``"info"``.
 
     Raises
     ------
     FaceLabError
-        For an unknown rig shape name.
+        For an unknown rig shape name; DatasetError / BundleError for an
+        unusable dataset.
     """
-    x0 = indexer.neutral
+    rc = RigCorrectives(neutral, faces, rig_shapes, dataset_shapes, **options)
     out = {}
-    for combo in combinations:
-        combo = (combo,) if isinstance(combo, str) else tuple(combo)
-        missing = [c for c in combo if c not in rig_shapes]
-        if missing:
-            raise FaceLabError(f"Unknown rig shapes {missing}; available: {sorted(rig_shapes)[:10]}...")
-        lin = x0 + sum(np.asarray(rig_shapes[c], dtype=np.float64) - x0 for c in combo)
-        q = surface_points(lin, indexer.faces, indexer.bundle_faces, indexer.bundle_bary)
-        th = None if jaw is None else jaw.get(combo)
-        rec = indexer.reconstruct(q, th)
-        out["+".join(combo)] = {"reconstruction": rec, "corrective": rec - lin, "linear": lin}
+    try:
+        for combo in combinations:
+            combo = (combo,) if isinstance(combo, str) else tuple(combo)
+            lin = rc.linear(combo)
+            c, info = rc.corrective(combo)
+            out["+".join(combo)] = {"linear": lin, "corrective": c, "reconstruction": lin + c, "info": info}
+    finally:
+        rc.close()
     return out

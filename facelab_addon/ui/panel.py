@@ -12,22 +12,8 @@ import numpy as np
 
 from .ops import face_object
 from .ops_propagate import RUNNING
-
-# --- sections drawn by other modules (they may not exist yet in this branch) -------------------
-# Issue 4 (Solve from Markers, Retarget): ui/panel_solve.py provides draw_solve_section(layout, context)
-# and draw_retarget_section(layout, context). Until it lands, section 4 shows only Reconstruct.
-try:
-    from .panel_solve import draw_retarget_section, draw_solve_section
-except ImportError:
-    draw_solve_section = draw_retarget_section = None
-# Reconstruct from Bundles: ui/panel_reconstruct.py provides draw_reconstruct_section(layout, context).
-try:
-    from .panel_reconstruct import draw_reconstruct_section
-except ImportError:
-    def draw_reconstruct_section(layout, context):  # fallback until panel_reconstruct lands
-        col = layout.column()
-        col.label(text="Select the bundle empties (or a 'FL_bundles' collection)")
-        col.operator("facelab.reconstruct_from_bundles", icon="EMPTY_DATA")
+from .panel_reconstruct import draw_reconstruct_section
+from .panel_solve import draw_retarget_section, draw_solve_section
 
 # Extrapolation scores above this are flagged (the frame's mouth lies well outside the training poses).
 EXTRAPOLATING = 0.5

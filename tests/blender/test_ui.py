@@ -14,10 +14,11 @@ pytestmark = pytest.mark.blender
 
 OPERATORS = ["new_lip_sketch", "refine_lips", "auto_regions", "mark_training_frame", "remove_training_frame",
              "jump_training_frame", "jump_to_frame", "propagate", "bake", "reconstruct_from_bundles",
-             "bind_tracks", "solve_performance", "retarget"]
+             "bind_tracks", "solve_performance", "retarget", "generate_correctives", "bundles_from_clip"]
 # operators that change the scene: they must support undo
 UNDOABLE = ["new_lip_sketch", "refine_lips", "auto_regions", "mark_training_frame", "remove_training_frame",
-            "propagate", "reconstruct_from_bundles", "bind_tracks", "solve_performance", "retarget"]
+            "propagate", "reconstruct_from_bundles", "bind_tracks", "solve_performance", "retarget",
+            "generate_correctives", "bundles_from_clip"]
 PANELS = ["FACELAB_PT_main", "FACELAB_PT_setup", "FACELAB_PT_sketch", "FACELAB_PT_propagate", "FACELAB_PT_solve",
           "FACELAB_PT_reconstruct", "FACELAB_PT_bake"]
 
@@ -95,7 +96,7 @@ def test_panels_read_as_the_workflow(addon):
 def test_without_a_face_every_operator_explains(addon):
     empty_scene()
     for op in OPERATORS:
-        if op == "jump_to_frame":  # plain navigation: always available
+        if op in ("jump_to_frame", "bundles_from_clip"):  # navigation / makes empties from a clip: no face needed
             continue
         fn = getattr(bpy.ops.facelab, op)
         assert not fn.poll(), op
@@ -121,6 +122,8 @@ def test_with_a_face_polls_and_messages(addon):
         "bind_tracks": False,  # no tracking views yet
         "solve_performance": False,  # no tracking views yet
         "retarget": False,  # no creature picked
+        "generate_correctives": True,  # refuses on execute: no template rig picked
+        "bundles_from_clip": True,  # refuses on execute: no solved Movie Clip
     }
     for op, msg in (("refine_lips", "camera"), ("new_lip_sketch", "camera"), ("propagate", "Correct at least one"),
                     ("remove_training_frame", "No training frames"), ("jump_training_frame", "No training frames"),
