@@ -294,18 +294,9 @@ def annotation_polylines(annotation, camera: Camera, frame: int, *, hold: bool =
         fr = _layer_frame(layer.frames, int(frame), hold, lambda f: f.frame_number)
         if fr is None:
             continue
-        where = f"Annotation layer '{layer.info}' on frame {frame}"
-        for stroke in fr.strokes:
-            n = len(stroke.points)
-            if n == 0:
-                continue
-            co = np.empty(n * 3, dtype=np.float32)
-            stroke.points.foreach_get("co", co)
-            P = co.reshape(-1, 3).astype(np.float64)
-            if _st._is_view_space(stroke, P, camera):
-                out.setdefault(name, []).append(_st._view_percent_to_px(P, camera))
-            else:
-                out.setdefault(name, []).extend(_st._project_world(camera, [P], where))
+        polys = _st.annotation_frame_pixels(fr, camera, f"Annotation layer '{layer.info}' on frame {frame}")
+        if polys:
+            out.setdefault(name, []).extend(polys)
     return out
 
 

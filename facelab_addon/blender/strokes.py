@@ -435,6 +435,28 @@ def _is_view_space(stroke, P, camera: Camera) -> bool:
     return not bool(np.all(camera.in_frame(camera.project(P), margin=-big)))
 
 
+def annotation_frame_pixels(annotation_frame, camera: Camera, where: str) -> list:
+    """Pixel polylines ``[(n,2), ...]`` of the strokes of one annotation frame.
+
+    "View"-placed strokes are in percent of the camera frame; 3D strokes are
+    projected through ``camera`` (they must lie in front of it; ``where`` names
+    the layer and frame in the error otherwise). Empty strokes are skipped.
+    """
+    polys = []
+    for stroke in annotation_frame.strokes:
+        n = len(stroke.points)
+        if n == 0:
+            continue
+        co = np.empty(n * 3, dtype=np.float32)
+        stroke.points.foreach_get("co", co)
+        P = co.reshape(-1, 3).astype(np.float64)
+        if _is_view_space(stroke, P, camera):
+            polys.append(_view_percent_to_px(P, camera))
+        else:
+            polys += _project_world(camera, [P], where)
+    return polys
+
+
 def _read_annotation(ann, camera: Camera, frame: int) -> dict:
     lips = _lip_layers(ann.layers, lambda lay: lay.info)
     out = {}
@@ -449,18 +471,7 @@ def _read_annotation(ann, camera: Camera, frame: int) -> dict:
             fr = _annotation_frame_at(layer, frame)
             if fr is None:
                 continue
-            where = f"Annotation layer '{layer.info}' on frame {frame}"
-            for stroke in fr.strokes:
-                n = len(stroke.points)
-                if n == 0:
-                    continue
-                co = np.empty(n * 3, dtype=np.float32)
-                stroke.points.foreach_get("co", co)
-                P = co.reshape(-1, 3).astype(np.float64)
-                if _is_view_space(stroke, P, camera):
-                    polys.append(_view_percent_to_px(P, camera))
-                else:
-                    polys += _project_world(camera, [P], where)
+            polys += annotation_frame_pixels(fr, camera, f"Annotation layer '{layer.info}' on frame {frame}")
         if not polys:
             raise SketchError(
                 f"The '{nice}' annotation layer has no strokes on frame {frame}; "
