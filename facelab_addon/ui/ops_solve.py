@@ -23,7 +23,7 @@ import numpy as np
 from bpy.props import IntProperty
 
 from ..blender import tracking
-from ..blender.bundles import read_bundles
+from ..blender.bundles import bundle_labels, read_bundles
 from ..blender.camera import evaluated_depsgraph
 from ..blender.masks import read_curves
 from ..blender.mesh import default_fixed_mask, evaluated_vertices, mesh_triangles, require_mesh, vertex_group_mask
@@ -145,16 +145,6 @@ def _bundle_objects(scene):
     return objs
 
 
-def _bundle_names(objs):
-    names = []
-    for o in objs:
-        if o.type == "MESH":
-            names += [f"{o.name}:{i}" for i in range(len(o.data.vertices))]
-        else:
-            names.append(o.name)
-    return names
-
-
 def read_scene_bundles(scene, frames, views):
     """``(names, (T,B,3) world positions)`` of the configured bundle source, or ``(None, None)``."""
     s = scene.facelab_solve
@@ -164,7 +154,7 @@ def read_scene_bundles(scene, frames, views):
         pts, names = tracking.clip_bundles(views[0].clip)
         return names, np.broadcast_to(pts, (len(frames),) + pts.shape).copy()
     objs = _bundle_objects(scene)
-    return _bundle_names(objs), read_bundles(scene, objs, frames)
+    return bundle_labels(objs), read_bundles(scene, objs, frames)
 
 
 def _face_matrices(scene, obj, frames):
