@@ -1,6 +1,7 @@
 """Operators. Each gathers inputs through the adapters, calls one core function,
 writes results through the adapters, and reports. No math here."""
 
+import sys
 import time
 
 import bpy
@@ -22,6 +23,25 @@ from ..core.sketch import refine_lips
 from .prefs import get_prefs
 
 TRAIN_MARKER = "FL train"
+
+
+def progress_callback(context, T, label="FaceLab"):
+    """A ``progress(i, n)`` callback: the window's progress cursor, and in background mode
+    (``blender -b``, the bpy module) a line on stderr about every 10 %. Callers end it with
+    ``context.window_manager.progress_end()``."""
+    wm = context.window_manager
+    wm.progress_begin(0, max(T, 1))
+    last = [-1]
+
+    def update(i, n=T):
+        wm.progress_update(i)
+        if bpy.app.background and n:
+            pct = int(100 * (i + 1) / n)
+            if pct // 10 != last[0] // 10:
+                last[0] = pct
+                print(f"{label}: {i + 1}/{n} frames ({pct} %)", file=sys.stderr, flush=True)
+
+    return update
 
 
 def face_object(context):

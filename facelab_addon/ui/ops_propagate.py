@@ -17,7 +17,7 @@ from ..core.compress import compress
 from ..core.errors import FaceLabError, RegionError
 from ..core.propagate import LipRegressor, suggest_frames
 from ..core.regions import auto_regions, faces_in_region, validate_regions
-from .ops import face_object, poll_face, record_training_frame
+from .ops import face_object, poll_face, progress_callback, record_training_frame
 
 PROP_PREFIX = "FL_Prop_"
 SUGGEST_MARKER = "FL suggest"
@@ -51,23 +51,6 @@ def training_frames(obj):
     return sorted(frames)
 
 
-def _progress(context, T, label="FaceLab"):
-    """A ``progress(i, n)`` callback: the window's progress cursor, and in background mode
-    (``blender -b``, the bpy module) a line on stderr about every 10 %. Callers end it with
-    ``context.window_manager.progress_end()``."""
-    wm = context.window_manager
-    wm.progress_begin(0, max(T, 1))
-    last = [-1]
-
-    def update(i, n=T):
-        wm.progress_update(i)
-        if bpy.app.background and n:
-            pct = int(100 * (i + 1) / n)
-            if pct // 10 != last[0] // 10:
-                last[0] = pct
-                print(f"{label}: {i + 1}/{n} frames ({pct} %)", file=sys.stderr, flush=True)
-
-    return update
 
 
 class FACELAB_OT_auto_regions(bpy.types.Operator):
@@ -599,7 +582,7 @@ class FACELAB_OT_bake(_ModalJob, bpy.types.Operator):
             if not bpy.app.background and context.window is not None:  # after the file browser
                 return self._start_job(context, steps, f"Bake {self.format}")
             job = StepJob(steps)
-            prog = _progress(context, len(self._frames_run), f"FaceLab Bake {self.format}")
+            prog = progress_callback(context, len(self._frames_run), f"FaceLab Bake {self.format}")
             out = job.run(lambda done, total: prog(done - 1, total))
         except FaceLabError as e:
             self.report({"ERROR"}, str(e))

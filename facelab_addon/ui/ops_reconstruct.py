@@ -20,7 +20,7 @@ from ..blender.shapekeys import add_corrective_key, add_keys_from_deltas, key_va
 from ..core.compress import compress
 from ..core.errors import FaceLabError
 from ..core.geometric_indexing import GeometricIndexer, JawRig, RigCorrectives, bind_points
-from .ops import face_object, poll_face
+from .ops import face_object, poll_face, progress_callback
 
 RECON_PREFIX = "FL_Recon_"
 CORRECTIVE_PREFIX = "FL_Corr_"
@@ -184,9 +184,11 @@ class FACELAB_OT_reconstruct_from_bundles(bpy.types.Operator):
             indexer = GeometricIndexer(neutral, tris, shapes, bf, bb, names=names, uvs=triangle_uvs(obj.data),
                                        jaw=jaw, shape_jaw=shape_jaw, bundle_names=labels)
             try:
-                X, skipped = indexer.reconstruct_sequence(Q, J, smooth=smooth)
+                X, skipped = indexer.reconstruct_sequence(
+                    Q, J, smooth=smooth, progress=progress_callback(context, len(frames), "FaceLab Reconstruct"))
             finally:
                 indexer.close()
+                context.window_manager.progress_end()
             if len(skipped) == len(frames):
                 raise FaceLabError(
                     f"Every frame has missing bundles (e.g. {self._missing(Q, labels, skipped[:1])}); check the "

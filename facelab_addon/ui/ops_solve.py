@@ -30,7 +30,7 @@ from ..blender.mesh import default_fixed_mask, evaluated_vertices, mesh_triangle
 from ..blender.shapekeys import add_corrective_key, add_keys_from_deltas, key_values_bulk, remove_keys, rest_vertices
 from ..core.compress import compress
 from ..core.errors import BundleError, CameraError, FaceLabError
-from .ops import face_object, poll_face
+from .ops import face_object, poll_face, progress_callback
 from .props_solve import read_bindings, write_bindings
 
 SOLVE_PREFIX = "FL_Solve_"
@@ -625,12 +625,6 @@ def retarget(context, actor, creature, progress=None) -> dict:
 
 
 # --------------------------------------------------------------------------- operators
-def _progress(context, T):
-    wm = context.window_manager
-    wm.progress_begin(0, max(T, 1))
-    return lambda i, n=T: wm.progress_update(i)
-
-
 class FACELAB_OT_solve_add_view(bpy.types.Operator):
     """Add a tracking camera: the scene camera and the scene's active Movie Clip (edit them in the list)"""
 
@@ -751,7 +745,7 @@ class FACELAB_OT_solve_performance(bpy.types.Operator):
         obj = face_object(context)
         try:
             frames = frame_range(context.scene, context.scene.facelab_solve)
-            r = solve(context, obj, progress=_progress(context, len(frames)))
+            r = solve(context, obj, progress=progress_callback(context, len(frames), "FaceLab Solve"))
         except FaceLabError as e:
             self.report({"ERROR"}, str(e))
             return {"CANCELLED"}
@@ -796,7 +790,7 @@ class FACELAB_OT_retarget(bpy.types.Operator):
         creature = context.scene.facelab_solve.creature
         try:
             frames = frame_range(context.scene, context.scene.facelab_solve)
-            r = retarget(context, obj, creature, progress=_progress(context, len(frames)))
+            r = retarget(context, obj, creature, progress=progress_callback(context, len(frames), "FaceLab Retarget"))
         except FaceLabError as e:
             self.report({"ERROR"}, str(e))
             return {"CANCELLED"}
