@@ -65,6 +65,9 @@ def recording(module, name: str, sink: dict, progress=None):
         yield sink
     finally:
         setattr(module, name, orig)
+    if "result" not in sink:
+        raise RuntimeError(f"the operator did not call {module.__name__}.{name}; the CLI's recording of its result "
+                           "(facelab_addon/cli/solve.py) must follow the operator")
 
 
 def set_range(session, args, what: str):
