@@ -98,9 +98,7 @@ def run(args, session) -> dict:
     session.log(f"retargeting '{obj.name}' -> '{cre.name}', frames {frames[0]}-{frames[-1]} ({len(frames):,}), "
                 f"lip sync {'on' if s.lip_sync else 'off'}")
     t0 = time.perf_counter()
-    term = session.progress("retarget", len(frames))
-    # core.retarget reports (done, total), 1-based; the terminal progress takes a 0-based index
-    with recording(ops_solve, "retarget", {}, progress=lambda done, *n: term(done - 1, *n)) as rec:
+    with recording("retarget") as rec:
         session.call("retarget")
     dt = time.perf_counter() - t0
     r = rec["result"]

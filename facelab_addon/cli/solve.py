@@ -37,37 +37,20 @@ def add_arguments(p) -> None:
 
 # --------------------------------------------------------------------------- shared with retarget.py
 @contextlib.contextmanager
-def recording(module, name: str, sink: dict, progress=None):
-    """Run the operator exactly as the UI does while keeping what its worker function returns.
+def recording(op: str):
+    """Run an issue-4 operator exactly as the UI does and keep the numbers behind its report.
 
-    The operators report in one sentence; the summary needs the numbers behind it. ``module.name``
-    (the function the operator's ``execute`` calls) is wrapped for the duration: its return value
-    goes to ``sink["result"]`` and its ``progress`` callback also prints terminal progress.
+    ``op`` is the operator's name (``"solve_performance"``); the operator stores
+    what its worker returned in ``ui.ops_solve.RESULTS[op]``, yielded here as ``rec["result"]``.
+    Progress lines come from the operator itself (stderr in background mode).
     """
-    orig = getattr(module, name)
+    from ..ui import ops_solve
 
-    def wrapper(*a, **kw):
-        if progress is not None:
-            inner = kw.get("progress")
-
-            def both(i, *n):
-                if inner is not None:
-                    inner(i, *n)
-                progress(i, *n)
-
-            kw["progress"] = both
-        r = orig(*a, **kw)
-        sink["result"] = r
-        return r
-
-    setattr(module, name, wrapper)
-    try:
-        yield sink
-    finally:
-        setattr(module, name, orig)
-    if "result" not in sink:
-        raise RuntimeError(f"the operator did not call {module.__name__}.{name}; the CLI's recording of its result "
-                           "(facelab_addon/cli/solve.py) must follow the operator")
+    ops_solve.RESULTS.pop(op, None)
+    rec: dict = {}
+    yield rec
+    if op in ops_solve.RESULTS:
+        rec["result"] = ops_solve.RESULTS.pop(op)
 
 
 def set_range(session, args, what: str):
@@ -145,7 +128,7 @@ def bind(session, args, obj, frames) -> dict:
         return {"performed": False, "frame": stored, "bindings": have}
     session.log(f"binding tracks on frame {frame} ({why})")
     t0 = time.perf_counter()
-    with recording(ops_solve, "bind_tracks", {}) as rec:
+    with recording("bind_tracks") as rec:
         ret = session.call("bind_tracks", frame=frame)
     dt = time.perf_counter() - t0
     r = rec.get("result") or {}
@@ -191,7 +174,7 @@ def run(args, session) -> dict:
 
     session.log(f"solving frames {frames[0]}-{frames[-1]} ({len(frames):,})")
     t0 = time.perf_counter()
-    with recording(ops_solve, "solve", {}, progress=session.progress("solve", len(frames))) as rec:
+    with recording("solve_performance") as rec:
         session.call("solve_performance")
     dt = time.perf_counter() - t0
     r = rec["result"]

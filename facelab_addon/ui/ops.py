@@ -26,20 +26,20 @@ TRAIN_MARKER = "FL train"
 
 
 def progress_callback(context, T, label="FaceLab"):
-    """A ``progress(i, n)`` callback: the window's progress cursor, and in background mode
-    (``blender -b``, the bpy module) a line on stderr about every 10 %. Callers end it with
-    ``context.window_manager.progress_end()``."""
+    """A ``progress(done, n)`` callback (``done`` items of ``n`` finished): the window's progress
+    cursor, and in background mode (``blender -b``, the bpy module, the CLI) a line on stderr about
+    every 10 %. Callers end it with ``context.window_manager.progress_end()``."""
     wm = context.window_manager
     wm.progress_begin(0, max(T, 1))
     last = [-1]
 
-    def update(i, n=T):
-        wm.progress_update(i)
+    def update(done, n=T):
+        wm.progress_update(done)
         if bpy.app.background and n:
-            pct = int(100 * (i + 1) / n)
-            if pct // 10 != last[0] // 10:
+            pct = int(100 * done / n)
+            if pct // 10 != last[0] // 10 or done == n:
                 last[0] = pct
-                print(f"{label}: {i + 1}/{n} frames ({pct} %)", file=sys.stderr, flush=True)
+                print(f"{label}: {done}/{n} frames ({pct} %)", file=sys.stderr, flush=True)
 
     return update
 

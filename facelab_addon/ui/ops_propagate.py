@@ -583,7 +583,7 @@ class FACELAB_OT_bake(_ModalJob, bpy.types.Operator):
                 return self._start_job(context, steps, f"Bake {self.format}")
             job = StepJob(steps)
             prog = progress_callback(context, len(self._frames_run), f"FaceLab Bake {self.format}")
-            out = job.run(lambda done, total: prog(done - 1, total))
+            out = job.run(prog)
         except FaceLabError as e:
             self.report({"ERROR"}, str(e))
             return {"CANCELLED"}

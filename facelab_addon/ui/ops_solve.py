@@ -43,6 +43,9 @@ EYEBALL_GROUPS = {"left": "FL_eyeball_left", "right": "FL_eyeball_right"}
 
 # Last solve's timings and counts (for tests and the benchmark).
 LAST: dict = {}
+# What each operator's worker returned on its last successful run, by operator name ("solve_performance"...):
+# the numbers behind the one-sentence reports, for the batch CLI's JSON summary.
+RESULTS: dict = {}
 
 
 # --------------------------------------------------------------------------- gathering
@@ -699,6 +702,7 @@ class FACELAB_OT_bind_tracks(bpy.types.Operator):
         obj = face_object(context)
         try:
             r = bind_tracks(context, obj, f)
+            RESULTS["bind_tracks"] = r
         except FaceLabError as e:
             self.report({"ERROR"}, str(e))
             return {"CANCELLED"}
@@ -745,7 +749,9 @@ class FACELAB_OT_solve_performance(bpy.types.Operator):
         obj = face_object(context)
         try:
             frames = frame_range(context.scene, context.scene.facelab_solve)
-            r = solve(context, obj, progress=progress_callback(context, len(frames), "FaceLab Solve"))
+            prog = progress_callback(context, len(frames), "FaceLab Solve")
+            r = solve(context, obj, progress=lambda i, n: prog(i + 1, n))  # the solver reports the frame index
+            RESULTS["solve_performance"] = r
         except FaceLabError as e:
             self.report({"ERROR"}, str(e))
             return {"CANCELLED"}
@@ -791,6 +797,7 @@ class FACELAB_OT_retarget(bpy.types.Operator):
         try:
             frames = frame_range(context.scene, context.scene.facelab_solve)
             r = retarget(context, obj, creature, progress=progress_callback(context, len(frames), "FaceLab Retarget"))
+            RESULTS["retarget"] = r
         except FaceLabError as e:
             self.report({"ERROR"}, str(e))
             return {"CANCELLED"}
