@@ -1054,6 +1054,7 @@ def match_contours(
     eyelid_min_cos: float = 0.25,
     curve_tolerance: float = 0.02,
     near_tie: float = 0.25,
+    eyelid_height: str = "current",
 ) -> list:
     """Occluding contours of the current mesh matched to the tracked curves (Bhat et al. 2013, §4.2).
 
@@ -1103,6 +1104,15 @@ def match_contours(
         eyeball at an angle whose cosine (ray against sphere normal) is at
         least this: towards the eyeball's limb seen from that camera the lift
         is ill-conditioned, and lid points beyond it are hidden by the eye.
+    eyelid_height : {'current', 'rest'}
+        Which sphere a 3D eyelid target is lifted onto. ``'current'``
+        (default): the eyeball sphere grown by the lid point's height over
+        the eyeball on ``vertices`` (the current fit), so the target keeps
+        the rig's lid thickness for this expression and only the tracked
+        curve moves it; a lid that matches the image is its own fixed point
+        (unbiased). ``'rest'``: grown by the rest-pose height
+        (``loops.eyelid_offset``); biased wherever the rig changes the lid's
+        height over the eye (ICT blinks: ~0.4 mm RMS).
 
     Returns
     -------
@@ -1127,6 +1137,8 @@ def match_contours(
         )
     if eyelids not in ("3d", "2d", "both"):
         raise FaceLabError(f"eyelids must be '3d', '2d' or 'both', got {eyelids!r}.")
+    if eyelid_height not in ("current", "rest"):
+        raise FaceLabError(f"eyelid_height must be 'current' or 'rest', got {eyelid_height!r}.")
     prev = {}
     for pc in previous or []:
         key = (pc.name, pc.source_camera if pc.source_camera >= 0 else pc.camera, pc.camera < 0)
@@ -1214,7 +1226,7 @@ def match_contours(
                 out.append(CurveCorrespondence(name, -1, pv, pb, targets=None, loop=k, curve_t=t, source_camera=ci,
                                                pixels=px))
     if lift:
-        _lift_eyelids(V, cameras, loops, out, lift, eyelid_min_cos)
+        _lift_eyelids(V, cameras, loops, out, lift, eyelid_min_cos, eyelid_height)
         out = [c for c in out if not (c.camera < 0 and c.targets is None)]
     return out
 
@@ -1230,8 +1242,13 @@ def _eyeball_sphere(V, loops, side):
     return cr
 
 
-def _lift_eyelids(V, cameras, loops, out, lift, min_cos):
-    """Project the 2D targets of the 3D eyelid correspondences onto the eyeball (batched per eye and camera)."""
+def _lift_eyelids(V, cameras, loops, out, lift, min_cos, height="current"):
+    """Project the 2D targets of the 3D eyelid correspondences onto the eyeball (batched per eye and camera).
+
+    Each target lies on the camera ray of its curve pixel, on the eyeball sphere
+    grown by the lid point's height over it: the current height on ``V``
+    (``height='current'``) or the rest height (``'rest'``).
+    """
     groups = {}
     for i, side, ci in lift:
         groups.setdefault((side, ci), []).append(i)
@@ -1245,8 +1262,13 @@ def _lift_eyelids(V, cameras, loops, out, lift, min_cos):
         px = np.concatenate([cc.pixels for cc in cs])
         pv = np.concatenate([cc.vertices for cc in cs])
         pb = np.concatenate([cc.bary for cc in cs])
-        off = loops.eyelid_offset
-        X, hit = project_to_sphere(cam, px, c, r + pb[:, 0] * off[pv[:, 0]] + pb[:, 1] * off[pv[:, 1]])
+        if height == "current":
+            P = pb[:, 0, None] * V[pv[:, 0]] + pb[:, 1, None] * V[pv[:, 1]]
+            rad = np.linalg.norm(P - c, axis=1)
+        else:
+            off = loops.eyelid_offset
+            rad = r + pb[:, 0] * off[pv[:, 0]] + pb[:, 1] * off[pv[:, 1]]
+        X, hit = project_to_sphere(cam, px, c, rad)
         # keep points whose ray meets the eyeball clearly: near the limb seen from this camera the lift is
         # ill-conditioned (and a lid point beyond the limb is hidden by the eye itself)
         ray = X - cam.center
