@@ -38,8 +38,10 @@ points that project onto them change as the lips roll. Following the paper:
    of surface points on mesh edges (two vertices and barycentric weights)
    with pixel targets, fitted like 2D markers (Eq. 1).
 4. **Eyelids on the cornea** (§4.1). The eyelid targets are projected from
-   the camera onto the eyeball sphere (:mod:`facelab_addon.core.eyes`),
-   giving 3D targets fitted like bundles (Eq. 2).
+   the camera onto the eyeball sphere (:mod:`facelab_addon.core.eyes`)
+   grown by each lid point's current height over it (the lid margin's
+   thickness on the mesh being matched, so a lid that matches the image
+   is its own fixed point), giving 3D targets fitted like bundles (Eq. 2).
 
 The correspondence is computed on the mesh of the previous frame (or the
 previous solver iterate) and can be re-run after each solve (the paper
@@ -162,10 +164,10 @@ class ContourLoops:
     eyelid_offset : (V,) float64
         Signed distance of every eyelid-loop vertex from its rest eyeball
         sphere, scene units (0 elsewhere): the lid margin's height over the
-        eyeball. A 3D eyelid target is the camera ray's hit on the sphere
-        grown by the offset of its surface point, so the lid keeps its rest
-        height over the eye (on ICT-FaceKit the eyelid rings lie 0.2 to 1.3
-        mm off the fitted sphere).
+        eyeball (on ICT-FaceKit the eyelid rings lie 0.2 to 1.3 mm off the
+        fitted sphere). Used by ``match_contours(eyelid_height='rest')``;
+        the default lifts with the height on the matched mesh instead (ICT's
+        lids change height when blinking).
     default_loop : dict str -> int
         Per curve name, the half chosen in the rest pose from a frontal
         camera (used when no half has a silhouette edge and nothing better is
