@@ -304,12 +304,25 @@ class BlendshapeSolver:
     eyelids : {"3d", "2d", "both"}
         How eyelid curves are fitted (``contours.match_contours``): lifted
         onto the eyeball as 3D targets (paper), as 2D curves, or both.
+    contour_huber_px : float or None
+        Huber threshold (pixels) on the inner-lip contour points: after the
+        contour solve, ``robust_iterations`` re-solves with the same
+        correspondence weight each lip point by ``min(1, k / residual)``
+        (IRLS). Lips the rig cannot reach (out of its span) then bend the
+        whole lower face less; the corrective fits them. Curves the rig can
+        match (residuals below ``k``) are fitted exactly as without it.
+        None or 0: the paper's plain least squares. Not in the paper.
+    robust_iterations : int
+        IRLS re-solves for ``contour_huber_px`` (2: a few ms a frame).
     """
 
     def __init__(self, neutral, deltas, faces, cameras, markers: SurfacePoints | None, bundles: SurfacePoints | None,
                  loops=None, *, bounds=(-1.0, 1.0), marker_weight: float = 1.0, contour_weight: float = 1.0,
-                 bundle_weight: float = 1.0, regularization: float = 1e-6, eyelids: str = "3d"):
+                 bundle_weight: float = 1.0, regularization: float = 1e-6, eyelids: str = "3d",
+                 contour_huber_px: float | None = 1.0, robust_iterations: int = 2):
         V0, F = validate_mesh(neutral, faces, name="neutral mesh")
+        self.contour_huber_px = None if not contour_huber_px else float(contour_huber_px)
+        self.robust_iterations = int(robust_iterations)
         self.eyelids = eyelids
         D = np.asarray(deltas, dtype=np.float64)
         if D.ndim != 3 or D.shape[1:] != V0.shape or D.shape[0] == 0:
@@ -425,8 +438,9 @@ class BlendshapeSolver:
             c0 = px[:, a] * (x0 @ P[2, :3] + P[2, 3]) - (x0 @ P[a, :3] + P[a, 3])
             rows_J.append(J)
             rows_r.append(-c0 / z)
-        s = np.sqrt(weight)
-        return s * np.concatenate(rows_J), s * np.concatenate(rows_r)
+        s = np.sqrt(np.broadcast_to(np.asarray(weight, float), z.shape))
+        s = np.concatenate([s, s])
+        return s[:, None] * np.concatenate(rows_J), s * np.concatenate(rows_r)
 
     def _marker_data(self, markers_px):
         """Visible (camera, marker) pairs; drop off-screen pixels."""
@@ -545,6 +559,16 @@ class BlendshapeSolver:
                 it_done = it + 1
                 if change < tol and (not use_curves or not sliding):
                     break
+            if use_curves and corr and self.contour_huber_px and self.robust_iterations > 0 and (md or bd is not None):
+                # Huber IRLS on the lip-contour points (same correspondence): a lip the rig cannot reach (out of
+                # its span) loses its pull instead of bending the whole lower face; the corrective fits it
+                for _ in range(int(self.robust_iterations)):
+                    pw = self._robust_weights(w, corr)
+                    w_new = self._solve_linear(w, *self._system(w, md, bd, corr, pw))
+                    change = float(np.abs(w_new - w).max())
+                    w = w_new
+                    if change < tol:
+                        break
         info = dict(iterations=it_done, markers_used=int(sum(len(s) for _, s, _ in md)),
                     markers_offscreen=offscreen, bundles_used=0 if bd is None else int(len(bd[0])),
                     contour_points=int(sum(len(c.vertices) for c in corr)))
@@ -561,8 +585,28 @@ class BlendshapeSolver:
         w_new, _ = box_least_squares(H, J.T @ r, self.lo, self.hi, w)
         return w_new
 
-    def _system(self, w, md, bd, corr):
-        """Weighted rows (J, r) of all residuals linearised at ``w``: residual ``J w - r``."""
+    def _robust_weights(self, w, corr):
+        """Huber factors ``min(1, k / e)`` of the 2D mouth-contour points at ``w`` (list aligned with ``corr``).
+
+        ``e``: a point's reprojection residual (pixels), ``k = contour_huber_px``.
+        Eyelid points keep factor 1 (None).
+        """
+        k = self.contour_huber_px
+        out = []
+        for cc in corr:
+            if cc.name.startswith("mouth") and getattr(cc, "pixels", None) is not None and cc.camera >= 0:
+                x0, B = self._edge_model(cc)
+                e = np.linalg.norm(self.cameras[cc.camera].project(x0 + B @ w) - np.asarray(cc.pixels, float), axis=1)
+                out.append(np.minimum(1.0, k / np.maximum(e, 1e-12)))
+            else:
+                out.append(None)
+        return out
+
+    def _system(self, w, md, bd, corr, point_weights=None):
+        """Weighted rows (J, r) of all residuals linearised at ``w``: residual ``J w - r``.
+
+        ``point_weights``: optional list (aligned with ``corr``) of (c,) factors on the contour weight, or None.
+        """
         Js, rs = [], []
         for c, sel, px in md:
             x0, B = self._mk["x0"][sel], self._mk["B"][sel]
@@ -574,11 +618,13 @@ class BlendshapeSolver:
             s = np.sqrt(self.bundle_weight)
             Js.append(s * self._bd["B"][sel].reshape(-1, self.S))
             rs.append(s * (p - self._bd["x0"][sel]).reshape(-1))
-        for cc in corr or []:
+        for i, cc in enumerate(corr or []):
             x0, B = self._edge_model(cc)
             if getattr(cc, "pixels", None) is not None and cc.camera >= 0:
-                J, r = self._proj_rows(cc.camera, x0, B, np.asarray(cc.pixels, float), x0 + B @ w,
-                                       self.contour_weight)
+                cw = self.contour_weight
+                if point_weights is not None and point_weights[i] is not None:
+                    cw = cw * point_weights[i]
+                J, r = self._proj_rows(cc.camera, x0, B, np.asarray(cc.pixels, float), x0 + B @ w, cw)
             elif getattr(cc, "targets", None) is not None:
                 s = np.sqrt(self.contour_weight)
                 J = s * B.reshape(-1, self.S)

@@ -261,3 +261,52 @@ def test_truth_is_a_fixed_point_of_the_corrective_with_eyelids(ict, deltas):
     bad = np.linalg.norm(d_rest, axis=1)[face]
     assert good.max() < 0.002 and good.mean() < 1e-4  # cm (measured 3e-4, 1.5e-5)
     assert bad.max() > 10 * good.max()  # measured 0.042 cm
+
+
+def test_huber_weights_of_lip_contour_points(ict, deltas):
+    """min(1, k / e) on the 2D lip points (e = reprojection residual in px); eyelid points untouched."""
+    from facelab_addon.core.contours import ict_contour_loops
+
+    cap = make_capture(ict, names=NAMES, n_frames=2, n_markers=40, noise_px=0.0, seed=2, curves=True)
+    loops = ict_contour_loops(ict)
+    solver = BlendshapeSolver(ict.neutral, deltas, ict.faces, cap.cameras, cap.markers, None, loops=loops,
+                              contour_huber_px=1.0)
+    w = cap.weights[0]
+    cc = solver.match(w, cap.curves[0])
+    shift = np.array([3.0, -4.0])  # 5 px
+    i_shift = next(i for i, c in enumerate(cc) if c.name == "mouth_upper")
+    cc[i_shift].pixels = cc[i_shift].pixels + shift
+    pw = solver._robust_weights(w, cc)
+    for i, (c, f) in enumerate(zip(cc, pw)):
+        if not c.name.startswith("mouth"):
+            assert f is None
+        elif i == i_shift:
+            np.testing.assert_allclose(f, 0.2, atol=0.02)  # residual 5 px (+ the truth's < 0.3 px)
+        else:
+            assert f.min() > 0.99 or np.all(f == 1.0)
+
+
+def test_huber_keeps_in_span_fits_and_loosens_out_of_span_lips(ict, deltas):
+    """In span (noise-free) the robust fit equals the plain one; with a lip gap the lips pull less."""
+    from facelab_addon.core.contours import ict_contour_loops
+
+    loops = ict_contour_loops(ict)
+    for gap, same in ((0.0, True), (3.0, False)):
+        cap = make_capture(ict, names=NAMES, n_frames=2, n_markers=40, noise_px=0.0, seed=2, curves=True,
+                           lip_error_mm=gap)
+        mouth = [c for c in cap.curves[1] if c.name.startswith("mouth")]
+        ws, errs = [], []
+        face = ict.part_vertex_mask("M_Face")
+        for k in (None, 1.0):
+            s = BlendshapeSolver(ict.neutral, deltas, ict.faces, cap.cameras, cap.markers, None, loops=loops,
+                                 contour_huber_px=k)
+            ws.append(s.solve_frame(cap.markers_px_clean[1], None, mouth, iterations=2).weights)
+            errs.append(np.linalg.norm(s.vertices(ws[-1]) - cap.truth[1], axis=1)[face].mean())
+        d = np.abs(ws[0] - ws[1]).max()
+        if same:
+            assert d < 1e-3, d
+            seen = [i for i, n in enumerate(NAMES) if n != "eyeBlink_L"]  # no eyelid curve given here
+            np.testing.assert_allclose(ws[1][seen], cap.weights[1][seen], atol=5e-3)
+        else:
+            assert d > 1e-3, d
+            assert errs[1] < errs[0]  # face error vs truth: measured 0.135 vs 0.139 mm
