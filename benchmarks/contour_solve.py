@@ -25,8 +25,10 @@ Configurations:
 
 3D eyelid targets are lifted onto the eyeball grown by each lid point's
 current height over it (``contours.match_contours(eyelid_height='current')``)
-in every configuration; the corrective's contours are matched again on the
-fitted rig (``solve_performance(rematch=True)``).
+in every configuration; the blendshape fit re-weights the lip-contour points
+with a 1 px Huber loss (``BlendshapeSolver(contour_huber_px=1)``); the
+corrective's contours are matched again on the fitted rig
+(``solve_performance(rematch=True)``).
 
 Metrics (means over frames):
 
