@@ -18,13 +18,27 @@ Configurations:
 4. ``fixed_contours+corrective``: 3 with fixed contour correspondences
    (``sliding=False``; the paper's Fig. 6 comparison);
 5. (extra) ``markers+contours+corrective_no_eyelid3d``: 3 with the 3D
-   eyelid-curve weight set to 0.
+   eyelid-curve weight set to 0;
+6. (extra) ``markers+contours+corrective_paper_energy``: 3 with the paper's
+   corrective energy (no ``damping``, contour points tied to the camera
+   rays instead of the curve's tangent planes).
+
+3D eyelid targets are lifted onto the eyeball grown by each lid point's
+current height over it (``contours.match_contours(eyelid_height='current')``)
+in every configuration; the blendshape fit re-weights the lip-contour points
+with a 1 px Huber loss (``BlendshapeSolver(contour_huber_px=1)``); the
+corrective's contours are matched again on the fitted rig
+(``solve_performance(rematch=True)``).
 
 Metrics (means over frames):
 
 * ``weight_mae`` / ``weight_max``: |w - w_truth| over all 57 weights;
 * ``vertex_mm_face`` / ``vertex_mm_lips``: mean 3D distance to the truth
   over the skin (``M_Face``) and the inner lips (``synthetic.inner_lip_mask``);
+* ``vertex_mm_lip_silhouette``: mean 3D distance to the truth over the
+  truth's own inner-lip occluding contours (the surface points on the lip
+  line the cameras see; the rest of the inner-lip region is hidden inside
+  the mouth and only follows by smoothness);
 * ``marker_rms_px``: reprojection of the solved marker points against the
   noisy tracks;
 * ``contour_rms_px``: RMS pixel distance from the contour points the solve
@@ -77,7 +91,8 @@ TARGET_CONTOUR_PX = 1.0
 TARGET_MS_NO_CORRECTIVE = 50.0
 TARGET_MS_CORRECTIVE = 200.0
 HERE = os.path.dirname(os.path.abspath(__file__))
-LABELS = ["1 markers", "2 +contours", "3 +corrective", "4 fixed contours", "5 = 3 w/o eyelid 3D"]
+LABELS = ["1 markers", "2 +contours", "3 +corrective", "4 fixed contours", "5 = 3 w/o eyelid 3D",
+          "6 = 3, paper energy"]
 ROOT = os.path.dirname(HERE)
 
 
@@ -97,6 +112,10 @@ def evaluate(model, cap, loops, names, res, face, lip):
             ok = np.isfinite(px).all(axis=1)
             mk.append(np.linalg.norm(cam.project(cap.markers.evaluate(X)[ok]) - px[ok], axis=1))
         fresh = match_contours(X, model.faces, cap.cameras, cap.curves[t], loops)
+        # the truth's own inner-lip occluding contours (the lip line the cameras see), as surface points
+        tc = [c for c in match_contours(cap.truth[t], model.faces, cap.cameras, cap.curves[t], loops)
+              if c.name.startswith("mouth")]
+        sil = np.concatenate([np.linalg.norm(c.evaluate(X) - c.evaluate(cap.truth[t]), axis=1) for c in tc]) * 10
         used = res.correspondences[t] if res.correspondences[t] else fresh
         res_used = contour_residuals(X, cap.cameras, used)
         c2 = [r for c, r in zip(used, res_used) if c.camera >= 0]
@@ -108,6 +127,7 @@ def evaluate(model, cap, loops, names, res, face, lip):
             vertex_mm_face=float(err[face].mean()),
             vertex_mm_lips=float(err[lip].mean()),
             vertex_mm_lips_max=float(err[lip].max()),
+            vertex_mm_lip_silhouette=float(sil.mean()),
             marker_rms_px=rms(np.concatenate(mk)),
             contour_rms_px=rms(contour_curve_distance(X, cap.cameras, used, cap.curves[t])),
             contour_rms_px_rematched=rms(contour_curve_distance(X, cap.cameras, fresh, cap.curves[t])),
@@ -129,6 +149,7 @@ def main(argv=None):
     args = ap.parse_args(argv)
     T = 8 if args.quick else args.frames
 
+    load0 = _load()
     model = load_ict()
     names = model.expression_names
     t0 = time.perf_counter()
@@ -158,12 +179,22 @@ def main(argv=None):
         "fixed_contours+corrective": dict(curves=True, corrective=True, sliding=False),
         # extra: the corrective without the 3D eyelid-on-cornea terms (they are approximate on ICT, see docs)
         "markers+contours+corrective_no_eyelid3d": dict(curves=True, corrective=True, sliding=True, eyelid_weight=0.0),
+        # extra: the paper's corrective energy (Laplacian only, contour points on the camera rays)
+        "markers+contours+corrective_paper_energy": dict(curves=True, corrective=True, sliding=True, paper=True),
     }
-    out = {}
+    paper_corrective = None
+    out, results = {}, {}
     for name, cfg in configs.items():
-        corrective.eyelid_weight = cfg.get("eyelid_weight", 0.5)
-        res = solve_performance(solver, corrective if cfg["corrective"] else None, cap.markers_px, None,
+        corr = corrective
+        if cfg.get("paper"):
+            paper_corrective = OutOfSubspaceCorrective(
+                model.neutral, model.faces, cap.cameras, cap.markers, None, boundary=~face, warm_vertices=warm,
+                pixel_units=args.corrective_units == "pixels", damping=0.0, contour_metric="ray")
+            corr = paper_corrective
+        corr.eyelid_weight = cfg.get("eyelid_weight", 0.5)
+        res = solve_performance(solver, corr if cfg["corrective"] else None, cap.markers_px, None,
                                 cap.curves if cfg["curves"] else None, sliding=cfg["sliding"])
+        results[name] = res
         m = evaluate(model, cap, loops, names, res, face, lip)
         fr = [f for f in res.info["frames"] if f is not None][1:]
         ms_bs = 1000 * float(np.median([f["time_s"] for f in fr]))
@@ -190,34 +221,94 @@ def main(argv=None):
         setup=dict(frames=T, vertices=int(len(model.neutral)), shapes=len(names), markers=len(cap.markers),
                    cameras=len(cap.cameras), image=[cap.cameras[0].width, cap.cameras[0].height],
                    noise_px=0.5, lip_error_mm_peak=args.lip_error_mm, corrective_units=args.corrective_units,
+                   corrective_damping=corrective.damping, corrective_contour_metric=corrective.contour_metric,
                    corrective_free_vertices=int((~corrective.boundary).sum()), inner_lip_vertices=int(lip.sum()),
                    seconds=dict(simulate=t_sim, solver_init=t_solver, corrective_factor_and_warm=t_corr)),
         targets=dict(contour_px_with_corrective=TARGET_CONTOUR_PX, ms_without_corrective=TARGET_MS_NO_CORRECTIVE,
                      ms_with_corrective=TARGET_MS_CORRECTIVE),
         configs=out,
         machine=dict(python=platform.python_version(), cpu_count=os.cpu_count(),
+                     load_average_at_start=load0, load_average_at_end=_load(),
                      note="2 cores shared with other jobs: times are noisy"),
     )
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     with open(args.out, "w") as fh:
         json.dump(result, fh, indent=2)
     if not args.no_plot:
-        plot(out, os.path.join(ROOT, "docs", "images", "contour_solve_bars.png"))
+        plot(out, os.path.join(ROOT, "docs", "images", "contour_solve_bars.png"), frames=T)
+        hf = heatmap(model, cap, face, lip, results["markers"], results["markers+contours+corrective"],
+                     os.path.join(ROOT, "docs", "images", "contour_solve_heatmap.png"))
+        result["heatmap_frame"] = hf
+        with open(args.out, "w") as fh:
+            json.dump(result, fh, indent=2)
     print(json.dumps(result, indent=2))
 
 
-def plot(out, path):
+def _load():
+    try:
+        return [round(x, 2) for x in os.getloadavg()]
+    except OSError:
+        return None
+
+
+def _mesh(model, res, t):
+    X = model.neutral + np.einsum("s,svd->vd", res.weights[t], model.deltas(model.expression_names))
+    return X if res.correctives is None else X + res.correctives[t]
+
+
+def heatmap(model, cap, face, lip, res1, res3, path):
+    """Front-view whole-face vertex error (mm) of configs 1 and 3 on the frame with the largest lip error."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t = int(np.argmax(cap.lip_error))
+    F = model.faces[face[model.faces].all(axis=1)]
+    tr = cap.truth[t]
+    errs = [np.linalg.norm(_mesh(model, r, t) - tr, axis=1) * 10.0 for r in (res1, res3)]  # cm -> mm
+    vmax = 1.0
+    fig, axes = plt.subplots(2, 2, figsize=(11, 11.5), gridspec_kw=dict(height_ratios=[1.55, 1]))
+    titles = ["1 markers", "3 markers + contours + corrective"]
+    lo, hi = tr[lip].min(axis=0) - 1.0, tr[lip].max(axis=0) + 1.0
+    for j, (e, ttl) in enumerate(zip(errs, titles)):
+        for i, zoom in enumerate((False, True)):
+            ax = axes[i, j]
+            im = ax.tripcolor(tr[:, 0], tr[:, 1], F, facecolors=e[F].mean(axis=1), cmap="magma", vmin=0.0,
+                              vmax=vmax, shading="flat")
+            ax.set_aspect("equal")
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if zoom:
+                ax.set_xlim(lo[0], hi[0])
+                ax.set_ylim(lo[1], hi[1])
+                ax.set_title(f"mouth: inner-lip mean {e[lip].mean():.2f} mm, max {e[lip].max():.2f} mm",
+                             fontsize=10)
+            else:
+                ax.set_title(f"{ttl}\nface mean {e[face].mean():.3f} mm, max {e[face].max():.2f} mm", fontsize=11)
+    fig.colorbar(im, ax=axes.ravel().tolist(), shrink=0.6, label="vertex error (mm), clipped at 1 mm")
+    fig.suptitle(f"Vertex error vs ground truth, frame {t} (out-of-span lip gap {cap.lip_error[t]:.1f} mm), "
+                 "front view", fontsize=12)
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return dict(frame=t, lip_gap_mm=float(cap.lip_error[t]),
+                face_mm=[float(e[face].mean()) for e in errs], lips_mm=[float(e[lip].mean()) for e in errs])
+
+
+def plot(out, path, frames=40):
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     keys = [("vertex_mm_face", "face error (mm)"), ("vertex_mm_lips", "inner-lip error (mm)"),
+            ("vertex_mm_lip_silhouette", "visible lip line error (mm)"),
             ("marker_rms_px", "marker reproj. (px)"), ("contour_rms_px", "contour reproj. (px)"),
             ("ms_per_frame", "wall time / frame (ms, median)")]
     names = list(out)
-    colors = ["#888888", "#4c72b0", "#55a868", "#c44e52", "#8172b2"]
-    fig, axes = plt.subplots(1, len(keys), figsize=(17, 3.8))
+    colors = ["#888888", "#4c72b0", "#55a868", "#c44e52", "#8172b2", "#ccb974"]
+    fig, axes = plt.subplots(1, len(keys), figsize=(20, 4.2))
     for ax, (k, label) in zip(axes, keys):
         vals = [out[n][k] for n in names]
         ax.bar(range(len(names)), vals, color=colors)
@@ -231,7 +322,7 @@ def plot(out, path):
         if k == "ms_per_frame":
             ax.axhline(TARGET_MS_NO_CORRECTIVE, color="k", ls=":", lw=0.8)
             ax.axhline(TARGET_MS_CORRECTIVE, color="k", ls="--", lw=0.8)
-    fig.suptitle("Contour solve on ICT-FaceKit (Bhat et al. 2013), 40 frames: dashed lines = targets",
+    fig.suptitle(f"Contour solve on ICT-FaceKit (Bhat et al. 2013), {frames} frames: dashed lines = targets",
                  fontsize=11)
     fig.tight_layout()
     os.makedirs(os.path.dirname(path), exist_ok=True)

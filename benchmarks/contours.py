@@ -8,7 +8,7 @@ Reports
 * build time of the candidate loops (once per rig);
 * ``match_contours`` time per call (2 cameras x 6 curves) for the three eyelid modes (target: a few ms);
 * self-consistency on random poses: the truth matched to its own curves (2D px, 3D eyelid mm) -- what
-  remains is the curve sampling and, for 3D eyelids, the lid's change of height over the eyeball;
+  remains is the curve sampling (3D eyelids are lifted with the lid's current height over the eyeball);
 * which rings are chosen (the contour slides across the lip roll);
 * sliding vs fixed (Fig. 6): on a lip-roll ramp, the residual the TRUE mesh has against fixed
   correspondences taken on the first frame, vs re-selected (sliding) ones: the error a fixed-contour solve

@@ -38,8 +38,10 @@ points that project onto them change as the lips roll. Following the paper:
    of surface points on mesh edges (two vertices and barycentric weights)
    with pixel targets, fitted like 2D markers (Eq. 1).
 4. **Eyelids on the cornea** (§4.1). The eyelid targets are projected from
-   the camera onto the eyeball sphere (:mod:`facelab_addon.core.eyes`),
-   giving 3D targets fitted like bundles (Eq. 2).
+   the camera onto the eyeball sphere (:mod:`facelab_addon.core.eyes`)
+   grown by each lid point's current height over it (the lid margin's
+   thickness on the mesh being matched, so a lid that matches the image
+   is its own fixed point), giving 3D targets fitted like bundles (Eq. 2).
 
 The correspondence is computed on the mesh of the previous frame (or the
 previous solver iterate) and can be re-run after each solve (the paper
@@ -162,10 +164,10 @@ class ContourLoops:
     eyelid_offset : (V,) float64
         Signed distance of every eyelid-loop vertex from its rest eyeball
         sphere, scene units (0 elsewhere): the lid margin's height over the
-        eyeball. A 3D eyelid target is the camera ray's hit on the sphere
-        grown by the offset of its surface point, so the lid keeps its rest
-        height over the eye (on ICT-FaceKit the eyelid rings lie 0.2 to 1.3
-        mm off the fitted sphere).
+        eyeball (on ICT-FaceKit the eyelid rings lie 0.2 to 1.3 mm off the
+        fitted sphere). Used by ``match_contours(eyelid_height='rest')``;
+        the default lifts with the height on the matched mesh instead (ICT's
+        lids change height when blinking).
     default_loop : dict str -> int
         Per curve name, the half chosen in the rest pose from a frontal
         camera (used when no half has a silhouette edge and nothing better is
@@ -1054,6 +1056,7 @@ def match_contours(
     eyelid_min_cos: float = 0.25,
     curve_tolerance: float = 0.02,
     near_tie: float = 0.25,
+    eyelid_height: str = "current",
 ) -> list:
     """Occluding contours of the current mesh matched to the tracked curves (Bhat et al. 2013, §4.2).
 
@@ -1103,6 +1106,15 @@ def match_contours(
         eyeball at an angle whose cosine (ray against sphere normal) is at
         least this: towards the eyeball's limb seen from that camera the lift
         is ill-conditioned, and lid points beyond it are hidden by the eye.
+    eyelid_height : {'current', 'rest'}
+        Which sphere a 3D eyelid target is lifted onto. ``'current'``
+        (default): the eyeball sphere grown by the lid point's height over
+        the eyeball on ``vertices`` (the current fit), so the target keeps
+        the rig's lid thickness for this expression and only the tracked
+        curve moves it; a lid that matches the image is its own fixed point
+        (unbiased). ``'rest'``: grown by the rest-pose height
+        (``loops.eyelid_offset``); biased wherever the rig changes the lid's
+        height over the eye (ICT blinks: ~0.4 mm RMS).
 
     Returns
     -------
@@ -1127,6 +1139,8 @@ def match_contours(
         )
     if eyelids not in ("3d", "2d", "both"):
         raise FaceLabError(f"eyelids must be '3d', '2d' or 'both', got {eyelids!r}.")
+    if eyelid_height not in ("current", "rest"):
+        raise FaceLabError(f"eyelid_height must be 'current' or 'rest', got {eyelid_height!r}.")
     prev = {}
     for pc in previous or []:
         key = (pc.name, pc.source_camera if pc.source_camera >= 0 else pc.camera, pc.camera < 0)
@@ -1214,7 +1228,7 @@ def match_contours(
                 out.append(CurveCorrespondence(name, -1, pv, pb, targets=None, loop=k, curve_t=t, source_camera=ci,
                                                pixels=px))
     if lift:
-        _lift_eyelids(V, cameras, loops, out, lift, eyelid_min_cos)
+        _lift_eyelids(V, cameras, loops, out, lift, eyelid_min_cos, eyelid_height)
         out = [c for c in out if not (c.camera < 0 and c.targets is None)]
     return out
 
@@ -1230,8 +1244,13 @@ def _eyeball_sphere(V, loops, side):
     return cr
 
 
-def _lift_eyelids(V, cameras, loops, out, lift, min_cos):
-    """Project the 2D targets of the 3D eyelid correspondences onto the eyeball (batched per eye and camera)."""
+def _lift_eyelids(V, cameras, loops, out, lift, min_cos, height="current"):
+    """Project the 2D targets of the 3D eyelid correspondences onto the eyeball (batched per eye and camera).
+
+    Each target lies on the camera ray of its curve pixel, on the eyeball sphere
+    grown by the lid point's height over it: the current height on ``V``
+    (``height='current'``) or the rest height (``'rest'``).
+    """
     groups = {}
     for i, side, ci in lift:
         groups.setdefault((side, ci), []).append(i)
@@ -1245,8 +1264,13 @@ def _lift_eyelids(V, cameras, loops, out, lift, min_cos):
         px = np.concatenate([cc.pixels for cc in cs])
         pv = np.concatenate([cc.vertices for cc in cs])
         pb = np.concatenate([cc.bary for cc in cs])
-        off = loops.eyelid_offset
-        X, hit = project_to_sphere(cam, px, c, r + pb[:, 0] * off[pv[:, 0]] + pb[:, 1] * off[pv[:, 1]])
+        if height == "current":
+            P = pb[:, 0, None] * V[pv[:, 0]] + pb[:, 1, None] * V[pv[:, 1]]
+            rad = np.linalg.norm(P - c, axis=1)
+        else:
+            off = loops.eyelid_offset
+            rad = r + pb[:, 0] * off[pv[:, 0]] + pb[:, 1] * off[pv[:, 1]]
+        X, hit = project_to_sphere(cam, px, c, rad)
         # keep points whose ray meets the eyeball clearly: near the limb seen from this camera the lift is
         # ill-conditioned (and a lid point beyond the limb is hidden by the eye itself)
         ray = X - cam.center
