@@ -103,12 +103,11 @@ def baked_object(ict, name, X, frames):
 def build_scene(ict, s, plates_dir):
     """The artist's scene: rig, cameras, Movie Clips with tracks, Mask and Grease Pencil contours."""
     import bpy
-    from PIL import Image, ImageDraw
-
     from facelab_addon.blender.camera import apply_camera_to_blender
     from facelab_addon.blender.scene import add_studio_lights, new_mesh_object
     from facelab_addon.blender.shapekeys import add_corrective_key
     from facelab_addon.blender.strokes import write_stroke_pixels
+    from facelab_addon.blender.tracking_io import clip_from_pixels, write_dot_plates
 
     bpy.ops.wm.read_factory_settings(use_empty=True)
     import facelab_addon
@@ -139,29 +138,10 @@ def build_scene(ict, s, plates_dir):
         cam_obj = bpy.data.objects.new(f"Helmet cam {c + 1}", bpy.data.cameras.new(f"Helmet cam {c + 1}"))
         scene.collection.objects.link(cam_obj)
         apply_camera_to_blender(cam, cam_obj, scene)
-        # the plate: grey with the painted dots (a stand-in for the helmet footage)
-        d = plates_dir / f"cam{c + 1}"
-        d.mkdir(parents=True, exist_ok=True)
-        for t in range(T):
-            img = Image.new("RGB", (W, H), (92, 92, 96))
-            dr = ImageDraw.Draw(img)
-            for x, y in s["px"][t, c]:
-                if np.isfinite(x):
-                    dr.ellipse([x - 4, y - 4, x + 4, y + 4], fill=(20, 20, 20))
-            img.save(d / f"cam{c + 1}_{t + 1:04d}.png")
-        clip = bpy.data.movieclips.load(str(d / f"cam{c + 1}_0001.png"))
-        clip.name = f"Helmet cam {c + 1}"
-        clip.frame_start = 0  # scene frame 0 = clip frame 1
-        tc = clip.tracking.camera
-        tc.sensor_width = 36.0
-        tc.focal_length = cam.K[0, 0] * 36.0 / W
-        tc.principal_point_pixels = (cam.K[0, 2], H - cam.K[1, 2])
-        for j in range(len(s["markers"])):
-            tr = clip.tracking.tracks.new(name=f"M{j:02d}", frame=1)
-            for f in range(2, T + 1):
-                tr.markers.insert_frame(f)
-            p = s["px"][:, c, j]
-            tr.markers.foreach_set("co", np.c_[p[:, 0] / W, 1 - p[:, 1] / H].astype(np.float32).ravel())
+        # the plate: grey with the painted dots (a stand-in for the helmet footage), the tracks, the calibration
+        first = write_dot_plates(plates_dir / f"cam{c + 1}", s["px"][:, c], (W, H), prefix=f"cam{c + 1}")
+        clip = clip_from_pixels(first, s["px"][:, c], cam, names=[f"M{j:02d}" for j in range(len(s["markers"]))],
+                                scene_frame_start=0, name=f"Helmet cam {c + 1}")
         v = sol.views.add()
         v.camera, v.clip = cam_obj, clip
         views.append((cam_obj, clip))
