@@ -352,7 +352,7 @@ def figures(s, img_dir, r, box, box2, f_lip, f_ret, results, summary, X_cre):
     plt.close(fig)
 
     ext2 = (lo2[0], hi2[0], hi2[1], lo2[1])
-    fig, axes = plt.subplots(1, 2, figsize=(10, 5.4))
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4.7))
     for ax, k, title in ((axes[0], "actor", "Actor (solved)"), (axes[1], "creature", "Creature (Retarget, mouth 1.5x wider)")):
         ax.imshow(plt.imread(r[k]), extent=ext2)
         ax.set_title(title, fontsize=10)
