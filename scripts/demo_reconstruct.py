@@ -56,7 +56,8 @@ def run(ict, out, img_dir, render, samples):
     frames = np.arange(N_FRAMES)
 
     bpy.ops.wm.read_factory_settings(use_empty=True)
-    facelab_addon.register()
+    if "facelab_solve" not in bpy.types.Scene.bl_rna.properties:  # earlier demo steps registered it
+        facelab_addon.register()
     scene = bpy.context.scene
     scene.frame_start, scene.frame_end = 0, N_FRAMES - 1
     mat = bpy.data.materials.new("Skin")

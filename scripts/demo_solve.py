@@ -112,7 +112,8 @@ def build_scene(ict, s, plates_dir):
     bpy.ops.wm.read_factory_settings(use_empty=True)
     import facelab_addon
 
-    facelab_addon.register()
+    if "facelab_solve" not in bpy.types.Scene.bl_rna.properties:  # earlier demo steps registered it
+        facelab_addon.register()
     scene = bpy.context.scene
     scene.frame_start, scene.frame_end = 0, N_FRAMES - 1
     T, cams = N_FRAMES, s["cams"]
