@@ -295,12 +295,16 @@ def run(ict, out, img_dir, render, samples):
     del pf
     print(f"[demo] rendering solve frames {f_lip} (lips) and {f_ret} (retarget), Cycles CPU")
     t0 = time.perf_counter()
-    r = {k: out / f"solve_{k}.png" for k in ("truth", "markers", "full", "actor", "creature")}
+    r = {k: out / f"solve_{k}.png" for k in ("truth", "markers", "full", "actor", "creature_plain", "creature")}
     others = ["Face", "Truth", "Solve (markers only)", "Creature"]
-    for k, name, f, b in (("truth", "Truth", f_lip, border), ("markers", "Solve (markers only)", f_lip, border),
-                          ("full", "Face", f_lip, border), ("actor", "Face", f_ret, border2),
-                          ("creature", "Creature", f_ret, border2)):
-        render(blend, r[k], frame=f, hide=[o for o in others if o != name], show=[name], border=b, samples=samples)
+    for k, name, f, b, mute in (("truth", "Truth", f_lip, border, []),
+                                ("markers", "Solve (markers only)", f_lip, border, []),
+                                ("full", "Face", f_lip, border, []), ("actor", "Face", f_ret, border2, []),
+                                ("creature_plain", "Creature", f_ret, border2, ["FL_Retarget_"]),
+                                ("creature", "Creature", f_ret, border2, [])):
+        kw = dict(mute_keys=mute) if mute else {}
+        render(blend, r[k], frame=f, hide=[o for o in others if o != name], show=[name], border=b, samples=samples,
+               **kw)
     timings["render_s"] = round(time.perf_counter() - t0, 1)
 
     summary = dict(
@@ -353,12 +357,15 @@ def figures(s, img_dir, r, box, box2, f_lip, f_ret, results, summary, X_cre):
     plt.close(fig)
 
     ext2 = (lo2[0], hi2[0], hi2[1], lo2[1])
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4.7))
-    for ax, k, title in ((axes[0], "actor", "Actor (solved)"), (axes[1], "creature", "Creature (Retarget, mouth 1.5x wider)")):
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.7))
+    for ax, k, title in ((axes[0], "actor", f"Actor (solved), frame {f_ret}"),
+                         (axes[1], "creature_plain", "Creature (mouth 1.5x wider): transferred rig shapes\n"
+                                                     "(FL_Retarget_* correctives muted)"),
+                         (axes[2], "creature", "Creature: + FL_Retarget_* correctives\n(Lip Sync seals the lips "
+                                               "beyond the actor's mouth width)")):
         ax.imshow(plt.imread(r[k]), extent=ext2)
         ax.set_title(title, fontsize=10)
         ax.axis("off")
-    fig.suptitle(f"Retarget, frame {f_ret}", fontsize=11)
     fig.tight_layout()
     fig.savefig(img_dir / "demo_solve_retarget.png", dpi=90)
     plt.close(fig)
