@@ -8,8 +8,14 @@
    overlaid, plus a 3D error heat map, into docs/images/.
 4. Propagation (scripts/demo_propagate.py): sketches a few frames of a 48-frame
    performance, propagates, renders held-out frames and plots the error per frame.
+5. Solve Performance + Retarget (scripts/demo_solve.py): a stereo helmet capture
+   (Movie Clips with tracks, Mask / Grease Pencil lip contours) -> Bind Tracks ->
+   Solve Performance -> Retarget to a wide-mouthed creature (solve.blend).
+6. Reconstruct from Bundles (scripts/demo_reconstruct.py): 100 animated bundle
+   empties of a held-out performance -> Reconstruct from Bundles (reconstruct.blend).
 
-Run it with ``bash scripts/demo.sh`` (it sets up its own environment).
+Run it with ``bash scripts/demo.sh`` (it sets up its own environment); run parts
+selectively with e.g. ``bash scripts/demo.sh --only solve,reconstruct``.
 """
 
 from __future__ import annotations
@@ -61,16 +67,11 @@ def render(blend, out, **kw):
     subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
 
 
-def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--out", default=str(ROOT / "out" / "demo"))
-    ap.add_argument("--images", default=str(ROOT / "docs" / "images"))
-    ap.add_argument("--samples", type=int, default=24)
-    a = ap.parse_args(argv)
-    out, img_dir = Path(a.out), Path(a.images)
-    out.mkdir(parents=True, exist_ok=True)
-    img_dir.mkdir(parents=True, exist_ok=True)
+PARTS = ("refine", "propagate", "solve", "reconstruct")
 
+
+def run_refine(ict, out, img_dir, samples):
+    """Step 1: Refine Lips on one frame (lip_refine.blend, refine_*.png)."""
     import bpy
 
     import facelab_addon
@@ -78,11 +79,9 @@ def main(argv=None):
     from facelab_addon.blender.mesh import evaluated_vertices
     from facelab_addon.blender.scene import add_studio_lights, new_mesh_object, set_backplate
     from facelab_addon.blender.strokes import read_lip_strokes, write_stroke_pixels
-    from facelab_addon.core.ict import load_ict
     from facelab_addon.core.silhouette import contour_distance
 
     t0 = time.perf_counter()
-    ict = load_ict()
     s = scenario(ict)
     print(f"[demo] scenario ready ({time.perf_counter() - t0:.1f} s)")
 
@@ -120,7 +119,7 @@ def main(argv=None):
     border = [lo_px[0] / cam.width, hi_px[0] / cam.width, 1 - hi_px[1] / cam.height, 1 - lo_px[1] / cam.height]
     plate = out / "backplate.png"
     print("[demo] rendering the backplate (Cycles, CPU)")
-    render(blend, plate, hide=["Face"], show=["Truth"], samples=a.samples)
+    render(blend, plate, hide=["Face"], show=["Truth"], samples=samples)
     set_backplate(cam_obj, plate)
 
     # the artist's sketch and the refinement
@@ -164,18 +163,61 @@ def main(argv=None):
     # renders: before (frame FRAME-1: corrective key at 0) and after (FRAME)
     print("[demo] rendering before/after")
     r_before, r_after, r_truth = out / "before.png", out / "after.png", out / "truth_crop.png"
-    render(blend, r_before, frame=FRAME - 1, hide=["Truth"], border=border, samples=a.samples)
-    render(blend, r_after, frame=FRAME, hide=["Truth"], border=border, samples=a.samples)
-    render(blend, r_truth, frame=FRAME, hide=["Face"], show=["Truth"], border=border, samples=a.samples)
+    render(blend, r_before, frame=FRAME - 1, hide=["Truth"], border=border, samples=samples)
+    render(blend, r_after, frame=FRAME, hide=["Truth"], border=border, samples=samples)
+    render(blend, r_truth, frame=FRAME, hide=["Face"], show=["Truth"], border=border, samples=samples)
     figures(out, img_dir, s, refined, U, L, lo_px, hi_px, r_before, r_after, r_truth, summary, err)
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     print(json.dumps(summary, indent=2))
+    return summary
 
-    print("[demo] step 2: sketch a few frames of a performance, propagate to all, render held-out frames")
-    from demo_propagate import run as run_propagation
 
-    summary2 = run_propagation(ict, out, img_dir, render, a.samples)
-    print(json.dumps(summary2, indent=2))
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--out", default=str(ROOT / "out" / "demo"))
+    ap.add_argument("--images", default=str(ROOT / "docs" / "images"))
+    ap.add_argument("--samples", type=int, default=24)
+    ap.add_argument("--only", default=",".join(PARTS),
+                    help="comma-separated parts to run, in this order: " + ",".join(PARTS) + " (default: all)")
+    a = ap.parse_args(argv)
+    parts = [p.strip() for p in a.only.split(",") if p.strip()]
+    bad = [p for p in parts if p not in PARTS]
+    if bad:
+        ap.error(f"unknown part(s) {bad} in --only; choose from {','.join(PARTS)}")
+    out, img_dir = Path(a.out), Path(a.images)
+    out.mkdir(parents=True, exist_ok=True)
+    img_dir.mkdir(parents=True, exist_ok=True)
+    sys.path.insert(0, str(ROOT / "scripts"))
+
+    from facelab_addon.core.ict import load_ict
+
+    t_all = time.perf_counter()
+    ict = load_ict()
+    times = {}
+    for part in PARTS:
+        if part not in parts:
+            continue
+        t0 = time.perf_counter()
+        if part == "refine":
+            run_refine(ict, out, img_dir, a.samples)
+        elif part == "propagate":
+            print("[demo] step 2: sketch a few frames of a performance, propagate to all, render held-out frames")
+            from demo_propagate import run as run_propagation
+
+            print(json.dumps(run_propagation(ict, out, img_dir, render, a.samples), indent=2))
+        elif part == "solve":
+            print("[demo] step 3: helmet stereo capture -> Bind Tracks -> Solve Performance -> Retarget")
+            from demo_solve import run as run_solve
+
+            print(json.dumps(run_solve(ict, out, img_dir, render, min(a.samples, 16)), indent=2))
+        elif part == "reconstruct":
+            print("[demo] step 4: animated bundles -> Reconstruct from Bundles")
+            from demo_reconstruct import run as run_reconstruct
+
+            print(json.dumps(run_reconstruct(ict, out, img_dir, render, min(a.samples, 16)), indent=2))
+        times[part] = round(time.perf_counter() - t0, 1)
+    print(f"[demo] done in {time.perf_counter() - t_all:.0f} s: {times}")
     return 0
 
 
