@@ -75,7 +75,7 @@ def run_refine(ict, out, img_dir, samples):
     import bpy
 
     import facelab_addon
-    from facelab_addon.blender.camera import apply_camera_to_blender, camera_from_blender
+    from facelab_addon.blender.camera import camera_from_blender, new_camera_object
     from facelab_addon.blender.mesh import evaluated_vertices
     from facelab_addon.blender.scene import add_studio_lights, new_mesh_object, set_backplate
     from facelab_addon.blender.strokes import read_lip_strokes, write_stroke_pixels
@@ -104,10 +104,7 @@ def run_refine(ict, out, img_dir, samples):
     truth.hide_set(True)
     vg = face.vertex_groups.new(name="FL_fixed")
     vg.add(np.flatnonzero(s["fixed"]).tolist(), 1.0, "REPLACE")
-    cam_obj = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
-    scene.collection.objects.link(cam_obj)
-    apply_camera_to_blender(s["cam"], cam_obj, scene)
-    scene.camera = cam_obj
+    cam_obj = new_camera_object(scene, s["cam"])
     add_studio_lights(scene)
 
     # backplate: the truth rendered from the capture camera

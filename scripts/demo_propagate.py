@@ -49,7 +49,7 @@ def run(ict, out, img_dir, render, samples, n_train=8):
     import bpy
 
     from facelab_addon.blender.caches import evaluate_frames
-    from facelab_addon.blender.camera import apply_camera_to_blender, camera_from_blender
+    from facelab_addon.blender.camera import camera_from_blender, new_camera_object
     from facelab_addon.blender.scene import add_studio_lights, new_mesh_object
     from facelab_addon.blender.shapekeys import add_corrective_key, key_values_bulk
     from facelab_addon.blender.strokes import write_stroke_pixels
@@ -85,10 +85,7 @@ def run(ict, out, img_dir, render, samples, n_train=8):
     face.data.materials.append(mat)
     face.vertex_groups.new(name="FL_fixed").add(np.flatnonzero(fixed).tolist(), 1.0, "REPLACE")
     cam = syn.frontal_camera(neutral, mouth.center, distance=0.40)
-    cam_obj = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
-    scene.collection.objects.link(cam_obj)
-    apply_camera_to_blender(cam, cam_obj, scene)
-    scene.camera = cam_obj
+    cam_obj = new_camera_object(scene, cam)
     add_studio_lights(scene)
     bpy.context.view_layer.objects.active = face
     face.select_set(True)

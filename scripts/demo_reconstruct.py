@@ -31,7 +31,7 @@ def run(ict, out, img_dir, render, samples):
 
     import facelab_addon
     from facelab_addon.blender.caches import evaluate_frames
-    from facelab_addon.blender.camera import apply_camera_to_blender
+    from facelab_addon.blender.camera import new_camera_object
     from facelab_addon.blender.scene import add_studio_lights, new_mesh_object
     from facelab_addon.blender.shapekeys import add_corrective_key
     from facelab_addon.core import datasets as ds
@@ -124,10 +124,7 @@ def run(ict, out, img_dir, render, samples):
         ob.hide_set(True)
     mouth = neutral[syn.ICT_MOUTH_LOOP].mean(0)
     cam = syn.frontal_camera(neutral, mouth + [0, 0.025, 0], distance=0.55)
-    cam_obj = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
-    scene.collection.objects.link(cam_obj)
-    apply_camera_to_blender(cam, cam_obj, scene)
-    scene.camera = cam_obj
+    cam_obj = new_camera_object(scene, cam)
     add_studio_lights(scene)
     bpy.context.view_layer.objects.active = face
     blend = out / "reconstruct.blend"

@@ -211,3 +211,29 @@ def apply_camera_to_blender(camera: Camera, cam_obj, scene, sensor_width: float 
     M[:3, :3] = A
     M[:3, 3] = camera.center
     cam_obj.matrix_world = Matrix(M.tolist())
+
+
+def new_camera_object(scene, camera: Camera, name: str = "Camera", *, make_active: bool = True):
+    """A new camera object in ``scene`` that matches ``camera`` (see :func:`apply_camera_to_blender`).
+
+    Parameters
+    ----------
+    scene : bpy.types.Scene
+        The object is linked to its master collection; its render resolution follows ``camera``.
+    camera : Camera
+        Intrinsics in pixels and pose (OpenCV convention).
+    name : str
+        Name of the object and its camera data (Blender adds ``.001`` if taken).
+    make_active : bool
+        Also make it ``scene.camera``.
+
+    Returns
+    -------
+    bpy.types.Object
+    """
+    cam_obj = bpy.data.objects.new(name, bpy.data.cameras.new(name))
+    scene.collection.objects.link(cam_obj)
+    apply_camera_to_blender(camera, cam_obj, scene)
+    if make_active:
+        scene.camera = cam_obj
+    return cam_obj

@@ -8,7 +8,7 @@ import bpy
 
 import facelab_addon
 from facelab_addon.blender import caches
-from facelab_addon.blender.camera import apply_camera_to_blender, camera_from_blender
+from facelab_addon.blender.camera import camera_from_blender, new_camera_object
 from facelab_addon.blender.mesh import mesh_triangles, vertex_group_mask
 from facelab_addon.blender.scene import new_mesh_object
 from facelab_addon.blender.strokes import write_stroke_pixels
@@ -56,10 +56,7 @@ def test_refine_and_propagate_on_a_mesh_cache(tmp_path, ict, addon):
     md.cache_format, md.filepath, md.frame_start = "PC2", str(pc2), 1.0  # frame 1 plays sample 0
     obj.vertex_groups.new(name="FL_fixed").add(np.flatnonzero(fixed).tolist(), 1.0, "REPLACE")
     cam = syn.frontal_camera(neutral, mouth.center, distance=0.40)
-    cam_obj = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
-    scene.collection.objects.link(cam_obj)
-    apply_camera_to_blender(cam, cam_obj, scene)
-    scene.camera = cam_obj
+    cam_obj = new_camera_object(scene, cam)
     bpy.context.view_layer.objects.active = obj
     np.testing.assert_allclose(caches.read_captured_frames(obj, np.arange(1, T + 1)), captured, atol=1e-6)
 

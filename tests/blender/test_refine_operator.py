@@ -6,7 +6,7 @@ import pytest
 import bpy  # noqa: E402  (conftest set BLENDER_USER_RESOURCES)
 
 import facelab_addon
-from facelab_addon.blender.camera import apply_camera_to_blender, camera_from_blender
+from facelab_addon.blender.camera import camera_from_blender, new_camera_object
 from facelab_addon.blender.mesh import evaluated_vertices, mesh_triangles
 from facelab_addon.blender.scene import new_mesh_object, set_backplate
 from facelab_addon.blender.strokes import write_stroke_pixels
@@ -61,10 +61,7 @@ def scene_setup(tmp_path, ict):
     obj = new_mesh_object("Face", C, poly_verts=ict.poly_verts, poly_offsets=ict.poly_offsets)
     vg = obj.vertex_groups.new(name="FL_fixed")
     vg.add(np.flatnonzero(~face_mask).tolist(), 1.0, "REPLACE")
-    cam_obj = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
-    scene.collection.objects.link(cam_obj)
-    apply_camera_to_blender(cam, cam_obj, scene)
-    scene.camera = cam_obj
+    cam_obj = new_camera_object(scene, cam)
     from skimage import data
     from PIL import Image
 
