@@ -439,9 +439,10 @@ class LipSync:
         Weight of the talking-portion constraints against the
         cotangent-Laplacian term (weight ``lambda_reg``); unitless (both terms
         are squared lengths). Soft by default (10): the pairs over-determine
-        the lips, and the former 1000 tore the creature's lip corners without
-        fitting the targets better (ICT demo frame 3: 0.70 vs 0.69 mm mean
-        lip-distance error, 0.64 vs 1.49 mm largest umbrella roughness).
+        the lips, and the former 1000 on the raw targets tore the creature's
+        lip corners (operator demo frame 3: 1.49 -> 0.76 mm largest umbrella
+        roughness, mean lip-distance error 1.08 -> 0.70 mm; the benchmark
+        fits its clean case 0.04 -> 0.13 mm less closely).
     seal_strength : float
         Weight of the sealing (zero-distance) constraints between each
         original corner and its new end point; unitless.
