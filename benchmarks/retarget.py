@@ -45,6 +45,7 @@ from facelab_addon.core.deformation_transfer import (  # noqa: E402
 from facelab_addon.core.ict import load_ict  # noqa: E402
 from facelab_addon.core.retarget import (  # noqa: E402
     EndPoints,
+    LipSync,
     Retargeter,
     lip_contours,
     lip_distances,
@@ -65,6 +66,18 @@ POSES = {
     "ah": {"jawOpen": 0.6, "mouthUpperUp_L": 0.25, "mouthUpperUp_R": 0.25},
 }
 SEQUENCE = ["rest", "open", "ee", "oo", "mm", "ah", "oo", "open", "mm", "ee", "ah", "rest"]
+
+
+def umbrella(F, n):
+    """Uniform graph Laplacian (mean of the neighbours minus the vertex), (n,n) sparse."""
+    import scipy.sparse as sp
+
+    i = np.r_[F[:, 0], F[:, 1], F[:, 2], F[:, 1], F[:, 2], F[:, 0]]
+    j = np.r_[F[:, 1], F[:, 2], F[:, 0], F[:, 0], F[:, 1], F[:, 2]]
+    A = sp.csr_matrix((np.ones(len(i)), (i, j)), shape=(n, n))
+    A.data[:] = 1.0
+    deg = np.asarray(A.sum(axis=1)).ravel()
+    return sp.diags(1.0 / np.maximum(deg, 1)) @ A - sp.eye(n)
 
 
 def performance(names, frames_per_pose):
@@ -108,6 +121,9 @@ def run(quick: bool = False, render: bool = True, samples: int = 24, png=None) -
 
     rt = Retargeter(V, F, D, C, F, actor_contours=ac)
     cc = rt.lip_sync.creature_contours
+    # the former settings (strong 1000 constraints on the raw targets), for the smoothness comparison only
+    old_ls = LipSync(C, F, cc, ac, strength=1000.0, seal_strength=1000.0, smooth=0.0)
+    Lu = umbrella(F, len(V))
     W = performance(names, 2 if quick else 4)
     T = len(W)
     amount = 0.0015 * np.sin(np.linspace(0, 3 * np.pi, T)) ** 2  # up to 1.5 mm pout
@@ -131,7 +147,18 @@ def run(quick: bool = False, render: bool = True, samples: int = 24, png=None) -
         r0 = lip_distances(A, ac, X0, cc, ep, reference=X0)
         r1 = lip_distances(A, ac, X1, cc, ep, reference=X0)
         rw = lip_distances(A, ac, X0, cc, EndPoints())  # plain transfer, whole contour against whole contour
+        X_old, _ = old_ls.solve(A, X0)
+        rough = {}
+        for lab, Xs in (("new", X1), ("old", X_old)):
+            dd = Xs - X0
+            mv = np.linalg.norm(dd, axis=1) > 1e-5
+            rg = np.linalg.norm(Lu @ dd, axis=1) * MM
+            rough[lab] = (float(np.percentile(rg[mv], 99)) if mv.any() else 0.0, float(rg.max()),
+                          float(np.linalg.norm(dd, axis=1).max() * MM))
         rows.append(dict(
+            roughness_p99_mm=rough["new"][0], roughness_max_mm=rough["new"][1], lip_sync_motion_max_mm=rough["new"][2],
+            old_roughness_p99_mm=rough["old"][0], old_roughness_max_mm=rough["old"][1],
+            old_lip_sync_motion_max_mm=rough["old"][2],
             actor_max_gap_mm=float(r0["actor"].max() * MM),
             without_mean=float(r0["abs_diff"].mean() * MM), without_max=float(r0["abs_diff"].max() * MM),
             with_mean=float(r1["abs_diff"].mean() * MM), with_max=float(r1["abs_diff"].max() * MM),
@@ -182,6 +209,15 @@ def run(quick: bool = False, render: bool = True, samples: int = 24, png=None) -
         sealed_gap_max_mm=dict(without_lip_sync=agg("sealed_without_max", np.max),
                                with_lip_sync=agg("sealed_with_max", np.max)),
         threshold_sweep=thresholds,
+        lip_sync_smoothness_mm=dict(
+            definition="|d_i - mean of the neighbours' d| of the lip-sync offset d = X_lipsync - X_transferred, "
+                       "99th percentile over the moved vertices (max over frames) and largest value",
+            current=dict(p99=agg("roughness_p99_mm", np.max), max=agg("roughness_max_mm", np.max),
+                         motion_max=agg("lip_sync_motion_max_mm", np.max)),
+            former_strength_1000_unsmoothed=dict(p99=agg("old_roughness_p99_mm", np.max),
+                                                 max=agg("old_roughness_max_mm", np.max),
+                                                 motion_max=agg("old_lip_sync_motion_max_mm", np.max)),
+        ),
         mean_diff_ratio_with_over_without=agg("with_mean", np.mean) / max(agg("without_mean", np.mean), 1e-12),
         transfer_checks_mm=dict(identity_deformation_max=float(ident_err), identical_creature_jawOpen_max=float(repro_err)),
         timing_s=dict(
