@@ -43,6 +43,7 @@ from facelab_addon.core.deformation_transfer import (  # noqa: E402
     triangle_correspondence_from_markers,
 )
 from facelab_addon.core.ict import load_ict  # noqa: E402
+from facelab_addon.core.laplacian import uniform_laplacian  # noqa: E402
 from facelab_addon.core.retarget import (  # noqa: E402
     EndPoints,
     LipSync,
@@ -66,18 +67,6 @@ POSES = {
     "ah": {"jawOpen": 0.6, "mouthUpperUp_L": 0.25, "mouthUpperUp_R": 0.25},
 }
 SEQUENCE = ["rest", "open", "ee", "oo", "mm", "ah", "oo", "open", "mm", "ee", "ah", "rest"]
-
-
-def umbrella(F, n):
-    """Uniform graph Laplacian (mean of the neighbours minus the vertex), (n,n) sparse."""
-    import scipy.sparse as sp
-
-    i = np.r_[F[:, 0], F[:, 1], F[:, 2], F[:, 1], F[:, 2], F[:, 0]]
-    j = np.r_[F[:, 1], F[:, 2], F[:, 0], F[:, 0], F[:, 1], F[:, 2]]
-    A = sp.csr_matrix((np.ones(len(i)), (i, j)), shape=(n, n))
-    A.data[:] = 1.0
-    deg = np.asarray(A.sum(axis=1)).ravel()
-    return sp.diags(1.0 / np.maximum(deg, 1)) @ A - sp.eye(n)
 
 
 def performance(names, frames_per_pose):
@@ -123,7 +112,7 @@ def run(quick: bool = False, render: bool = True, samples: int = 24, png=None) -
     cc = rt.lip_sync.creature_contours
     # the former settings (strong 1000 constraints on the raw targets), for the smoothness comparison only
     old_ls = LipSync(C, F, cc, ac, strength=1000.0, seal_strength=1000.0, smooth=0.0)
-    Lu = umbrella(F, len(V))
+    Lu = uniform_laplacian(F, len(V))
     W = performance(names, 2 if quick else 4)
     T = len(W)
     amount = 0.0015 * np.sin(np.linspace(0, 3 * np.pi, T)) ** 2  # up to 1.5 mm pout

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from facelab_addon.core.errors import FaceLabError, RegionError
+from facelab_addon.core.laplacian import uniform_laplacian
 from facelab_addon.core.retarget import (
     EndPoints,
     LipSync,
@@ -198,18 +199,6 @@ def test_retargeter_copies_weights_transfers_correctives_and_applies_lip_sync():
         Retargeter(Va, F, np.zeros((0,) + Va.shape), Vc, F, lip_sync=False)
 
 
-def _umbrella(F, n):
-    """Uniform graph Laplacian (mean of the neighbours minus the vertex), (n,n) sparse."""
-    import scipy.sparse as sp
-
-    i = np.r_[F[:, 0], F[:, 1], F[:, 2], F[:, 1], F[:, 2], F[:, 0]]
-    j = np.r_[F[:, 1], F[:, 2], F[:, 0], F[:, 0], F[:, 1], F[:, 2]]
-    A = sp.csr_matrix((np.ones(len(i)), (i, j)), shape=(n, n))
-    A.data[:] = 1.0
-    deg = np.asarray(A.sum(axis=1)).ravel()
-    return sp.diags(1.0 / np.maximum(deg, 1)) @ A - sp.eye(n)
-
-
 def test_lip_sync_on_the_zigzag_ict_loop_keeps_the_creature_lips_smooth():
     """ICT's automatic inner-lip loop zigzags near the corners; the lip-sync offsets must stay smooth there.
 
@@ -225,7 +214,7 @@ def test_lip_sync_on_the_zigzag_ict_loop_keeps_the_creature_lips_smooth():
     ac = lip_contours(V, F)
     C = widen_mouth(V, V[ac.vertices].mean(0), factor=1.5)
     w = np.array([0.5, 0.2, 0.2])
-    L = _umbrella(F, len(V))
+    L = uniform_laplacian(F, len(V))
     out = {}
     for label, kw in (("new", {}), ("old", dict(strength=1000.0, seal_strength=1000.0, smooth=0.0))):
         rt = Retargeter(V, F, D, C, F, actor_contours=ac, **kw)
