@@ -30,9 +30,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from facelab_addon.core import contours as ct  # noqa: E402
-from facelab_addon.core.capture_sim import helmet_cameras  # noqa: E402
-from facelab_addon.core.ict import load_ict  # noqa: E402
+from facelab_addon.core.capture.ict import load_ict  # noqa: E402
+from facelab_addon.core.solve import contours as ct  # noqa: E402
+from facelab_addon.testing.capture_sim import helmet_cameras  # noqa: E402
 
 TARGET_MS = 5.0  # "a few ms" for 2 cameras
 SHAPES = ["jawOpen", "mouthFunnel", "mouthPucker", "mouthRollUpper", "mouthRollLower", "mouthSmile_L",

@@ -29,9 +29,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from facelab_addon.core import regions  # noqa: E402
-from facelab_addon.core.ict import load_ict  # noqa: E402
-from facelab_addon.core.propagate import LipRegressor, suggest_frames  # noqa: E402
+from facelab_addon.core.capture.ict import load_ict  # noqa: E402
+from facelab_addon.core.lips import regions  # noqa: E402
+from facelab_addon.core.lips.propagate import LipRegressor, suggest_frames  # noqa: E402
 
 CM_TO_MM = 10.0
 # (name, maximum weight): the mouth shapes of speech

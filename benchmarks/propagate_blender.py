@@ -5,14 +5,14 @@ ICT-FaceKit face in metres (26,719 vertices) with eight mouth expressions as
 shape keys (jawOpen, mouthClose, mouthFunnel, mouthPucker, mouthSmile_L/R,
 mouthPress_L/R), keyed with ``key_values_bulk`` on N frames of smooth,
 speech-like weights (``benchmarks/propagate.py``'s ``speech_weights``). The
-capture error is one shape key, ``CaptureError`` (``core.synthetic.
+capture error is one shape key, ``CaptureError`` (``testing.synthetic.
 lip_error_weights``: the inner lips pulled apart, 1 mm per lip at value 1,
 faded to zero at the border of the ``FL_lips`` group so that the trusted
 mouth region and the Dirichlet border are error-free), keyed with a
 non-linear function of the pose: lips fail to close when the jaw is nearly
 shut, and cross (negative values; the key's slider minimum is lowered) when
 pressed. The truth is the capture minus that key. Auto Regions writes the
-regions; 10 training frames are chosen by ``core.propagate.suggest_frames``
+regions; 10 training frames are chosen by ``core.lips.propagate.suggest_frames``
 on the captured sequence (no regressor: extreme poses first); each is
 "sculpted" (``add_corrective_key`` cancelling the error + ``key_spike``) and
 marked (``bpy.ops.facelab.mark_training_frame``). Then
@@ -165,7 +165,7 @@ class Timers:
 def instrument(timers):
     """Wrap the parts of ``ops_propagate.propagate`` (module attributes it looks up at call time)."""
     from facelab_addon.blender import caches
-    from facelab_addon.core import propagate as cprop
+    from facelab_addon.core.lips import propagate as cprop
     from facelab_addon.ui import ops_propagate as op
 
     timers.patch(caches, "read_captured_frames", "read_captured (frame_set x T)")
@@ -211,8 +211,8 @@ def build(bpy, ict, frames, W):
     from facelab_addon.blender.mesh import mesh_triangles, vertex_group_mask
     from facelab_addon.blender.scene import new_mesh_object
     from facelab_addon.blender.shapekeys import add_corrective_key, key_values_bulk
-    from facelab_addon.core import regions
-    from facelab_addon.core import synthetic as syn
+    from facelab_addon.core.lips import regions
+    from facelab_addon.testing import synthetic as syn
 
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene
@@ -302,10 +302,9 @@ def accuracy(bpy, obj, frames, train, err, cap_w, chunk=100):
     """Held-out inner-lip error vs the truth on the evaluated mesh, and its deviation from LipRegressor.predict."""
     from facelab_addon.blender import caches
     from facelab_addon.blender.mesh import mesh_triangles, vertex_group_mask
-    from facelab_addon.blender.shapekeys import shape_key_sequence
-    from facelab_addon.core.propagate import LipRegressor
-    from facelab_addon.core.regions import faces_in_region
-    from facelab_addon.blender.shapekeys import rest_vertices
+    from facelab_addon.blender.shapekeys import rest_vertices, shape_key_sequence
+    from facelab_addon.core.lips.propagate import LipRegressor
+    from facelab_addon.core.lips.regions import faces_in_region
 
     tris = mesh_triangles(obj.data)
     mouth, lips = vertex_group_mask(obj, "FL_mouth"), vertex_group_mask(obj, "FL_lips")
@@ -371,8 +370,8 @@ def main(argv=None):
     from facelab_addon.blender import caches
     from facelab_addon.blender.mesh import mesh_triangles
     from facelab_addon.blender.shapekeys import add_corrective_key, key_spike, shape_key_sequence
-    from facelab_addon.core.ict import load_ict
-    from facelab_addon.core.propagate import suggest_frames
+    from facelab_addon.core.capture.ict import load_ict
+    from facelab_addon.core.lips.propagate import suggest_frames
     from facelab_addon.ui import ops_propagate as op
 
     out["bpy_version"] = bpy.app.version_string

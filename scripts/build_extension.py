@@ -52,7 +52,7 @@ PIP_PLATFORMS = {
 
 FORBIDDEN_PREFIXES = ("tests/", "benchmarks/", "docs/", "scripts/", "out/", ".venv/", ".git/", "build/", "dist/")
 REQUIRED_FILES = ("blender_manifest.toml", "__init__.py", "facelab_addon/__init__.py",
-                  "facelab_addon/core/deform.py", "facelab_addon/ui/panel.py", "facelab_addon/cli/__init__.py")
+                  "facelab_addon/core/geometry/deform.py", "facelab_addon/ui/panel.py", "facelab_addon/cli/__init__.py")
 
 
 def log(msg: str) -> None:

@@ -18,9 +18,9 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from facelab_addon.core import contours as ct  # noqa: E402
-from facelab_addon.core.camera import Camera  # noqa: E402
-from facelab_addon.core.ict import load_ict  # noqa: E402
+from facelab_addon.core.capture.camera import Camera  # noqa: E402
+from facelab_addon.core.capture.ict import load_ict  # noqa: E402
+from facelab_addon.core.solve import contours as ct  # noqa: E402
 
 
 def main(out="docs/images/contours_selection.png"):
@@ -79,7 +79,7 @@ def main(out="docs/images/contours_selection.png"):
 
 def eyelids(out="docs/images/contours_eyelids.png"):
     """The left eye from the right helmet camera: eyelid loops, occluding halves, 3D targets on the eyeball."""
-    from facelab_addon.core.capture_sim import helmet_cameras
+    from facelab_addon.testing.capture_sim import helmet_cameras
 
     m = load_ict()
     loops = ct.ict_contour_loops(m)

@@ -38,7 +38,7 @@ def _drawable(upper, lower, tol_px=2.0):
     """True if an artist would draw these truth contours as they are: the upper one above
     the lower one everywhere (the truth's silhouettes cross where ICT's lips overlap; there
     an artist draws the line where the lips meet instead, which the truth does not give us)."""
-    from facelab_addon.core.sketch import _y_at
+    from facelab_addon.core.lips.sketch import _y_at
 
     ly = _y_at(upper[:, 0], lower)
     ok = np.isfinite(ly)
@@ -53,8 +53,8 @@ def run(ict, out, img_dir, render, samples, n_train=8):
     from facelab_addon.blender.scene import add_studio_lights, new_mesh_object
     from facelab_addon.blender.shapekeys import add_corrective_key, key_values_bulk
     from facelab_addon.blender.strokes import write_stroke_pixels
-    from facelab_addon.core import synthetic as syn
-    from facelab_addon.core.propagate import suggest_frames
+    from facelab_addon.core.lips.propagate import suggest_frames
+    from facelab_addon.testing import synthetic as syn
 
     F = ict.faces
     neutral = ict.neutral * SCALE
@@ -92,7 +92,7 @@ def run(ict, out, img_dir, render, samples, n_train=8):
     bcam = camera_from_blender(scene)
 
     # FaceLab suggests the frames worth correcting (extreme poses); the artist sketches them
-    from facelab_addon.core.regions import auto_regions, faces_in_region
+    from facelab_addon.core.lips.regions import auto_regions, faces_in_region
 
     mouth_mask, _ = auto_regions(neutral, F)
     ranked = [int(frames[i]) for i in suggest_frames(

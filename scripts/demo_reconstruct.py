@@ -1,7 +1,7 @@
 """Demo step 4: Reconstruct from Bundles (Cong, Lan & Fedkiw 2019, local geometric indexing).
 
 The face carries a dataset of ICT shapes as shape keys (the expressions,
-nonlinear in-betweens and FACS-style combinations of ``core.datasets``). A
+nonlinear in-betweens and FACS-style combinations of ``testing.datasets``). A
 held-out performance (combinations that are not in the dataset, eased from
 pose to pose) is seen only through 100 bundles (animated empties in a
 collection ``FL_bundles``, 0.5 mm Gaussian noise, like a mocap solve). The
@@ -28,18 +28,17 @@ SMOOTH = 3
 
 def run(ict, out, img_dir, render, samples):
     import bpy
+    from demo_solve import baked_object
 
     import facelab_addon
     from facelab_addon.blender.caches import evaluate_frames
     from facelab_addon.blender.camera import new_camera_object
     from facelab_addon.blender.scene import add_studio_lights, new_mesh_object
     from facelab_addon.blender.shapekeys import add_corrective_key
-    from facelab_addon.core import datasets as ds
-    from facelab_addon.core import synthetic as syn
-    from facelab_addon.core.geometric_indexing import BlendshapeFit
-    from facelab_addon.core.natural_neighbor import surface_points
-
-    from demo_solve import baked_object
+    from facelab_addon.core.lgi.geometric_indexing import BlendshapeFit
+    from facelab_addon.core.lgi.natural_neighbor import surface_points
+    from facelab_addon.testing import datasets as ds
+    from facelab_addon.testing import synthetic as syn
 
     t_start = time.perf_counter()
     F = ict.faces

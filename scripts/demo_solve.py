@@ -1,6 +1,6 @@
 """Demo step 3: Solve Performance + Retarget (Bhat et al. 2013) from a stereo helmet capture.
 
-The ICT face is captured by a simulated helmet stereo pair (``core.capture_sim``):
+The ICT face is captured by a simulated helmet stereo pair (``testing.capture_sim``):
 painted markers on the skin, a smooth rig performance and, on top of it, an
 inner-lip deformation the rig cannot express (the lips fail to close, up to
 2.5 mm). The artist's scene, built through the operators as in production:
@@ -11,7 +11,7 @@ inner-lip deformation the rig cannot express (the lips fail to close, up to
   drawn through camera 2;
 * Bind Tracks on the neutral frame, Solve Performance (markers only first, kept
   as a baked copy, then markers + contours + corrective), Retarget to a creature
-  (ICT with a widened mouth, ``core.retarget.widen_mouth``).
+  (ICT with a widened mouth, ``core.solve.retarget.widen_mouth``).
 
 Writes out/demo/solve.blend, out/demo/solve_summary.json (errors vs the truth)
 and docs/images/demo_solve_*.png.
@@ -38,9 +38,15 @@ MASK_NAMES = {"Upper lip": "mouth_upper", "Lower lip": "mouth_lower"}
 
 def capture(ict, seed=4):
     """Truth (T,V,3) metres, weights (T,S), cameras, markers, marker pixels (T,C,M,2), tracked curves, lip mask."""
-    from facelab_addon.core.capture_sim import DEFAULT_EXPRESSIONS, helmet_cameras, sample_markers, weight_sequence
-    from facelab_addon.core.contours import contour_loops, synthetic_tracked_curves
-    from facelab_addon.core.synthetic import ICT_MOUTH_LOOP, find_mouth, inject_lip_error
+    from facelab_addon.core.lips.mouth import find_mouth
+    from facelab_addon.core.solve.contours import contour_loops, synthetic_tracked_curves
+    from facelab_addon.testing.capture_sim import (
+        DEFAULT_EXPRESSIONS,
+        helmet_cameras,
+        sample_markers,
+        weight_sequence,
+    )
+    from facelab_addon.testing.synthetic import ICT_MOUTH_LOOP, inject_lip_error
 
     F = ict.faces
     neutral = ict.neutral * SCALE
@@ -103,6 +109,7 @@ def baked_object(ict, name, X, frames):
 def build_scene(ict, s, plates_dir):
     """The artist's scene: rig, cameras, Movie Clips with tracks, Mask and Grease Pencil contours."""
     import bpy
+
     from facelab_addon.blender.camera import apply_camera_to_blender
     from facelab_addon.blender.scene import add_studio_lights, new_mesh_object
     from facelab_addon.blender.shapekeys import add_corrective_key
@@ -193,7 +200,7 @@ def build_scene(ict, s, plates_dir):
 
 def errors(s, X, W_got, ict):
     """Weight, vertex and contour errors of a solve X (T,V,3) vs the truth."""
-    from facelab_addon.core.silhouette import contour_distance
+    from facelab_addon.core.geometry.silhouette import contour_distance
 
     skin = ict.part_vertex_mask("M_Face")
     e = np.linalg.norm(X - s["truth"], axis=2) * 1e3  # mm
@@ -222,7 +229,7 @@ def run(ict, out, img_dir, render, samples):
 
     from facelab_addon.blender.caches import evaluate_frames
     from facelab_addon.blender.scene import new_mesh_object
-    from facelab_addon.core.retarget import widen_mouth
+    from facelab_addon.core.solve.retarget import widen_mouth
     from facelab_addon.ui.ops_solve import _curve_values
 
     t_start = time.perf_counter()

@@ -18,6 +18,6 @@ os.environ.setdefault("BLENDER_USER_RESOURCES", tempfile.mkdtemp(prefix="facelab
 @pytest.fixture(scope="session")
 def ict():
     """The ICT-FaceKit model (centimetres), parsed once per test session."""
-    from facelab_addon.core.ict import load_ict
+    from facelab_addon.core.capture.ict import load_ict
 
     return load_ict()

@@ -7,7 +7,7 @@ A captured performance reaches Blender in one of three ways:
 - a **Mesh Sequence Cache** modifier playing an Alembic file.
 
 ``sequence_source`` tells which. ``read_mesh_cache_frames`` reads a Mesh
-Cache's file directly (``core.cachefile``), mapping scene frames to samples
+Cache's file directly (``core.capture.cachefile``), mapping scene frames to samples
 exactly as the modifier does; ``evaluate_frames`` is the generic path (one
 ``frame_set`` and evaluated mesh per frame) for everything else, with
 FaceLab's own corrective keys (``FL_*``) muted so it returns the *capture*.
@@ -19,7 +19,7 @@ the positions), bakes the capture to a PC2 file, turns the Mesh Sequence
 Cache off (it is kept) and plays the PC2 with an INTEGRATE Mesh Cache in its
 place. Note: in INTEGRATE mode Blender carries a key's offset in the local
 frame of the cache's surface (rotated with the head, scaled with the face);
-``core.cachefile.integrate_matrices`` gives that map, and
+``core.capture.cachefile.integrate_matrices`` gives that map, and
 ``integrate_offsets_to_key`` the key offsets that show a wanted correction.
 
 All positions are object-local (shape-key space), float32, scene units.
@@ -35,7 +35,7 @@ from pathlib import Path
 import bpy
 import numpy as np
 
-from ..core import cachefile
+from ..core.capture import cachefile
 from ..core.errors import FaceLabError, MeshError
 
 __all__ = [
@@ -665,7 +665,7 @@ def cache_to_shape_key_ready(obj, *, directory=None, scene_frames=None, progress
     - Shape-key animation or a static mesh: nothing to change.
 
     Nothing is deleted. Keys show *in the local frame* of the cache surface
-    (``core.cachefile.integrate_matrices``).
+    (``core.capture.cachefile.integrate_matrices``).
 
     Parameters
     ----------
@@ -769,7 +769,7 @@ def correction_to_key_offsets(obj, cache_positions, deltas, corners=None):
 
     Without a cache (shape keys, static mesh) this is ``deltas`` itself. Over a
     Mesh Cache in ``'INTEGRATE'`` mode Blender carries key offsets in the
-    local frame of the cache surface (``core.cachefile.integrate_matrices``),
+    local frame of the cache surface (``core.capture.cachefile.integrate_matrices``),
     so the offsets are mapped back through those matrices.
 
     Parameters
@@ -784,8 +784,7 @@ def correction_to_key_offsets(obj, cache_positions, deltas, corners=None):
     """
     if sequence_source(obj) not in ("mesh_cache", "mesh_sequence_cache"):
         return np.asarray(deltas, dtype=np.float64)
-    from ..core.cachefile import integrate_matrices, integrate_offsets_to_key
-
+    from ..core.capture.cachefile import integrate_matrices, integrate_offsets_to_key
     from .shapekeys import rest_vertices
 
     offs, cv = polygon_corners(obj.data) if corners is None else corners

@@ -11,7 +11,7 @@ import bpy
 import numpy as np
 
 from ..core.errors import MeshError
-from ..core.mesh import connected_components
+from ..core.geometry.mesh import connected_components
 
 __all__ = [
     "mesh_triangles",

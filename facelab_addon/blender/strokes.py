@@ -4,7 +4,7 @@ The artist sketches the upper and lower lip contours over the plate, in
 camera view, on two layers named "Upper lip" and "Lower lip". This module
 creates that sketch object, writes strokes at given pixels (tests, demo), and
 reads the strokes back as ``(N,2)`` pixel polylines (top-left origin, y down;
-see ``facelab_addon/core/camera.py``) for ``core.sketch``.
+see ``facelab_addon/core/capture/camera.py``) for ``core.lips.sketch``.
 
 Sources, in order of preference
 -------------------------------
@@ -60,7 +60,7 @@ import bpy
 import numpy as np
 from mathutils import Matrix
 
-from ..core.camera import Camera
+from ..core.capture.camera import Camera
 from ..core.errors import CameraError, SketchError
 from .camera import evaluated_depsgraph
 

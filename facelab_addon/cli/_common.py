@@ -221,7 +221,7 @@ class Session:
     def import_obj(self, path: Path, name: str):
         """A mesh object from an OBJ, vertex order and coordinates exactly as in the file."""
         from ..blender.scene import new_mesh_object
-        from ..core.ict import _read_obj_full
+        from ..core.capture.ict import _read_obj_full
 
         try:
             V, _, cv, _, off, _, _ = _read_obj_full(path)
@@ -233,7 +233,7 @@ class Session:
 
     def import_obj_vertices(self, path: Path):
         """(V,3) float64 vertex positions of an OBJ, in file order."""
-        from ..core.ict import _read_obj_vertices
+        from ..core.capture.ict import _read_obj_vertices
 
         try:
             V = _read_obj_vertices(Path(path))
@@ -244,7 +244,7 @@ class Session:
         return V
 
     def add_cache(self, obj, path: Path) -> None:
-        from ..core import cachefile
+        from ..core.capture import cachefile
         from ..core.errors import FaceLabError
 
         try:

@@ -19,7 +19,7 @@ from ..blender.mesh import (
 from ..blender.shapekeys import add_corrective_key, key_spike
 from ..blender.strokes import new_lip_sketch, read_lip_strokes
 from ..core.errors import FaceLabError
-from ..core.sketch import refine_lips
+from ..core.lips.sketch import refine_lips
 from .prefs import get_prefs
 
 TRAIN_MARKER = "FL train"

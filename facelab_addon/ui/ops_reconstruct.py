@@ -17,9 +17,9 @@ from ..blender.bundles import (
 )
 from ..blender.mesh import mesh_triangles, require_mesh
 from ..blender.shapekeys import add_corrective_key, add_keys_from_deltas, key_values_bulk, remove_keys, rest_vertices
-from ..core.compress import compress
 from ..core.errors import FaceLabError
-from ..core.geometric_indexing import GeometricIndexer, JawRig, RigCorrectives, bind_points
+from ..core.geometry.compress import compress
+from ..core.lgi.geometric_indexing import GeometricIndexer, JawRig, RigCorrectives, bind_points
 from .ops import face_object, poll_face, progress_callback
 
 RECON_PREFIX = "FL_Recon_"

@@ -28,8 +28,8 @@ from ..blender.camera import evaluated_depsgraph
 from ..blender.masks import read_curves
 from ..blender.mesh import default_fixed_mask, evaluated_vertices, mesh_triangles, require_mesh, vertex_group_mask
 from ..blender.shapekeys import add_corrective_key, add_keys_from_deltas, key_values_bulk, remove_keys, rest_vertices
-from ..core.compress import compress
 from ..core.errors import BundleError, CameraError, FaceLabError
+from ..core.geometry.compress import compress
 from .ops import face_object, poll_face, progress_callback
 from .props_solve import read_bindings, write_bindings
 
@@ -272,7 +272,7 @@ def _scene_vector_values(scene, path, current, frames):
 # --------------------------------------------------------------------------- bind
 def bind_tracks(context, obj, bind_frame: int) -> dict:
     """Bind every track (and bundle) to the face surface on ``bind_frame``; store on ``obj``."""
-    from ..core.markers import bind_surface_points, nearest_surface_points
+    from ..core.capture.markers import bind_surface_points, nearest_surface_points
 
     scene = context.scene
     require_mesh(obj)
@@ -327,8 +327,8 @@ def bind_tracks(context, obj, bind_frame: int) -> dict:
 # --------------------------------------------------------------------------- solve
 def gather_solve_inputs(context, obj) -> dict:
     """Everything the core solve needs, in world space at the pose frame."""
-    from ..core.contours import contour_loops
-    from ..core.markers import SurfacePoints
+    from ..core.capture.markers import SurfacePoints
+    from ..core.solve.contours import contour_loops
 
     scene = context.scene
     s = scene.facelab_solve
@@ -423,7 +423,7 @@ def _has_curve_sources(scene, views) -> bool:
 
 def solve(context, obj, progress=None) -> dict:
     """Run the solve and write its animation. Returns a summary for the report."""
-    from ..core.blendshape_solve import BlendshapeSolver, OutOfSubspaceCorrective, solve_performance
+    from ..core.solve.blendshape_solve import BlendshapeSolver, OutOfSubspaceCorrective, solve_performance
 
     scene = context.scene
     s = scene.facelab_solve
@@ -532,8 +532,8 @@ def same_polygons(me_a, me_b) -> bool:
 
 def retarget(context, actor, creature, progress=None) -> dict:
     """Retarget the actor's solved animation to ``creature`` and write it there."""
-    from ..core.deformation_transfer import triangle_correspondence_from_markers
-    from ..core.retarget import EndPoints, retarget_performance
+    from ..core.solve.deformation_transfer import triangle_correspondence_from_markers
+    from ..core.solve.retarget import EndPoints, retarget_performance
 
     scene = context.scene
     s = scene.facelab_solve

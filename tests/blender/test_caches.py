@@ -18,7 +18,7 @@ import pytest  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
 from facelab_addon.blender import caches  # noqa: E402
-from facelab_addon.core import cachefile as cf  # noqa: E402
+from facelab_addon.core.capture import cachefile as cf  # noqa: E402
 from facelab_addon.core.errors import FaceLabError, MeshError  # noqa: E402
 
 pytestmark = pytest.mark.blender
@@ -209,7 +209,7 @@ def test_integrate_adds_shape_key_on_top(tmp_path, empty_scene):
     for f, expect in [(1, d), (2, d @ R.T), (3, 1.3 * d)]:  # translation adds exactly; rotation/scale carry it
         empty_scene.frame_set(f)
         np.testing.assert_allclose(evaluated(ob) - seq[f - 1], expect, atol=TOL)
-    for f in range(4, T + 1):  # general frames: the per-vertex maps of core.cachefile
+    for f in range(4, T + 1):  # general frames: the per-vertex maps of core.capture.cachefile
         empty_scene.frame_set(f)
         M = cf.integrate_matrices(rest, seq[f - 1], off, cv)
         np.testing.assert_allclose(evaluated(ob), seq[f - 1] + np.einsum("vij,vj->vi", M, d), atol=TOL)

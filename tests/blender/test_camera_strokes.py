@@ -27,7 +27,7 @@ from facelab_addon.blender.strokes import (  # noqa: E402
     read_lip_strokes,
     write_stroke_pixels,
 )
-from facelab_addon.core.camera import Camera  # noqa: E402
+from facelab_addon.core.capture.camera import Camera  # noqa: E402
 from facelab_addon.core.errors import CameraError, SketchError  # noqa: E402
 
 pytestmark = pytest.mark.blender

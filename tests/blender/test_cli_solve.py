@@ -6,17 +6,15 @@ against the JSON, and bad inputs against the documented exit codes."""
 
 import json
 
+import bpy
 import numpy as np
 import pytest
 
-import bpy
-
+import facelab_addon
 from facelab_addon.blender.scene import new_mesh_object
 
-import facelab_addon
-
 from .test_cli import cli
-from .test_solve_operator import EXPR, T, W_TRUTH, build
+from .test_solve_operator import EXPR, W_TRUTH, T, build
 
 pytestmark = [pytest.mark.blender, pytest.mark.slow]
 
@@ -31,8 +29,8 @@ def addon():
 @pytest.fixture(scope="module")
 def shots(ict, addon, tmp_path_factory):
     """SHOT.blend (views, tracks, no bindings, a creature, a mesh without keys) and broken variants."""
-    from facelab_addon.core.retarget import widen_mouth
-    from facelab_addon.core.synthetic import ICT_MOUTH_LOOP
+    from facelab_addon.core.solve.retarget import widen_mouth
+    from facelab_addon.testing.synthetic import ICT_MOUTH_LOOP
 
     d = tmp_path_factory.mktemp("solve_shot")
     scene, obj, cams, markers, truth, views = build(ict, d)

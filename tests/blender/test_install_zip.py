@@ -85,7 +85,7 @@ INSTALL_SCRIPT = textwrap.dedent(r'''
     import importlib
     pkg = importlib.import_module("bl_ext.user_default.facelab")
     fl = importlib.import_module("bl_ext.user_default.facelab.facelab_addon")
-    Camera = importlib.import_module(fl.__name__ + ".core.camera").Camera
+    Camera = importlib.import_module(fl.__name__ + ".core.capture.camera").Camera
     new_mesh_object = importlib.import_module(fl.__name__ + ".blender.scene").new_mesh_object
     strokes = importlib.import_module(fl.__name__ + ".blender.strokes")
     bcam = importlib.import_module(fl.__name__ + ".blender.camera")
@@ -144,7 +144,7 @@ INSTALL_SCRIPT = textwrap.dedent(r'''
         "extension": pkg.__file__,
         "addon": fl.__file__,
         "operator": sys.modules[op_module].__file__,
-        "core": sys.modules[fl.__name__ + ".core.sketch"].__file__,
+        "core": sys.modules[fl.__name__ + ".core.lips.sketch"].__file__,
         "scipy": scipy.__file__, "igl": igl.__file__, "cholespy": cholespy.__file__,
         "numpy": np.__file__,
     }

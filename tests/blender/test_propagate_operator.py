@@ -1,18 +1,17 @@
 """Headless end to end: an animated ICT capture with a systematic inner-lip error,
 a few corrected frames, Auto Regions, Propagate -> corrective keys on the timeline."""
 
+import bpy
 import numpy as np
 import pytest
-
-import bpy
 
 import facelab_addon
 from facelab_addon.blender import caches
 from facelab_addon.blender.mesh import mesh_triangles, vertex_group_mask
 from facelab_addon.blender.scene import new_mesh_object
 from facelab_addon.blender.shapekeys import add_corrective_key, key_spike, key_values_bulk
-from facelab_addon.core.propagate import LipRegressor
-from facelab_addon.core.regions import faces_in_region
+from facelab_addon.core.lips.propagate import LipRegressor
+from facelab_addon.core.lips.regions import faces_in_region
 
 pytestmark = pytest.mark.blender
 
@@ -49,14 +48,14 @@ def build(ict):
     for name in EXPR:
         add_corrective_key(obj, name, (ict.expressions[name] - ict.neutral) * SCALE)
     # systematic capture error: the inner lips fail to close as jawOpen falls (an artist's key);
-    # smooth, zero at the lip region's border (core.synthetic's realistic error shape)
-    from facelab_addon.core import synthetic as syn
+    # smooth, zero at the lip region's border (testing.synthetic's realistic error shape)
+    from facelab_addon.testing import synthetic as syn
 
     fixed = ~ict.part_vertex_mask("M_Face")
     mouth = syn.find_mouth(ict.neutral, ict.faces, fixed, loop=syn.ICT_MOUTH_LOOP)
     w, side = syn.lip_error_weights(ict.neutral, ict.faces, fixed, mouth=mouth)
     # fade to zero before the border of the lip region Auto Regions will propose (the border is held)
-    from facelab_addon.core.regions import auto_regions, geodesic_distance, region_border
+    from facelab_addon.core.lips.regions import auto_regions, geodesic_distance, region_border
 
     _, lip_mask = auto_regions(ict.neutral, ict.faces)
     d = geodesic_distance(ict.neutral, ict.faces, region_border(ict.faces, faces_in_region(ict.faces, lip_mask)))

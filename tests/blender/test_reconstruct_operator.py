@@ -1,17 +1,16 @@
 """Headless end to end: animated empties as bundles + the face's shape keys as the dataset ->
 Reconstruct from Bundles -> keyed result equal to the core's and through the bundles."""
 
+import bpy
 import numpy as np
 import pytest
-
-import bpy
 
 import facelab_addon
 from facelab_addon.blender.caches import evaluate_frames
 from facelab_addon.blender.mesh import mesh_triangles
 from facelab_addon.blender.scene import new_mesh_object
 from facelab_addon.blender.shapekeys import add_corrective_key
-from facelab_addon.core.geometric_indexing import GeometricIndexer, bind_points
+from facelab_addon.core.lgi.geometric_indexing import GeometricIndexer, bind_points
 
 pytestmark = pytest.mark.blender
 
@@ -140,7 +139,7 @@ def _empties(scene, pts, prefix="B"):
 
 @pytest.fixture(scope="module")
 def gen(ict):
-    from facelab_addon.core.datasets import ICTShapeGenerator
+    from facelab_addon.testing.datasets import ICTShapeGenerator
 
     return ICTShapeGenerator(ict)
 
@@ -230,7 +229,7 @@ def to_local_q(obj, q):
 
 
 def test_reconstructed_face_bakes_to_pc2_mdd_and_alembic(ict, addon, tmp_path):
-    from facelab_addon.core.cachefile import read_cache
+    from facelab_addon.core.capture.cachefile import read_cache
 
     scene, obj, empties, X = _simple_scene(ict, EXPR[:6], T=3)
     assert bpy.ops.facelab.reconstruct_from_bundles() == {"FINISHED"}
@@ -317,7 +316,7 @@ def test_jaw_bone_drives_the_jaw(ict, addon, gen):
     print("jaw region mean error mm: no jaw %.3f, jaw bone %.3f" % (errs["NONE"], errs["BONE"]))
     assert errs["BONE"] < 0.9 * errs["NONE"]  # measured 0.59 vs 0.68 mm
     # the bone's poses and the shapes' estimated poses agree with the core run on the generator's own jaw
-    from facelab_addon.core.geometric_indexing import GeometricIndexer, JawRig
+    from facelab_addon.core.lgi.geometric_indexing import GeometricIndexer, JawRig
 
     rig = JawRig(gen.jaw.pivot * SCALE, gen.jaw.axis, gen.jaw.weights)
     th_s = np.stack([gen.jaw_parameters(w) for w in ds_w])
@@ -385,7 +384,7 @@ def rest_vertices_of(obj):
 
 
 def test_generate_correctives_adds_driven_keys_that_beat_the_linear_rig(ict, addon, gen):
-    from facelab_addon.core.geometric_indexing import RigCorrectives
+    from facelab_addon.core.lgi.geometric_indexing import RigCorrectives
 
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene

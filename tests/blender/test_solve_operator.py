@@ -5,18 +5,17 @@ Retarget to a wide-mouthed creature; plus the bad-input messages."""
 
 import time
 
+import bpy
 import numpy as np
 import pytest
-
-import bpy
 
 import facelab_addon
 from facelab_addon.blender.camera import apply_camera_to_blender
 from facelab_addon.blender.scene import new_mesh_object
 from facelab_addon.blender.shapekeys import add_corrective_key, key_values_bulk
 from facelab_addon.blender.strokes import write_stroke_pixels
-from facelab_addon.core.capture_sim import helmet_cameras, sample_markers
-from facelab_addon.core.synthetic import ICT_MOUTH_LOOP
+from facelab_addon.testing.capture_sim import helmet_cameras, sample_markers
+from facelab_addon.testing.synthetic import ICT_MOUTH_LOOP
 
 pytestmark = pytest.mark.blender
 
@@ -126,7 +125,7 @@ def build(ict, tmp_path):
 
 def add_contours(ict, scene, obj, views, truth, cams):
     """Inner-lip contours of the truth: a shape-keyed Mask over clip 1, Grease Pencil strokes in camera 2."""
-    from facelab_addon.core.contours import contour_loops, synthetic_tracked_curves
+    from facelab_addon.core.solve.contours import contour_loops, synthetic_tracked_curves
 
     fixed = ~ict.part_vertex_mask("M_Face")
     eyeballs = {"left": np.flatnonzero(ict.part_vertex_mask("M_ScleraLeft")),
@@ -211,8 +210,8 @@ def test_solve_and_retarget_end_to_end(ict, addon, tmp_path):
     assert bpy.ops.facelab.bind_tracks(frame=0) == {"FINISHED"}
     b = obj.facelab_solve.bindings
     assert len(b) == len(markers) and obj.facelab_solve.bind_frame == 0
+    from facelab_addon.core.capture.markers import SurfacePoints
     from facelab_addon.ui.props_solve import read_bindings
-    from facelab_addon.core.markers import SurfacePoints
 
     names, bv, bb = read_bindings(obj, "MARKER")
     assert names == [f"M{j:02d}" for j in range(len(markers))]
@@ -270,7 +269,7 @@ def test_solve_and_retarget_end_to_end(ict, addon, tmp_path):
     W = W_m
 
     # ---- Retarget to a creature with a wider mouth (same topology)
-    from facelab_addon.core.retarget import widen_mouth
+    from facelab_addon.core.solve.retarget import widen_mouth
 
     neutral = truth[0]
     cre = new_mesh_object("Creature", widen_mouth(neutral, neutral[ICT_MOUTH_LOOP].mean(0), factor=1.5),
@@ -374,7 +373,7 @@ def test_bad_input_messages(ict, addon, tmp_path):
 
 def test_bundles_bind_and_solve(ict, addon, tmp_path):
     """Empties as 3D bundles: bound to their nearest surface point, then the solve from bundles alone."""
-    from facelab_addon.core.markers import SurfacePoints
+    from facelab_addon.core.capture.markers import SurfacePoints
     from facelab_addon.ui.ops_solve import _curve_values
     from facelab_addon.ui.props_solve import read_bindings, write_bindings
 
@@ -460,8 +459,8 @@ def test_panel_sections_draw(addon):
 
 def test_retarget_with_marker_correspondence(ict, addon, tmp_path):
     """Correspondence from empties named like the bound tracks; too few of them is refused."""
-    from facelab_addon.core.markers import SurfacePoints
-    from facelab_addon.core.retarget import widen_mouth
+    from facelab_addon.core.capture.markers import SurfacePoints
+    from facelab_addon.core.solve.retarget import widen_mouth
     from facelab_addon.ui import ops_solve
     from facelab_addon.ui.props_solve import read_bindings
 

@@ -7,7 +7,7 @@ lines y = +gap/2 (upper) and y = -gap/2 (lower), at depth z = 0.
 
 import numpy as np
 
-from facelab_addon.core.camera import Camera
+from facelab_addon.core.capture.camera import Camera
 
 
 def tube(y_center, theta0, theta1, radius, nx=41, nt=25, half_len=2.0):

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from facelab_addon.core import cachefile as cf
+from facelab_addon.core.capture import cachefile as cf
 from facelab_addon.core.errors import FaceLabError, MeshError
 
 

@@ -18,11 +18,11 @@ import time
 import numpy as np
 import pytest
 
-from facelab_addon.core import contours as ct
-from facelab_addon.core.camera import Camera
+from facelab_addon.core.capture.camera import Camera
 from facelab_addon.core.errors import FaceLabError, MeshError
-from facelab_addon.core.eyes import fit_sphere, project_to_sphere, ray_sphere
-from facelab_addon.core.silhouette import silhouette_edges
+from facelab_addon.core.geometry.silhouette import silhouette_edges
+from facelab_addon.core.geometry.sphere import fit_sphere, project_to_sphere, ray_sphere
+from facelab_addon.core.solve import contours as ct
 
 R_TORUS, R_TUBE, DIST = 2.0, 0.5, 12.0
 PHI_SIL = np.pi + np.arctan2(R_TORUS, DIST) - np.arcsin(R_TUBE / np.hypot(DIST, R_TORUS))
@@ -350,7 +350,7 @@ def test_ict_loops(ict, ict_loops):
     cl, cr = ict.neutral[L.mouth_corners[7]]
     assert 4.0 < cr[0] - cl[0] < 5.5 and abs(cl[0] + cr[0]) < 1e-6 and abs(cl[1] - cr[1]) < 1e-6
     # every ring is split at the same anatomical corner: consecutive rings' corners are joined by a mesh edge
-    from facelab_addon.core.mesh import vertex_adjacency
+    from facelab_addon.core.geometry.mesh import vertex_adjacency
 
     A = vertex_adjacency(ict.faces, len(ict.neutral))
     for cor in (L.mouth_corners, L.eye_corners["left"], L.eye_corners["right"]):
@@ -488,7 +488,7 @@ def test_silhouettes_far_from_the_tracked_curve_do_not_count(ict, ict_loops):
     ring 5 and an outline on the lip front (ring 13). A curve traced along either is matched to that ring."""
     w = {"jawOpen": 0.53, "mouthFunnel": 0.47, "mouthLowerDown_L": 0.21, "mouthLowerDown_R": 0.24,
          "mouthSmile_L": 0.55, "mouthSmile_R": 0.24, "mouthUpperUp_R": 0.18}
-    from facelab_addon.core.capture_sim import helmet_cameras
+    from facelab_addon.testing.capture_sim import helmet_cameras
 
     X = ict.pose(w)
     cams = helmet_cameras()  # 3 cm below the mouth, 19 cm away, 6 cm either side
@@ -507,7 +507,7 @@ def test_silhouettes_far_from_the_tracked_curve_do_not_count(ict, ict_loops):
 def test_synthetic_tracker_follows_the_opening_not_the_lip_front_outline(ict, ict_loops):
     """A pose where the lower lip's front outline (ring 13) has about as many inner silhouette edges as the
     inner-lip line (ring 6): only the edges nearest the opening make the synthetic tracker's curve."""
-    from facelab_addon.core.capture_sim import helmet_cameras
+    from facelab_addon.testing.capture_sim import helmet_cameras
 
     w = {"browInnerUp_L": 0.496, "eyeBlink_L": 0.272, "eyeBlink_R": 0.596, "jawLeft": -0.049, "jawOpen": 0.526,
          "mouthFunnel": 0.473, "mouthLowerDown_L": 0.209, "mouthLowerDown_R": 0.243, "mouthPucker": 0.066,

@@ -3,12 +3,12 @@
 import numpy as np
 import pytest
 
-from facelab_addon.core.deformation_transfer import (
+from facelab_addon.core.errors import FaceLabError
+from facelab_addon.core.solve.deformation_transfer import (
     DeformationTransfer,
     deformation_transfer,
     triangle_correspondence_from_markers,
 )
-from facelab_addon.core.errors import FaceLabError
 
 
 def grid(n=15, m=None, size=1.0, bump=0.15):

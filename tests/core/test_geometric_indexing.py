@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from facelab_addon.core.errors import FaceLabError
-from facelab_addon.core.geometric_indexing import (
+from facelab_addon.core.lgi.geometric_indexing import (
     BlendshapeFit,
     BundleError,
     DatasetError,
@@ -20,7 +20,7 @@ from facelab_addon.core.geometric_indexing import (
     rig_correctives,
     tetrahedron_quality,
 )
-from facelab_addon.core.natural_neighbor import surface_points
+from facelab_addon.core.lgi.natural_neighbor import surface_points
 
 # ---------------------------------------------------------------- a small synthetic face
 
@@ -445,7 +445,7 @@ def test_bad_bundle_bindings_and_frames(toy):
 
 
 def test_ict_expressions_reconstruct_exactly_and_interpolate(ict):
-    from facelab_addon.core.datasets import ict_bundle_layout, ict_triangle_uvs
+    from facelab_addon.testing.datasets import ict_bundle_layout, ict_triangle_uvs
 
     names = ["jawOpen", "mouthSmile_L", "mouthSmile_R", "browInnerUp_L", "browInnerUp_R", "mouthPucker",
              "mouthFunnel", "cheekPuff_L", "noseSneer_L", "eyeBlink_L", "mouthFrown_R", "browDown_R"]

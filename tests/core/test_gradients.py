@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from facelab_addon.core.errors import MeshError
-from facelab_addon.core.gradients import deformation_gradients, rest_inverse, shape_matrices
+from facelab_addon.core.geometry.gradients import deformation_gradients, rest_inverse, shape_matrices
 
 
 def bumpy_grid(n=6, seed=0):

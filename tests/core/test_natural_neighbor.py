@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from facelab_addon.core.errors import FaceLabError, MeshError
-from facelab_addon.core.natural_neighbor import (
+from facelab_addon.core.lgi.natural_neighbor import (
     gaussian_rbf_weights,
     natural_neighbor_weights,
     sibson_coordinates,

@@ -5,9 +5,10 @@ import pytest
 import scipy.sparse.linalg as spla
 
 from facelab_addon.core.errors import DataMissingError, FaceLabError, MeshError
-from facelab_addon.core.gradients import deformation_gradients
-from facelab_addon.core.propagate import LipRegressor, poisson_operator, suggest_frames
-from facelab_addon.core.regions import RegionError, faces_in_region, region_border
+from facelab_addon.core.geometry.gradients import deformation_gradients
+from facelab_addon.core.geometry.laplacian import poisson_operator
+from facelab_addon.core.lips.propagate import LipRegressor, suggest_frames
+from facelab_addon.core.lips.regions import RegionError, faces_in_region, region_border
 
 NX, NY = 24, 16
 LIP_ROWS = (6, 9)  # lip region: rows 6..9, border rows 6 and 9
@@ -201,8 +202,8 @@ def test_errors_name_the_problem_and_the_fix():
 
 @pytest.fixture(scope="module")
 def ict():
-    from facelab_addon.core import regions
-    from facelab_addon.core.ict import load_ict
+    from facelab_addon.core.capture.ict import load_ict
+    from facelab_addon.core.lips import regions
 
     try:
         m = load_ict()

@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from facelab_addon.core import regions
 from facelab_addon.core.errors import DataMissingError
-from facelab_addon.core.mesh import vertex_adjacency
-from facelab_addon.core.regions import RegionError
+from facelab_addon.core.geometry.mesh import vertex_adjacency
+from facelab_addon.core.lips import regions
+from facelab_addon.core.lips.regions import RegionError
 
 
 def grid(n=7, m=None):
@@ -124,7 +124,7 @@ def test_no_mouth_raises():
 
 @pytest.fixture(scope="module")
 def ict():
-    from facelab_addon.core.ict import load_ict
+    from facelab_addon.core.capture.ict import load_ict
 
     try:
         m = load_ict()

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from facelab_addon.core.errors import FaceLabError, RegionError
-from facelab_addon.core.laplacian import uniform_laplacian
-from facelab_addon.core.retarget import (
+from facelab_addon.core.geometry.laplacian import uniform_laplacian
+from facelab_addon.core.solve.retarget import (
     EndPoints,
     LipSync,
     Retargeter,
@@ -206,7 +206,7 @@ def test_lip_sync_on_the_zigzag_ict_loop_keeps_the_creature_lips_smooth():
     vertex (millimetres), 99th percentile over the vertices the lip sync moves. The former strong (1000)
     constraints on the raw zigzag targets tore the lips (checked below with those settings).
     """
-    from facelab_addon.core.ict import load_ict
+    from facelab_addon.core.capture.ict import load_ict
 
     m = load_ict(scale=0.01)  # metres
     V, F = m.neutral, m.faces

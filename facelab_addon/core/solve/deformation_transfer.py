@@ -11,11 +11,11 @@ Method (Sumner & Popović §3-4, in the gradient-domain form of Botsch et al.
 2006, "Deformation transfer for detail-preserving surface editing"):
 
 * the source deformation of every source triangle is its deformation gradient
-  ``S = D_d D_r^-1`` with the phantom fourth vertex (``core.gradients``);
+  ``S = D_d D_r^-1`` with the phantom fourth vertex (``core.geometry.gradients``);
 * every target triangle ``t`` takes the gradient of its corresponding source
   triangle ``c(t)`` (identity when it has none), and the target positions
   minimise ``sum_t area_t || grad_t(x) - S_c(t) ||^2`` over the target rest
-  triangles: the Poisson system ``L x = D g`` of ``core.propagate.poisson_operator``
+  triangles: the Poisson system ``L x = D g`` of ``core.geometry.laplacian.poisson_operator``
   (``L`` is the target's cotangent Laplacian), factored once and solved for
   any number of shapes and frames;
 * the system only knows gradients, so each connected piece of the target is
@@ -30,7 +30,7 @@ For meshes that share topology the correspondence is the identity (a vertex
 map). For different topologies, :func:`triangle_correspondence_from_markers`
 builds it as Sumner and Popović §5 do: fit the source onto the target with
 marker point constraints and closest-point terms (the shared Laplacian solver
-``core.deform.LaplacianDeformer``), then pair every target triangle with the
+``core.geometry.deform.LaplacianDeformer``), then pair every target triangle with the
 nearest compatible source triangle.
 
 Units: positions in scene units; gradients are unitless.
@@ -41,13 +41,12 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from .deform import LaplacianDeformer, PointConstraints
-from .errors import FaceLabError, MeshError
-from .gradients import shape_matrices
-from .laplacian import uniform_laplacian
-from .linsolve import SPDFactor
-from .mesh import connected_components, face_normals, vertex_normals
-from .propagate import poisson_operator
+from ..errors import FaceLabError, MeshError
+from ..geometry.deform import LaplacianDeformer, PointConstraints
+from ..geometry.gradients import shape_matrices
+from ..geometry.laplacian import poisson_operator, uniform_laplacian
+from ..geometry.linsolve import SPDFactor
+from ..geometry.mesh import connected_components, face_normals, vertex_normals
 
 __all__ = ["DeformationTransfer", "deformation_transfer", "triangle_correspondence_from_markers"]
 
@@ -227,7 +226,7 @@ class DeformationTransfer:
     def _spread_hints(H, has, F):
         if has.all():
             return H
-        from .mesh import vertex_adjacency
+        from ..geometry.mesh import vertex_adjacency
 
         A = vertex_adjacency(F, H.shape[0]).tocsr()
         H = H.tolil()

@@ -40,13 +40,13 @@ import time
 
 import numpy as np
 
-from .camera import Camera
-from .deform import LaplacianDeformer, PointConstraints
-from .errors import CameraError, FaceLabError, SketchError
-from .laplacian import laplacian as make_laplacian
-from .linsolve import small_dense_threads
-from .mesh import edge_faces, grow_region, validate_mesh, vertex_adjacency, vertex_normals
-from .silhouette import facing, projected_normals
+from ..capture.camera import Camera
+from ..errors import CameraError, FaceLabError, SketchError
+from ..geometry.deform import LaplacianDeformer, PointConstraints
+from ..geometry.laplacian import laplacian as make_laplacian
+from ..geometry.linsolve import small_dense_threads
+from ..geometry.mesh import edge_faces, grow_region, validate_mesh, vertex_adjacency
+from ..geometry.silhouette import facing, projected_normals
 
 __all__ = ["refine_lips", "resample_polyline", "press_lips", "prepare_sketch"]
 

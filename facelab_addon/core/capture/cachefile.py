@@ -68,7 +68,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import CacheFileError, CacheVertexCountError, FaceLabError, MeshError  # noqa: F401
+from ..errors import CacheFileError, CacheVertexCountError, FaceLabError, MeshError  # noqa: F401
 
 __all__ = [
     "CacheFileError",

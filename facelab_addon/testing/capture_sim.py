@@ -27,8 +27,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .camera import Camera
-from .markers import SurfacePoints, bind_surface_points
+from ..core.capture.camera import Camera
+from ..core.capture.markers import SurfacePoints, bind_surface_points
 
 __all__ = [
     "SyntheticCapture",
@@ -246,7 +246,7 @@ def make_capture(model, *, names=None, n_frames: int = 30, n_markers: int = 80, 
         "gap" when positive, "cross" when negative), varying smoothly over
         the sequence as ``sin``. 0: the truth is inside the rig's span.
     curves : bool
-        Also produce the tracked contour curves (needs ``core.contours``).
+        Also produce the tracked contour curves (needs ``core.solve.contours``).
     cameras : list of Camera, optional
         Default :func:`helmet_cameras` scaled to the model.
     ranges : dict name -> (lo, hi), optional
@@ -256,7 +256,8 @@ def make_capture(model, *, names=None, n_frames: int = 30, n_markers: int = 80, 
     -------
     SyntheticCapture
     """
-    from .synthetic import ICT_MOUTH_LOOP, find_mouth, inject_lip_error
+    from ..core.lips.mouth import find_mouth
+    from .synthetic import ICT_MOUTH_LOOP, inject_lip_error
 
     cm = float(model.scale)
     names = list(model.expressions) if names is None else list(names)
@@ -292,7 +293,7 @@ def make_capture(model, *, names=None, n_frames: int = 30, n_markers: int = 80, 
             noisy[t, ci, bad] = np.nan
     tracked = None
     if curves:
-        from .contours import ict_contour_loops, synthetic_tracked_curves
+        from ..core.solve.contours import ict_contour_loops, synthetic_tracked_curves
 
         loops = ict_contour_loops(model)
         tracked = [synthetic_tracked_curves(truth[t], F, cams, loops) for t in range(n_frames)]

@@ -45,9 +45,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometric_indexing import JawRig
-from .mesh import face_normals, triangulate, vertex_normals
-from .natural_neighbor import surface_points
+from ..core.geometry.mesh import face_normals, triangulate, vertex_normals
+from ..core.lgi.geometric_indexing import JawRig
+from ..core.lgi.natural_neighbor import surface_points
 
 __all__ = [
     "EXPRESSION_TEMPLATES",

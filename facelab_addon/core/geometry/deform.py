@@ -29,7 +29,7 @@ import numpy as np
 import scipy.linalg
 import scipy.sparse as sp
 
-from .errors import FaceLabError
+from ..errors import FaceLabError
 from .linsolve import SPDFactor
 
 __all__ = ["PointConstraints", "LaplacianDeformer"]

@@ -4,7 +4,7 @@ Bhat et al. 2013, "High fidelity facial animation capture and retargeting
 with contours", §5.1 and Fig. 8/10:
 
 1. the actor's blendshapes are carried to the creature by deformation
-   transfer (``core.deformation_transfer``), giving parallel rigs; the solved
+   transfer (``core.solve.deformation_transfer``), giving parallel rigs; the solved
    weights are copied and the per-frame correctives are transferred too;
 2. on a creature whose mouth is much wider than the actor's, the inner-lip
    shape is no longer lip-readable, because the semantic correspondence
@@ -15,7 +15,7 @@ with contours", §5.1 and Fig. 8/10:
    points with the actor's lip corners, pairs the interior points of the
    upper and lower contours by arc length (as §4.2 does for tracked curves),
    and solves the out-of-subspace deformation (§4.3, the shared
-   ``core.deform.LaplacianDeformer``) on top of the deformation-transferred
+   ``core.geometry.deform.LaplacianDeformer``) on top of the deformation-transferred
    frame with two extra constraint sets:
 
    * along the talking portion, the vector between corresponding points on
@@ -42,7 +42,7 @@ along the mouth (Gaussian, ``smooth``), and the constraints are soft
 (``strength`` 10, ``seal_strength`` 100 against the Laplacian term): strong (1000) constraints on the
 raw targets tore the creature's lips at the new corners.
 
-Inner-lip contours: the closed inner-lip edge loop (``core.regions.inner_lip_loop``
+Inner-lip contours: the closed inner-lip edge loop (``core.lips.regions.inner_lip_loop``
 or an artist's edge-loop selection), split at the two mouth corners into an
 upper and a lower contour, both ordered from the left corner to the right one
 (left = smaller coordinate along ``up x forward``).
@@ -56,12 +56,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .deform import LaplacianDeformer, PointConstraints
+from ..errors import FaceLabError, RegionError
+from ..geometry.deform import LaplacianDeformer, PointConstraints
+from ..geometry.laplacian import cotangent_laplacian
+from ..geometry.linsolve import small_dense_threads
+from ..lips.regions import geodesic_distance, inner_lip_loop, order_edge_loop
 from .deformation_transfer import DeformationTransfer
-from .errors import FaceLabError, RegionError
-from .laplacian import cotangent_laplacian
-from .linsolve import small_dense_threads
-from .regions import geodesic_distance, inner_lip_loop, order_edge_loop
 
 __all__ = [
     "LipContours",

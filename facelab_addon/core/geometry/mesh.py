@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from .errors import MeshError
+from ..errors import MeshError
 
 __all__ = [
     "validate_mesh",

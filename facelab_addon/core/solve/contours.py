@@ -38,7 +38,7 @@ points that project onto them change as the lips roll. Following the paper:
    of surface points on mesh edges (two vertices and barycentric weights)
    with pixel targets, fitted like 2D markers (Eq. 1).
 4. **Eyelids on the cornea** (§4.1). The eyelid targets are projected from
-   the camera onto the eyeball sphere (:mod:`facelab_addon.core.eyes`)
+   the camera onto the eyeball sphere (:mod:`facelab_addon.core.geometry.sphere`)
    grown by each lid point's current height over it (the lid margin's
    thickness on the mesh being matched, so a lid that matches the image
    is its own fixed point), giving 3D targets fitted like bundles (Eq. 2).
@@ -55,7 +55,7 @@ Cost: only the triangles next to candidate loop edges are evaluated; on the
 per camera takes a few milliseconds.
 
 Conventions: vertices float64 (V,3) scene units; triangles int64 (F,3);
-pixels top-left origin, y down; cameras OpenCV (``core.camera.Camera``).
+pixels top-left origin, y down; cameras OpenCV (``core.capture.camera.Camera``).
 NumPy/SciPy only, no bpy.
 """
 
@@ -66,10 +66,10 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
-from .camera import Camera
-from .errors import FaceLabError, MeshError
-from .eyes import fit_sphere, project_to_sphere
-from .mesh import edge_faces, validate_mesh
+from ..capture.camera import Camera
+from ..errors import FaceLabError, MeshError
+from ..geometry.mesh import edge_faces, validate_mesh
+from ..geometry.sphere import fit_sphere, project_to_sphere
 
 __all__ = [
     "MOUTH_CURVES",
@@ -438,7 +438,7 @@ def _ring_corners(V, F, rings, lateral, up):
     corner. Rings far out on the lip fronts would otherwise put their lateral
     extremes beyond the mouth corner, on the cheek side of the lip.
     """
-    from .mesh import vertex_adjacency
+    from ..geometry.mesh import vertex_adjacency
 
     def extremes(r):
         lat = V[r] @ lateral
@@ -585,7 +585,7 @@ def contour_loops(
     mouth_loop : (n,) int, optional
         The innermost mouth loop (a border of the free triangles: where the
         lips weld to the mouth bag, or the mouth hole). Default: found with
-        :func:`facelab_addon.core.synthetic.find_mouth`.
+        :func:`facelab_addon.core.lips.mouth.find_mouth`.
     eyeballs : dict str -> (n,) int, optional
         ``'left'`` / ``'right'`` -> eyeball vertex ids (a sphere is fitted to
         them). Without eyeballs the mesh gets no eyelid contours.
@@ -624,7 +624,7 @@ def contour_loops(
     info = {}
 
     if mouth_loop is None:
-        from .synthetic import find_mouth
+        from ..lips.mouth import find_mouth
 
         mouth_loop = find_mouth(V, F, fixed if fixed.any() else None, up=up, forward=forward).loop
     mouth = edge_loop_rings(Ff, mouth_loop, n_mouth_loops)
@@ -719,13 +719,13 @@ def contour_loops(
 
 
 def ict_contour_loops(model, **kwargs) -> ContourLoops:
-    """:func:`contour_loops` for an ICT-FaceKit model (``core.ict.ICTModel``).
+    """:func:`contour_loops` for an ICT-FaceKit model (``core.capture.ict.ICTModel``).
 
     Free surface: the ``M_Face`` part; mouth loop: vertices 6632-6705 (the
     lips' weld to the mouth bag); eyeballs: ``M_ScleraLeft`` /
     ``M_ScleraRight``. Keyword arguments are passed on.
     """
-    from .synthetic import ICT_MOUTH_LOOP
+    from ...testing.synthetic import ICT_MOUTH_LOOP
 
     kw = dict(
         fixed=~model.part_vertex_mask("M_Face"),

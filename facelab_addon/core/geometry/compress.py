@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .errors import FaceLabError, MeshError
+from ..errors import FaceLabError, MeshError
 
 __all__ = ["compress", "reconstruct", "DEFAULT_TOL_M"]
 

@@ -47,13 +47,13 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.linalg
 
-from .camera import Camera
-from .deform import LaplacianDeformer, PointConstraints
-from .errors import FaceLabError
-from .laplacian import cotangent_laplacian
-from .linsolve import small_dense_threads
-from .markers import SurfacePoints
-from .mesh import edge_faces, validate_mesh, vertex_adjacency, grow_region
+from ..capture.camera import Camera
+from ..capture.markers import SurfacePoints
+from ..errors import FaceLabError
+from ..geometry.deform import LaplacianDeformer, PointConstraints
+from ..geometry.laplacian import cotangent_laplacian
+from ..geometry.linsolve import small_dense_threads
+from ..geometry.mesh import edge_faces, grow_region, validate_mesh, vertex_adjacency
 
 __all__ = [
     "FrameResult",

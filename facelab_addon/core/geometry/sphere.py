@@ -15,14 +15,14 @@ eyeball's image) get the point of the sphere closest to the ray, and are
 reported in the ``hit`` mask.
 
 Conventions: scene units for positions and radii, pixels top-left origin and
-y down, cameras as in :mod:`facelab_addon.core.camera`. NumPy only.
+y down, cameras as in :mod:`facelab_addon.core.capture.camera`. NumPy only.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from .errors import FaceLabError
+from ..errors import FaceLabError
 
 __all__ = ["fit_sphere", "ray_sphere", "project_to_sphere"]
 

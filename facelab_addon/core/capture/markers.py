@@ -27,9 +27,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import FaceLabError
+from ..geometry.mesh import validate_mesh
 from .camera import Camera
-from .errors import FaceLabError
-from .mesh import validate_mesh
 
 __all__ = ["SurfacePoints", "bind_surface_points", "nearest_surface_points", "ray_triangle_hits"]
 

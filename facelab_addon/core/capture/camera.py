@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.linalg
 
-from .errors import CameraError
+from ..errors import CameraError
 
 __all__ = ["Camera"]
 

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .errors import MeshError
+from ..errors import MeshError
 
 __all__ = ["shape_matrices", "rest_inverse", "deformation_gradients"]
 

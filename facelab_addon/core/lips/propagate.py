@@ -55,58 +55,13 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from .errors import FaceLabError, MeshError
-from .gradients import rest_inverse, shape_matrices
-from .linsolve import SPDFactor
+from ..errors import FaceLabError, MeshError
+from ..geometry.gradients import rest_inverse, shape_matrices
+from ..geometry.laplacian import poisson_operator
+from ..geometry.linsolve import SPDFactor
 from .regions import region_border, validate_regions
 
-__all__ = ["LipRegressor", "suggest_frames", "poisson_operator"]
-
-def poisson_operator(rest_vertices, faces, region_faces):
-    """Gradient-domain Poisson operator of a triangle region.
-
-    For positions ``x`` (one coordinate) the per-triangle gradient is
-    ``G x`` (3 per triangle, in the rest triangle's plane). The energy
-    ``Σ_t a_t ||(G x)_t - g_t||²`` has normal equations ``L x = D g`` with
-    ``L = Gᵀ A G`` (the cotangent Laplacian of the region) and ``D = Gᵀ A``.
-    Targets for coordinate ``c`` from deformation gradients ``F (n,3,3)`` are
-    ``g_t = F_t[c, :]``, i.e. the matrix ``F.transpose(0,2,1).reshape(3n, 3)``.
-
-    Parameters
-    ----------
-    rest_vertices : (V,3) array_like
-        Rest positions, scene units.
-    faces : (F,3) int array_like
-        Triangles.
-    region_faces : (n,) int array_like
-        Triangles of the region.
-
-    Returns
-    -------
-    L : (V,V) scipy.sparse.csr_matrix
-        Stiffness matrix, units of area / length² (unitless); zero outside
-        the region's vertices.
-    D : (V,3n) scipy.sparse.csr_matrix
-        Divergence operator, units of area (scene units²).
-    """
-    R = np.asarray(rest_vertices, dtype=np.float64)
-    T = np.asarray(faces, dtype=np.int64)[np.asarray(region_faces, dtype=np.int64)]
-    n = len(T)
-    p0, p1, p2 = R[T[:, 0]], R[T[:, 1]], R[T[:, 2]]
-    nrm = np.cross(p1 - p0, p2 - p0)
-    a2 = np.linalg.norm(nrm, axis=1)
-    nh = nrm / a2[:, None]
-    grads = np.stack(
-        [np.cross(nh, p2 - p1), np.cross(nh, p0 - p2), np.cross(nh, p1 - p0)], axis=1
-    ) / a2[:, None, None]  # (n, corner, xyz)
-    rows = (3 * np.arange(n)[:, None, None] + np.arange(3)[None, None, :]).repeat(3, axis=1)  # (n, corner, axis)
-    cols = np.broadcast_to(T[:, :, None], (n, 3, 3))
-    G = sp.csr_matrix((grads.ravel(), (rows.ravel(), cols.ravel())), shape=(3 * n, len(R)))
-    area = np.repeat(0.5 * a2, 3)
-    D = (G.T @ sp.diags(area)).tocsr()
-    L = (D @ G).tocsr()
-    return L, D
-
+__all__ = ["LipRegressor", "suggest_frames"]
 
 _BLOCK = 64  # frames per block of the per-frame loops (working memory ~ block x region size)
 

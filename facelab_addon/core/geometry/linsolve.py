@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from .errors import FaceLabError
+from ..errors import FaceLabError
 
 __all__ = ["SPDFactor", "small_dense_threads"]
 

@@ -22,8 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import DataMissingError
-from .mesh import triangulate
+from ..errors import DataMissingError
+from ..geometry.mesh import triangulate
 
 __all__ = ["ICTModel", "find_ict_dir", "load_ict", "CLONE_HINT"]
 
@@ -137,8 +137,8 @@ def find_ict_dir(root=None) -> Path:
         cands = [Path(root)]
     elif os.environ.get("FACELAB_ICT_DIR"):
         cands = [Path(os.environ["FACELAB_ICT_DIR"])]
-    else:  # ../shared/ict-facekit next to the repository (repo = parents[2] of this file)
-        cands = [here.parents[3] / "shared" / "ict-facekit", Path.cwd().parent / "shared" / "ict-facekit"]
+    else:  # ../shared/ict-facekit next to the repository (repo = parents[3] of this file)
+        cands = [here.parents[4] / "shared" / "ict-facekit", Path.cwd().parent / "shared" / "ict-facekit"]
     for c in cands:
         for d in (c, c.parent):
             if (d / "FaceXModel" / _NEUTRAL).is_file():

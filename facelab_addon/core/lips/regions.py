@@ -36,8 +36,8 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components as _cc
 from scipy.sparse.csgraph import dijkstra as _dijkstra
 
-from .errors import FaceLabError, MeshError, RegionError
-from .mesh import unique_edges, vertex_adjacency, vertex_normals
+from ..errors import MeshError, RegionError
+from ..geometry.mesh import unique_edges, vertex_adjacency, vertex_normals
 
 __all__ = [
     "RegionError",

@@ -45,8 +45,8 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import Delaunay, cKDTree
 
-from .errors import FaceLabError, MeshError
-from .mesh import vertex_adjacency
+from ..errors import FaceLabError, MeshError
+from ..geometry.mesh import vertex_adjacency
 
 __all__ = [
     "sibson_coordinates",

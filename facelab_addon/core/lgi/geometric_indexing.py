@@ -46,7 +46,7 @@ Build once (:class:`GeometricIndexer`), then reconstruct every frame:
   re-ranked by a vote of the moving bundles (a nonlocal criterion, §4).
 * **Stitching** (§5): natural-neighbour (Sibson) weights of the bundles on the
   neutral mesh, in UV space or with geodesics
-  (:mod:`facelab_addon.core.natural_neighbor`). The blend is one sparse
+  (:mod:`facelab_addon.core.lgi.natural_neighbor`). The blend is one sparse
   product: vertex ``v`` gets ``sum_i W[v,i] sum_k beta_ik b_{t_ik}(v)``
   (per-vertex shape weights ``W @ Beta``, then a product with the float32,
   shape-major dataset of the vertices that move).
@@ -96,8 +96,8 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from .errors import BundleError, DatasetError, FaceLabError, MeshError  # noqa: F401
-from .mesh import validate_mesh
+from ..errors import BundleError, DatasetError, FaceLabError, MeshError  # noqa: F401
+from ..geometry.mesh import validate_mesh
 from .natural_neighbor import gaussian_rbf_weights, natural_neighbor_weights, surface_points
 
 __all__ = [
