@@ -49,7 +49,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from facelab_addon.core.capture.ict import load_ict  # noqa: E402
-from facelab_addon.core.lgi.geometric_indexing import BlendshapeFit, GeometricIndexer, RigCorrectives  # noqa: E402
+from facelab_addon.core.lgi.baselines import BlendshapeFit  # noqa: E402
+from facelab_addon.core.lgi.correctives import RigCorrectives  # noqa: E402
+from facelab_addon.core.lgi.indexer import GeometricIndexer  # noqa: E402
 from facelab_addon.core.lgi.natural_neighbor import surface_points  # noqa: E402
 from facelab_addon.testing import datasets as ds  # noqa: E402
 

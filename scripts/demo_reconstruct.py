@@ -35,7 +35,7 @@ def run(ict, out, img_dir, render, samples):
     from facelab_addon.blender.camera import new_camera_object
     from facelab_addon.blender.scene import add_studio_lights, new_mesh_object
     from facelab_addon.blender.shapekeys import add_corrective_key
-    from facelab_addon.core.lgi.geometric_indexing import BlendshapeFit
+    from facelab_addon.core.lgi.baselines import BlendshapeFit
     from facelab_addon.core.lgi.natural_neighbor import surface_points
     from facelab_addon.testing import datasets as ds
     from facelab_addon.testing import synthetic as syn

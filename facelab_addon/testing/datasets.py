@@ -46,7 +46,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..core.geometry.mesh import face_normals, triangulate, vertex_normals
-from ..core.lgi.geometric_indexing import JawRig
+from ..core.lgi.jaw import JawRig
 from ..core.lgi.natural_neighbor import surface_points
 
 __all__ = [

@@ -19,7 +19,10 @@ from ..blender.mesh import mesh_triangles, require_mesh
 from ..blender.shapekeys import add_corrective_key, add_keys_from_deltas, key_values_bulk, remove_keys, rest_vertices
 from ..core.errors import FaceLabError
 from ..core.geometry.compress import compress
-from ..core.lgi.geometric_indexing import GeometricIndexer, JawRig, RigCorrectives, bind_points
+from ..core.lgi.binding import bind_points
+from ..core.lgi.correctives import RigCorrectives
+from ..core.lgi.indexer import GeometricIndexer
+from ..core.lgi.jaw import JawRig
 from .ops import face_object, poll_face, progress_callback
 
 RECON_PREFIX = "FL_Recon_"

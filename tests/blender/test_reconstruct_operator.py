@@ -10,7 +10,8 @@ from facelab_addon.blender.caches import evaluate_frames
 from facelab_addon.blender.mesh import mesh_triangles
 from facelab_addon.blender.scene import new_mesh_object
 from facelab_addon.blender.shapekeys import add_corrective_key
-from facelab_addon.core.lgi.geometric_indexing import GeometricIndexer, bind_points
+from facelab_addon.core.lgi.binding import bind_points
+from facelab_addon.core.lgi.indexer import GeometricIndexer
 
 pytestmark = pytest.mark.blender
 
@@ -316,7 +317,8 @@ def test_jaw_bone_drives_the_jaw(ict, addon, gen):
     print("jaw region mean error mm: no jaw %.3f, jaw bone %.3f" % (errs["NONE"], errs["BONE"]))
     assert errs["BONE"] < 0.9 * errs["NONE"]  # measured 0.59 vs 0.68 mm
     # the bone's poses and the shapes' estimated poses agree with the core run on the generator's own jaw
-    from facelab_addon.core.lgi.geometric_indexing import GeometricIndexer, JawRig
+    from facelab_addon.core.lgi.indexer import GeometricIndexer
+    from facelab_addon.core.lgi.jaw import JawRig
 
     rig = JawRig(gen.jaw.pivot * SCALE, gen.jaw.axis, gen.jaw.weights)
     th_s = np.stack([gen.jaw_parameters(w) for w in ds_w])
@@ -384,7 +386,7 @@ def rest_vertices_of(obj):
 
 
 def test_generate_correctives_adds_driven_keys_that_beat_the_linear_rig(ict, addon, gen):
-    from facelab_addon.core.lgi.geometric_indexing import RigCorrectives
+    from facelab_addon.core.lgi.correctives import RigCorrectives
 
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene

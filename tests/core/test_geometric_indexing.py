@@ -5,22 +5,19 @@ import itertools
 import numpy as np
 import pytest
 
-from facelab_addon.core.errors import FaceLabError
-from facelab_addon.core.lgi.geometric_indexing import (
-    BlendshapeFit,
-    BundleError,
-    DatasetError,
-    GeometricIndexer,
-    JawRig,
-    RigCorrectives,
+from facelab_addon.core.errors import BundleError, DatasetError, FaceLabError
+from facelab_addon.core.lgi.baselines import BlendshapeFit
+from facelab_addon.core.lgi.binding import bind_points
+from facelab_addon.core.lgi.correctives import RigCorrectives, rig_correctives
+from facelab_addon.core.lgi.indexer import GeometricIndexer
+from facelab_addon.core.lgi.jaw import JawRig
+from facelab_addon.core.lgi.natural_neighbor import surface_points
+from facelab_addon.core.lgi.tets import (
     _closest_point_triangles,
     barycentric_tetrahedron,
-    bind_points,
     closest_point_tetrahedron,
-    rig_correctives,
     tetrahedron_quality,
 )
-from facelab_addon.core.lgi.natural_neighbor import surface_points
 
 # ---------------------------------------------------------------- a small synthetic face
 
