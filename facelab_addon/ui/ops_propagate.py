@@ -15,8 +15,9 @@ from ..blender.shapekeys import add_keys_from_deltas, key_property_bulk, key_val
 from ..core.capture.integrate import integrate_matrices, integrate_offsets_to_key
 from ..core.errors import FaceLabError, RegionError
 from ..core.geometry.compress import compress
-from ..core.lips.propagate import LipRegressor, suggest_frames
+from ..core.lips.propagate import LipRegressor
 from ..core.lips.regions import auto_regions, faces_in_region, validate_regions
+from ..core.lips.suggest import suggest_frames
 from .ops import face_object, poll_face, progress_callback, record_training_frame
 
 PROP_PREFIX = "FL_Prop_"

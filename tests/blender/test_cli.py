@@ -170,7 +170,8 @@ def write_obj(path, V, poly_verts, poly_offsets):
 
 def test_mesh_and_pc2_inputs_with_corrected_objs(ict, tmp_path, addon):
     """Pipeline inputs: face.obj + perf.pc2 + corrected OBJs on 3 frames -> a corrected .blend and PC2."""
-    from facelab_addon.core.lips.regions import auto_regions, faces_in_region, geodesic_distance, region_border
+    from facelab_addon.core.geometry.geodesic import geodesic_distance
+    from facelab_addon.core.lips.regions import auto_regions, faces_in_region, region_border
     from facelab_addon.testing import synthetic as syn
 
     from .test_propagate_operator import weights_at
