@@ -6,10 +6,10 @@ gradients. :class:`.propagate.LipRegressor` with ``patches > 1`` (an addition
 to the paper) covers the lip region with overlapping patches instead, each
 predicted by its own reduced regression from the mouth triangles near it.
 This module builds them: patch centres by geodesic (edge-path) farthest-point
-sampling on the lip triangles, partition-of-unity weights per lip triangle
-that fall off linearly with the distance to each centre, and the mouth
-triangles within the input radius of each patch. Distances are in scene
-units.
+sampling on the lip triangles, partition-of-unity weights (per lip vertex,
+falling off linearly with the edge-path distance to each centre, normalised
+over the patches, averaged per triangle), and the mouth triangles within the
+input radius of each patch. Distances are in scene units.
 
 Package-internal: used by :mod:`.propagate`.
 """
