@@ -30,8 +30,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from facelab_addon.core.capture.ict import load_ict  # noqa: E402
+from facelab_addon.core.geometry.geodesic import geodesic_distance  # noqa: E402
 from facelab_addon.core.lips import regions  # noqa: E402
-from facelab_addon.core.lips.propagate import LipRegressor, suggest_frames  # noqa: E402
+from facelab_addon.core.lips.lip_loop import loop_width  # noqa: E402
+from facelab_addon.core.lips.propagate import LipRegressor  # noqa: E402
+from facelab_addon.core.lips.suggest import suggest_frames  # noqa: E402
 
 CM_TO_MM = 10.0
 # (name, maximum weight): the mouth shapes of speech
@@ -105,7 +108,7 @@ class Scene:
         self.t_regions = time.perf_counter() - t0
         self.mouth_faces = regions.faces_in_region(F, self.mouth)
         self.lip_faces = regions.faces_in_region(F, self.lip)
-        self.lip_width = regions.DEFAULT_LIP_WIDTH * regions.loop_width(V, self.loop)
+        self.lip_width = regions.DEFAULT_LIP_WIDTH * loop_width(V, self.loop)
         self.dist = np.where(np.isfinite(d), d, np.inf)
         # split the loop at the mouth corners (ICT: x is the mouth width, y is up)
         L = self.loop
@@ -113,8 +116,8 @@ class Scene:
         i0, i1 = sorted((a, b))
         h1, h2 = L[i0 : i1 + 1], np.r_[L[i1:], L[: i0 + 1]]
         up, lo = (h1, h2) if V[h1, 1].mean() > V[h2, 1].mean() else (h2, h1)
-        du = regions.geodesic_distance(V, F, up, limit=2 * self.lip_width)
-        dl = regions.geodesic_distance(V, F, lo, limit=2 * self.lip_width)
+        du = geodesic_distance(V, F, up, limit=2 * self.lip_width)
+        dl = geodesic_distance(V, F, lo, limit=2 * self.lip_width)
         self.upper = du < dl  # (V,) on the upper lip
         # error support: smooth in the geodesic distance, zero from 0.75 * lip width on
         u = np.clip(1.0 - self.dist / (0.75 * self.lip_width), 0.0, 1.0)

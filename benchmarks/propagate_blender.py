@@ -12,7 +12,7 @@ mouth region and the Dirichlet border are error-free), keyed with a
 non-linear function of the pose: lips fail to close when the jaw is nearly
 shut, and cross (negative values; the key's slider minimum is lowered) when
 pressed. The truth is the capture minus that key. Auto Regions writes the
-regions; 10 training frames are chosen by ``core.lips.propagate.suggest_frames``
+regions; 10 training frames are chosen by ``core.lips.suggest.suggest_frames``
 on the captured sequence (no regressor: extreme poses first); each is
 "sculpted" (``add_corrective_key`` cancelling the error + ``key_spike``) and
 marked (``bpy.ops.facelab.mark_training_frame``). Then
@@ -211,6 +211,7 @@ def build(bpy, ict, frames, W):
     from facelab_addon.blender.mesh import mesh_triangles, vertex_group_mask
     from facelab_addon.blender.scene import new_mesh_object
     from facelab_addon.blender.shapekeys import add_corrective_key, key_values_bulk
+    from facelab_addon.core.geometry.geodesic import geodesic_distance
     from facelab_addon.core.lips import regions
     from facelab_addon.testing import synthetic as syn
 
@@ -240,7 +241,7 @@ def build(bpy, ict, frames, W):
     interior = lips.copy()
     interior[border] = False
     width = regions.DEFAULT_LIP_WIDTH * mouth.width
-    db = regions.geodesic_distance(V, tris, border, limit=width)
+    db = geodesic_distance(V, tris, border, limit=width)
     u = np.clip(np.where(np.isfinite(db), db, width) / (0.35 * width), 0.0, 1.0)
     fade = u * u * (3 - 2 * u) * interior
     err = np.zeros_like(V)
@@ -371,7 +372,7 @@ def main(argv=None):
     from facelab_addon.blender.mesh import mesh_triangles
     from facelab_addon.blender.shapekeys import add_corrective_key, key_spike, shape_key_sequence
     from facelab_addon.core.capture.ict import load_ict
-    from facelab_addon.core.lips.propagate import suggest_frames
+    from facelab_addon.core.lips.suggest import suggest_frames
     from facelab_addon.ui import ops_propagate as op
 
     out["bpy_version"] = bpy.app.version_string

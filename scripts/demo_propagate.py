@@ -53,7 +53,7 @@ def run(ict, out, img_dir, render, samples, n_train=8):
     from facelab_addon.blender.scene import add_studio_lights, new_mesh_object
     from facelab_addon.blender.shapekeys import add_corrective_key, key_values_bulk
     from facelab_addon.blender.strokes import write_stroke_pixels
-    from facelab_addon.core.lips.propagate import suggest_frames
+    from facelab_addon.core.lips.suggest import suggest_frames
     from facelab_addon.testing import synthetic as syn
 
     F = ict.faces

@@ -7,7 +7,7 @@ A captured performance reaches Blender in one of three ways:
 - a **Mesh Sequence Cache** modifier playing an Alembic file.
 
 ``sequence_source`` tells which. ``read_mesh_cache_frames`` reads a Mesh
-Cache's file directly (``core.capture.cachefile``), mapping scene frames to samples
+Cache's file directly (``core.capture.pointcache``), mapping scene frames to samples
 exactly as the modifier does; ``evaluate_frames`` is the generic path (one
 ``frame_set`` and evaluated mesh per frame) for everything else, with
 FaceLab's own corrective keys (``FL_*``) muted so it returns the *capture*.
@@ -19,7 +19,7 @@ the positions), bakes the capture to a PC2 file, turns the Mesh Sequence
 Cache off (it is kept) and plays the PC2 with an INTEGRATE Mesh Cache in its
 place. Note: in INTEGRATE mode Blender carries a key's offset in the local
 frame of the cache's surface (rotated with the head, scaled with the face);
-``core.capture.cachefile.integrate_matrices`` gives that map, and
+``core.capture.integrate.integrate_matrices`` gives that map, and
 ``integrate_offsets_to_key`` the key offsets that show a wanted correction.
 
 All positions are object-local (shape-key space), float32, scene units.
@@ -35,7 +35,7 @@ from pathlib import Path
 import bpy
 import numpy as np
 
-from ..core.capture import cachefile
+from ..core.capture import meshcache, pointcache, pointcache_writer
 from ..core.errors import FaceLabError, MeshError
 
 __all__ = [
@@ -357,7 +357,7 @@ def read_mesh_cache_frames(obj, scene_frames, *, modifier=None, mute_shape_keys_
     ------
     MeshError
         No Mesh Cache modifier.
-    cachefile.CacheFileError
+    pointcache.CacheFileError
         Missing/bad file or a vertex count that does not match the mesh.
     """
     _require_mesh_object(obj)
@@ -372,10 +372,10 @@ def read_mesh_cache_frames(obj, scene_frames, *, modifier=None, mute_shape_keys_
         return evaluate_frames(obj, frames, mute_shape_keys_prefix=mute_shape_keys_prefix, progress=progress)
     scene = bpy.context.scene
     path = _cache_path(obj, md)
-    info = cachefile.cache_info(path, md.cache_format)
-    cachefile.check_vertex_count(info, len(obj.data.vertices), name=f"'{obj.name}'")
+    info = pointcache.cache_info(path, md.cache_format)
+    pointcache.check_vertex_count(info, len(obj.data.vertices), name=f"'{obj.name}'")
     r = scene.render
-    i0, i1, w = cachefile.mesh_cache_samples(
+    i0, i1, w = meshcache.mesh_cache_samples(
         frames,
         info,
         fps=scene_fps(scene),
@@ -389,10 +389,10 @@ def read_mesh_cache_frames(obj, scene_frames, *, modifier=None, mute_shape_keys_
         eval_factor=md.eval_factor,
         frame_length=np.float32(r.frame_map_old) / np.float32(r.frame_map_new),  # measured: old/new
     )
-    mm = cachefile.read_cache(path, fmt=md.cache_format, mmap=True)
-    out = cachefile.blend_samples(mm, i0, i1, w)
+    mm = pointcache.read_cache(path, fmt=md.cache_format, mmap=True)
+    out = meshcache.blend_samples(mm, i0, i1, w)
     del mm
-    M = cachefile.axis_conversion_matrix(md.forward_axis, md.up_axis, tuple(md.flip_axis))
+    M = meshcache.axis_conversion_matrix(md.forward_axis, md.up_axis, tuple(md.flip_axis))
     if not np.array_equal(M, np.eye(3)):
         Mf = M.astype(np.float32)
         for t in range(len(out)):
@@ -523,7 +523,7 @@ def bake_pc2(obj, scene_frames, path, *, progress=None, mute_shape_keys_prefix=(
     _require_mesh_object(obj)
     frames = _frames(scene_frames)
     step = _uniform_step(frames, "A PC2 bake")
-    w = cachefile.PointCacheWriter(
+    w = pointcache_writer.PointCacheWriter(
         bpy.path.abspath(os.fspath(path)), "PC2", len(obj.data.vertices), len(frames),
         start_frame=float(frames[0]), sample_rate=step,
     )
@@ -555,7 +555,7 @@ def bake_mdd(obj, scene_frames, path, *, progress=None, mute_shape_keys_prefix=(
     frames = _frames(scene_frames)
     if len(frames) > 1 and not (np.diff(frames) > 0).all():
         raise FaceLabError("An MDD bake needs increasing scene frames.")
-    w = cachefile.PointCacheWriter(
+    w = pointcache_writer.PointCacheWriter(
         bpy.path.abspath(os.fspath(path)), "MDD", len(obj.data.vertices), len(frames),
         times=frames / scene_fps(),
     )
@@ -665,7 +665,7 @@ def cache_to_shape_key_ready(obj, *, directory=None, scene_frames=None, progress
     - Shape-key animation or a static mesh: nothing to change.
 
     Nothing is deleted. Keys show *in the local frame* of the cache surface
-    (``core.capture.cachefile.integrate_matrices``).
+    (``core.capture.integrate.integrate_matrices``).
 
     Parameters
     ----------
@@ -723,7 +723,7 @@ def cache_to_shape_key_ready(obj, *, directory=None, scene_frames=None, progress
     mods = list(obj.modifiers)
     k = mods.index(msc)
     later = [m for m in mods[k + 1 :] if _enabled(m)]
-    w = cachefile.PointCacheWriter(
+    w = pointcache_writer.PointCacheWriter(
         path, "PC2", len(obj.data.vertices), len(frames), start_frame=float(frames[0]), sample_rate=step
     )
     with _disabled_modifiers(later):
@@ -769,7 +769,7 @@ def correction_to_key_offsets(obj, cache_positions, deltas, corners=None):
 
     Without a cache (shape keys, static mesh) this is ``deltas`` itself. Over a
     Mesh Cache in ``'INTEGRATE'`` mode Blender carries key offsets in the
-    local frame of the cache surface (``core.capture.cachefile.integrate_matrices``),
+    local frame of the cache surface (``core.capture.integrate.integrate_matrices``),
     so the offsets are mapped back through those matrices.
 
     Parameters
@@ -784,7 +784,7 @@ def correction_to_key_offsets(obj, cache_positions, deltas, corners=None):
     """
     if sequence_source(obj) not in ("mesh_cache", "mesh_sequence_cache"):
         return np.asarray(deltas, dtype=np.float64)
-    from ..core.capture.cachefile import integrate_matrices, integrate_offsets_to_key
+    from ..core.capture.integrate import integrate_matrices, integrate_offsets_to_key
     from .shapekeys import rest_vertices
 
     offs, cv = polygon_corners(obj.data) if corners is None else corners

@@ -221,10 +221,10 @@ class Session:
     def import_obj(self, path: Path, name: str):
         """A mesh object from an OBJ, vertex order and coordinates exactly as in the file."""
         from ..blender.scene import new_mesh_object
-        from ..core.capture.ict import _read_obj_full
+        from ..core.capture.obj import read_obj
 
         try:
-            V, _, cv, _, off, _, _ = _read_obj_full(path)
+            V, _, cv, _, off, _, _ = read_obj(path)
         except (OSError, ValueError, IndexError) as e:
             raise CliError(f"{path}: cannot read it as an OBJ ({e}).", EXIT_INPUT) from None
         if not len(V) or len(off) < 2:
@@ -233,10 +233,10 @@ class Session:
 
     def import_obj_vertices(self, path: Path):
         """(V,3) float64 vertex positions of an OBJ, in file order."""
-        from ..core.capture.ict import _read_obj_vertices
+        from ..core.capture.obj import read_obj_vertices
 
         try:
-            V = _read_obj_vertices(Path(path))
+            V = read_obj_vertices(Path(path))
         except (OSError, ValueError, IndexError) as e:
             raise CliError(f"{path}: cannot read it as an OBJ ({e}).", EXIT_INPUT) from None
         if not len(V):
@@ -244,12 +244,12 @@ class Session:
         return V
 
     def add_cache(self, obj, path: Path) -> None:
-        from ..core.capture import cachefile
+        from ..core.capture import pointcache
         from ..core.errors import FaceLabError
 
         try:
-            info = cachefile.cache_info(str(path))
-            cachefile.check_vertex_count(info, len(obj.data.vertices), name=f"'{obj.name}'")
+            info = pointcache.cache_info(str(path))
+            pointcache.check_vertex_count(info, len(obj.data.vertices), name=f"'{obj.name}'")
         except FaceLabError as e:
             raise CliError(f"--cache {path}: {e}", EXIT_INPUT) from None
         md = obj.modifiers.new("Capture", "MESH_CACHE")

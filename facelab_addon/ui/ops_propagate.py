@@ -12,11 +12,12 @@ from bpy.props import BoolProperty, EnumProperty, IntProperty, StringProperty
 from ..blender import caches
 from ..blender.mesh import mesh_triangles, require_mesh, vertex_group_mask
 from ..blender.shapekeys import add_keys_from_deltas, key_property_bulk, key_values_bulk, remove_keys, rest_vertices
-from ..core.capture.cachefile import integrate_matrices, integrate_offsets_to_key
+from ..core.capture.integrate import integrate_matrices, integrate_offsets_to_key
 from ..core.errors import FaceLabError, RegionError
 from ..core.geometry.compress import compress
-from ..core.lips.propagate import LipRegressor, suggest_frames
+from ..core.lips.propagate import LipRegressor
 from ..core.lips.regions import auto_regions, faces_in_region, validate_regions
+from ..core.lips.suggest import suggest_frames
 from .ops import face_object, poll_face, progress_callback, record_training_frame
 
 PROP_PREFIX = "FL_Prop_"
@@ -464,7 +465,7 @@ def _polygons_around(corners, verts):
     """``(face_offsets, corner_verts)`` of only the polygons touching ``verts``.
 
     The Integrate map of a vertex averages over its own corners, all in polygons that touch it, so
-    on this subset it is exactly the whole mesh's (``core.capture.cachefile.integrate_matrices``), at a
+    on this subset it is exactly the whole mesh's (``core.capture.integrate.integrate_matrices``), at a
     fraction of the cost: the lips are ~4 % of a face."""
     offs, cv = corners
     sizes = np.diff(offs)
@@ -511,18 +512,18 @@ def bake_steps(obj, frames, path, fmt):
     Same file as ``blender.caches.bake_pc2`` / ``bake_mdd`` (header, object-local positions). The
     writer writes beside the destination and moves the file in place at the end, so cancelling
     (closing the generator) leaves an existing file untouched; the scene frame is restored."""
-    from ..core.capture import cachefile
+    from ..core.capture.pointcache_writer import PointCacheWriter
 
     frames = np.asarray(frames, dtype=np.float64)
     n = len(obj.data.vertices)
     if fmt == "PC2":
         step = caches._uniform_step(frames, "A PC2 bake")
-        w = cachefile.PointCacheWriter(str(path), "PC2", n, len(frames), start_frame=float(frames[0]),
-                                       sample_rate=step)
+        w = PointCacheWriter(str(path), "PC2", n, len(frames), start_frame=float(frames[0]),
+                             sample_rate=step)
     else:
         if len(frames) > 1 and not (np.diff(frames) > 0).all():
             raise FaceLabError("An MDD bake needs increasing scene frames.")
-        w = cachefile.PointCacheWriter(str(path), "MDD", n, len(frames), times=frames / caches.scene_fps())
+        w = PointCacheWriter(str(path), "MDD", n, len(frames), times=frames / caches.scene_fps())
     it = caches._iter_evaluated(obj, frames)
     ok = False
     try:

@@ -14,7 +14,7 @@ import pytest
 import facelab_addon
 from facelab_addon.blender import caches
 from facelab_addon.blender.shapekeys import add_corrective_key, key_spike
-from facelab_addon.core.capture.cachefile import write_pc2
+from facelab_addon.core.capture.pointcache_writer import write_pc2
 
 from .test_propagate_operator import FRAMES, SCALE, TRAIN, build
 
@@ -170,7 +170,8 @@ def write_obj(path, V, poly_verts, poly_offsets):
 
 def test_mesh_and_pc2_inputs_with_corrected_objs(ict, tmp_path, addon):
     """Pipeline inputs: face.obj + perf.pc2 + corrected OBJs on 3 frames -> a corrected .blend and PC2."""
-    from facelab_addon.core.lips.regions import auto_regions, faces_in_region, geodesic_distance, region_border
+    from facelab_addon.core.geometry.geodesic import geodesic_distance
+    from facelab_addon.core.lips.regions import auto_regions, faces_in_region, region_border
     from facelab_addon.testing import synthetic as syn
 
     from .test_propagate_operator import weights_at
@@ -204,7 +205,7 @@ def test_mesh_and_pc2_inputs_with_corrected_objs(ict, tmp_path, addon):
     assert code == 0, log
     assert s["frames"] == [1, 16] and s["training_frames"] == train
     assert s["corrected_keys_added"] == [f"FL_Corrected_{f:04d}" for f in train]
-    from facelab_addon.core.capture.cachefile import read_pc2
+    from facelab_addon.core.capture.pointcache import read_pc2
 
     baked = read_pc2(tmp_path / "fixed.pc2")
     baked = baked[0] if isinstance(baked, tuple) else baked

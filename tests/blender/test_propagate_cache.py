@@ -11,7 +11,7 @@ from facelab_addon.blender.camera import camera_from_blender, new_camera_object
 from facelab_addon.blender.mesh import mesh_triangles, vertex_group_mask
 from facelab_addon.blender.scene import new_mesh_object
 from facelab_addon.blender.strokes import write_stroke_pixels
-from facelab_addon.core.capture.cachefile import write_pc2
+from facelab_addon.core.capture.pointcache_writer import write_pc2
 from facelab_addon.core.geometry.silhouette import contour_distance
 from facelab_addon.core.lips.propagate import LipRegressor
 from facelab_addon.core.lips.regions import faces_in_region
@@ -92,7 +92,7 @@ def test_refine_and_propagate_on_a_mesh_cache(tmp_path, ict, addon):
     assert np.abs(got - expect).max() < 2.5e-5, np.abs(got - expect).max()  # 0.01 mm key tolerance, carried by the cache
 
     # bake the corrected performance for other packages; never overwrite silently
-    from facelab_addon.core.capture.cachefile import read_pc2
+    from facelab_addon.core.capture.pointcache import read_pc2
 
     out = tmp_path / "corrected.pc2"
     assert bpy.ops.facelab.bake(filepath=str(out), format="PC2") == {"FINISHED"}

@@ -55,7 +55,8 @@ def build(ict):
     mouth = syn.find_mouth(ict.neutral, ict.faces, fixed, loop=syn.ICT_MOUTH_LOOP)
     w, side = syn.lip_error_weights(ict.neutral, ict.faces, fixed, mouth=mouth)
     # fade to zero before the border of the lip region Auto Regions will propose (the border is held)
-    from facelab_addon.core.lips.regions import auto_regions, geodesic_distance, region_border
+    from facelab_addon.core.geometry.geodesic import geodesic_distance
+    from facelab_addon.core.lips.regions import auto_regions, region_border
 
     _, lip_mask = auto_regions(ict.neutral, ict.faces)
     d = geodesic_distance(ict.neutral, ict.faces, region_border(ict.faces, faces_in_region(ict.faces, lip_mask)))

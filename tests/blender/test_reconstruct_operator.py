@@ -230,7 +230,7 @@ def to_local_q(obj, q):
 
 
 def test_reconstructed_face_bakes_to_pc2_mdd_and_alembic(ict, addon, tmp_path):
-    from facelab_addon.core.capture.cachefile import read_cache
+    from facelab_addon.core.capture.pointcache import read_cache
 
     scene, obj, empties, X = _simple_scene(ict, EXPR[:6], T=3)
     assert bpy.ops.facelab.reconstruct_from_bundles() == {"FINISHED"}

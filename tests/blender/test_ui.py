@@ -177,7 +177,7 @@ def test_training_list_markers_jump_remove_undo(addon):
 
 
 def test_bake_runs_headless(addon, tmp_path):
-    from facelab_addon.core.capture.cachefile import read_pc2
+    from facelab_addon.core.capture.pointcache import read_pc2
 
     scene = empty_scene()
     obj = small_face(scene)
@@ -290,7 +290,7 @@ def test_every_registered_operator_explains_a_refusal(addon):
 def test_bake_job_matches_the_bake_and_cancels_cleanly(addon, tmp_path):
     from facelab_addon.blender import caches
     from facelab_addon.blender.shapekeys import add_corrective_key, key_values_bulk
-    from facelab_addon.core.capture.cachefile import read_mdd, read_pc2
+    from facelab_addon.core.capture.pointcache import read_mdd, read_pc2
 
     scene = empty_scene()
     obj = small_face(scene)

@@ -7,8 +7,9 @@ import scipy.sparse.linalg as spla
 from facelab_addon.core.errors import DataMissingError, FaceLabError, MeshError
 from facelab_addon.core.geometry.gradients import deformation_gradients
 from facelab_addon.core.geometry.laplacian import poisson_operator
-from facelab_addon.core.lips.propagate import LipRegressor, suggest_frames
+from facelab_addon.core.lips.propagate import LipRegressor
 from facelab_addon.core.lips.regions import RegionError, faces_in_region, region_border
+from facelab_addon.core.lips.suggest import suggest_frames
 
 NX, NY = 24, 16
 LIP_ROWS = (6, 9)  # lip region: rows 6..9, border rows 6 and 9

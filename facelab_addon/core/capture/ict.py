@@ -24,6 +24,7 @@ import numpy as np
 
 from ..errors import DataMissingError
 from ..geometry.mesh import triangulate
+from .obj import read_obj, read_obj_vertices
 
 __all__ = ["ICTModel", "find_ict_dir", "load_ict", "CLONE_HINT"]
 
@@ -156,57 +157,10 @@ def _cache_dir() -> Path:
     return Path(base) / "facelab"
 
 
-def _read_obj_vertices(path: Path) -> np.ndarray:
-    with open(path, "rb") as fh:
-        lines = [ln for ln in fh.read().split(b"\n") if ln.startswith(b"v ")]
-    return np.array([ln.split()[1:4] for ln in lines], dtype=np.float64)
-
-
-def _read_obj_full(path: Path):
-    verts, uvs, corners_v, corners_uv, offsets, part_of_poly, parts = [], [], [], [], [0], [], []
-    current = -1
-    with open(path, "rb") as fh:
-        for ln in fh.read().split(b"\n"):
-            if ln.startswith(b"v "):
-                verts.append(ln.split()[1:4])
-            elif ln.startswith(b"vt "):
-                uvs.append(ln.split()[1:3])
-            elif ln.startswith(b"f "):
-                toks = ln.split()[1:]
-                for t in toks:
-                    s = t.split(b"/")
-                    corners_v.append(int(s[0]))
-                    corners_uv.append(int(s[1]) if len(s) > 1 and s[1] else 0)
-                offsets.append(len(corners_v))
-                part_of_poly.append(current)
-            elif ln.startswith(b"usemtl"):
-                name = ln.split()[1].decode()
-                if name not in parts:
-                    parts.append(name)
-                current = parts.index(name)
-    if current == -1 or min(part_of_poly) < 0:
-        parts = parts + ["default"]
-        part_of_poly = [p if p >= 0 else len(parts) - 1 for p in part_of_poly]
-    V = np.array(verts, dtype=np.float64)
-    cv = np.array(corners_v, dtype=np.int64)
-    cv = np.where(cv < 0, len(V) + cv, cv - 1)
-    cuv = np.array(corners_uv, dtype=np.int64)
-    cuv = np.where(cuv < 0, len(uvs) + cuv, cuv - 1)
-    return (
-        V,
-        np.array(uvs, dtype=np.float64).reshape(-1, 2),
-        cv,
-        cuv,
-        np.array(offsets, dtype=np.int64),
-        np.array(part_of_poly, dtype=np.int64),
-        parts,
-    )
-
-
 def _parse(root: Path) -> dict:
     fx = root / "FaceXModel"
     meta = json.loads((fx / "vertex_indices.json").read_text()) if (fx / "vertex_indices.json").exists() else {}
-    V, uvs, cv, cuv, off, ppart, parts = _read_obj_full(fx / _NEUTRAL)
+    V, uvs, cv, cuv, off, ppart, parts = read_obj(fx / _NEUTRAL)
     on_disk = sorted(p.stem for p in fx.glob("*.obj") if p.name != _NEUTRAL and not p.stem.startswith("identity"))
     listed = [n for n in meta.get("expressions", []) if n in on_disk]
     expr_names = listed + [n for n in on_disk if n not in listed]
@@ -218,7 +172,7 @@ def _parse(root: Path) -> dict:
     )
     for prefix, names in (("e_", expr_names), ("i_", id_names)):
         for n in names:
-            X = _read_obj_vertices(fx / f"{n}.obj")
+            X = read_obj_vertices(fx / f"{n}.obj")
             if X.shape != V.shape:
                 raise DataMissingError(
                     f"ICT target {n}.obj has {len(X)} vertices, the neutral has {len(V)}; "

@@ -1,4 +1,4 @@
-"""Regression propagation of lip corrections.
+"""Regression propagation of lip corrections: the learnt map from mouth to inner-lip gradients.
 
 Dinev et al. 2018, "User-Guided Lip Correction for Facial Performance
 Capture", §4 "Automatic Lip Correction Learning". The deformation gradients
@@ -6,8 +6,8 @@ Capture", §4 "Automatic Lip Correction Learning". The deformation gradients
 region through a linear map ``x = θ y`` learnt from ``k`` corrected frames.
 With ``Y = U_Y C_Y`` and ``X = U_X C_X`` (thin SVDs of the training matrices,
 one column per frame), the reduced unknown ``θ̄ = U_Xᵀ θ U_Y`` (at most
-``k × k``) solves the normal equations ``θ̄ C_Y C_Yᵀ = C_X C_Yᵀ`` and
-``θ = U_X θ̄ U_Yᵀ`` is never formed. Predicted gradients become positions by
+``k × k``) solves the normal equations ``θ̄ C_Y C_Yᵀ = C_X C_Yᵀ``
+(:mod:`.reduced`) and ``θ = U_X θ̄ U_Yᵀ`` is never formed. Predicted gradients become positions by
 a sparse Poisson solve with the lip/mouth border vertices held at their
 captured positions (Dirichlet).
 
@@ -34,7 +34,7 @@ Implementation notes (deviations are marked):
   maps let, say, the left corner follow a smile while the lower lip follows
   the jaw, which matters when k is below the number of independent mouth
   motions. Still exact on the span of the training frames. ``patches=1``
-  is the paper's single map. On the ICT benchmark
+  is the paper's single map. The patches are built in :mod:`.patches`. On the ICT benchmark
   (``benchmarks/propagate.py``, k = 10) the held-out inner-lip RMS error is
   22% of the uncorrected capture's with the defaults, 31% with one
   rest-centred map and 39% with the paper's uncentred map.
@@ -42,8 +42,9 @@ Implementation notes (deviations are marked):
   upcast as a whole); only the mouth and lip vertices are gathered and
   converted to float64, a block of frames at a time. ``predict(captured, out=captured)``
   writes only the interior lip vertices. For :meth:`LipRegressor.extrapolation`
-  and :func:`suggest_frames` on the same sequence, compute
-  :meth:`LipRegressor.mouth_features` once and pass it as ``features=``.
+  and :func:`.suggest.suggest_frames` (the next frames worth correcting) on
+  the same sequence, compute :meth:`LipRegressor.mouth_features` once and
+  pass it as ``features=``.
 * ``ridge`` (default 0, the paper): Tikhonov term ``λ ||θ̄||²`` in the
   reduced normal equations; ``ridge="loo"`` picks λ by leave-one-out
   prediction error of the lip gradients. Singular values below ``rtol``
@@ -53,53 +54,17 @@ Implementation notes (deviations are marked):
 from __future__ import annotations
 
 import numpy as np
-import scipy.sparse as sp
 
 from ..errors import FaceLabError, MeshError
 from ..geometry.gradients import rest_inverse, shape_matrices
 from ..geometry.laplacian import poisson_operator
 from ..geometry.linsolve import SPDFactor
+from .features import _BLOCK, _as_frames, _shape_components
+from .patches import _lip_patches
+from .reduced import choose_ridge, solve_theta, thin_svd
 from .regions import region_border, validate_regions
 
-__all__ = ["LipRegressor", "suggest_frames"]
-
-_BLOCK = 64  # frames per block of the per-frame loops (working memory ~ block x region size)
-
-
-def _as_frames(a, n_vertices, what, used=None):
-    """Validate frames as a (T,V,3) float32 or float64 array, without copying them.
-
-    float32 and float64 arrays are returned as they are (a (V,3) frame as a
-    (1,V,3) view); other dtypes are converted to float64. Callers convert
-    only the vertices they read to float64. NaNs are looked for in ``used``
-    vertices only, a block of frames at a time.
-    """
-    A = np.asarray(a)
-    if A.dtype != np.float32 and A.dtype != np.float64:
-        A = A.astype(np.float64)
-    if A.ndim == 2:
-        A = A[None]
-    if A.ndim != 3 or A.shape[1:] != (n_vertices, 3):
-        raise MeshError(
-            f"The {what} have shape {np.asarray(a).shape} but the rest mesh has {n_vertices} vertices: "
-            f"expected ({n_vertices},3) or (T,{n_vertices},3). The topology differs from the rest mesh; "
-            "use frames of the same mesh (same vertex count and order)."
-        )
-    if A.shape[0] == 0:
-        raise FaceLabError(f"No {what} given (0 frames); pass at least one frame.")
-    bad = []
-    for s in range(0, len(A), _BLOCK):
-        blk = A[s : s + _BLOCK] if used is None else A[s : s + _BLOCK, used]
-        fin = np.isfinite(blk).reshape(len(blk), -1).all(axis=1)
-        bad.extend((s + np.flatnonzero(~fin)).tolist())
-        if len(bad) >= 5:
-            break
-    if bad:
-        raise MeshError(
-            f"The {what} contain NaN or infinite coordinates in frames {bad[:5]}; "
-            "fix or re-import those frames."
-        )
-    return A
+__all__ = ["LipRegressor"]
 
 
 def _same_array(a, b):
@@ -110,68 +75,20 @@ def _same_array(a, b):
     )
 
 
-_OVERLAP = 1.0
-
-
-def _lip_patches(rest, faces, mouth_faces, lip_faces, count, input_radius):
-    """Overlapping local patches of the lip region and the mouth triangles that feed each one.
-
-    Returns a list of ``(mouth_sel, lip_sel, lip_weight)``: indices into
-    ``mouth_faces`` and ``lip_faces`` and the (n_p,) partition-of-unity weight
-    of each lip triangle in the patch (weights of a triangle sum to 1 over
-    patches), plus the patch spacing (scene units).
-    """
-    from scipy.sparse.csgraph import dijkstra
-
-    R = rest
-    nv = len(R)
-    LT = faces[lip_faces]
-    MT = faces[mouth_faces]
-    if count <= 1:
-        return [(np.arange(len(MT)), np.arange(len(LT)), np.ones(len(LT)))], np.inf
-
-    def graph(tris):
-        e = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
-        w = np.linalg.norm(R[e[:, 0]] - R[e[:, 1]], axis=1)
-        return sp.coo_matrix((np.r_[w, w], (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(nv, nv)).tocsr()
-
-    lv = np.unique(LT)
-    G = graph(LT)
-    # farthest-point sampling of patch centres, geodesic on the lip region
-    c0 = int(lv[np.argmax(np.linalg.norm(R[lv] - R[lv].mean(axis=0), axis=1))])
-    centres = [c0]
-    dmin = dijkstra(G, directed=False, indices=c0)[lv]
-    big = 1e300
-    for _ in range(int(count) - 1):
-        i = int(np.argmax(np.where(np.isfinite(dmin), dmin, big)))
-        if dmin[i] <= 0:
-            break
-        centres.append(int(lv[i]))
-        dmin = np.minimum(dmin, dijkstra(G, directed=False, indices=lv[i])[lv])
-    D = dijkstra(G, directed=False, indices=np.asarray(centres))[:, lv]  # (P, nL)
-    P = len(centres)
-    Dc = D[:, np.searchsorted(lv, centres)]
-    np.fill_diagonal(Dc, np.inf)
-    nn = Dc.min(axis=1)
-    spacing = float(np.median(nn[np.isfinite(nn)])) if np.isfinite(nn).any() else float(np.ptp(R[lv], axis=0).max())
-    cover = float(np.max(np.min(D, axis=0)))
-    radius = max(_OVERLAP * spacing, 1.05 * cover)
-    Wv = np.clip(1.0 - D / radius, 0.0, None)  # (P, nL)
-    Wv /= Wv.sum(axis=0, keepdims=True)
-    loc = np.searchsorted(lv, LT)  # (n, 3) into lv
-    Wt = Wv[:, loc].mean(axis=2)  # (P, n), columns sum to 1
-    rho = spacing if input_radius is None else float(input_radius)
-    Gfull = graph(faces)
-    out = []
-    for p in range(P):
-        lip_sel = np.flatnonzero(Wt[p] > 0)
-        support = np.unique(LT[lip_sel])
-        d = dijkstra(Gfull, directed=False, indices=support, min_only=True, limit=rho)
-        mouth_sel = np.flatnonzero(np.isfinite(d[MT]).all(axis=1))
-        if len(mouth_sel) < 3:
-            mouth_sel = np.arange(len(MT))
-        out.append((mouth_sel, lip_sel, Wt[p, lip_sel]))
-    return out, spacing
+def _checked_mesh(rest_vertices, faces):
+    """``(R, F)``: the rest positions as (V,3) float64 and the triangles as (F,3) int64, validated."""
+    R = np.asarray(rest_vertices, dtype=np.float64)
+    F = np.asarray(faces)
+    if R.ndim != 2 or R.shape[1] != 3 or len(R) == 0:
+        raise MeshError(f"rest_vertices must be a non-empty (V,3) array, got shape {R.shape}.")
+    if not np.isfinite(R).all():
+        raise MeshError("The rest mesh has NaN or infinite coordinates; fix the rest pose.")
+    if F.ndim != 2 or F.shape[1] != 3 or not np.issubdtype(F.dtype, np.integer):
+        raise MeshError(f"faces must be an (F,3) integer array of triangles, got {F.shape}; triangulate first.")
+    F = F.astype(np.int64)
+    if F.size and (F.min() < 0 or F.max() >= len(R)):
+        raise MeshError(f"Face indices are out of range [0, {len(R)}); the faces do not belong to this mesh.")
+    return R, F
 
 
 class LipRegressor:
@@ -232,17 +149,7 @@ class LipRegressor:
 
     def __init__(self, rest_vertices, faces, mouth_faces, lip_faces, *, patches: int = 10, input_radius=None,
                  center="rest", ridge=0.0, rtol=1e-4, backend="auto"):
-        R = np.asarray(rest_vertices, dtype=np.float64)
-        F = np.asarray(faces)
-        if R.ndim != 2 or R.shape[1] != 3 or len(R) == 0:
-            raise MeshError(f"rest_vertices must be a non-empty (V,3) array, got shape {R.shape}.")
-        if not np.isfinite(R).all():
-            raise MeshError("The rest mesh has NaN or infinite coordinates; fix the rest pose.")
-        if F.ndim != 2 or F.shape[1] != 3 or not np.issubdtype(F.dtype, np.integer):
-            raise MeshError(f"faces must be an (F,3) integer array of triangles, got {F.shape}; triangulate first.")
-        F = F.astype(np.int64)
-        if F.size and (F.min() < 0 or F.max() >= len(R)):
-            raise MeshError(f"Face indices are out of range [0, {len(R)}); the faces do not belong to this mesh.")
+        R, F = _checked_mesh(rest_vertices, faces)
         if center not in ("rest", None):
             raise ValueError(f"center must be 'rest' or None, got {center!r}")
         if not (ridge == "loo" or (np.isscalar(ridge) and float(ridge) >= 0)):
@@ -253,6 +160,16 @@ class LipRegressor:
         self.center = center
         self.ridge = ridge
         self.rtol = float(rtol)
+        self._setup_regions(mouth_faces, lip_faces)
+        self._setup_poisson(backend)
+        self._setup_patches(patches, input_radius)
+        self._Y = None  # (9m, k) training mouth features
+        self._X = None  # (9n, k) training lip features
+        self.k = 0
+
+    def _setup_regions(self, mouth_faces, lip_faces):
+        """Validated regions, their rest-pose inverse shape matrices and local vertex indexing."""
+        R, F = self.rest, self.faces
         self.mouth_faces, self.lip_faces = validate_regions(F, mouth_faces, lip_faces, len(R))
         self._mouth_tris = F[self.mouth_faces]
         self._lip_tris = F[self.lip_faces]
@@ -264,7 +181,9 @@ class LipRegressor:
         self._lip_local = inv.reshape(-1, 3)
         self._used = np.union1d(self._mouth_verts, self._lip_verts_all)  # vertices read per frame
 
-        # Poisson system on the lip triangles, Dirichlet on the border
+    def _setup_poisson(self, backend):
+        """Poisson system on the lip triangles, Dirichlet on the border: interior block factored once."""
+        R, F = self.rest, self.faces
         L, D = poisson_operator(R, F, self.lip_faces)
         self.lip_vertices = self._lip_verts_all
         self.border_vertices = region_border(F, self.lip_faces, len(R))
@@ -290,14 +209,14 @@ class LipRegressor:
         ident = np.broadcast_to(np.eye(3), (len(self.lip_faces), 3, 3))
         self._b_ident = self._D_I @ ident.transpose(0, 2, 1).reshape(-1, 3)  # (nI, 3)
 
+    def _setup_patches(self, patches, input_radius):
+        """Local patches of the lip region (:mod:`.patches`) and the divergence operator of each."""
+        R, F = self.rest, self.faces
         self._patches, self.patch_spacing = _lip_patches(R, F, self.mouth_faces, self.lip_faces, int(patches),
                                                         input_radius)
         self.n_patches = len(self._patches)
         Dc = self._D_I.tocsc()
         self._D_patch = [Dc[:, (3 * ls[:, None] + np.arange(3)).ravel()].tocsr() for _, ls, _ in self._patches]
-        self._Y = None  # (9m, k) training mouth features
-        self._X = None  # (9n, k) training lip features
-        self.k = 0
 
     # ------------------------------------------------------------------ features
     def _grad(self, frames, rinv, verts, local):
@@ -391,9 +310,9 @@ class LipRegressor:
             With fewer than one training frame, a topology that differs from
             the rest mesh, or NaN coordinates.
         """
-        C = self._training_frames(corrected)
-        self._Y = self._feat(self._grad(C, self._mouth_rinv, self._mouth_verts, self._mouth_local)).T.copy()
-        self._X = self._feat(self._grad(C, self._lip_rinv, self._lip_verts_all, self._lip_local)).T.copy()
+        y, x = self._training_features(corrected)
+        self._Y = y.copy()
+        self._X = x.copy()
         self._refit()
         return self
 
@@ -413,9 +332,7 @@ class LipRegressor:
         -------
         self
         """
-        C = self._training_frames(corrected)
-        y = self._feat(self._grad(C, self._mouth_rinv, self._mouth_verts, self._mouth_local)).T
-        x = self._feat(self._grad(C, self._lip_rinv, self._lip_verts_all, self._lip_local)).T
+        y, x = self._training_features(corrected)
         if self._Y is None:
             self._Y, self._X = y.copy(), x.copy()
         else:
@@ -432,96 +349,76 @@ class LipRegressor:
             )
         return _as_frames(c, self.n_vertices, "corrected frames", self._used)
 
-    def _thin_svd(self, M):
-        """Thin SVD ``M = U C`` (``C = Σ Vᵀ``) of a feature matrix (rows = 9 per triangle, k columns).
-
-        Singular values below ``rtol`` times the size of the *deformation*
-        (the Frobenius norm of ``M`` minus the identity gradients, so the
-        uncentred paper model is not dominated by the identity) are dropped.
-        Computed through the k×k Gram matrix (``O(rows·k²)``, several times
-        faster than LAPACK on tall matrices); its precision, ``sqrt(eps)``
-        times the largest singular value, is far below the rank tolerance.
-        """
-        w, Vv = np.linalg.eigh(M.T @ M)
-        w, Vv = w[::-1], np.ascontiguousarray(Vv[:, ::-1])  # descending; contiguous for BLAS
-        s = np.sqrt(np.clip(w, 0.0, None))
-        if self.center == "rest":
-            ref = float(np.sqrt(np.sum(M * M)))
-        else:
-            ident = np.tile(np.eye(3).ravel(), M.shape[0] // 9)[:, None]
-            ref = float(np.linalg.norm(M - ident))
-        ref = max(ref, 1e-12 * (s[0] if s.size else 0.0), 1e-300)
-        r = int(np.sum(s > max(self.rtol, 1e-7) * ref)) if s.size else 0
-        U = (M @ Vv[:, :r]) / s[:r]
-        return U, s[:r, None] * Vv[:, :r].T
+    def _training_features(self, corrected):
+        """``(y, x)``: (9m, j) mouth and (9n, j) lip features of corrected frames, one column per frame."""
+        C = self._training_frames(corrected)
+        y = self._feat(self._grad(C, self._mouth_rinv, self._mouth_verts, self._mouth_local)).T
+        x = self._feat(self._grad(C, self._lip_rinv, self._lip_verts_all, self._lip_local)).T
+        return y, x
 
     def _refit(self):
+        """Refit from the training features ``_Y``, ``_X``: global span, then each patch's map and operators."""
         Y, X = self._Y, self._X
         self.k = Y.shape[1]
         m, n = len(self.mouth_faces), len(self.lip_faces)
         Y3 = Y.reshape(m, 9, self.k)
         X3 = X.reshape(n, 9, self.k)
-        # global span of the mouth features: extrapolation score and suggest_frames
-        self._UY, _ = self._thin_svd(Y)
-        Yd = Y if self.center == "rest" else Y - np.tile(np.eye(3).ravel(), m)[:, None]
-        self._sigma = float(np.sqrt(np.mean(np.sum(Yd * Yd, axis=0))))
-        nI = len(self.interior_vertices)
+        self._fit_span(Y)
         self.theta_bars, self.ridges_used = [], []
         self._pfit = []
         Zs, Ws, zid = [], [], []
         for (mouth_sel, lip_sel, w), Dp in zip(self._patches, self._D_patch):
-            UY, CY = self._thin_svd(Y3[mouth_sel].reshape(-1, self.k))
-            UX, CX = self._thin_svd(X3[lip_sel].reshape(-1, self.k))
-            lam = self._choose_ridge(CY, CX)
-            th = self._solve_theta(CY, CX, lam)  # (rX, rY)
+            UY, UX, th, lam = self._fit_patch(Y3[mouth_sel], X3[lip_sel])
             self.theta_bars.append(th)
             self.ridges_used.append(lam)
-            rY = th.shape[1]
-            # lip gradients of this patch per unit coefficient, weighted: (rY, n_p, 3, 3)
-            Mp = (UX @ th).T.reshape(rY, len(lip_sel), 3, 3) * w[None, :, None, None]
             self._pfit.append((UX, th, UY))
-            # divergence of those gradients on the interior vertices: (nI*3, rY)
-            Fr = Mp.transpose(1, 3, 0, 2).reshape(3 * len(lip_sel), rY * 3)  # rows (t, a), cols (j, c): F[c, a]
-            Zs.append((Dp @ Fr).reshape(nI, rY, 3).transpose(0, 2, 1).reshape(nI * 3, rY))
-            # U_Yᵀ vec(D_d D_r^-1) = Σ_ik D_d[i,k] W[i,k]:  W[i,k,f,r] = Σ_j U[f,i,j,r] Ri[f,k,j]
-            mp = len(mouth_sel)
-            U4 = UY.reshape(mp, 3, 3, rY).transpose(0, 2, 1, 3).reshape(mp, 3, 3 * rY)  # (f, j, (i, r))
-            Wf = np.matmul(self._mouth_rinv[mouth_sel], U4).reshape(mp, 3, 3, rY)  # (f, k, i, r)
-            Ws.append(np.ascontiguousarray(Wf.transpose(2, 1, 0, 3)))  # (i, k, f, r)
-            zid.append(np.tile(np.eye(3).ravel(), len(mouth_sel)) @ UY if self.center == "rest" else np.zeros(rY))
+            Z, W, z0 = self._patch_operators(mouth_sel, lip_sel, w, Dp, UY, UX, th)
+            Zs.append(Z)
+            Ws.append(W)
+            zid.append(z0)
         self._Zdiv = np.concatenate(Zs, axis=1)  # (nI*3, Σ rY)
         self._Wp = Ws
         self._z_ident = np.concatenate(zid)
 
-    def _solve_theta(self, CY, CX, lam):
-        rY = CY.shape[0]
-        if rY == 0 or CX.shape[0] == 0:
-            return np.zeros((CX.shape[0], rY))
-        A = CY @ CY.T  # (rY, rY)
-        B = CX @ CY.T  # (rX, rY)
-        if lam > 0:
-            A = A + lam * np.mean(np.diag(A)) * np.eye(rY)
-        # θ̄ A = B  <=>  A θ̄ᵀ = Bᵀ (A symmetric). The rank was already cut at rtol in the thin SVD
-        # (A = diag(s²) up to rounding); lstsq only guards against exact singularity.
-        sol, *_ = np.linalg.lstsq(A, B.T, rcond=1e-12)
-        return sol.T
+    def _fit_span(self, Y):
+        """Global span ``U_Y`` and RMS deformation of the mouth features: extrapolation score and suggest_frames."""
+        m = len(self.mouth_faces)
+        self._UY, _ = thin_svd(Y, self.center, self.rtol)
+        Yd = Y if self.center == "rest" else Y - np.tile(np.eye(3).ravel(), m)[:, None]
+        self._sigma = float(np.sqrt(np.mean(np.sum(Yd * Yd, axis=0))))
 
-    def _choose_ridge(self, CY, CX):
-        if self.ridge != "loo":
-            return float(self.ridge)
-        k = CY.shape[1]
-        if k < 3:
-            return 0.0
-        best, best_err = 0.0, np.inf
-        for lam in (0.0, 1e-4, 1e-3, 1e-2, 3e-2, 1e-1, 3e-1, 1.0):
-            err = 0.0
-            for i in range(k):
-                keep = np.arange(k) != i
-                th = self._solve_theta(CY[:, keep], CX[:, keep], lam)
-                err += float(np.sum((th @ CY[:, i] - CX[:, i]) ** 2))
-            if err < best_err * (1 - 1e-9):
-                best, best_err = lam, err
-        return best
+    def _fit_patch(self, Yp, Xp):
+        """One patch's reduced regression from its (m_p,9,k) mouth and (n_p,9,k) lip features.
+
+        Returns ``(U_Y, U_X, θ̄, λ)``: the thin-SVD bases, the (rX, rY) reduced map and the ridge used.
+        """
+        UY, CY = thin_svd(Yp.reshape(-1, self.k), self.center, self.rtol)
+        UX, CX = thin_svd(Xp.reshape(-1, self.k), self.center, self.rtol)
+        lam = choose_ridge(CY, CX, self.ridge)
+        th = solve_theta(CY, CX, lam)  # (rX, rY)
+        return UY, UX, th, lam
+
+    def _patch_operators(self, mouth_sel, lip_sel, w, Dp, UY, UX, th):
+        """A fitted patch folded into the prediction: ``(Z, W, z_ident)``.
+
+        ``Z`` (nI*3, rY): divergence on the interior vertices of the patch's weighted lip gradients per
+        unit coefficient; ``W`` (3, 3, m_p, rY): the mouth coefficients ``U_Yᵀ y`` as sums over shape-matrix
+        entries (:meth:`_coefficients`); ``z_ident`` (rY,): the coefficients of the identity gradients.
+        """
+        nI = len(self.interior_vertices)
+        rY = th.shape[1]
+        # lip gradients of this patch per unit coefficient, weighted: (rY, n_p, 3, 3)
+        Mp = (UX @ th).T.reshape(rY, len(lip_sel), 3, 3) * w[None, :, None, None]
+        # divergence of those gradients on the interior vertices: (nI*3, rY)
+        Fr = Mp.transpose(1, 3, 0, 2).reshape(3 * len(lip_sel), rY * 3)  # rows (t, a), cols (j, c): F[c, a]
+        Z = (Dp @ Fr).reshape(nI, rY, 3).transpose(0, 2, 1).reshape(nI * 3, rY)
+        # U_Yᵀ vec(D_d D_r^-1) = Σ_ik D_d[i,k] W[i,k]:  W[i,k,f,r] = Σ_j U[f,i,j,r] Ri[f,k,j]
+        mp = len(mouth_sel)
+        U4 = UY.reshape(mp, 3, 3, rY).transpose(0, 2, 1, 3).reshape(mp, 3, 3 * rY)  # (f, j, (i, r))
+        Wf = np.matmul(self._mouth_rinv[mouth_sel], U4).reshape(mp, 3, 3, rY)  # (f, k, i, r)
+        W = np.ascontiguousarray(Wf.transpose(2, 1, 0, 3))  # (i, k, f, r)
+        z0 = np.tile(np.eye(3).ravel(), len(mouth_sel)) @ UY if self.center == "rest" else np.zeros(rY)
+        return Z, W, z0
 
     def _require_fit(self):
         if self._Y is None:
@@ -682,162 +579,3 @@ class LipRegressor:
         """(9m, r) orthonormal basis ``U_Y`` of the training mouth features (whole mouth region)."""
         self._require_fit()
         return self._UY
-
-
-def _shape_components(frames, verts, local):
-    """Shape-matrix columns of triangles ``local`` over vertices ``verts`` for frames (T,V,3), in float64.
-
-    Returns three (3,T,f) arrays ``e[k][i]``: column k (edge 1, edge 2,
-    phantom offset), coordinate i. Component-major layout keeps every
-    operation contiguous (about 3x faster than (T,f,3,3) for many frames).
-    """
-    Xt = np.ascontiguousarray(frames[:, verts, :].transpose(2, 0, 1), dtype=np.float64)  # (3, T, nv)
-    p0 = Xt[:, :, local[:, 0]]
-    e1 = Xt[:, :, local[:, 1]] - p0
-    e2 = Xt[:, :, local[:, 2]] - p0
-    c = np.empty_like(e1)
-    np.subtract(e1[1] * e2[2], e1[2] * e2[1], out=c[0])
-    np.subtract(e1[2] * e2[0], e1[0] * e2[2], out=c[1])
-    np.subtract(e1[0] * e2[1], e1[1] * e2[0], out=c[2])
-    s = np.sqrt(np.sqrt(c[0] * c[0] + c[1] * c[1] + c[2] * c[2]))
-    c *= np.divide(1.0, s, out=np.zeros_like(s), where=s > 0)
-    return e1, e2, c
-
-
-def _mouth_features(frames, rest_vertices, faces, mouth_faces, chunk=_BLOCK):
-    """(T, 9m) mouth gradients minus the identity of validated frames (any float dtype), float64."""
-    F = np.asarray(faces, dtype=np.int64)[np.asarray(mouth_faces, dtype=np.int64)]
-    verts, inv = np.unique(F, return_inverse=True)
-    local = inv.reshape(-1, 3)
-    rinv = rest_inverse(np.asarray(rest_vertices, dtype=np.float64), F, name="mouth region")
-    T = len(frames)
-    out = np.empty((T, 9 * len(F)))
-    for s in range(0, T, chunk):
-        P = frames[s : s + chunk][:, verts, :]  # shape_matrices converts these to float64
-        out[s : s + chunk] = (np.matmul(shape_matrices(P, local), rinv) - np.eye(3)).reshape(len(P), -1)
-    return out
-
-
-def _deflate(R, q, block=_BLOCK):
-    """``R -= (R q) qᵀ`` in place, a block of rows at a time (no full-size temporary)."""
-    for s in range(0, len(R), block):
-        b = R[s : s + block]
-        b -= np.outer(b @ q, q)
-
-
-def suggest_frames(captured=None, count: int = 1, *, regressor: LipRegressor | None = None, rest_vertices=None,
-                   faces=None, mouth_faces=None, exclude=(), features=None,
-                   overwrite_features: bool = False) -> np.ndarray:
-    """Propose the next frames worth correcting.
-
-    Greedy pivoted Gram-Schmidt in mouth-gradient space (Dinev et al. 2018,
-    §6.2: train on extreme poses): each pick is the frame whose mouth
-    gradients lie farthest outside the span of the frames already known, and
-    its direction is then added to the span. With no regressor the span
-    starts empty (features are gradients minus the identity), so the first
-    pick is the most extreme pose (largest deformation from rest) and the
-    next ones are the poses least explained by the earlier picks. With a
-    regressor the span starts as its training span, so the first pick is the
-    frame of largest :meth:`LipRegressor.extrapolation`.
-
-    Memory: one (T, 9m) float64 array of mouth features (``m`` mouth
-    triangles; about 0.1 MB a frame on ICT-FaceKit), projected and deflated
-    in place a block of rows at a time. With ``features=...`` and
-    ``overwrite_features=True`` the given array is that working array, so
-    nothing of full size is allocated.
-
-    Parameters
-    ----------
-    captured : (T,V,3) array_like, optional
-        The captured sequence, scene units (float32 is read in place, a block
-        of frames at a time). Required unless ``features`` is given.
-    count : int
-        Number of frames to propose.
-    regressor : LipRegressor, optional
-        A fitted regressor; supplies the rest mesh, faces, mouth region,
-        feature centring and training span.
-    rest_vertices : (V,3) array_like, optional
-        Rest positions (needed without ``regressor`` and ``features``).
-    faces : (F,3) int array_like, optional
-        Triangles (needed without ``regressor`` and ``features``).
-    mouth_faces : (m,) int array_like, optional
-        Mouth-region triangles (needed without ``regressor`` and ``features``).
-    exclude : sequence of int
-        Frames never to propose (for example the ones already corrected);
-        their directions are added to the starting span.
-    features : (T, 9m) array_like, optional
-        Instead of ``captured``: precomputed mouth features of the sequence,
-        one row per frame. With a regressor, ``regressor.mouth_features(captured)``
-        (the same array can first go to ``regressor.extrapolation(features=...)``,
-        so the sequence is read once). Without one, the mouth deformation
-        gradients minus the identity (any fixed order of the 9m entries), i.e.
-        ``mouth_features`` of a ``center="rest"`` regressor on these mouth
-        triangles. The result equals passing ``captured``.
-    overwrite_features : bool
-        Use ``features`` (if a C-contiguous float64 ndarray) as the working
-        array instead of copying it; its contents are then undefined.
-
-    Returns
-    -------
-    (c,) int64 ndarray
-        Frame indices in order of priority, ``c = min(count, frames left)``;
-        fewer when the remaining frames already lie in the span.
-    """
-    if (captured is None) == (features is None):
-        raise ValueError("suggest_frames() takes captured frames or their features, not both or neither")
-    if features is not None:
-        if regressor is not None:
-            F0 = regressor._check_features(features)
-        else:
-            F0 = np.asarray(features)
-            if F0.ndim != 2 or F0.shape[1] % 9 or len(F0) == 0:
-                raise FaceLabError(f"features have shape {F0.shape}, expected (T, 9m) with T >= 1 (9 per mouth "
-                                   "triangle).")
-            if mouth_faces is not None and F0.shape[1] != 9 * len(np.asarray(mouth_faces).ravel()):
-                raise FaceLabError(f"features have {F0.shape[1]} columns but there are {len(mouth_faces)} mouth "
-                                   "triangles (9 columns each); compute them on the same mouth region.")
-        own = overwrite_features and isinstance(F0, np.ndarray) and F0.dtype == np.float64 and F0.flags.c_contiguous
-        Rz = F0 if own else np.array(F0, dtype=np.float64, order="C")
-    elif regressor is not None:
-        Rz = regressor.mouth_features(captured)
-    else:
-        if rest_vertices is None or faces is None or mouth_faces is None:
-            raise FaceLabError(
-                "suggest_frames needs either a fitted regressor or rest_vertices, faces and mouth_faces; pass them."
-            )
-        R = np.asarray(rest_vertices, dtype=np.float64)
-        A = _as_frames(captured, len(R), "captured frames")
-        Rz = _mouth_features(A, R, faces, mouth_faces)
-    Q = regressor._UY if regressor is not None and regressor._Y is not None else None
-    T = len(Rz)
-    # feature scale (threshold of "already in the span"), then residuals after projecting on Q, in place
-    sq = np.empty(T)
-    for s in range(0, T, _BLOCK):
-        b = Rz[s : s + _BLOCK]
-        sq[s : s + _BLOCK] = np.sum(b * b, axis=1)
-        if Q is not None and Q.shape[1]:
-            b -= (b @ Q) @ Q.T
-    scale = max(float(np.sqrt(np.mean(sq))), 1e-300)
-    excl = np.zeros(T, dtype=bool)
-    ex = np.asarray(list(exclude), dtype=np.int64)
-    if ex.size:
-        excl[ex[(ex >= 0) & (ex < T)]] = True
-    # ... and on the excluded frames
-    for i in np.flatnonzero(excl):
-        nv = np.linalg.norm(Rz[i])
-        if nv > 1e-10 * scale:
-            _deflate(Rz, Rz[i] / nv)
-    picks = []
-    norms = np.empty(T)
-    for _ in range(int(count)):
-        for s in range(0, T, _BLOCK):
-            norms[s : s + _BLOCK] = np.linalg.norm(Rz[s : s + _BLOCK], axis=1)
-        norms[excl] = -1.0
-        if picks:
-            norms[picks] = -1.0
-        i = int(np.argmax(norms))
-        if norms[i] <= 1e-10 * scale:
-            break
-        picks.append(i)
-        _deflate(Rz, Rz[i] / norms[i])
-    return np.asarray(picks, dtype=np.int64)

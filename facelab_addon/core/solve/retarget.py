@@ -58,9 +58,10 @@ import numpy as np
 
 from ..errors import FaceLabError, RegionError
 from ..geometry.deform import LaplacianDeformer, PointConstraints
+from ..geometry.geodesic import geodesic_distance
 from ..geometry.laplacian import cotangent_laplacian
 from ..geometry.linsolve import small_dense_threads
-from ..lips.regions import geodesic_distance, inner_lip_loop, order_edge_loop
+from ..lips.lip_loop import inner_lip_loop, order_edge_loop
 from .deformation_transfer import DeformationTransfer
 
 __all__ = [
