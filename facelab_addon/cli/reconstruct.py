@@ -56,6 +56,11 @@ def run(args, session) -> dict:
     dt = time.perf_counter() - t0
     keys = r.keys
     session.log(f"Reconstructed {len(frames):,} frames in {dt:.1f} s, {len(keys)} corrective shapes")
+    if r.skipped:
+        session.log(f"note: skipped {len(r.skipped)} frames with missing bundles (shown neutral): {r.skipped[:10]} "
+                    f"({r.missing})")
+    if r.live_keys:
+        session.log(f"note: dataset keys {r.live_keys[:5]} are not zero and add on top")
     return {
         "object": obj.name,
         "frames": [f0, f1],

@@ -106,6 +106,8 @@ def run(args, session) -> dict:
     msg = (f"Retargeted {len(frames):,} frames to '{cre.name}' in {dt:.1f} s ({r.correspondence}): "
            f"{len(r.created)} shape keys transferred, {len(r.keys)} corrective shapes")
     session.log(msg)
+    if r.action_note:
+        session.log(f"note: {r.action_note}")
     eps = res.end_points
     lip = None
     if s.lip_sync and eps:

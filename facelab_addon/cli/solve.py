@@ -192,6 +192,9 @@ def run(args, session) -> dict:
     if s.use_corrective:
         msg += f", {len(corrective)} corrective shapes"
     session.log(msg)
+    for n in [r.action_note] + list(r.notes):
+        if n:
+            session.log(f"note: {n}")
     out = {
         "object": obj.name,
         "frames": [int(frames[0]), int(frames[-1])],
