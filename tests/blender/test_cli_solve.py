@@ -64,9 +64,9 @@ def shots(ict, addon, tmp_path_factory):
 
 
 def _curves(key, names, frames):
-    from facelab_addon.ui.ops_solve import _curve_values
+    from facelab_addon.blender.actions import curve_values
 
-    return _curve_values(key, names, np.asarray(frames))
+    return curve_values(key, names, np.asarray(frames))
 
 
 def test_solve_then_retarget(shots, tmp_path):

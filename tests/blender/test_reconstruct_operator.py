@@ -80,8 +80,8 @@ def test_reconstruct_from_bundles_end_to_end(ict, addon):
     # the core, called directly, gives the same (within the 0.01 mm key compression tolerance)
     # (from the same Blender data: float32 keys and empties, as the operator reads them)
     from facelab_addon.blender.bundles import read_bundles
+    from facelab_addon.blender.rig import dataset_shapes
     from facelab_addon.blender.shapekeys import rest_vertices
-    from facelab_addon.ui.ops_reconstruct import dataset_shapes
 
     n0 = rest_vertices(obj)
     names, data = dataset_shapes(obj)
@@ -207,7 +207,7 @@ def test_missing_bundles_skip_their_frames(ict, addon):
     scene.frame_set(0)
     from facelab_addon.blender.bundles import bundle_labels, bundle_objects, read_bundles
 
-    objs = bundle_objects(bpy.context, exclude={obj})
+    objs = bundle_objects(bpy.context.selected_objects, exclude={obj})
     q = read_bundles(scene, objs, [0, 1, 2])
     assert np.isnan(q[2, 7]).all() and np.isfinite(q[:2]).all() and np.isfinite(np.delete(q[2], 7, 0)).all()
     assert bundle_labels(objs)[7] == "B07"
@@ -215,15 +215,10 @@ def test_missing_bundles_skip_their_frames(ict, addon):
     got = evaluate_frames(obj, [0, 1, 2], mute_shape_keys_prefix=())
     np.testing.assert_allclose(got[2], ict.neutral * SCALE, atol=1e-6)  # skipped: neutral
     assert np.abs(got[1] - ict.neutral * SCALE).max() > 1e-3  # frame 1 is reconstructed
-    from facelab_addon.ui.ops_reconstruct import FACELAB_OT_reconstruct_from_bundles as Op
+    from facelab_addon.blender.objects import points_to_local
+    from facelab_addon.pipeline.reconstruct import missing_bundles
 
-    assert Op._missing(to_local_q(obj, q), bundle_labels(objs), [2]) == "missing: B07"
-
-
-def to_local_q(obj, q):
-    from facelab_addon.ui.ops_reconstruct import to_local
-
-    return to_local(obj, q)
+    assert missing_bundles(points_to_local(obj, q), bundle_labels(objs), [2]) == "missing: B07"
 
 
 # --------------------------------------------------------------------------- bake the reconstruction (issue 5)
@@ -421,7 +416,8 @@ def test_generate_correctives_adds_driven_keys_that_beat_the_linear_rig(ict, add
     assert drv.expression == "w0 * w1 * w2"
     assert [v.targets[0].data_path for v in drv.variables] == [f'key_blocks["{n}"].value' for n in combos[1]]
     # the key equals the core's corrective (same inputs, 80 automatic bundles) and beats the linear rig
-    from facelab_addon.ui.ops_reconstruct import dataset_shapes, triangle_uvs
+    from facelab_addon.blender.objects import triangle_uvs
+    from facelab_addon.blender.rig import dataset_shapes
 
     n0 = rest_vertices_of(face)
     names, data = dataset_shapes(face)

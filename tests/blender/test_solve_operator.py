@@ -210,20 +210,23 @@ def test_solve_and_retarget_end_to_end(ict, addon, tmp_path):
     assert bpy.ops.facelab.bind_tracks(frame=0) == {"FINISHED"}
     b = obj.facelab_solve.bindings
     assert len(b) == len(markers) and obj.facelab_solve.bind_frame == 0
+    from facelab_addon.blender.bindings import read_bindings
     from facelab_addon.core.capture.markers import SurfacePoints
-    from facelab_addon.ui.props_solve import read_bindings
 
     names, bv, bb = read_bindings(obj, "MARKER")
     assert names == [f"M{j:02d}" for j in range(len(markers))]
     np.testing.assert_allclose(SurfacePoints(bv, bb).evaluate(truth[0]), markers.evaluate(truth[0]), atol=2e-6)
 
-    # ---- Solve Performance
-    t0 = time.perf_counter()
-    assert bpy.ops.facelab.solve_performance() == {"FINISHED"}
-    t_solve = time.perf_counter() - t0
-    from facelab_addon.ui.ops_solve import LAST, SOLVE_ACTION, _curve_values
+    # ---- Solve Performance (the pipeline the operator runs, for its per-frame numbers)
+    from facelab_addon.blender.actions import curve_values as _curve_values
+    from facelab_addon.names import SOLVE_ACTION
+    from facelab_addon.pipeline.solve import solve_performance
+    from facelab_addon.ui.props_solve import solve_settings
 
-    per_frame = LAST["info"]["frames"]
+    t0 = time.perf_counter()
+    r = solve_performance(scene, obj, solve_settings(scene))
+    t_solve = time.perf_counter() - t0
+    per_frame = r.core.info["frames"]
     print("contour points per frame:", [f.get("contour_points") for f in per_frame])
     assert all(f["contour_points"] > 0 for f in per_frame)  # the mask / sketch contours were fitted
 
@@ -293,15 +296,16 @@ def test_solve_and_retarget_end_to_end(ict, addon, tmp_path):
     assert np.linalg.norm(d_actor[chin]) > 0.005
     assert np.linalg.norm(d_cre - d_actor[chin]) < 0.2 * np.linalg.norm(d_actor[chin])
     # artist-set end points, keyed on the timeline (frame 4 differs), are used frame by frame
-    from facelab_addon.ui import ops_solve
+    from facelab_addon.pipeline.retarget import retarget
+    from facelab_addon.ui.props_solve import retarget_settings
 
     s.use_end_points = True
     s.end_points_upper, s.end_points_lower = (0.2, 0.8), (0.2, 0.8)
     scene.keyframe_insert("facelab_solve.end_points_upper", frame=0)
     s.end_points_upper = (0.3, 0.7)
     scene.keyframe_insert("facelab_solve.end_points_upper", frame=4)
-    r = ops_solve.retarget(bpy.context, obj, cre)
-    eps = r["result"].end_points
+    r = retarget(scene, obj, cre, retarget_settings(scene))
+    eps = r.core.end_points
     np.testing.assert_allclose(eps[0].upper, [0.2, 0.8], atol=1e-6)
     np.testing.assert_allclose(eps[4].upper, [0.3, 0.7], atol=1e-6)
     np.testing.assert_allclose(eps[2].upper, [0.25, 0.75], atol=0.03)  # Bezier in between
@@ -323,34 +327,35 @@ def test_bad_input_messages(ict, addon, tmp_path):
     # tracks with no mesh binding
     assert "no track is bound" in run(bpy.ops.facelab.solve_performance)
     # a track whose marker in the second view belongs to another point is flagged when binding
-    from facelab_addon.ui import ops_solve
+    from facelab_addon.pipeline.solve import bind_tracks, solve_performance, summarise_skips
+    from facelab_addon.ui.props_solve import bind_settings, solve_settings
 
     t2 = s.views[1].clip.tracking.tracks
     co = np.array(t2["M07"].markers.find_frame(1).co)
     t2["M07"].markers.find_frame(1).co = co + [0.02, 0.0]  # 10.8 px off
-    r = ops_solve.bind_tracks(bpy.context, obj, 0)
-    assert r["disagree"] == ["M07"] and len(r["bound"]) == len(markers)
+    r = bind_tracks(scene, obj, 0, bind_settings(scene))
+    assert r.disagree == ["M07"] and len(r.bound) == len(markers)
     t2["M07"].markers.find_frame(1).co = co
     # markers missing on some frames: skipped and reported
     clip = s.views[0].clip
     for tr in list(clip.tracking.tracks)[:5]:
         tr.markers.find_frame(3).mute = True  # clip frame 3 = scene frame 2
     assert bpy.ops.facelab.bind_tracks(frame=0) == {"FINISHED"}
-    r = ops_solve.solve(bpy.context, obj)
-    assert r["missing"] == {} and not r["skipped"]  # the other camera still sees them
+    r = solve_performance(scene, obj, solve_settings(scene))
+    assert r.missing == {} and not r.skipped  # the other camera still sees them
     clip2 = s.views[1].clip
     for tr in list(clip2.tracking.tracks)[:5]:
         tr.markers.find_frame(3).mute = True
-    r = ops_solve.solve(bpy.context, obj)
-    assert r["missing"] == {2: 5}
+    r = solve_performance(scene, obj, solve_settings(scene))
+    assert r.missing == {2: 5}
     # a frame with no marker at all is skipped, with its reason
     for c in (clip, clip2):
         for tr in c.tracking.tracks:
             tr.markers.find_frame(4).mute = True
     s.use_corrective = False
-    r = ops_solve.solve(bpy.context, obj)
-    assert list(r["skipped"]) == [3]
-    assert "3" in ops_solve._summarise_skips(r["skipped"])
+    r = solve_performance(scene, obj, solve_settings(scene))
+    assert list(r.skipped) == [3]
+    assert "3" in summarise_skips(r.skipped)
     # cameras without calibration
     clip.tracking.camera.sensor_width = 0.0
     assert "no camera calibration" in run(bpy.ops.facelab.solve_performance)
@@ -373,9 +378,9 @@ def test_bad_input_messages(ict, addon, tmp_path):
 
 def test_bundles_bind_and_solve(ict, addon, tmp_path):
     """Empties as 3D bundles: bound to their nearest surface point, then the solve from bundles alone."""
+    from facelab_addon.blender.actions import curve_values as _curve_values
+    from facelab_addon.blender.bindings import read_bindings, write_bindings
     from facelab_addon.core.capture.markers import SurfacePoints
-    from facelab_addon.ui.ops_solve import _curve_values
-    from facelab_addon.ui.props_solve import read_bindings, write_bindings
 
     scene, obj, cams, markers, truth, views = build(ict, tmp_path)
     bpy.context.view_layer.objects.active = obj
@@ -459,10 +464,11 @@ def test_panel_sections_draw(addon):
 
 def test_retarget_with_marker_correspondence(ict, addon, tmp_path):
     """Correspondence from empties named like the bound tracks; too few of them is refused."""
+    from facelab_addon.blender.bindings import read_bindings
     from facelab_addon.core.capture.markers import SurfacePoints
     from facelab_addon.core.solve.retarget import widen_mouth
-    from facelab_addon.ui import ops_solve
-    from facelab_addon.ui.props_solve import read_bindings
+    from facelab_addon.pipeline.retarget import retarget
+    from facelab_addon.ui.props_solve import retarget_settings
 
     scene, obj, cams, markers, truth, views = build(ict, tmp_path)
     bpy.context.view_layer.objects.active = obj
@@ -492,13 +498,13 @@ def test_retarget_with_marker_correspondence(ict, addon, tmp_path):
         e.location = p
         coll.objects.link(e)
     bpy.context.view_layer.update()
-    r = ops_solve.retarget(bpy.context, obj, cre)
-    assert r["correspondence"] == f"{len(names)} markers" and r["created"] == EXPR
+    r = retarget(scene, obj, cre, retarget_settings(scene))
+    assert r.correspondence == f"{len(names)} markers" and r.created == EXPR
     # away from the widened mouth the creature is the actor, so its transferred shapes are the actor's there
     # (a wrong correspondence, e.g. empties read in the wrong space, gives errors of the order of the shapes)
     far = ict.part_vertex_mask("M_Face") & (np.linalg.norm(neutral - neutral[ICT_MOUTH_LOOP].mean(0), axis=1) > 0.04)
     D_actor = np.stack([(ict.expressions[n] - ict.neutral) * SCALE for n in EXPR])[:, far]
-    D_cre = r["result"].deltas[:, far]
+    D_cre = r.core.deltas[:, far]
     err = np.sqrt(((D_cre - D_actor) ** 2).sum() / (D_actor**2).sum())
     print(f"marker correspondence: relative RMS difference of the far-from-mouth shapes {err:.3f}")
     assert err < 0.2  # measured 0.094 (the closest-triangle correspondence is not exact near open regions)
