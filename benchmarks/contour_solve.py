@@ -84,7 +84,8 @@ from facelab_addon.core.solve.blendshape_solve import (  # noqa: E402
     contour_curve_distance,
     solve_performance,
 )
-from facelab_addon.core.solve.contours import contour_residuals, ict_contour_loops, match_contours  # noqa: E402
+from facelab_addon.core.solve.matching import contour_residuals, match_contours  # noqa: E402
+from facelab_addon.testing.contour_truth import ict_contour_loops  # noqa: E402
 from facelab_addon.testing.capture_sim import make_capture  # noqa: E402
 from facelab_addon.testing.synthetic import ICT_MOUTH_LOOP, inner_lip_mask  # noqa: E402
 

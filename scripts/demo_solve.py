@@ -39,13 +39,14 @@ MASK_NAMES = {"Upper lip": "mouth_upper", "Lower lip": "mouth_lower"}
 def capture(ict, seed=4):
     """Truth (T,V,3) metres, weights (T,S), cameras, markers, marker pixels (T,C,M,2), tracked curves, lip mask."""
     from facelab_addon.core.lips.mouth import find_mouth
-    from facelab_addon.core.solve.contours import contour_loops, synthetic_tracked_curves
+    from facelab_addon.core.solve.contour_loops import contour_loops
     from facelab_addon.testing.capture_sim import (
         DEFAULT_EXPRESSIONS,
         helmet_cameras,
         sample_markers,
         weight_sequence,
     )
+    from facelab_addon.testing.contour_truth import synthetic_tracked_curves
     from facelab_addon.testing.synthetic import ICT_MOUTH_LOOP, inject_lip_error
 
     F = ict.faces

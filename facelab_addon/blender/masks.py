@@ -359,7 +359,7 @@ def read_curves(scene, views, cameras, frames, *, annotation_view: int | None = 
     stats : dict
         ``{'frames_with_curves': int, 'by_name': {name: count}}``.
     """
-    from ..core.solve.contours import TrackedCurve
+    from ..core.solve.contour_loops import TrackedCurve
 
     frames = [int(f) for f in np.asarray(frames).reshape(-1)]
     fset = set(frames)

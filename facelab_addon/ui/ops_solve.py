@@ -328,7 +328,7 @@ def bind_tracks(context, obj, bind_frame: int) -> dict:
 def gather_solve_inputs(context, obj) -> dict:
     """Everything the core solve needs, in world space at the pose frame."""
     from ..core.capture.markers import SurfacePoints
-    from ..core.solve.contours import contour_loops
+    from ..core.solve.contour_loops import contour_loops
 
     scene = context.scene
     s = scene.facelab_solve

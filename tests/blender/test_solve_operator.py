@@ -125,7 +125,8 @@ def build(ict, tmp_path):
 
 def add_contours(ict, scene, obj, views, truth, cams):
     """Inner-lip contours of the truth: a shape-keyed Mask over clip 1, Grease Pencil strokes in camera 2."""
-    from facelab_addon.core.solve.contours import contour_loops, synthetic_tracked_curves
+    from facelab_addon.core.solve.contour_loops import contour_loops
+    from facelab_addon.testing.contour_truth import synthetic_tracked_curves
 
     fixed = ~ict.part_vertex_mask("M_Face")
     eyeballs = {"left": np.flatnonzero(ict.part_vertex_mask("M_ScleraLeft")),

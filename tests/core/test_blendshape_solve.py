@@ -114,7 +114,7 @@ def test_corrective_is_zero_when_constraints_hold_and_fits_them_when_not(ict, ca
 
 
 def test_contours_recover_the_truth(ict, deltas):
-    from facelab_addon.core.solve.contours import ict_contour_loops
+    from facelab_addon.testing.contour_truth import ict_contour_loops
 
     cap = make_capture(ict, names=NAMES, n_frames=2, n_markers=40, noise_px=0.0, seed=2, curves=True)
     loops = ict_contour_loops(ict)
@@ -239,7 +239,8 @@ def test_truth_is_a_fixed_point_of_the_corrective_with_eyelids(ict, deltas):
     The 3D eyelid targets are lifted with the lids' current heights over the eyeball (unbiased); with the
     rest heights (the old lift) a blink leaves them up to ~1 mm off and the corrective follows them.
     """
-    from facelab_addon.core.solve.contours import ict_contour_loops, match_contours
+    from facelab_addon.core.solve.matching import match_contours
+    from facelab_addon.testing.contour_truth import ict_contour_loops
 
     cap = make_capture(ict, names=NAMES, n_frames=3, n_markers=60, noise_px=0.0, seed=1, curves=True)
     loops = ict_contour_loops(ict)
@@ -265,7 +266,7 @@ def test_truth_is_a_fixed_point_of_the_corrective_with_eyelids(ict, deltas):
 
 def test_huber_weights_of_lip_contour_points(ict, deltas):
     """min(1, k / e) on the 2D lip points (e = reprojection residual in px); eyelid points untouched."""
-    from facelab_addon.core.solve.contours import ict_contour_loops
+    from facelab_addon.testing.contour_truth import ict_contour_loops
 
     cap = make_capture(ict, names=NAMES, n_frames=2, n_markers=40, noise_px=0.0, seed=2, curves=True)
     loops = ict_contour_loops(ict)
@@ -288,7 +289,7 @@ def test_huber_weights_of_lip_contour_points(ict, deltas):
 
 def test_huber_keeps_in_span_fits_and_loosens_out_of_span_lips(ict, deltas):
     """In span (noise-free) the robust fit equals the plain one; with a lip gap the lips pull less."""
-    from facelab_addon.core.solve.contours import ict_contour_loops
+    from facelab_addon.testing.contour_truth import ict_contour_loops
 
     loops = ict_contour_loops(ict)
     for gap, same in ((0.0, True), (3.0, False)):

@@ -404,7 +404,7 @@ class BlendshapeSolver:
         list of CurveCorrespondence
             3D eyelid targets are lifted with the lids' heights on this mesh.
         """
-        from .contours import match_contours
+        from .matching import match_contours
 
         if not curves:
             return []
@@ -545,7 +545,7 @@ class BlendshapeSolver:
             n_it = max(1, int(iterations)) if use_curves else max(2, int(iterations))  # markers: re-linearise once
             for it in range(n_it):
                 if use_curves:
-                    from .contours import match_contours
+                    from .matching import match_contours
 
                     Vc = self._partial_vertices(w)
                     # sliding: select and match afresh on the current mesh (a previous loop would win silhouette
