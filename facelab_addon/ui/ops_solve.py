@@ -423,7 +423,9 @@ def _has_curve_sources(scene, views) -> bool:
 
 def solve(context, obj, progress=None) -> dict:
     """Run the solve and write its animation. Returns a summary for the report."""
-    from ..core.solve.blendshape_solve import BlendshapeSolver, OutOfSubspaceCorrective, solve_performance
+    from ..core.solve.blendshape_solve import BlendshapeSolver
+    from ..core.solve.corrective import OutOfSubspaceCorrective
+    from ..core.solve.performance import solve_performance
 
     scene = context.scene
     s = scene.facelab_solve

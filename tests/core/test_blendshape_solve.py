@@ -6,14 +6,11 @@ from scipy.optimize import lsq_linear
 
 from facelab_addon.core.capture.markers import nearest_surface_points
 from facelab_addon.core.errors import FaceLabError
-from facelab_addon.core.solve.blendshape_solve import (
-    BlendshapeSolver,
-    FrameResult,
-    OutOfSubspaceCorrective,
-    box_least_squares,
-    contour_curve_distance,
-    solve_performance,
-)
+from facelab_addon.core.solve.blendshape_solve import BlendshapeSolver, FrameResult
+from facelab_addon.core.solve.bounded_lsq import box_least_squares
+from facelab_addon.core.solve.corrective import OutOfSubspaceCorrective
+from facelab_addon.core.solve.matching import contour_curve_distance
+from facelab_addon.core.solve.performance import solve_performance
 from facelab_addon.testing.capture_sim import make_capture
 
 NAMES = ["jawOpen", "mouthSmile_L", "mouthSmile_R", "mouthFunnel", "mouthPucker", "browInnerUp_L", "eyeBlink_L",
@@ -191,7 +188,7 @@ def test_default_boundary_holds_the_border_and_parts_without_markers():
 
 def test_contour_planes_contain_the_ray_and_the_curve_tangent():
     from facelab_addon.core.capture.camera import Camera
-    from facelab_addon.core.solve.blendshape_solve import _contour_planes
+    from facelab_addon.core.solve.corrective import _contour_planes
 
     cam = Camera.look_at([0.0, -3.0, 20.0], [0.0, 0.0, 0.0], [0, 1, 0], 50, 36, 1080, 1920)
     # a 3D lip-like arc in front of the camera and its image

@@ -33,7 +33,9 @@ points keep their parameter on the curve): the fixed contours of the paper's
 Fig. 6a. On the 26,719-vertex ICT face, :func:`match_contours` with two
 cameras and six curves per camera takes a few milliseconds.
 
-:func:`contour_residuals` (distance to the matched targets) measures a fit.
+:func:`contour_residuals` (distance to the matched targets) and
+:func:`contour_curve_distance` (distance to the tracked curve, sliding
+allowed) measure a fit.
 
 Conventions: vertices float64 (V,3) scene units; triangles int64 (F,3);
 pixels top-left origin, y down; cameras OpenCV (``core.capture.camera.Camera``).
@@ -62,6 +64,7 @@ __all__ = [
     "CurveCorrespondence",
     "match_contours",
     "contour_residuals",
+    "contour_curve_distance",
 ]
 
 
@@ -418,3 +421,33 @@ def contour_residuals(vertices, cameras, correspondences) -> list:
         else:
             out.append(np.linalg.norm(X - cc.targets, axis=1))
     return out
+
+
+def contour_curve_distance(vertices, cameras, correspondences, curves) -> np.ndarray:
+    """Pixel distance of every 2D contour point to its tracked curve (polyline).
+
+    Unlike the matched-point residual, sliding along the curve is not an
+    error here: this is how far the mesh's contour lies from the drawn curve.
+
+    Parameters
+    ----------
+    vertices : (V,3) float
+    cameras : list of Camera
+    correspondences : list of CurveCorrespondence
+    curves : list of TrackedCurve
+
+    Returns
+    -------
+    (n,) float64
+        Distances (pixels) of all points of the 2D correspondences.
+    """
+    V = np.asarray(vertices, float)
+    by = {(c.name, int(c.camera)): np.asarray(c.pixels, float) for c in curves or []}
+    out = []
+    for cc in correspondences or []:
+        if getattr(cc, "pixels", None) is None or cc.camera < 0 or (cc.name, int(cc.camera)) not in by:
+            continue
+        v, b = np.asarray(cc.vertices), np.asarray(cc.bary, float)
+        X = np.einsum("ck,ckd->cd", b, V[v])
+        out.append(point_to_polyline_distance(cameras[cc.camera].project(X), by[(cc.name, int(cc.camera))]))
+    return np.concatenate(out) if out else np.zeros(0)
