@@ -230,7 +230,7 @@ def run(ict, out, img_dir, render, samples):
 
     from facelab_addon.blender.caches import evaluate_frames
     from facelab_addon.blender.scene import new_mesh_object
-    from facelab_addon.core.solve.retarget import widen_mouth
+    from facelab_addon.testing.creature import widen_mouth
     from facelab_addon.ui.ops_solve import _curve_values
 
     t_start = time.perf_counter()

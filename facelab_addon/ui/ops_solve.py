@@ -535,7 +535,8 @@ def same_polygons(me_a, me_b) -> bool:
 def retarget(context, actor, creature, progress=None) -> dict:
     """Retarget the actor's solved animation to ``creature`` and write it there."""
     from ..core.solve.deformation_transfer import triangle_correspondence_from_markers
-    from ..core.solve.retarget import EndPoints, retarget_performance
+    from ..core.solve.lip_contours import EndPoints
+    from ..core.solve.retarget import retarget_performance
 
     scene = context.scene
     s = scene.facelab_solve

@@ -270,7 +270,7 @@ def test_solve_and_retarget_end_to_end(ict, addon, tmp_path):
     W = W_m
 
     # ---- Retarget to a creature with a wider mouth (same topology)
-    from facelab_addon.core.solve.retarget import widen_mouth
+    from facelab_addon.testing.creature import widen_mouth
 
     neutral = truth[0]
     cre = new_mesh_object("Creature", widen_mouth(neutral, neutral[ICT_MOUTH_LOOP].mean(0), factor=1.5),
@@ -461,7 +461,7 @@ def test_panel_sections_draw(addon):
 def test_retarget_with_marker_correspondence(ict, addon, tmp_path):
     """Correspondence from empties named like the bound tracks; too few of them is refused."""
     from facelab_addon.core.capture.markers import SurfacePoints
-    from facelab_addon.core.solve.retarget import widen_mouth
+    from facelab_addon.testing.creature import widen_mouth
     from facelab_addon.ui import ops_solve
     from facelab_addon.ui.props_solve import read_bindings
 
