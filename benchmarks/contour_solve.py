@@ -78,14 +78,16 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from facelab_addon.core.capture.ict import load_ict  # noqa: E402
 from facelab_addon.core.lips.mouth import find_mouth  # noqa: E402
-from facelab_addon.core.solve.blendshape_solve import (  # noqa: E402
-    BlendshapeSolver,
-    OutOfSubspaceCorrective,
+from facelab_addon.core.solve.blendshape_solve import BlendshapeSolver  # noqa: E402
+from facelab_addon.core.solve.corrective import OutOfSubspaceCorrective  # noqa: E402
+from facelab_addon.core.solve.matching import (  # noqa: E402
     contour_curve_distance,
-    solve_performance,
+    contour_residuals,
+    match_contours,
 )
-from facelab_addon.core.solve.contours import contour_residuals, ict_contour_loops, match_contours  # noqa: E402
+from facelab_addon.core.solve.performance import solve_performance  # noqa: E402
 from facelab_addon.testing.capture_sim import make_capture  # noqa: E402
+from facelab_addon.testing.contour_truth import ict_contour_loops  # noqa: E402
 from facelab_addon.testing.synthetic import ICT_MOUTH_LOOP, inner_lip_mask  # noqa: E402
 
 TARGET_CONTOUR_PX = 1.0

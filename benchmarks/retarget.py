@@ -40,15 +40,14 @@ sys.path.insert(0, str(ROOT))
 
 from facelab_addon.core.capture.ict import load_ict  # noqa: E402
 from facelab_addon.core.geometry.laplacian import uniform_laplacian  # noqa: E402
-from facelab_addon.core.solve.deformation_transfer import DeformationTransfer, triangle_correspondence_from_markers  # noqa: E402
-from facelab_addon.core.solve.retarget import (  # noqa: E402
-    EndPoints,
-    LipSync,
-    Retargeter,
-    lip_contours,
-    lip_distances,
-    widen_mouth,
+from facelab_addon.core.solve.deformation_transfer import (  # noqa: E402
+    DeformationTransfer,
+    triangle_correspondence_from_markers,
 )
+from facelab_addon.core.solve.lip_contours import EndPoints, lip_contours, lip_distances  # noqa: E402
+from facelab_addon.core.solve.lip_sync import LipSync  # noqa: E402
+from facelab_addon.core.solve.retarget import Retargeter  # noqa: E402
+from facelab_addon.testing.creature import widen_mouth  # noqa: E402
 
 MM = 1000.0  # metres -> millimetres
 IDENTITY = "identity003"
@@ -332,7 +331,7 @@ def contour_figure(frames_out, pick, rows, ac, cc, end_points, png):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from facelab_addon.core.solve.retarget import contour_points
+    from facelab_addon.core.solve.lip_contours import contour_points
 
     fig, axes = plt.subplots(len(pick), 1, figsize=(8.0, 3.4 * len(pick)))
     axes = np.atleast_1d(axes)

@@ -39,13 +39,14 @@ MASK_NAMES = {"Upper lip": "mouth_upper", "Lower lip": "mouth_lower"}
 def capture(ict, seed=4):
     """Truth (T,V,3) metres, weights (T,S), cameras, markers, marker pixels (T,C,M,2), tracked curves, lip mask."""
     from facelab_addon.core.lips.mouth import find_mouth
-    from facelab_addon.core.solve.contours import contour_loops, synthetic_tracked_curves
+    from facelab_addon.core.solve.contour_loops import contour_loops
     from facelab_addon.testing.capture_sim import (
         DEFAULT_EXPRESSIONS,
         helmet_cameras,
         sample_markers,
         weight_sequence,
     )
+    from facelab_addon.testing.contour_truth import synthetic_tracked_curves
     from facelab_addon.testing.synthetic import ICT_MOUTH_LOOP, inject_lip_error
 
     F = ict.faces
@@ -229,7 +230,7 @@ def run(ict, out, img_dir, render, samples):
 
     from facelab_addon.blender.caches import evaluate_frames
     from facelab_addon.blender.scene import new_mesh_object
-    from facelab_addon.core.solve.retarget import widen_mouth
+    from facelab_addon.testing.creature import widen_mouth
     from facelab_addon.blender.actions import curve_values as _curve_values
 
     t_start = time.perf_counter()

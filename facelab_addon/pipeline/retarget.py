@@ -119,7 +119,7 @@ def _marker_correspondence(actor, creature, coll, a_rest, ta, c_rest, tc):
 
 def _end_points(settings, T):
     """{frame index: EndPoints} from the settings' hand-set talking portions, or None."""
-    from ..core.solve.retarget import EndPoints
+    from ..core.solve.lip_contours import EndPoints
 
     if not settings.lip_sync or settings.end_points_upper is None or settings.end_points_lower is None:
         return None

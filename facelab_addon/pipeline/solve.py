@@ -327,7 +327,7 @@ def _has_curve_sources(scene, settings, views) -> bool:
 
 def _gather(scene, obj, settings: SolveSettings) -> _SolveInputs:
     from ..core.capture.markers import SurfacePoints
-    from ..core.solve.contours import contour_loops
+    from ..core.solve.contour_loops import contour_loops
 
     require_mesh(obj)
     frames = frame_range(scene, settings.frame_start, settings.frame_end)
@@ -449,8 +449,9 @@ def solve_performance(scene, obj, settings: SolveSettings, progress=None) -> Sol
         Bad input (no rig, no views, nothing bound, cameras moving relative to
         the face...) or no frame could be solved; nothing is written then.
     """
-    from ..core.solve.blendshape_solve import BlendshapeSolver, OutOfSubspaceCorrective
-    from ..core.solve.blendshape_solve import solve_performance as core_solve
+    from ..core.solve.blendshape_solve import BlendshapeSolver
+    from ..core.solve.corrective import OutOfSubspaceCorrective
+    from ..core.solve.performance import solve_performance as core_solve
 
     t0 = time.perf_counter()
     g = _gather(scene, obj, settings)

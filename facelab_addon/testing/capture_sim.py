@@ -246,7 +246,7 @@ def make_capture(model, *, names=None, n_frames: int = 30, n_markers: int = 80, 
         "gap" when positive, "cross" when negative), varying smoothly over
         the sequence as ``sin``. 0: the truth is inside the rig's span.
     curves : bool
-        Also produce the tracked contour curves (needs ``core.solve.contours``).
+        Also produce the tracked contour curves (needs ``core.solve.contour_loops``).
     cameras : list of Camera, optional
         Default :func:`helmet_cameras` scaled to the model.
     ranges : dict name -> (lo, hi), optional
@@ -293,7 +293,7 @@ def make_capture(model, *, names=None, n_frames: int = 30, n_markers: int = 80, 
             noisy[t, ci, bad] = np.nan
     tracked = None
     if curves:
-        from ..core.solve.contours import ict_contour_loops, synthetic_tracked_curves
+        from .contour_truth import ict_contour_loops, synthetic_tracked_curves
 
         loops = ict_contour_loops(model)
         tracked = [synthetic_tracked_curves(truth[t], F, cams, loops) for t in range(n_frames)]

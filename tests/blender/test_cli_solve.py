@@ -29,7 +29,7 @@ def addon():
 @pytest.fixture(scope="module")
 def shots(ict, addon, tmp_path_factory):
     """SHOT.blend (views, tracks, no bindings, a creature, a mesh without keys) and broken variants."""
-    from facelab_addon.core.solve.retarget import widen_mouth
+    from facelab_addon.testing.creature import widen_mouth
     from facelab_addon.testing.synthetic import ICT_MOUTH_LOOP
 
     d = tmp_path_factory.mktemp("solve_shot")

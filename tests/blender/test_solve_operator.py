@@ -125,7 +125,8 @@ def build(ict, tmp_path):
 
 def add_contours(ict, scene, obj, views, truth, cams):
     """Inner-lip contours of the truth: a shape-keyed Mask over clip 1, Grease Pencil strokes in camera 2."""
-    from facelab_addon.core.solve.contours import contour_loops, synthetic_tracked_curves
+    from facelab_addon.core.solve.contour_loops import contour_loops
+    from facelab_addon.testing.contour_truth import synthetic_tracked_curves
 
     fixed = ~ict.part_vertex_mask("M_Face")
     eyeballs = {"left": np.flatnonzero(ict.part_vertex_mask("M_ScleraLeft")),
@@ -272,7 +273,7 @@ def test_solve_and_retarget_end_to_end(ict, addon, tmp_path):
     W = W_m
 
     # ---- Retarget to a creature with a wider mouth (same topology)
-    from facelab_addon.core.solve.retarget import widen_mouth
+    from facelab_addon.testing.creature import widen_mouth
 
     neutral = truth[0]
     cre = new_mesh_object("Creature", widen_mouth(neutral, neutral[ICT_MOUTH_LOOP].mean(0), factor=1.5),
@@ -466,7 +467,7 @@ def test_retarget_with_marker_correspondence(ict, addon, tmp_path):
     """Correspondence from empties named like the bound tracks; too few of them is refused."""
     from facelab_addon.blender.bindings import read_bindings
     from facelab_addon.core.capture.markers import SurfacePoints
-    from facelab_addon.core.solve.retarget import widen_mouth
+    from facelab_addon.testing.creature import widen_mouth
     from facelab_addon.pipeline.retarget import retarget
     from facelab_addon.ui.props_solve import retarget_settings
 

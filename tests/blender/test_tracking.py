@@ -399,7 +399,7 @@ def test_sketch_and_annotation_polylines(tmp_path, scene):
 
 
 def test_read_curves_per_view(tmp_path, scene):
-    pytest.importorskip("facelab_addon.core.solve.contours")
+    pytest.importorskip("facelab_addon.core.solve.contour_loops")
     from facelab_addon.blender.strokes import write_stroke_pixels
 
     clip = make_clip(tmp_path)

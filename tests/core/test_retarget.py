@@ -5,18 +5,17 @@ import pytest
 
 from facelab_addon.core.errors import FaceLabError, RegionError
 from facelab_addon.core.geometry.laplacian import uniform_laplacian
-from facelab_addon.core.solve.retarget import (
+from facelab_addon.core.solve.lip_contours import (
     EndPoints,
-    LipSync,
-    Retargeter,
     contour_points,
     end_points_from_vertices,
     lip_contours,
     lip_distances,
     lip_sync_end_points,
-    retarget_performance,
-    widen_mouth,
 )
+from facelab_addon.core.solve.lip_sync import LipSync
+from facelab_addon.core.solve.retarget import Retargeter, retarget_performance
+from facelab_addon.testing.creature import widen_mouth
 
 N = 40  # vertices around the mouth (corners at angles 0 and pi)
 

@@ -77,7 +77,7 @@ def test_retarget_to_the_actor_itself_gives_the_actor_back(ict, solved):
 
 
 def test_hand_set_end_points_and_bad_input(ict, solved):
-    from facelab_addon.core.solve.retarget import widen_mouth
+    from facelab_addon.testing.creature import widen_mouth
     from facelab_addon.testing.synthetic import ICT_MOUTH_LOOP
 
     scene, obj, truth, vs = solved

@@ -1,26 +1,25 @@
-"""Blendshape fit and out-of-subspace corrective from markers and contours.
+"""Per-frame blendshape fit from markers, bundles and contours.
 
 Bhat, Goldenthal, Ye, Mallet, Koperwas 2013, "High fidelity facial animation
 capture and retargeting with contours", §4.1-4.3:
 
 * **Constraints (§4.1).** A marker is a surface point ``x = A V`` (see
-  ``markers.py``). A tracked 2D marker ``m`` in a camera with projection
-  ``Q`` (3x4) gives the residual of Eq. 1, ``(m_x q2ᵀy - q0ᵀy, m_y q2ᵀy -
-  q1ᵀy)`` with ``y = (x, 1)``; a 3D bundle ``p`` gives Eq. 2, ``x - p``.
+  ``core.capture.markers``). A tracked 2D marker ``m`` in a camera with
+  projection ``Q`` (3x4) gives the residual of Eq. 1, ``(m_x q2ᵀy - q0ᵀy,
+  m_y q2ᵀy - q1ᵀy)`` with ``y = (x, 1)``; a 3D bundle ``p`` gives Eq. 2,
+  ``x - p``.
 * **Contours (§4.2).** Tracked inner-lip and eyelid curves are matched to the
-  mesh's occluding contour each frame by ``contours.match_contours``; every
-  matched point lies on a mesh edge and is fitted like a 2D marker (or, for
-  eyelid curves projected on the cornea, like a 3D bundle).
+  mesh's occluding contour each frame by :func:`.matching.match_contours`;
+  every matched point lies on a mesh edge and is fitted like a 2D marker (or,
+  for eyelid curves projected on the cornea, like a 3D bundle).
 * **Blendshape fit (§4.3, Eq. 3).** ``min_w sum_i omega_i E_i(w)`` subject to
   ``-1 <= w <= 1`` with marker and contour weights ``omega = 1``: a bounded
-  linear least-squares problem, solved here by a primal active-set method on
-  the ``S x S`` normal equations (warm-started from the previous frame).
-  Correspondence and solve alternate (the paper finds one iteration enough).
-* **Out-of-subspace corrective (§4.3).** A per-frame ``ΔV`` minimising the
-  cotangent-Laplacian energy of ``ΔV`` (weight 1) plus the 2D marker (1),
-  3D bundle (1), 2D contour (0.5) and 3D eyelid curve (0.5) residuals, with
-  the mesh boundary held fixed: a linear least-squares problem solved with the
-  shared ``deform.LaplacianDeformer`` (factored once).
+  linear least-squares problem (:func:`.bounded_lsq.box_least_squares`,
+  warm-started from the previous frame). Correspondence and solve alternate
+  (the paper finds one iteration enough).
+
+The out-of-subspace corrective on top of the fit is in :mod:`.corrective`,
+the whole-sequence loop in :mod:`.performance`.
 
 Implementation notes (deviations, all documented in docs/solve.md):
 
@@ -31,12 +30,9 @@ Implementation notes (deviations, all documented in docs/solve.md):
 * A tiny ridge (``regularization`` times the mean diagonal of the normal
   matrix) makes the weights of shapes no constraint sees (e.g. eye gaze with
   skin markers only) zero instead of arbitrary.
-* The corrective's 2D terms use the linear form of a pixel residual: the
-  distance (scene units) of the surface point to the camera ray through the
-  pixel (``PointConstraints.rays``); ``pixel_units=True`` measures it in pixels.
 
 Conventions: vertices (V,3) float64 scene units; pixels top-left origin,
-y down; cameras ``camera.Camera`` (OpenCV).
+y down; cameras ``core.capture.camera.Camera`` (OpenCV).
 """
 
 from __future__ import annotations
@@ -45,28 +41,18 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.linalg
 
 from ..capture.camera import Camera
 from ..capture.markers import SurfacePoints
 from ..errors import FaceLabError
-from ..geometry.deform import LaplacianDeformer, PointConstraints
-from ..geometry.laplacian import cotangent_laplacian
 from ..geometry.linsolve import small_dense_threads
-from ..geometry.mesh import edge_faces, grow_region, validate_mesh, vertex_adjacency
+from ..geometry.mesh import grow_region, validate_mesh, vertex_adjacency
+from .bounded_lsq import box_least_squares
+from .matching import match_contours
 
-__all__ = [
-    "FrameResult",
-    "PerformanceResult",
-    "BlendshapeSolver",
-    "OutOfSubspaceCorrective",
-    "solve_performance",
-    "box_least_squares",
-    "contour_curve_distance",
-]
+__all__ = ["FrameResult", "BlendshapeSolver"]
 
 
-# --------------------------------------------------------------------------- results
 @dataclass
 class FrameResult:
     """One solved frame.
@@ -75,7 +61,7 @@ class FrameResult:
     ----------
     weights : (S,) float64
         Blendshape weights, inside the bounds.
-    correspondences : list of contours.CurveCorrespondence
+    correspondences : list of CurveCorrespondence
         Contour correspondences used in the last iteration (empty without curves).
     info : dict
         ``iterations``, ``markers_used``, ``markers_offscreen``, ``bundles_used``,
@@ -89,117 +75,6 @@ class FrameResult:
     info: dict = field(default_factory=dict)
 
 
-@dataclass
-class PerformanceResult:
-    """A solved sequence.
-
-    Attributes
-    ----------
-    weights : (T,S) float64
-        Per-frame weights; NaN rows for skipped frames.
-    correctives : (T,V,3) float64 or None
-        Per-frame corrective ``ΔV`` (scene units); zero rows for skipped
-        frames; None when no corrective was asked for.
-    skipped : dict int -> str
-        Frame index -> why it was skipped (no usable data).
-    info : dict
-        ``frames`` (list of per-frame info dicts, None for skipped),
-        ``time_s``, ``offscreen_markers`` {frame: count}.
-    correspondences : list (T) of list of CurveCorrespondence
-        The contour correspondences each frame's final result was fitted to:
-        the blendshape fit's, or with a corrective the corrective's (matched
-        again on the fitted rig, see ``rematch``); empty lists without curves
-        or for skipped frames.
-    """
-
-    weights: np.ndarray
-    correctives: np.ndarray | None
-    skipped: dict
-    info: dict
-    correspondences: list = field(default_factory=list)
-
-
-# --------------------------------------------------------------------------- bounded LS
-def box_least_squares(H, g, lo, hi, w0=None, *, max_iter: int | None = None):
-    """Minimise ``0.5 wᵀHw - gᵀw`` subject to ``lo <= w <= hi`` (H SPD, small).
-
-    A primal active-set method (exact for convex box QPs, finite steps);
-    warm-started from ``w0`` (clipped into the box). Falls back to
-    ``scipy.optimize.lsq_linear`` if it does not converge.
-
-    Parameters
-    ----------
-    H : (S,S) float
-        Normal matrix ``JᵀJ`` (plus ridge), symmetric positive definite.
-    g : (S,) float
-        ``Jᵀb``.
-    lo, hi : (S,) float
-        Bounds.
-    w0 : (S,) float, optional
-        Warm start.
-
-    Returns
-    -------
-    w : (S,) float64
-    n_iter : int
-        Active-set iterations taken.
-    """
-    S = len(g)
-    lo = np.broadcast_to(np.asarray(lo, float), (S,))
-    hi = np.broadcast_to(np.asarray(hi, float), (S,))
-    w = np.zeros(S) if w0 is None else np.clip(np.asarray(w0, float).copy(), lo, hi)
-    at_lo = w <= lo
-    at_hi = w >= hi
-    scale = max(float(np.abs(np.diag(H)).max()), 1e-300)
-    tol = 1e-10 * scale * max(1.0, float(np.abs(hi - lo).max()))
-    max_iter = 6 * S + 10 if max_iter is None else max_iter
-    for it in range(1, max_iter + 1):
-        free = ~(at_lo | at_hi)
-        target = w.copy()
-        if free.any():
-            fi = np.flatnonzero(free)
-            rhs = g[fi] - H[np.ix_(fi, np.flatnonzero(~free))] @ w[~free]
-            Hff = H[np.ix_(fi, fi)]
-            try:
-                c = scipy.linalg.cho_factor(Hff, lower=True, check_finite=False)
-                target[fi] = scipy.linalg.cho_solve(c, rhs, check_finite=False)
-            except np.linalg.LinAlgError:  # singular (no ridge, unobserved shapes): least-norm step
-                target[fi] = np.linalg.lstsq(Hff, rhs, rcond=1e-12)[0]
-        d = target - w
-        # longest feasible step along d
-        with np.errstate(divide="ignore", invalid="ignore"):
-            a_lo = np.where(free & (d < 0), (lo - w) / d, np.inf)
-            a_hi = np.where(free & (d > 0), (hi - w) / d, np.inf)
-        a = np.minimum(a_lo, a_hi)
-        k = int(np.argmin(a))
-        if a[k] < 1.0:
-            w = w + max(a[k], 0.0) * d
-            if a_lo[k] <= a_hi[k]:
-                w[k] = lo[k]
-                at_lo[k] = True
-            else:
-                w[k] = hi[k]
-                at_hi[k] = True
-            continue
-        w = target
-        grad = H @ w - g
-        viol = np.where(at_lo, -grad, 0.0) + np.where(at_hi, grad, 0.0)  # > 0: wants to move inward
-        j = int(np.argmax(viol))
-        if viol[j] <= tol:
-            return np.clip(w, lo, hi), it
-        at_lo[j] = at_hi[j] = False
-    # fallback (should not happen for SPD H)
-    from scipy.optimize import lsq_linear
-
-    ev, U = np.linalg.eigh(0.5 * (H + H.T))
-    ev = np.maximum(ev, 1e-14 * max(float(ev.max()), 1e-300))
-    R = (U * np.sqrt(ev)).T  # RᵀR = H
-    b = (U.T @ g) / np.sqrt(ev)
-    res = lsq_linear(R, b, bounds=(lo, hi), method="bvls")
-    return np.clip(res.x, lo, hi), max_iter
-
-
-# --------------------------------------------------------------------------- helpers
 def _collect_ints(obj, out, depth=0):
     """All integer arrays inside a (nested) loops object (vertex ids)."""
     if depth > 4 or obj is None:
@@ -232,50 +107,6 @@ def _check_cameras(cameras):
     return cams
 
 
-def contour_curve_distance(vertices, cameras, correspondences, curves) -> np.ndarray:
-    """Pixel distance of every 2D contour point to its tracked curve (polyline).
-
-    Unlike the matched-point residual, sliding along the curve is not an
-    error here: this is how far the mesh's contour lies from the drawn curve.
-
-    Parameters
-    ----------
-    vertices : (V,3) float
-    cameras : list of Camera
-    correspondences : list of CurveCorrespondence
-    curves : list of TrackedCurve
-
-    Returns
-    -------
-    (n,) float64
-        Distances (pixels) of all points of the 2D correspondences.
-    """
-    V = np.asarray(vertices, float)
-    by = {(c.name, int(c.camera)): np.asarray(c.pixels, float) for c in curves or []}
-    out = []
-    for cc in correspondences or []:
-        if getattr(cc, "pixels", None) is None or cc.camera < 0 or (cc.name, int(cc.camera)) not in by:
-            continue
-        v, b = np.asarray(cc.vertices), np.asarray(cc.bary, float)
-        X = np.einsum("ck,ckd->cd", b, V[v])
-        out.append(_point_to_polyline(cameras[cc.camera].project(X), by[(cc.name, int(cc.camera))]))
-    return np.concatenate(out) if out else np.zeros(0)
-
-
-def _point_to_polyline(p, poly):
-    """(n,) distance of points p (n,2) to the polyline poly (k,2)."""
-    poly = np.asarray(poly, float)
-    if len(poly) == 1:
-        return np.linalg.norm(p - poly[0], axis=1)
-    a, b = poly[:-1], poly[1:]
-    ab = b - a
-    L2 = np.maximum((ab * ab).sum(1), 1e-300)
-    t = np.clip(((p[:, None, :] - a[None]) * ab[None]).sum(-1) / L2[None], 0, 1)
-    q = a[None] + t[..., None] * ab[None]
-    return np.sqrt(((p[:, None, :] - q) ** 2).sum(-1)).min(axis=1)
-
-
-# --------------------------------------------------------------------------- solver
 class BlendshapeSolver:
     """Per-frame bounded least-squares blendshape fit (Bhat et al. 2013, §4.3, Eq. 3).
 
@@ -293,7 +124,7 @@ class BlendshapeSolver:
         every camera's pixel array is marker ``j``). Unbound rows are ignored.
     bundles : SurfacePoints or None
         The B bundles' surface bindings.
-    loops : contours.ContourLoops or None
+    loops : ContourLoops or None
         Candidate contour loops (needed to use tracked curves).
     bounds : (lo, hi)
         Weight bounds (paper: -1, 1); scalars or (S,) arrays.
@@ -302,7 +133,7 @@ class BlendshapeSolver:
     regularization : float
         Ridge, relative to the mean diagonal of the normal matrix.
     eyelids : {"3d", "2d", "both"}
-        How eyelid curves are fitted (``contours.match_contours``): lifted
+        How eyelid curves are fitted (:func:`.matching.match_contours`): lifted
         onto the eyeball as 3D targets (paper), as 2D curves, or both.
     contour_huber_px : float or None
         Huber threshold (pixels) on the inner-lip contour points: after the
@@ -391,7 +222,7 @@ class BlendshapeSolver:
         Parameters
         ----------
         weights : (S,) float
-        curves : list of contours.TrackedCurve
+        curves : list of TrackedCurve
         sliding : bool
             Re-select and re-match (True); False keeps ``previous``'s
             surface points and re-reads only the targets.
@@ -404,14 +235,12 @@ class BlendshapeSolver:
         list of CurveCorrespondence
             3D eyelid targets are lifted with the lids' heights on this mesh.
         """
-        from .contours import match_contours
-
         if not curves:
             return []
         if self.loops is None:
             raise FaceLabError(
                 "Tracked curves were given but the solver has no contour loops; build them with "
-                "contours.contour_loops(rest_vertices, faces) and pass loops= to BlendshapeSolver."
+                "contour_loops(rest_vertices, faces) and pass loops= to BlendshapeSolver."
             )
         V = self._partial_vertices(np.asarray(weights, float)) if vertices is None else np.asarray(vertices, float)
         return match_contours(V, self.faces, self.cameras, curves, self.loops, sliding=sliding,
@@ -502,7 +331,7 @@ class BlendshapeSolver:
             tracked. Off-screen pixels are dropped (counted in ``info``).
         bundles : (B,3) float or None
             Bundle positions, scene units; NaN rows are missing.
-        curves : list of contours.TrackedCurve or None
+        curves : list of TrackedCurve or None
             Tracked inner-lip / eyelid curves of this frame.
         previous : FrameResult, optional
             The previous frame: warm start of the weights and initial contour
@@ -529,7 +358,7 @@ class BlendshapeSolver:
         if curves and self.loops is None:
             raise FaceLabError(
                 "Tracked curves were given but the solver has no contour loops; build them with "
-                "contours.contour_loops(rest_vertices, faces) and pass loops= to BlendshapeSolver."
+                "contour_loops(rest_vertices, faces) and pass loops= to BlendshapeSolver."
             )
         if not md and bd is None and not use_curves:
             raise FaceLabError("This frame has no tracked markers, bundles or curves; nothing to fit.")
@@ -545,8 +374,6 @@ class BlendshapeSolver:
             n_it = max(1, int(iterations)) if use_curves else max(2, int(iterations))  # markers: re-linearise once
             for it in range(n_it):
                 if use_curves:
-                    from .contours import match_contours
-
                     Vc = self._partial_vertices(w)
                     # sliding: select and match afresh on the current mesh (a previous loop would win silhouette
                     # ties against the loop closest to the curve); fixed: keep the previous assignment
@@ -678,290 +505,3 @@ class BlendshapeSolver:
             e2.append(np.linalg.norm(self.cameras[cc.camera].project(x) - np.asarray(cc.pixels, float), axis=1))
         out["contour_rms_px"] = float(np.sqrt(np.mean(np.concatenate(e2) ** 2))) if e2 else float("nan")
         return out
-
-
-# --------------------------------------------------------------------------- corrective
-class OutOfSubspaceCorrective:
-    """Per-frame out-of-subspace corrective ``ΔV`` (Bhat et al. 2013, §4.3).
-
-    Minimises ``laplacian_weight |L ΔV|^2`` (cotangent Laplacian of the
-    neutral) plus ``damping |ΔV|^2`` plus the marker-ray, bundle, contour and
-    eyelid 3D terms on ``V_blend + ΔV``, with ``ΔV = 0`` on ``boundary``.
-    Factored once here; per-frame solves reuse the factor and the cached
-    Woodbury columns.
-
-    Units: ``L`` has dimensionless cotangent weights, so ``|L ΔV|``, the
-    ray / plane distances and ``|ΔV|`` are all scene-unit lengths and the
-    weights' balance does not depend on the scene scale (centimetres on
-    ICT-FaceKit, metres elsewhere). It does depend on the mesh resolution:
-    ``|L ΔV|`` of a smooth displacement shrinks with the edge length squared,
-    so ``damping`` (and the data weights) gain relative to the Laplacian on
-    denser meshes.
-
-    Parameters
-    ----------
-    neutral : (V,3) float
-    faces : (F,3) int
-    cameras : list of Camera
-    markers, bundles : SurfacePoints or None
-        As for :class:`BlendshapeSolver`.
-    boundary : (V,) bool, optional
-        Vertices held fixed (``ΔV = 0``). Default: the mesh border plus every
-        connected component no marker or bundle lies on.
-    marker_weight, bundle_weight, contour_weight, eyelid_weight, laplacian_weight : float
-        Energy weights (paper: 1, 1, 0.5, 0.5, 1).
-    damping : float
-        Weight of ``|ΔV|^2`` (not in the paper, whose energy has only the
-        Laplacian): keeps the corrective local. With the Laplacian alone a
-        constraint that the rig cannot meet (an eyelid target, a lip
-        silhouette) bends the whole free surface, since the 80 or so marker
-        rays pin it only sideways; on ICT-FaceKit (benchmark) that doubled
-        the error away from the eyes and mouth. 0.01 (default) keeps the
-        correction within about a centimetre of its constraints on ICT; 0
-        is the paper's energy.
-    contour_metric : {'plane', 'ray'}
-        How a 2D contour point is tied to its tracked pixel. ``'ray'``: the
-        distance to the pixel's camera ray (the paper's Eq. 1 in 3D).
-        ``'plane'`` (default): the distance to the plane through the ray and
-        the curve's image tangent, i.e. the silhouette residual along the
-        curve normal only. That plane is the surface's tangent plane at the
-        true occluding contour, so it stays right when the rig's silhouette
-        sits on a neighbouring edge ring or at another depth, where pulling
-        the rig's ring point onto the ray (from two cameras: onto the rays'
-        intersection, off the surface) bends the lip.
-        (ICT benchmark: inner-lip error 0.30 mm vs 0.32 with rays.)
-    warm_vertices : (k,) int, optional
-        Vertices whose Woodbury columns are computed up front (e.g. all
-        candidate contour-loop vertices), so the first frames are not slower.
-    pixel_units : bool
-        False (default, the paper's form): 2D marker / contour terms are
-        scene-unit distances to the camera rays; with the dimensionless
-        cotangent Laplacian the balance does not depend on the scene scale.
-        True: the distances are converted to pixels (times ``f / depth``),
-        which weights the 2D terms ~(f/depth)^2 more: tighter contours, but
-        the corrective then also fits the marker noise.
-    """
-
-    def __init__(self, neutral, faces, cameras, markers: SurfacePoints | None, bundles: SurfacePoints | None, *,
-                 boundary=None, marker_weight: float = 1.0, bundle_weight: float = 1.0,
-                 contour_weight: float = 0.5, eyelid_weight: float = 0.5, laplacian_weight: float = 1.0,
-                 warm_vertices=None, pixel_units: bool = False, damping: float = 0.01,
-                 contour_metric: str = "plane"):
-        V0, F = validate_mesh(neutral, faces, name="neutral mesh")
-        self.neutral, self.faces = V0, F
-        self.cameras = _check_cameras(cameras)
-        self.markers, self.bundles = markers, bundles
-        self.marker_weight = float(marker_weight)
-        self.bundle_weight = float(bundle_weight)
-        self.contour_weight = float(contour_weight)
-        self.eyelid_weight = float(eyelid_weight)
-        self.pixel_units = bool(pixel_units)
-        if contour_metric not in ("plane", "ray"):
-            raise FaceLabError(f"contour_metric must be 'plane' or 'ray', got {contour_metric!r}.")
-        self.contour_metric = contour_metric
-        n = len(V0)
-        if boundary is None:
-            boundary = self.default_boundary(V0, F, markers, bundles)
-        boundary = np.asarray(boundary, bool)
-        if boundary.shape != (n,):
-            raise FaceLabError(f"The boundary mask must have one entry per vertex ({n}), got {boundary.shape}.")
-        self.boundary = boundary
-        L = cotangent_laplacian(V0, F)
-        t0 = time.perf_counter()
-        self.damping = float(damping)
-        self.deformer = LaplacianDeformer(L, lambda_reg=float(laplacian_weight), pos_weights=self.damping,
-                                          pinned=boundary)
-        self.factor_time_s = time.perf_counter() - t0
-        if warm_vertices is not None:
-            wv = np.unique(np.asarray(warm_vertices, np.int64))
-            wv = wv[~boundary[wv]]
-            if len(wv):
-                self.deformer.solve(V0, constraints=PointConstraints.points(wv, V0[wv], 1e-3))
-
-    @staticmethod
-    def default_boundary(vertices, faces, markers=None, bundles=None) -> np.ndarray:
-        """(V,) bool: mesh-border vertices plus components no marker/bundle touches."""
-        from scipy.sparse.csgraph import connected_components
-
-        n = len(vertices)
-        edges, ef = edge_faces(faces)
-        b = np.zeros(n, bool)
-        b[edges[(ef < 0).any(axis=1)].ravel()] = True
-        _, lab = connected_components(vertex_adjacency(faces, n), directed=False)
-        used = np.zeros(n, bool)
-        for p in (markers, bundles):
-            if p is not None and len(p):
-                used[p.vertices[p.bound].ravel()] = True
-        keep = np.isin(lab, np.unique(lab[used])) if used.any() else np.ones(n, bool)
-        return b | ~keep
-
-    def _px_scale(self, cam, X):
-        """(n,) squared pixels per squared scene unit at points X, or 1 without ``pixel_units``."""
-        if not self.pixel_units:
-            return 1.0
-        z = np.maximum(cam.depth(X), 1e-12)
-        f = 0.5 * (cam.K[0, 0] + cam.K[1, 1])
-        return (f / z) ** 2
-
-    def constraints(self, vertices_blend, markers_px, bundles, correspondences) -> PointConstraints | None:
-        """The frame's point constraints (marker rays, bundles, contour rays, eyelid points)."""
-        Vb = np.asarray(vertices_blend, float)
-        items = []
-        if self.markers is not None and markers_px is not None:
-            mp = np.asarray(markers_px, float)
-            if mp.ndim == 2:
-                mp = mp[None]
-            ok = self.markers.bound
-            for c, cam in enumerate(self.cameras):
-                sel = np.flatnonzero(np.isfinite(mp[c]).all(axis=1) & cam.in_frame(mp[c]) & ok)
-                if len(sel):
-                    o, d = cam.rays(mp[c, sel])
-                    s = self.marker_weight * self._px_scale(cam, self.markers.subset(sel).evaluate(Vb))
-                    items.append(PointConstraints.rays(self.markers.vertices[sel], o, d, s,
-                                                       bary=self.markers.bary[sel]))
-        if self.bundles is not None and bundles is not None:
-            b = np.asarray(bundles, float).reshape(-1, 3)
-            sel = np.flatnonzero(np.isfinite(b).all(axis=1) & self.bundles.bound)
-            if len(sel):
-                items.append(PointConstraints.points(self.bundles.vertices[sel], b[sel], self.bundle_weight,
-                                                     bary=self.bundles.bary[sel]))
-        for cc in correspondences or []:
-            v = np.asarray(cc.vertices, np.int64)
-            bb = np.asarray(cc.bary, float)
-            if getattr(cc, "pixels", None) is not None and cc.camera >= 0:
-                cam = self.cameras[cc.camera]
-                o, d = cam.rays(np.asarray(cc.pixels, float))
-                s = self.contour_weight * self._px_scale(cam, np.einsum("ck,ckd->cd", bb, Vb[v]))
-                if self.contour_metric == "plane" and len(v) >= 2:
-                    items.append(PointConstraints(v, bb, o, _contour_planes(d), s))
-                else:
-                    items.append(PointConstraints.rays(v, o, d, s, bary=bb))
-            elif getattr(cc, "targets", None) is not None:
-                items.append(PointConstraints.points(v, np.asarray(cc.targets, float), self.eyelid_weight, bary=bb))
-        return PointConstraints.concat(items)
-
-    def solve(self, vertices_blend, markers_px, bundles=None, correspondences=None) -> np.ndarray:
-        """The corrective ``ΔV`` (V,3), scene units (zero on the boundary)."""
-        Vb = np.asarray(vertices_blend, dtype=np.float64)
-        if Vb.shape != self.neutral.shape:
-            raise FaceLabError(f"Expected {len(self.neutral)} vertices, got {Vb.shape}; the topology changed.")
-        C = self.constraints(Vb, markers_px, bundles, correspondences)
-        if C is None:
-            return np.zeros_like(Vb)
-        with small_dense_threads(1):
-            X = self.deformer.solve(Vb, Vb, C)
-        return X - Vb
-
-
-def _contour_planes(d):
-    """(c,3,3) metrics ``n n^T`` of the planes through a curve's camera rays and the curve tangent.
-
-    ``d`` (c,3): the rays' directions, in curve order. The plane through the
-    camera centre that contains the ray of a curve pixel and the curve's
-    image tangent there is the surface's tangent plane at the true occluding
-    contour point (the ray grazes the surface along the contour), so a
-    nearby surface point belongs on it to second order, whichever edge ring
-    the silhouette is on and whatever the depth along the ray: the distance
-    to this plane is the silhouette residual along the curve normal.
-    """
-    d = d / np.linalg.norm(d, axis=1, keepdims=True)
-    tan = np.empty_like(d)
-    tan[1:-1] = d[2:] - d[:-2]
-    tan[0] = d[1] - d[0]
-    tan[-1] = d[-1] - d[-2]
-    n = np.cross(d, tan)
-    nn = np.linalg.norm(n, axis=1, keepdims=True)
-    bad = nn[:, 0] < 1e-12
-    n = n / np.maximum(nn, 1e-300)
-    P = n[:, :, None] * n[:, None, :]
-    if bad.any():  # repeated pixels: fall back to the ray distance there
-        P[bad] = np.eye(3)[None] - d[bad, :, None] * d[bad, None, :]
-    return P
-
-
-# --------------------------------------------------------------------------- sequence
-def solve_performance(solver: BlendshapeSolver, corrective: OutOfSubspaceCorrective | None, markers_px,
-                      bundles=None, curves_per_frame=None, *, progress=None, sliding: bool = True,
-                      iterations: int = 1, rematch: bool = True,
-                      corrective_iterations: int = 1) -> PerformanceResult:
-    """Solve a whole sequence, warm-starting every frame from the previous one.
-
-    Parameters
-    ----------
-    solver : BlendshapeSolver
-    corrective : OutOfSubspaceCorrective or None
-    markers_px : (T,C,M,2) float or None
-        NaN where a marker is not tracked.
-    bundles : (T,B,3) float or None
-    curves_per_frame : list (length T) of list of TrackedCurve, or None
-    progress : callable(frame_index, n_frames), optional
-        Called after each frame.
-    sliding, iterations
-        See :meth:`BlendshapeSolver.solve_frame`.
-    rematch : bool
-        Before the corrective, match the contours again on the fitted rig
-        mesh (the blendshape fit's correspondences were built on the
-        iterate before its last solve), so the corrective's targets (and the
-        3D eyelid lifts, which use the lids' current heights) belong to the
-        mesh it corrects. A few ms per frame.
-    corrective_iterations : int
-        Corrective passes; each further pass re-matches the contours on
-        ``V_blend + ΔV`` and solves the corrective again (§4.2's alternation
-        of correspondence and solve, applied to the corrective).
-
-    Returns
-    -------
-    PerformanceResult
-        Frames with nothing to fit are skipped (NaN weights) and listed in
-        ``skipped`` with the reason; the warm start then continues from the
-        last solved frame.
-    """
-    lengths = [len(x) for x in (markers_px, bundles, curves_per_frame) if x is not None]
-    if not lengths:
-        raise FaceLabError("No tracking data: give marker tracks, bundles or curves to solve the performance.")
-    if len(set(lengths)) != 1:
-        raise FaceLabError(f"Tracking inputs cover different numbers of frames {lengths}; pass one entry per frame.")
-    T = lengths[0]
-    V = len(solver.neutral)
-    W = np.full((T, solver.S), np.nan)
-    D = np.zeros((T, V, 3)) if corrective is not None else None
-    skipped, frames, offs, corrs = {}, [], {}, []
-    prev = None
-    t0 = time.perf_counter()
-    for i in range(T):
-        mp = None if markers_px is None else markers_px[i]
-        bd = None if bundles is None else bundles[i]
-        cv = None if curves_per_frame is None else curves_per_frame[i]
-        why = solver.has_data(mp, bd, cv)
-        if why is not None:
-            skipped[i] = why
-            frames.append(None)
-            corrs.append([])
-        else:
-            res = solver.solve_frame(mp, bd, cv, previous=prev, iterations=iterations, sliding=sliding)
-            W[i] = res.weights
-            if res.info.get("markers_offscreen"):
-                offs[i] = res.info["markers_offscreen"]
-            if corrective is not None:
-                t1, c1 = time.perf_counter(), time.process_time()
-                Vb = solver.vertices(res.weights)
-                cc = res.correspondences
-                if rematch and cv:
-                    cc = solver.match(res.weights, cv, sliding=sliding, previous=cc)
-                D[i] = corrective.solve(Vb, mp, bd, cc)
-                for _ in range(max(1, int(corrective_iterations)) - 1):
-                    if not cv:
-                        break
-                    cc = solver.match(res.weights, cv, sliding=sliding, previous=cc, vertices=Vb + D[i])
-                    D[i] = corrective.solve(Vb, mp, bd, cc)
-                res.info["corrective_contour_points"] = int(sum(len(c.vertices) for c in cc))
-                res.info["corrective_time_s"] = time.perf_counter() - t1
-                res.info["corrective_cpu_s"] = time.process_time() - c1
-            frames.append(res.info)
-            corrs.append(res.correspondences if corrective is None else cc)
-            prev = res
-        if progress is not None:
-            progress(i, T)
-    return PerformanceResult(weights=W, correctives=D, skipped=skipped,
-                             info=dict(frames=frames, time_s=time.perf_counter() - t0, offscreen_markers=offs),
-                             correspondences=corrs)
