@@ -105,6 +105,7 @@ def _stats(values, frames):
 # --------------------------------------------------------------------------- the command
 def bind(session, args, obj, frames) -> dict:
     """Bind Tracks when needed; returns the bind part of the summary."""
+    from ..ui import ops_solve
 
     scene = session.scene
     s = scene.facelab_solve
