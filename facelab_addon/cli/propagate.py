@@ -141,8 +141,9 @@ def run(args, session) -> dict:
             raise CliError(f"--bake {args.bake}: the folder {p.parent} does not exist.", EXIT_OUTPUT)
         session.log(f"baking {fmt} to {p}")
         scene.frame_start, scene.frame_end = f0, f1  # the saved scene's range is the baked range
+        frame_done = session.progress(f"bake {fmt}", len(frames))
         bake(obj, np.arange(f0, f1 + 1), p, BakeSettings(format=fmt, overwrite=True),
-             progress=stage_logger(session, f"bake {fmt}"))
+             progress=lambda stage, done, total: frame_done(done - 1, total))
         result["bake"] = str(p)
     result["saved"] = session.save(args.out)
     return result
