@@ -21,7 +21,7 @@ suggests first is corrected too (incremental).
 
 Reported: .blend sizes before/after (uncompressed and zstd), FL_Prop_* keys
 and keyframes written, operator wall time split into its parts (the parts of
-``ops_propagate.propagate`` are wrapped with timers; "self" times add up to
+``pipeline.propagate.propagate`` are wrapped with timers; "self" times add up to
 the wall time), peak RSS of each part and of the process, held-out inner-lip
 error against the truth on the evaluated mesh, the deviation of the evaluated
 mesh from ``LipRegressor.predict``.
@@ -163,10 +163,11 @@ class Timers:
 
 
 def instrument(timers):
-    """Wrap the parts of ``ops_propagate.propagate`` (module attributes it looks up at call time)."""
+    """Wrap the parts of ``pipeline.propagate.propagate`` (module attributes it looks up at call time)."""
     from facelab_addon.blender import caches
     from facelab_addon.core.lips import propagate as cprop
-    from facelab_addon.ui import ops_propagate as op
+    from facelab_addon.pipeline import correctives
+    from facelab_addon.pipeline import propagate as op
 
     timers.patch(caches, "read_captured_frames", "read_captured (frame_set x T)")
     timers.patch(caches, "evaluate_frames", "read_corrected (training frames)",
@@ -174,17 +175,16 @@ def instrument(timers):
     timers.patch(op, "mesh_triangles", "setup: mesh_triangles")
     timers.patch(op, "region_faces", "setup: region_faces")
     timers.patch(op, "rest_vertices", "setup: rest_vertices")
-    timers.patch(op, "_regressor", "regressor (cache lookup)")
     timers.patch(cprop.LipRegressor, "__init__", "regressor: LipRegressor.__init__ (Poisson factor, patches)")
     timers.patch(cprop.LipRegressor, "fit", "regressor: fit")
     timers.patch(cprop.LipRegressor, "add", "regressor: add (incremental)")
     timers.patch(cprop.LipRegressor, "predict", "predict (T frames, in place)")
     timers.patch(cprop.LipRegressor, "extrapolation", "extrapolation score")
     timers.patch(op, "suggest_frames", "suggest_frames (3 markers)")
-    timers.patch(op, "compress", "compress (SVD basis, 0.01 mm)")
-    timers.patch(op, "remove_keys", "write: remove old FL_Prop keys")
-    timers.patch(op, "add_keys_from_deltas", "write: add FL_Prop keys")
-    timers.patch(op, "key_values_bulk", "write: key FL_Prop values")
+    timers.patch(correctives, "compress", "compress (SVD basis, 0.01 mm)")
+    timers.patch(correctives, "remove_keys", "write: remove old FL_Prop keys")
+    timers.patch(correctives, "add_keys_from_deltas", "write: add FL_Prop keys")
+    timers.patch(correctives, "key_values_bulk", "write: key FL_Prop values")
     timers.patch(op, "key_property_bulk", "write: key FL_extrapolation")
 
 
@@ -370,10 +370,14 @@ def main(argv=None):
     import facelab_addon
     from facelab_addon.blender import caches
     from facelab_addon.blender.mesh import mesh_triangles
-    from facelab_addon.blender.shapekeys import add_corrective_key, key_spike, shape_key_sequence
+    from facelab_addon.blender.shapekeys import (
+        add_corrective_key,
+        key_spike,
+        shape_key_sequence,
+    )
     from facelab_addon.core.capture.ict import load_ict
     from facelab_addon.core.lips.suggest import suggest_frames
-    from facelab_addon.ui import ops_propagate as op
+    from facelab_addon.pipeline import propagate as op
 
     out["bpy_version"] = bpy.app.version_string
     out["bpy_import_s"] = round(time.perf_counter() - t0, 2)

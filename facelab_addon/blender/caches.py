@@ -37,6 +37,7 @@ import numpy as np
 
 from ..core.capture import meshcache, pointcache, pointcache_writer
 from ..core.errors import FaceLabError, MeshError
+from ..names import PREFIX
 
 __all__ = [
     "sequence_source",
@@ -45,6 +46,8 @@ __all__ = [
     "read_mesh_cache_frames",
     "read_captured_frames",
     "evaluate_frames",
+    "require_mesh_object",
+    "bake_point_cache_steps",
     "bake_pc2",
     "bake_mdd",
     "bake_alembic",
@@ -52,7 +55,7 @@ __all__ = [
     "scene_fps",
 ]
 
-FACELAB_PREFIXES = ("FL_",)
+FACELAB_PREFIXES = (PREFIX,)
 
 
 # --------------------------------------------------------------------------- helpers
@@ -82,7 +85,8 @@ def scene_fps(scene=None) -> float:
     return float(scene.render.fps) / float(scene.render.fps_base)
 
 
-def _require_mesh_object(obj):
+def require_mesh_object(obj):
+    """Raise ``MeshError`` unless ``obj`` is a mesh object (faces not needed)."""
     if obj is None or obj.type != "MESH":
         raise MeshError("No mesh object: select the captured face mesh.")
     return obj
@@ -251,7 +255,7 @@ def sequence_source(obj, *, ignore_prefixes=FACELAB_PREFIXES) -> str:
         otherwise ``"static"`` (nothing FaceLab recognises; other animation,
         an armature for instance, still works with ``evaluate_frames``).
     """
-    _require_mesh_object(obj)
+    require_mesh_object(obj)
     for md in reversed(obj.modifiers):
         if _msc_active(md):
             return "mesh_sequence_cache"
@@ -360,7 +364,7 @@ def read_mesh_cache_frames(obj, scene_frames, *, modifier=None, mute_shape_keys_
     pointcache.CacheFileError
         Missing/bad file or a vertex count that does not match the mesh.
     """
-    _require_mesh_object(obj)
+    require_mesh_object(obj)
     frames = _frames(scene_frames)
     md = modifier or mesh_cache_modifier(obj)
     if md is None:
@@ -431,7 +435,7 @@ def evaluate_frames(obj, scene_frames, *, mute_shape_keys_prefix=FACELAB_PREFIXE
         When the evaluated vertex count differs from the mesh's on some frame,
         or the object is not in the view layer.
     """
-    _require_mesh_object(obj)
+    require_mesh_object(obj)
     frames = _frames(scene_frames)
     out = np.empty((len(frames), len(obj.data.vertices), 3), dtype=np.float32)
     for i, co in _iter_evaluated(obj, frames, mute_prefixes=mute_shape_keys_prefix, progress=progress):
@@ -487,14 +491,89 @@ def _uniform_step(frames, what):
     return float(steps[0])
 
 
-def _bake(obj, frames, writer, progress):
+def _point_cache_header(frames, fmt) -> dict:
+    """Header keywords of a ``PointCacheWriter`` for ``frames``; raises when the frames do not fit ``fmt``."""
+    if fmt == "PC2":
+        return dict(start_frame=float(frames[0]), sample_rate=_uniform_step(frames, "A PC2 bake"))
+    if fmt == "MDD":
+        if len(frames) > 1 and not (np.diff(frames) > 0).all():
+            raise FaceLabError("An MDD bake needs increasing scene frames.")
+        return dict(times=frames / scene_fps())
+    raise FaceLabError(f"Unknown point-cache format {fmt!r}; bake to 'PC2' or 'MDD'.")
+
+
+def _bake_steps(obj, frames, new_writer, *, mute_prefixes=(), progress=None):
+    """Write the evaluated mesh of every frame; yields ``("baking frame F", i + 1, T)``, returns the path.
+
+    ``new_writer()`` opens the ``PointCacheWriter`` on the first step. Closing
+    the generator early, or an error, aborts the writer (an existing file at
+    the destination stays untouched) and restores the scene frame.
+    """
+    writer = new_writer()
+    it = _iter_evaluated(obj, frames, mute_prefixes=mute_prefixes, progress=progress)
+    ok = False
     try:
-        for _, co in _iter_evaluated(obj, frames, mute_prefixes=(), progress=progress):
+        for i, co in it:
             writer.write(co)
-    except BaseException:
-        writer.abort()
-        raise
+            yield f"baking frame {int(frames[i])}", i + 1, len(frames)
+        ok = True
+    finally:
+        it.close()  # restores the scene frame
+        if not ok:
+            writer.abort()
     return writer.close()
+
+
+def _run(steps):
+    """Run a generator of steps to the end; its return value."""
+    while True:
+        try:
+            next(steps)
+        except StopIteration as stop:
+            return stop.value
+
+
+def bake_point_cache_steps(obj, scene_frames, path, fmt, *, mute_shape_keys_prefix=(), progress=None):
+    """A PC2 or MDD bake of the evaluated mesh of ``obj``, as a generator of one step per frame.
+
+    The arguments are checked at once (errors are raised by this call, before
+    any file is opened); the returned generator opens the file on its first
+    step, yields ``("baking frame F", done, total)`` after each frame and
+    returns the written ``pathlib.Path``. The file is written beside its
+    destination and moved in place at the end, so closing the generator early
+    (a cancel) or an error leaves an existing file untouched; the scene frame
+    is restored either way.
+
+    Parameters
+    ----------
+    obj : bpy.types.Object
+    scene_frames : (T,) array_like of float
+        PC2: increasing, evenly spaced; MDD: increasing.
+    path : str or os.PathLike
+        Destination (``//`` paths are relative to the .blend).
+    fmt : {"PC2", "MDD"}
+    mute_shape_keys_prefix : tuple of str
+        Keys to leave out (default none: the final mesh).
+    progress : callable(i, T), optional
+
+    Returns
+    -------
+    generator
+        Of ``(str, int, int)``; its return value is the ``pathlib.Path``.
+
+    Raises
+    ------
+    MeshError
+        ``obj`` is not a mesh object.
+    FaceLabError
+        Frames unfit for the format (see :func:`bake_pc2`, :func:`bake_mdd`) or an unknown format.
+    """
+    require_mesh_object(obj)
+    frames = _frames(scene_frames)
+    header = _point_cache_header(frames, fmt)
+    dest, n = bpy.path.abspath(os.fspath(path)), len(obj.data.vertices)
+    return _bake_steps(obj, frames, lambda: pointcache_writer.PointCacheWriter(dest, fmt, n, len(frames), **header),
+                       mute_prefixes=_prefixes(mute_shape_keys_prefix), progress=progress)
 
 
 def bake_pc2(obj, scene_frames, path, *, progress=None, mute_shape_keys_prefix=()) -> Path:
@@ -520,15 +599,8 @@ def bake_pc2(obj, scene_frames, path, *, progress=None, mute_shape_keys_prefix=(
     -------
     pathlib.Path
     """
-    _require_mesh_object(obj)
-    frames = _frames(scene_frames)
-    step = _uniform_step(frames, "A PC2 bake")
-    w = pointcache_writer.PointCacheWriter(
-        bpy.path.abspath(os.fspath(path)), "PC2", len(obj.data.vertices), len(frames),
-        start_frame=float(frames[0]), sample_rate=step,
-    )
-    with _muted_shape_keys(obj, mute_shape_keys_prefix):
-        return _bake(obj, frames, w, progress)
+    return _run(bake_point_cache_steps(obj, scene_frames, path, "PC2", progress=progress,
+                                       mute_shape_keys_prefix=mute_shape_keys_prefix))
 
 
 def bake_mdd(obj, scene_frames, path, *, progress=None, mute_shape_keys_prefix=()) -> Path:
@@ -551,16 +623,8 @@ def bake_mdd(obj, scene_frames, path, *, progress=None, mute_shape_keys_prefix=(
     -------
     pathlib.Path
     """
-    _require_mesh_object(obj)
-    frames = _frames(scene_frames)
-    if len(frames) > 1 and not (np.diff(frames) > 0).all():
-        raise FaceLabError("An MDD bake needs increasing scene frames.")
-    w = pointcache_writer.PointCacheWriter(
-        bpy.path.abspath(os.fspath(path)), "MDD", len(obj.data.vertices), len(frames),
-        times=frames / scene_fps(),
-    )
-    with _muted_shape_keys(obj, mute_shape_keys_prefix):
-        return _bake(obj, frames, w, progress)
+    return _run(bake_point_cache_steps(obj, scene_frames, path, "MDD", progress=progress,
+                                       mute_shape_keys_prefix=mute_shape_keys_prefix))
 
 
 def bake_alembic(obj, scene_frames, path, *, evaluation_mode="VIEWPORT") -> Path:
@@ -592,7 +656,7 @@ def bake_alembic(obj, scene_frames, path, *, evaluation_mode="VIEWPORT") -> Path
     FaceLabError
         When the object is hidden or the exporter fails.
     """
-    _require_mesh_object(obj)
+    require_mesh_object(obj)
     frames = _frames(scene_frames)
     start, end = int(math.floor(frames.min())), int(math.ceil(frames.max()))
     out = Path(bpy.path.abspath(os.fspath(path)))
@@ -690,7 +754,7 @@ def cache_to_shape_key_ready(obj, *, directory=None, scene_frames=None, progress
     FaceLabError
         Unsaved .blend and no ``directory``.
     """
-    _require_mesh_object(obj)
+    require_mesh_object(obj)
     src = sequence_source(obj)
     if src in ("mesh_cache", "mesh_sequence_cache") and len(obj.data.polygons) == 0:
         raise MeshError(f"'{obj.name}' has no faces; the Mesh Cache 'Integrate' mode needs faces to carry shape keys.")
@@ -723,11 +787,10 @@ def cache_to_shape_key_ready(obj, *, directory=None, scene_frames=None, progress
     mods = list(obj.modifiers)
     k = mods.index(msc)
     later = [m for m in mods[k + 1 :] if _enabled(m)]
-    w = pointcache_writer.PointCacheWriter(
-        path, "PC2", len(obj.data.vertices), len(frames), start_frame=float(frames[0]), sample_rate=step
-    )
+    n = len(obj.data.vertices)
     with _disabled_modifiers(later):
-        _bake(obj, frames, w, progress)
+        _run(_bake_steps(obj, frames, lambda: pointcache_writer.PointCacheWriter(
+            path, "PC2", n, len(frames), start_frame=float(frames[0]), sample_rate=step), progress=progress))
 
     msc.show_viewport = False
     msc.show_render = False

@@ -62,6 +62,7 @@ from mathutils import Matrix
 
 from ..core.capture.camera import Camera
 from ..core.errors import CameraError, SketchError
+from ..names import SKETCH_OBJECT
 from .camera import evaluated_depsgraph
 
 __all__ = [
@@ -69,12 +70,15 @@ __all__ = [
     "LOWER_LAYER",
     "new_lip_sketch",
     "write_stroke_pixels",
+    "find_sketch_object",
+    "has_lip_sketch",
+    "sketch_keyframes",
     "read_lip_strokes",
 ]
 
 UPPER_LAYER = "Upper lip"
 LOWER_LAYER = "Lower lip"
-DEFAULT_SKETCH_NAME = "FL_LipSketch"
+DEFAULT_SKETCH_NAME = SKETCH_OBJECT
 _LAYER_TINT = {UPPER_LAYER: (1.0, 0.15, 0.1), LOWER_LAYER: (0.1, 0.35, 1.0)}
 _DEFAULT_GP_RADIUS = 0.01  # Blender's implicit point radius when no "radius" attribute exists
 _HOWTO = (
@@ -354,7 +358,19 @@ def write_stroke_pixels(gp_obj, layer_name: str, frame: int, polylines_px, camer
 
 
 # --------------------------------------------------------------------------- read
-def _sketch_object(scene, gp_obj):
+def find_sketch_object(scene, gp_obj=None):
+    """The Grease Pencil lip sketch of ``scene``, or None (the scene annotation may still hold one).
+
+    ``gp_obj`` if given (it must be Grease Pencil), else the active object if
+    it has lip layers, else the one named ``FL_LipSketch``
+    (:data:`facelab_addon.names.SKETCH_OBJECT`), else the first by name with
+    lip layers; without lip layers anywhere, an object of the default name.
+
+    Raises
+    ------
+    SketchError
+        ``gp_obj`` is not a Grease Pencil object.
+    """
     if gp_obj is not None:
         if gp_obj.type != "GREASEPENCIL":
             raise SketchError(
@@ -373,6 +389,26 @@ def _sketch_object(scene, gp_obj):
         if o.name == DEFAULT_SKETCH_NAME:
             return o
     return sorted(candidates, key=lambda o: o.name)[0]
+
+
+def has_lip_sketch(scene, gp_obj=None) -> bool:
+    """Whether :func:`read_lip_strokes` has a sketch to read: ``gp_obj``, a Grease Pencil object
+    with lip layers, or annotation layers named after the lips (cheap enough for ``poll``)."""
+    if gp_obj is not None:
+        return True
+    if any(o.type == "GREASEPENCIL" and _has_lip_layers(o.data) for o in scene.objects):
+        return True
+    ann = getattr(scene, "annotation", None)
+    return ann is not None and any(_label(lay.info) for lay in ann.layers)
+
+
+def sketch_keyframes(gp_obj) -> list:
+    """Sorted scene frames holding a keyframe on the lip layers of the Grease Pencil sketch ``gp_obj``."""
+    frames = set()
+    lips = _lip_layers(gp_obj.data.layers, lambda lay: lay.name)
+    for layer in lips["upper"] + lips["lower"]:
+        frames.update(int(fr.frame_number) for fr in layer.frames)
+    return sorted(frames)
 
 
 def _read_gp_object(obj, camera: Camera, frame: int, depsgraph) -> dict:
@@ -513,7 +549,7 @@ def read_lip_strokes(scene, camera: Camera, frame: int, gp_obj=None, depsgraph=N
         No sketch at all, a lip layer missing or empty on this frame, or
         points at or behind the camera.
     """
-    obj = _sketch_object(scene, gp_obj)
+    obj = find_sketch_object(scene, gp_obj)
     if obj is not None:
         if depsgraph is None:
             depsgraph = evaluated_depsgraph(scene)

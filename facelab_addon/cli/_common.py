@@ -1,7 +1,8 @@
 """Plumbing shared by the subcommands: common options, inputs, the face object, outputs, exit codes.
 
-Nothing here does FaceLab work: the subcommands call the registered operators (``bpy.ops.facelab.*``),
-exactly what the sidebar buttons run, and read the result back from the scene for the JSON summary.
+Nothing here does FaceLab work: the subcommands call the pipelines (``facelab_addon.pipeline``), the
+code the sidebar buttons run, or the registered operators (``bpy.ops.facelab.*``, through
+``Session.call``), and build the JSON summary from what they return.
 """
 
 from __future__ import annotations
@@ -424,13 +425,10 @@ def execute(args) -> int:
 
 
 def _release_solvers() -> None:
-    """Drop the fitted model Propagate keeps between runs: its native Cholesky factor would otherwise
-    outlive the interpreter and nanobind prints a 'leaked instance' warning at exit."""
+    """Collect unreachable objects now, so native solver factors (Cholesky) held in reference cycles are
+    freed before the interpreter exits (nanobind prints a 'leaked instance' warning otherwise)."""
     import gc
 
-    mod = sys.modules.get(__name__.rsplit(".", 2)[0] + ".ui.ops_propagate")
-    if mod is not None and hasattr(mod, "_REGRESSORS"):
-        mod._REGRESSORS.clear()
     gc.collect()
 
 
