@@ -30,15 +30,9 @@ from facelab_addon.blender.strokes import (  # noqa: E402
 from facelab_addon.core.capture.camera import Camera  # noqa: E402
 from facelab_addon.core.errors import CameraError, SketchError  # noqa: E402
 
-pytestmark = pytest.mark.blender
+pytestmark = [pytest.mark.blender, pytest.mark.usefixtures("empty_scene")]  # every test: an empty scene
 
 TOL_PX = 0.01
-
-
-@pytest.fixture(autouse=True)
-def empty_scene():
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    return bpy.context.scene
 
 
 def add_camera(scene, name="Cam"):

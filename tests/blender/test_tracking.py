@@ -42,9 +42,8 @@ def new_camera(name, location=(0, -1, 0), rotation=(math.pi / 2, 0, 0)):
 
 
 @pytest.fixture
-def scene():
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    return bpy.context.scene
+def scene(empty_scene):
+    return empty_scene
 
 
 def add_track(clip, name, markers, offset=(0.0, 0.0)):
