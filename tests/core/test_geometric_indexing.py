@@ -30,14 +30,9 @@ FTOL = 1e-6
 
 
 def plane(n=17):
-    x, y = np.meshgrid(np.linspace(0, 1, n), np.linspace(0, 1, n), indexing="ij")
-    V = np.stack([x, y, np.zeros_like(x)], -1).reshape(-1, 3)
-    F = []
-    for i in range(n - 1):
-        for j in range(n - 1):
-            a, b, c, d = i * n + j, (i + 1) * n + j, (i + 1) * n + j + 1, i * n + j + 1
-            F += [[a, b, c], [a, c, d]]
-    return V, np.array(F)
+    from facelab_addon.testing.meshes import grid_mesh
+
+    return grid_mesh(np.linspace(0, 1, n), np.linspace(0, 1, n))
 
 
 CENTERS = np.array([[0.25, 0.25], [0.75, 0.25], [0.25, 0.75], [0.75, 0.75], [0.5, 0.5], [0.5, 0.15]])
