@@ -412,3 +412,8 @@ def test_grease_pencil_object_wins_over_annotation(empty_scene):
     write_stroke_pixels(obj, "Lower lip", 1, lo, camera)
     got = read_lip_strokes(scene, camera, 1)
     assert_same_polylines(got["upper"], up)
+    assert_same_polylines(got["lower"], lo)
+    # without the Grease Pencil object the (stroke-less) annotation is read instead, and refused
+    bpy.data.objects.remove(obj)
+    with pytest.raises(SketchError, match="no strokes"):
+        read_lip_strokes(scene, camera, 1)

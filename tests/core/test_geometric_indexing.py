@@ -273,7 +273,12 @@ def test_local_geometry_beats_the_blendshape_fit_on_nonlinear_combinations(toy):
         e_lgi.append(np.abs(gi.reconstruct(q) - x).max())
         e_fit.append(np.abs(fit.reconstruct(q) - x).max())
     assert np.mean(e_lgi) < 0.01  # 1 % of the face size
-    assert np.isfinite(e_fit).all()
+    # the comparison the name promises, against the baseline it names. On this toy it does not hold: the fit
+    # of all 17 dataset shapes (pairs and halves included) is closer (measured mean max error 8.4e-4 against
+    # 3.2e-3, on every one of the 8 poses). Reported as an expected failure until the claim holds.
+    if not np.mean(e_lgi) < np.mean(e_fit):
+        pytest.xfail(f"the blendshape fit beats local geometric indexing here: mean max error "
+                     f"{np.mean(e_fit):.2e} vs {np.mean(e_lgi):.2e}")
 
 
 def test_blendshape_fit_recovers_linear_weights_and_soft_bounds():
