@@ -4,7 +4,7 @@ Scene (as ``tests/blender/test_propagate_operator.py``, at scale): the
 ICT-FaceKit face in metres (26,719 vertices) with eight mouth expressions as
 shape keys (jawOpen, mouthClose, mouthFunnel, mouthPucker, mouthSmile_L/R,
 mouthPress_L/R), keyed with ``key_values_bulk`` on N frames of smooth,
-speech-like weights (``benchmarks/propagate.py``'s ``speech_weights``). The
+speech-like weights (``testing.weights.speech_weights``, as ``benchmarks/propagate.py``). The
 capture error is one shape key, ``CaptureError`` (``testing.synthetic.
 lip_error_weights``: the inner lips pulled apart, 1 mm per lip at value 1,
 faded to zero at the border of the ``FL_lips`` group so that the trusted
@@ -33,7 +33,6 @@ Prints one JSON object on stdout; Blender's own output goes to stderr.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import os
 import platform
@@ -189,15 +188,6 @@ def instrument(timers):
 
 
 # --------------------------------------------------------------------------- scene
-def load_speech_weights(n_frames):
-    spec = importlib.util.spec_from_file_location("facelab_bench_propagate", ROOT / "benchmarks" / "propagate.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    names = [n for n, _ in mod.CHANNELS]
-    W = mod.speech_weights(n_frames)
-    return W[:, [names.index(n) for n in EXPR]]
-
-
 def capture_error_weight(W):
     """(T,) CaptureError key value: + gap when the lips should be closed, - crossing when pressed (non-linear)."""
     jaw, close = W[:, 0], W[:, 1]
@@ -207,23 +197,17 @@ def capture_error_weight(W):
 
 
 def build(bpy, ict, frames, W):
-    """The animated capture: expression keys, Auto Regions, then the CaptureError key inside the lip region."""
+    """The animated capture: keyed expressions (``build_ict_face_scene``), Auto Regions, then the CaptureError
+    key inside the lip region."""
     from facelab_addon.blender.mesh import mesh_triangles, vertex_group_mask
-    from facelab_addon.blender.scene import new_mesh_object
     from facelab_addon.blender.shapekeys import add_corrective_key, key_values_bulk
     from facelab_addon.core.geometry.geodesic import geodesic_distance
     from facelab_addon.core.lips import regions
     from facelab_addon.testing import synthetic as syn
+    from facelab_addon.testing.scenes import build_ict_face_scene
 
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    scene = bpy.context.scene
-    scene.frame_start, scene.frame_end = int(frames[0]), int(frames[-1])
-    obj = new_mesh_object("Face", ict.neutral * SCALE, poly_verts=ict.poly_verts, poly_offsets=ict.poly_offsets)
-    bpy.context.view_layer.objects.active = obj
-    obj.select_set(True)
-    obj.shape_key_add(name="Basis", from_mix=False)
-    for name in EXPR:
-        add_corrective_key(obj, name, (ict.expressions[name] - ict.neutral) * SCALE)
+    fs = build_ict_face_scene(ict, EXPR, weights=W, frames=frames, scale=SCALE)
+    scene, obj = fs.scene, fs.obj
     t0 = time.perf_counter()
     assert bpy.ops.facelab.auto_regions() == {"FINISHED"}
     t_regions = time.perf_counter() - t0
@@ -251,7 +235,7 @@ def build(bpy, ict, frames, W):
     kb.slider_min = -2.0  # negative values (lips crossing) would otherwise be clamped to 0 by Blender
     cap_w = capture_error_weight(W)
     assert cap_w.min() >= kb.slider_min and cap_w.max() <= kb.slider_max
-    key_values_bulk(obj, EXPR + ["CaptureError"], frames, np.c_[W, cap_w])
+    key_values_bulk(obj, ["CaptureError"], frames, cap_w[:, None])
     info = dict(auto_regions_s=round(t_regions, 2), error_vertices=int((np.abs(err).max(axis=1) > 0).sum()),
                 lip_vertices=int(lips.sum()), lip_border_vertices=int(len(border)),
                 unfaded_error_outside_lip_interior_mm=round(leak_unfaded, 3))
@@ -378,6 +362,7 @@ def main(argv=None):
     from facelab_addon.core.capture.ict import load_ict
     from facelab_addon.core.lips.suggest import suggest_frames
     from facelab_addon.pipeline import propagate as op
+    from facelab_addon.testing.weights import speech_weights
 
     out["bpy_version"] = bpy.app.version_string
     out["bpy_import_s"] = round(time.perf_counter() - t0, 2)
@@ -385,7 +370,7 @@ def main(argv=None):
     facelab_addon.register()
     ict = load_ict()
     frames = np.arange(1, T + 1)
-    W = load_speech_weights(T)
+    W = speech_weights(T, channels=EXPR)
 
     t0 = time.perf_counter()
     scene, obj, err, cap_w, info = build(bpy, ict, frames, W)

@@ -9,7 +9,7 @@ ground truth:
   sampling of random points in random skin triangles, away from the inner
   mouth and the eyelids, visible from both cameras on the neutral);
 * a smooth ground-truth weight sequence of rig expressions (jaw and lip
-  activity, brows, blinks), values in [-1, 1];
+  activity, brows, blinks; ``weights.spline_weights``), values in [-1, 1];
 * optionally an out-of-subspace lip deformation on top of the truth (the
   rig cannot express it; the corrective should), via
   ``synthetic.inject_lip_error`` with a smoothly varying amount;
@@ -29,12 +29,12 @@ import numpy as np
 
 from ..core.capture.camera import Camera
 from ..core.capture.markers import SurfacePoints, bind_surface_points
+from .weights import spline_weights
 
 __all__ = [
     "SyntheticCapture",
     "helmet_cameras",
     "sample_markers",
-    "weight_sequence",
     "make_capture",
     "DEFAULT_EXPRESSIONS",
 ]
@@ -194,37 +194,6 @@ def sample_markers(vertices, faces, cameras, face_mask, *, n: int = 80, seed: in
     return SurfacePoints(F[cand[chosen]], b[chosen])
 
 
-def weight_sequence(ranges: dict, n_frames: int, *, seed: int = 0, n_keys: int = 6):
-    """Smooth random weight curves (cubic interpolation of random keys).
-
-    Parameters
-    ----------
-    ranges : dict name -> (lo, hi)
-    n_frames : int
-    seed : int
-    n_keys : int
-        Random keys per curve (more: faster motion).
-
-    Returns
-    -------
-    (T, len(ranges)) float64
-        Weights within each range (hence within [-1, 1] for sane ranges).
-    """
-    from scipy.interpolate import CubicSpline
-
-    rng = np.random.default_rng(seed)
-    T = int(n_frames)
-    out = np.zeros((T, len(ranges)))
-    tk = np.linspace(0, max(T - 1, 1), n_keys)
-    t = np.arange(T)
-    for j, (lo, hi) in enumerate(ranges.values()):
-        k = rng.uniform(0, 1, n_keys)
-        k[0] = rng.uniform(0, 0.3)
-        u = np.clip(CubicSpline(tk, k, bc_type="clamped")(t), 0, 1)
-        out[:, j] = lo + (hi - lo) * u
-    return out
-
-
 def make_capture(model, *, names=None, n_frames: int = 30, n_markers: int = 80, noise_px: float = 0.5,
                  seed: int = 0, lip_error_mm: float = 0.0, curves: bool = True, cameras=None,
                  ranges: dict | None = None):
@@ -269,7 +238,7 @@ def make_capture(model, *, names=None, n_frames: int = 30, n_markers: int = 80, 
     eyes = V0[model.part_vertex_mask("M_ScleraLeft", "M_ScleraRight")]
     excl = np.concatenate([V0[ICT_MOUTH_LOOP], eyes])
     markers = sample_markers(V0, F, cams, skin, n=n_markers, seed=seed, exclude=excl, exclude_radius=0.9 * cm)
-    W_sub = weight_sequence(ranges, n_frames, seed=seed + 1)
+    W_sub = spline_weights(ranges, n_frames, seed=seed + 1)
     W = np.zeros((n_frames, len(names)))
     for j, k in enumerate(ranges):
         W[:, names.index(k)] = W_sub[:, j]

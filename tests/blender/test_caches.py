@@ -21,16 +21,10 @@ from facelab_addon.blender import caches  # noqa: E402
 from facelab_addon.core.capture import integrate, meshcache, pointcache, pointcache_writer  # noqa: E402
 from facelab_addon.core.errors import FaceLabError, MeshError  # noqa: E402
 
-pytestmark = pytest.mark.blender
+pytestmark = [pytest.mark.blender, pytest.mark.usefixtures("empty_scene")]  # every test: an empty scene
 
 T = 6
 TOL = 2e-6  # float32 rounding (Integrate mode, axis matrix)
-
-
-@pytest.fixture(autouse=True)
-def empty_scene():
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    return bpy.context.scene
 
 
 def ico(name="Face"):

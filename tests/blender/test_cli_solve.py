@@ -10,20 +10,12 @@ import bpy
 import numpy as np
 import pytest
 
-import facelab_addon
 from facelab_addon.blender.scene import new_mesh_object
 
 from .test_cli import cli
 from .test_solve_operator import EXPR, W_TRUTH, T, build
 
 pytestmark = [pytest.mark.blender, pytest.mark.slow]
-
-
-@pytest.fixture(scope="module")
-def addon():
-    facelab_addon.register()
-    yield
-    facelab_addon.unregister()
 
 
 @pytest.fixture(scope="module")

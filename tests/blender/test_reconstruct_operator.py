@@ -5,13 +5,13 @@ import bpy
 import numpy as np
 import pytest
 
-import facelab_addon
 from facelab_addon.blender.caches import evaluate_frames
 from facelab_addon.blender.mesh import mesh_triangles
 from facelab_addon.blender.scene import new_mesh_object
 from facelab_addon.blender.shapekeys import add_corrective_key
 from facelab_addon.core.lgi.binding import bind_points
 from facelab_addon.core.lgi.indexer import GeometricIndexer
+from facelab_addon.testing.scenes import build_ict_face_scene, keyed_empties
 
 pytestmark = pytest.mark.blender
 
@@ -20,52 +20,26 @@ EXPR = ["jawOpen", "mouthSmile_L", "mouthSmile_R", "mouthFunnel", "browInnerUp_L
         "eyeBlink_L", "eyeBlink_R", "mouthPucker", "cheekPuff_L"]
 
 
-@pytest.fixture(scope="module")
-def addon():
-    facelab_addon.register()
-    yield
-    facelab_addon.unregister()
-
-
 def truth_all(truth, neutral):
     return np.concatenate([neutral[None], truth])
 
 
 def test_reconstruct_from_bundles_end_to_end(ict, addon):
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    scene = bpy.context.scene
     T = 6
-    scene.frame_start, scene.frame_end = 1, T
-    neutral = ict.neutral * SCALE
-    obj = new_mesh_object("Face", neutral, poly_verts=ict.poly_verts, poly_offsets=ict.poly_offsets)
-    obj.shape_key_add(name="Basis", from_mix=False)
-    for n in EXPR:
-        add_corrective_key(obj, n, (ict.expressions[n] - ict.neutral) * SCALE)
-    tris = mesh_triangles(obj.data)
+    fs = build_ict_face_scene(ict, EXPR, frame_range=(1, T), scale=SCALE, select=False)
+    scene, obj, neutral = fs.scene, fs.obj, fs.neutral
     # 40 bundles on the front of the face, bound at the neutral
-    rng = np.random.default_rng(0)
-    face_tris = np.flatnonzero(ict.part_face_mask("M_Face")[: len(tris)] & (neutral[tris].mean(1)[:, 2] > 0.07))
-    pick = rng.choice(face_tris, 40, replace=False)
-    bary = rng.dirichlet([4, 4, 4], 40)
+    tris, pick, bary = front_bundles(ict, obj, 40)
     # truth: each frame is one dataset shape blended with another (the bundles follow it)
     W = np.zeros((T, len(EXPR)))
     for t in range(T):
         W[t, t % len(EXPR)] = 0.6
         W[t, (t + 3) % len(EXPR)] = 0.4
-    shapes = np.stack([(ict.expressions[n] - ict.neutral) * SCALE for n in EXPR])
-    truth = neutral[None] + np.einsum("ts,svd->tvd", W, shapes)
+    truth = neutral[None] + np.einsum("ts,svd->tvd", W, fs.deltas)
     pts = np.einsum("bk,tbkd->tbd", bary, truth[:, tris[pick]])
     pts = np.concatenate([np.einsum("bk,bkd->bd", bary, neutral[tris[pick]])[None], pts])  # frame 0: neutral
     scene.frame_start = 0
-    empties = []
-    for b in range(40):
-        e = bpy.data.objects.new(f"B{b:02d}", None)
-        scene.collection.objects.link(e)
-        for t in range(T + 1):
-            e.location = pts[t, b]
-            e.keyframe_insert("location", frame=t)
-        e.select_set(True)
-        empties.append(e)
+    empties = keyed_empties(scene, pts, select=True)
     bpy.context.view_layer.objects.active = obj
     scene.facelab.face = obj
 
@@ -107,35 +81,17 @@ def test_reconstruct_from_bundles_end_to_end(ict, addon):
 
 
 def _face(ict, name, shapes: dict):
-    """ICT face (metres) with the given shape keys {name: (V,3) positions in cm}."""
-    neutral = ict.neutral * SCALE
-    obj = new_mesh_object(name, neutral, poly_verts=ict.poly_verts, poly_offsets=ict.poly_offsets)
-    obj.shape_key_add(name="Basis", from_mix=False)
-    for n, x in shapes.items():
-        add_corrective_key(obj, n, (x - ict.neutral) * SCALE)
-    return obj
+    """ICT face (metres) added to the current scene, with the given shape keys {name: (V,3) positions in cm}."""
+    return build_ict_face_scene(ict, shapes=shapes, scale=SCALE, name=name, reset=False, select=False).obj
 
 
-def _front_bundles(ict, obj, n, seed=0):
+def front_bundles(ict, obj, n, seed=0):
+    """Triangles of ``obj``, and ``n`` random bundles (triangle ids, barycentrics) on the front of the face."""
     tris = mesh_triangles(obj.data)
     neutral = ict.neutral * SCALE
     rng = np.random.default_rng(seed)
     face_tris = np.flatnonzero(ict.part_face_mask("M_Face")[: len(tris)] & (neutral[tris].mean(1)[:, 2] > 0.07))
     return tris, rng.choice(face_tris, n, replace=False), rng.dirichlet([4, 4, 4], n)
-
-
-def _empties(scene, pts, prefix="B"):
-    """Animated empties: pts (T,B,3) world positions on frames 0..T-1, selected."""
-    out = []
-    for b in range(pts.shape[1]):
-        e = bpy.data.objects.new(f"{prefix}{b:02d}", None)
-        scene.collection.objects.link(e)
-        for t in range(len(pts)):
-            e.location = pts[t, b]
-            e.keyframe_insert("location", frame=t)
-        e.select_set(True)
-        out.append(e)
-    return out
 
 
 @pytest.fixture(scope="module")
@@ -149,14 +105,12 @@ def gen(ict):
 
 
 def _simple_scene(ict, keys, n_bundles=30, T=3):
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    scene = bpy.context.scene
-    scene.frame_start, scene.frame_end = 0, T - 1
-    obj = _face(ict, "Face", {n: ict.expressions[n] for n in keys})
-    tris, pick, bary = _front_bundles(ict, obj, n_bundles)
+    fs = build_ict_face_scene(ict, keys, frame_range=(0, T - 1), scale=SCALE, select=False)
+    scene, obj = fs.scene, fs.obj
+    tris, pick, bary = front_bundles(ict, obj, n_bundles)
     X = np.stack([ict.neutral, ict.pose({keys[0]: 0.5}), ict.pose({keys[1]: 0.7})][:T]) * SCALE
     pts = np.einsum("bk,tbkd->tbd", bary, X[:, tris[pick]])
-    empties = _empties(scene, pts)
+    empties = keyed_empties(scene, pts, select=True)
     bpy.context.view_layer.objects.active = obj
     scene.facelab.face = obj
     return scene, obj, empties, X
@@ -277,7 +231,7 @@ def test_jaw_bone_drives_the_jaw(ict, addon, gen):
                         & moved[tris].all(1))
     rng = np.random.default_rng(3)
     pick, bary = rng.choice(ok, 60, replace=False), rng.dirichlet([4, 4, 4], 60)
-    _empties(scene, np.einsum("bk,tbkd->tbd", bary, truth[:, tris[pick]]))
+    keyed_empties(scene, np.einsum("bk,tbkd->tbd", bary, truth[:, tris[pick]]), select=True)
     # the jaw bone: hinge through the fitted pivot, rotated by each frame's jaw angle
     arm_data = bpy.data.armatures.new("Rig")
     arm = bpy.data.objects.new("Rig", arm_data)

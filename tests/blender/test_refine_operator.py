@@ -4,7 +4,6 @@ import bpy  # noqa: E402  (conftest set BLENDER_USER_RESOURCES)
 import numpy as np
 import pytest
 
-import facelab_addon
 from facelab_addon.blender.camera import camera_from_blender, new_camera_object
 from facelab_addon.blender.mesh import evaluated_vertices, mesh_triangles
 from facelab_addon.blender.scene import new_mesh_object, set_backplate
@@ -16,13 +15,6 @@ pytestmark = pytest.mark.blender
 
 FRAME = 12
 SCALE = 0.01  # ICT centimetres -> metres, as a Blender user would import it
-
-
-@pytest.fixture(scope="module")
-def addon():
-    facelab_addon.register()
-    yield
-    facelab_addon.unregister()
 
 
 def lip_contours(V, F, cam, face_mask, mouth):

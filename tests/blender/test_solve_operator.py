@@ -9,12 +9,12 @@ import bpy
 import numpy as np
 import pytest
 
-import facelab_addon
 from facelab_addon.blender.camera import apply_camera_to_blender
 from facelab_addon.blender.scene import new_mesh_object
-from facelab_addon.blender.shapekeys import add_corrective_key, key_values_bulk
+from facelab_addon.blender.shapekeys import key_values_bulk
 from facelab_addon.blender.strokes import write_stroke_pixels
 from facelab_addon.testing.capture_sim import helmet_cameras, sample_markers
+from facelab_addon.testing.scenes import build_ict_face_scene, keyed_empties
 from facelab_addon.testing.synthetic import ICT_MOUTH_LOOP
 
 pytestmark = pytest.mark.blender
@@ -33,13 +33,6 @@ W_TRUTH = np.array([
 EXTRA_W = np.array([0.0, 0.0, 0.0, 0.7, 0.7])
 SIZE = (540, 960)
 N_MASK_POINTS = 24
-
-
-@pytest.fixture(scope="module")
-def addon():
-    facelab_addon.register()
-    yield
-    facelab_addon.unregister()
 
 
 def _resample(P, n):
@@ -83,17 +76,8 @@ def _px_to_mask(px):
 
 
 def build(ict, tmp_path):
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    scene = bpy.context.scene
-    scene.frame_start, scene.frame_end = 0, T - 1
-    neutral = ict.neutral * SCALE
-    obj = new_mesh_object("Face", neutral, poly_verts=ict.poly_verts, poly_offsets=ict.poly_offsets)
-    obj.shape_key_add(name="Basis", from_mix=False)
-    D = np.stack([(ict.expressions[n] - ict.neutral) * SCALE for n in EXPR])
-    for n, d in zip(EXPR, D):
-        add_corrective_key(obj, n, d)
-    fixed = obj.vertex_groups.new(name="FL_fixed")
-    fixed.add(np.flatnonzero(~ict.part_vertex_mask("M_Face")).tolist(), 1.0, "REPLACE")
+    fs = build_ict_face_scene(ict, EXPR, frame_range=(0, T - 1), scale=SCALE, fixed_group=True, select=False)
+    scene, obj, neutral, D = fs.scene, fs.obj, fs.neutral, fs.deltas
     extra = (ict.expressions[EXTRA] - ict.neutral) * SCALE
     truth = neutral[None] + np.einsum("ts,svd->tvd", W_TRUTH, D) + EXTRA_W[:, None, None] * extra[None]
 
@@ -387,15 +371,8 @@ def test_bundles_bind_and_solve(ict, addon, tmp_path):
     bpy.context.view_layer.objects.active = obj
     scene.facelab.face = obj
     s = scene.facelab_solve
-    coll = bpy.data.collections.new("FL_bundles")
-    scene.collection.children.link(coll)
     P = markers.evaluate(truth)[:, ::2]  # 25 bundles on the truth surface
-    for j in range(P.shape[1]):
-        e = bpy.data.objects.new(f"B{j:02d}", None)
-        coll.objects.link(e)
-        for t in range(T):
-            e.location = P[t, j]
-            e.keyframe_insert("location", frame=t)
+    keyed_empties(scene, P, collection="FL_bundles")
     s.bundles = "EMPTIES"
     assert bpy.ops.facelab.bind_tracks(frame=0) == {"FINISHED"}
     names, bv, bb = read_bindings(obj, "BUNDLE")

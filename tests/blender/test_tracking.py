@@ -1,7 +1,6 @@
 """Movie Clip tracks, clip cameras, masks and contour strokes -> FaceLab pixels (hand-computed values)."""
 
 import math
-import os
 
 import bpy
 import numpy as np
@@ -42,9 +41,8 @@ def new_camera(name, location=(0, -1, 0), rotation=(math.pi / 2, 0, 0)):
 
 
 @pytest.fixture
-def scene():
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    return bpy.context.scene
+def scene(empty_scene):
+    return empty_scene
 
 
 def add_track(clip, name, markers, offset=(0.0, 0.0)):
@@ -231,7 +229,6 @@ def test_clip_bundles_needs_a_solve(scene, tmp_path):
 def test_clip_bundles_and_intrinsics_agree_with_blenders_camera_solve(scene, tmp_path):
     """Blender's own solver (libmv) on synthetic tracks with an off-centre principal point: its bundles, seen by its
     reconstructed cameras through FaceLab's clip intrinsics, land on the markers FaceLab reads."""
-    from facelab_addon.core.capture.camera import Camera
 
     w, h, n = 320, 240, 12
     clip = make_clip(tmp_path, n=n, size=(w, h))

@@ -29,13 +29,6 @@ def op_class(name):
     return getattr(bpy.types, "FACELAB_OT_" + name)
 
 
-@pytest.fixture(scope="module")
-def addon():
-    facelab_addon.register()
-    yield
-    facelab_addon.unregister()
-
-
 def empty_scene():
     bpy.ops.wm.read_factory_settings(use_empty=True)
     return bpy.context.scene

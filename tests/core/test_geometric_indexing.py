@@ -27,14 +27,9 @@ FTOL = 1e-6
 
 
 def plane(n=17):
-    x, y = np.meshgrid(np.linspace(0, 1, n), np.linspace(0, 1, n), indexing="ij")
-    V = np.stack([x, y, np.zeros_like(x)], -1).reshape(-1, 3)
-    F = []
-    for i in range(n - 1):
-        for j in range(n - 1):
-            a, b, c, d = i * n + j, (i + 1) * n + j, (i + 1) * n + j + 1, i * n + j + 1
-            F += [[a, b, c], [a, c, d]]
-    return V, np.array(F)
+    from facelab_addon.testing.meshes import grid_mesh
+
+    return grid_mesh(np.linspace(0, 1, n), np.linspace(0, 1, n))
 
 
 CENTERS = np.array([[0.25, 0.25], [0.75, 0.25], [0.25, 0.75], [0.75, 0.75], [0.5, 0.5], [0.5, 0.15]])
@@ -275,7 +270,12 @@ def test_local_geometry_beats_the_blendshape_fit_on_nonlinear_combinations(toy):
         e_lgi.append(np.abs(gi.reconstruct(q) - x).max())
         e_fit.append(np.abs(fit.reconstruct(q) - x).max())
     assert np.mean(e_lgi) < 0.01  # 1 % of the face size
-    assert np.isfinite(e_fit).all()
+    # the comparison the name promises, against the baseline it names. On this toy it does not hold: the fit
+    # of all 17 dataset shapes (pairs and halves included) is closer (measured mean max error 8.4e-4 against
+    # 3.2e-3, on every one of the 8 poses). Reported as an expected failure until the claim holds.
+    if not np.mean(e_lgi) < np.mean(e_fit):
+        pytest.xfail(f"the blendshape fit beats local geometric indexing here: mean max error "
+                     f"{np.mean(e_fit):.2e} vs {np.mean(e_lgi):.2e}")
 
 
 def test_blendshape_fit_recovers_linear_weights_and_soft_bounds():

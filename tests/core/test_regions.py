@@ -3,7 +3,6 @@
 import numpy as np
 import pytest
 
-from facelab_addon.core.errors import DataMissingError
 from facelab_addon.core.geometry import geodesic
 from facelab_addon.core.geometry.mesh import vertex_adjacency
 from facelab_addon.core.lips import lip_loop, regions
@@ -11,15 +10,9 @@ from facelab_addon.core.lips.regions import RegionError
 
 
 def grid(n=7, m=None):
-    m = n if m is None else m
-    x, y = np.meshgrid(np.arange(n, dtype=float), np.arange(m, dtype=float), indexing="ij")
-    V = np.stack([x, y, np.zeros_like(x)], -1).reshape(-1, 3)
-    F = []
-    for i in range(n - 1):
-        for j in range(m - 1):
-            a, b, c, d = i * m + j, (i + 1) * m + j, (i + 1) * m + j + 1, i * m + j + 1
-            F += [[a, b, c], [a, c, d]]
-    return V, np.array(F)
+    from facelab_addon.testing.meshes import grid_mesh
+
+    return grid_mesh(np.arange(n, dtype=float), np.arange(n if m is None else m, dtype=float))
 
 
 def tube(n_around=12, n_up=4):
@@ -124,15 +117,10 @@ def test_no_mouth_raises():
 
 
 @pytest.fixture(scope="module")
-def ict():
-    from facelab_addon.core.capture.ict import load_ict
-
-    try:
-        m = load_ict()
-    except DataMissingError as e:  # pragma: no cover
-        pytest.skip(str(e))
-    mouth, lip, dist, loop = regions.auto_regions(m.neutral, m.faces, return_distance=True)
-    return m, loop, mouth, lip
+def ict_regions(ict):
+    """The ICT model and its Auto Regions: (model, inner-lip loop, mouth vertex mask, lip vertex mask)."""
+    mouth, lip, dist, loop = regions.auto_regions(ict.neutral, ict.faces, return_distance=True)
+    return ict, loop, mouth, lip
 
 
 def halves(V, loop):
@@ -140,8 +128,8 @@ def halves(V, loop):
     return loop[a : b + 1], np.r_[loop[b:], loop[: a + 1]]
 
 
-def test_ict_inner_lip_loop_is_the_contact_line(ict):
-    m, loop, _, _ = ict
+def test_ict_inner_lip_loop_is_the_contact_line(ict_regions):
+    m, loop, _, _ = ict_regions
     V, F = m.neutral, m.faces
     A = vertex_adjacency(F, len(V))
     assert len(np.unique(loop)) == len(loop) > 40
@@ -158,8 +146,8 @@ def test_ict_inner_lip_loop_is_the_contact_line(ict):
     assert abs(V[h1, 1].mean() - V[h2, 1].mean()) < 0.2
 
 
-def test_ict_loop_is_invariant_to_units_rotation_and_vertex_order(ict):
-    m, loop, _, _ = ict
+def test_ict_loop_is_invariant_to_units_rotation_and_vertex_order(ict_regions):
+    m, loop, _, _ = ict_regions
     rng = np.random.default_rng(3)
     perm = rng.permutation(len(m.neutral))  # new vertex i is old vertex perm[i]
     inv = np.argsort(perm)
@@ -169,8 +157,8 @@ def test_ict_loop_is_invariant_to_units_rotation_and_vertex_order(ict):
     assert set(perm[got].tolist()) == set(loop.tolist())
 
 
-def test_ict_auto_regions(ict):
-    m, loop, mouth, lip = ict
+def test_ict_auto_regions(ict_regions):
+    m, loop, mouth, lip = ict_regions
     V, F = m.neutral, m.faces
     assert lip[loop].all() and not (mouth & ~lip)[loop].any()
     mf, lf = regions.faces_in_region(F, mouth), regions.faces_in_region(F, lip)
