@@ -8,7 +8,6 @@ import bpy
 import numpy as np
 import pytest
 
-import facelab_addon
 from facelab_addon.blender import caches
 from facelab_addon.blender.mesh import mesh_triangles, vertex_group_mask
 from facelab_addon.blender.shapekeys import (
@@ -45,13 +44,6 @@ from ..blender.test_propagate_operator import FRAMES, SCALE, TRAIN, build
 pytestmark = pytest.mark.blender
 
 HELD = [2, 11, 24, 37]
-
-
-@pytest.fixture(scope="module")
-def addon():
-    facelab_addon.register()
-    yield
-    facelab_addon.unregister()
 
 
 def corrected_scene(ict, train=TRAIN):

@@ -7,7 +7,6 @@ import bpy
 import numpy as np
 import pytest
 
-import facelab_addon
 from facelab_addon.blender.caches import evaluate_frames
 from facelab_addon.blender.mesh import mesh_triangles
 from facelab_addon.blender.shapekeys import rest_vertices
@@ -20,17 +19,11 @@ from facelab_addon.pipeline.reconstruct import (
     parse_combinations,
     reconstruct_from_bundles,
 )
+from facelab_addon.testing.scenes import keyed_empties
 
-from ..blender.test_reconstruct_operator import EXPR, SCALE, _face, _front_bundles
+from ..blender.test_reconstruct_operator import EXPR, SCALE, _face, front_bundles
 
 pytestmark = pytest.mark.blender
-
-
-@pytest.fixture(scope="module")
-def addon():
-    facelab_addon.register()
-    yield
-    facelab_addon.unregister()
 
 
 def _shot(ict, keys, weights):
@@ -40,17 +33,10 @@ def _shot(ict, keys, weights):
     scene = bpy.context.scene
     scene.frame_start, scene.frame_end = 0, len(weights) - 1
     obj = _face(ict, "Face", {n: ict.expressions[n] for n in keys})
-    tris, pick, bary = _front_bundles(ict, obj, 30)
+    tris, pick, bary = front_bundles(ict, obj, 30)
     truth = np.stack([ict.pose(w) for w in weights]) * SCALE
     pts = np.einsum("bk,tbkd->tbd", bary, truth[:, tris[pick]])
-    empties = []
-    for b in range(pts.shape[1]):
-        e = bpy.data.objects.new(f"B{b:02d}", None)
-        scene.collection.objects.link(e)
-        for t in range(len(pts)):
-            e.location = pts[t, b]
-            e.keyframe_insert("location", frame=t)
-        empties.append(e)
+    empties = keyed_empties(scene, pts)
     return scene, obj, empties, truth, pts
 
 
@@ -66,7 +52,7 @@ def test_reconstruct_passes_through_the_bundles_and_recovers_the_poses(ict, addo
     assert r.keys and [kb.name for kb in obj.data.shape_keys.key_blocks if kb.name.startswith(RECONSTRUCT_PREFIX)] \
         == r.keys
     got = evaluate_frames(obj, range(4), mute_shape_keys_prefix=())
-    tris, pick, bary = _front_bundles(ict, obj, 30)
+    tris, pick, bary = front_bundles(ict, obj, 30)
     surf = np.einsum("bk,tbkd->tbd", bary, got[:, tris[pick]])
     print(f"through the bundles: {np.abs(surf - pts).max() * 1e3:.4f} mm")
     assert np.abs(surf - pts).max() < 2e-5

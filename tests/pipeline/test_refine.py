@@ -6,7 +6,6 @@ import bpy
 import numpy as np
 import pytest
 
-import facelab_addon
 from facelab_addon.blender.camera import camera_from_blender
 from facelab_addon.blender.mesh import evaluated_vertices, mesh_triangles
 from facelab_addon.blender.strokes import new_lip_sketch, write_stroke_pixels
@@ -18,13 +17,6 @@ from facelab_addon.pipeline.refine import RefineResult, RefineSettings, refine
 from ..blender.test_refine_operator import FRAME, scene_setup
 
 pytestmark = pytest.mark.blender
-
-
-@pytest.fixture(scope="module")
-def addon():
-    facelab_addon.register()
-    yield
-    facelab_addon.unregister()
 
 
 def sketched(tmp_path, ict, lower=True):

@@ -5,7 +5,6 @@ the inner-lip loop from a selection."""
 import numpy as np
 import pytest
 
-import facelab_addon
 from facelab_addon.blender.mesh import mesh_triangles, vertex_group_mask
 from facelab_addon.blender.scene import new_mesh_object
 from facelab_addon.core.errors import RegionError
@@ -16,13 +15,6 @@ from facelab_addon.pipeline.regions import RegionSettings, auto_regions, region_
 pytestmark = pytest.mark.blender
 
 SCALE = 0.01
-
-
-@pytest.fixture(scope="module")
-def addon():
-    facelab_addon.register()
-    yield
-    facelab_addon.unregister()
 
 
 def face(ict):

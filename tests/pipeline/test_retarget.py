@@ -5,7 +5,6 @@ back; hand-set lip end points reach the core on every frame; a topology mismatch
 import numpy as np
 import pytest
 
-import facelab_addon
 from facelab_addon.blender.actions import curve_values
 from facelab_addon.blender.scene import new_mesh_object
 from facelab_addon.blender.tracking import View
@@ -22,13 +21,6 @@ from facelab_addon.pipeline.solve import (
 from ..blender.test_solve_operator import EXPR, T, build
 
 pytestmark = pytest.mark.blender
-
-
-@pytest.fixture(scope="module")
-def addon():
-    facelab_addon.register()
-    yield
-    facelab_addon.unregister()
 
 
 @pytest.fixture(scope="module")

@@ -7,7 +7,6 @@ import bpy
 import numpy as np
 import pytest
 
-import facelab_addon
 from facelab_addon.blender.actions import curve_values
 from facelab_addon.blender.bindings import read_bindings
 from facelab_addon.blender.tracking import View
@@ -24,13 +23,6 @@ from facelab_addon.pipeline.solve import (
 from ..blender.test_solve_operator import EXPR, W_TRUTH, T, build
 
 pytestmark = pytest.mark.blender
-
-
-@pytest.fixture(scope="module")
-def addon():
-    facelab_addon.register()
-    yield
-    facelab_addon.unregister()
 
 
 def _views(views):
