@@ -11,13 +11,26 @@ from bpy.props import BoolProperty, EnumProperty, IntProperty, StringProperty
 
 from ..blender import caches
 from ..blender.mesh import mesh_triangles, require_mesh, vertex_group_mask
-from ..blender.shapekeys import add_keys_from_deltas, key_property_bulk, key_values_bulk, remove_keys, rest_vertices
+from ..blender.shapekeys import (
+    add_keys_from_deltas,
+    key_property_bulk,
+    key_values_bulk,
+    remove_keys,
+    rest_vertices,
+)
 from ..core.capture.cachefile import integrate_matrices, integrate_offsets_to_key
 from ..core.errors import FaceLabError, RegionError
 from ..core.geometry.compress import compress
 from ..core.lips.propagate import LipRegressor, suggest_frames
-from ..core.lips.regions import auto_regions, faces_in_region, validate_regions
+from ..core.lips.regions import (
+    auto_regions,
+    faces_in_region,
+    inner_lip_loop,
+    loop_width,
+    validate_regions,
+)
 from .ops import face_object, poll_face, progress_callback, record_training_frame
+from .prefs import REGION_DEFAULTS
 
 PROP_PREFIX = "FL_Prop_"
 SUGGEST_MARKER = "FL suggest"
@@ -89,7 +102,10 @@ class FACELAB_OT_auto_regions(bpy.types.Operator):
                 loop = np.flatnonzero(sel)
                 if len(loop) < 4:
                     raise RegionError("Select the inner-lip edge loop (at least 4 vertices) in Edit Mode first.")
-            mouth, lips = auto_regions(V, tris, loop=loop)
+            loop = inner_lip_loop(V, tris, loop)
+            width = loop_width(V, loop)  # band widths: fractions of the mouth width (assets/presets/regions.json)
+            mouth, lips = auto_regions(V, tris, loop=loop, lip_width=REGION_DEFAULTS["lip_width"] * width,
+                                       mouth_width=REGION_DEFAULTS["mouth_width"] * width)
         except FaceLabError as e:
             self.report({"ERROR"}, str(e))
             return {"CANCELLED"}
