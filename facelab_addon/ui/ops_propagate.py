@@ -11,24 +11,12 @@ from bpy.props import BoolProperty, EnumProperty, IntProperty, StringProperty
 
 from ..blender import caches
 from ..blender.mesh import mesh_triangles, require_mesh, vertex_group_mask
-from ..blender.shapekeys import (
-    add_keys_from_deltas,
-    key_property_bulk,
-    key_values_bulk,
-    remove_keys,
-    rest_vertices,
-)
+from ..blender.shapekeys import add_keys_from_deltas, key_property_bulk, key_values_bulk, remove_keys, rest_vertices
 from ..core.capture.cachefile import integrate_matrices, integrate_offsets_to_key
 from ..core.errors import FaceLabError, RegionError
 from ..core.geometry.compress import compress
 from ..core.lips.propagate import LipRegressor, suggest_frames
-from ..core.lips.regions import (
-    auto_regions,
-    faces_in_region,
-    inner_lip_loop,
-    loop_width,
-    validate_regions,
-)
+from ..core.lips.regions import auto_regions, faces_in_region, inner_lip_loop, loop_width, validate_regions
 from .ops import face_object, poll_face, progress_callback, record_training_frame
 from .prefs import REGION_DEFAULTS
 
