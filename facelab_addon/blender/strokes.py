@@ -186,12 +186,19 @@ def _project_world(camera: Camera, polylines, where: str) -> list:
 
 # --------------------------------------------------------------------------- create
 def _sketch_material():
+    """The lip sketch's Grease Pencil material, styled by ``assets/presets/sketch_material.json``."""
+    from ..assets import AssetError, load_preset
+
     mat = bpy.data.materials.get(DEFAULT_SKETCH_NAME)
     if mat is None or not mat.is_grease_pencil:
+        style = load_preset("sketch_material", {"color": tuple, "show_fill": bool})
+        if len(style["color"]) != 4:
+            raise AssetError(f"assets/presets/sketch_material.json: 'color' must be RGBA (4 numbers in 0..1), "
+                             f"got {style['color']}; fix the file.")
         mat = bpy.data.materials.new(DEFAULT_SKETCH_NAME)
         bpy.data.materials.create_gpencil_data(mat)
-        mat.grease_pencil.color = (1.0, 1.0, 1.0, 1.0)
-        mat.grease_pencil.show_fill = False
+        mat.grease_pencil.color = style["color"]
+        mat.grease_pencil.show_fill = style["show_fill"]
     return mat
 
 

@@ -22,6 +22,7 @@ from ..blender.mesh import (
 from ..blender.shapekeys import rest_vertices
 from ..core.errors import RegionError
 from ..core.lips import regions as core_regions
+from ..core.lips.lip_loop import inner_lip_loop, loop_width
 from ..names import LIPS_GROUP, MOUTH_GROUP
 
 __all__ = ["RegionSettings", "RegionsResult", "auto_regions", "region_faces"]
@@ -37,10 +38,16 @@ class RegionSettings:
         Overwrite existing region groups (otherwise refuse).
     use_selection : bool
         Take the inner-lip loop from the selected vertices instead of finding it.
+    lip_width, mouth_width : float
+        Widths of the inner-lip band and of the mouth band around it, as
+        fractions of the mouth width (corner to corner along the loop);
+        the add-on's defaults come from ``assets/presets/regions.json``.
     """
 
     replace: bool = False
     use_selection: bool = False
+    lip_width: float = core_regions.DEFAULT_LIP_WIDTH
+    mouth_width: float = core_regions.DEFAULT_MOUTH_WIDTH
 
 
 @dataclass
@@ -108,7 +115,10 @@ def auto_regions(obj, settings: RegionSettings | None = None) -> RegionsResult:
         loop = selected_vertices(obj)
         if len(loop) < 4:
             raise RegionError("Select the inner-lip edge loop (at least 4 vertices) in Edit Mode first.")
-    mouth, lips = core_regions.auto_regions(V, tris, loop=loop)
+    loop = inner_lip_loop(V, tris, loop)
+    width = loop_width(V, loop)
+    mouth, lips = core_regions.auto_regions(V, tris, loop=loop, lip_width=settings.lip_width * width,
+                                            mouth_width=settings.mouth_width * width)
     for name, mask in ((MOUTH_GROUP, mouth), (LIPS_GROUP, lips)):
         set_vertex_group(obj, name, mask)
     return RegionsResult(object=obj.name, mouth_vertices=int(mouth.sum()), lip_vertices=int(lips.sum()),

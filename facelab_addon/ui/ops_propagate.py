@@ -27,6 +27,7 @@ from ..pipeline.propagate import (
 from ..pipeline.regions import RegionSettings, auto_regions
 from ..pipeline.steps import StepJob, run_steps
 from .ops import face_object, poll_face, progress_callback
+from .prefs import REGION_DEFAULTS
 
 
 class FACELAB_OT_auto_regions(bpy.types.Operator):
@@ -50,7 +51,8 @@ class FACELAB_OT_auto_regions(bpy.types.Operator):
         if context.mode == "EDIT_MESH":
             bpy.ops.object.mode_set(mode="OBJECT")
         try:
-            r = auto_regions(obj, RegionSettings(replace=self.replace, use_selection=self.use_selection))
+            r = auto_regions(obj, RegionSettings(replace=self.replace, use_selection=self.use_selection,
+                                                 **REGION_DEFAULTS))
         except FaceLabError as e:
             self.report({"ERROR"}, str(e))
             return {"CANCELLED"}

@@ -1,14 +1,26 @@
-"""Add-on preferences: solver weights and iterations (Dinev et al. 2018 §5 defaults)."""
+"""Add-on preferences: solver weights and iterations (Dinev et al. 2018 §5 defaults).
+
+The defaults come from the presets in ``assets/presets/`` (:mod:`facelab_addon.assets`):
+``sketch_refine.json`` for the Refine Lips solver, ``regions.json`` for the Auto Regions band widths.
+A missing or broken preset file raises :class:`facelab_addon.assets.AssetError` naming the file.
+"""
 
 import bpy
 from bpy.props import FloatProperty, IntProperty
+
+from ..assets import load_preset
 
 # The add-on's module name: "facelab_addon" from a checkout, "bl_ext.<repo>.facelab" as an
 # extension (whose root __init__.py imports the facelab_addon sub-package).
 _parts = __package__.split(".")
 ADDON_ID = ".".join(_parts[: _parts.index("facelab_addon")]) or "facelab_addon"
 
-DEFAULTS = dict(iterations=5, lambda_pos=0.1, lambda_reg=3.0, lambda_silh=1.0)
+#: Refine Lips solver settings (keyword arguments of ``core.lips.sketch.refine_lips``).
+DEFAULTS = load_preset("sketch_refine", {"iterations": int, "lambda_pos": float, "lambda_reg": float,
+                                         "lambda_silh": float})
+#: Auto Regions band widths as fractions of the mouth width (``core.lips.regions.loop_width``):
+#: ``lip_width`` (inner-lip band half-width) and ``mouth_width`` (trusted band outside it).
+REGION_DEFAULTS = load_preset("regions", {"lip_width": float, "mouth_width": float})
 
 
 class FACELAB_AP_preferences(bpy.types.AddonPreferences):
