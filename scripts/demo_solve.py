@@ -11,7 +11,7 @@ inner-lip deformation the rig cannot express (the lips fail to close, up to
   drawn through camera 2;
 * Bind Tracks on the neutral frame, Solve Performance (markers only first, kept
   as a baked copy, then markers + contours + corrective), Retarget to a creature
-  (ICT with a widened mouth, ``core.solve.retarget.widen_mouth``).
+  (ICT with a widened mouth, ``testing.creature.widen_mouth``).
 
 Writes out/demo/solve.blend, out/demo/solve_summary.json (errors vs the truth)
 and docs/images/demo_solve_*.png.

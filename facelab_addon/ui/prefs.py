@@ -18,7 +18,7 @@ ADDON_ID = ".".join(_parts[: _parts.index("facelab_addon")]) or "facelab_addon"
 #: Refine Lips solver settings (keyword arguments of ``core.lips.sketch.refine_lips``).
 DEFAULTS = load_preset("sketch_refine", {"iterations": int, "lambda_pos": float, "lambda_reg": float,
                                          "lambda_silh": float})
-#: Auto Regions band widths as fractions of the mouth width (``core.lips.regions.loop_width``):
+#: Auto Regions band widths as fractions of the mouth width (``core.lips.lip_loop.loop_width``):
 #: ``lip_width`` (inner-lip band half-width) and ``mouth_width`` (trusted band outside it).
 REGION_DEFAULTS = load_preset("regions", {"lip_width": float, "mouth_width": float})
 

@@ -4,7 +4,7 @@ Bhat et al. 2013, "High fidelity facial animation capture and retargeting
 with contours", §5.1 (lip-sync heuristic, Fig. 8):
 
 * :func:`lip_contours` splits the closed inner-lip edge loop
-  (``core.lips.regions.inner_lip_loop`` or an artist's edge-loop selection)
+  (``core.lips.lip_loop.inner_lip_loop`` or an artist's edge-loop selection)
   at the two mouth corners into an upper and a lower contour
   (:class:`LipContours`), both ordered from the left corner to the right one
   (left = smaller coordinate along ``up x forward``; face axes default to
@@ -99,7 +99,7 @@ def lip_contours(rest_vertices, faces, loop=None, *, corners=None, up=Y_UP, forw
         Triangles.
     loop : (L,) int array_like, optional
         The closed inner-lip edge loop (any order, for example a Blender
-        edge-loop selection). Default: found by ``regions.inner_lip_loop``.
+        edge-loop selection). Default: found by ``lip_loop.inner_lip_loop``.
     corners : (2,) int array_like, optional
         The two mouth-corner vertices (on the loop); default: the loop's
         extremes along ``up x forward``.

@@ -78,7 +78,7 @@ class Retargeter:
     lip_sync : bool
         Build the lip-sync deformer.
     actor_loop, creature_loop : (L,) int array_like, optional
-        Inner-lip edge loops; default: detected (``regions.inner_lip_loop``)
+        Inner-lip edge loops; default: detected (``lip_loop.inner_lip_loop``)
         on the actor, and the same vertex ids on a creature of the same
         topology (detected on the creature otherwise).
     actor_contours, creature_contours : LipContours, optional
