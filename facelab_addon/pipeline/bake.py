@@ -1,9 +1,9 @@
 """Bake: the corrected performance (capture + FaceLab's corrective keys) to a PC2, MDD or Alembic file
 for other packages.
 
-PC2 and MDD are written one frame a step by :func:`facelab_addon.blender.caches.bake_point_cache_steps`
+PC2 and MDD are written one frame a step by :func:`facelab_addon.blender.bakes.bake_point_cache_steps`
 (cancelling leaves an existing file untouched); Alembic is one call of Blender's exporter
-(:func:`facelab_addon.blender.caches.bake_alembic`), a single step.
+(:func:`facelab_addon.blender.bakes.bake_alembic`), a single step.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..blender import caches
+from ..blender import bakes, caches
 from ..core.errors import FaceLabError
 from .steps import run_steps
 
@@ -107,7 +107,7 @@ def bake_steps(obj, frames, path, settings: BakeSettings | None = None):
     caches.require_mesh_object(obj)
     if settings.format == "ABC":
         return _alembic_step(obj, frames, path, t0)
-    steps = caches.bake_point_cache_steps(obj, frames, path, settings.format)
+    steps = bakes.bake_point_cache_steps(obj, frames, path, settings.format)
     return _point_cache(steps, obj, frames, settings.format, t0)
 
 
@@ -118,5 +118,5 @@ def _point_cache(steps, obj, frames, fmt, t0):
 
 def _alembic_step(obj, frames, path, t0):
     yield "exporting Alembic", 0, 1
-    out = caches.bake_alembic(obj, frames, path)
+    out = bakes.bake_alembic(obj, frames, path)
     return BakeResult(object=obj.name, path=out, format="ABC", frames=len(frames), seconds=time.perf_counter() - t0)

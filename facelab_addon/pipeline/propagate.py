@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..blender import caches
+from ..blender import cache_integrate, caches
 from ..blender.mesh import mesh_triangles, require_mesh
 from ..blender.shapekeys import (
     add_corrective_key,
@@ -176,7 +176,7 @@ def add_corrected_frame(scene, obj, frame: int, vertices) -> CorrectedFrame:
     ``FL_Corrected_<frame>`` (:data:`~facelab_addon.names.CORRECTED_PREFIX`) keyed 1 on the
     frame and 0 on its neighbours, and the frame is recorded (source "sculpt"). Over a
     cache, the cache is first made ready to carry keys
-    (:func:`facelab_addon.blender.caches.cache_to_shape_key_ready`) and the offsets are
+    (:func:`facelab_addon.blender.cache_integrate.cache_to_shape_key_ready`) and the offsets are
     mapped through its surface so the frame shows ``vertices`` exactly.
 
     Parameters
@@ -202,11 +202,11 @@ def add_corrected_frame(scene, obj, frame: int, vertices) -> CorrectedFrame:
         raise MeshError(f"The corrected face has {len(V)} vertices, '{obj.name}' has {n}; export it with the "
                         "same topology.")
     if caches.sequence_source(obj) in _CACHE_SOURCES:
-        caches.cache_to_shape_key_ready(obj)
+        cache_integrate.cache_to_shape_key_ready(obj)
     captured = caches.read_captured_frames(obj, [frame])[0].astype(np.float64)
     d = V - captured
     if caches.sequence_source(obj) in _CACHE_SOURCES:
-        d = caches.correction_to_key_offsets(obj, captured, d)
+        d = cache_integrate.correction_to_key_offsets(obj, captured, d)
     kb = add_corrective_key(obj, f"{CORRECTED_PREFIX}{frame:04d}", d)
     key_spike(kb, frame)
     record_training_frame(scene, obj, frame, kb.name, "sculpt")
@@ -294,7 +294,7 @@ def _propagate_steps(scene, obj, frames, settings, t0, tris, mouth_faces, lip_fa
     total = 2 * T + 2 + (T if on_cache else 0)
     note = ""
     if on_cache:
-        note = caches.cache_to_shape_key_ready(obj, scene_frames=frames)
+        note = cache_integrate.cache_to_shape_key_ready(obj, scene_frames=frames)
     rest = rest_vertices(obj)
     chunk = max(4, T // 40)
     captured = np.empty((T, len(rest), 3), np.float32)
@@ -315,7 +315,7 @@ def _propagate_steps(scene, obj, frames, settings, t0, tris, mouth_faces, lip_fa
     corr = (pred[:, lipv] - before).astype(np.float64)  # (T, n_lip, 3) correction, object local
     corr[np.isin(frames, train)] = 0.0  # training frames keep the artist's own correction
     if on_cache:  # keys ride on the cache surface (INTEGRATE): map each frame's offsets through it
-        sub_off, sub_cv = _polygons_around(caches.polygon_corners(obj.data), lipv)
+        sub_off, sub_cv = _polygons_around(cache_integrate.polygon_corners(obj.data), lipv)
         for t in range(T):
             if t % 4 == 0:
                 yield "mapping onto the cache", 2 * T + 1 + t, total

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..blender import caches
+from ..blender import cache_integrate, caches
 from ..blender.camera import camera_from_blender, evaluated_depsgraph
 from ..blender.mesh import (
     default_fixed_mask,
@@ -143,12 +143,12 @@ def refine(scene, obj, frame: int, settings: RefineSettings | None = None, *, ca
     note = ""
     on_cache = caches.sequence_source(obj) in _CACHE_SOURCES
     if on_cache:
-        note = caches.cache_to_shape_key_ready(obj)  # so the corrective key shows on the cache
+        note = cache_integrate.cache_to_shape_key_ready(obj)  # so the corrective key shows on the cache
     d_world = X - V
     d_local = world_to_local_deltas(obj, d_world)
     if on_cache:
         captured = caches.read_captured_frames(obj, [frame])[0]
-        d_local = caches.correction_to_key_offsets(obj, captured, d_local)
+        d_local = cache_integrate.correction_to_key_offsets(obj, captured, d_local)
     kb = add_corrective_key(obj, f"{REFINE_PREFIX}{frame:04d}", d_local)
     key_spike(kb, frame)
     record_training_frame(scene, obj, frame, kb.name, "sketch")

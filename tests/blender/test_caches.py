@@ -17,7 +17,7 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
-from facelab_addon.blender import caches  # noqa: E402
+from facelab_addon.blender import bakes, cache_integrate, caches  # noqa: E402
 from facelab_addon.core.capture import integrate, meshcache, pointcache, pointcache_writer  # noqa: E402
 from facelab_addon.core.errors import FaceLabError, MeshError  # noqa: E402
 
@@ -195,9 +195,9 @@ def test_integrate_adds_shape_key_on_top(tmp_path, empty_scene):
     empty_scene.frame_set(1)
     np.testing.assert_array_equal(evaluated(ob), seq[0])  # Overwrite hides the key
 
-    msg = caches.cache_to_shape_key_ready(ob)
+    msg = cache_integrate.cache_to_shape_key_ready(ob)
     assert md.deform_mode == "INTEGRATE" and "Integrate" in msg
-    assert "already" in caches.cache_to_shape_key_ready(ob)
+    assert "already" in cache_integrate.cache_to_shape_key_ready(ob)
     off, cv = corners(ob)
     R = Rotation.from_euler("xyz", [0.4, 0.3, -0.2]).as_matrix()
     for f, expect in [(1, d), (2, d @ R.T), (3, 1.3 * d)]:  # translation adds exactly; rotation/scale carry it
@@ -258,7 +258,7 @@ def test_errors_restore_state(empty_scene):
     assert fl.mute is False and empty_scene.frame_current == 7
     bpy.context.scene.collection.objects.link(ob)
     with pytest.raises(FaceLabError, match="evenly spaced"):
-        caches.bake_pc2(ob, [1, 2, 4], "/tmp/never.pc2")
+        bakes.bake_pc2(ob, [1, 2, 4], "/tmp/never.pc2")
 
 
 # --------------------------------------------------------------------------- bakes
@@ -274,11 +274,11 @@ def test_bake_pc2_and_mdd_round_trip(tmp_path, empty_scene):
     final = caches.evaluate_frames(ob, frames, mute_shape_keys_prefix=())
     np.testing.assert_allclose(final, seq + 0.01, atol=1e-6)
 
-    p = caches.bake_pc2(ob, frames, tmp_path / "out" / "face.pc2")
+    p = bakes.bake_pc2(ob, frames, tmp_path / "out" / "face.pc2")
     data, start, rate = pointcache.read_pc2(p)
     np.testing.assert_array_equal(data, final)
     assert (start, rate) == (3.0, 1.0)
-    m = caches.bake_mdd(ob, frames, tmp_path / "face.mdd")
+    m = bakes.bake_mdd(ob, frames, tmp_path / "face.mdd")
     data, times = pointcache.read_mdd(m)
     np.testing.assert_array_equal(data, final)
     np.testing.assert_allclose(times, np.arange(3, 3 + T) / 24.0, rtol=1e-6)
@@ -305,7 +305,7 @@ def test_alembic_bake_import_and_shape_key_ready(tmp_path, empty_scene):
     other = ico("Bystander")
     other.select_set(True)
     bpy.context.view_layer.objects.active = other
-    abc = caches.bake_alembic(src, range(1, T + 1), tmp_path / "cap.abc")
+    abc = bakes.bake_alembic(src, range(1, T + 1), tmp_path / "cap.abc")
     assert abc.is_file()
     assert other.select_get() and not src.select_get() and bpy.context.view_layer.objects.active == other
 
@@ -329,9 +329,9 @@ def test_alembic_bake_import_and_shape_key_ready(tmp_path, empty_scene):
     kb.mute = True
     # ...until the capture is re-played by an Integrate Mesh Cache
     with pytest.raises(FaceLabError, match="Save the .blend first"):
-        caches.cache_to_shape_key_ready(ob)  # unsaved file, no directory: nothing changes
+        cache_integrate.cache_to_shape_key_ready(ob)  # unsaved file, no directory: nothing changes
     assert [m.show_viewport for m in ob.modifiers] == [True]
-    msg = caches.cache_to_shape_key_ready(ob, directory=tmp_path, scene_frames=range(1, T + 1))
+    msg = cache_integrate.cache_to_shape_key_ready(ob, directory=tmp_path, scene_frames=range(1, T + 1))
     assert kb.mute is True
     kb.mute = False
     msc, mc = ob.modifiers
@@ -350,5 +350,5 @@ def test_alembic_bake_import_and_shape_key_ready(tmp_path, empty_scene):
         M = integrate.integrate_matrices(base, seq[f - 1], off, cv)
         np.testing.assert_allclose(evaluated(ob), seq[f - 1] + np.einsum("vij,vj->vi", M, d), atol=TOL)
     # a second call does not bake again, and the artist's modifier is never deleted
-    assert "already" in caches.cache_to_shape_key_ready(ob, directory=tmp_path)
+    assert "already" in cache_integrate.cache_to_shape_key_ready(ob, directory=tmp_path)
     assert len(ob.modifiers) == 2

@@ -11,7 +11,7 @@ import bpy
 import numpy as np
 import pytest
 
-from facelab_addon.blender import caches
+from facelab_addon.blender import bakes, caches
 from facelab_addon.blender.shapekeys import add_corrective_key, key_spike
 from facelab_addon.core.capture.pointcache_writer import write_pc2
 
@@ -289,7 +289,7 @@ def test_alembic_input(ict, addon, tmp_path):
     (Without --rest the first frame is the rest pose: measured 42 % lower error instead of >50 %.)"""
     scene, obj, err, cap_w = build(ict)
     scene.frame_end = 16
-    caches.bake_alembic(obj, range(1, 17), tmp_path / "shot.abc")
+    bakes.bake_alembic(obj, range(1, 17), tmp_path / "shot.abc")
     train = [3, 9, 14]
     truth = caches.evaluate_frames(obj, range(1, 17), mute_shape_keys_prefix=("CaptureError",))
     args = []

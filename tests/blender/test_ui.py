@@ -285,7 +285,7 @@ def test_every_registered_operator_explains_a_refusal(addon):
 
 
 def test_bake_job_matches_the_bake_and_cancels_cleanly(addon, tmp_path):
-    from facelab_addon.blender import caches
+    from facelab_addon.blender import bakes
     from facelab_addon.blender.shapekeys import add_corrective_key, key_values_bulk
     from facelab_addon.core.capture.pointcache import read_mdd, read_pc2
 
@@ -295,7 +295,7 @@ def test_bake_job_matches_the_bake_and_cancels_cleanly(addon, tmp_path):
     key_values_bulk(obj, ["Up"], np.arange(1, 7), np.linspace(0, 1, 6)[:, None])
     frames = np.arange(1, 7)
     scene.frame_set(3)
-    for fmt, bake, read in (("PC2", caches.bake_pc2, read_pc2), ("MDD", caches.bake_mdd, read_mdd)):
+    for fmt, bake, read in (("PC2", bakes.bake_pc2, read_pc2), ("MDD", bakes.bake_mdd, read_mdd)):
         ref = bake(obj, frames, tmp_path / f"ref.{fmt}")
         got = StepJob(bake_pipeline.bake_steps(obj, frames, tmp_path / f"job.{fmt}",
                                                bake_pipeline.BakeSettings(format=fmt))).run().path

@@ -3,8 +3,13 @@ import pytest
 
 from facelab_addon.core.capture.camera import Camera
 from facelab_addon.core.errors import CameraError, MeshError, SketchError
-from facelab_addon.core.geometry.silhouette import contour_distance, lip_side, silhouette_edges
-from facelab_addon.core.lips.sketch import press_lips, refine_lips, resample_polyline
+from facelab_addon.core.geometry.polyline import resample_polyline
+from facelab_addon.core.geometry.silhouette import (
+    contour_distance,
+    lip_side,
+    silhouette_edges,
+)
+from facelab_addon.core.lips.sketch import press_lips, refine_lips
 
 from .lipmesh import front_camera, line_px, two_lips
 

@@ -6,7 +6,7 @@ import bpy
 import numpy as np
 import pytest
 
-from facelab_addon.blender import caches
+from facelab_addon.blender import bakes, caches
 from facelab_addon.blender.scene import new_mesh_object
 from facelab_addon.blender.shapekeys import add_corrective_key, key_values_bulk
 from facelab_addon.core.capture.pointcache import read_mdd, read_pc2
@@ -45,7 +45,7 @@ def test_point_cache_bake_holds_the_evaluated_mesh(face, tmp_path, fmt, read):
     assert labels == [(f"baking frame {f}", i + 1, 6) for i, f in enumerate(FRAMES)]
     assert bpy.context.scene.frame_current == 3
     # the same file as the adapter's one-call bake
-    ref = getattr(caches, f"bake_{fmt.lower()}")(face, FRAMES, tmp_path / f"ref.{fmt}")
+    ref = getattr(bakes, f"bake_{fmt.lower()}")(face, FRAMES, tmp_path / f"ref.{fmt}")
     assert ref.read_bytes() == r.path.read_bytes()
 
 

@@ -30,13 +30,10 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components, dijkstra
 
 from ..errors import FaceLabError
+from ..geometry.axes import Y_UP, Z_FORWARD
 from ..geometry.mesh import edge_faces, validate_mesh
 
-__all__ = ["Y_UP", "Z_FORWARD", "Mouth", "find_mouth"]
-
-#: Default axes: Y up, the face looks along +Z (override with ``up`` / ``forward``).
-Y_UP = (0.0, 1.0, 0.0)
-Z_FORWARD = (0.0, 0.0, 1.0)
+__all__ = ["Mouth", "find_mouth"]
 
 
 @dataclass

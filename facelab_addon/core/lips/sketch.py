@@ -46,36 +46,10 @@ from ..geometry.deform import LaplacianDeformer, PointConstraints
 from ..geometry.laplacian import laplacian as make_laplacian
 from ..geometry.linsolve import small_dense_threads
 from ..geometry.mesh import edge_faces, grow_region, validate_mesh, vertex_adjacency
+from ..geometry.polyline import resample_polyline
 from ..geometry.silhouette import facing, projected_normals
 
-__all__ = ["refine_lips", "resample_polyline", "press_lips", "prepare_sketch"]
-
-
-def resample_polyline(points, spacing: float = 1.0) -> np.ndarray:
-    """Resample a polyline at (about) constant arc-length spacing.
-
-    Parameters
-    ----------
-    points : (N,2) float
-        Polyline vertices, pixels.
-    spacing : float
-        Sample spacing, pixels.
-
-    Returns
-    -------
-    (M,2) ndarray
-        Samples including both end points; ``M >= 2``.
-    """
-    P = np.asarray(points, dtype=np.float64).reshape(-1, 2)
-    seg = np.linalg.norm(np.diff(P, axis=0), axis=1)
-    keep = np.r_[True, seg > 1e-9]
-    P = P[keep]
-    if len(P) < 2:
-        return np.repeat(P[:1], 2, axis=0)
-    s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))]
-    n = max(int(np.ceil(s[-1] / spacing)) + 1, 2)
-    t = np.linspace(0.0, s[-1], n)
-    return np.stack([np.interp(t, s, P[:, 0]), np.interp(t, s, P[:, 1])], axis=1)
+__all__ = ["refine_lips", "press_lips", "prepare_sketch"]
 
 
 def _y_at(x, curve):
