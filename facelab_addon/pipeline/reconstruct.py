@@ -162,8 +162,8 @@ def reconstruct_from_bundles(scene, obj, settings: ReconstructSettings, progress
         Bad dataset, no bundles, bundles off the mesh, a missing jaw, or every
         frame missing bundles; nothing is written then.
     """
-    from ..core.lgi.indexer import GeometricIndexer
     from ..core.lgi.binding import bind_points
+    from ..core.lgi.indexer import GeometricIndexer
 
     t0 = time.perf_counter()
     f0, frames = _frame_range(scene, settings)

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..core.solve.lip_contours import _unit
+from ..core.geometry.axes import unit_axis
 
 __all__ = ["widen_mouth"]
 
@@ -44,7 +44,7 @@ def widen_mouth(vertices, center, *, factor: float = 1.6, sigma=(0.022, 0.015, 0
     """
     X = np.asarray(vertices, dtype=np.float64)
     c = np.asarray(center, dtype=np.float64).reshape(3)
-    l = _unit(lateral)
+    l = unit_axis(lateral)
     d = X - c
     g = np.exp(-0.5 * ((d / np.asarray(sigma, dtype=np.float64)) ** 2).sum(axis=1))
     return X + (float(factor) - 1.0) * (g * (d @ l))[:, None] * l[None, :]

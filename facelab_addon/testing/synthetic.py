@@ -46,9 +46,10 @@ from scipy.sparse.csgraph import dijkstra
 
 from ..core.capture.camera import Camera
 from ..core.errors import FaceLabError
-from ..core.geometry.mesh import validate_mesh
+from ..core.geometry.axes import unit_axis
+from ..core.geometry.mesh import edge_length_graph, validate_mesh
 from ..core.geometry.silhouette import lip_side, silhouette_edges
-from ..core.lips.mouth import Mouth, _edge_graph, _unit, find_mouth
+from ..core.lips.mouth import Mouth, find_mouth
 
 __all__ = [
     "ICT_MOUTH_LOOP",
@@ -117,8 +118,8 @@ def frontal_camera(
         c = V[mc.reshape(-1)].mean(axis=0)
     else:
         c = mc.astype(np.float64).reshape(3)
-    fwd = _unit(forward)
-    cam = Camera.look_at(c + distance * fwd, c, _unit(up), focal_mm, sensor_width_mm, width, height)
+    fwd = unit_axis(forward)
+    cam = Camera.look_at(c + distance * fwd, c, unit_axis(up), focal_mm, sensor_width_mm, width, height)
     if (cam.depth(c[None]) <= 0).any():
         raise FaceLabError("The mouth is behind the frontal camera; 'distance' must be positive.")
     return cam
@@ -249,7 +250,7 @@ def lip_error_weights(vertices, faces, fixed=None, *, mouth: Mouth | None = None
         mouth = find_mouth(V, F, fixed)
     n = len(V)
     R = radius_mm * mouth.units_per_mm
-    G = _edge_graph(V, F[mouth.free_faces])
+    G = edge_length_graph(V, F[mouth.free_faces], min_length=1e-12)[0]
     g_tip = np.full(n, np.inf)
     for s in (1, -1):
         tips = mouth.tip[(mouth.side[mouth.tip] == s) & (np.abs(mouth.lateral_t[mouth.tip]) < 1.0)]

@@ -14,19 +14,11 @@ units. No bpy in this module.
 from __future__ import annotations
 
 import numpy as np
-import scipy.sparse as sp
 from scipy.sparse.csgraph import dijkstra as _dijkstra
 
-from .mesh import unique_edges
+from .mesh import edge_length_graph
 
 __all__ = ["geodesic_distance"]
-
-
-def _edge_graph(vertices, faces, n_vertices):
-    E, _ = unique_edges(faces)
-    w = np.linalg.norm(vertices[E[:, 0]] - vertices[E[:, 1]], axis=1)
-    G = sp.coo_matrix((np.r_[w, w], (np.r_[E[:, 0], E[:, 1]], np.r_[E[:, 1], E[:, 0]])), shape=(n_vertices,) * 2)
-    return G.tocsr(), E, w
 
 
 def geodesic_distance(vertices, faces, sources, limit=np.inf, *, exact: bool = True) -> np.ndarray:
@@ -60,7 +52,7 @@ def geodesic_distance(vertices, faces, sources, limit=np.inf, *, exact: bool = T
     F = np.asarray(faces, dtype=np.int64)
     src = np.unique(np.asarray(sources, dtype=np.int64))
     nv = len(V)
-    G, _, _ = _edge_graph(V, F, nv)
+    G, _, _ = edge_length_graph(V, F, nv)
     reach = 1.5 * limit if np.isfinite(limit) else np.inf
     dg = _dijkstra(G, directed=False, indices=src, min_only=True, limit=reach)
     out = dg

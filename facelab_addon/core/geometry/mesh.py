@@ -21,6 +21,7 @@ __all__ = [
     "vertex_adjacency",
     "grow_region",
     "connected_components",
+    "edge_length_graph",
 ]
 
 
@@ -205,3 +206,37 @@ def connected_components(faces, n_vertices: int):
 
     _, labels = cc(vertex_adjacency(faces, n_vertices), directed=False)
     return labels
+
+
+def edge_length_graph(vertices, faces, n_vertices: int | None = None, *, min_length: float = 0.0):
+    """Symmetric graph of the mesh edges weighted by their length (for Dijkstra and friends).
+
+    Parameters
+    ----------
+    vertices : (V,3) array_like
+        Positions, scene units.
+    faces : (F,3) int array_like
+        Triangles.
+    n_vertices : int, optional
+        Size of the graph (default ``len(vertices)``).
+    min_length : float
+        Lengths are clamped to at least this (scene units), so coincident
+        vertices stay connected.
+
+    Returns
+    -------
+    graph : (n,n) scipy.sparse.csr_matrix
+        ``graph[a, b]`` = length of edge ``ab``, scene units.
+    edges : (E,2) int64
+        Sorted vertex pairs ``(a < b)``.
+    lengths : (E,) float64
+        Edge lengths, scene units (after the clamp).
+    """
+    V = np.asarray(vertices, dtype=np.float64)
+    n = len(V) if n_vertices is None else int(n_vertices)
+    E, _ = unique_edges(faces)
+    w = np.linalg.norm(V[E[:, 0]] - V[E[:, 1]], axis=1)
+    if min_length > 0:
+        w = np.maximum(w, min_length)
+    G = sp.coo_matrix((np.r_[w, w], (np.r_[E[:, 0], E[:, 1]], np.r_[E[:, 1], E[:, 0]])), shape=(n, n))
+    return G.tocsr(), E, w

@@ -46,7 +46,7 @@ import scipy.sparse as sp
 from scipy.spatial import Delaunay, cKDTree
 
 from ..errors import FaceLabError, MeshError
-from ..geometry.mesh import vertex_adjacency
+from ..geometry.mesh import edge_length_graph, vertex_adjacency
 
 __all__ = [
     "sibson_coordinates",
@@ -318,15 +318,6 @@ def vertex_uvs(faces, uvs, n_vertices, domain_faces):
     return out, n_seam
 
 
-def _edge_graph(V, F, n):
-    E = np.vstack([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
-    E.sort(axis=1)
-    E = np.unique(E, axis=0)
-    w = np.linalg.norm(V[E[:, 0]] - V[E[:, 1]], axis=1)
-    G = sp.coo_matrix((np.r_[w, w], (np.r_[E[:, 0], E[:, 1]], np.r_[E[:, 1], E[:, 0]])), shape=(n, n)).tocsr()
-    return G, E
-
-
 def _vertex_areas(V, F):
     a = 0.5 * np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]), axis=1)
     out = np.zeros(len(V))
@@ -480,7 +471,7 @@ def _geodesic_sibson(V, F, bf, bb, dv, radius):
     from scipy.sparse.csgraph import dijkstra
 
     nv, B = len(V), len(bf)
-    G, _ = _edge_graph(V, F, nv)
+    G = edge_length_graph(V, F, nv)[0]
     # one virtual node per bundle, joined to its triangle's corners by the exact 3D distance
     P = surface_points(V, F, bf, bb)
     corners = F[bf]

@@ -30,8 +30,7 @@ from scipy.sparse.csgraph import connected_components as _cc
 from scipy.sparse.csgraph import dijkstra as _dijkstra
 
 from ..errors import MeshError, RegionError
-from ..geometry.geodesic import _edge_graph
-from ..geometry.mesh import vertex_adjacency, vertex_normals
+from ..geometry.mesh import edge_length_graph, vertex_adjacency, vertex_normals
 
 __all__ = ["order_edge_loop", "inner_lip_loop", "loop_width"]
 
@@ -208,7 +207,7 @@ def inner_lip_loop(vertices, faces, loop=None, *, max_gap=None, hops: int = 8) -
         return order_edge_loop(F, loop, nv)
 
     comp, A = _largest_component(F, nv)
-    G, E, elen = _edge_graph(V, F, nv)
+    G, E, elen = edge_length_graph(V, F, nv)
     in_comp = comp[E[:, 0]]
     if max_gap is None:
         max_gap = 2.0 * float(np.median(elen[in_comp]))

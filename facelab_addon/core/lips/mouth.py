@@ -30,8 +30,8 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components, dijkstra
 
 from ..errors import FaceLabError
-from ..geometry.axes import Y_UP, Z_FORWARD
-from ..geometry.mesh import edge_faces, validate_mesh
+from ..geometry.axes import Y_UP, Z_FORWARD, unit_axis
+from ..geometry.mesh import edge_faces, edge_length_graph, validate_mesh
 
 __all__ = ["Mouth", "find_mouth"]
 
@@ -102,26 +102,6 @@ class Mouth:
         return (lat - 0.5 * (cl + cr)) / (0.5 * (cr - cl))
 
 
-def _unit(v):
-    v = np.asarray(v, dtype=np.float64).reshape(3)
-    n = np.linalg.norm(v)
-    if n < 1e-12:
-        raise FaceLabError("An axis vector is zero; pass a non-zero 'up' and 'forward'.")
-    return v / n
-
-
-def _edge_graph(V, F):
-    """(V,V) symmetric CSR graph of the edges of ``F`` weighted by length."""
-    e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
-    e.sort(axis=1)
-    e = np.unique(e, axis=0)
-    w = np.linalg.norm(V[e[:, 0]] - V[e[:, 1]], axis=1)
-    w = np.maximum(w, 1e-12)
-    n = len(V)
-    G = sp.coo_matrix((np.r_[w, w], (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n))
-    return G.tocsr()
-
-
 def _border_loops(F, n):
     """Connected components of the border edges of triangles ``F``: list of vertex-id arrays."""
     edges, ef = edge_faces(F)
@@ -185,10 +165,10 @@ def find_mouth(
     """
     V, F = validate_mesh(vertices, faces)
     n = len(V)
-    up = _unit(up)
-    forward = _unit(forward)
-    lateral = _unit(np.cross(up, forward))
-    up = _unit(np.cross(forward, lateral))  # orthogonalise
+    up = unit_axis(up, "up")
+    forward = unit_axis(forward, "forward")
+    lateral = unit_axis(np.cross(up, forward))
+    up = unit_axis(np.cross(forward, lateral))  # orthogonalise
     fixed = np.zeros(n, bool) if fixed is None else np.asarray(fixed, dtype=bool)
     if fixed.shape != (n,):
         raise FaceLabError(f"'fixed' must be a mask of {n} vertices, got {fixed.shape}.")
@@ -230,7 +210,7 @@ def find_mouth(
     loop_side = np.where(h[loop] >= line_h[loop], 1, -1).astype(np.int8)
     loop_side[np.isin(loop, corners)] = 1  # arbitrary; weights vanish at the corners
 
-    G = _edge_graph(V, Ff)
+    G = edge_length_graph(V, Ff, min_length=1e-12)[0]
     limit = band_mm * units_per_mm
     dist, _, src = dijkstra(G, directed=False, indices=loop, return_predecessors=True, min_only=True, limit=limit)
     reach = np.isfinite(dist) & ~fixed

@@ -39,7 +39,7 @@ from scipy.sparse.csgraph import connected_components
 
 from ..capture.camera import Camera
 from ..errors import FaceLabError, MeshError
-from ..geometry.axes import Y_UP, Z_FORWARD
+from ..geometry.axes import Y_UP, Z_FORWARD, unit_axis
 from ..geometry.mesh import edge_faces, validate_mesh, vertex_adjacency
 from ..geometry.sphere import fit_sphere
 from ..lips.mouth import find_mouth
@@ -176,14 +176,6 @@ class ContourLoops:
         if name.startswith("mouth"):
             return self.mouth
         return self.eyes[name.split("_")[1]]
-
-
-def _unit(v, what):
-    v = np.asarray(v, dtype=np.float64).reshape(3)
-    n = np.linalg.norm(v)
-    if not n > 1e-12:
-        raise FaceLabError(f"The '{what}' axis is zero; pass a non-zero direction (ICT-FaceKit: up +Y, forward +Z).")
-    return v / n
 
 
 def _order_cycle(edges):
@@ -437,10 +429,10 @@ def contour_loops(
     """
     V, F = validate_mesh(rest_vertices, faces, name="rest mesh")
     nv = len(V)
-    up = _unit(up, "up")
-    forward = _unit(forward, "forward")
-    lateral = _unit(np.cross(up, forward), "up x forward")
-    up = _unit(np.cross(forward, lateral), "up")
+    up = unit_axis(up, "up")
+    forward = unit_axis(forward, "forward")
+    lateral = unit_axis(np.cross(up, forward), "up x forward")
+    up = unit_axis(np.cross(forward, lateral), "up")
     fixed = np.zeros(nv, bool) if fixed is None else np.asarray(fixed, dtype=bool)
     if fixed.shape != (nv,):
         raise FaceLabError(f"'fixed' must be a mask of {nv} vertices, got shape {fixed.shape}; build it on this mesh.")

@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import FaceLabError, RegionError
-from ..geometry.axes import Y_UP, Z_FORWARD
+from ..geometry.axes import Y_UP, Z_FORWARD, unit_axis
 from ..geometry.polyline import arc_length
 from ..lips.lip_loop import inner_lip_loop, order_edge_loop
 
@@ -80,14 +80,6 @@ class LipContours:
         return np.unique(np.r_[self.upper, self.lower])
 
 
-def _unit(v):
-    v = np.asarray(v, dtype=np.float64).reshape(3)
-    n = np.linalg.norm(v)
-    if n < 1e-12:
-        raise FaceLabError("An axis vector is zero; pass non-zero 'up' and 'forward' directions.")
-    return v / n
-
-
 def lip_contours(rest_vertices, faces, loop=None, *, corners=None, up=Y_UP, forward=Z_FORWARD) -> LipContours:
     """Split the inner-lip loop at the mouth corners into upper and lower contours.
 
@@ -118,8 +110,8 @@ def lip_contours(rest_vertices, faces, loop=None, *, corners=None, up=Y_UP, forw
     V = np.asarray(rest_vertices, dtype=np.float64)
     F = np.asarray(faces, dtype=np.int64)
     lp = inner_lip_loop(V, F) if loop is None else order_edge_loop(F, loop, len(V))
-    up_, fw = _unit(up), _unit(forward)
-    lateral = _unit(np.cross(up_, fw))
+    up_, fw = unit_axis(up, "up"), unit_axis(forward, "forward")
+    lateral = unit_axis(np.cross(up_, fw), "lateral (up x forward)")
     if corners is None:
         lat = V[lp] @ lateral
         ci = [int(np.argmin(lat)), int(np.argmax(lat))]

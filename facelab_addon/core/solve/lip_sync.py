@@ -44,10 +44,10 @@ import numpy as np
 
 from ..errors import FaceLabError, RegionError
 from ..geometry.deform import LaplacianDeformer, PointConstraints
+from ..geometry.geodesic import geodesic_distance
 from ..geometry.laplacian import cotangent_laplacian
 from ..geometry.linsolve import small_dense_threads
 from ..geometry.polyline import arc_length
-from ..geometry.geodesic import geodesic_distance
 from .lip_contours import (
     EndPoints,
     LipContours,
