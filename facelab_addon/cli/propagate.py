@@ -88,7 +88,6 @@ def run(args, session) -> dict:
     from ..pipeline.bake import BakeSettings, bake
     from ..pipeline.propagate import PropagateSettings, propagate
     from ..pipeline.regions import RegionSettings, auto_regions
-    from ..ui.prefs import REGION_DEFAULTS
 
     scene = session.scene
     obj = session.face()
@@ -107,7 +106,7 @@ def run(args, session) -> dict:
             raise CliError(f"'{obj.name}' has no {MOUTH_GROUP} / {LIPS_GROUP} vertex groups; paint them, or drop "
                            "--no-auto-regions to propose them automatically.")
         session.log(f"Auto Regions ({MOUTH_GROUP} / {LIPS_GROUP} missing)")
-        auto_regions(obj, RegionSettings(**REGION_DEFAULTS))
+        auto_regions(obj, RegionSettings())
         regions = "auto"
 
     train = sorted({t.frame for t in obj.facelab.training_frames})

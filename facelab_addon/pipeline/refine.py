@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..assets import load_preset
 from ..blender import cache_integrate, caches
 from ..blender.camera import camera_from_blender, evaluated_depsgraph
 from ..blender.mesh import (
@@ -30,9 +31,14 @@ from ..core.lips.sketch import refine_lips
 from ..names import FIXED_GROUP, REFINE_PREFIX
 from .propagate import record_training_frame
 
-__all__ = ["RefineSettings", "RefineResult", "refine"]
+__all__ = ["REFINE_DEFAULTS", "RefineSettings", "RefineResult", "refine"]
 
 _CACHE_SOURCES = ("mesh_cache", "mesh_sequence_cache")
+
+#: The solver weights of ``assets/presets/sketch_refine.json`` (the paper's): the defaults of
+#: :class:`RefineSettings` and of the add-on preferences.
+REFINE_DEFAULTS = load_preset("sketch_refine", {"iterations": int, "lambda_pos": float, "lambda_reg": float,
+                                                "lambda_silh": float})
 
 
 @dataclass
@@ -54,10 +60,10 @@ class RefineSettings:
         parts separate from the largest piece of the mesh are fixed.
     """
 
-    iterations: int = 5
-    lambda_pos: float = 0.1
-    lambda_reg: float = 3.0
-    lambda_silh: float = 1.0
+    iterations: int = REFINE_DEFAULTS["iterations"]
+    lambda_pos: float = REFINE_DEFAULTS["lambda_pos"]
+    lambda_reg: float = REFINE_DEFAULTS["lambda_reg"]
+    lambda_silh: float = REFINE_DEFAULTS["lambda_silh"]
     fixed_group: str = FIXED_GROUP
 
     def solver_weights(self) -> dict:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 
+from ..assets import load_preset
 from ..blender.mesh import (
     mesh_triangles,
     require_mesh,
@@ -25,7 +26,12 @@ from ..core.lips import regions as core_regions
 from ..core.lips.lip_loop import inner_lip_loop, loop_width
 from ..names import LIPS_GROUP, MOUTH_GROUP
 
-__all__ = ["RegionSettings", "RegionsResult", "auto_regions", "region_faces"]
+__all__ = ["REGION_DEFAULTS", "RegionSettings", "RegionsResult", "auto_regions", "region_faces"]
+
+#: Band widths of ``assets/presets/regions.json`` as fractions of the mouth width
+#: (``core.lips.lip_loop.loop_width``): ``lip_width`` (inner-lip band half-width) and
+#: ``mouth_width`` (trusted band outside it). The defaults of :class:`RegionSettings`.
+REGION_DEFAULTS = load_preset("regions", {"lip_width": float, "mouth_width": float})
 
 
 @dataclass
@@ -46,8 +52,8 @@ class RegionSettings:
 
     replace: bool = False
     use_selection: bool = False
-    lip_width: float = core_regions.DEFAULT_LIP_WIDTH
-    mouth_width: float = core_regions.DEFAULT_MOUTH_WIDTH
+    lip_width: float = REGION_DEFAULTS["lip_width"]
+    mouth_width: float = REGION_DEFAULTS["mouth_width"]
 
 
 @dataclass

@@ -24,10 +24,9 @@ from ..pipeline.propagate import (
     record_training_frame,
     remove_training_frame,
 )
-from ..pipeline.regions import RegionSettings, auto_regions
+from ..pipeline.regions import REGION_DEFAULTS, RegionSettings, auto_regions
 from ..pipeline.steps import StepJob, run_steps
 from .ops import face_object, poll_face, progress_callback
-from .prefs import REGION_DEFAULTS
 
 
 class FACELAB_OT_auto_regions(bpy.types.Operator):

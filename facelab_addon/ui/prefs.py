@@ -8,19 +8,16 @@ A missing or broken preset file raises :class:`facelab_addon.assets.AssetError` 
 import bpy
 from bpy.props import FloatProperty, IntProperty
 
-from ..assets import load_preset
+from ..pipeline.refine import REFINE_DEFAULTS
+from ..pipeline.regions import REGION_DEFAULTS  # noqa: F401  (the Auto Regions band widths, see pipeline.regions)
 
 # The add-on's module name: "facelab_addon" from a checkout, "bl_ext.<repo>.facelab" as an
 # extension (whose root __init__.py imports the facelab_addon sub-package).
 _parts = __package__.split(".")
 ADDON_ID = ".".join(_parts[: _parts.index("facelab_addon")]) or "facelab_addon"
 
-#: Refine Lips solver settings (keyword arguments of ``core.lips.sketch.refine_lips``).
-DEFAULTS = load_preset("sketch_refine", {"iterations": int, "lambda_pos": float, "lambda_reg": float,
-                                         "lambda_silh": float})
-#: Auto Regions band widths as fractions of the mouth width (``core.lips.lip_loop.loop_width``):
-#: ``lip_width`` (inner-lip band half-width) and ``mouth_width`` (trusted band outside it).
-REGION_DEFAULTS = load_preset("regions", {"lip_width": float, "mouth_width": float})
+#: Refine Lips solver settings (keyword arguments of ``core.lips.sketch.refine_lips``), from the preset.
+DEFAULTS = dict(REFINE_DEFAULTS)
 
 
 class FACELAB_AP_preferences(bpy.types.AddonPreferences):
