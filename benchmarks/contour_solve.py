@@ -1,6 +1,6 @@
 """Benchmark: contour-based blendshape solve with out-of-subspace correctives (Bhat et al. 2013, §4).
 
-Set-up (``core.capture_sim``): ICT-FaceKit (26,719 vertices, centimetres), the
+Set-up (``testing.capture_sim``): ICT-FaceKit (26,719 vertices, centimetres), the
 rig is all 57 ICT expressions; a helmet-like stereo pair (1080x1920, f=1200 px,
 ~20 cm in front of the face, left and right of the mouth); 80 painted markers
 on the skin projected into both cameras with 0.5 px Gaussian noise; the
@@ -76,16 +76,19 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from facelab_addon.core.blendshape_solve import (  # noqa: E402
-    BlendshapeSolver,
+from facelab_addon.core.capture.ict import load_ict  # noqa: E402
+from facelab_addon.core.lips.mouth import find_mouth  # noqa: E402
+from facelab_addon.core.solve.blendshape_solve import BlendshapeSolver  # noqa: E402
+from facelab_addon.core.solve.corrective import OutOfSubspaceCorrective  # noqa: E402
+from facelab_addon.core.solve.matching import (  # noqa: E402
     contour_curve_distance,
-    OutOfSubspaceCorrective,
-    solve_performance,
+    contour_residuals,
+    match_contours,
 )
-from facelab_addon.core.capture_sim import make_capture  # noqa: E402
-from facelab_addon.core.contours import contour_residuals, ict_contour_loops, match_contours  # noqa: E402
-from facelab_addon.core.ict import load_ict  # noqa: E402
-from facelab_addon.core.synthetic import ICT_MOUTH_LOOP, find_mouth, inner_lip_mask  # noqa: E402
+from facelab_addon.core.solve.performance import solve_performance  # noqa: E402
+from facelab_addon.testing.capture_sim import make_capture  # noqa: E402
+from facelab_addon.testing.contour_truth import ict_contour_loops  # noqa: E402
+from facelab_addon.testing.synthetic import ICT_MOUTH_LOOP, inner_lip_mask  # noqa: E402
 
 TARGET_CONTOUR_PX = 1.0
 TARGET_MS_NO_CORRECTIVE = 50.0

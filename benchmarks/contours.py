@@ -30,9 +30,14 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from facelab_addon.core import contours as ct  # noqa: E402
-from facelab_addon.core.capture_sim import helmet_cameras  # noqa: E402
-from facelab_addon.core.ict import load_ict  # noqa: E402
+from facelab_addon.core.capture.ict import load_ict  # noqa: E402
+from facelab_addon.core.solve.contour_loops import MOUTH_CURVES  # noqa: E402
+from facelab_addon.core.solve.matching import contour_residuals, match_contours  # noqa: E402
+from facelab_addon.testing.capture_sim import helmet_cameras  # noqa: E402
+from facelab_addon.testing.contour_truth import (  # noqa: E402
+    ict_contour_loops,
+    synthetic_tracked_curves,
+)
 
 TARGET_MS = 5.0  # "a few ms" for 2 cameras
 SHAPES = ["jawOpen", "mouthFunnel", "mouthPucker", "mouthRollUpper", "mouthRollLower", "mouthSmile_L",
@@ -56,19 +61,19 @@ def main():
     model = load_ict()
     F = model.faces
     t0 = time.perf_counter()
-    loops = ct.ict_contour_loops(model)
+    loops = ict_contour_loops(model)
     build_s = time.perf_counter() - t0
     cams = helmet_cameras()
     rng = np.random.default_rng(0)
 
     # ---- timing
     V = model.pose({"jawOpen": 0.3, "mouthFunnel": 0.4, "eyeBlink_L": 0.3})
-    curves = ct.synthetic_tracked_curves(V, F, cams, loops, spacing_px=1.0)
+    curves = synthetic_tracked_curves(V, F, cams, loops, spacing_px=1.0)
     timing = {}
     for mode in ("3d", "2d", "both"):
-        cpu, wall = timed(lambda: ct.match_contours(V, F, cams, curves, loops, eyelids=mode), 50)
+        cpu, wall = timed(lambda: match_contours(V, F, cams, curves, loops, eyelids=mode), 50)
         timing[mode] = dict(cpu_ms=round(cpu, 3), wall_ms=round(wall, 3))
-    cpu, wall = timed(lambda: ct.synthetic_tracked_curves(V, F, cams, loops), 10)
+    cpu, wall = timed(lambda: synthetic_tracked_curves(V, F, cams, loops), 10)
     timing["synthetic_tracked_curves"] = dict(cpu_ms=round(cpu, 3), wall_ms=round(wall, 3))
 
     # ---- self-consistency on random poses
@@ -77,10 +82,10 @@ def main():
     for _ in range(args.poses):
         w = {s: float(rng.uniform(0, 0.8)) for s in SHAPES if rng.random() < 0.5}
         X = model.pose(w)
-        cv = ct.synthetic_tracked_curves(X, F, cams, loops)
+        cv = synthetic_tracked_curves(X, F, cams, loops)
         n_curves.append(len(cv))
-        corr = ct.match_contours(X, F, cams, cv, loops, eyelids="both")
-        for c, r in zip(corr, ct.contour_residuals(X, cams, corr)):
+        corr = match_contours(X, F, cams, cv, loops, eyelids="both")
+        for c, r in zip(corr, contour_residuals(X, cams, corr)):
             if c.camera < 0:
                 mm_lid.append(r * 10.0)  # ICT: centimetres
             elif c.name.startswith("mouth"):
@@ -102,14 +107,14 @@ def main():
     first = None
     for a in np.linspace(0.0, 1.0, 11):
         X = model.pose({"jawOpen": 0.2, "mouthRollUpper": float(a), "mouthRollLower": float(0.6 * a)})
-        cv = ct.synthetic_tracked_curves(X, F, cams, loops, names=list(ct.MOUTH_CURVES))
-        slide = ct.match_contours(X, F, cams, cv, loops, previous=prev)
-        fixed = ct.match_contours(X, F, cams, cv, loops, previous=first, sliding=False)
+        cv = synthetic_tracked_curves(X, F, cams, loops, names=list(MOUTH_CURVES))
+        slide = match_contours(X, F, cams, cv, loops, previous=prev)
+        fixed = match_contours(X, F, cams, cv, loops, previous=first, sliding=False)
         if first is None:
             first = fixed
         prev = slide
-        rs = cat(ct.contour_residuals(X, cams, slide))
-        rf = cat(ct.contour_residuals(X, cams, fixed))
+        rs = cat(contour_residuals(X, cams, slide))
+        rf = cat(contour_residuals(X, cams, fixed))
         ramp.append(dict(roll=round(float(a), 2), rings_sliding=[c.loop for c in slide[:2]],
                          sliding_rms_px=float(np.sqrt(np.mean(rs**2))), fixed_rms_px=float(np.sqrt(np.mean(rf**2))),
                          fixed_max_px=float(rf.max())))

@@ -1,7 +1,7 @@
 """Benchmark: local geometric indexing from sparse bundles (Cong, Lan and Fedkiw 2019, §7).
 
 Data: the ICT-FaceKit face (26,719 vertices, centimetres) and a dataset of
-110 shapes made by ``facelab_addon.core.datasets.ict_dataset``: the 57 ICT
+110 shapes made by ``facelab_addon.testing.datasets.ict_dataset``: the 57 ICT
 expressions, 23 nonlinear in-betweens and 30 FACS-style combinations (see
 that module for how they are generated). 100 bundles are spread over the face
 like a painted marker pattern (``ict_bundle_layout``). The jaw is a linear
@@ -48,10 +48,12 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from facelab_addon.core import datasets as ds  # noqa: E402
-from facelab_addon.core.geometric_indexing import BlendshapeFit, GeometricIndexer, RigCorrectives  # noqa: E402
-from facelab_addon.core.ict import load_ict  # noqa: E402
-from facelab_addon.core.natural_neighbor import surface_points  # noqa: E402
+from facelab_addon.core.capture.ict import load_ict  # noqa: E402
+from facelab_addon.core.lgi.baselines import BlendshapeFit  # noqa: E402
+from facelab_addon.core.lgi.correctives import RigCorrectives  # noqa: E402
+from facelab_addon.core.lgi.indexer import GeometricIndexer  # noqa: E402
+from facelab_addon.core.lgi.natural_neighbor import surface_points  # noqa: E402
+from facelab_addon.testing import datasets as ds  # noqa: E402
 
 CM_TO_MM = 10.0
 

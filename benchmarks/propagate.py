@@ -1,7 +1,7 @@
 """Benchmark: regression propagation of lip corrections (Dinev et al. 2018, §4 and §6.2, Fig. 11).
 
 Ground truth is ICT-FaceKit driven by a smooth, speech-like sequence of jaw
-and mouth expression weights. The "capture" is the truth plus a systematic,
+and mouth expression weights (``testing.weights.speech_weights``). The "capture" is the truth plus a systematic,
 pose-dependent error confined to the inner-lip region (lips that fail to
 close, lips that cross when pressed, mouth corners that lose volume when the
 mouth widens), a deterministic but non-linear function of the pose that fades
@@ -29,69 +29,15 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from facelab_addon.core import regions  # noqa: E402
-from facelab_addon.core.ict import load_ict  # noqa: E402
-from facelab_addon.core.propagate import LipRegressor, suggest_frames  # noqa: E402
+from facelab_addon.core.capture.ict import load_ict  # noqa: E402
+from facelab_addon.core.geometry.geodesic import geodesic_distance  # noqa: E402
+from facelab_addon.core.lips import regions  # noqa: E402
+from facelab_addon.core.lips.lip_loop import loop_width  # noqa: E402
+from facelab_addon.core.lips.propagate import LipRegressor  # noqa: E402
+from facelab_addon.core.lips.suggest import suggest_frames  # noqa: E402
+from facelab_addon.testing.weights import SPEECH_CHANNELS, speech_weights  # noqa: E402
 
 CM_TO_MM = 10.0
-# (name, maximum weight): the mouth shapes of speech
-CHANNELS = [
-    ("jawOpen", 0.55),
-    ("mouthClose", 0.35),
-    ("mouthFunnel", 0.6),
-    ("mouthPucker", 0.7),
-    ("mouthSmile_L", 0.7),
-    ("mouthSmile_R", 0.7),
-    ("mouthPress_L", 0.6),
-    ("mouthPress_R", 0.6),
-    ("mouthRollLower", 0.5),
-    ("mouthRollUpper", 0.4),
-    ("mouthStretch_L", 0.5),
-    ("mouthStretch_R", 0.5),
-    ("mouthLowerDown_L", 0.4),
-    ("mouthLowerDown_R", 0.4),
-    ("mouthUpperUp_L", 0.4),
-    ("mouthUpperUp_R", 0.4),
-]
-
-
-def smooth_noise(rng, n, sigma):
-    """(n,) zero-mean unit-variance Gaussian-filtered white noise (sigma in frames)."""
-    w = rng.standard_normal(n + 8 * int(sigma))
-    k = np.exp(-0.5 * (np.arange(-4 * int(sigma), 4 * int(sigma) + 1) / sigma) ** 2)
-    s = np.convolve(w, k / k.sum(), mode="valid")[:n]
-    return (s - s.mean()) / s.std()
-
-
-def speech_weights(n_frames, seed=7):
-    """(T, C) smooth speech-like weights in [0, max]: syllable-rate jaw, sparse lip shapes, L/R correlated."""
-    rng = np.random.default_rng(seed)
-    W = {}
-    t = np.arange(n_frames)
-    # jaw: syllables at ~4 Hz (24 fps) with a slowly varying envelope, closed between phrases
-    phase = np.cumsum(2 * np.pi / 6.0 * (1 + 0.25 * smooth_noise(rng, n_frames, 12)))
-    env = np.clip(0.6 + 0.5 * smooth_noise(rng, n_frames, 20), 0, 1)
-    W["jawOpen"] = np.clip(0.5 + 0.5 * np.sin(phase), 0, 1) ** 1.5 * env
-    for name, _ in CHANNELS[1:]:
-        W[name] = None
-    for base in ("mouthSmile", "mouthPress", "mouthStretch", "mouthLowerDown", "mouthUpperUp"):
-        common = smooth_noise(rng, n_frames, 6)
-        for side in ("_L", "_R"):
-            x = 0.8 * common + 0.45 * smooth_noise(rng, n_frames, 6)
-            W[base + side] = np.clip(x - 0.3, 0, None)
-    for name in ("mouthClose", "mouthFunnel", "mouthPucker", "mouthRollLower", "mouthRollUpper"):
-        W[name] = np.clip(smooth_noise(rng, n_frames, 5) - 0.4, 0, None)
-    out = np.zeros((n_frames, len(CHANNELS)))
-    for c, (name, mx) in enumerate(CHANNELS):
-        x = W[name]
-        if name != "jawOpen":
-            x = x / max(np.percentile(x, 99), 1e-9)
-        out[:, c] = mx * np.clip(x, 0, 1)
-    # mouthClose only makes sense with the jaw open (ARKit convention)
-    jc = [n for n, _ in CHANNELS].index("mouthClose")
-    out[:, jc] = np.minimum(out[:, jc], out[:, 0])
-    del t
-    return out
 
 
 class Scene:
@@ -105,7 +51,7 @@ class Scene:
         self.t_regions = time.perf_counter() - t0
         self.mouth_faces = regions.faces_in_region(F, self.mouth)
         self.lip_faces = regions.faces_in_region(F, self.lip)
-        self.lip_width = regions.DEFAULT_LIP_WIDTH * regions.loop_width(V, self.loop)
+        self.lip_width = regions.DEFAULT_LIP_WIDTH * loop_width(V, self.loop)
         self.dist = np.where(np.isfinite(d), d, np.inf)
         # split the loop at the mouth corners (ICT: x is the mouth width, y is up)
         L = self.loop
@@ -113,15 +59,15 @@ class Scene:
         i0, i1 = sorted((a, b))
         h1, h2 = L[i0 : i1 + 1], np.r_[L[i1:], L[: i0 + 1]]
         up, lo = (h1, h2) if V[h1, 1].mean() > V[h2, 1].mean() else (h2, h1)
-        du = regions.geodesic_distance(V, F, up, limit=2 * self.lip_width)
-        dl = regions.geodesic_distance(V, F, lo, limit=2 * self.lip_width)
+        du = geodesic_distance(V, F, up, limit=2 * self.lip_width)
+        dl = geodesic_distance(V, F, lo, limit=2 * self.lip_width)
         self.upper = du < dl  # (V,) on the upper lip
         # error support: smooth in the geodesic distance, zero from 0.75 * lip width on
         u = np.clip(1.0 - self.dist / (0.75 * self.lip_width), 0.0, 1.0)
         self.fade = u * u * (3 - 2 * u)
         self.corner_L = V[L[np.argmax(V[L, 0])]]
         self.corner_R = V[L[np.argmin(V[L, 0])]]
-        names = [n for n, _ in CHANNELS]
+        names = [n for n, _ in SPEECH_CHANNELS]
         self.names = names
         self.deltas = self.m.deltas(names).reshape(len(names), -1)  # (C, 3V)
 

@@ -4,15 +4,15 @@ Scene (as ``tests/blender/test_propagate_operator.py``, at scale): the
 ICT-FaceKit face in metres (26,719 vertices) with eight mouth expressions as
 shape keys (jawOpen, mouthClose, mouthFunnel, mouthPucker, mouthSmile_L/R,
 mouthPress_L/R), keyed with ``key_values_bulk`` on N frames of smooth,
-speech-like weights (``benchmarks/propagate.py``'s ``speech_weights``). The
-capture error is one shape key, ``CaptureError`` (``core.synthetic.
+speech-like weights (``testing.weights.speech_weights``, as ``benchmarks/propagate.py``). The
+capture error is one shape key, ``CaptureError`` (``testing.synthetic.
 lip_error_weights``: the inner lips pulled apart, 1 mm per lip at value 1,
 faded to zero at the border of the ``FL_lips`` group so that the trusted
 mouth region and the Dirichlet border are error-free), keyed with a
 non-linear function of the pose: lips fail to close when the jaw is nearly
 shut, and cross (negative values; the key's slider minimum is lowered) when
 pressed. The truth is the capture minus that key. Auto Regions writes the
-regions; 10 training frames are chosen by ``core.propagate.suggest_frames``
+regions; 10 training frames are chosen by ``core.lips.suggest.suggest_frames``
 on the captured sequence (no regressor: extreme poses first); each is
 "sculpted" (``add_corrective_key`` cancelling the error + ``key_spike``) and
 marked (``bpy.ops.facelab.mark_training_frame``). Then
@@ -21,7 +21,7 @@ suggests first is corrected too (incremental).
 
 Reported: .blend sizes before/after (uncompressed and zstd), FL_Prop_* keys
 and keyframes written, operator wall time split into its parts (the parts of
-``ops_propagate.propagate`` are wrapped with timers; "self" times add up to
+``pipeline.propagate.propagate`` are wrapped with timers; "self" times add up to
 the wall time), peak RSS of each part and of the process, held-out inner-lip
 error against the truth on the evaluated mesh, the deviation of the evaluated
 mesh from ``LipRegressor.predict``.
@@ -33,7 +33,6 @@ Prints one JSON object on stdout; Blender's own output goes to stderr.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import os
 import platform
@@ -163,10 +162,11 @@ class Timers:
 
 
 def instrument(timers):
-    """Wrap the parts of ``ops_propagate.propagate`` (module attributes it looks up at call time)."""
+    """Wrap the parts of ``pipeline.propagate.propagate`` (module attributes it looks up at call time)."""
     from facelab_addon.blender import caches
-    from facelab_addon.core import propagate as cprop
-    from facelab_addon.ui import ops_propagate as op
+    from facelab_addon.core.lips import propagate as cprop
+    from facelab_addon.pipeline import correctives
+    from facelab_addon.pipeline import propagate as op
 
     timers.patch(caches, "read_captured_frames", "read_captured (frame_set x T)")
     timers.patch(caches, "evaluate_frames", "read_corrected (training frames)",
@@ -174,30 +174,20 @@ def instrument(timers):
     timers.patch(op, "mesh_triangles", "setup: mesh_triangles")
     timers.patch(op, "region_faces", "setup: region_faces")
     timers.patch(op, "rest_vertices", "setup: rest_vertices")
-    timers.patch(op, "_regressor", "regressor (cache lookup)")
     timers.patch(cprop.LipRegressor, "__init__", "regressor: LipRegressor.__init__ (Poisson factor, patches)")
     timers.patch(cprop.LipRegressor, "fit", "regressor: fit")
     timers.patch(cprop.LipRegressor, "add", "regressor: add (incremental)")
     timers.patch(cprop.LipRegressor, "predict", "predict (T frames, in place)")
     timers.patch(cprop.LipRegressor, "extrapolation", "extrapolation score")
     timers.patch(op, "suggest_frames", "suggest_frames (3 markers)")
-    timers.patch(op, "compress", "compress (SVD basis, 0.01 mm)")
-    timers.patch(op, "remove_keys", "write: remove old FL_Prop keys")
-    timers.patch(op, "add_keys_from_deltas", "write: add FL_Prop keys")
-    timers.patch(op, "key_values_bulk", "write: key FL_Prop values")
+    timers.patch(correctives, "compress", "compress (SVD basis, 0.01 mm)")
+    timers.patch(correctives, "remove_keys", "write: remove old FL_Prop keys")
+    timers.patch(correctives, "add_keys_from_deltas", "write: add FL_Prop keys")
+    timers.patch(correctives, "key_values_bulk", "write: key FL_Prop values")
     timers.patch(op, "key_property_bulk", "write: key FL_extrapolation")
 
 
 # --------------------------------------------------------------------------- scene
-def load_speech_weights(n_frames):
-    spec = importlib.util.spec_from_file_location("facelab_bench_propagate", ROOT / "benchmarks" / "propagate.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    names = [n for n, _ in mod.CHANNELS]
-    W = mod.speech_weights(n_frames)
-    return W[:, [names.index(n) for n in EXPR]]
-
-
 def capture_error_weight(W):
     """(T,) CaptureError key value: + gap when the lips should be closed, - crossing when pressed (non-linear)."""
     jaw, close = W[:, 0], W[:, 1]
@@ -207,22 +197,17 @@ def capture_error_weight(W):
 
 
 def build(bpy, ict, frames, W):
-    """The animated capture: expression keys, Auto Regions, then the CaptureError key inside the lip region."""
+    """The animated capture: keyed expressions (``build_ict_face_scene``), Auto Regions, then the CaptureError
+    key inside the lip region."""
     from facelab_addon.blender.mesh import mesh_triangles, vertex_group_mask
-    from facelab_addon.blender.scene import new_mesh_object
     from facelab_addon.blender.shapekeys import add_corrective_key, key_values_bulk
-    from facelab_addon.core import regions
-    from facelab_addon.core import synthetic as syn
+    from facelab_addon.core.geometry.geodesic import geodesic_distance
+    from facelab_addon.core.lips import regions
+    from facelab_addon.testing import synthetic as syn
+    from facelab_addon.testing.scenes import build_ict_face_scene
 
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    scene = bpy.context.scene
-    scene.frame_start, scene.frame_end = int(frames[0]), int(frames[-1])
-    obj = new_mesh_object("Face", ict.neutral * SCALE, poly_verts=ict.poly_verts, poly_offsets=ict.poly_offsets)
-    bpy.context.view_layer.objects.active = obj
-    obj.select_set(True)
-    obj.shape_key_add(name="Basis", from_mix=False)
-    for name in EXPR:
-        add_corrective_key(obj, name, (ict.expressions[name] - ict.neutral) * SCALE)
+    fs = build_ict_face_scene(ict, EXPR, weights=W, frames=frames, scale=SCALE)
+    scene, obj = fs.scene, fs.obj
     t0 = time.perf_counter()
     assert bpy.ops.facelab.auto_regions() == {"FINISHED"}
     t_regions = time.perf_counter() - t0
@@ -240,7 +225,7 @@ def build(bpy, ict, frames, W):
     interior = lips.copy()
     interior[border] = False
     width = regions.DEFAULT_LIP_WIDTH * mouth.width
-    db = regions.geodesic_distance(V, tris, border, limit=width)
+    db = geodesic_distance(V, tris, border, limit=width)
     u = np.clip(np.where(np.isfinite(db), db, width) / (0.35 * width), 0.0, 1.0)
     fade = u * u * (3 - 2 * u) * interior
     err = np.zeros_like(V)
@@ -250,7 +235,7 @@ def build(bpy, ict, frames, W):
     kb.slider_min = -2.0  # negative values (lips crossing) would otherwise be clamped to 0 by Blender
     cap_w = capture_error_weight(W)
     assert cap_w.min() >= kb.slider_min and cap_w.max() <= kb.slider_max
-    key_values_bulk(obj, EXPR + ["CaptureError"], frames, np.c_[W, cap_w])
+    key_values_bulk(obj, ["CaptureError"], frames, cap_w[:, None])
     info = dict(auto_regions_s=round(t_regions, 2), error_vertices=int((np.abs(err).max(axis=1) > 0).sum()),
                 lip_vertices=int(lips.sum()), lip_border_vertices=int(len(border)),
                 unfaded_error_outside_lip_interior_mm=round(leak_unfaded, 3))
@@ -302,10 +287,9 @@ def accuracy(bpy, obj, frames, train, err, cap_w, chunk=100):
     """Held-out inner-lip error vs the truth on the evaluated mesh, and its deviation from LipRegressor.predict."""
     from facelab_addon.blender import caches
     from facelab_addon.blender.mesh import mesh_triangles, vertex_group_mask
-    from facelab_addon.blender.shapekeys import shape_key_sequence
-    from facelab_addon.core.propagate import LipRegressor
-    from facelab_addon.core.regions import faces_in_region
-    from facelab_addon.blender.shapekeys import rest_vertices
+    from facelab_addon.blender.shapekeys import rest_vertices, shape_key_sequence
+    from facelab_addon.core.lips.propagate import LipRegressor
+    from facelab_addon.core.lips.regions import faces_in_region
 
     tris = mesh_triangles(obj.data)
     mouth, lips = vertex_group_mask(obj, "FL_mouth"), vertex_group_mask(obj, "FL_lips")
@@ -370,10 +354,15 @@ def main(argv=None):
     import facelab_addon
     from facelab_addon.blender import caches
     from facelab_addon.blender.mesh import mesh_triangles
-    from facelab_addon.blender.shapekeys import add_corrective_key, key_spike, shape_key_sequence
-    from facelab_addon.core.ict import load_ict
-    from facelab_addon.core.propagate import suggest_frames
-    from facelab_addon.ui import ops_propagate as op
+    from facelab_addon.blender.shapekeys import (
+        add_corrective_key,
+        key_spike,
+        shape_key_sequence,
+    )
+    from facelab_addon.core.capture.ict import load_ict
+    from facelab_addon.core.lips.suggest import suggest_frames
+    from facelab_addon.pipeline import propagate as op
+    from facelab_addon.testing.weights import speech_weights
 
     out["bpy_version"] = bpy.app.version_string
     out["bpy_import_s"] = round(time.perf_counter() - t0, 2)
@@ -381,7 +370,7 @@ def main(argv=None):
     facelab_addon.register()
     ict = load_ict()
     frames = np.arange(1, T + 1)
-    W = load_speech_weights(T)
+    W = speech_weights(T, channels=EXPR)
 
     t0 = time.perf_counter()
     scene, obj, err, cap_w, info = build(bpy, ict, frames, W)

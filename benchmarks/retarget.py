@@ -5,7 +5,8 @@ by a smooth warp (``retarget.widen_mouth``, 1.6x stretch at the mouth centre
 with a Gaussian falloff): same topology, so the correspondence is the vertex
 map. The actor's 57 expressions are deformation-transferred once; the actor
 performs a speech-like sequence of mouth shapes (open jaw, "ee", "oo", closed
-"mm", "ah") with a small per-frame out-of-subspace corrective (a lip pout).
+"mm", "ah"; ``testing.weights.viseme_weights``) with a small per-frame
+out-of-subspace corrective (a lip pout).
 The creature copies the weights and gets the transferred corrective, with and
 without the lip-sync heuristic.
 
@@ -38,46 +39,21 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from facelab_addon.core.deformation_transfer import (  # noqa: E402
+from facelab_addon.core.capture.ict import load_ict  # noqa: E402
+from facelab_addon.core.geometry.laplacian import uniform_laplacian  # noqa: E402
+from facelab_addon.core.solve.deformation_transfer import (  # noqa: E402
     DeformationTransfer,
     triangle_correspondence_from_markers,
 )
-from facelab_addon.core.ict import load_ict  # noqa: E402
-from facelab_addon.core.laplacian import uniform_laplacian  # noqa: E402
-from facelab_addon.core.retarget import (  # noqa: E402
-    EndPoints,
-    LipSync,
-    Retargeter,
-    lip_contours,
-    lip_distances,
-    widen_mouth,
-)
+from facelab_addon.core.solve.lip_contours import EndPoints, lip_contours, lip_distances  # noqa: E402
+from facelab_addon.core.solve.lip_sync import LipSync  # noqa: E402
+from facelab_addon.core.solve.retarget import Retargeter  # noqa: E402
+from facelab_addon.testing.creature import widen_mouth  # noqa: E402
+from facelab_addon.testing.weights import viseme_weights  # noqa: E402
 
 MM = 1000.0  # metres -> millimetres
 IDENTITY = "identity003"
 FACTOR = 1.6
-# speech-like key poses (weights), interpolated smoothly
-POSES = {
-    "rest": {},
-    "open": {"jawOpen": 0.45, "mouthLowerDown_L": 0.3, "mouthLowerDown_R": 0.3},
-    "ee": {"jawOpen": 0.15, "mouthStretch_L": 0.45, "mouthStretch_R": 0.45, "mouthSmile_L": 0.3,
-           "mouthSmile_R": 0.3},
-    "oo": {"jawOpen": 0.2, "mouthFunnel": 0.6, "mouthPucker": 0.4},
-    "mm": {"mouthClose": 0.2, "mouthPress_L": 0.4, "mouthPress_R": 0.4, "jawOpen": 0.05},
-    "ah": {"jawOpen": 0.6, "mouthUpperUp_L": 0.25, "mouthUpperUp_R": 0.25},
-}
-SEQUENCE = ["rest", "open", "ee", "oo", "mm", "ah", "oo", "open", "mm", "ee", "ah", "rest"]
-
-
-def performance(names, frames_per_pose):
-    """(T,S) weights: the key poses of SEQUENCE joined by cosine ease-in-out."""
-    keys = np.array([[POSES[p].get(n, 0.0) for n in names] for p in SEQUENCE])
-    out = []
-    for a, b in zip(keys[:-1], keys[1:]):
-        s = 0.5 - 0.5 * np.cos(np.pi * np.arange(frames_per_pose) / frames_per_pose)
-        out.append(a[None] + s[:, None] * (b - a)[None])
-    out.append(keys[-1:])
-    return np.concatenate(out)
 
 
 def pout(V, center, amount):
@@ -113,7 +89,7 @@ def run(quick: bool = False, render: bool = True, samples: int = 24, png=None) -
     # the former settings (strong 1000 constraints on the raw targets), for the smoothness comparison only
     old_ls = LipSync(C, F, cc, ac, strength=1000.0, seal_strength=1000.0, smooth=0.0)
     Lu = uniform_laplacian(F, len(V))
-    W = performance(names, 2 if quick else 4)
+    W = viseme_weights(names, 2 if quick else 4)
     T = len(W)
     amount = 0.0015 * np.sin(np.linspace(0, 3 * np.pi, T)) ** 2  # up to 1.5 mm pout
     rows = []
@@ -335,7 +311,7 @@ def contour_figure(frames_out, pick, rows, ac, cc, end_points, png):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from facelab_addon.core.retarget import contour_points
+    from facelab_addon.core.solve.lip_contours import contour_points
 
     fig, axes = plt.subplots(len(pick), 1, figsize=(8.0, 3.4 * len(pick)))
     axes = np.atleast_1d(axes)

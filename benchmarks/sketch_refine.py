@@ -2,10 +2,10 @@
 
 Ground truth: ICT-FaceKit poses (26,719 vertices, centimetres). For each case
 a capture error is injected into the inner lips of the truth
-(``core.synthetic.inject_lip_error``: the same smooth, deterministic error for
+(``testing.synthetic.inject_lip_error``: the same smooth, deterministic error for
 every method), the "artist's sketch" is the truth's inner-lip silhouettes in a
 frontal camera (1920x1080, 50 mm lens, 40 cm in front of the mouth,
-``core.synthetic.lip_contours``), and ``core.sketch.refine_lips`` corrects the
+``testing.synthetic.lip_contours``), and ``core.lips.sketch.refine_lips`` corrects the
 captured mesh from that sketch with the paper's settings (5 iterations,
 lambda_pos 0.1 / 1 for the hidden parts, lambda_reg 3, lambda_silh 1).
 
@@ -49,11 +49,11 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from facelab_addon.core import synthetic as S  # noqa: E402
+from facelab_addon.core.capture.ict import load_ict  # noqa: E402
 from facelab_addon.core.errors import FaceLabError  # noqa: E402
-from facelab_addon.core.ict import load_ict  # noqa: E402
-from facelab_addon.core.silhouette import point_segment_distance  # noqa: E402
-from facelab_addon.core.sketch import press_lips, refine_lips, resample_polyline  # noqa: E402
+from facelab_addon.core.geometry.silhouette import point_segment_distance  # noqa: E402
+from facelab_addon.core.lips.sketch import press_lips, refine_lips, resample_polyline  # noqa: E402
+from facelab_addon.testing import synthetic as S  # noqa: E402
 
 TARGET_CONTOUR_MEAN_PX = 1.0
 TARGET_REDUCTION_PCT = 50.0
@@ -286,7 +286,7 @@ def main(argv=None):
     cam = S.frontal_camera(model.neutral, S.ICT_MOUTH_LOOP, distance=40.0 * model.scale)
     report = dict(
         benchmark="sketch_refine",
-        method="core.sketch.refine_lips (Dinev et al. 2018 §5), iterations=5, lambda_pos=0.1 (fixed 1), "
+        method="core.lips.sketch.refine_lips (Dinev et al. 2018 §5), iterations=5, lambda_pos=0.1 (fixed 1), "
         "lambda_reg=3, lambda_silh=1",
         quick=bool(args.quick),
         mesh=dict(name="ICT-FaceKit generic_neutral_mesh", vertices=len(model.neutral), triangles=len(model.faces),

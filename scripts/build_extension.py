@@ -13,7 +13,7 @@ Steps:
 2. Check the downloaded file names against the ``wheels = [...]`` list of blender_manifest.toml
    (``--update-manifest`` rewrites that list instead).
 3. Stage the extension in ``build/extension/``: the root ``__init__.py``, the manifest (restricted
-   to the requested platforms), ``facelab_addon/`` and ``wheels/``.
+   to the requested platforms), ``facelab_addon/``, ``assets/`` (presets, sample mesh) and ``wheels/``.
 4. Run Blender's extension CLI (shipped in the bpy wheel, no Blender binary needed):
    ``blender_ext.py build --split-platforms`` -> ``dist/facelab-<version>-<platform>.zip``; the CLI
    keeps only each platform's wheels and appends ``[build.generated] platforms/wheels`` to the
@@ -52,7 +52,9 @@ PIP_PLATFORMS = {
 
 FORBIDDEN_PREFIXES = ("tests/", "benchmarks/", "docs/", "scripts/", "out/", ".venv/", ".git/", "build/", "dist/")
 REQUIRED_FILES = ("blender_manifest.toml", "__init__.py", "facelab_addon/__init__.py",
-                  "facelab_addon/core/deform.py", "facelab_addon/ui/panel.py", "facelab_addon/cli/__init__.py")
+                  "facelab_addon/core/geometry/deform.py", "facelab_addon/ui/panel.py", "facelab_addon/cli/__init__.py",
+                  "facelab_addon/assets.py", "assets/presets/sketch_refine.json", "assets/presets/regions.json",
+                  "assets/presets/sketch_material.json", "assets/meshes/lips.obj")
 
 
 def log(msg: str) -> None:
@@ -162,8 +164,8 @@ def stage(stage_dir: Path, text: str, wheels: dict[str, list[Path]]) -> None:
     for extra in ("README.md", "LICENSE"):
         if (ROOT / extra).exists():
             shutil.copy2(ROOT / extra, stage_dir / extra)
-    shutil.copytree(ROOT / "facelab_addon", stage_dir / "facelab_addon",
-                    ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+    for package in ("facelab_addon", "assets"):
+        shutil.copytree(ROOT / package, stage_dir / package, ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
     wdir = stage_dir / "wheels"
     wdir.mkdir()
     for files in wheels.values():

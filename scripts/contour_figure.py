@@ -18,14 +18,20 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from facelab_addon.core import contours as ct  # noqa: E402
-from facelab_addon.core.camera import Camera  # noqa: E402
-from facelab_addon.core.ict import load_ict  # noqa: E402
+from facelab_addon.core.capture.camera import Camera  # noqa: E402
+from facelab_addon.core.capture.ict import load_ict  # noqa: E402
+from facelab_addon.core.solve.contour_loops import MOUTH_CURVES  # noqa: E402
+from facelab_addon.core.solve.matching import match_contours  # noqa: E402
+from facelab_addon.core.solve.occlusion import _facing_sign, _half_counts  # noqa: E402
+from facelab_addon.testing.contour_truth import (  # noqa: E402
+    ict_contour_loops,
+    synthetic_tracked_curves,
+)
 
 
 def main(out="docs/images/contours_selection.png"):
     m = load_ict()
-    loops = ct.ict_contour_loops(m)
+    loops = ict_contour_loops(m)
     tgt = m.neutral[6632:6706].mean(0) + [0, 2.0, 0]
     cam = Camera.look_at(tgt + [-5.0, -6.0, 30.0], tgt, [0, 1, 0], 100, 36, 3840, 2160)  # zoomed on the mouth
     fig, axes = plt.subplots(1, 2, figsize=(15, 5.5))
@@ -34,20 +40,20 @@ def main(out="docs/images/contours_selection.png"):
     for ax, (expr, w) in zip(axes, poses.items()):
         V = m.pose(w)
         # the "tracked" curves: the truth's occluding contours, displaced by 8 px so the matching shows
-        curves = ct.synthetic_tracked_curves(V, m.faces, [cam], loops, names=list(ct.MOUTH_CURVES))
+        curves = synthetic_tracked_curves(V, m.faces, [cam], loops, names=list(MOUTH_CURVES))
         for c in curves:
             c.pixels = c.pixels + [0.0, -8.0 if c.name == "mouth_upper" else 8.0]
-        corr = ct.match_contours(V, m.faces, [cam], curves, loops)
+        corr = match_contours(V, m.faces, [cam], curves, loops)
         P = cam.project(V)
-        counts = ct._half_counts(V, cam, loops)
+        counts = _half_counts(V, cam, loops)
         for k, lp in enumerate(loops.mouth):
             q = P[np.r_[lp, lp[:1]]]
             ax.plot(q[:, 0], q[:, 1], color="0.75", lw=0.6, zorder=1)
         # silhouette edges on the candidates
         (tri, inv), ok, hid = loops._pack[:3]
-        s = ct._facing_sign(V, tri, cam)[inv]
+        s = _facing_sign(V, tri, cam)[inv]
         sil = ok & (s[:, 0] != s[:, 1])
-        for name in ct.MOUTH_CURVES:
+        for name in MOUTH_CURVES:
             lo, hi = loops._pack[4][name]
             for k, h in enumerate(loops.halves[name]):
                 mask = sil[hid == lo + k]
@@ -79,19 +85,19 @@ def main(out="docs/images/contours_selection.png"):
 
 def eyelids(out="docs/images/contours_eyelids.png"):
     """The left eye from the right helmet camera: eyelid loops, occluding halves, 3D targets on the eyeball."""
-    from facelab_addon.core.capture_sim import helmet_cameras
+    from facelab_addon.testing.capture_sim import helmet_cameras
 
     m = load_ict()
-    loops = ct.ict_contour_loops(m)
+    loops = ict_contour_loops(m)
     cam = helmet_cameras()[1]
     fig, axes = plt.subplots(1, 2, figsize=(14, 5))
     poses = {"neutral": {}, "eyeBlink 0.5 + eyeLookDown_L 0.4": {"eyeBlink_L": 0.5, "eyeLookDown_L": 0.4}}
     for ax, (title, w) in zip(axes, poses.items()):
         X = m.pose(w)
-        curves = ct.synthetic_tracked_curves(X, m.faces, [cam], loops, names=["eyelid_left_upper", "eyelid_left_lower"])
+        curves = synthetic_tracked_curves(X, m.faces, [cam], loops, names=["eyelid_left_upper", "eyelid_left_lower"])
         for c in curves:  # moved 3 px away from the lid so the pairing shows
             c.pixels = c.pixels + [0.0, -3.0 if c.name.endswith("upper") else 3.0]
-        corr = ct.match_contours(X, m.faces, [cam], curves, loops, eyelids="both")
+        corr = match_contours(X, m.faces, [cam], curves, loops, eyelids="both")
         P = cam.project(X)
         for lp in loops.eyes["left"]:
             q = P[np.r_[lp, lp[:1]]]

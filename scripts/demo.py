@@ -42,7 +42,7 @@ UNITS_PER_MM = 0.001
 
 def scenario(ict):
     """Truth, capture, camera, sketch and masks for the demo (metres)."""
-    from facelab_addon.core import synthetic as syn
+    from facelab_addon.testing import synthetic as syn
 
     F = ict.faces
     truth = ict.pose({"jawOpen": 0.2, "mouthFunnel": 0.3}) * SCALE
@@ -79,7 +79,7 @@ def run_refine(ict, out, img_dir, samples):
     from facelab_addon.blender.mesh import evaluated_vertices
     from facelab_addon.blender.scene import add_studio_lights, new_mesh_object, set_backplate
     from facelab_addon.blender.strokes import read_lip_strokes, write_stroke_pixels
-    from facelab_addon.core.silhouette import contour_distance
+    from facelab_addon.core.geometry.silhouette import contour_distance
 
     t0 = time.perf_counter()
     s = scenario(ict)
@@ -187,7 +187,7 @@ def main(argv=None):
     img_dir.mkdir(parents=True, exist_ok=True)
     sys.path.insert(0, str(ROOT / "scripts"))
 
-    from facelab_addon.core.ict import load_ict
+    from facelab_addon.core.capture.ict import load_ict
 
     t_all = time.perf_counter()
     ict = load_ict()
@@ -225,7 +225,7 @@ def figures(out, img_dir, s, refined, U, L, lo_px, hi_px, r_before, r_after, r_t
     import matplotlib.pyplot as plt
     from matplotlib.collections import LineCollection
 
-    from facelab_addon.core.silhouette import lip_side, silhouette_edges
+    from facelab_addon.core.geometry.silhouette import lip_side, silhouette_edges
 
     cam, F, fixed = s["cam"], s["F"], s["fixed"]
     ext = (lo_px[0], hi_px[0], hi_px[1], lo_px[1])

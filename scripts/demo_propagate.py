@@ -21,24 +21,11 @@ N_FRAMES = 48
 SCALE, UNITS_PER_MM = 0.01, 0.001
 
 
-def performance_weights(T=N_FRAMES, seed=7):
-    """(T, len(EXPR)) smooth, speech-like expression weights (deterministic)."""
-    rng = np.random.default_rng(seed)
-    t = np.linspace(0, 1, T)
-    W = np.zeros((T, len(EXPR)))
-    for j in range(len(EXPR)):
-        f = rng.uniform(1.0, 3.5)
-        ph = rng.uniform(0, 2 * np.pi)
-        W[:, j] = np.clip(np.sin(2 * np.pi * f * t + ph), 0, None) * rng.uniform(0.15, 0.4)
-    W[:, 0] = 0.05 + 0.25 * np.clip(np.sin(2 * np.pi * 2.2 * t), 0, None)  # jaw opens and closes
-    return W
-
-
 def _drawable(upper, lower, tol_px=2.0):
     """True if an artist would draw these truth contours as they are: the upper one above
     the lower one everywhere (the truth's silhouettes cross where ICT's lips overlap; there
     an artist draws the line where the lips meet instead, which the truth does not give us)."""
-    from facelab_addon.core.sketch import _y_at
+    from facelab_addon.core.lips.sketch import _y_at
 
     ly = _y_at(upper[:, 0], lower)
     ok = np.isfinite(ly)
@@ -49,17 +36,19 @@ def run(ict, out, img_dir, render, samples, n_train=8):
     import bpy
 
     from facelab_addon.blender.caches import evaluate_frames
-    from facelab_addon.blender.camera import camera_from_blender, new_camera_object
-    from facelab_addon.blender.scene import add_studio_lights, new_mesh_object
+    from facelab_addon.blender.camera import camera_from_blender
+    from facelab_addon.blender.scene import add_studio_lights
     from facelab_addon.blender.shapekeys import add_corrective_key, key_values_bulk
     from facelab_addon.blender.strokes import write_stroke_pixels
-    from facelab_addon.core import synthetic as syn
-    from facelab_addon.core.propagate import suggest_frames
+    from facelab_addon.core.lips.suggest import suggest_frames
+    from facelab_addon.testing import synthetic as syn
+    from facelab_addon.testing.scenes import build_ict_face_scene
+    from facelab_addon.testing.weights import rectified_sine_weights
 
     F = ict.faces
     neutral = ict.neutral * SCALE
     deltas = np.stack([(ict.expressions[n] - ict.neutral) * SCALE for n in EXPR])
-    W = performance_weights()
+    W = rectified_sine_weights(N_FRAMES, len(EXPR), seed=7)
     frames = np.arange(1, N_FRAMES + 1)
     truth = neutral[None] + np.einsum("tk,kvd->tvd", W, deltas)
     fixed = ~ict.part_vertex_mask("M_Face")
@@ -70,29 +59,20 @@ def run(ict, out, img_dir, render, samples, n_train=8):
     strength = np.clip(1.0 - W[:, 0] / 0.35, 0.2, 1.0)  # worst when the jaw is closed
     captured = truth + strength[:, None, None] * err[None]
 
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    scene = bpy.context.scene
-    scene.frame_start, scene.frame_end = 1, N_FRAMES
-    face = new_mesh_object("Face", neutral, poly_verts=ict.poly_verts, poly_offsets=ict.poly_offsets)
-    face.shape_key_add(name="Basis", from_mix=False)
-    for j, n in enumerate(EXPR):
-        add_corrective_key(face, n, deltas[j])
+    cam = syn.frontal_camera(neutral, mouth.center, distance=0.40)
+    fs = build_ict_face_scene(ict, EXPR, weights=W, frames=frames, scale=SCALE, fixed_group=True, camera=cam)
+    scene, face = fs.scene, fs.obj
     add_corrective_key(face, "CaptureError", err)
-    key_values_bulk(face, EXPR + ["CaptureError"], frames, np.c_[W, strength])
+    key_values_bulk(face, ["CaptureError"], frames, strength[:, None])
     mat = bpy.data.materials.get("Skin") or bpy.data.materials.new("Skin")
     mat.use_nodes = True
     mat.node_tree.nodes["Principled BSDF"].inputs["Base Color"].default_value = (0.8, 0.55, 0.45, 1)
     face.data.materials.append(mat)
-    face.vertex_groups.new(name="FL_fixed").add(np.flatnonzero(fixed).tolist(), 1.0, "REPLACE")
-    cam = syn.frontal_camera(neutral, mouth.center, distance=0.40)
-    cam_obj = new_camera_object(scene, cam)
     add_studio_lights(scene)
-    bpy.context.view_layer.objects.active = face
-    face.select_set(True)
     bcam = camera_from_blender(scene)
 
     # FaceLab suggests the frames worth correcting (extreme poses); the artist sketches them
-    from facelab_addon.core.regions import auto_regions, faces_in_region
+    from facelab_addon.core.lips.regions import auto_regions, faces_in_region
 
     mouth_mask, _ = auto_regions(neutral, F)
     ranked = [int(frames[i]) for i in suggest_frames(

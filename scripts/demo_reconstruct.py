@@ -1,7 +1,7 @@
 """Demo step 4: Reconstruct from Bundles (Cong, Lan & Fedkiw 2019, local geometric indexing).
 
 The face carries a dataset of ICT shapes as shape keys (the expressions,
-nonlinear in-betweens and FACS-style combinations of ``core.datasets``). A
+nonlinear in-betweens and FACS-style combinations of ``testing.datasets``). A
 held-out performance (combinations that are not in the dataset, eased from
 pose to pose) is seen only through 100 bundles (animated empties in a
 collection ``FL_bundles``, 0.5 mm Gaussian noise, like a mocap solve). The
@@ -32,14 +32,13 @@ def run(ict, out, img_dir, render, samples):
     import facelab_addon
     from facelab_addon.blender.caches import evaluate_frames
     from facelab_addon.blender.camera import new_camera_object
-    from facelab_addon.blender.scene import add_studio_lights, new_mesh_object
-    from facelab_addon.blender.shapekeys import add_corrective_key
-    from facelab_addon.core import datasets as ds
-    from facelab_addon.core import synthetic as syn
-    from facelab_addon.core.geometric_indexing import BlendshapeFit
-    from facelab_addon.core.natural_neighbor import surface_points
-
-    from demo_solve import baked_object
+    from facelab_addon.blender.scene import add_studio_lights
+    from facelab_addon.core.lgi.baselines import BlendshapeFit
+    from facelab_addon.core.lgi.natural_neighbor import surface_points
+    from facelab_addon.names import BUNDLES_COLLECTION
+    from facelab_addon.testing import datasets as ds
+    from facelab_addon.testing import synthetic as syn
+    from facelab_addon.testing.scenes import baked_sequence_object, build_ict_face_scene, keyed_empties
 
     t_start = time.perf_counter()
     F = ict.faces
@@ -55,36 +54,22 @@ def run(ict, out, img_dir, render, samples):
     Qn[0] = Q[0]  # the bind frame: the neutral, clean
     frames = np.arange(N_FRAMES)
 
-    bpy.ops.wm.read_factory_settings(use_empty=True)
+    fs = build_ict_face_scene(ict, shapes=dict(zip(data.names, data.shapes)), frame_range=(0, N_FRAMES - 1),
+                              scale=SCALE, uv_layer=True)
+    scene, face = fs.scene, fs.obj
     if "facelab_solve" not in bpy.types.Scene.bl_rna.properties:  # earlier demo steps registered it
         facelab_addon.register()
-    scene = bpy.context.scene
-    scene.frame_start, scene.frame_end = 0, N_FRAMES - 1
     mat = bpy.data.materials.new("Skin")
     mat.use_nodes = True
     bsdf = mat.node_tree.nodes.get("Principled BSDF")
     bsdf.inputs["Base Color"].default_value = (0.8, 0.55, 0.45, 1)
     bsdf.inputs["Roughness"].default_value = 0.55
-    face = new_mesh_object("Face", neutral, poly_verts=ict.poly_verts, poly_offsets=ict.poly_offsets)
-    uv = face.data.uv_layers.new(name="UVMap")
-    uv.data.foreach_set("uv", ict.uvs[ict.poly_uv].astype(np.float32).ravel())
-    face.shape_key_add(name="Basis", from_mix=False)
-    for n, x in zip(data.names, data.shapes):
-        add_corrective_key(face, n, x * SCALE - neutral)
     face.data.materials.append(mat)
-    coll = bpy.data.collections.new("FL_bundles")
+    coll = bpy.data.collections.new(BUNDLES_COLLECTION)
     scene.collection.children.link(coll)
-    for b in range(N_BUNDLES):
-        e = bpy.data.objects.new(f"B{b:03d}", None)
-        e.empty_display_type, e.empty_display_size = "SPHERE", 0.0015
-        coll.objects.link(e)
-        for t in frames:
-            e.location = Qn[t, b]
-            e.keyframe_insert("location", frame=int(t))
+    keyed_empties(scene, Qn, digits=3, collection=coll, display_size=0.0015)
     recon = scene.facelab_recon
     recon.bundle_source, recon.bundle_collection, recon.bind_frame = "COLLECTION", coll, 0
-    bpy.context.view_layer.objects.active = face
-    face.select_set(True)
     scene.facelab.face = face
     t_build = time.perf_counter() - t_start
     print(f"[demo] reconstruct scene built: {len(data.names)} dataset shape keys, {N_BUNDLES} bundle empties x "
@@ -116,8 +101,8 @@ def run(ict, out, img_dir, render, samples):
     results["blendshape_fit_baseline"] = (Xb, err(Xb))
     X = results[f"reconstruct_smooth{SMOOTH}"][0]
 
-    truth_ob = baked_object(ict, "Truth", truth, frames)
-    fit_ob = baked_object(ict, "Blendshape fit (baseline)", Xb, frames)
+    truth_ob = baked_sequence_object(ict, "Truth", truth, frames)
+    fit_ob = baked_sequence_object(ict, "Blendshape fit (baseline)", Xb, frames)
     for ob in (truth_ob, fit_ob):
         ob.data.materials.append(mat)
         ob.hide_render = True

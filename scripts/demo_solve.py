@@ -1,6 +1,6 @@
 """Demo step 3: Solve Performance + Retarget (Bhat et al. 2013) from a stereo helmet capture.
 
-The ICT face is captured by a simulated helmet stereo pair (``core.capture_sim``):
+The ICT face is captured by a simulated helmet stereo pair (``testing.capture_sim``):
 painted markers on the skin, a smooth rig performance and, on top of it, an
 inner-lip deformation the rig cannot express (the lips fail to close, up to
 2.5 mm). The artist's scene, built through the operators as in production:
@@ -11,7 +11,7 @@ inner-lip deformation the rig cannot express (the lips fail to close, up to
   drawn through camera 2;
 * Bind Tracks on the neutral frame, Solve Performance (markers only first, kept
   as a baked copy, then markers + contours + corrective), Retarget to a creature
-  (ICT with a widened mouth, ``core.retarget.widen_mouth``).
+  (ICT with a widened mouth, ``testing.creature.widen_mouth``).
 
 Writes out/demo/solve.blend, out/demo/solve_summary.json (errors vs the truth)
 and docs/images/demo_solve_*.png.
@@ -38,16 +38,19 @@ MASK_NAMES = {"Upper lip": "mouth_upper", "Lower lip": "mouth_lower"}
 
 def capture(ict, seed=4):
     """Truth (T,V,3) metres, weights (T,S), cameras, markers, marker pixels (T,C,M,2), tracked curves, lip mask."""
-    from facelab_addon.core.capture_sim import DEFAULT_EXPRESSIONS, helmet_cameras, sample_markers, weight_sequence
-    from facelab_addon.core.contours import contour_loops, synthetic_tracked_curves
-    from facelab_addon.core.synthetic import ICT_MOUTH_LOOP, find_mouth, inject_lip_error
+    from facelab_addon.core.lips.mouth import find_mouth
+    from facelab_addon.core.solve.contour_loops import contour_loops
+    from facelab_addon.testing.capture_sim import DEFAULT_EXPRESSIONS, helmet_cameras, sample_markers
+    from facelab_addon.testing.contour_truth import synthetic_tracked_curves
+    from facelab_addon.testing.synthetic import ICT_MOUTH_LOOP, inject_lip_error
+    from facelab_addon.testing.weights import spline_weights
 
     F = ict.faces
     neutral = ict.neutral * SCALE
     D = np.stack([(ict.expressions[n] - ict.neutral) * SCALE for n in EXPR])
     ranges = {n: DEFAULT_EXPRESSIONS.get(n, (0.0, 0.5)) for n in EXPR}
     W = np.zeros((N_FRAMES, len(EXPR)))
-    W[1:] = weight_sequence(ranges, N_FRAMES - 1, seed=seed, n_keys=4)
+    W[1:] = spline_weights(ranges, N_FRAMES - 1, seed=seed, n_keys=4)
     truth = neutral[None] + np.einsum("ts,svd->tvd", W, D)
     fixed = ~ict.part_vertex_mask("M_Face")
     mouth = find_mouth(neutral, F, fixed, loop=ICT_MOUTH_LOOP, units_per_mm=0.001)
@@ -88,48 +91,29 @@ def _px_to_mask(px, W, H):
     return np.c_[(u - 0.5) * (W / H) + 0.5, v]
 
 
-def baked_object(ict, name, X, frames):
-    """A mesh that plays the sequence X (T,V,3) on ``frames`` through one shape key per frame."""
-    from facelab_addon.blender.scene import new_mesh_object
-    from facelab_addon.blender.shapekeys import add_keys_from_deltas, key_values_bulk
-
-    ob = new_mesh_object(name, X[0], poly_verts=ict.poly_verts, poly_offsets=ict.poly_offsets)
-    ob.shape_key_add(name="Basis", from_mix=False)
-    keys = add_keys_from_deltas(ob, "Frame", X - X[0][None])
-    key_values_bulk(ob, keys, frames, np.eye(len(frames)))
-    return ob
-
-
 def build_scene(ict, s, plates_dir):
     """The artist's scene: rig, cameras, Movie Clips with tracks, Mask and Grease Pencil contours."""
     import bpy
+
     from facelab_addon.blender.camera import apply_camera_to_blender
-    from facelab_addon.blender.scene import add_studio_lights, new_mesh_object
-    from facelab_addon.blender.shapekeys import add_corrective_key
+    from facelab_addon.blender.scene import add_studio_lights
     from facelab_addon.blender.strokes import write_stroke_pixels
     from facelab_addon.blender.tracking_io import clip_from_pixels, write_dot_plates
+    from facelab_addon.testing.scenes import build_ict_face_scene
 
-    bpy.ops.wm.read_factory_settings(use_empty=True)
+    fs = build_ict_face_scene(ict, EXPR, frame_range=(0, N_FRAMES - 1), scale=SCALE, fixed_group=True,
+                              eyeball_groups=True, select=False)
+    scene, face = fs.scene, fs.obj
     import facelab_addon
 
     if "facelab_solve" not in bpy.types.Scene.bl_rna.properties:  # earlier demo steps registered it
         facelab_addon.register()
-    scene = bpy.context.scene
-    scene.frame_start, scene.frame_end = 0, N_FRAMES - 1
     T, cams = N_FRAMES, s["cams"]
     mat = bpy.data.materials.new("Skin")
     mat.use_nodes = True
     bsdf = mat.node_tree.nodes.get("Principled BSDF")
     bsdf.inputs["Base Color"].default_value = (0.8, 0.55, 0.45, 1)
     bsdf.inputs["Roughness"].default_value = 0.55
-
-    face = new_mesh_object("Face", s["neutral"], poly_verts=ict.poly_verts, poly_offsets=ict.poly_offsets)
-    face.shape_key_add(name="Basis", from_mix=False)
-    for n in EXPR:
-        add_corrective_key(face, n, (ict.expressions[n] - ict.neutral) * SCALE)
-    face.vertex_groups.new(name="FL_fixed").add(np.flatnonzero(s["fixed"]).tolist(), 1.0, "REPLACE")
-    for side, ids in s["eyeballs"].items():
-        face.vertex_groups.new(name=f"FL_eyeball_{side}").add(ids.tolist(), 1.0, "REPLACE")
     face.data.materials.append(mat)
 
     sol = scene.facelab_solve
@@ -193,7 +177,7 @@ def build_scene(ict, s, plates_dir):
 
 def errors(s, X, W_got, ict):
     """Weight, vertex and contour errors of a solve X (T,V,3) vs the truth."""
-    from facelab_addon.core.silhouette import contour_distance
+    from facelab_addon.core.geometry.silhouette import contour_distance
 
     skin = ict.part_vertex_mask("M_Face")
     e = np.linalg.norm(X - s["truth"], axis=2) * 1e3  # mm
@@ -222,8 +206,9 @@ def run(ict, out, img_dir, render, samples):
 
     from facelab_addon.blender.caches import evaluate_frames
     from facelab_addon.blender.scene import new_mesh_object
-    from facelab_addon.core.retarget import widen_mouth
-    from facelab_addon.ui.ops_solve import _curve_values
+    from facelab_addon.blender.actions import curve_values as _curve_values
+    from facelab_addon.testing.creature import widen_mouth
+    from facelab_addon.testing.scenes import baked_sequence_object
 
     t_start = time.perf_counter()
     s = capture(ict)
@@ -249,8 +234,8 @@ def run(ict, out, img_dir, render, samples):
         print(f"[demo] Solve Performance ({label}): lip RMS {results[label][1]['lip_rms_mm']:.2f} mm, "
               f"contour {results[label][1]['inner_lip_contour_px_cam1']:.2f} px")
     X_m, X_c = results["markers_only"][0], results["markers_contours_corrective"][0]
-    truth_ob = baked_object(ict, "Truth", s["truth"], frames)
-    mo_ob = baked_object(ict, "Solve (markers only)", X_m, frames)
+    truth_ob = baked_sequence_object(ict, "Truth", s["truth"], frames)
+    mo_ob = baked_sequence_object(ict, "Solve (markers only)", X_m, frames)
     for ob in (truth_ob, mo_ob):
         ob.data.materials.append(mat)
         ob.hide_render = True

@@ -1,4 +1,16 @@
-"""Shared test setup: import path, a private Blender user folder, ICT fixtures."""
+"""Shared test setup: import path, a private Blender user folder, the ICT model, FaceLab in Blender.
+
+Fixtures
+--------
+ict
+    The ICT-FaceKit model (centimetres), parsed once per session.
+empty_scene
+    A factory-fresh, empty Blender scene.
+addon
+    FaceLab registered (in a factory-fresh Blender) for the tests of one module.
+
+``bpy`` is imported inside the Blender fixtures only, so core tests never load it.
+"""
 
 import os
 import sys
@@ -18,6 +30,28 @@ os.environ.setdefault("BLENDER_USER_RESOURCES", tempfile.mkdtemp(prefix="facelab
 @pytest.fixture(scope="session")
 def ict():
     """The ICT-FaceKit model (centimetres), parsed once per test session."""
-    from facelab_addon.core.ict import load_ict
+    from facelab_addon.core.capture.ict import load_ict
 
     return load_ict()
+
+
+@pytest.fixture
+def empty_scene():
+    """A factory-fresh, empty Blender scene (``bpy.types.Scene``); FaceLab stays registered if it was."""
+    import bpy
+
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    return bpy.context.scene
+
+
+@pytest.fixture(scope="module")
+def addon():
+    """FaceLab registered for the tests of one module, starting from a factory-fresh Blender; unregistered after."""
+    import bpy
+
+    import facelab_addon
+
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    facelab_addon.register()
+    yield
+    facelab_addon.unregister()

@@ -27,10 +27,12 @@ from __future__ import annotations
 import bpy
 import numpy as np
 
-from ..core.errors import FaceLabError
+from ..core.errors import BundleError, FaceLabError
+from ..names import BUNDLES_COLLECTION, TRACK_EMPTY_PREFIX
 
 __all__ = [
     "bundle_objects",
+    "collection_bundles",
     "bundle_labels",
     "read_bundles",
     "tracking_bundles",
@@ -40,16 +42,24 @@ __all__ = [
 ]
 
 
-def bundle_objects(context, source: str = "SELECTED", *, collection=None, mesh=None, exclude=()):
-    """The bundle objects for a source.
+def bundle_objects(selected=(), source: str = "SELECTED", *, collection=None, mesh=None, exclude=()):
+    """The bundle objects for a source, sorted by name.
 
     Parameters
     ----------
+    selected : iterable of bpy.types.Object
+        The selected objects (``context.selected_objects``), for ``SELECTED``.
     source : {"SELECTED", "COLLECTION", "MESH"}
         ``SELECTED``: the selected empties and point meshes, else the objects
-        of a collection named ``FL_bundles``; ``COLLECTION``: the empties and
-        meshes of ``collection``; ``MESH``: the point mesh ``mesh``.
+        of the collection :data:`~facelab_addon.names.BUNDLES_COLLECTION`;
+        ``COLLECTION``: the empties and meshes of ``collection``; ``MESH``:
+        the point mesh ``mesh``.
     exclude : objects never used as bundles (the face).
+
+    Raises
+    ------
+    FaceLabError
+        When the source holds no bundle (the message names the fix).
     """
     ok = ("EMPTY", "MESH")
     if source == "MESH":
@@ -65,18 +75,37 @@ def bundle_objects(context, source: str = "SELECTED", *, collection=None, mesh=N
         if not objs:
             raise FaceLabError(f"Collection '{collection.name}' holds no empties or point meshes to use as bundles.")
         return sorted(objs, key=lambda o: o.name)
-    sel = [o for o in context.selected_objects if o.type in ok and o not in exclude]
+    sel = [o for o in selected if o.type in ok and o not in exclude]
     if sel:
         return sorted(sel, key=lambda o: o.name)
-    coll = bpy.data.collections.get("FL_bundles")
+    coll = bpy.data.collections.get(BUNDLES_COLLECTION)
     if coll is not None:
         objs = [o for o in coll.all_objects if o.type in ok and o not in exclude]
         if objs:
             return sorted(objs, key=lambda o: o.name)
     raise FaceLabError(
         "No bundles: select the bundle empties (or a point mesh), or put them in a collection named "
-        "'FL_bundles', or pick a bundle source in FaceLab > Reconstruct from Bundles."
+        f"'{BUNDLES_COLLECTION}', or pick a bundle source in FaceLab > Reconstruct from Bundles."
     )
+
+
+def collection_bundles(collection=None) -> list:
+    """The empties and point meshes of ``collection`` (default: the collection
+    :data:`~facelab_addon.names.BUNDLES_COLLECTION`), sorted by name: the solve's bundles.
+
+    Raises
+    ------
+    BundleError
+        When there are none.
+    """
+    coll = collection or bpy.data.collections.get(BUNDLES_COLLECTION)
+    objs = sorted([o for o in coll.all_objects if o.type in ("EMPTY", "MESH")], key=lambda o: o.name) if coll else []
+    if not objs:
+        raise BundleError(
+            "Bundles are set to Empties but there are none: put the bundle empties in a collection and pick it as "
+            f"the Bundle Collection (or name it '{BUNDLES_COLLECTION}'), or set Bundles to None."
+        )
+    return objs
 
 
 def bundle_labels(objects) -> list:
@@ -158,7 +187,7 @@ def tracking_bundles(clip, tracking_object=None):
     return [t.name for t in tracks], np.asarray([t.bundle[:] for t in tracks], dtype=np.float64)
 
 
-def empties_from_tracks(scene, clip, collection_name: str = "FL_bundles"):
+def empties_from_tracks(scene, clip, collection_name: str = BUNDLES_COLLECTION):
     """One empty per solved track of ``clip``, constrained to it (Follow Track, 3D position), in a collection.
 
     The empties sit on the static reconstructed bundles (Blender's solve has
@@ -177,7 +206,7 @@ def empties_from_tracks(scene, clip, collection_name: str = "FL_bundles"):
         scene.collection.children.link(coll)
     out = []
     for n, p in zip(names, pts):
-        e = bpy.data.objects.new(f"FL_track_{n}", None)
+        e = bpy.data.objects.new(f"{TRACK_EMPTY_PREFIX}{n}", None)
         e.empty_display_type = "SPHERE"
         e.empty_display_size = 0.002
         e.location = p

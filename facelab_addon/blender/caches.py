@@ -1,4 +1,4 @@
-"""Captured sequences in Blender: read them (T,V,3), bake them to PC2 / MDD / Alembic.
+"""Captured sequences in Blender: which source animates the mesh, and reading it as (T,V,3).
 
 A captured performance reaches Blender in one of three ways:
 
@@ -7,19 +7,19 @@ A captured performance reaches Blender in one of three ways:
 - a **Mesh Sequence Cache** modifier playing an Alembic file.
 
 ``sequence_source`` tells which. ``read_mesh_cache_frames`` reads a Mesh
-Cache's file directly (``core.cachefile``), mapping scene frames to samples
+Cache's file directly (``core.capture.pointcache``), mapping scene frames to samples
 exactly as the modifier does; ``evaluate_frames`` is the generic path (one
 ``frame_set`` and evaluated mesh per frame) for everything else, with
 FaceLab's own corrective keys (``FL_*``) muted so it returns the *capture*.
 
 Corrective shape keys only show on top of a cache when the cache does not
-overwrite them: ``cache_to_shape_key_ready`` switches a Mesh Cache to
+overwrite them: ``cache_integrate.cache_to_shape_key_ready`` switches a Mesh Cache to
 ``deform_mode='INTEGRATE'`` and, for Alembic (whose modifier always replaces
-the positions), bakes the capture to a PC2 file, turns the Mesh Sequence
+the positions), bakes the capture to a PC2 file (``bakes``), turns the Mesh Sequence
 Cache off (it is kept) and plays the PC2 with an INTEGRATE Mesh Cache in its
 place. Note: in INTEGRATE mode Blender carries a key's offset in the local
 frame of the cache's surface (rotated with the head, scaled with the face);
-``core.cachefile.integrate_matrices`` gives that map, and
+``core.capture.integrate.integrate_matrices`` gives that map, and
 ``integrate_offsets_to_key`` the key offsets that show a wanted correction.
 
 All positions are object-local (shape-key space), float32, scene units.
@@ -29,14 +29,13 @@ from __future__ import annotations
 
 import contextlib
 import math
-import os
-from pathlib import Path
 
 import bpy
 import numpy as np
 
-from ..core import cachefile
+from ..core.capture import meshcache, pointcache
 from ..core.errors import FaceLabError, MeshError
+from ..names import PREFIX
 
 __all__ = [
     "sequence_source",
@@ -45,14 +44,11 @@ __all__ = [
     "read_mesh_cache_frames",
     "read_captured_frames",
     "evaluate_frames",
-    "bake_pc2",
-    "bake_mdd",
-    "bake_alembic",
-    "cache_to_shape_key_ready",
+    "require_mesh_object",
     "scene_fps",
 ]
 
-FACELAB_PREFIXES = ("FL_",)
+FACELAB_PREFIXES = (PREFIX,)
 
 
 # --------------------------------------------------------------------------- helpers
@@ -82,7 +78,8 @@ def scene_fps(scene=None) -> float:
     return float(scene.render.fps) / float(scene.render.fps_base)
 
 
-def _require_mesh_object(obj):
+def require_mesh_object(obj):
+    """Raise ``MeshError`` unless ``obj`` is a mesh object (faces not needed)."""
     if obj is None or obj.type != "MESH":
         raise MeshError("No mesh object: select the captured face mesh.")
     return obj
@@ -251,7 +248,7 @@ def sequence_source(obj, *, ignore_prefixes=FACELAB_PREFIXES) -> str:
         otherwise ``"static"`` (nothing FaceLab recognises; other animation,
         an armature for instance, still works with ``evaluate_frames``).
     """
-    _require_mesh_object(obj)
+    require_mesh_object(obj)
     for md in reversed(obj.modifiers):
         if _msc_active(md):
             return "mesh_sequence_cache"
@@ -357,10 +354,10 @@ def read_mesh_cache_frames(obj, scene_frames, *, modifier=None, mute_shape_keys_
     ------
     MeshError
         No Mesh Cache modifier.
-    cachefile.CacheFileError
+    pointcache.CacheFileError
         Missing/bad file or a vertex count that does not match the mesh.
     """
-    _require_mesh_object(obj)
+    require_mesh_object(obj)
     frames = _frames(scene_frames)
     md = modifier or mesh_cache_modifier(obj)
     if md is None:
@@ -372,10 +369,10 @@ def read_mesh_cache_frames(obj, scene_frames, *, modifier=None, mute_shape_keys_
         return evaluate_frames(obj, frames, mute_shape_keys_prefix=mute_shape_keys_prefix, progress=progress)
     scene = bpy.context.scene
     path = _cache_path(obj, md)
-    info = cachefile.cache_info(path, md.cache_format)
-    cachefile.check_vertex_count(info, len(obj.data.vertices), name=f"'{obj.name}'")
+    info = pointcache.cache_info(path, md.cache_format)
+    pointcache.check_vertex_count(info, len(obj.data.vertices), name=f"'{obj.name}'")
     r = scene.render
-    i0, i1, w = cachefile.mesh_cache_samples(
+    i0, i1, w = meshcache.mesh_cache_samples(
         frames,
         info,
         fps=scene_fps(scene),
@@ -389,10 +386,10 @@ def read_mesh_cache_frames(obj, scene_frames, *, modifier=None, mute_shape_keys_
         eval_factor=md.eval_factor,
         frame_length=np.float32(r.frame_map_old) / np.float32(r.frame_map_new),  # measured: old/new
     )
-    mm = cachefile.read_cache(path, fmt=md.cache_format, mmap=True)
-    out = cachefile.blend_samples(mm, i0, i1, w)
+    mm = pointcache.read_cache(path, fmt=md.cache_format, mmap=True)
+    out = meshcache.blend_samples(mm, i0, i1, w)
     del mm
-    M = cachefile.axis_conversion_matrix(md.forward_axis, md.up_axis, tuple(md.flip_axis))
+    M = meshcache.axis_conversion_matrix(md.forward_axis, md.up_axis, tuple(md.flip_axis))
     if not np.array_equal(M, np.eye(3)):
         Mf = M.astype(np.float32)
         for t in range(len(out)):
@@ -431,7 +428,7 @@ def evaluate_frames(obj, scene_frames, *, mute_shape_keys_prefix=FACELAB_PREFIXE
         When the evaluated vertex count differs from the mesh's on some frame,
         or the object is not in the view layer.
     """
-    _require_mesh_object(obj)
+    require_mesh_object(obj)
     frames = _frames(scene_frames)
     out = np.empty((len(frames), len(obj.data.vertices), 3), dtype=np.float32)
     for i, co in _iter_evaluated(obj, frames, mute_prefixes=mute_shape_keys_prefix, progress=progress):
@@ -470,324 +467,3 @@ def read_captured_frames(obj, scene_frames, *, mute_shape_keys_prefix=FACELAB_PR
         if seq is not None:  # F-curves mixed directly, 7-9x faster than frame by frame
             return seq
     return evaluate_frames(obj, scene_frames, mute_shape_keys_prefix=mute_shape_keys_prefix, progress=progress)
-
-
-# --------------------------------------------------------------------------- bakes
-
-
-def _uniform_step(frames, what):
-    if len(frames) == 1:
-        return 1.0
-    steps = np.diff(frames)
-    if not (steps > 0).all() or not np.allclose(steps, steps[0], rtol=0, atol=1e-6):
-        raise FaceLabError(
-            f"{what} needs increasing, evenly spaced frames (got steps {np.unique(np.round(steps, 6))[:5].tolist()}); "
-            "bake a range such as range(start, end + 1)."
-        )
-    return float(steps[0])
-
-
-def _bake(obj, frames, writer, progress):
-    try:
-        for _, co in _iter_evaluated(obj, frames, mute_prefixes=(), progress=progress):
-            writer.write(co)
-    except BaseException:
-        writer.abort()
-        raise
-    return writer.close()
-
-
-def bake_pc2(obj, scene_frames, path, *, progress=None, mute_shape_keys_prefix=()) -> Path:
-    """Bake the evaluated (corrected) mesh of ``obj`` over ``scene_frames`` to a PC2 file.
-
-    Positions are object-local. The header's start frame is
-    ``scene_frames[0]`` and its sample rate the frame step. The file is
-    written next to its destination and moved in place at the end, so a
-    failed bake leaves any existing file untouched.
-
-    Parameters
-    ----------
-    obj : bpy.types.Object
-    scene_frames : (T,) array_like of float
-        Increasing, evenly spaced scene frames.
-    path : str or os.PathLike
-        Destination (``//`` paths are relative to the .blend).
-    progress : callable(i, T), optional
-    mute_shape_keys_prefix : tuple of str
-        Keys to leave out (default none: the final mesh).
-
-    Returns
-    -------
-    pathlib.Path
-    """
-    _require_mesh_object(obj)
-    frames = _frames(scene_frames)
-    step = _uniform_step(frames, "A PC2 bake")
-    w = cachefile.PointCacheWriter(
-        bpy.path.abspath(os.fspath(path)), "PC2", len(obj.data.vertices), len(frames),
-        start_frame=float(frames[0]), sample_rate=step,
-    )
-    with _muted_shape_keys(obj, mute_shape_keys_prefix):
-        return _bake(obj, frames, w, progress)
-
-
-def bake_mdd(obj, scene_frames, path, *, progress=None, mute_shape_keys_prefix=()) -> Path:
-    """Bake the evaluated (corrected) mesh of ``obj`` to an MDD file.
-
-    Sample ``i`` gets the time ``scene_frames[i] / fps`` seconds (scene fps),
-    Blender's clock, so a Mesh Cache in ``time_mode='TIME'`` with
-    ``frame_start=0`` plays it back on the same frames.
-
-    Parameters
-    ----------
-    obj : bpy.types.Object
-    scene_frames : (T,) array_like of float
-        Increasing scene frames.
-    path : str or os.PathLike
-    progress : callable(i, T), optional
-    mute_shape_keys_prefix : tuple of str
-
-    Returns
-    -------
-    pathlib.Path
-    """
-    _require_mesh_object(obj)
-    frames = _frames(scene_frames)
-    if len(frames) > 1 and not (np.diff(frames) > 0).all():
-        raise FaceLabError("An MDD bake needs increasing scene frames.")
-    w = cachefile.PointCacheWriter(
-        bpy.path.abspath(os.fspath(path)), "MDD", len(obj.data.vertices), len(frames),
-        times=frames / scene_fps(),
-    )
-    with _muted_shape_keys(obj, mute_shape_keys_prefix):
-        return _bake(obj, frames, w, progress)
-
-
-def bake_alembic(obj, scene_frames, path, *, evaluation_mode="VIEWPORT") -> Path:
-    """Export the evaluated (corrected) animation of ``obj`` alone to an Alembic file.
-
-    Runs ``bpy.ops.wm.alembic_export`` with only ``obj`` selected (works in
-    the headless bpy module without a window), over every frame from
-    ``min(scene_frames)`` to ``max(scene_frames)``. Selection, active object
-    and current frame are restored.
-
-    Parameters
-    ----------
-    obj : bpy.types.Object
-        A visible mesh object in the active view layer.
-    scene_frames : array_like of int
-        Frames to cover (the export is the whole integer range).
-    path : str or os.PathLike
-        Destination ``.abc``.
-    evaluation_mode : {"VIEWPORT", "RENDER"}
-        Which modifier visibility the export uses; ``"VIEWPORT"`` matches
-        ``evaluate_frames``.
-
-    Returns
-    -------
-    pathlib.Path
-
-    Raises
-    ------
-    FaceLabError
-        When the object is hidden or the exporter fails.
-    """
-    _require_mesh_object(obj)
-    frames = _frames(scene_frames)
-    start, end = int(math.floor(frames.min())), int(math.ceil(frames.max()))
-    out = Path(bpy.path.abspath(os.fspath(path)))
-    out.parent.mkdir(parents=True, exist_ok=True)
-    vl = bpy.context.view_layer
-    if vl.objects.get(obj.name) is None or not obj.visible_get():
-        raise FaceLabError(f"'{obj.name}' is hidden or not in this view layer; unhide it to export it to Alembic.")
-    scene = bpy.context.scene
-    prev_sel = [o for o in vl.objects if o.select_get()]
-    prev_active = vl.objects.active
-    try:
-        with _kept_frame(scene):
-            for o in prev_sel:
-                o.select_set(False)
-            obj.select_set(True)
-            vl.objects.active = obj
-            with bpy.context.temp_override(active_object=obj, object=obj, selected_objects=[obj]):
-                res = bpy.ops.wm.alembic_export(
-                    filepath=str(out),
-                    start=start,
-                    end=end,
-                    selected=True,
-                    evaluation_mode=evaluation_mode,
-                    as_background_job=False,
-                    init_scene_frame_range=False,
-                )
-    finally:
-        for o in vl.objects:
-            o.select_set(False)
-        for o in prev_sel:
-            o.select_set(True)
-        vl.objects.active = prev_active
-    if "FINISHED" not in res or not out.is_file():
-        raise FaceLabError(f"Alembic export of '{obj.name}' to '{out}' failed ({res}); check the path is writable.")
-    return out
-
-
-# --------------------------------------------------------------------------- corrective keys on top of caches
-
-
-def _unique_file(path: Path) -> Path:
-    if not path.exists():
-        return path
-    i = 1
-    while True:
-        p = path.with_name(f"{path.stem}.{i:03d}{path.suffix}")
-        if not p.exists():
-            return p
-        i += 1
-
-
-def _unique_modifier_name(obj, base):
-    from .shapekeys import unique_name
-
-    return unique_name(base, (m.name for m in obj.modifiers))
-
-
-def cache_to_shape_key_ready(obj, *, directory=None, scene_frames=None, progress=None) -> str:
-    """Make shape keys (FaceLab's correctives) show on top of ``obj``'s captured cache.
-
-    - Mesh Cache (PC2/MDD): sets its ``deform_mode`` to ``'INTEGRATE'``
-      (in ``'OVERWRITE'`` the cache replaces the keyed positions).
-    - Mesh Sequence Cache (Alembic), which always replaces the positions:
-      bakes the captured sequence (the modifier's output, later modifiers
-      off) to ``<object>_capture.pc2`` in ``directory`` (default: the
-      .blend's folder; never overwriting a file), turns the Alembic modifier
-      off in viewport and render (it is kept) and adds, right after it, a
-      Mesh Cache playing that PC2 in ``'INTEGRATE'`` mode (sample 0 on
-      ``scene_frames[0]``), so the mesh looks the same and keys add on top.
-    - Shape-key animation or a static mesh: nothing to change.
-
-    Nothing is deleted. Keys show *in the local frame* of the cache surface
-    (``core.cachefile.integrate_matrices``).
-
-    Parameters
-    ----------
-    obj : bpy.types.Object
-    directory : str or os.PathLike, optional
-        Where to write the PC2 for an Alembic cache.
-    scene_frames : array_like of float, optional
-        Frames to bake for an Alembic cache, evenly spaced. Default: the
-        scene's frame range.
-    progress : callable(i, T), optional
-
-    Returns
-    -------
-    str
-        What was changed, one sentence, for the operator's report.
-
-    Raises
-    ------
-    MeshError
-        The mesh has no faces (Integrate needs them) or the cache changes the
-        vertex count.
-    FaceLabError
-        Unsaved .blend and no ``directory``.
-    """
-    _require_mesh_object(obj)
-    src = sequence_source(obj)
-    if src in ("mesh_cache", "mesh_sequence_cache") and len(obj.data.polygons) == 0:
-        raise MeshError(f"'{obj.name}' has no faces; the Mesh Cache 'Integrate' mode needs faces to carry shape keys.")
-    if src == "mesh_cache":
-        md = mesh_cache_modifier(obj)
-        if md.deform_mode == "INTEGRATE":
-            return f"Mesh Cache '{md.name}' already integrates shape keys; nothing changed."
-        md.deform_mode = "INTEGRATE"
-        return f"Mesh Cache '{md.name}': deform mode Overwrite -> Integrate, so shape keys now add on top of the cache."
-    if src == "shape_keys":
-        return f"'{obj.name}' is animated by shape keys; corrective keys already add on top. Nothing changed."
-    if src == "static":
-        return f"'{obj.name}' has no captured cache; corrective keys already show. Nothing changed."
-
-    # Alembic
-    msc = _msc_modifier(obj)
-    scene = bpy.context.scene
-    frames = _frames(range(scene.frame_start, scene.frame_end + 1) if scene_frames is None else scene_frames)
-    step = _uniform_step(frames, "Baking the Alembic cache")
-    if directory is None:
-        if not bpy.data.filepath:
-            raise FaceLabError(
-                "Save the .blend first (the capture is baked to a PC2 file next to it), or give a directory."
-            )
-        directory = os.path.dirname(bpy.data.filepath)
-    directory = Path(bpy.path.abspath(os.fspath(directory)))
-    base = bpy.path.clean_name(obj.name) or "capture"
-    path = _unique_file(directory / f"{base}_capture.pc2")
-
-    mods = list(obj.modifiers)
-    k = mods.index(msc)
-    later = [m for m in mods[k + 1 :] if _enabled(m)]
-    w = cachefile.PointCacheWriter(
-        path, "PC2", len(obj.data.vertices), len(frames), start_frame=float(frames[0]), sample_rate=step
-    )
-    with _disabled_modifiers(later):
-        _bake(obj, frames, w, progress)
-
-    msc.show_viewport = False
-    msc.show_render = False
-    mc = obj.modifiers.new(_unique_modifier_name(obj, "FL Capture (PC2)"), "MESH_CACHE")
-    mc.cache_format = "PC2"
-    fp = str(path)
-    if bpy.data.filepath:
-        try:
-            fp = bpy.path.relpath(fp)
-        except ValueError:  # another drive on Windows
-            pass
-    mc.filepath = fp
-    mc.play_mode = "SCENE"
-    mc.time_mode = "FRAME"
-    mc.frame_scale = 1.0 / step
-    mc.frame_start = float(frames[0]) / step  # sample = f/step - f0/step
-    mc.interpolation = "LINEAR"
-    mc.deform_mode = "INTEGRATE"
-    mc.forward_axis, mc.up_axis = "POS_Y", "POS_Z"
-    obj.modifiers.move(len(obj.modifiers) - 1, k + 1)
-    return (
-        f"Baked Alembic modifier '{msc.name}' ({len(frames)} frames, {frames[0]:g}-{frames[-1]:g}) to '{path}', "
-        f"turned it off (kept) and added Mesh Cache '{mc.name}' (PC2, Integrate) after it, "
-        "so shape keys now add on top of the capture."
-    )
-
-
-def polygon_corners(mesh):
-    """``(face_offsets (P+1,), corner_verts (C,))`` int arrays of a Blender mesh's polygons."""
-    offs = np.empty(len(mesh.polygons), np.int32)
-    mesh.polygons.foreach_get("loop_start", offs)
-    cv = np.empty(len(mesh.loops), np.int32)
-    mesh.loops.foreach_get("vertex_index", cv)
-    return np.r_[offs, len(cv)].astype(np.int64), cv.astype(np.int64)
-
-
-def correction_to_key_offsets(obj, cache_positions, deltas, corners=None):
-    """Shape-key offsets that show as ``deltas`` (V,3) on a frame whose cache output is ``cache_positions``.
-
-    Without a cache (shape keys, static mesh) this is ``deltas`` itself. Over a
-    Mesh Cache in ``'INTEGRATE'`` mode Blender carries key offsets in the
-    local frame of the cache surface (``core.cachefile.integrate_matrices``),
-    so the offsets are mapped back through those matrices.
-
-    Parameters
-    ----------
-    obj : bpy.types.Object
-    cache_positions : (V,3) float
-        The captured positions on that frame (FaceLab keys muted), object-local.
-    deltas : (V,3) float
-        Wanted displacement of the evaluated mesh, object-local scene units.
-    corners : tuple, optional
-        Precomputed ``polygon_corners(obj.data)``.
-    """
-    if sequence_source(obj) not in ("mesh_cache", "mesh_sequence_cache"):
-        return np.asarray(deltas, dtype=np.float64)
-    from ..core.cachefile import integrate_matrices, integrate_offsets_to_key
-
-    from .shapekeys import rest_vertices
-
-    offs, cv = polygon_corners(obj.data) if corners is None else corners
-    M = integrate_matrices(rest_vertices(obj), cache_positions, offs, cv)
-    return integrate_offsets_to_key(M, deltas)

@@ -1,8 +1,8 @@
-"""Blender camera <-> core :class:`~facelab_addon.core.camera.Camera`.
+"""Blender camera <-> core :class:`~facelab_addon.core.capture.camera.Camera`.
 
 Thin adapter: reads a Blender perspective camera and the scene's render
 settings into a pixel pinhole camera (OpenCV convention, see
-``facelab_addon/core/camera.py``), and writes a core camera back into a
+``facelab_addon/core/capture/camera.py``), and writes a core camera back into a
 Blender camera object and the render settings.
 
 How Blender maps a camera to pixels (``BKE_camera_params_compute_viewplane``,
@@ -29,7 +29,7 @@ import bpy
 import numpy as np
 from mathutils import Matrix
 
-from ..core.camera import Camera
+from ..core.capture.camera import Camera
 from ..core.errors import CameraError
 
 __all__ = ["camera_from_blender", "apply_camera_to_blender", "render_size", "evaluated_depsgraph"]

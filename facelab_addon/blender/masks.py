@@ -1,4 +1,4 @@
-"""Tracked contours drawn in Blender -> ``core.contours.TrackedCurve`` (Bhat et al. 2013, §4.2 inputs).
+"""Tracked contours drawn in Blender -> ``core.solve.contour_loops.TrackedCurve`` (Bhat et al. 2013, §4.2 inputs).
 
 Inner-lip and eyelid contours come from what artists already draw:
 
@@ -16,7 +16,7 @@ Inner-lip and eyelid contours come from what artists already draw:
   ``strokes.read_lip_strokes`` only knows the two lip layers; this module
   wraps its helpers to read any curve layer.
 
-Curve names (``core.contours``): ``mouth_upper``, ``mouth_lower``,
+Curve names (``core.solve.contour_loops``): ``mouth_upper``, ``mouth_lower``,
 ``eyelid_left_upper``, ``eyelid_left_lower``, ``eyelid_right_upper``,
 ``eyelid_right_lower``. Layer names are matched by words, so "Upper lip",
 "mouth_upper", "Lip.Upper", "Eyelid L upper", "left upper lid" and
@@ -39,7 +39,7 @@ import re
 
 import numpy as np
 
-from ..core.camera import Camera
+from ..core.capture.camera import Camera
 from ..core.errors import SketchError
 from . import strokes as _st
 from .camera import evaluated_depsgraph
@@ -359,7 +359,7 @@ def read_curves(scene, views, cameras, frames, *, annotation_view: int | None = 
     stats : dict
         ``{'frames_with_curves': int, 'by_name': {name: count}}``.
     """
-    from ..core.contours import TrackedCurve
+    from ..core.solve.contour_loops import TrackedCurve
 
     frames = [int(f) for f in np.asarray(frames).reshape(-1)]
     fset = set(frames)

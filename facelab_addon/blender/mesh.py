@@ -7,17 +7,19 @@ the object's local (shape-key) space.
 
 from __future__ import annotations
 
-import bpy
 import numpy as np
 
 from ..core.errors import MeshError
-from ..core.mesh import connected_components
+from ..core.geometry.mesh import connected_components
+from ..names import FIXED_GROUP
 
 __all__ = [
     "mesh_triangles",
     "evaluated_vertices",
     "world_to_local_deltas",
     "vertex_group_mask",
+    "set_vertex_group",
+    "selected_vertices",
     "default_fixed_mask",
     "require_mesh",
 ]
@@ -92,7 +94,23 @@ def vertex_group_mask(obj, name: str, threshold: float = 0.5):
     return mask
 
 
-def default_fixed_mask(obj, tris, group: str = "FL_fixed"):
+def set_vertex_group(obj, name: str, mask) -> None:
+    """Replace the vertex group ``name`` of ``obj`` with the vertices of ``mask`` (V,) bool, weight 1."""
+    vg = obj.vertex_groups.get(name)
+    if vg is not None:
+        obj.vertex_groups.remove(vg)
+    vg = obj.vertex_groups.new(name=name)
+    vg.add(np.flatnonzero(mask).tolist(), 1.0, "REPLACE")
+
+
+def selected_vertices(obj) -> np.ndarray:
+    """(k,) int64 ids of the selected vertices of ``obj``'s mesh (the Edit Mode selection, once in Object Mode)."""
+    sel = np.zeros(len(obj.data.vertices), bool)
+    obj.data.vertices.foreach_get("select", sel)
+    return np.flatnonzero(sel)
+
+
+def default_fixed_mask(obj, tris, group: str = FIXED_GROUP):
     """Vertices that must not move and are never lip silhouettes.
 
     The vertex group ``group`` if the mesh has one; otherwise every vertex that

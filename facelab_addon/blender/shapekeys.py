@@ -5,10 +5,13 @@ from __future__ import annotations
 import bpy
 import numpy as np
 
+from ..names import CORRECTIVES_ACTION, PREFIX
+
 __all__ = [
     "unique_key_name",
     "add_corrective_key",
     "key_spike",
+    "find_fcurve",
     "shape_key_sequence",
     "remove_keys",
     "key_values_bulk",
@@ -74,6 +77,22 @@ def key_spike(key_block, frame: int) -> None:
     key_block.value = 1.0 if bpy.context.scene.frame_current == frame else 0.0
 
 
+def find_fcurve(id_data, data_path: str):
+    """The F-curve animating ``id_data.<data_path>`` in its action, or None (no action, not keyed).
+
+    Parameters
+    ----------
+    id_data : bpy.types.ID
+        An object, a shape-key datablock (``mesh.shape_keys``)...
+    data_path : str
+        For example ``'["FL_extrapolation"]'`` or ``'key_blocks["Smile"].value'``.
+    """
+    ad = getattr(id_data, "animation_data", None)
+    if ad is None or ad.action is None:
+        return None
+    return _find_fcurve(ad, data_path)
+
+
 def _find_fcurve(anim_data, data_path):
     """F-curve by data path via the Blender 5.0 channelbag API (layered actions)."""
     action = anim_data.action
@@ -98,7 +117,7 @@ def _fcurve_for_key(key, kb):
     return _find_fcurve(ad, f'key_blocks["{bpy.utils.escape_identifier(kb.name)}"].value')
 
 
-def shape_key_sequence(obj, frames, *, skip_prefixes=("FL_",)):
+def shape_key_sequence(obj, frames, *, skip_prefixes=(PREFIX,)):
     """(T,V,3) float32 object-local positions of a shape-key-animated mesh, without frame_set.
 
     Evaluates each key's value F-curve at ``frames`` and mixes
@@ -192,7 +211,7 @@ def _channelbag(anim_data, create: bool):
     return anim_utils.action_get_channelbag_for_slot(action, slot)
 
 
-def key_property_bulk(id_data, data_path: str, frames, values, action_name: str = "FL_Correctives") -> None:
+def key_property_bulk(id_data, data_path: str, frames, values, action_name: str = CORRECTIVES_ACTION) -> None:
     """Key ``values`` (T,) of ``id_data.<data_path>`` on ``frames`` (T,) in one bulk insert.
 
     Uses the Blender 5.0 channelbag API (``keyframe_points.add`` +

@@ -4,7 +4,7 @@ The artist sketches the upper and lower lip contours over the plate, in
 camera view, on two layers named "Upper lip" and "Lower lip". This module
 creates that sketch object, writes strokes at given pixels (tests, demo), and
 reads the strokes back as ``(N,2)`` pixel polylines (top-left origin, y down;
-see ``facelab_addon/core/camera.py``) for ``core.sketch``.
+see ``facelab_addon/core/capture/camera.py``) for ``core.lips.sketch``.
 
 Sources, in order of preference
 -------------------------------
@@ -60,8 +60,9 @@ import bpy
 import numpy as np
 from mathutils import Matrix
 
-from ..core.camera import Camera
+from ..core.capture.camera import Camera
 from ..core.errors import CameraError, SketchError
+from ..names import SKETCH_OBJECT
 from .camera import evaluated_depsgraph
 
 __all__ = [
@@ -69,12 +70,15 @@ __all__ = [
     "LOWER_LAYER",
     "new_lip_sketch",
     "write_stroke_pixels",
+    "find_sketch_object",
+    "has_lip_sketch",
+    "sketch_keyframes",
     "read_lip_strokes",
 ]
 
 UPPER_LAYER = "Upper lip"
 LOWER_LAYER = "Lower lip"
-DEFAULT_SKETCH_NAME = "FL_LipSketch"
+DEFAULT_SKETCH_NAME = SKETCH_OBJECT
 _LAYER_TINT = {UPPER_LAYER: (1.0, 0.15, 0.1), LOWER_LAYER: (0.1, 0.35, 1.0)}
 _DEFAULT_GP_RADIUS = 0.01  # Blender's implicit point radius when no "radius" attribute exists
 _HOWTO = (
@@ -182,12 +186,19 @@ def _project_world(camera: Camera, polylines, where: str) -> list:
 
 # --------------------------------------------------------------------------- create
 def _sketch_material():
+    """The lip sketch's Grease Pencil material, styled by ``assets/presets/sketch_material.json``."""
+    from ..assets import AssetError, load_preset
+
     mat = bpy.data.materials.get(DEFAULT_SKETCH_NAME)
     if mat is None or not mat.is_grease_pencil:
+        style = load_preset("sketch_material", {"color": tuple, "show_fill": bool})
+        if len(style["color"]) != 4:
+            raise AssetError(f"assets/presets/sketch_material.json: 'color' must be RGBA (4 numbers in 0..1), "
+                             f"got {style['color']}; fix the file.")
         mat = bpy.data.materials.new(DEFAULT_SKETCH_NAME)
         bpy.data.materials.create_gpencil_data(mat)
-        mat.grease_pencil.color = (1.0, 1.0, 1.0, 1.0)
-        mat.grease_pencil.show_fill = False
+        mat.grease_pencil.color = style["color"]
+        mat.grease_pencil.show_fill = style["show_fill"]
     return mat
 
 
@@ -354,7 +365,19 @@ def write_stroke_pixels(gp_obj, layer_name: str, frame: int, polylines_px, camer
 
 
 # --------------------------------------------------------------------------- read
-def _sketch_object(scene, gp_obj):
+def find_sketch_object(scene, gp_obj=None):
+    """The Grease Pencil lip sketch of ``scene``, or None (the scene annotation may still hold one).
+
+    ``gp_obj`` if given (it must be Grease Pencil), else the active object if
+    it has lip layers, else the one named ``FL_LipSketch``
+    (:data:`facelab_addon.names.SKETCH_OBJECT`), else the first by name with
+    lip layers; without lip layers anywhere, an object of the default name.
+
+    Raises
+    ------
+    SketchError
+        ``gp_obj`` is not a Grease Pencil object.
+    """
     if gp_obj is not None:
         if gp_obj.type != "GREASEPENCIL":
             raise SketchError(
@@ -373,6 +396,26 @@ def _sketch_object(scene, gp_obj):
         if o.name == DEFAULT_SKETCH_NAME:
             return o
     return sorted(candidates, key=lambda o: o.name)[0]
+
+
+def has_lip_sketch(scene, gp_obj=None) -> bool:
+    """Whether :func:`read_lip_strokes` has a sketch to read: ``gp_obj``, a Grease Pencil object
+    with lip layers, or annotation layers named after the lips (cheap enough for ``poll``)."""
+    if gp_obj is not None:
+        return True
+    if any(o.type == "GREASEPENCIL" and _has_lip_layers(o.data) for o in scene.objects):
+        return True
+    ann = getattr(scene, "annotation", None)
+    return ann is not None and any(_label(lay.info) for lay in ann.layers)
+
+
+def sketch_keyframes(gp_obj) -> list:
+    """Sorted scene frames holding a keyframe on the lip layers of the Grease Pencil sketch ``gp_obj``."""
+    frames = set()
+    lips = _lip_layers(gp_obj.data.layers, lambda lay: lay.name)
+    for layer in lips["upper"] + lips["lower"]:
+        frames.update(int(fr.frame_number) for fr in layer.frames)
+    return sorted(frames)
 
 
 def _read_gp_object(obj, camera: Camera, frame: int, depsgraph) -> dict:
@@ -513,7 +556,7 @@ def read_lip_strokes(scene, camera: Camera, frame: int, gp_obj=None, depsgraph=N
         No sketch at all, a lip layer missing or empty on this frame, or
         points at or behind the camera.
     """
-    obj = _sketch_object(scene, gp_obj)
+    obj = find_sketch_object(scene, gp_obj)
     if obj is not None:
         if depsgraph is None:
             depsgraph = evaluated_depsgraph(scene)

@@ -4,7 +4,7 @@ Thin adapters for the contour-based blendshape solve:
 
 * :func:`read_track_markers` -- a Movie Clip's 2D tracks as ``(T,M,2)`` pixels;
 * :func:`clip_camera` -- the clip's camera calibration combined with a camera
-  object's pose, as a core :class:`~facelab_addon.core.camera.Camera`;
+  object's pose, as a core :class:`~facelab_addon.core.capture.camera.Camera`;
 * :func:`read_views` -- several (camera object, Movie Clip) views at once:
   cameras and ``(T,C,M,2)`` markers over the union of their track names;
 * :func:`clip_bundles` -- the clip's reconstructed 3D bundles with names.
@@ -14,7 +14,7 @@ Conventions (checked against Blender 5.0 source, ``tracking.cc``,
 
 * ``marker.co`` is normalised to the clip frame, origin bottom-left, y up;
   Blender's own solver uses ``(co + track.offset) * (width, height)``, so the
-  FaceLab pixel (top-left origin, y down, see ``core/camera.py``) is
+  FaceLab pixel (top-left origin, y down, see ``core/capture/camera.py``) is
   ``x = (co_x + off_x) * W``, ``y = (1 - co_y - off_y) * H``.
 * Marker frames are *clip* frames: scene frame ``f`` shows clip frame
   ``f - clip.frame_start + 1`` (``BKE_movieclip_remap_scene_to_clip_frame``).
@@ -36,10 +36,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-import bpy
 import numpy as np
 
-from ..core.camera import Camera
+from ..core.capture.camera import Camera
 from ..core.errors import BundleError, CameraError, FaceLabError
 from .camera import camera_from_blender, evaluated_depsgraph
 

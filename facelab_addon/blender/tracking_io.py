@@ -9,7 +9,7 @@ through Blender's own tracker.
 * :func:`write_dot_plates` -- a stand-in image sequence (grey frames with the
   markers drawn as dots) when the footage is not at hand; Blender needs
   footage to create a Movie Clip;
-* :func:`set_clip_calibration` -- a pinhole :class:`~facelab_addon.core.camera.Camera`'s
+* :func:`set_clip_calibration` -- a pinhole :class:`~facelab_addon.core.capture.camera.Camera`'s
   intrinsics as the clip's tracking camera;
 * :func:`add_tracks` -- ``(T,M,2)`` pixels as tracks (NaN: disabled markers);
 * :func:`clip_from_pixels` -- all of it at once.
@@ -94,7 +94,7 @@ def set_clip_calibration(clip, camera, *, sensor_width: float = 36.0) -> None:
     Parameters
     ----------
     clip : bpy.types.MovieClip
-    camera : core.camera.Camera
+    camera : core.capture.camera.Camera
         Its ``K`` (pixels) and ``width, height`` must match the clip's footage.
     sensor_width : float
         Sensor width, millimetres (the focal length in mm follows from it).
@@ -169,7 +169,7 @@ def clip_from_pixels(filepath, pixels, camera=None, *, names=None, scene_frame_s
         :func:`write_dot_plates`).
     pixels : (T,M,2) array_like
         Marker pixels; row ``t`` is the footage's frame ``t + 1``.
-    camera : core.camera.Camera, optional
+    camera : core.capture.camera.Camera, optional
         Sets the clip's calibration (:func:`set_clip_calibration`).
     names : sequence of str, optional
     scene_frame_start : int

@@ -1,4 +1,4 @@
-"""FaceLab's command line: the operators, in batch, for render farms and pipeline scripts.
+"""FaceLab's command line: the sidebar's steps, in batch, for render farms and pipeline scripts.
 
     python -m facelab_addon propagate SHOT.blend --object Face --frames 1-1200 --out SHOT_fixed.blend
     python -m facelab_addon refine SHOT.blend --object Face --frames 40,88 --out SHOT_refined.blend
@@ -10,7 +10,7 @@ time: a new one (``solve.py``) is added by dropping in a module that defines
 
     HELP: str                                   # one line for --help
     def add_arguments(parser) -> None            # its own options (the common ones are already there)
-    def run(args, session: Session) -> dict      # do the work through the operators; return the JSON summary
+    def run(args, session: Session) -> dict      # call the pipelines (facelab_addon.pipeline); return the JSON summary
 
 The common options (inputs, ``--object``, ``--frames``, ``--out``, ``--json``) and the plumbing
 (opening inputs, finding the object, stdout kept clean for the JSON, exit codes) are in

@@ -1,7 +1,8 @@
 """Plumbing shared by the subcommands: common options, inputs, the face object, outputs, exit codes.
 
-Nothing here does FaceLab work: the subcommands call the registered operators (``bpy.ops.facelab.*``),
-exactly what the sidebar buttons run, and read the result back from the scene for the JSON summary.
+Nothing here does FaceLab work: the subcommands call the pipelines (``facelab_addon.pipeline``), the
+code the sidebar buttons run, or the registered operators (``bpy.ops.facelab.*``, through
+``Session.call``), and build the JSON summary from what they return.
 """
 
 from __future__ import annotations
@@ -221,10 +222,10 @@ class Session:
     def import_obj(self, path: Path, name: str):
         """A mesh object from an OBJ, vertex order and coordinates exactly as in the file."""
         from ..blender.scene import new_mesh_object
-        from ..core.ict import _read_obj_full
+        from ..core.capture.obj import read_obj
 
         try:
-            V, _, cv, _, off, _, _ = _read_obj_full(path)
+            V, _, cv, _, off, _, _ = read_obj(path)
         except (OSError, ValueError, IndexError) as e:
             raise CliError(f"{path}: cannot read it as an OBJ ({e}).", EXIT_INPUT) from None
         if not len(V) or len(off) < 2:
@@ -233,10 +234,10 @@ class Session:
 
     def import_obj_vertices(self, path: Path):
         """(V,3) float64 vertex positions of an OBJ, in file order."""
-        from ..core.ict import _read_obj_vertices
+        from ..core.capture.obj import read_obj_vertices
 
         try:
-            V = _read_obj_vertices(Path(path))
+            V = read_obj_vertices(Path(path))
         except (OSError, ValueError, IndexError) as e:
             raise CliError(f"{path}: cannot read it as an OBJ ({e}).", EXIT_INPUT) from None
         if not len(V):
@@ -244,12 +245,12 @@ class Session:
         return V
 
     def add_cache(self, obj, path: Path) -> None:
-        from ..core import cachefile
+        from ..core.capture import pointcache
         from ..core.errors import FaceLabError
 
         try:
-            info = cachefile.cache_info(str(path))
-            cachefile.check_vertex_count(info, len(obj.data.vertices), name=f"'{obj.name}'")
+            info = pointcache.cache_info(str(path))
+            pointcache.check_vertex_count(info, len(obj.data.vertices), name=f"'{obj.name}'")
         except FaceLabError as e:
             raise CliError(f"--cache {path}: {e}", EXIT_INPUT) from None
         md = obj.modifiers.new("Capture", "MESH_CACHE")
@@ -424,13 +425,10 @@ def execute(args) -> int:
 
 
 def _release_solvers() -> None:
-    """Drop the fitted model Propagate keeps between runs: its native Cholesky factor would otherwise
-    outlive the interpreter and nanobind prints a 'leaked instance' warning at exit."""
+    """Collect unreachable objects now, so native solver factors (Cholesky) held in reference cycles are
+    freed before the interpreter exits (nanobind prints a 'leaked instance' warning otherwise)."""
     import gc
 
-    mod = sys.modules.get(__name__.rsplit(".", 2)[0] + ".ui.ops_propagate")
-    if mod is not None and hasattr(mod, "_REGRESSORS"):
-        mod._REGRESSORS.clear()
     gc.collect()
 
 

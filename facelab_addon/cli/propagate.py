@@ -14,7 +14,15 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ._common import EXIT_INPUT, EXIT_OUTPUT, EXIT_USAGE, CliError, contiguous, parse_frames
+from ..names import LIPS_GROUP, MOUTH_GROUP, SUGGEST_MARKER
+from ._common import (
+    EXIT_INPUT,
+    EXIT_OUTPUT,
+    EXIT_USAGE,
+    CliError,
+    contiguous,
+    parse_frames,
+)
 
 HELP = "propagate the training frames' lip corrections to every frame (corrective shape keys)"
 
@@ -23,9 +31,9 @@ def add_arguments(p) -> None:
     p.add_argument("--corrected", action="append", default=[], metavar="FRAME:FILE.obj",
                    help="the face corrected on FRAME (an OBJ with the mesh's vertex order); repeatable")
     p.add_argument("--suggestions", type=int, default=3, metavar="N",
-                   help="how many frames to suggest correcting next (timeline markers 'FL suggest'); default 3")
+                   help=f"how many frames to suggest correcting next (timeline markers '{SUGGEST_MARKER}'); default 3")
     p.add_argument("--no-auto-regions", dest="auto_regions", action="store_false",
-                   help="fail instead of running Auto Regions when FL_mouth / FL_lips are missing")
+                   help=f"fail instead of running Auto Regions when {MOUTH_GROUP} / {LIPS_GROUP} are missing")
     p.add_argument("--bake", metavar="FILE",
                    help="also bake the corrected performance to FILE (.pc2, .mdd or .abc) over the frames")
 
@@ -44,11 +52,7 @@ def _corrected_specs(specs):
 
 def add_corrected_frames(session, obj, specs) -> list[str]:
     """Corrective keys from corrected OBJs, recorded as training frames; returns the key names."""
-    import numpy as np
-
-    from ..blender import caches
-    from ..blender.shapekeys import add_corrective_key, key_spike
-    from ..ui.ops import record_training_frame
+    from ..pipeline.propagate import add_corrected_frame
 
     names = []
     for frame, path in specs:
@@ -56,23 +60,34 @@ def add_corrected_frames(session, obj, specs) -> list[str]:
         if len(V) != len(obj.data.vertices):
             raise CliError(f"--corrected {frame}:{path}: {len(V)} vertices, '{obj.name}' has "
                            f"{len(obj.data.vertices)}; export the corrected face with the same topology.", EXIT_INPUT)
-        if caches.sequence_source(obj) in ("mesh_cache", "mesh_sequence_cache"):
-            caches.cache_to_shape_key_ready(obj)
-        captured = caches.read_captured_frames(obj, [frame])[0].astype(np.float64)
-        d = V - captured
-        if caches.sequence_source(obj) in ("mesh_cache", "mesh_sequence_cache"):
-            d = caches.correction_to_key_offsets(obj, captured, d)
-        kb = add_corrective_key(obj, f"FL_Corrected_{frame:04d}", d)
-        key_spike(kb, frame)
-        record_training_frame(session.scene, obj, frame, kb.name, "sculpt")
-        session.log(f"corrected frame {frame} from {path.name}: key '{kb.name}', max offset "
-                    f"{np.linalg.norm(d, axis=1).max():.4g}")
-        names.append(kb.name)
+        c = add_corrected_frame(session.scene, obj, frame, V)
+        session.log(f"corrected frame {frame} from {path.name}: key '{c.shape_key}', max offset {c.max_offset:.4g}")
+        names.append(c.shape_key)
     return names
 
 
+def stage_logger(session, what):
+    """A ``progress(stage, done, total)`` callback logging each stage and about every 10 % of it."""
+    shown = [None, -1]
+
+    def update(stage, done, total):
+        factor = min(1.0, done / total) if total else 0.0
+        tenth = int(10 * factor)
+        if stage != shown[0] or tenth > shown[1]:
+            shown[:] = stage, tenth
+            session.log(f"{what}: {stage} ({int(100 * factor)} %)")
+
+    return update
+
+
 def run(args, session) -> dict:
+    import time
+
     import numpy as np
+
+    from ..pipeline.bake import BakeSettings, bake
+    from ..pipeline.propagate import PropagateSettings, propagate
+    from ..pipeline.regions import RegionSettings, auto_regions
 
     scene = session.scene
     obj = session.face()
@@ -86,25 +101,25 @@ def run(args, session) -> dict:
     added = add_corrected_frames(session, obj, specs)
 
     regions = "kept"
-    if obj.vertex_groups.get("FL_mouth") is None or obj.vertex_groups.get("FL_lips") is None:
+    if obj.vertex_groups.get(MOUTH_GROUP) is None or obj.vertex_groups.get(LIPS_GROUP) is None:
         if not args.auto_regions:
-            raise CliError(f"'{obj.name}' has no FL_mouth / FL_lips vertex groups; paint them, or drop "
+            raise CliError(f"'{obj.name}' has no {MOUTH_GROUP} / {LIPS_GROUP} vertex groups; paint them, or drop "
                            "--no-auto-regions to propose them automatically.")
-        session.log("Auto Regions (FL_mouth / FL_lips missing)")
-        session.call("auto_regions")
+        session.log(f"Auto Regions ({MOUTH_GROUP} / {LIPS_GROUP} missing)")
+        auto_regions(obj, RegionSettings())
         regions = "auto"
 
     train = sorted({t.frame for t in obj.facelab.training_frames})
     session.log(f"propagating frames {f0}-{f1} ({len(frames):,}) from {len(train)} training frames {train[:12]}")
-    import time
-
+    if not len(obj.facelab.training_frames):
+        raise CliError("Correct at least one frame first (Refine Lips, or sculpt and Mark Training Frame)")
     t0 = time.perf_counter()
-    session.call("propagate", frame_start=f0, frame_end=f1, suggestions=max(0, args.suggestions))
+    r = propagate(scene, obj, np.arange(f0, f1 + 1), PropagateSettings(suggestions=min(20, max(0, args.suggestions))),
+                  progress=stage_logger(session, "propagate"))
     dt = time.perf_counter() - t0
-    keys = [kb.name for kb in obj.data.shape_keys.key_blocks if kb.name.startswith("FL_Prop_")]
-    suggested = sorted(m.frame for m in scene.timeline_markers if m.name.startswith("FL suggest"))
-    score = _keyed_curve(obj, '["FL_extrapolation"]', frames)
-    session.log(f"Propagated to {len(frames):,} frames in {dt:.1f} s, {len(keys)} corrective shapes"
+    suggested = sorted(r.suggested)
+    score = r.extrapolation.astype(np.float32)  # the values keyed on the object
+    session.log(f"Propagated to {len(frames):,} frames in {dt:.1f} s, {r.rank} corrective shapes"
                 + (f"; suggested next: {suggested}" if suggested else ""))
     result = {
         "object": obj.name,
@@ -113,36 +128,22 @@ def run(args, session) -> dict:
         "training_frames": train,
         "corrected_keys_added": added,
         "regions": regions,
-        "corrective_keys": keys,
+        "corrective_keys": r.keys,
         "suggested_frames": suggested,
         "propagate_seconds": round(dt, 3),
+        "extrapolation": {"max": round(float(np.max(score)), 4), "mean": round(float(np.mean(score)), 4),
+                          "frames_over_0.5": [int(f) for f, s in zip(frames, score) if s > 0.5][:100]},
     }
-    if score is not None:
-        result["extrapolation"] = {"max": round(float(np.max(score)), 4), "mean": round(float(np.mean(score)), 4),
-                                   "frames_over_0.5": [int(f) for f, s in zip(frames, score) if s > 0.5][:100]}
     if args.bake:
         fmt = {".pc2": "PC2", ".mdd": "MDD", ".abc": "ABC"}[Path(args.bake).suffix.lower()]
         p = Path(args.bake).resolve()
         if not p.parent.is_dir():
             raise CliError(f"--bake {args.bake}: the folder {p.parent} does not exist.", EXIT_OUTPUT)
         session.log(f"baking {fmt} to {p}")
-        scene.frame_start, scene.frame_end = f0, f1
-        session.call("bake", filepath=str(p), format=fmt, overwrite=True)
+        scene.frame_start, scene.frame_end = f0, f1  # the saved scene's range is the baked range
+        frame_done = session.progress(f"bake {fmt}", len(frames))
+        bake(obj, np.arange(f0, f1 + 1), p, BakeSettings(format=fmt, overwrite=True),
+             progress=lambda stage, done, total: frame_done(done - 1, total))
         result["bake"] = str(p)
     result["saved"] = session.save(args.out)
     return result
-
-
-def _keyed_curve(obj, data_path, frames):
-    """Values of an F-curve of ``obj``'s action at ``frames`` (None if not keyed)."""
-    import numpy as np
-
-    ad = obj.animation_data
-    if ad is None or ad.action is None:
-        return None
-    from ..blender.shapekeys import _find_fcurve
-
-    fc = _find_fcurve(ad, data_path)
-    if fc is None:
-        return None
-    return np.array([fc.evaluate(f) for f in frames])

@@ -8,6 +8,7 @@ section 4: rebuild the face on every frame from animated 3D bundles (the selecte
 
 from __future__ import annotations
 
+from ..names import BUNDLES_COLLECTION
 from ._common import CliError, contiguous, parse_frames
 
 HELP = "rebuild the face from animated 3D bundles (corrective shape keys)"
@@ -20,11 +21,16 @@ def add_arguments(p) -> None:
     p.add_argument("--smooth", type=int, default=1, metavar="N",
                    help="moving average of the barycentric weights over N frames (1 = off)")
     p.add_argument("--bundles", metavar="COLLECTION",
-                   help="collection holding the bundle empties (default: 'FL_bundles', else the selected empties)")
+                   help=f"collection holding the bundle empties (default: '{BUNDLES_COLLECTION}', else the selected "
+                        "empties)")
 
 
 def run(args, session) -> dict:
     import time
+
+    from ..pipeline.reconstruct import reconstruct_from_bundles
+    from ..ui.props_reconstruct import reconstruct_settings
+    from .solve import progress
 
     bpy = session.bpy
     scene = session.scene
@@ -42,12 +48,19 @@ def run(args, session) -> dict:
                 o.select_set(True)
         bpy.context.view_layer.objects.active = obj
     session.log(f"reconstructing frames {f0}-{f1} ({len(frames):,})")
+    settings = reconstruct_settings(scene, bpy.context.selected_objects, frame_start=f0, frame_end=f1,
+                                    bind_frame=args.bind_frame, smooth=max(1, args.smooth))
     t0 = time.perf_counter()
-    session.call("reconstruct_from_bundles", frame_start=f0, frame_end=f1, bind_frame=args.bind_frame,
-                 smooth=max(1, args.smooth))
+    with progress(session, len(frames), "FaceLab Reconstruct") as prog:
+        r = reconstruct_from_bundles(scene, obj, settings, progress=prog)
     dt = time.perf_counter() - t0
-    keys = [kb.name for kb in obj.data.shape_keys.key_blocks if kb.name.startswith("FL_Recon_")]
+    keys = r.keys
     session.log(f"Reconstructed {len(frames):,} frames in {dt:.1f} s, {len(keys)} corrective shapes")
+    if r.skipped:
+        session.log(f"note: skipped {len(r.skipped)} frames with missing bundles (shown neutral): {r.skipped[:10]} "
+                    f"({r.missing})")
+    if r.live_keys:
+        session.log(f"note: dataset keys {r.live_keys[:5]} are not zero and add on top")
     return {
         "object": obj.name,
         "frames": [f0, f1],

@@ -11,7 +11,7 @@ Needs a .blend with the face, the scene camera and the sketch.
 
 from __future__ import annotations
 
-from ._common import CliError, parse_frames
+from ._common import EXIT_FAILED, CliError, parse_frames
 
 HELP = "refine the lips on sketched frames (one corrective shape key per frame)"
 INPUTS = ("blend",)
@@ -22,19 +22,13 @@ def add_arguments(p) -> None:
                    help="the Grease Pencil sketch object (default: Setup > Sketch, else found by its lip layers)")
 
 
-def sketched_frames(scene, gp) -> list[int]:
-    """Frames holding a keyframe on the sketch's lip layers."""
-    from ..blender.strokes import _lip_layers
-
-    frames = set()
-    lips = _lip_layers(gp.data.layers, lambda lay: lay.name)
-    for layer in lips["upper"] + lips["lower"]:
-        frames.update(int(fr.frame_number) for fr in layer.frames)
-    return sorted(frames)
-
-
 def run(args, session) -> dict:
     import time
+
+    from ..blender.strokes import find_sketch_object, sketch_keyframes
+    from ..core.errors import FaceLabError
+    from ..pipeline.refine import refine
+    from ..ui.ops import refine_settings
 
     bpy = session.bpy
     scene = session.scene
@@ -47,13 +41,11 @@ def run(args, session) -> dict:
         if gp is None or gp.type != "GREASEPENCIL":
             raise CliError(f"--sketch {args.sketch!r}: no Grease Pencil object of that name.")
         scene.facelab.sketch = gp
-    from ..blender.strokes import _sketch_object
-
-    gp = _sketch_object(scene, gp or scene.facelab.sketch)
+    gp = find_sketch_object(scene, gp or scene.facelab.sketch)
     if args.frames:
         frames = parse_frames(args.frames, scene)
     elif gp is not None:
-        frames = sketched_frames(scene, gp)
+        frames = sketch_keyframes(gp)
     else:
         frames = []
     if not frames:
@@ -61,21 +53,17 @@ def run(args, session) -> dict:
                        "of frames that have annotation strokes.")
     if gp is not None:
         scene.facelab.sketch = gp
+    settings = refine_settings(bpy.context)
     done = []
     t0 = time.perf_counter()
     for i, f in enumerate(frames):
-        scene.frame_set(f)
-        before = {kb.name for kb in obj.data.shape_keys.key_blocks} if obj.data.shape_keys else set()
         t = time.perf_counter()
         try:
-            session.call("refine_lips")
-        except CliError as e:
-            raise CliError(f"frame {f}: {e}", e.code) from None
-        keys = obj.data.shape_keys
-        new = [kb.name for kb in keys.key_blocks if kb.name not in before and kb != keys.reference_key]
-        done.append({"frame": f, "shape_key": new[0] if new else None, "seconds": round(time.perf_counter() - t, 3)})
-        session.log(f"refine {i + 1}/{len(frames)}: frame {f} -> {new[0] if new else '?'} "
-                    f"({time.perf_counter() - t:.2f} s)")
+            r = refine(scene, obj, f, settings, sketch=scene.facelab.sketch)
+        except FaceLabError as e:
+            raise CliError(f"frame {f}: {e}", EXIT_FAILED) from None
+        done.append({"frame": f, "shape_key": r.shape_key, "seconds": round(time.perf_counter() - t, 3)})
+        session.log(f"refine {i + 1}/{len(frames)}: frame {f} -> {r.shape_key} ({time.perf_counter() - t:.2f} s)")
     session.log(f"Refined {len(frames)} frames in {time.perf_counter() - t0:.1f} s")
     return {
         "object": obj.name,

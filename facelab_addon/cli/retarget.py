@@ -14,7 +14,7 @@ from __future__ import annotations
 import time
 
 from ._common import EXIT_FAILED, EXIT_OBJECT, EXIT_USAGE, CliError
-from .solve import recording, set_range
+from .solve import progress, set_range
 
 HELP = "carry the solved performance to a creature mesh (shape keys, weights, correctives, lip sync)"
 INPUTS = ("blend",)
@@ -54,8 +54,11 @@ def _mesh(session, name, what):
 def run(args, session) -> dict:
     import numpy as np
 
+    from ..blender.actions import animated_keys
+    from ..blender.rig import rig_shapes
     from ..core.errors import FaceLabError
-    from ..ui import ops_solve
+    from ..pipeline.retarget import retarget
+    from ..ui.props_solve import retarget_settings
 
     bpy = session.bpy
     scene = session.scene
@@ -71,13 +74,10 @@ def run(args, session) -> dict:
     if cre == obj:
         raise CliError(f"--creature {cre.name!r} is the face itself; give the creature mesh.", EXIT_USAGE)
     try:
-        names, _, _ = ops_solve.rig_shapes(obj)
+        names, _, _ = rig_shapes(obj)
     except FaceLabError as e:
         raise CliError(str(e), EXIT_FAILED) from None
-    key = obj.data.shape_keys
-    act = key.animation_data.action if key.animation_data else None
-    animated = ops_solve._fcurve_paths(act) if act is not None else set()
-    if not any(ops_solve._key_path(n) in animated for n in names):
+    if not animated_keys(obj.data.shape_keys, names):
         raise CliError(f"'{obj.name}' has no solved performance: none of its {len(names)} rig keys is animated. "
                        "Run 'python -m facelab_addon solve' on the shot first (or key the weights).", EXIT_FAILED)
     frames = set_range(session, args, "retarget")
@@ -98,15 +98,16 @@ def run(args, session) -> dict:
     session.log(f"retargeting '{obj.name}' -> '{cre.name}', frames {frames[0]}-{frames[-1]} ({len(frames):,}), "
                 f"lip sync {'on' if s.lip_sync else 'off'}")
     t0 = time.perf_counter()
-    with recording("retarget") as rec:
-        session.call("retarget")
+    with progress(session, len(frames), "FaceLab Retarget") as prog:
+        r = retarget(scene, obj, cre, retarget_settings(scene), progress=prog)
     dt = time.perf_counter() - t0
-    r = rec["result"]
-    res = r["result"]
+    res = r.core
     ck = cre.data.shape_keys
-    msg = (f"Retargeted {len(frames):,} frames to '{cre.name}' in {dt:.1f} s ({r['correspondence']}): "
-           f"{len(r['created'])} shape keys transferred, {len(r['keys'])} corrective shapes")
+    msg = (f"Retargeted {len(frames):,} frames to '{cre.name}' in {dt:.1f} s ({r.correspondence}): "
+           f"{len(r.created)} shape keys transferred, {len(r.keys)} corrective shapes")
     session.log(msg)
+    if r.action_note:
+        session.log(f"note: {r.action_note}")
     eps = res.end_points
     lip = None
     if s.lip_sync and eps:
@@ -124,15 +125,15 @@ def run(args, session) -> dict:
         "creature": cre.name,
         "frames": [int(frames[0]), int(frames[-1])],
         "frame_count": len(frames),
-        "correspondence": r["correspondence"],
+        "correspondence": r.correspondence,
         "lip_sync": bool(s.lip_sync),
         "threshold_mm": round(s.lip_threshold * unit_mm, 4),
         "lip_sync_end_points": lip,
-        "shape_keys_created": r["created"],
-        "shape_keys_kept": r["kept"],
-        "corrective_keys": r["keys"],
+        "shape_keys_created": r.created,
+        "shape_keys_kept": r.kept,
+        "corrective_keys": r.keys,
         "action": ck.animation_data.action.name if ck.animation_data and ck.animation_data.action else None,
-        "notes": [r["action_note"]] if r["action_note"] else [],
+        "notes": [r.action_note] if r.action_note else [],
         "timings": {"retarget_seconds": round(dt, 3),
                     **{f"{k}": round(float(v), 3) for k, v in (res.info or {}).items()
                        if isinstance(v, (int, float)) and k.endswith("_s")}},

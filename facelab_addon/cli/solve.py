@@ -14,7 +14,8 @@ import contextlib
 import math
 import time
 
-from ._common import EXIT_FAILED, CliError, contiguous, parse_frames
+from ..names import SOLVE_PREFIX
+from ._common import EXIT_FAILED, CliError, contiguous, parse_frames, quiet_stdout
 
 HELP = "solve shape-key weights (+ correctives) from the tracked markers of the scene's views"
 INPUTS = ("blend",)
@@ -28,7 +29,7 @@ def add_arguments(p) -> None:
     p.add_argument("--rebind", action="store_true",
                    help="run Bind Tracks even if the face already has bindings")
     p.add_argument("--no-corrective", action="store_true",
-                   help="weights only: no out-of-subspace corrective (FL_Solve_* keys)")
+                   help=f"weights only: no out-of-subspace corrective ({SOLVE_PREFIX}* keys)")
     p.add_argument("--no-contours", action="store_true",
                    help="ignore the views' Mask / Grease Pencil / annotation contours (markers and bundles only)")
     p.add_argument("--brief", action="store_true",
@@ -37,26 +38,23 @@ def add_arguments(p) -> None:
 
 # --------------------------------------------------------------------------- shared with retarget.py
 @contextlib.contextmanager
-def recording(op: str):
-    """Run an issue-4 operator exactly as the UI does and keep the numbers behind its report.
+def progress(session, total: int, label: str):
+    """The sidebar's progress callback (a ``label: done/total frames`` line on stderr in background mode),
+    ended afterwards; Blender's own output meanwhile goes to stderr (stdout carries the JSON)."""
+    from ..ui.ops import progress_callback
 
-    ``op`` is the operator's name (``"solve_performance"``); the operator stores
-    what its worker returned in ``ui.ops_solve.RESULTS[op]``, yielded here as ``rec["result"]``.
-    Progress lines come from the operator itself (stderr in background mode).
-    """
-    from ..ui import ops_solve
-
-    ops_solve.RESULTS.pop(op, None)
-    rec: dict = {}
-    yield rec
-    if op in ops_solve.RESULTS:
-        rec["result"] = ops_solve.RESULTS.pop(op)
+    ctx = session.bpy.context
+    try:
+        with quiet_stdout():
+            yield progress_callback(ctx, total, label)
+    finally:
+        ctx.window_manager.progress_end()
 
 
 def set_range(session, args, what: str):
-    """``--frames`` -> FaceLab > Solve > Start/End (the operators' range); returns the frames array."""
+    """``--frames`` -> FaceLab > Solve > Start/End (the range the pipelines read); returns the frames array."""
     from ..core.errors import FaceLabError
-    from ..ui import ops_solve
+    from ..pipeline.solve import frame_range
 
     scene = session.scene
     s = scene.facelab_solve
@@ -64,7 +62,7 @@ def set_range(session, args, what: str):
         f0, f1 = contiguous(parse_frames(args.frames, scene), what)
         s.frame_start, s.frame_end = f0, f1
     try:
-        return ops_solve.frame_range(scene, s)
+        return frame_range(scene, s.frame_start, s.frame_end)
     except FaceLabError as e:
         raise CliError(str(e), EXIT_FAILED) from None
 
@@ -73,11 +71,12 @@ def check_views(session) -> list:
     """Every view has a camera, a clip and a readable calibration; returns their descriptions."""
     from ..blender import tracking
     from ..core.errors import FaceLabError
-    from ..ui import ops_solve
+    from ..pipeline.solve import require_views
+    from ..ui.props_solve import scene_views
 
     scene = session.scene
     try:
-        views = ops_solve.solve_views(scene)
+        views = require_views(scene_views(scene))
     except FaceLabError as e:
         raise CliError(f"{e} Save the .blend with its views set up, then run the command again.", EXIT_FAILED) \
             from None
@@ -105,7 +104,8 @@ def _stats(values, frames):
 # --------------------------------------------------------------------------- the command
 def bind(session, args, obj, frames) -> dict:
     """Bind Tracks when needed; returns the bind part of the summary."""
-    from ..ui import ops_solve
+    from ..pipeline.solve import bind_tracks
+    from ..ui.props_solve import bind_settings
 
     scene = session.scene
     s = scene.facelab_solve
@@ -127,23 +127,19 @@ def bind(session, args, obj, frames) -> dict:
         session.log(f"using the {have} bindings of '{obj.name}' made on frame {stored} (--rebind to bind again)")
         return {"performed": False, "frame": stored, "bindings": have}
     session.log(f"binding tracks on frame {frame} ({why})")
-    t0 = time.perf_counter()
-    with recording("bind_tracks") as rec:
-        ret = session.call("bind_tracks", frame=frame)
-    dt = time.perf_counter() - t0
-    r = rec.get("result") or {}
-    info = {"performed": True, "why": why, "frame": frame, "bound": len(r.get("bound", ())),
-            "bundles": r.get("bundles", 0), "untracked": r.get("untracked", []), "missed": r.get("missed", []),
-            "disagree": r.get("disagree", []), "max_disagreement_px": round(r.get("max_err_px", 0.0), 4),
-            "warnings": r.get("warnings", []), "seconds": round(dt, 3)}
+    with quiet_stdout():
+        r = bind_tracks(scene, obj, frame, bind_settings(scene))
+    info = {"performed": True, "why": why, "frame": frame, "bound": len(r.bound), "bundles": r.bundles,
+            "untracked": r.untracked, "missed": r.missed, "disagree": r.disagree,
+            "max_disagreement_px": round(r.max_err_px, 4), "warnings": r.warnings, "seconds": round(r.time_s, 3)}
     n_all = info["bound"] + len(info["missed"]) + len(info["untracked"])
-    if "CANCELLED" in ret or not (info["bound"] or info["bundles"]):
+    if not (info["bound"] or info["bundles"]):
         raise CliError(
             f"Bind Tracks bound none of the {n_all} tracks to '{obj.name}' on frame {frame} "
             f"({len(info['untracked'])} have no marker there, {len(info['missed'])} rays missed the face): give "
             "--bind-frame F, a frame where the tracks are tracked and the mesh matches the footage (the neutral "
             "pose is usual).", EXIT_FAILED)
-    session.log(f"bound {info['bound']} of {n_all} tracks in {dt:.1f} s"
+    session.log(f"bound {info['bound']} of {n_all} tracks in {r.time_s:.1f} s"
                 + (f", {info['bundles']} bundles" if info["bundles"] else "")
                 + (f"; views disagree on {', '.join(info['disagree'][:6])}" if info["disagree"] else ""))
     return info
@@ -152,14 +148,17 @@ def bind(session, args, obj, frames) -> dict:
 def run(args, session) -> dict:
     import numpy as np
 
+    from ..blender.actions import curve_values
+    from ..blender.rig import rig_shapes
     from ..core.errors import FaceLabError
-    from ..ui import ops_solve
+    from ..pipeline.solve import solve_performance, summarise_skips
+    from ..ui.props_solve import solve_settings
 
     scene = session.scene
     s = scene.facelab_solve
     obj = session.face()
     try:
-        names, _, _ = ops_solve.rig_shapes(obj)
+        names, _, _ = rig_shapes(obj)
     except FaceLabError as e:
         raise CliError(str(e), EXIT_FAILED) from None
     frames = set_range(session, args, "solve")
@@ -174,27 +173,28 @@ def run(args, session) -> dict:
 
     session.log(f"solving frames {frames[0]}-{frames[-1]} ({len(frames):,})")
     t0 = time.perf_counter()
-    with recording("solve_performance") as rec:
-        session.call("solve_performance")
+    with progress(session, len(frames), "FaceLab Solve") as prog:
+        r = solve_performance(scene, obj, solve_settings(scene), progress=prog)
     dt = time.perf_counter() - t0
-    r = rec["result"]
-    solved = [int(f) for f in r["solved"]]
-    skipped = {int(f): str(why) for f, why in r["skipped"].items()}
+    solved = [int(f) for f in r.solved]
+    skipped = {int(f): str(why) for f, why in r.skipped.items()}
     key = obj.data.shape_keys
-    corrective = [kb.name for kb in key.key_blocks if kb.name.startswith(ops_solve.SOLVE_PREFIX)]
+    corrective = [kb.name for kb in key.key_blocks if kb.name.startswith(SOLVE_PREFIX)]
     # what was keyed, read back from the F-curves
-    W = ops_solve._curve_values(key, names, solved) if solved else np.zeros((0, len(names)))
-    per_frame = r["result"].info.get("frames", [])
+    W = curve_values(key, names, solved) if solved else np.zeros((0, len(names)))
+    per_frame = r.core.info.get("frames", [])
     m_rms = [fi.get("marker_rms_px") if fi else None for fi in per_frame]
     c_rms = [fi.get("contour_rms_px") if fi else None for fi in per_frame]
-    fr = [int(f) for f in r["frames"]]
-    last = ops_solve.LAST
+    fr = [int(f) for f in r.frames]
     msg = f"Solved {len(solved):,} frames in {dt:.1f} s"
     if skipped:
-        msg += f" ({ops_solve._summarise_skips(skipped)})"
+        msg += f" ({summarise_skips(skipped)})"
     if s.use_corrective:
         msg += f", {len(corrective)} corrective shapes"
     session.log(msg)
+    for n in [r.action_note] + list(r.notes):
+        if n:
+            session.log(f"note: {n}")
     out = {
         "object": obj.name,
         "frames": [int(frames[0]), int(frames[-1])],
@@ -203,24 +203,23 @@ def run(args, session) -> dict:
         "bind": bind_info,
         "frames_solved": len(solved),
         "skipped": {str(f): why for f, why in skipped.items()},
-        "markers_missing": {str(f): n for f, n in r["missing"].items()},
+        "markers_missing": {str(f): n for f, n in r.missing.items()},
         "rig_keys": names,
         "action": key.animation_data.action.name if key.animation_data and key.animation_data.action else None,
         "weight_range": {n: [round(float(W[:, k].min()), 5) + 0.0, round(float(W[:, k].max()), 5) + 0.0]
                          for k, n in enumerate(names)} if len(solved) else {},
         "corrective": bool(s.use_corrective),
         "corrective_keys": corrective,
-        "contours": bool(s.use_contours and r["curve_stats"] and r["curve_stats"].get("frames_with_curves")),
-        "markers_bound": r["n_markers"],
+        "contours": bool(s.use_contours and r.curve_stats and r.curve_stats.get("frames_with_curves")),
+        "markers_bound": r.n_markers,
         "reprojection": {
             "what": "RMS pixel distance of the rig fit (weights, before the corrective) to the markers / contours",
             "marker_rms_px": _stats(m_rms, fr),
             "contour_rms_px": _stats(c_rms, fr),
         },
-        "timings": {"solve_seconds": round(dt, 3), "gather_seconds": round(last.get("gather_s", 0.0), 3),
-                    "fit_seconds": round(last.get("solve_s", 0.0), 3),
-                    "ms_per_frame": round(1000 * last.get("solve_s", 0.0) / max(len(solved), 1), 2)},
-        "notes": [n for n in [r["action_note"]] + list(r["notes"]) if n],
+        "timings": {"solve_seconds": round(dt, 3), "gather_seconds": round(r.gather_s, 3),
+                    "fit_seconds": round(r.fit_s, 3), "ms_per_frame": round(1000 * r.fit_s / max(len(solved), 1), 2)},
+        "notes": [n for n in [r.action_note] + list(r.notes) if n],
     }
     if bind_info.get("performed"):
         out["timings"]["bind_seconds"] = bind_info["seconds"]

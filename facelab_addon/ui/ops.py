@@ -1,28 +1,16 @@
-"""Operators. Each gathers inputs through the adapters, calls one core function,
-writes results through the adapters, and reports. No math here."""
+"""Operators of the sketch step (New Lip Sketch, Refine Lips) and the helpers every operator shares:
+the face being worked on, the shared ``poll``, a progress callback. The work is in
+:mod:`facelab_addon.pipeline.refine`."""
 
 import sys
-import time
 
 import bpy
-import numpy as np
 
-from ..blender import caches
-from ..blender.camera import camera_from_blender
-from ..blender.mesh import (
-    default_fixed_mask,
-    evaluated_vertices,
-    mesh_triangles,
-    require_mesh,
-    world_to_local_deltas,
-)
-from ..blender.shapekeys import add_corrective_key, key_spike
-from ..blender.strokes import new_lip_sketch, read_lip_strokes
+from ..blender.strokes import has_lip_sketch, new_lip_sketch
 from ..core.errors import FaceLabError
-from ..core.sketch import refine_lips
+from ..pipeline.propagate import record_training_frame  # noqa: F401  (re-exported for scripts)
+from ..pipeline.refine import RefineSettings, refine
 from .prefs import get_prefs
-
-TRAIN_MARKER = "FL train"
 
 
 def progress_callback(context, T, label="FaceLab"):
@@ -61,25 +49,11 @@ def poll_face(cls, context) -> bool:
     return True
 
 
-def has_lip_sketch(scene) -> bool:
-    """A sketch Refine Lips can read: Setup > Sketch, a Grease Pencil object with lip layers, or
-    annotation layers named after the lips (cheap enough for ``poll``)."""
-    if scene.facelab.sketch is not None:
-        return True
-    from ..blender.strokes import _has_lip_layers, _label
-
-    if any(o.type == "GREASEPENCIL" and _has_lip_layers(o.data) for o in scene.objects):
-        return True
-    ann = getattr(scene, "annotation", None)
-    return ann is not None and any(_label(lay.info) for lay in ann.layers)
-
-
-def record_training_frame(scene, obj, frame: int, shape_key: str, source: str) -> None:
-    """Remember ``frame`` as a corrected (training) frame and mark it on the timeline."""
-    item = obj.facelab.training_frames.add()
-    item.frame, item.shape_key, item.source = frame, shape_key, source
-    if not any(m.frame == frame and m.name.startswith(TRAIN_MARKER) for m in scene.timeline_markers):
-        scene.timeline_markers.new(f"{TRAIN_MARKER} {frame}", frame=frame)
+def refine_settings(context) -> RefineSettings:
+    """The Refine Lips settings: solver weights from the add-on preferences, fixed group from Setup."""
+    p = get_prefs(context)
+    return RefineSettings(iterations=p["iterations"], lambda_pos=p["lambda_pos"], lambda_reg=p["lambda_reg"],
+                          lambda_silh=p["lambda_silh"], fixed_group=context.scene.facelab.fixed_group)
 
 
 class FACELAB_OT_new_lip_sketch(bpy.types.Operator):
@@ -135,46 +109,24 @@ class FACELAB_OT_refine_lips(bpy.types.Operator):
         if context.mode != "OBJECT":
             cls.poll_message_set("Switch to Object Mode to refine")
             return False
-        if not has_lip_sketch(context.scene):
+        if not has_lip_sketch(context.scene, context.scene.facelab.sketch):
             cls.poll_message_set("No lip sketch yet: press New Lip Sketch and draw the inner lips in camera view")
             return False
         return True
 
     def execute(self, context):
         scene = context.scene
-        frame = scene.frame_current
-        t0 = time.perf_counter()
-        note = ""
         try:
-            obj = require_mesh(face_object(context))
-            dg = context.evaluated_depsgraph_get()
-            cam = camera_from_blender(scene, scene.camera, dg)
-            strokes = read_lip_strokes(scene, cam, frame, gp_obj=scene.facelab.sketch, depsgraph=dg)
-            V = evaluated_vertices(obj, dg)
-            tris = mesh_triangles(obj.data)
-            fixed, fixed_src = default_fixed_mask(obj, tris, scene.facelab.fixed_group)
-            X, info = refine_lips(
-                V, tris, cam, strokes["upper"], strokes["lower"], fixed=fixed, return_info=True, **get_prefs(context)
-            )
-            if caches.sequence_source(obj) in ("mesh_cache", "mesh_sequence_cache"):
-                note = "; " + caches.cache_to_shape_key_ready(obj)  # so the corrective key shows on the cache
+            r = refine(scene, face_object(context), scene.frame_current, refine_settings(context),
+                       sketch=scene.facelab.sketch)
         except FaceLabError as e:
             self.report({"ERROR"}, str(e))
             return {"CANCELLED"}
-        d_world = X - V
-        d_local = world_to_local_deltas(obj, d_world)
-        if note:
-            captured = caches.read_captured_frames(obj, [frame])[0]
-            d_local = caches.correction_to_key_offsets(obj, captured, d_local)
-        kb = add_corrective_key(obj, f"FL_Refine_{frame:04d}", d_local)
-        key_spike(kb, frame)
-        record_training_frame(scene, obj, frame, kb.name, "sketch")
-        moved = np.linalg.norm(d_world, axis=1)
         self.report(
             {"INFO"},
-            f"Refined lips on frame {frame} in {time.perf_counter() - t0:.2f} s: shape key '{kb.name}', "
-            f"{int((moved > 1e-9).sum())} vertices moved (max {moved.max():.4g} scene units), "
-            f"fixed: {fixed_src}{note}",
+            f"Refined lips on frame {r.frame} in {r.seconds:.2f} s: shape key '{r.shape_key}', "
+            f"{r.moved_vertices} vertices moved (max {r.max_move:.4g} scene units), "
+            f"fixed: {r.fixed_source}" + (f"; {r.note}" if r.note else ""),
         )
         return {"FINISHED"}
 

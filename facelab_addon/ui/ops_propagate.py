@@ -1,56 +1,32 @@
-"""Operators for regression propagation (Dinev et al. 2018 §4): regions, training
-frames, Propagate, bakes. They gather inputs, call core, write, report."""
+"""Operators of regression propagation (Dinev et al. 2018 §4): Auto Regions, the training-frame list,
+Propagate and Bake. They poll, gather settings, call :mod:`facelab_addon.pipeline` (``regions``,
+``propagate``, ``bake``) and report.
+
+Propagate and the PC2/MDD bake run as modal jobs when started from a button (progress in the panel,
+Esc cancels between steps) and synchronously from scripts, ``blender -b`` and the CLI: both run the
+pipeline's generator of steps.
+"""
 
 import sys
 import time
-from pathlib import Path
 
 import bpy
 import numpy as np
 from bpy.props import BoolProperty, EnumProperty, IntProperty, StringProperty
 
-from ..blender import caches
-from ..blender.mesh import mesh_triangles, require_mesh, vertex_group_mask
-from ..blender.shapekeys import add_keys_from_deltas, key_property_bulk, key_values_bulk, remove_keys, rest_vertices
-from ..core.cachefile import integrate_matrices, integrate_offsets_to_key
-from ..core.compress import compress
-from ..core.errors import FaceLabError, RegionError
-from ..core.propagate import LipRegressor, suggest_frames
-from ..core.regions import auto_regions, faces_in_region, validate_regions
-from .ops import face_object, poll_face, progress_callback, record_training_frame
-
-PROP_PREFIX = "FL_Prop_"
-SUGGEST_MARKER = "FL suggest"
-EXTRAPOLATION_PROP = "FL_extrapolation"
-MOUTH_GROUP, LIPS_GROUP = "FL_mouth", "FL_lips"
-
-# Fitted regressors kept between Propagate runs, so adding a frame is incremental.
-_REGRESSORS: dict = {}
-
-
-def region_faces(obj, tris):
-    """(mouth_faces, lip_faces) from the FL_mouth / FL_lips vertex groups, validated."""
-    mouth = vertex_group_mask(obj, MOUTH_GROUP)
-    lips = vertex_group_mask(obj, LIPS_GROUP)
-    missing = [g for g, m in ((MOUTH_GROUP, mouth), (LIPS_GROUP, lips)) if m is None]
-    if missing:
-        raise RegionError(
-            f"'{obj.name}' has no vertex group {' or '.join(missing)}; press Auto Regions (or paint the "
-            "groups: FL_mouth = trusted mouth area, FL_lips = inner lips to predict)."
-        )
-    mf, lf = faces_in_region(tris, mouth), faces_in_region(tris, lips)
-    validate_regions(tris, mf, lf, len(obj.data.vertices))
-    return mf, lf
-
-
-def training_frames(obj):
-    """Sorted unique training frames whose correction still exists."""
-    key = obj.data.shape_keys
-    names = set(key.key_blocks.keys()) if key else set()
-    frames = {t.frame for t in obj.facelab.training_frames if t.source != "sketch" or t.shape_key in names}
-    return sorted(frames)
-
-
+from ..core.errors import FaceLabError
+from ..names import LIPS_GROUP, MOUTH_GROUP
+from ..pipeline import bake as bake_pipeline
+from ..pipeline.propagate import (
+    PropagateSettings,
+    propagate,
+    propagate_steps,
+    record_training_frame,
+    remove_training_frame,
+)
+from ..pipeline.regions import REGION_DEFAULTS, RegionSettings, auto_regions
+from ..pipeline.steps import StepJob, run_steps
+from .ops import face_object, poll_face, progress_callback
 
 
 class FACELAB_OT_auto_regions(bpy.types.Operator):
@@ -61,7 +37,7 @@ class FACELAB_OT_auto_regions(bpy.types.Operator):
     bl_options = {"REGISTER", "UNDO"}
 
     replace: BoolProperty(name="Replace Existing Groups", default=False,
-                          description="Overwrite FL_mouth / FL_lips if they exist (otherwise refuse)")
+                          description=f"Overwrite {MOUTH_GROUP} / {LIPS_GROUP} if they exist (otherwise refuse)")
     use_selection: BoolProperty(name="Use Selected Edge Loop", default=False,
                                 description="Take the inner-lip loop from the selected vertices instead of finding it")
 
@@ -73,33 +49,13 @@ class FACELAB_OT_auto_regions(bpy.types.Operator):
         obj = face_object(context)
         if context.mode == "EDIT_MESH":
             bpy.ops.object.mode_set(mode="OBJECT")
-        existing = [g for g in (MOUTH_GROUP, LIPS_GROUP) if obj.vertex_groups.get(g) is not None]
-        if existing and not self.replace:
-            self.report({"ERROR"}, f"{', '.join(existing)} already exist on '{obj.name}'; enable 'Replace Existing "
-                                   "Groups' to overwrite them, or edit them by weight painting.")
-            return {"CANCELLED"}
         try:
-            require_mesh(obj)
-            tris = mesh_triangles(obj.data)
-            V = rest_vertices(obj)
-            loop = None
-            if self.use_selection:
-                sel = np.zeros(len(V), bool)
-                obj.data.vertices.foreach_get("select", sel)
-                loop = np.flatnonzero(sel)
-                if len(loop) < 4:
-                    raise RegionError("Select the inner-lip edge loop (at least 4 vertices) in Edit Mode first.")
-            mouth, lips = auto_regions(V, tris, loop=loop)
+            r = auto_regions(obj, RegionSettings(replace=self.replace, use_selection=self.use_selection,
+                                                 **REGION_DEFAULTS))
         except FaceLabError as e:
             self.report({"ERROR"}, str(e))
             return {"CANCELLED"}
-        for name, mask in ((MOUTH_GROUP, mouth), (LIPS_GROUP, lips)):
-            vg = obj.vertex_groups.get(name)
-            if vg is not None:
-                obj.vertex_groups.remove(vg)
-            vg = obj.vertex_groups.new(name=name)
-            vg.add(np.flatnonzero(mask).tolist(), 1.0, "REPLACE")
-        self.report({"INFO"}, f"Regions on '{obj.name}': {int(mouth.sum())} mouth and {int(lips.sum())} inner-lip "
+        self.report({"INFO"}, f"Regions on '{r.object}': {r.mouth_vertices} mouth and {r.lip_vertices} inner-lip "
                               f"vertices (vertex groups {MOUTH_GROUP}, {LIPS_GROUP})")
         return {"FINISHED"}
 
@@ -184,58 +140,18 @@ class FACELAB_OT_remove_training_frame(bpy.types.Operator):
 
     def execute(self, context):
         obj = face_object(context)
-        tf = obj.facelab.training_frames
         i = selected_training_index(obj)
-        frame, removed_key = tf[i].frame, tf[i].shape_key
-        tf.remove(i)
+        frame, removed_key = remove_training_frame(context.scene, obj, i)
         obj.facelab.active_training_index = max(0, i - 1)
-        if frame not in {t.frame for t in tf}:
-            for m in list(context.scene.timeline_markers):
-                if m.frame == frame and m.name.startswith("FL train"):
-                    context.scene.timeline_markers.remove(m)
         kept = f" (its shape key '{removed_key}' is kept)" if removed_key else ""
         self.report({"INFO"}, f"Removed training frame {frame}{kept}; Propagate again to update the correction")
         return {"FINISHED"}
 
 
-class StepJob:
-    """Drives a long job written as a generator of ``(stage, done, total)`` steps, one step per call,
-    so a modal operator can run it on timer events (progress in the panel, Esc cancels between
-    steps) while scripts, ``blender -b`` and the CLI run the same generator to the end at once.
-    Nothing but plain Python: testable headless, where timers and modal handlers never run."""
-
-    def __init__(self, steps):
-        self._steps = steps
-        self.stage, self.done, self.total = "starting", 0, 1
-        self.result = None
-        self.finished = False
-
-    @property
-    def factor(self) -> float:
-        return min(1.0, self.done / self.total) if self.total else 0.0
-
-    def step(self) -> bool:
-        """Run one step; False once the job has finished (``result`` holds its return value)."""
-        try:
-            self.stage, self.done, self.total = next(self._steps)
-            return True
-        except StopIteration as stop:
-            self.result, self.finished = stop.value, True
-            return False
-
-    def run(self, progress=None):
-        """Run every remaining step; ``progress(done, total)`` after each. Returns the result."""
-        while self.step():
-            if progress is not None:
-                progress(self.done, self.total)
-        return self.result
-
-    def cancel(self) -> None:
-        """Stop between two steps (the generator's ``finally`` blocks run)."""
-        self._steps.close()
-
-
-# The job a modal operator (Propagate, Bake) is running, for the panel's progress bar (None when idle).
+# The job a modal operator (Propagate, Bake) is stepping, for the panel's progress bar and the
+# operators' poll (None when idle). The one piece of module state in the UI, and UI-only: it holds
+# the live StepJob object (which no bpy property can hold) for the few seconds a modal operator
+# runs; it is never a result (pipelines return theirs) and nothing outside ``ui`` reads it.
 RUNNING: dict = {"job": None, "label": ""}
 
 
@@ -287,6 +203,25 @@ class _ModalJob:
         return self._job_done(context)
 
 
+def stage_progress(context, label):
+    """A ``progress(stage, done, total)`` callback for a synchronous job: the window's progress cursor
+    (begun here, out of 1000; callers end it), and in background mode a line on stderr per stage and
+    about every 10 %."""
+    wm = context.window_manager
+    wm.progress_begin(0, 1000)
+    shown = [None, -1]
+
+    def update(stage, done, total):
+        factor = min(1.0, done / total) if total else 0.0
+        wm.progress_update(int(999 * factor))
+        tenth = int(10 * factor)
+        if bpy.app.background and (stage, tenth) != tuple(shown) and (stage != shown[0] or tenth > shown[1]):
+            shown[:] = stage, tenth
+            print(f"{label}: {stage} ({int(100 * factor)} %)", file=sys.stderr, flush=True)
+
+    return update
+
+
 class FACELAB_OT_propagate(_ModalJob, bpy.types.Operator):
     """Learn how the inner lips follow the mouth from the training frames (Dinev et al. 2018 §4) and correct every frame; the result is a small set of corrective shape keys keyed on the timeline. Esc cancels while it reads the frames"""
 
@@ -317,224 +252,51 @@ class FACELAB_OT_propagate(_ModalJob, bpy.types.Operator):
         f1 = scene.frame_end if self.frame_end < 0 else self.frame_end
         return np.arange(f0, f1 + 1)
 
-    def _report_done(self, frames, summary, seconds):
+    def _report_done(self, r, seconds):
         self.report(
             {"INFO"},
-            f"Propagated to {len(frames):,} frames in {seconds:.1f} s, {summary['rank']} corrective "
-            f"shapes from {summary['training']} training frames"
-            + (f"; {summary['note']}" if summary["note"] else "")
-            + (f"; suggested next: {', '.join(map(str, summary['suggested']))}" if summary["suggested"] else ""),
+            f"Propagated to {len(r.frames):,} frames in {seconds:.1f} s, {r.rank} corrective "
+            f"shapes from {len(r.training)} training frames"
+            + (f"; {r.note}" if r.note else "")
+            + (f"; suggested next: {', '.join(map(str, r.suggested))}" if r.suggested else ""),
         )
 
     def execute(self, context):
         """Synchronous: scripts, ``blender -b``, the CLI (timers and modal handlers never run there)."""
-        obj = face_object(context)
         t0 = time.perf_counter()
-        frames = self._frames(context)
         try:
-            summary = propagate(context, obj, frames, self.suggestions)
+            r = propagate(context.scene, face_object(context), self._frames(context),
+                          PropagateSettings(suggestions=self.suggestions),
+                          progress=stage_progress(context, "FaceLab Propagate"))
         except FaceLabError as e:
             self.report({"ERROR"}, str(e))
             return {"CANCELLED"}
         finally:
             context.window_manager.progress_end()
-        self._report_done(frames, summary, time.perf_counter() - t0)
+        self._report_done(r, time.perf_counter() - t0)
         return {"FINISHED"}
 
     def invoke(self, context, event):
         """From a button: step through the job on a timer, progress in the panel, Esc cancels."""
         if bpy.app.background or context.window is None:
             return self.execute(context)
-        self._frames_run, self._t0 = self._frames(context), time.perf_counter()
-        steps = propagate_steps(context, face_object(context), self._frames_run, self.suggestions)
-        return self._start_job(context, steps, f"Propagate {len(self._frames_run):,} frames")
+        self._t0 = time.perf_counter()
+        frames = self._frames(context)
+        try:
+            steps = propagate_steps(context.scene, face_object(context), frames,
+                                    PropagateSettings(suggestions=self.suggestions))
+        except FaceLabError as e:
+            self.report({"ERROR"}, str(e))
+            return {"CANCELLED"}
+        return self._start_job(context, steps, f"Propagate {len(frames):,} frames")
 
     def _job_cancelled(self):
         self.report({"WARNING"}, f"Propagate cancelled while {self._job.stage} ({self._job.done:,}/"
                                  f"{self._job.total:,}); no corrective key was changed")
 
     def _job_done(self, context):
-        self._report_done(self._frames_run, self._job.result, time.perf_counter() - self._t0)
+        self._report_done(self._job.result, time.perf_counter() - self._t0)
         return {"FINISHED"}
-
-
-def propagate(context, obj, frames, n_suggest=3) -> dict:
-    """Fit (or update) the regressor, predict every frame, write corrective keys. Returns a summary.
-
-    Runs :func:`propagate_steps` to the end at once, with the window's progress (and a line on
-    stderr per stage and every 10 % in background mode)."""
-    wm = context.window_manager
-    wm.progress_begin(0, 1000)
-    job = StepJob(propagate_steps(context, obj, frames, n_suggest))
-    shown = (None, -1)
-    while job.step():
-        wm.progress_update(int(999 * job.factor))
-        tenth = int(10 * job.factor)
-        if bpy.app.background and (job.stage, tenth) != shown and (job.stage != shown[0] or tenth > shown[1]):
-            shown = (job.stage, tenth)
-            print(f"FaceLab Propagate: {job.stage} ({int(100 * job.factor)} %)", file=sys.stderr, flush=True)
-    return job.result
-
-
-def _chunks(n, size):
-    return [(i, min(n, i + size)) for i in range(0, n, size)]
-
-
-def propagate_steps(context, obj, frames, n_suggest=3):
-    """Propagate as a generator: yields ``(stage, done, total)`` between steps and returns the summary.
-
-    Steps: read the capture in chunks of frames; fit; predict in chunks; (a cache: map every frame's
-    correction onto the cache surface); compress and write. Nothing in the scene changes before the
-    last step, except that a Mesh Cache is switched to Integrate (or an Alembic baked to a PC2) first,
-    so cancelling between steps leaves the corrective keys as they were."""
-    scene = context.scene
-    require_mesh(obj)
-    tris = mesh_triangles(obj.data)
-    mouth_faces, lip_faces = region_faces(obj, tris)
-    train = training_frames(obj)
-    if len(train) < 1:
-        raise FaceLabError("No training frame: correct at least one frame (Refine Lips, or sculpt and Mark Training Frame).")
-    outside = [f for f in train if f < frames[0] or f > frames[-1]]
-    if outside:
-        raise FaceLabError(f"Training frames {outside} lie outside the range {frames[0]}-{frames[-1]}; widen the range.")
-    T = len(frames)
-    # progress units: T frames read + T predicted (+ T mapped onto a cache) + 2 (fit, write)
-    source = caches.sequence_source(obj)
-    on_cache = source in ("mesh_cache", "mesh_sequence_cache")
-    total = 2 * T + 2 + (T if on_cache else 0)
-    note = ""
-    if on_cache:
-        note = caches.cache_to_shape_key_ready(obj, scene_frames=frames)
-    rest = rest_vertices(obj)
-    chunk = max(4, T // 40)
-    captured = np.empty((T, len(rest), 3), np.float32)
-    for i, j in _chunks(T, chunk):
-        yield "reading the capture", i, total
-        captured[i:j] = caches.read_captured_frames(obj, frames[i:j])  # FaceLab keys muted
-    yield "fitting", T, total
-    corrected = caches.evaluate_frames(obj, train, mute_shape_keys_prefix=(PROP_PREFIX,))
-    reg = _regressor(obj, rest, tris, mouth_faces, lip_faces, train, corrected)
-
-    lipv = np.unique(tris[lip_faces])
-    before = captured[:, lipv].astype(np.float64)
-    for i, j in _chunks(T, max(chunk, 16)):
-        yield "predicting", T + 1 + i, total
-        reg.predict(captured[i:j], out=captured[i:j])  # in place: 1000 frames stay within memory
-    pred = captured
-    corr = (pred[:, lipv] - before).astype(np.float64)  # (T, n_lip, 3) correction, object local
-    corr[np.isin(frames, train)] = 0.0  # training frames keep the artist's own correction
-    if on_cache:  # keys ride on the cache surface (INTEGRATE): map each frame's offsets through it
-        sub_off, sub_cv = _polygons_around(caches.polygon_corners(obj.data), lipv)
-        for t in range(T):
-            if t % 4 == 0:
-                yield "mapping onto the cache", 2 * T + 1 + t, total
-            if np.any(corr[t]):
-                M = integrate_matrices(rest, before_full(pred[t], lipv, before[t]), sub_off, sub_cv)[lipv]
-                corr[t] = integrate_offsets_to_key(M, corr[t])
-    yield "writing the corrective keys", total - 1, total
-    basis_lip, weights = compress(corr, metres_per_unit=scene.unit_settings.scale_length or 1.0)
-    remove_keys(obj, PROP_PREFIX)
-    names = []
-    if len(basis_lip):
-        basis = np.zeros((len(basis_lip), len(rest), 3))
-        basis[:, lipv] = basis_lip
-        names = add_keys_from_deltas(obj, PROP_PREFIX, basis)
-        key_values_bulk(obj, names, frames, weights)
-    # where the model guesses: the extrapolation score keyed on the object, suggestions as markers.
-    # Mouth features are computed once (mouth triangles never touch the predicted interior lip vertices).
-    feats = reg.mouth_features(pred)
-    score = reg.extrapolation(features=feats)
-    obj[EXTRAPOLATION_PROP] = 0.0
-    key_property_bulk(obj, f'["{EXTRAPOLATION_PROP}"]', frames, score)
-    for m in [m for m in scene.timeline_markers if m.name.startswith(SUGGEST_MARKER)]:
-        scene.timeline_markers.remove(m)
-    suggested = []
-    if n_suggest:
-        idx = suggest_frames(None, n_suggest, regressor=reg, exclude=np.flatnonzero(np.isin(frames, train)),
-                             features=feats, overwrite_features=True)
-        suggested = [int(frames[i]) for i in idx]
-        for f in suggested:
-            scene.timeline_markers.new(f"{SUGGEST_MARKER} {f}", frame=f)
-    obj.data.update()
-    return dict(rank=len(names), training=len(train), suggested=suggested, note=note,
-                extrapolation=score, keys=names)
-
-
-def _polygons_around(corners, verts):
-    """``(face_offsets, corner_verts)`` of only the polygons touching ``verts``.
-
-    The Integrate map of a vertex averages over its own corners, all in polygons that touch it, so
-    on this subset it is exactly the whole mesh's (``core.cachefile.integrate_matrices``), at a
-    fraction of the cost: the lips are ~4 % of a face."""
-    offs, cv = corners
-    sizes = np.diff(offs)
-    face_of = np.repeat(np.arange(len(sizes)), sizes)
-    touch = np.zeros(len(sizes), bool)
-    touch[face_of[np.isin(cv, verts)]] = True
-    return np.r_[0, np.cumsum(sizes[touch])], cv[touch[face_of]]
-
-
-def before_full(pred_t, lipv, before_t):
-    """The captured frame: the prediction with the lip vertices put back."""
-    out = np.array(pred_t, dtype=np.float64)
-    out[lipv] = before_t
-    return out
-
-
-def _regressor(obj, rest, tris, mouth_faces, lip_faces, train, corrected):
-    """The fitted regressor for these regions and training frames, updated incrementally when
-    the previous fit's frames (same corrections) are a subset of ``train``."""
-    key = (obj.name, len(rest), hash(tris.tobytes()), hash(mouth_faces.tobytes()), hash(lip_faces.tobytes()),
-           hash(rest.tobytes()))
-    cached = _REGRESSORS.get(key)
-    if cached is not None:
-        reg, fit_frames, fit_data = cached
-        row = {f: i for i, f in enumerate(train)}
-        same = all(f in row and np.array_equal(fit_data[j], corrected[row[f]]) for j, f in enumerate(fit_frames))
-        if same:
-            new = [row[f] for f in train if f not in set(fit_frames)]
-            if new:
-                reg.add(corrected[new])  # incremental: only the new frames
-                order = list(fit_frames) + [train[i] for i in new]
-                _REGRESSORS[key] = (reg, order, np.concatenate([fit_data, corrected[new]]))
-            return reg
-    reg = LipRegressor(rest, tris, mouth_faces, lip_faces)
-    reg.fit(corrected)
-    _REGRESSORS.clear()  # keep one model in memory
-    _REGRESSORS[key] = (reg, list(train), corrected)
-    return reg
-
-
-def bake_steps(obj, frames, path, fmt):
-    """A PC2 or MDD bake of the evaluated mesh as a generator, one frame a step; returns the path.
-
-    Same file as ``blender.caches.bake_pc2`` / ``bake_mdd`` (header, object-local positions). The
-    writer writes beside the destination and moves the file in place at the end, so cancelling
-    (closing the generator) leaves an existing file untouched; the scene frame is restored."""
-    from ..core import cachefile
-
-    frames = np.asarray(frames, dtype=np.float64)
-    n = len(obj.data.vertices)
-    if fmt == "PC2":
-        step = caches._uniform_step(frames, "A PC2 bake")
-        w = cachefile.PointCacheWriter(str(path), "PC2", n, len(frames), start_frame=float(frames[0]),
-                                       sample_rate=step)
-    else:
-        if len(frames) > 1 and not (np.diff(frames) > 0).all():
-            raise FaceLabError("An MDD bake needs increasing scene frames.")
-        w = cachefile.PointCacheWriter(str(path), "MDD", n, len(frames), times=frames / caches.scene_fps())
-    it = caches._iter_evaluated(obj, frames)
-    ok = False
-    try:
-        for i, co in it:
-            w.write(co)
-            yield f"baking frame {int(frames[i])}", i + 1, len(frames)
-        ok = True
-    finally:
-        it.close()  # restores the scene frame
-        if not ok:
-            w.abort()
-    return w.close()
 
 
 class FACELAB_OT_bake(_ModalJob, bpy.types.Operator):
@@ -557,43 +319,35 @@ class FACELAB_OT_bake(_ModalJob, bpy.types.Operator):
 
     def invoke(self, context, event):
         if not self.filepath:
-            ext = {"PC2": ".pc2", "MDD": ".mdd", "ABC": ".abc"}[self.format]
+            ext = bake_pipeline.FORMATS[self.format]
             self.filepath = bpy.path.abspath("//") + face_object(context).name + "_corrected" + ext
         context.window_manager.fileselect_add(self)
         return {"RUNNING_MODAL"}
 
     def execute(self, context):
-        obj, scene = face_object(context), context.scene
-        path = Path(bpy.path.abspath(self.filepath))
-        if not self.filepath:
-            self.report({"ERROR"}, "Choose a file to bake to.")
-            return {"CANCELLED"}
-        if path.exists() and not self.overwrite:
-            self.report({"ERROR"}, f"{path} exists; enable Overwrite or choose another file.")
-            return {"CANCELLED"}
-        self._frames_run = np.arange(scene.frame_start, scene.frame_end + 1)
-        self._obj, self._t0 = obj, time.perf_counter()
+        scene = context.scene
+        path = bpy.path.abspath(self.filepath) if self.filepath else ""
+        frames = np.arange(scene.frame_start, scene.frame_end + 1)
+        settings = bake_pipeline.BakeSettings(format=self.format, overwrite=self.overwrite)
+        self._t0 = time.perf_counter()
         try:
-            if self.format == "ABC":  # one call of Blender's exporter: not steppable
-                out = caches.bake_alembic(obj, self._frames_run, path)
-                return self._report_baked(out)
-            caches._require_mesh_object(obj)
-            steps = bake_steps(obj, self._frames_run, path, self.format)
-            if not bpy.app.background and context.window is not None:  # after the file browser
-                return self._start_job(context, steps, f"Bake {self.format}")
-            job = StepJob(steps)
-            prog = progress_callback(context, len(self._frames_run), f"FaceLab Bake {self.format}")
-            out = job.run(prog)
+            steps = bake_pipeline.bake_steps(face_object(context), frames, path, settings)
+            if self.format != "ABC" and not bpy.app.background and context.window is not None:
+                return self._start_job(context, steps, f"Bake {self.format}")  # after the file browser
+            frame_done = None
+            if self.format != "ABC":  # one call of Blender's exporter: no progress to show
+                frame_done = progress_callback(context, len(frames), f"FaceLab Bake {self.format}")
+            r = run_steps(steps, frame_done and (lambda stage, done, total: frame_done(done, total)))
         except FaceLabError as e:
             self.report({"ERROR"}, str(e))
             return {"CANCELLED"}
         finally:
             if RUNNING["job"] is None:
                 context.window_manager.progress_end()
-        return self._report_baked(out)
+        return self._report_baked(r)
 
-    def _report_baked(self, out):
-        self.report({"INFO"}, f"Baked {len(self._frames_run):,} frames of '{self._obj.name}' to {out} in "
+    def _report_baked(self, r):
+        self.report({"INFO"}, f"Baked {r.frames:,} frames of '{r.object}' to {r.path} in "
                               f"{time.perf_counter() - self._t0:.1f} s")
         return {"FINISHED"}
 

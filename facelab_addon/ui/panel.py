@@ -10,6 +10,8 @@ Panels only draw; every button is an operator whose ``poll`` explains why it is 
 import bpy
 import numpy as np
 
+from ..blender.shapekeys import find_fcurve
+from ..names import EXTRAPOLATION_PROP, LIPS_GROUP, MOUTH_GROUP, SUGGEST_MARKER
 from .ops import face_object
 from .ops_propagate import RUNNING
 from .panel_reconstruct import draw_reconstruct_section
@@ -17,18 +19,11 @@ from .panel_solve import draw_retarget_section, draw_solve_section
 
 # Extrapolation scores above this are flagged (the frame's mouth lies well outside the training poses).
 EXTRAPOLATING = 0.5
-SUGGEST_MARKER = "FL suggest"
-EXTRAPOLATION_PROP = "FL_extrapolation"
 
 
 def keyed_extrapolation(obj):
-    """(frames (T,), scores (T,)) keyed by Propagate on ``obj['FL_extrapolation']``, or None."""
-    ad = obj.animation_data
-    if ad is None or ad.action is None:
-        return None
-    from ..blender.shapekeys import _find_fcurve
-
-    fc = _find_fcurve(ad, f'["{EXTRAPOLATION_PROP}"]')
+    """(frames (T,), scores (T,)) keyed by Propagate on the object's extrapolation property, or None."""
+    fc = find_fcurve(obj, f'["{EXTRAPOLATION_PROP}"]')
     if fc is None or not len(fc.keyframe_points):
         return None
     co = np.empty(2 * len(fc.keyframe_points), np.float32)
@@ -119,7 +114,7 @@ class FACELAB_PT_setup(_Section, bpy.types.Panel):
         ob = face_object(context)
         if ob is not None:
             row = col.row(align=True)
-            for g in ("FL_mouth", "FL_lips"):
+            for g in (MOUTH_GROUP, LIPS_GROUP):
                 row.label(text=g, icon="CHECKMARK" if ob.vertex_groups.get(g) else "X")
         col.operator("facelab.auto_regions", icon="GROUP_VERTEX")
 

@@ -1,9 +1,10 @@
 """Drawing of the sidebar's Reconstruct from Bundles section (Cong, Lan & Fedkiw, local geometric indexing).
 
 ``draw_reconstruct_section(layout, context)`` is called by ``ui/panel.py``;
-the settings live in ``scene.facelab_recon`` (``ui/ops_reconstruct.py``).
+the settings live in ``scene.facelab_recon`` (``ui/props_reconstruct.py``).
 """
 
+from ..names import BUNDLES_COLLECTION
 from .ops import face_object
 
 
@@ -26,7 +27,7 @@ def draw_reconstruct_section(layout, context):
     elif r.bundle_source == "MESH":
         box.prop(r, "bundle_mesh")
     else:
-        box.label(text="Select the bundle empties (or use 'FL_bundles')", icon="EMPTY_DATA")
+        box.label(text=f"Select the bundle empties (or use '{BUNDLES_COLLECTION}')", icon="EMPTY_DATA")
     box.operator("facelab.bundles_from_clip", icon="TRACKER")
     box.prop(r, "bind_frame")
 

@@ -1,14 +1,23 @@
-"""Add-on preferences: solver weights and iterations (Dinev et al. 2018 §5 defaults)."""
+"""Add-on preferences: solver weights and iterations (Dinev et al. 2018 §5 defaults).
+
+The defaults come from the presets in ``assets/presets/`` (:mod:`facelab_addon.assets`):
+``sketch_refine.json`` for the Refine Lips solver, ``regions.json`` for the Auto Regions band widths.
+A missing or broken preset file raises :class:`facelab_addon.assets.AssetError` naming the file.
+"""
 
 import bpy
 from bpy.props import FloatProperty, IntProperty
+
+from ..pipeline.refine import REFINE_DEFAULTS
+from ..pipeline.regions import REGION_DEFAULTS  # noqa: F401  (the Auto Regions band widths, see pipeline.regions)
 
 # The add-on's module name: "facelab_addon" from a checkout, "bl_ext.<repo>.facelab" as an
 # extension (whose root __init__.py imports the facelab_addon sub-package).
 _parts = __package__.split(".")
 ADDON_ID = ".".join(_parts[: _parts.index("facelab_addon")]) or "facelab_addon"
 
-DEFAULTS = dict(iterations=5, lambda_pos=0.1, lambda_reg=3.0, lambda_silh=1.0)
+#: Refine Lips solver settings (keyword arguments of ``core.lips.sketch.refine_lips``), from the preset.
+DEFAULTS = dict(REFINE_DEFAULTS)
 
 
 class FACELAB_AP_preferences(bpy.types.AddonPreferences):

@@ -3,6 +3,8 @@
 import bpy
 from bpy.props import CollectionProperty, IntProperty, PointerProperty, StringProperty
 
+from ..names import FIXED_GROUP
+
 
 def _is_mesh(self, obj):
     return obj.type == "MESH"
@@ -35,7 +37,7 @@ class FACELAB_PG_scene(bpy.types.PropertyGroup):
     )
     fixed_group: StringProperty(
         name="Fixed Group",
-        default="FL_fixed",
+        default=FIXED_GROUP,
         description="Vertex group of hidden vertices that must not move (inner mouth, teeth, back of the head); "
         "without it, separate mesh parts are fixed",
     )

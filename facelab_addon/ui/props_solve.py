@@ -6,7 +6,11 @@ bundle source, solve options and the retarget target.
 
 ``Object.facelab_solve`` (:class:`FACELAB_PG_solve_object`): the bindings of
 the face mesh: one item per track (or bundle) name with the triangle vertex
-ids and barycentric weights of its surface point, written by Bind Tracks.
+ids and barycentric weights of its surface point, written by Bind Tracks
+(read and written as arrays by :mod:`facelab_addon.blender.bindings`).
+
+:func:`bind_settings`, :func:`solve_settings` and :func:`retarget_settings`
+gather these properties into the pipelines' settings.
 """
 
 import bpy
@@ -20,8 +24,13 @@ from bpy.props import (
     IntProperty,
     IntVectorProperty,
     PointerProperty,
-    StringProperty,
 )
+
+from ..blender import tracking
+from ..blender.actions import scene_vector_values
+from ..names import BUNDLES_COLLECTION, SOLVE_ACTION, SOLVE_PREFIX
+from ..pipeline.retarget import RetargetSettings
+from ..pipeline.solve import BindSettings, SolveSettings
 
 
 def _is_camera(self, obj):
@@ -83,7 +92,7 @@ class FACELAB_PG_solve_scene(bpy.types.PropertyGroup):
         description="3D bundles to fit (Bhat Eq. 2) besides the 2D markers",
     )
     bundle_collection: PointerProperty(name="Bundle Collection", type=bpy.types.Collection,
-                                       description="Collection of bundle empties (default: 'FL_bundles')")
+                                       description=f"Collection of bundle empties (default: '{BUNDLES_COLLECTION}')")
     use_contours: BoolProperty(name="Contours", default=True,
                                description="Fit the inner-lip and eyelid contours of the views' masks / sketches")
     annotation_view: IntProperty(name="Annotation View", default=-1, min=-1,
@@ -91,7 +100,7 @@ class FACELAB_PG_solve_scene(bpy.types.PropertyGroup):
                                              "through (-1: ignore the annotation)")
     use_corrective: BoolProperty(name="Corrective", default=True,
                                  description="Add the per-frame out-of-subspace corrective (compressed corrective "
-                                             "shape keys FL_Solve_*)")
+                                             f"shape keys {SOLVE_PREFIX}*)")
     sliding: BoolProperty(name="Sliding Contours", default=True,
                           description="Re-match contour correspondences every frame (off: keep the first frame's)")
     frame_start: IntProperty(name="Start", default=-1, description="First frame (-1: the scene's start)")
@@ -103,7 +112,7 @@ class FACELAB_PG_solve_scene(bpy.types.PropertyGroup):
     existing_animation: EnumProperty(
         name="Existing Animation",
         items=[("NEW_ACTION", "New Action", "Keep the artist's shape-key action (fake user) and write the solve to a "
-                                            "copy of it named FL_Solve (switch back in the Shape Key Editor)"),
+                                            f"copy of it named {SOLVE_ACTION} (switch back in the Shape Key Editor)"),
                ("REPLACE", "Replace Curves", "Overwrite the rig keys' curves in the current action")],
         default="NEW_ACTION",
         description="What to do when the rig's shape keys are already animated by an action FaceLab did not make",
@@ -152,33 +161,44 @@ def unregister():
         bpy.utils.unregister_class(c)
 
 
-# --------------------------------------------------------------------------- binding storage
-def write_bindings(obj, kind: str, names, vertices, bary) -> None:
-    """Replace the ``kind`` bindings of ``obj`` by ``names`` with (m,3) vertex ids and barycentrics (bulk)."""
-    coll = obj.facelab_solve.bindings
-    keep = [(b.name, b.kind, tuple(b.vertices), tuple(b.bary)) for b in coll if b.kind != kind]
-    coll.clear()
-    rows = keep + [(n, kind, tuple(int(x) for x in v), tuple(float(x) for x in w))
-                   for n, v, w in zip(names, np.asarray(vertices), np.asarray(bary))]
-    for _ in rows:
-        coll.add()
-    coll.foreach_set("vertices", np.array([r[2] for r in rows], np.int32).ravel() if rows else np.zeros(0, np.int32))
-    coll.foreach_set("bary", np.array([r[3] for r in rows], np.float32).ravel() if rows else np.zeros(0, np.float32))
-    for item, r in zip(coll, rows):
-        item.name, item.kind = r[0], r[1]
+# --------------------------------------------------------------------------- settings for the pipelines
+def scene_views(scene) -> list:
+    """The scene's solve views as :class:`facelab_addon.blender.tracking.View` (unchecked: the pipelines
+    name a view without camera or clip)."""
+    return [tracking.View(v.camera, v.clip, mask=v.mask, sketch=v.sketch, name=v.camera.name if v.camera else "")
+            for v in scene.facelab_solve.views]
 
 
-def read_bindings(obj, kind: str):
-    """``(names, vertices (m,3) int64, bary (m,3) float64)`` of the ``kind`` bindings of ``obj``."""
-    coll = obj.facelab_solve.bindings
-    n = len(coll)
-    v = np.empty(3 * n, np.int32)
-    b = np.empty(3 * n, np.float32)
-    coll.foreach_get("vertices", v)
-    coll.foreach_get("bary", b)
-    sel = [i for i, it in enumerate(coll) if it.kind == kind]
-    names = [coll[i].name for i in sel]
-    V = v.reshape(n, 3)[sel].astype(np.int64)
-    B = b.reshape(n, 3)[sel].astype(np.float64)
-    B /= np.where(B.sum(1, keepdims=True) > 0, B.sum(1, keepdims=True), 1.0)  # float32 storage: re-normalise
-    return names, V, B
+def bind_settings(scene) -> BindSettings:
+    """Bind Tracks' settings from ``scene.facelab_solve`` and FaceLab > Setup."""
+    s = scene.facelab_solve
+    return BindSettings(views=scene_views(scene), bundles=s.bundles, bundle_collection=s.bundle_collection,
+                        fixed_group=scene.facelab.fixed_group)
+
+
+def solve_settings(scene) -> SolveSettings:
+    """Solve Performance's settings from ``scene.facelab_solve`` and FaceLab > Setup."""
+    s = scene.facelab_solve
+    return SolveSettings(
+        views=scene_views(scene), frame_start=s.frame_start, frame_end=s.frame_end, bundles=s.bundles,
+        bundle_collection=s.bundle_collection, fixed_group=scene.facelab.fixed_group, use_contours=s.use_contours,
+        annotation_view=s.annotation_view, use_corrective=s.use_corrective, sliding=s.sliding,
+        weight_min=s.weight_min, weight_max=s.weight_max, marker_weight=s.marker_weight,
+        contour_weight=s.contour_weight, existing_animation=s.existing_animation)
+
+
+def retarget_settings(scene) -> RetargetSettings:
+    """Retarget's settings from ``scene.facelab_solve``; hand-set lip end points are read on every frame
+    of the range (they may be keyed on the timeline)."""
+    s = scene.facelab_solve
+    up = lo = None
+    f0 = scene.frame_start if s.frame_start < 0 else s.frame_start
+    f1 = scene.frame_end if s.frame_end < 0 else s.frame_end
+    if s.lip_sync and s.use_end_points and f1 >= f0:  # (an empty range is the pipeline's to report)
+        frames = np.arange(f0, f1 + 1)
+        up = scene_vector_values(scene, "facelab_solve.end_points_upper", s.end_points_upper, frames)
+        lo = scene_vector_values(scene, "facelab_solve.end_points_lower", s.end_points_lower, frames)
+    return RetargetSettings(
+        frame_start=s.frame_start, frame_end=s.frame_end, correspondence=s.correspondence,
+        creature_markers=s.creature_markers, lip_sync=s.lip_sync, lip_threshold=s.lip_threshold,
+        end_points_upper=up, end_points_lower=lo, existing_animation=s.existing_animation, views=scene_views(scene))

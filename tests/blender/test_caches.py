@@ -17,20 +17,14 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
-from facelab_addon.blender import caches  # noqa: E402
-from facelab_addon.core import cachefile as cf  # noqa: E402
+from facelab_addon.blender import bakes, cache_integrate, caches  # noqa: E402
+from facelab_addon.core.capture import integrate, meshcache, pointcache, pointcache_writer  # noqa: E402
 from facelab_addon.core.errors import FaceLabError, MeshError  # noqa: E402
 
-pytestmark = pytest.mark.blender
+pytestmark = [pytest.mark.blender, pytest.mark.usefixtures("empty_scene")]  # every test: an empty scene
 
 T = 6
 TOL = 2e-6  # float32 rounding (Integrate mode, axis matrix)
-
-
-@pytest.fixture(autouse=True)
-def empty_scene():
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    return bpy.context.scene
 
 
 def ico(name="Face"):
@@ -133,9 +127,9 @@ def test_read_mesh_cache_frames_matches_blender(tmp_path, empty_scene, case):
     seq = known_sequence(rest_of(ob))
     path = tmp_path / f"cap.{fmt.lower()}"
     if fmt == "PC2":
-        cf.write_pc2(path, seq, start=0.0 if pc2_rate != 1.0 else 1.0, sample_rate=pc2_rate)
+        pointcache_writer.write_pc2(path, seq, start=0.0 if pc2_rate != 1.0 else 1.0, sample_rate=pc2_rate)
     else:
-        cf.write_mdd(path, seq, fps=caches.scene_fps(), start_frame=1)
+        pointcache_writer.write_mdd(path, seq, fps=caches.scene_fps(), start_frame=1)
     add_mesh_cache(ob, path, fmt, **settings)
     assert caches.sequence_source(ob) == "mesh_cache"
     assert caches.mesh_cache_direct_read_problem(ob) is None
@@ -157,14 +151,14 @@ def test_read_mesh_cache_frames_matches_blender(tmp_path, empty_scene, case):
     if case == "pc2_time_quirk":
         np.testing.assert_allclose(got[[0, 4, 8]], seq[[0, 3, 5]], atol=1e-6)  # frames 0, 3, 6 (clamped)
     if case == "pc2_defaults_axes":
-        M = cf.axis_conversion_matrix("NEG_Z", "POS_Y", (True, False, True)).astype(np.float32)
+        M = meshcache.axis_conversion_matrix("NEG_Z", "POS_Y", (True, False, True)).astype(np.float32)
         np.testing.assert_allclose(got[:T], seq @ M.T, atol=1e-6)  # default frame_start 0: frame f -> sample f
 
 
 def test_unsupported_settings_fall_back_to_evaluation(tmp_path):
     ob = ico()
     seq = known_sequence(rest_of(ob))
-    cf.write_pc2(tmp_path / "c.pc2", seq)
+    pointcache_writer.write_pc2(tmp_path / "c.pc2", seq)
     md = add_mesh_cache(ob, tmp_path / "c.pc2", "PC2", frame_start=1.0, factor=0.5)
     assert "influence" in caches.mesh_cache_direct_read_problem(ob)
     got = caches.read_mesh_cache_frames(ob, range(1, T + 1))
@@ -177,9 +171,9 @@ def test_unsupported_settings_fall_back_to_evaluation(tmp_path):
 
 def test_mesh_cache_vertex_count_mismatch(tmp_path):
     ob = ico()
-    cf.write_pc2(tmp_path / "w.pc2", np.zeros((2, 7, 3)))
+    pointcache_writer.write_pc2(tmp_path / "w.pc2", np.zeros((2, 7, 3)))
     add_mesh_cache(ob, tmp_path / "w.pc2", "PC2")
-    with pytest.raises(cf.CacheVertexCountError, match="7 points but 'Face' has 42 vertices"):
+    with pytest.raises(pointcache.CacheVertexCountError, match="7 points but 'Face' has 42 vertices"):
         caches.read_mesh_cache_frames(ob, [1])
     with pytest.raises(MeshError, match="no enabled Mesh Cache"):
         caches.read_mesh_cache_frames(ico("Other"), [1])
@@ -192,7 +186,7 @@ def test_integrate_adds_shape_key_on_top(tmp_path, empty_scene):
     ob = ico()
     rest = rest_of(ob)
     seq = known_sequence(rest)
-    cf.write_pc2(tmp_path / "c.pc2", seq)
+    pointcache_writer.write_pc2(tmp_path / "c.pc2", seq)
     md = add_mesh_cache(ob, tmp_path / "c.pc2", "PC2", frame_start=1.0)
     rng = np.random.default_rng(3)
     d = np.zeros_like(rest)
@@ -201,22 +195,22 @@ def test_integrate_adds_shape_key_on_top(tmp_path, empty_scene):
     empty_scene.frame_set(1)
     np.testing.assert_array_equal(evaluated(ob), seq[0])  # Overwrite hides the key
 
-    msg = caches.cache_to_shape_key_ready(ob)
+    msg = cache_integrate.cache_to_shape_key_ready(ob)
     assert md.deform_mode == "INTEGRATE" and "Integrate" in msg
-    assert "already" in caches.cache_to_shape_key_ready(ob)
+    assert "already" in cache_integrate.cache_to_shape_key_ready(ob)
     off, cv = corners(ob)
     R = Rotation.from_euler("xyz", [0.4, 0.3, -0.2]).as_matrix()
     for f, expect in [(1, d), (2, d @ R.T), (3, 1.3 * d)]:  # translation adds exactly; rotation/scale carry it
         empty_scene.frame_set(f)
         np.testing.assert_allclose(evaluated(ob) - seq[f - 1], expect, atol=TOL)
-    for f in range(4, T + 1):  # general frames: the per-vertex maps of core.cachefile
+    for f in range(4, T + 1):  # general frames: the per-vertex maps of core.capture.integrate
         empty_scene.frame_set(f)
-        M = cf.integrate_matrices(rest, seq[f - 1], off, cv)
+        M = integrate.integrate_matrices(rest, seq[f - 1], off, cv)
         np.testing.assert_allclose(evaluated(ob), seq[f - 1] + np.einsum("vij,vj->vi", M, d), atol=TOL)
     # a wanted correction on frame 5 -> key offsets via the inverse maps
     want = np.zeros_like(rest)
     want[10:14] = rng.normal(size=(4, 3)) * 0.01
-    key = cf.integrate_offsets_to_key(cf.integrate_matrices(rest, seq[4], off, cv), want)
+    key = integrate.integrate_offsets_to_key(integrate.integrate_matrices(rest, seq[4], off, cv), want)
     kb.data.foreach_set("co", (rest + key).astype(np.float32).ravel())
     ob.data.update()
     empty_scene.frame_set(5)
@@ -264,7 +258,7 @@ def test_errors_restore_state(empty_scene):
     assert fl.mute is False and empty_scene.frame_current == 7
     bpy.context.scene.collection.objects.link(ob)
     with pytest.raises(FaceLabError, match="evenly spaced"):
-        caches.bake_pc2(ob, [1, 2, 4], "/tmp/never.pc2")
+        bakes.bake_pc2(ob, [1, 2, 4], "/tmp/never.pc2")
 
 
 # --------------------------------------------------------------------------- bakes
@@ -280,12 +274,12 @@ def test_bake_pc2_and_mdd_round_trip(tmp_path, empty_scene):
     final = caches.evaluate_frames(ob, frames, mute_shape_keys_prefix=())
     np.testing.assert_allclose(final, seq + 0.01, atol=1e-6)
 
-    p = caches.bake_pc2(ob, frames, tmp_path / "out" / "face.pc2")
-    data, start, rate = cf.read_pc2(p)
+    p = bakes.bake_pc2(ob, frames, tmp_path / "out" / "face.pc2")
+    data, start, rate = pointcache.read_pc2(p)
     np.testing.assert_array_equal(data, final)
     assert (start, rate) == (3.0, 1.0)
-    m = caches.bake_mdd(ob, frames, tmp_path / "face.mdd")
-    data, times = cf.read_mdd(m)
+    m = bakes.bake_mdd(ob, frames, tmp_path / "face.mdd")
+    data, times = pointcache.read_mdd(m)
     np.testing.assert_array_equal(data, final)
     np.testing.assert_allclose(times, np.arange(3, 3 + T) / 24.0, rtol=1e-6)
 
@@ -311,7 +305,7 @@ def test_alembic_bake_import_and_shape_key_ready(tmp_path, empty_scene):
     other = ico("Bystander")
     other.select_set(True)
     bpy.context.view_layer.objects.active = other
-    abc = caches.bake_alembic(src, range(1, T + 1), tmp_path / "cap.abc")
+    abc = bakes.bake_alembic(src, range(1, T + 1), tmp_path / "cap.abc")
     assert abc.is_file()
     assert other.select_get() and not src.select_get() and bpy.context.view_layer.objects.active == other
 
@@ -335,16 +329,16 @@ def test_alembic_bake_import_and_shape_key_ready(tmp_path, empty_scene):
     kb.mute = True
     # ...until the capture is re-played by an Integrate Mesh Cache
     with pytest.raises(FaceLabError, match="Save the .blend first"):
-        caches.cache_to_shape_key_ready(ob)  # unsaved file, no directory: nothing changes
+        cache_integrate.cache_to_shape_key_ready(ob)  # unsaved file, no directory: nothing changes
     assert [m.show_viewport for m in ob.modifiers] == [True]
-    msg = caches.cache_to_shape_key_ready(ob, directory=tmp_path, scene_frames=range(1, T + 1))
+    msg = cache_integrate.cache_to_shape_key_ready(ob, directory=tmp_path, scene_frames=range(1, T + 1))
     assert kb.mute is True
     kb.mute = False
     msc, mc = ob.modifiers
     assert msc.type == "MESH_SEQUENCE_CACHE" and not msc.show_viewport and not msc.show_render
     assert mc.type == "MESH_CACHE" and mc.deform_mode == "INTEGRATE" and mc.cache_format == "PC2"
     assert "Capture_capture.pc2" in msg and "turned it off" in msg
-    np.testing.assert_array_equal(cf.read_pc2(tmp_path / "Capture_capture.pc2")[0], seq)
+    np.testing.assert_array_equal(pointcache.read_pc2(tmp_path / "Capture_capture.pc2")[0], seq)
     assert caches.sequence_source(ob) == "mesh_cache"
     np.testing.assert_allclose(caches.read_captured_frames(ob, range(1, T + 1)), seq, atol=TOL)
     scene.frame_set(1)  # frame 1 is a translation of the rest mesh: the key adds exactly
@@ -353,8 +347,8 @@ def test_alembic_bake_import_and_shape_key_ready(tmp_path, empty_scene):
     base = rest_of(ob)  # the imported mesh's own positions (frame 1 of the capture)
     for f in (2, 5):
         scene.frame_set(f)
-        M = cf.integrate_matrices(base, seq[f - 1], off, cv)
+        M = integrate.integrate_matrices(base, seq[f - 1], off, cv)
         np.testing.assert_allclose(evaluated(ob), seq[f - 1] + np.einsum("vij,vj->vi", M, d), atol=TOL)
     # a second call does not bake again, and the artist's modifier is never deleted
-    assert "already" in caches.cache_to_shape_key_ready(ob, directory=tmp_path)
+    assert "already" in cache_integrate.cache_to_shape_key_ready(ob, directory=tmp_path)
     assert len(ob.modifiers) == 2

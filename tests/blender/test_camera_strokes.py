@@ -27,18 +27,12 @@ from facelab_addon.blender.strokes import (  # noqa: E402
     read_lip_strokes,
     write_stroke_pixels,
 )
-from facelab_addon.core.camera import Camera  # noqa: E402
+from facelab_addon.core.capture.camera import Camera  # noqa: E402
 from facelab_addon.core.errors import CameraError, SketchError  # noqa: E402
 
-pytestmark = pytest.mark.blender
+pytestmark = [pytest.mark.blender, pytest.mark.usefixtures("empty_scene")]  # every test: an empty scene
 
 TOL_PX = 0.01
-
-
-@pytest.fixture(autouse=True)
-def empty_scene():
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    return bpy.context.scene
 
 
 def add_camera(scene, name="Cam"):
@@ -418,3 +412,8 @@ def test_grease_pencil_object_wins_over_annotation(empty_scene):
     write_stroke_pixels(obj, "Lower lip", 1, lo, camera)
     got = read_lip_strokes(scene, camera, 1)
     assert_same_polylines(got["upper"], up)
+    assert_same_polylines(got["lower"], lo)
+    # without the Grease Pencil object the (stroke-less) annotation is read instead, and refused
+    bpy.data.objects.remove(obj)
+    with pytest.raises(SketchError, match="no strokes"):
+        read_lip_strokes(scene, camera, 1)

@@ -7,15 +7,13 @@ import subprocess
 import sys
 from pathlib import Path
 
+import bpy
 import numpy as np
 import pytest
 
-import bpy
-
-import facelab_addon
-from facelab_addon.blender import caches
+from facelab_addon.blender import bakes, caches
 from facelab_addon.blender.shapekeys import add_corrective_key, key_spike
-from facelab_addon.core.cachefile import write_pc2
+from facelab_addon.core.capture.pointcache_writer import write_pc2
 
 from .test_propagate_operator import FRAMES, SCALE, TRAIN, build
 
@@ -34,13 +32,6 @@ def cli(*args, cwd=None):
     except json.JSONDecodeError:
         summary = None
     return r.returncode, summary, r.stderr
-
-
-@pytest.fixture(scope="module")
-def addon():
-    facelab_addon.register()
-    yield
-    facelab_addon.unregister()
 
 
 @pytest.fixture(scope="module")
@@ -171,24 +162,15 @@ def write_obj(path, V, poly_verts, poly_offsets):
 
 def test_mesh_and_pc2_inputs_with_corrected_objs(ict, tmp_path, addon):
     """Pipeline inputs: face.obj + perf.pc2 + corrected OBJs on 3 frames -> a corrected .blend and PC2."""
-    from .test_propagate_operator import weights_at
+    from facelab_addon.testing.weights import cyclic_mouth_weights
 
-    from facelab_addon.core import synthetic as syn
-    from facelab_addon.core.regions import auto_regions, faces_in_region, geodesic_distance, region_border
+    from .test_propagate_operator import EXPR, lip_capture_error
 
-    expr = ["jawOpen", "mouthClose", "mouthFunnel", "mouthSmile_L", "mouthSmile_R"]
     N = ict.neutral * SCALE
-    D = np.stack([(ict.expressions[n] - ict.neutral) * SCALE for n in expr])
+    D = np.stack([(ict.expressions[n] - ict.neutral) * SCALE for n in EXPR])
     frames, train = FRAMES[:16], [3, 9, 14]  # a Mesh Cache maps every frame's correction: keep it short
-    W = weights_at(frames)
-    fixed = ~ict.part_vertex_mask("M_Face")
-    w, side = syn.lip_error_weights(ict.neutral, ict.faces, fixed,
-                                    mouth=syn.find_mouth(ict.neutral, ict.faces, fixed, loop=syn.ICT_MOUTH_LOOP))
-    _, lip_mask = auto_regions(ict.neutral, ict.faces)
-    d = geodesic_distance(ict.neutral, ict.faces, region_border(ict.faces, faces_in_region(ict.faces, lip_mask)))
-    fade = np.clip(d / (0.35 * np.nanmax(np.where(lip_mask, d, np.nan))), 0, 1) * lip_mask
-    err = np.zeros_like(N)
-    err[:, 1] = side * w * fade * 0.08 * SCALE
+    W = cyclic_mouth_weights(frames)
+    err = lip_capture_error(ict)
     cap_w = 1.0 - 1.5 * W[:, 0]
     truth = N + np.einsum("ts,svk->tvk", W, D)
     capture = truth + cap_w[:, None, None] * err
@@ -205,7 +187,7 @@ def test_mesh_and_pc2_inputs_with_corrected_objs(ict, tmp_path, addon):
     assert code == 0, log
     assert s["frames"] == [1, 16] and s["training_frames"] == train
     assert s["corrected_keys_added"] == [f"FL_Corrected_{f:04d}" for f in train]
-    from facelab_addon.core.cachefile import read_pc2
+    from facelab_addon.core.capture.pointcache import read_pc2
 
     baked = read_pc2(tmp_path / "fixed.pc2")
     baked = baked[0] if isinstance(baked, tuple) else baked
@@ -270,38 +252,20 @@ def test_refine_sketched_frames(ict, addon, tmp_path):
 
 
 def test_reconstruct_from_bundles(ict, addon, tmp_path):
-    from facelab_addon.blender.mesh import mesh_triangles
-    from facelab_addon.blender.scene import new_mesh_object
+    from facelab_addon.testing.scenes import build_ict_face_scene, keyed_empties
 
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    scene = bpy.context.scene
     from .test_reconstruct_operator import EXPR as expr
+    from .test_reconstruct_operator import front_bundles
 
     T = 4
-    scene.frame_start, scene.frame_end = 0, T
-    neutral = ict.neutral * SCALE
-    obj = new_mesh_object("Face", neutral, poly_verts=ict.poly_verts, poly_offsets=ict.poly_offsets)
-    obj.shape_key_add(name="Basis", from_mix=False)
-    for n in expr:
-        add_corrective_key(obj, n, (ict.expressions[n] - ict.neutral) * SCALE)
-    tris = mesh_triangles(obj.data)
-    rng = np.random.default_rng(0)
-    front = np.flatnonzero(ict.part_face_mask("M_Face")[: len(tris)] & (neutral[tris].mean(1)[:, 2] > 0.07))
-    pick, bary = rng.choice(front, 40, replace=False), rng.dirichlet([4, 4, 4], 40)
-    shapes = np.stack([(ict.expressions[n] - ict.neutral) * SCALE for n in expr])
+    fs = build_ict_face_scene(ict, expr, frame_range=(0, T), scale=SCALE, select=False)
+    tris, pick, bary = front_bundles(ict, fs.obj, 40)
     W = np.zeros((T + 1, len(expr)))
     for t in range(1, T + 1):
         W[t, t % len(expr)] = 0.7
-    truth = neutral[None] + np.einsum("ts,svd->tvd", W, shapes)
+    truth = fs.neutral[None] + np.einsum("ts,svd->tvd", W, fs.deltas)
     pts = np.einsum("bk,tbkd->tbd", bary, truth[:, tris[pick]])
-    coll = bpy.data.collections.new("Tracked")
-    scene.collection.children.link(coll)
-    for b in range(40):
-        e = bpy.data.objects.new(f"B{b:02d}", None)
-        coll.objects.link(e)
-        for t in range(T + 1):
-            e.location = pts[t, b]
-            e.keyframe_insert("location", frame=t)
+    keyed_empties(fs.scene, pts, collection="Tracked")
     shot = tmp_path / "bundles.blend"
     bpy.ops.wm.save_as_mainfile(filepath=str(shot))
     out = tmp_path / "recon.blend"
@@ -325,7 +289,7 @@ def test_alembic_input(ict, addon, tmp_path):
     (Without --rest the first frame is the rest pose: measured 42 % lower error instead of >50 %.)"""
     scene, obj, err, cap_w = build(ict)
     scene.frame_end = 16
-    caches.bake_alembic(obj, range(1, 17), tmp_path / "shot.abc")
+    bakes.bake_alembic(obj, range(1, 17), tmp_path / "shot.abc")
     train = [3, 9, 14]
     truth = caches.evaluate_frames(obj, range(1, 17), mute_shape_keys_prefix=("CaptureError",))
     args = []

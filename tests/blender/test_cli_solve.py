@@ -6,33 +6,23 @@ against the JSON, and bad inputs against the documented exit codes."""
 
 import json
 
+import bpy
 import numpy as np
 import pytest
 
-import bpy
-
 from facelab_addon.blender.scene import new_mesh_object
 
-import facelab_addon
-
 from .test_cli import cli
-from .test_solve_operator import EXPR, T, W_TRUTH, build
+from .test_solve_operator import EXPR, W_TRUTH, T, build
 
 pytestmark = [pytest.mark.blender, pytest.mark.slow]
 
 
 @pytest.fixture(scope="module")
-def addon():
-    facelab_addon.register()
-    yield
-    facelab_addon.unregister()
-
-
-@pytest.fixture(scope="module")
 def shots(ict, addon, tmp_path_factory):
     """SHOT.blend (views, tracks, no bindings, a creature, a mesh without keys) and broken variants."""
-    from facelab_addon.core.retarget import widen_mouth
-    from facelab_addon.core.synthetic import ICT_MOUTH_LOOP
+    from facelab_addon.testing.creature import widen_mouth
+    from facelab_addon.testing.synthetic import ICT_MOUTH_LOOP
 
     d = tmp_path_factory.mktemp("solve_shot")
     scene, obj, cams, markers, truth, views = build(ict, d)
@@ -66,9 +56,9 @@ def shots(ict, addon, tmp_path_factory):
 
 
 def _curves(key, names, frames):
-    from facelab_addon.ui.ops_solve import _curve_values
+    from facelab_addon.blender.actions import curve_values
 
-    return _curve_values(key, names, np.asarray(frames))
+    return curve_values(key, names, np.asarray(frames))
 
 
 def test_solve_then_retarget(shots, tmp_path):

@@ -1,6 +1,7 @@
 """The zip users download works: build this platform's extension zip, install it into a fresh
 Blender user folder with ``bpy.ops.extensions.package_install_files``, enable it and run Refine
-Lips from the *installed* copy, with SciPy/libigl/cholespy coming from the zip's wheels.
+Lips from the *installed* copy on the sample mouth of the installed ``assets/meshes/lips.obj``, with
+SciPy/libigl/cholespy coming from the zip's wheels.
 
 The install runs in a subprocess (a fresh user folder is read when bpy starts; a fresh
 ``sys.modules``). That process hides the venv's scipy, igl and cholespy, like Blender's own Python
@@ -76,6 +77,7 @@ INSTALL_SCRIPT = textwrap.dedent(r'''
     import bpy
     import numpy as np
 
+    out["files"] = {}
     out["install"] = sorted(bpy.ops.extensions.package_install_files(
         filepath=sys.argv[1], repo="user_default", enable_on_install=True))
     out["addons"] = [a.module for a in bpy.context.preferences.addons if "facelab" in a.module]
@@ -85,36 +87,28 @@ INSTALL_SCRIPT = textwrap.dedent(r'''
     import importlib
     pkg = importlib.import_module("bl_ext.user_default.facelab")
     fl = importlib.import_module("bl_ext.user_default.facelab.facelab_addon")
-    Camera = importlib.import_module(fl.__name__ + ".core.camera").Camera
-    new_mesh_object = importlib.import_module(fl.__name__ + ".blender.scene").new_mesh_object
+    Camera = importlib.import_module(fl.__name__ + ".core.capture.camera").Camera
+    assets = importlib.import_module(fl.__name__ + ".assets")
     strokes = importlib.import_module(fl.__name__ + ".blender.strokes")
     bcam = importlib.import_module(fl.__name__ + ".blender.camera")
-
-    # A tiny mouth: two half tubes with a 0.4 gap; the sketch says the inner lips meet at y = +-0.1.
-    def tube(yc, t0, t1, r, nx=41, nt=29, half=2.0):
-        X, T = np.meshgrid(np.linspace(-half, half, nx), np.linspace(t0, t1, nt), indexing="ij")
-        V = np.stack([X, yc + r * np.sin(T), r * np.cos(T)], -1).reshape(-1, 3)
-        F = []
-        for i in range(nx - 1):
-            for j in range(nt - 1):
-                a, b, c, d = i * nt + j, (i + 1) * nt + j, (i + 1) * nt + j + 1, i * nt + j + 1
-                F += [[a, b, c], [a, c, d]]
-        F = np.array(F)
-        n = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
-        c = V[F].mean(1) - [0, yc, 0]
-        c[:, 0] = 0
-        return V, (F[:, ::-1] if (np.einsum("ij,ij->i", n, c) < 0).mean() > 0.5 else F)
-
-    s = np.pi / 24
-    Vu, Fu = tube(0.2 + 0.5, -np.pi / 2 - 4 * s, np.pi / 2, 0.5)
-    Vl, Fl = tube(-0.2 - 0.5, -np.pi / 2, np.pi / 2 + 4 * s, 0.5)
-    V, F = np.vstack([Vu, Vl]), np.vstack([Fu, Fl + len(Vu)])
-    upper = np.r_[np.ones(len(Vu), bool), np.zeros(len(Vl), bool)]
 
     bpy.ops.wm.read_homefile(use_empty=True)  # keeps the preferences (the enabled add-on)
     scene = bpy.context.scene
     scene.frame_set(1)
-    obj = new_mesh_object("Face", V, F)
+
+    # The sample mouth shipped in the extension's assets (two half tubes, inner lips 0.4 apart), imported
+    # as a user would, keeping the file's axes (y up, lips facing +z); the sketch says they meet at y = +-0.1.
+    lips_obj = assets.asset_path("meshes", "lips.obj")
+    out["files"]["lips_obj"] = str(lips_obj)
+    out["import_lips"] = sorted(bpy.ops.wm.obj_import(filepath=str(lips_obj), forward_axis="Y", up_axis="Z",
+                                                      import_vertex_groups=True))
+    (obj,) = bpy.context.scene.objects
+    obj.name = "Face"
+    # float64 coordinates as written in the file (Blender keeps float32)
+    V = np.array([ln.split()[1:4] for ln in lips_obj.read_text().splitlines() if ln.startswith("v ")], float)
+    out["imported_max_error"] = float(np.abs(np.array([v.co[:] for v in obj.data.vertices]) - V).max())
+    g = obj.vertex_groups["upper_lip"].index
+    upper = np.array([any(e.group == g for e in v.groups) for v in obj.data.vertices])
     obj.vertex_groups.new(name="FL_fixed").add(np.flatnonzero(np.abs(V[:, 0]) > 1.9).tolist(), 1.0, "REPLACE")
     cam_obj = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
     scene.collection.objects.link(cam_obj)
@@ -140,14 +134,14 @@ INSTALL_SCRIPT = textwrap.dedent(r'''
 
     import cholespy, igl, scipy
     op_module = bpy.types.FACELAB_OT_refine_lips.__module__
-    out["files"] = {
+    out["files"].update({
         "extension": pkg.__file__,
         "addon": fl.__file__,
         "operator": sys.modules[op_module].__file__,
-        "core": sys.modules[fl.__name__ + ".core.sketch"].__file__,
+        "core": sys.modules[fl.__name__ + ".core.lips.sketch"].__file__,
         "scipy": scipy.__file__, "igl": igl.__file__, "cholespy": cholespy.__file__,
         "numpy": np.__file__,
-    }
+    })
     out["checkout_modules"] = sorted(m for m in sys.modules if m.split(".")[0] == "facelab_addon")
     print("RESULT " + json.dumps(out))
 ''')
@@ -174,13 +168,17 @@ def test_installed_zip_runs_refine_lips(extension_zip, tmp_path):
     ext = Path(out["ext_dir"]).resolve()
     installed = ext / "user_default" / "facelab"
     assert (installed / "blender_manifest.toml").exists()
-    for what in ("extension", "addon", "operator", "core"):
+    for what in ("extension", "addon", "operator", "core", "lips_obj"):
         assert Path(out["files"][what]).resolve().is_relative_to(installed), (what, out["files"][what])
     wheels_site = ext / ".local" / "lib" / "python3.11" / "site-packages"
     for what in ("scipy", "igl", "cholespy"):
         assert Path(out["files"][what]).resolve().is_relative_to(wheels_site), (what, out["files"][what])
     assert not Path(out["files"]["numpy"]).resolve().is_relative_to(ext)  # numpy is Blender's
     assert out["checkout_modules"] == []
+
+    # the sample mouth came from the installed assets, vertex for vertex
+    assert out["import_lips"] == ["FINISHED"] and out["imported_max_error"] < 1e-6
+    assert Path(out["files"]["lips_obj"]).resolve() == installed / "assets" / "meshes" / "lips.obj"
 
     # Refine Lips ran from the installed add-on and moved the inner lips onto the sketch (y = +-0.1)
     assert out["new_lip_sketch"] == ["FINISHED"] and out["refine_lips"] == ["FINISHED"]

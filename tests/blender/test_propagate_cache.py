@@ -1,35 +1,26 @@
 """Headless: a capture played by a Mesh Cache (PC2) -> Refine Lips on a few frames ->
 Propagate. Corrective keys must show on top of the cache (Integrate) and match the core."""
 
+import bpy
 import numpy as np
 import pytest
 
-import bpy
-
-import facelab_addon
 from facelab_addon.blender import caches
-from facelab_addon.blender.camera import camera_from_blender, new_camera_object
+from facelab_addon.blender.camera import camera_from_blender
 from facelab_addon.blender.mesh import mesh_triangles, vertex_group_mask
-from facelab_addon.blender.scene import new_mesh_object
 from facelab_addon.blender.strokes import write_stroke_pixels
-from facelab_addon.core import synthetic as syn
-from facelab_addon.core.cachefile import write_pc2
-from facelab_addon.core.propagate import LipRegressor
-from facelab_addon.core.regions import faces_in_region
-from facelab_addon.core.silhouette import contour_distance
+from facelab_addon.core.capture.pointcache_writer import write_pc2
+from facelab_addon.core.geometry.silhouette import contour_distance
+from facelab_addon.core.lips.propagate import LipRegressor
+from facelab_addon.core.lips.regions import faces_in_region
+from facelab_addon.testing import synthetic as syn
+from facelab_addon.testing.scenes import build_ict_face_scene
 
 pytestmark = pytest.mark.blender
 
 SCALE, UPM = 0.01, 0.001
 T = 16
 TRAIN = [3, 9, 14]
-
-
-@pytest.fixture(scope="module")
-def addon():
-    facelab_addon.register()
-    yield
-    facelab_addon.unregister()
 
 
 def test_refine_and_propagate_on_a_mesh_cache(tmp_path, ict, addon):
@@ -48,15 +39,11 @@ def test_refine_and_propagate_on_a_mesh_cache(tmp_path, ict, addon):
     captured = truth + strength[:, None, None] * err[None]
     pc2 = write_pc2(tmp_path / "capture.pc2", captured.astype(np.float32))
 
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    scene = bpy.context.scene
-    scene.frame_start, scene.frame_end = 1, T
-    obj = new_mesh_object("Face", neutral, poly_verts=ict.poly_verts, poly_offsets=ict.poly_offsets)
+    cam = syn.frontal_camera(neutral, mouth.center, distance=0.40)
+    fs = build_ict_face_scene(ict, frame_range=(1, T), scale=SCALE, fixed_group=True, camera=cam, select=False)
+    scene, obj = fs.scene, fs.obj
     md = obj.modifiers.new("Capture", "MESH_CACHE")
     md.cache_format, md.filepath, md.frame_start = "PC2", str(pc2), 1.0  # frame 1 plays sample 0
-    obj.vertex_groups.new(name="FL_fixed").add(np.flatnonzero(fixed).tolist(), 1.0, "REPLACE")
-    cam = syn.frontal_camera(neutral, mouth.center, distance=0.40)
-    cam_obj = new_camera_object(scene, cam)
     bpy.context.view_layer.objects.active = obj
     np.testing.assert_allclose(caches.read_captured_frames(obj, np.arange(1, T + 1)), captured, atol=1e-6)
 
@@ -93,7 +80,7 @@ def test_refine_and_propagate_on_a_mesh_cache(tmp_path, ict, addon):
     assert np.abs(got - expect).max() < 2.5e-5, np.abs(got - expect).max()  # 0.01 mm key tolerance, carried by the cache
 
     # bake the corrected performance for other packages; never overwrite silently
-    from facelab_addon.core.cachefile import read_pc2
+    from facelab_addon.core.capture.pointcache import read_pc2
 
     out = tmp_path / "corrected.pc2"
     assert bpy.ops.facelab.bake(filepath=str(out), format="PC2") == {"FINISHED"}

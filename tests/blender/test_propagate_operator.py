@@ -1,75 +1,60 @@
 """Headless end to end: an animated ICT capture with a systematic inner-lip error,
 a few corrected frames, Auto Regions, Propagate -> corrective keys on the timeline."""
 
+import bpy
 import numpy as np
 import pytest
 
-import bpy
-
-import facelab_addon
 from facelab_addon.blender import caches
 from facelab_addon.blender.mesh import mesh_triangles, vertex_group_mask
-from facelab_addon.blender.scene import new_mesh_object
 from facelab_addon.blender.shapekeys import add_corrective_key, key_spike, key_values_bulk
-from facelab_addon.core.propagate import LipRegressor
-from facelab_addon.core.regions import faces_in_region
+from facelab_addon.core.lips.propagate import LipRegressor
+from facelab_addon.core.lips.regions import faces_in_region
+from facelab_addon.testing.scenes import build_ict_face_scene
+from facelab_addon.testing.weights import CYCLIC_MOUTH_CHANNELS, cyclic_mouth_weights
 
 pytestmark = pytest.mark.blender
 
 SCALE = 0.01  # metres
-EXPR = ["jawOpen", "mouthClose", "mouthFunnel", "mouthSmile_L", "mouthSmile_R"]
+EXPR = list(CYCLIC_MOUTH_CHANNELS)
 FRAMES = np.arange(1, 41)
 TRAIN = [5, 18, 31]
 
 
-@pytest.fixture(scope="module")
-def addon():
-    facelab_addon.register()
-    yield
-    facelab_addon.unregister()
+def lip_capture_error(ict):
+    """(V,3) systematic capture error in metres: the inner lips pulled apart (up to 0.8 mm per lip).
 
-
-def weights_at(f):
-    t = (np.asarray(f, float) - 1) / 39.0
-    return np.stack([
-        0.25 + 0.25 * np.sin(2 * np.pi * t),
-        0.1 + 0.1 * np.cos(3 * np.pi * t),
-        0.3 * np.sin(np.pi * t) ** 2,
-        0.3 * np.clip(np.sin(2 * np.pi * t + 1), 0, None),
-        0.3 * np.clip(np.sin(2 * np.pi * t + 2), 0, None),
-    ], -1)
-
-
-def build(ict):
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    scene = bpy.context.scene
-    scene.frame_start, scene.frame_end = int(FRAMES[0]), int(FRAMES[-1])
-    obj = new_mesh_object("Face", ict.neutral * SCALE, poly_verts=ict.poly_verts, poly_offsets=ict.poly_offsets)
-    obj.shape_key_add(name="Basis", from_mix=False)
-    for name in EXPR:
-        add_corrective_key(obj, name, (ict.expressions[name] - ict.neutral) * SCALE)
-    # systematic capture error: the inner lips fail to close as jawOpen falls (an artist's key);
-    # smooth, zero at the lip region's border (core.synthetic's realistic error shape)
-    from facelab_addon.core import synthetic as syn
+    The realistic error shape of ``testing.synthetic.lip_error_weights``, faded to zero before the border
+    of the lip region Auto Regions proposes (that border is held by the Poisson solve).
+    """
+    from facelab_addon.core.lips.regions import auto_regions, region_border
+    from facelab_addon.core.geometry.geodesic import geodesic_distance
+    from facelab_addon.testing import synthetic as syn
 
     fixed = ~ict.part_vertex_mask("M_Face")
     mouth = syn.find_mouth(ict.neutral, ict.faces, fixed, loop=syn.ICT_MOUTH_LOOP)
     w, side = syn.lip_error_weights(ict.neutral, ict.faces, fixed, mouth=mouth)
     # fade to zero before the border of the lip region Auto Regions will propose (the border is held)
-    from facelab_addon.core.regions import auto_regions, geodesic_distance, region_border
 
     _, lip_mask = auto_regions(ict.neutral, ict.faces)
     d = geodesic_distance(ict.neutral, ict.faces, region_border(ict.faces, faces_in_region(ict.faces, lip_mask)))
     fade = np.clip(d / (0.35 * np.nanmax(np.where(lip_mask, d, np.nan))), 0, 1) * lip_mask
     err = np.zeros_like(ict.neutral)
     err[:, 1] = side * w * fade * 0.08 * SCALE
-    add_corrective_key(obj, "CaptureError", err)
-    W = weights_at(FRAMES)
-    cap_w = 1.0 - 1.5 * W[:, 0]
-    key_values_bulk(obj, EXPR + ["CaptureError"], FRAMES, np.c_[W, cap_w])
-    bpy.context.view_layer.objects.active = obj
-    obj.select_set(True)
-    return scene, obj, err, cap_w
+    return err
+
+
+def build(ict):
+    """The animated capture: EXPR keyed with ``cyclic_mouth_weights`` on FRAMES, plus a keyed CaptureError.
+
+    The error fails to close the lips as jawOpen falls (an artist's key): value ``1 - 1.5 * jawOpen``.
+    """
+    fs = build_ict_face_scene(ict, EXPR, weights=cyclic_mouth_weights(FRAMES), frames=FRAMES, scale=SCALE)
+    err = lip_capture_error(ict)
+    add_corrective_key(fs.obj, "CaptureError", err)
+    cap_w = 1.0 - 1.5 * cyclic_mouth_weights(FRAMES)[:, 0]
+    key_values_bulk(fs.obj, ["CaptureError"], FRAMES, cap_w[:, None])
+    return fs.scene, fs.obj, err, cap_w
 
 
 def test_propagate_end_to_end(ict, addon):

@@ -1,17 +1,17 @@
 """Headless end to end: animated empties as bundles + the face's shape keys as the dataset ->
 Reconstruct from Bundles -> keyed result equal to the core's and through the bundles."""
 
+import bpy
 import numpy as np
 import pytest
 
-import bpy
-
-import facelab_addon
 from facelab_addon.blender.caches import evaluate_frames
 from facelab_addon.blender.mesh import mesh_triangles
 from facelab_addon.blender.scene import new_mesh_object
 from facelab_addon.blender.shapekeys import add_corrective_key
-from facelab_addon.core.geometric_indexing import GeometricIndexer, bind_points
+from facelab_addon.core.lgi.binding import bind_points
+from facelab_addon.core.lgi.indexer import GeometricIndexer
+from facelab_addon.testing.scenes import build_ict_face_scene, keyed_empties
 
 pytestmark = pytest.mark.blender
 
@@ -20,52 +20,26 @@ EXPR = ["jawOpen", "mouthSmile_L", "mouthSmile_R", "mouthFunnel", "browInnerUp_L
         "eyeBlink_L", "eyeBlink_R", "mouthPucker", "cheekPuff_L"]
 
 
-@pytest.fixture(scope="module")
-def addon():
-    facelab_addon.register()
-    yield
-    facelab_addon.unregister()
-
-
 def truth_all(truth, neutral):
     return np.concatenate([neutral[None], truth])
 
 
 def test_reconstruct_from_bundles_end_to_end(ict, addon):
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    scene = bpy.context.scene
     T = 6
-    scene.frame_start, scene.frame_end = 1, T
-    neutral = ict.neutral * SCALE
-    obj = new_mesh_object("Face", neutral, poly_verts=ict.poly_verts, poly_offsets=ict.poly_offsets)
-    obj.shape_key_add(name="Basis", from_mix=False)
-    for n in EXPR:
-        add_corrective_key(obj, n, (ict.expressions[n] - ict.neutral) * SCALE)
-    tris = mesh_triangles(obj.data)
+    fs = build_ict_face_scene(ict, EXPR, frame_range=(1, T), scale=SCALE, select=False)
+    scene, obj, neutral = fs.scene, fs.obj, fs.neutral
     # 40 bundles on the front of the face, bound at the neutral
-    rng = np.random.default_rng(0)
-    face_tris = np.flatnonzero(ict.part_face_mask("M_Face")[: len(tris)] & (neutral[tris].mean(1)[:, 2] > 0.07))
-    pick = rng.choice(face_tris, 40, replace=False)
-    bary = rng.dirichlet([4, 4, 4], 40)
+    tris, pick, bary = front_bundles(ict, obj, 40)
     # truth: each frame is one dataset shape blended with another (the bundles follow it)
     W = np.zeros((T, len(EXPR)))
     for t in range(T):
         W[t, t % len(EXPR)] = 0.6
         W[t, (t + 3) % len(EXPR)] = 0.4
-    shapes = np.stack([(ict.expressions[n] - ict.neutral) * SCALE for n in EXPR])
-    truth = neutral[None] + np.einsum("ts,svd->tvd", W, shapes)
+    truth = neutral[None] + np.einsum("ts,svd->tvd", W, fs.deltas)
     pts = np.einsum("bk,tbkd->tbd", bary, truth[:, tris[pick]])
     pts = np.concatenate([np.einsum("bk,bkd->bd", bary, neutral[tris[pick]])[None], pts])  # frame 0: neutral
     scene.frame_start = 0
-    empties = []
-    for b in range(40):
-        e = bpy.data.objects.new(f"B{b:02d}", None)
-        scene.collection.objects.link(e)
-        for t in range(T + 1):
-            e.location = pts[t, b]
-            e.keyframe_insert("location", frame=t)
-        e.select_set(True)
-        empties.append(e)
+    empties = keyed_empties(scene, pts, select=True)
     bpy.context.view_layer.objects.active = obj
     scene.facelab.face = obj
 
@@ -80,8 +54,8 @@ def test_reconstruct_from_bundles_end_to_end(ict, addon):
     # the core, called directly, gives the same (within the 0.01 mm key compression tolerance)
     # (from the same Blender data: float32 keys and empties, as the operator reads them)
     from facelab_addon.blender.bundles import read_bundles
+    from facelab_addon.blender.rig import dataset_shapes
     from facelab_addon.blender.shapekeys import rest_vertices
-    from facelab_addon.ui.ops_reconstruct import dataset_shapes
 
     n0 = rest_vertices(obj)
     names, data = dataset_shapes(obj)
@@ -107,16 +81,12 @@ def test_reconstruct_from_bundles_end_to_end(ict, addon):
 
 
 def _face(ict, name, shapes: dict):
-    """ICT face (metres) with the given shape keys {name: (V,3) positions in cm}."""
-    neutral = ict.neutral * SCALE
-    obj = new_mesh_object(name, neutral, poly_verts=ict.poly_verts, poly_offsets=ict.poly_offsets)
-    obj.shape_key_add(name="Basis", from_mix=False)
-    for n, x in shapes.items():
-        add_corrective_key(obj, n, (x - ict.neutral) * SCALE)
-    return obj
+    """ICT face (metres) added to the current scene, with the given shape keys {name: (V,3) positions in cm}."""
+    return build_ict_face_scene(ict, shapes=shapes, scale=SCALE, name=name, reset=False, select=False).obj
 
 
-def _front_bundles(ict, obj, n, seed=0):
+def front_bundles(ict, obj, n, seed=0):
+    """Triangles of ``obj``, and ``n`` random bundles (triangle ids, barycentrics) on the front of the face."""
     tris = mesh_triangles(obj.data)
     neutral = ict.neutral * SCALE
     rng = np.random.default_rng(seed)
@@ -124,23 +94,9 @@ def _front_bundles(ict, obj, n, seed=0):
     return tris, rng.choice(face_tris, n, replace=False), rng.dirichlet([4, 4, 4], n)
 
 
-def _empties(scene, pts, prefix="B"):
-    """Animated empties: pts (T,B,3) world positions on frames 0..T-1, selected."""
-    out = []
-    for b in range(pts.shape[1]):
-        e = bpy.data.objects.new(f"{prefix}{b:02d}", None)
-        scene.collection.objects.link(e)
-        for t in range(len(pts)):
-            e.location = pts[t, b]
-            e.keyframe_insert("location", frame=t)
-        e.select_set(True)
-        out.append(e)
-    return out
-
-
 @pytest.fixture(scope="module")
 def gen(ict):
-    from facelab_addon.core.datasets import ICTShapeGenerator
+    from facelab_addon.testing.datasets import ICTShapeGenerator
 
     return ICTShapeGenerator(ict)
 
@@ -149,14 +105,12 @@ def gen(ict):
 
 
 def _simple_scene(ict, keys, n_bundles=30, T=3):
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    scene = bpy.context.scene
-    scene.frame_start, scene.frame_end = 0, T - 1
-    obj = _face(ict, "Face", {n: ict.expressions[n] for n in keys})
-    tris, pick, bary = _front_bundles(ict, obj, n_bundles)
+    fs = build_ict_face_scene(ict, keys, frame_range=(0, T - 1), scale=SCALE, select=False)
+    scene, obj = fs.scene, fs.obj
+    tris, pick, bary = front_bundles(ict, obj, n_bundles)
     X = np.stack([ict.neutral, ict.pose({keys[0]: 0.5}), ict.pose({keys[1]: 0.7})][:T]) * SCALE
     pts = np.einsum("bk,tbkd->tbd", bary, X[:, tris[pick]])
-    empties = _empties(scene, pts)
+    empties = keyed_empties(scene, pts, select=True)
     bpy.context.view_layer.objects.active = obj
     scene.facelab.face = obj
     return scene, obj, empties, X
@@ -207,7 +161,7 @@ def test_missing_bundles_skip_their_frames(ict, addon):
     scene.frame_set(0)
     from facelab_addon.blender.bundles import bundle_labels, bundle_objects, read_bundles
 
-    objs = bundle_objects(bpy.context, exclude={obj})
+    objs = bundle_objects(bpy.context.selected_objects, exclude={obj})
     q = read_bundles(scene, objs, [0, 1, 2])
     assert np.isnan(q[2, 7]).all() and np.isfinite(q[:2]).all() and np.isfinite(np.delete(q[2], 7, 0)).all()
     assert bundle_labels(objs)[7] == "B07"
@@ -215,22 +169,17 @@ def test_missing_bundles_skip_their_frames(ict, addon):
     got = evaluate_frames(obj, [0, 1, 2], mute_shape_keys_prefix=())
     np.testing.assert_allclose(got[2], ict.neutral * SCALE, atol=1e-6)  # skipped: neutral
     assert np.abs(got[1] - ict.neutral * SCALE).max() > 1e-3  # frame 1 is reconstructed
-    from facelab_addon.ui.ops_reconstruct import FACELAB_OT_reconstruct_from_bundles as Op
+    from facelab_addon.blender.objects import points_to_local
+    from facelab_addon.pipeline.reconstruct import missing_bundles
 
-    assert Op._missing(to_local_q(obj, q), bundle_labels(objs), [2]) == "missing: B07"
-
-
-def to_local_q(obj, q):
-    from facelab_addon.ui.ops_reconstruct import to_local
-
-    return to_local(obj, q)
+    assert missing_bundles(points_to_local(obj, q), bundle_labels(objs), [2]) == "missing: B07"
 
 
 # --------------------------------------------------------------------------- bake the reconstruction (issue 5)
 
 
 def test_reconstructed_face_bakes_to_pc2_mdd_and_alembic(ict, addon, tmp_path):
-    from facelab_addon.core.cachefile import read_cache
+    from facelab_addon.core.capture.pointcache import read_cache
 
     scene, obj, empties, X = _simple_scene(ict, EXPR[:6], T=3)
     assert bpy.ops.facelab.reconstruct_from_bundles() == {"FINISHED"}
@@ -282,7 +231,7 @@ def test_jaw_bone_drives_the_jaw(ict, addon, gen):
                         & moved[tris].all(1))
     rng = np.random.default_rng(3)
     pick, bary = rng.choice(ok, 60, replace=False), rng.dirichlet([4, 4, 4], 60)
-    _empties(scene, np.einsum("bk,tbkd->tbd", bary, truth[:, tris[pick]]))
+    keyed_empties(scene, np.einsum("bk,tbkd->tbd", bary, truth[:, tris[pick]]), select=True)
     # the jaw bone: hinge through the fitted pivot, rotated by each frame's jaw angle
     arm_data = bpy.data.armatures.new("Rig")
     arm = bpy.data.objects.new("Rig", arm_data)
@@ -317,7 +266,8 @@ def test_jaw_bone_drives_the_jaw(ict, addon, gen):
     print("jaw region mean error mm: no jaw %.3f, jaw bone %.3f" % (errs["NONE"], errs["BONE"]))
     assert errs["BONE"] < 0.9 * errs["NONE"]  # measured 0.59 vs 0.68 mm
     # the bone's poses and the shapes' estimated poses agree with the core run on the generator's own jaw
-    from facelab_addon.core.geometric_indexing import GeometricIndexer, JawRig
+    from facelab_addon.core.lgi.indexer import GeometricIndexer
+    from facelab_addon.core.lgi.jaw import JawRig
 
     rig = JawRig(gen.jaw.pivot * SCALE, gen.jaw.axis, gen.jaw.weights)
     th_s = np.stack([gen.jaw_parameters(w) for w in ds_w])
@@ -385,7 +335,7 @@ def rest_vertices_of(obj):
 
 
 def test_generate_correctives_adds_driven_keys_that_beat_the_linear_rig(ict, addon, gen):
-    from facelab_addon.core.geometric_indexing import RigCorrectives
+    from facelab_addon.core.lgi.correctives import RigCorrectives
 
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene
@@ -420,7 +370,8 @@ def test_generate_correctives_adds_driven_keys_that_beat_the_linear_rig(ict, add
     assert drv.expression == "w0 * w1 * w2"
     assert [v.targets[0].data_path for v in drv.variables] == [f'key_blocks["{n}"].value' for n in combos[1]]
     # the key equals the core's corrective (same inputs, 80 automatic bundles) and beats the linear rig
-    from facelab_addon.ui.ops_reconstruct import dataset_shapes, triangle_uvs
+    from facelab_addon.blender.objects import triangle_uvs
+    from facelab_addon.blender.rig import dataset_shapes
 
     n0 = rest_vertices_of(face)
     names, data = dataset_shapes(face)

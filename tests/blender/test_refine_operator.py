@@ -1,29 +1,20 @@
 """Headless end to end: ICT face + camera + backplate + Grease Pencil sketch -> Refine Lips."""
 
+import bpy  # noqa: E402  (conftest set BLENDER_USER_RESOURCES)
 import numpy as np
 import pytest
 
-import bpy  # noqa: E402  (conftest set BLENDER_USER_RESOURCES)
-
-import facelab_addon
 from facelab_addon.blender.camera import camera_from_blender, new_camera_object
 from facelab_addon.blender.mesh import evaluated_vertices, mesh_triangles
 from facelab_addon.blender.scene import new_mesh_object, set_backplate
 from facelab_addon.blender.strokes import write_stroke_pixels
-from facelab_addon.core.camera import Camera
-from facelab_addon.core.silhouette import contour_distance, lip_side, silhouette_edges
+from facelab_addon.core.capture.camera import Camera
+from facelab_addon.core.geometry.silhouette import contour_distance, lip_side, silhouette_edges
 
 pytestmark = pytest.mark.blender
 
 FRAME = 12
 SCALE = 0.01  # ICT centimetres -> metres, as a Blender user would import it
-
-
-@pytest.fixture(scope="module")
-def addon():
-    facelab_addon.register()
-    yield
-    facelab_addon.unregister()
 
 
 def lip_contours(V, F, cam, face_mask, mouth):
@@ -62,8 +53,8 @@ def scene_setup(tmp_path, ict):
     vg = obj.vertex_groups.new(name="FL_fixed")
     vg.add(np.flatnonzero(~face_mask).tolist(), 1.0, "REPLACE")
     cam_obj = new_camera_object(scene, cam)
-    from skimage import data
     from PIL import Image
+    from skimage import data
 
     plate = tmp_path / "plate.png"
     Image.fromarray(data.astronaut()).resize((1920, 1080)).save(plate)

@@ -5,18 +5,17 @@ Retarget to a wide-mouthed creature; plus the bad-input messages."""
 
 import time
 
+import bpy
 import numpy as np
 import pytest
 
-import bpy
-
-import facelab_addon
 from facelab_addon.blender.camera import apply_camera_to_blender
 from facelab_addon.blender.scene import new_mesh_object
-from facelab_addon.blender.shapekeys import add_corrective_key, key_values_bulk
+from facelab_addon.blender.shapekeys import key_values_bulk
 from facelab_addon.blender.strokes import write_stroke_pixels
-from facelab_addon.core.capture_sim import helmet_cameras, sample_markers
-from facelab_addon.core.synthetic import ICT_MOUTH_LOOP
+from facelab_addon.testing.capture_sim import helmet_cameras, sample_markers
+from facelab_addon.testing.scenes import build_ict_face_scene, keyed_empties
+from facelab_addon.testing.synthetic import ICT_MOUTH_LOOP
 
 pytestmark = pytest.mark.blender
 
@@ -34,13 +33,6 @@ W_TRUTH = np.array([
 EXTRA_W = np.array([0.0, 0.0, 0.0, 0.7, 0.7])
 SIZE = (540, 960)
 N_MASK_POINTS = 24
-
-
-@pytest.fixture(scope="module")
-def addon():
-    facelab_addon.register()
-    yield
-    facelab_addon.unregister()
 
 
 def _resample(P, n):
@@ -84,17 +76,8 @@ def _px_to_mask(px):
 
 
 def build(ict, tmp_path):
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    scene = bpy.context.scene
-    scene.frame_start, scene.frame_end = 0, T - 1
-    neutral = ict.neutral * SCALE
-    obj = new_mesh_object("Face", neutral, poly_verts=ict.poly_verts, poly_offsets=ict.poly_offsets)
-    obj.shape_key_add(name="Basis", from_mix=False)
-    D = np.stack([(ict.expressions[n] - ict.neutral) * SCALE for n in EXPR])
-    for n, d in zip(EXPR, D):
-        add_corrective_key(obj, n, d)
-    fixed = obj.vertex_groups.new(name="FL_fixed")
-    fixed.add(np.flatnonzero(~ict.part_vertex_mask("M_Face")).tolist(), 1.0, "REPLACE")
+    fs = build_ict_face_scene(ict, EXPR, frame_range=(0, T - 1), scale=SCALE, fixed_group=True, select=False)
+    scene, obj, neutral, D = fs.scene, fs.obj, fs.neutral, fs.deltas
     extra = (ict.expressions[EXTRA] - ict.neutral) * SCALE
     truth = neutral[None] + np.einsum("ts,svd->tvd", W_TRUTH, D) + EXTRA_W[:, None, None] * extra[None]
 
@@ -126,7 +109,8 @@ def build(ict, tmp_path):
 
 def add_contours(ict, scene, obj, views, truth, cams):
     """Inner-lip contours of the truth: a shape-keyed Mask over clip 1, Grease Pencil strokes in camera 2."""
-    from facelab_addon.core.contours import contour_loops, synthetic_tracked_curves
+    from facelab_addon.core.solve.contour_loops import contour_loops
+    from facelab_addon.testing.contour_truth import synthetic_tracked_curves
 
     fixed = ~ict.part_vertex_mask("M_Face")
     eyeballs = {"left": np.flatnonzero(ict.part_vertex_mask("M_ScleraLeft")),
@@ -211,20 +195,23 @@ def test_solve_and_retarget_end_to_end(ict, addon, tmp_path):
     assert bpy.ops.facelab.bind_tracks(frame=0) == {"FINISHED"}
     b = obj.facelab_solve.bindings
     assert len(b) == len(markers) and obj.facelab_solve.bind_frame == 0
-    from facelab_addon.ui.props_solve import read_bindings
-    from facelab_addon.core.markers import SurfacePoints
+    from facelab_addon.blender.bindings import read_bindings
+    from facelab_addon.core.capture.markers import SurfacePoints
 
     names, bv, bb = read_bindings(obj, "MARKER")
     assert names == [f"M{j:02d}" for j in range(len(markers))]
     np.testing.assert_allclose(SurfacePoints(bv, bb).evaluate(truth[0]), markers.evaluate(truth[0]), atol=2e-6)
 
-    # ---- Solve Performance
-    t0 = time.perf_counter()
-    assert bpy.ops.facelab.solve_performance() == {"FINISHED"}
-    t_solve = time.perf_counter() - t0
-    from facelab_addon.ui.ops_solve import LAST, SOLVE_ACTION, _curve_values
+    # ---- Solve Performance (the pipeline the operator runs, for its per-frame numbers)
+    from facelab_addon.blender.actions import curve_values as _curve_values
+    from facelab_addon.names import SOLVE_ACTION
+    from facelab_addon.pipeline.solve import solve_performance
+    from facelab_addon.ui.props_solve import solve_settings
 
-    per_frame = LAST["info"]["frames"]
+    t0 = time.perf_counter()
+    r = solve_performance(scene, obj, solve_settings(scene))
+    t_solve = time.perf_counter() - t0
+    per_frame = r.core.info["frames"]
     print("contour points per frame:", [f.get("contour_points") for f in per_frame])
     assert all(f["contour_points"] > 0 for f in per_frame)  # the mask / sketch contours were fitted
 
@@ -270,7 +257,7 @@ def test_solve_and_retarget_end_to_end(ict, addon, tmp_path):
     W = W_m
 
     # ---- Retarget to a creature with a wider mouth (same topology)
-    from facelab_addon.core.retarget import widen_mouth
+    from facelab_addon.testing.creature import widen_mouth
 
     neutral = truth[0]
     cre = new_mesh_object("Creature", widen_mouth(neutral, neutral[ICT_MOUTH_LOOP].mean(0), factor=1.5),
@@ -294,15 +281,16 @@ def test_solve_and_retarget_end_to_end(ict, addon, tmp_path):
     assert np.linalg.norm(d_actor[chin]) > 0.005
     assert np.linalg.norm(d_cre - d_actor[chin]) < 0.2 * np.linalg.norm(d_actor[chin])
     # artist-set end points, keyed on the timeline (frame 4 differs), are used frame by frame
-    from facelab_addon.ui import ops_solve
+    from facelab_addon.pipeline.retarget import retarget
+    from facelab_addon.ui.props_solve import retarget_settings
 
     s.use_end_points = True
     s.end_points_upper, s.end_points_lower = (0.2, 0.8), (0.2, 0.8)
     scene.keyframe_insert("facelab_solve.end_points_upper", frame=0)
     s.end_points_upper = (0.3, 0.7)
     scene.keyframe_insert("facelab_solve.end_points_upper", frame=4)
-    r = ops_solve.retarget(bpy.context, obj, cre)
-    eps = r["result"].end_points
+    r = retarget(scene, obj, cre, retarget_settings(scene))
+    eps = r.core.end_points
     np.testing.assert_allclose(eps[0].upper, [0.2, 0.8], atol=1e-6)
     np.testing.assert_allclose(eps[4].upper, [0.3, 0.7], atol=1e-6)
     np.testing.assert_allclose(eps[2].upper, [0.25, 0.75], atol=0.03)  # Bezier in between
@@ -324,34 +312,35 @@ def test_bad_input_messages(ict, addon, tmp_path):
     # tracks with no mesh binding
     assert "no track is bound" in run(bpy.ops.facelab.solve_performance)
     # a track whose marker in the second view belongs to another point is flagged when binding
-    from facelab_addon.ui import ops_solve
+    from facelab_addon.pipeline.solve import bind_tracks, solve_performance, summarise_skips
+    from facelab_addon.ui.props_solve import bind_settings, solve_settings
 
     t2 = s.views[1].clip.tracking.tracks
     co = np.array(t2["M07"].markers.find_frame(1).co)
     t2["M07"].markers.find_frame(1).co = co + [0.02, 0.0]  # 10.8 px off
-    r = ops_solve.bind_tracks(bpy.context, obj, 0)
-    assert r["disagree"] == ["M07"] and len(r["bound"]) == len(markers)
+    r = bind_tracks(scene, obj, 0, bind_settings(scene))
+    assert r.disagree == ["M07"] and len(r.bound) == len(markers)
     t2["M07"].markers.find_frame(1).co = co
     # markers missing on some frames: skipped and reported
     clip = s.views[0].clip
     for tr in list(clip.tracking.tracks)[:5]:
         tr.markers.find_frame(3).mute = True  # clip frame 3 = scene frame 2
     assert bpy.ops.facelab.bind_tracks(frame=0) == {"FINISHED"}
-    r = ops_solve.solve(bpy.context, obj)
-    assert r["missing"] == {} and not r["skipped"]  # the other camera still sees them
+    r = solve_performance(scene, obj, solve_settings(scene))
+    assert r.missing == {} and not r.skipped  # the other camera still sees them
     clip2 = s.views[1].clip
     for tr in list(clip2.tracking.tracks)[:5]:
         tr.markers.find_frame(3).mute = True
-    r = ops_solve.solve(bpy.context, obj)
-    assert r["missing"] == {2: 5}
+    r = solve_performance(scene, obj, solve_settings(scene))
+    assert r.missing == {2: 5}
     # a frame with no marker at all is skipped, with its reason
     for c in (clip, clip2):
         for tr in c.tracking.tracks:
             tr.markers.find_frame(4).mute = True
     s.use_corrective = False
-    r = ops_solve.solve(bpy.context, obj)
-    assert list(r["skipped"]) == [3]
-    assert "3" in ops_solve._summarise_skips(r["skipped"])
+    r = solve_performance(scene, obj, solve_settings(scene))
+    assert list(r.skipped) == [3]
+    assert "3" in summarise_skips(r.skipped)
     # cameras without calibration
     clip.tracking.camera.sensor_width = 0.0
     assert "no camera calibration" in run(bpy.ops.facelab.solve_performance)
@@ -374,23 +363,16 @@ def test_bad_input_messages(ict, addon, tmp_path):
 
 def test_bundles_bind_and_solve(ict, addon, tmp_path):
     """Empties as 3D bundles: bound to their nearest surface point, then the solve from bundles alone."""
-    from facelab_addon.core.markers import SurfacePoints
-    from facelab_addon.ui.ops_solve import _curve_values
-    from facelab_addon.ui.props_solve import read_bindings, write_bindings
+    from facelab_addon.blender.actions import curve_values as _curve_values
+    from facelab_addon.blender.bindings import read_bindings, write_bindings
+    from facelab_addon.core.capture.markers import SurfacePoints
 
     scene, obj, cams, markers, truth, views = build(ict, tmp_path)
     bpy.context.view_layer.objects.active = obj
     scene.facelab.face = obj
     s = scene.facelab_solve
-    coll = bpy.data.collections.new("FL_bundles")
-    scene.collection.children.link(coll)
     P = markers.evaluate(truth)[:, ::2]  # 25 bundles on the truth surface
-    for j in range(P.shape[1]):
-        e = bpy.data.objects.new(f"B{j:02d}", None)
-        coll.objects.link(e)
-        for t in range(T):
-            e.location = P[t, j]
-            e.keyframe_insert("location", frame=t)
+    keyed_empties(scene, P, collection="FL_bundles")
     s.bundles = "EMPTIES"
     assert bpy.ops.facelab.bind_tracks(frame=0) == {"FINISHED"}
     names, bv, bb = read_bindings(obj, "BUNDLE")
@@ -460,10 +442,11 @@ def test_panel_sections_draw(addon):
 
 def test_retarget_with_marker_correspondence(ict, addon, tmp_path):
     """Correspondence from empties named like the bound tracks; too few of them is refused."""
-    from facelab_addon.core.markers import SurfacePoints
-    from facelab_addon.core.retarget import widen_mouth
-    from facelab_addon.ui import ops_solve
-    from facelab_addon.ui.props_solve import read_bindings
+    from facelab_addon.blender.bindings import read_bindings
+    from facelab_addon.core.capture.markers import SurfacePoints
+    from facelab_addon.testing.creature import widen_mouth
+    from facelab_addon.pipeline.retarget import retarget
+    from facelab_addon.ui.props_solve import retarget_settings
 
     scene, obj, cams, markers, truth, views = build(ict, tmp_path)
     bpy.context.view_layer.objects.active = obj
@@ -493,13 +476,13 @@ def test_retarget_with_marker_correspondence(ict, addon, tmp_path):
         e.location = p
         coll.objects.link(e)
     bpy.context.view_layer.update()
-    r = ops_solve.retarget(bpy.context, obj, cre)
-    assert r["correspondence"] == f"{len(names)} markers" and r["created"] == EXPR
+    r = retarget(scene, obj, cre, retarget_settings(scene))
+    assert r.correspondence == f"{len(names)} markers" and r.created == EXPR
     # away from the widened mouth the creature is the actor, so its transferred shapes are the actor's there
     # (a wrong correspondence, e.g. empties read in the wrong space, gives errors of the order of the shapes)
     far = ict.part_vertex_mask("M_Face") & (np.linalg.norm(neutral - neutral[ICT_MOUTH_LOOP].mean(0), axis=1) > 0.04)
     D_actor = np.stack([(ict.expressions[n] - ict.neutral) * SCALE for n in EXPR])[:, far]
-    D_cre = r["result"].deltas[:, far]
+    D_cre = r.core.deltas[:, far]
     err = np.sqrt(((D_cre - D_actor) ** 2).sum() / (D_actor**2).sum())
     print(f"marker correspondence: relative RMS difference of the far-from-mouth shapes {err:.3f}")
     assert err < 0.2  # measured 0.094 (the closest-triangle correspondence is not exact near open regions)

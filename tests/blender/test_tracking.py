@@ -1,16 +1,14 @@
 """Movie Clip tracks, clip cameras, masks and contour strokes -> FaceLab pixels (hand-computed values)."""
 
 import math
-import os
 
+import bpy
 import numpy as np
 import pytest
 
-import bpy
-
 from facelab_addon.blender import masks, tracking
 from facelab_addon.blender.camera import camera_from_blender
-from facelab_addon.core.camera import Camera
+from facelab_addon.core.capture.camera import Camera
 from facelab_addon.core.errors import BundleError, CameraError, SketchError
 
 pytestmark = pytest.mark.blender
@@ -43,9 +41,8 @@ def new_camera(name, location=(0, -1, 0), rotation=(math.pi / 2, 0, 0)):
 
 
 @pytest.fixture
-def scene():
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    return bpy.context.scene
+def scene(empty_scene):
+    return empty_scene
 
 
 def add_track(clip, name, markers, offset=(0.0, 0.0)):
@@ -232,7 +229,6 @@ def test_clip_bundles_needs_a_solve(scene, tmp_path):
 def test_clip_bundles_and_intrinsics_agree_with_blenders_camera_solve(scene, tmp_path):
     """Blender's own solver (libmv) on synthetic tracks with an off-centre principal point: its bundles, seen by its
     reconstructed cameras through FaceLab's clip intrinsics, land on the markers FaceLab reads."""
-    from facelab_addon.core.camera import Camera
 
     w, h, n = 320, 240, 12
     clip = make_clip(tmp_path, n=n, size=(w, h))
@@ -400,7 +396,7 @@ def test_sketch_and_annotation_polylines(tmp_path, scene):
 
 
 def test_read_curves_per_view(tmp_path, scene):
-    pytest.importorskip("facelab_addon.core.contours")
+    pytest.importorskip("facelab_addon.core.solve.contour_loops")
     from facelab_addon.blender.strokes import write_stroke_pixels
 
     clip = make_clip(tmp_path)

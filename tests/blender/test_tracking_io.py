@@ -1,14 +1,13 @@
 """Headless: marker pixels -> plates + Movie Clip with tracks (tracking_io) -> read back by blender/tracking.py."""
 
+import bpy
 import numpy as np
 import pytest
-
-import bpy
 
 from facelab_addon.blender.camera import apply_camera_to_blender
 from facelab_addon.blender.tracking import View, clip_intrinsics, read_track_markers, read_views
 from facelab_addon.blender.tracking_io import add_tracks, clip_from_pixels, write_dot_plates
-from facelab_addon.core.camera import Camera
+from facelab_addon.core.capture.camera import Camera
 from facelab_addon.core.errors import CameraError, FaceLabError
 
 pytestmark = pytest.mark.blender

@@ -2,12 +2,14 @@
 polled with and without a face and explains a refusal, the cheap ones run (with undo), panels are
 in workflow order, property defaults, the extrapolation helpers the panel draws from."""
 
+import bpy
 import numpy as np
 import pytest
 
-import bpy
-
 import facelab_addon
+from facelab_addon.pipeline import bake as bake_pipeline
+from facelab_addon.pipeline import propagate as propagate_pipeline
+from facelab_addon.pipeline.steps import StepJob
 from facelab_addon.ui import ops, ops_propagate, panel, prefs
 
 pytestmark = pytest.mark.blender
@@ -25,13 +27,6 @@ PANELS = ["FACELAB_PT_main", "FACELAB_PT_setup", "FACELAB_PT_sketch", "FACELAB_P
 
 def op_class(name):
     return getattr(bpy.types, "FACELAB_OT_" + name)
-
-
-@pytest.fixture(scope="module")
-def addon():
-    facelab_addon.register()
-    yield
-    facelab_addon.unregister()
 
 
 def empty_scene():
@@ -178,7 +173,7 @@ def test_training_list_markers_jump_remove_undo(addon):
 
 
 def test_bake_runs_headless(addon, tmp_path):
-    from facelab_addon.core.cachefile import read_pc2
+    from facelab_addon.core.capture.pointcache import read_pc2
 
     scene = empty_scene()
     obj = small_face(scene)
@@ -231,7 +226,7 @@ def test_extrapolation_helpers(addon):
     np.testing.assert_array_equal(f, frames)
     np.testing.assert_allclose(sc, score, atol=1e-6)
     assert panel.extrapolating_ranges(obj) == ([(5, 8), (15, 15)], 5)
-    assert panel.EXTRAPOLATING == 0.5 and ops_propagate.EXTRAPOLATION_PROP == panel.EXTRAPOLATION_PROP
+    assert panel.EXTRAPOLATING == 0.5 and propagate_pipeline.EXTRAPOLATION_PROP == panel.EXTRAPOLATION_PROP
 
 
 def test_propagate_job_steps_and_cancels(ict, addon):
@@ -249,7 +244,8 @@ def test_propagate_job_steps_and_cancels(ict, addon):
     bpy.ops.facelab.auto_regions()
     keys_before = [kb.name for kb in obj.data.shape_keys.key_blocks]
 
-    job = ops_propagate.StepJob(ops_propagate.propagate_steps(bpy.context, obj, FRAMES, 2))
+    settings = propagate_pipeline.PropagateSettings(suggestions=2)
+    job = StepJob(propagate_pipeline.propagate_steps(scene, obj, FRAMES, settings))
     for _ in range(3):
         assert job.step()
     assert job.stage == "reading the capture" and 0 < job.factor < 0.5
@@ -258,7 +254,7 @@ def test_propagate_job_steps_and_cancels(ict, addon):
     assert [kb.name for kb in obj.data.shape_keys.key_blocks] == keys_before
     assert not any(m.name.startswith("FL suggest") for m in scene.timeline_markers)
 
-    job = ops_propagate.StepJob(ops_propagate.propagate_steps(bpy.context, obj, FRAMES, 2))
+    job = StepJob(propagate_pipeline.propagate_steps(scene, obj, FRAMES, settings))
     stages, factors = [], []
     while job.step():
         factors.append(job.factor)
@@ -267,9 +263,9 @@ def test_propagate_job_steps_and_cancels(ict, addon):
     assert stages == ["reading the capture", "fitting", "predicting", "writing the corrective keys"]
     assert factors == sorted(factors) and factors[-1] < 1.0
     summary = job.result
-    assert summary["rank"] >= 1 and summary["keys"] == [kb.name for kb in obj.data.shape_keys.key_blocks
-                                                        if kb.name.startswith("FL_Prop_")]
-    assert len(summary["suggested"]) == 2 and ops_propagate.RUNNING["job"] is None
+    assert summary.rank >= 1 and summary.keys == [kb.name for kb in obj.data.shape_keys.key_blocks
+                                                  if kb.name.startswith("FL_Prop_")]
+    assert len(summary.suggested) == 2 and ops_propagate.RUNNING["job"] is None
 
 
 def test_every_registered_operator_explains_a_refusal(addon):
@@ -289,9 +285,9 @@ def test_every_registered_operator_explains_a_refusal(addon):
 
 
 def test_bake_job_matches_the_bake_and_cancels_cleanly(addon, tmp_path):
-    from facelab_addon.blender import caches
+    from facelab_addon.blender import bakes
     from facelab_addon.blender.shapekeys import add_corrective_key, key_values_bulk
-    from facelab_addon.core.cachefile import read_mdd, read_pc2
+    from facelab_addon.core.capture.pointcache import read_mdd, read_pc2
 
     scene = empty_scene()
     obj = small_face(scene)
@@ -299,9 +295,10 @@ def test_bake_job_matches_the_bake_and_cancels_cleanly(addon, tmp_path):
     key_values_bulk(obj, ["Up"], np.arange(1, 7), np.linspace(0, 1, 6)[:, None])
     frames = np.arange(1, 7)
     scene.frame_set(3)
-    for fmt, bake, read in (("PC2", caches.bake_pc2, read_pc2), ("MDD", caches.bake_mdd, read_mdd)):
+    for fmt, bake, read in (("PC2", bakes.bake_pc2, read_pc2), ("MDD", bakes.bake_mdd, read_mdd)):
         ref = bake(obj, frames, tmp_path / f"ref.{fmt}")
-        got = ops_propagate.StepJob(ops_propagate.bake_steps(obj, frames, tmp_path / f"job.{fmt}", fmt)).run()
+        got = StepJob(bake_pipeline.bake_steps(obj, frames, tmp_path / f"job.{fmt}",
+                                               bake_pipeline.BakeSettings(format=fmt))).run().path
         assert ref.read_bytes() == got.read_bytes()  # the same file, header included
         data = read(got)
         data = data[0] if isinstance(data, tuple) else data
@@ -309,7 +306,7 @@ def test_bake_job_matches_the_bake_and_cancels_cleanly(addon, tmp_path):
     # Esc after two frames: the existing file stays as it was, no temporary file is left, frame restored
     target = tmp_path / "keep.pc2"
     target.write_bytes(b"artist's file")
-    job = ops_propagate.StepJob(ops_propagate.bake_steps(obj, frames, target, "PC2"))
+    job = StepJob(bake_pipeline.bake_steps(obj, frames, target, bake_pipeline.BakeSettings("PC2", overwrite=True)))
     assert job.step() and job.step() and job.stage == "baking frame 2" and job.factor == pytest.approx(2 / 6)
     job.cancel()
     assert target.read_bytes() == b"artist's file"
@@ -391,7 +388,7 @@ def test_panels_draw_the_workflow(addon):
     ul.draw_item(None, ctx, row, obj.facelab, obj.facelab.training_frames[0], 0, None, "", 0)
     assert row.texts("label") == ["Frame 5", "sculpted mesh"]
     # a running job: a progress bar instead of the button
-    job = ops_propagate.StepJob(iter([("reading the capture", 3, 10)]))
+    job = StepJob(iter([("reading the capture", 3, 10)]))
     job.step()
     ops_propagate.RUNNING.update(job=job, label="Propagate 40 frames")
     try:

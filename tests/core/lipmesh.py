@@ -7,7 +7,8 @@ lines y = +gap/2 (upper) and y = -gap/2 (lower), at depth z = 0.
 
 import numpy as np
 
-from facelab_addon.core.camera import Camera
+from facelab_addon.core.capture.camera import Camera
+from facelab_addon.testing.meshes import grid_triangles
 
 
 def tube(y_center, theta0, theta1, radius, nx=41, nt=25, half_len=2.0):
@@ -15,12 +16,7 @@ def tube(y_center, theta0, theta1, radius, nx=41, nt=25, half_len=2.0):
     ts = np.linspace(theta0, theta1, nt)
     X, T = np.meshgrid(xs, ts, indexing="ij")
     V = np.stack([X, y_center + radius * np.sin(T), radius * np.cos(T)], -1).reshape(-1, 3)
-    F = []
-    for i in range(nx - 1):
-        for j in range(nt - 1):
-            a, b, c, d = i * nt + j, (i + 1) * nt + j, (i + 1) * nt + j + 1, i * nt + j + 1
-            F += [[a, b, c], [a, c, d]]
-    F = np.array(F)
+    F = grid_triangles(nx, nt)
     # outward normals: (0, sin, cos) must agree with the winding
     n = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
     c = V[F].mean(1) - [0, y_center, 0]

@@ -4,17 +4,14 @@ import numpy as np
 import pytest
 from scipy.optimize import lsq_linear
 
-from facelab_addon.core.blendshape_solve import (
-    BlendshapeSolver,
-    FrameResult,
-    OutOfSubspaceCorrective,
-    box_least_squares,
-    contour_curve_distance,
-    solve_performance,
-)
-from facelab_addon.core.capture_sim import make_capture
+from facelab_addon.core.capture.markers import nearest_surface_points
 from facelab_addon.core.errors import FaceLabError
-from facelab_addon.core.markers import nearest_surface_points
+from facelab_addon.core.solve.blendshape_solve import BlendshapeSolver, FrameResult
+from facelab_addon.core.solve.bounded_lsq import box_least_squares
+from facelab_addon.core.solve.corrective import OutOfSubspaceCorrective
+from facelab_addon.core.solve.matching import contour_curve_distance
+from facelab_addon.core.solve.performance import solve_performance
+from facelab_addon.testing.capture_sim import make_capture
 
 NAMES = ["jawOpen", "mouthSmile_L", "mouthSmile_R", "mouthFunnel", "mouthPucker", "browInnerUp_L", "eyeBlink_L",
          "jawLeft", "mouthLowerDown_L"]
@@ -114,7 +111,7 @@ def test_corrective_is_zero_when_constraints_hold_and_fits_them_when_not(ict, ca
 
 
 def test_contours_recover_the_truth(ict, deltas):
-    from facelab_addon.core.contours import ict_contour_loops
+    from facelab_addon.testing.contour_truth import ict_contour_loops
 
     cap = make_capture(ict, names=NAMES, n_frames=2, n_markers=40, noise_px=0.0, seed=2, curves=True)
     loops = ict_contour_loops(ict)
@@ -171,7 +168,7 @@ def test_bad_input_messages(ict, cap, deltas):
 
 
 def test_default_boundary_holds_the_border_and_parts_without_markers():
-    from facelab_addon.core.markers import SurfacePoints
+    from facelab_addon.core.capture.markers import SurfacePoints
 
     # a 4x4-vertex grid (border: 12 vertices, interior: 4) plus a separate triangle with no marker
     g = np.array([[x, y, 0.0] for y in range(4) for x in range(4)])
@@ -190,8 +187,8 @@ def test_default_boundary_holds_the_border_and_parts_without_markers():
 
 
 def test_contour_planes_contain_the_ray_and_the_curve_tangent():
-    from facelab_addon.core.blendshape_solve import _contour_planes
-    from facelab_addon.core.camera import Camera
+    from facelab_addon.core.capture.camera import Camera
+    from facelab_addon.core.solve.corrective import _contour_planes
 
     cam = Camera.look_at([0.0, -3.0, 20.0], [0.0, 0.0, 0.0], [0, 1, 0], 50, 36, 1080, 1920)
     # a 3D lip-like arc in front of the camera and its image
@@ -239,7 +236,8 @@ def test_truth_is_a_fixed_point_of_the_corrective_with_eyelids(ict, deltas):
     The 3D eyelid targets are lifted with the lids' current heights over the eyeball (unbiased); with the
     rest heights (the old lift) a blink leaves them up to ~1 mm off and the corrective follows them.
     """
-    from facelab_addon.core.contours import ict_contour_loops, match_contours
+    from facelab_addon.core.solve.matching import match_contours
+    from facelab_addon.testing.contour_truth import ict_contour_loops
 
     cap = make_capture(ict, names=NAMES, n_frames=3, n_markers=60, noise_px=0.0, seed=1, curves=True)
     loops = ict_contour_loops(ict)
@@ -265,7 +263,7 @@ def test_truth_is_a_fixed_point_of_the_corrective_with_eyelids(ict, deltas):
 
 def test_huber_weights_of_lip_contour_points(ict, deltas):
     """min(1, k / e) on the 2D lip points (e = reprojection residual in px); eyelid points untouched."""
-    from facelab_addon.core.contours import ict_contour_loops
+    from facelab_addon.testing.contour_truth import ict_contour_loops
 
     cap = make_capture(ict, names=NAMES, n_frames=2, n_markers=40, noise_px=0.0, seed=2, curves=True)
     loops = ict_contour_loops(ict)
@@ -288,7 +286,7 @@ def test_huber_weights_of_lip_contour_points(ict, deltas):
 
 def test_huber_keeps_in_span_fits_and_loosens_out_of_span_lips(ict, deltas):
     """In span (noise-free) the robust fit equals the plain one; with a lip gap the lips pull less."""
-    from facelab_addon.core.contours import ict_contour_loops
+    from facelab_addon.testing.contour_truth import ict_contour_loops
 
     loops = ict_contour_loops(ict)
     for gap, same in ((0.0, True), (3.0, False)):

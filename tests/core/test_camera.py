@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from facelab_addon.core.camera import Camera
+from facelab_addon.core.capture.camera import Camera
 from facelab_addon.core.errors import CameraError
 
 

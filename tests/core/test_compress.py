@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from facelab_addon.core.compress import DEFAULT_TOL_M, compress, reconstruct
 from facelab_addon.core.errors import FaceLabError, MeshError
+from facelab_addon.core.geometry.compress import DEFAULT_TOL_M, compress, reconstruct
 
 
 def corrections(T=60, V=3000, moving=400, rank=4, noise=0.0, seed=0):

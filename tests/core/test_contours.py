@@ -18,11 +18,31 @@ import time
 import numpy as np
 import pytest
 
-from facelab_addon.core import contours as ct
-from facelab_addon.core.camera import Camera
+from facelab_addon.core.capture.camera import Camera
 from facelab_addon.core.errors import FaceLabError, MeshError
-from facelab_addon.core.eyes import fit_sphere, project_to_sphere, ray_sphere
-from facelab_addon.core.silhouette import silhouette_edges
+from facelab_addon.core.geometry.polyline import (
+    point_to_polyline_distance,
+    resample_polyline,
+)
+from facelab_addon.core.geometry.silhouette import silhouette_edges
+from facelab_addon.core.geometry.sphere import fit_sphere, project_to_sphere, ray_sphere
+from facelab_addon.core.solve.contour_loops import TrackedCurve, contour_loops
+from facelab_addon.core.solve.matching import (
+    CurveCorrespondence,
+    _eval_points,
+    contour_residuals,
+    match_contours,
+)
+from facelab_addon.core.solve.occlusion import (
+    _envelope_counts,
+    _half_counts,
+    select_occluding_loop,
+    silhouette_edge_counts,
+)
+from facelab_addon.testing.contour_truth import (
+    ict_contour_loops,
+    synthetic_tracked_curves,
+)
 
 R_TORUS, R_TUBE, DIST = 2.0, 0.5, 12.0
 PHI_SIL = np.pi + np.arctan2(R_TORUS, DIST) - np.arcsin(R_TUBE / np.hypot(DIST, R_TORUS))
@@ -67,7 +87,7 @@ def axis_camera(dist=DIST):
 @pytest.fixture(scope="module")
 def band():
     V, F, rings = torus_band()
-    loops = ct.contour_loops(V, F, mouth_loop=rings[0], n_mouth_loops=len(rings))
+    loops = contour_loops(V, F, mouth_loop=rings[0], n_mouth_loops=len(rings))
     return V, F, rings, loops
 
 
@@ -114,17 +134,17 @@ def test_split_points_are_the_corners_and_the_lip_middle(band):
 def test_selection_picks_the_analytic_silhouette_loop(k_sil):
     V, F, rings = torus_band(k_sil=k_sil)
     cam = axis_camera()
-    counts = ct.silhouette_edge_counts(V, F, cam, rings)
+    counts = silhouette_edge_counts(V, F, cam, rings)
     assert counts[k_sil] == 50 and counts.sum() == 50  # every edge of that loop, no other
-    assert ct.select_occluding_loop(V, F, cam, rings) == k_sil
+    assert select_occluding_loop(V, F, cam, rings) == k_sil
     # the brute-force silhouette of the whole mesh agrees
     E = {tuple(e) for e in silhouette_edges(V, F, cam)}
     lp = rings[k_sil]
     assert {tuple(sorted(e)) for e in zip(lp, np.roll(lp, -1))} <= E
     # per-half selection inside match_contours picks it too
-    loops = ct.contour_loops(V, F, mouth_loop=rings[0], n_mouth_loops=len(rings))
-    curves = ct.synthetic_tracked_curves(V, F, [cam], loops)
-    corr = ct.match_contours(V, F, [cam], curves, loops)
+    loops = contour_loops(V, F, mouth_loop=rings[0], n_mouth_loops=len(rings))
+    curves = synthetic_tracked_curves(V, F, [cam], loops)
+    corr = match_contours(V, F, [cam], curves, loops)
     assert [c.loop for c in corr] == [k_sil, k_sil]
 
 
@@ -133,22 +153,22 @@ def test_only_silhouettes_bounding_the_opening_count():
     cam = axis_camera()
     phi_out = np.arctan2(R_TORUS, DIST) + np.arcsin(R_TUBE / np.hypot(DIST, R_TORUS))  # D sin - R cos = r, near 0
     V, F, rings = torus_band(k_sil=3, phi_sil=phi_out)
-    assert ct.silhouette_edge_counts(V, F, cam, rings)[3] == 50
-    loops = ct.contour_loops(V, F, mouth_loop=rings[0], n_mouth_loops=len(rings))
-    assert ct._half_counts(V, cam, loops, inner=False).max() == 25  # each half of ring 3
-    assert ct._half_counts(V, cam, loops).max() == 0  # an outer outline, not an inner-lip line
+    assert silhouette_edge_counts(V, F, cam, rings)[3] == 50
+    loops = contour_loops(V, F, mouth_loop=rings[0], n_mouth_loops=len(rings))
+    assert _half_counts(V, cam, loops, inner=False).max() == 25  # each half of ring 3
+    assert _half_counts(V, cam, loops).max() == 0  # an outer outline, not an inner-lip line
     # the inner silhouette of the same torus counts fully
     V, F, rings = torus_band(k_sil=3)
-    loops = ct.contour_loops(V, F, mouth_loop=rings[0], n_mouth_loops=len(rings))
-    np.testing.assert_array_equal(ct._half_counts(V, cam, loops), ct._half_counts(V, cam, loops, inner=False))
-    assert ct._half_counts(V, cam, loops)[[3, 3 + len(rings)]].tolist() == [25, 25]
+    loops = contour_loops(V, F, mouth_loop=rings[0], n_mouth_loops=len(rings))
+    np.testing.assert_array_equal(_half_counts(V, cam, loops), _half_counts(V, cam, loops, inner=False))
+    assert _half_counts(V, cam, loops)[[3, 3 + len(rings)]].tolist() == [25, 25]
 
 
 def test_fast_counts_match_brute_force_silhouettes_on_ict(ict, ict_loops):
     V = ict.pose({"jawOpen": 0.4, "mouthFunnel": 0.6})
     cam = Camera.look_at(V[6632:6706].mean(0) + [3, -5, 30], V[6632:6706].mean(0), [0, 1, 0], 35, 36, 1920, 1080)
     E = {tuple(e) for e in silhouette_edges(V, ict.faces, cam)}
-    fast = ct._half_counts(V, cam, ict_loops, inner=False)
+    fast = _half_counts(V, cam, ict_loops, inner=False)
     for name in ict_loops.curve_names():
         lo, hi = ict_loops._pack[4][name]
         brute = [sum(tuple(sorted(e)) in E for e in zip(h.chain[:-1], h.chain[1:])) for h in ict_loops.halves[name]]
@@ -179,7 +199,7 @@ def test_arc_length_matching_on_a_circle_gives_the_analytic_parameters(band):
     for reverse in (False, True):
         C = _circle_curve(cam, r_curve, z)
         C = C[::-1] if reverse else C
-        corr = ct.match_contours(V, F, [cam], [ct.TrackedCurve("mouth_upper", 0, C)], loops)[0]
+        corr = match_contours(V, F, [cam], [TrackedCurve("mouth_upper", 0, C)], loops)[0]
         assert corr.loop == k and corr.camera == 0 and corr.targets is None
         X = corr.evaluate(V)
         theta = np.arctan2(X[:, 1], X[:, 0])
@@ -198,7 +218,7 @@ def test_corner_beyond_the_curve_end_snaps_to_the_end_and_interior_is_arc_length
     """A straight tracked line shorter than the contour: hand-computed targets."""
     V, F, rings, loops = band
     cam = axis_camera()
-    corr0 = ct.match_contours(V, F, [cam], [ct.TrackedCurve("mouth_lower", 0, _circle_curve(cam, 1.5, 0.0, False))],
+    corr0 = match_contours(V, F, [cam], [TrackedCurve("mouth_lower", 0, _circle_curve(cam, 1.5, 0.0, False))],
                               loops)[0]
     k = corr0.loop
     h = loops.halves["mouth_lower"][k]
@@ -206,7 +226,7 @@ def test_corner_beyond_the_curve_end_snaps_to_the_end_and_interior_is_arc_length
     a, b, y = 700.0, 1220.0, 700.0  # line from (a, y) to (b, y); corners project outside [a, b]
     assert P[0, 0] < a and P[-1, 0] > b
     line = np.array([[a, y], [0.5 * (a + b) + 13.0, y], [b, y]])  # an extra, off-centre vertex
-    corr = ct.match_contours(V, F, [cam], [ct.TrackedCurve("mouth_lower", 0, line)], loops)[0]
+    corr = match_contours(V, F, [cam], [TrackedCurve("mouth_lower", 0, line)], loops)[0]
     u = np.r_[0, np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))]
     i0, im, i1 = h.splits
     xm = P[im, 0]  # the middle projects straight down onto the line
@@ -221,18 +241,18 @@ def test_corner_beyond_the_curve_end_snaps_to_the_end_and_interior_is_arc_length
 def test_sliding_follows_the_roll_and_fixed_keeps_the_previous_assignment():
     cam = axis_camera()
     V0, F, rings = torus_band(k_sil=3)
-    loops = ct.contour_loops(V0, F, mouth_loop=rings[0], n_mouth_loops=len(rings))
-    c0 = ct.synthetic_tracked_curves(V0, F, [cam], loops)
-    prev = ct.match_contours(V0, F, [cam], c0, loops)
+    loops = contour_loops(V0, F, mouth_loop=rings[0], n_mouth_loops=len(rings))
+    c0 = synthetic_tracked_curves(V0, F, [cam], loops)
+    prev = match_contours(V0, F, [cam], c0, loops)
     assert [p.loop for p in prev] == [3, 3]
     # roll every cross-section by two loop steps: the silhouette moves to loop 1
     V1, _, _ = torus_band(k_sil=3, roll=2 * STEP)
-    c1 = ct.synthetic_tracked_curves(V1, F, [cam], loops)
-    slide = ct.match_contours(V1, F, [cam], c1, loops, previous=prev)
+    c1 = synthetic_tracked_curves(V1, F, [cam], loops)
+    slide = match_contours(V1, F, [cam], c1, loops, previous=prev)
     assert [s.loop for s in slide] == [1, 1]
-    for r in ct.contour_residuals(V1, [cam], slide):
+    for r in contour_residuals(V1, [cam], slide):
         assert r.max() < 0.05
-    fixed = ct.match_contours(V1, F, [cam], c1, loops, previous=prev, sliding=False)
+    fixed = match_contours(V1, F, [cam], c1, loops, previous=prev, sliding=False)
     for f, p, cv in zip(fixed, prev, c1):
         assert f.loop == p.loop == 3
         np.testing.assert_array_equal(f.vertices, p.vertices)
@@ -244,37 +264,37 @@ def test_sliding_follows_the_roll_and_fixed_keeps_the_previous_assignment():
         want = np.stack([np.interp(p.curve_t * s[-1], s, C[:, 0]), np.interp(p.curve_t * s[-1], s, C[:, 1])], 1)
         np.testing.assert_allclose(f.pixels, want, atol=1e-9)
     # the fixed contour (loop 3) no longer lies on the new silhouette: large residual, sliding does not
-    assert max(r.max() for r in ct.contour_residuals(V1, [cam], fixed)) > 5.0
+    assert max(r.max() for r in contour_residuals(V1, [cam], fixed)) > 5.0
     # without previous, sliding=False matches normally (the first frame of a fixed run)
-    first = ct.match_contours(V1, F, [cam], c1, loops, sliding=False)
+    first = match_contours(V1, F, [cam], c1, loops, sliding=False)
     assert [f.loop for f in first] == [1, 1]
 
 
 def test_previous_loop_wins_ties():
     cam = axis_camera()
     V, F, rings = torus_band(k_sil=3)
-    loops = ct.contour_loops(V, F, mouth_loop=rings[0], n_mouth_loops=len(rings))
+    loops = contour_loops(V, F, mouth_loop=rings[0], n_mouth_loops=len(rings))
     # flatten the band into a planar annulus: no loop has a silhouette edge, all tie at zero
     ang = np.arctan2(V[:, 1], V[:, 0])
     rad = 1.0 + 0.1 * np.repeat(np.arange(len(rings)), 50)
     Vf = np.stack([rad * np.cos(ang), rad * np.sin(ang), np.zeros(len(V))], 1)
-    C = ct.synthetic_tracked_curves(V, F, [cam], loops)
-    prev = [ct.CurveCorrespondence("mouth_upper", 0, np.zeros((1, 2), int), np.ones((1, 2)) / 2, loop=6,
+    C = synthetic_tracked_curves(V, F, [cam], loops)
+    prev = [CurveCorrespondence("mouth_upper", 0, np.zeros((1, 2), int), np.ones((1, 2)) / 2, loop=6,
                                    curve_t=np.zeros(1), source_camera=0)]
-    out = ct.match_contours(Vf, F, [cam], C[:1], loops, previous=prev)
-    assert ct._half_counts(Vf, cam, loops).max() == 0
+    out = match_contours(Vf, F, [cam], C[:1], loops, previous=prev)
+    assert _half_counts(Vf, cam, loops).max() == 0
     assert out[0].loop == 6
     # without previous: the loop closest to the curve
-    out = ct.match_contours(Vf, F, [cam], C[:1], loops)
+    out = match_contours(Vf, F, [cam], C[:1], loops)
     P = [cam.project(Vf[h.chain]) for h in loops.halves["mouth_upper"]]
-    d = [np.mean(ct._dist_to_polyline(p, C[0].pixels)) for p in P]
+    d = [np.mean(point_to_polyline_distance(p, C[0].pixels)) for p in P]
     assert out[0].loop == int(np.argmin(d))
 
 
 def test_correspondence_matrix_and_evaluate_agree(band):
     V, F, rings, loops = band
     cam = axis_camera()
-    corr = ct.match_contours(V, F, [cam], ct.synthetic_tracked_curves(V, F, [cam], loops), loops)
+    corr = match_contours(V, F, [cam], synthetic_tracked_curves(V, F, [cam], loops), loops)
     for c in corr:
         A = c.matrix(len(V))
         np.testing.assert_allclose(A @ V, c.evaluate(V), atol=1e-14)
@@ -326,7 +346,7 @@ def test_cornea_projection_equals_the_analytic_ray_sphere_intersection():
 
 @pytest.fixture(scope="module")
 def ict_loops(ict):
-    return ct.ict_contour_loops(ict)
+    return ict_contour_loops(ict)
 
 
 def helmet(V):
@@ -350,7 +370,7 @@ def test_ict_loops(ict, ict_loops):
     cl, cr = ict.neutral[L.mouth_corners[7]]
     assert 4.0 < cr[0] - cl[0] < 5.5 and abs(cl[0] + cr[0]) < 1e-6 and abs(cl[1] - cr[1]) < 1e-6
     # every ring is split at the same anatomical corner: consecutive rings' corners are joined by a mesh edge
-    from facelab_addon.core.mesh import vertex_adjacency
+    from facelab_addon.core.geometry.mesh import vertex_adjacency
 
     A = vertex_adjacency(ict.faces, len(ict.neutral))
     for cor in (L.mouth_corners, L.eye_corners["left"], L.eye_corners["right"]):
@@ -366,11 +386,11 @@ def test_ict_loops(ict, ict_loops):
 def test_truth_curves_matched_to_the_truth_have_near_zero_residual(ict, ict_loops, expr):
     V = ict.neutral if expr == "neutral" else ict.expressions[expr]
     cams = helmet(V)
-    curves = ct.synthetic_tracked_curves(V, ict.faces, cams, ict_loops)
+    curves = synthetic_tracked_curves(V, ict.faces, cams, ict_loops)
     assert len(curves) == 12
-    corr = ct.match_contours(V, ict.faces, cams, curves, ict_loops, eyelids="both")
+    corr = match_contours(V, ict.faces, cams, curves, ict_loops, eyelids="both")
     assert len(corr) == 4 + 16
-    res = ct.contour_residuals(V, cams, corr)
+    res = contour_residuals(V, cams, corr)
     for c, r in zip(corr, res):
         if c.camera >= 0:
             # pixels; what remains is the curve's 0.25 px resampling, which shortens the arc length a little
@@ -382,8 +402,8 @@ def test_truth_curves_matched_to_the_truth_have_near_zero_residual(ict, ict_loop
             assert r.max() < 0.01, (c.name, r.max())  # cm
             assert c.source_camera in (0, 1)
     # the rest-height lift (old default) is off wherever the expression changes the lid's height (blink)
-    rest = ct.match_contours(V, ict.faces, cams, curves, ict_loops, eyelid_height="rest")
-    r3 = np.concatenate([r for c, r in zip(rest, ct.contour_residuals(V, cams, rest)) if c.camera < 0])
+    rest = match_contours(V, ict.faces, cams, curves, ict_loops, eyelid_height="rest")
+    r3 = np.concatenate([r for c, r in zip(rest, contour_residuals(V, cams, rest)) if c.camera < 0])
     if expr == "eyeBlink_L":
         assert r3.max() > 0.05  # cm
     # eyelids come as a 2D correspondence followed by its 3D lift; the targets reproject onto each other
@@ -408,8 +428,8 @@ def test_ict_selection_moves_with_the_lip_roll(ict, ict_loops):
     got = {}
     for expr in ("neutral", "mouthRollUpper"):
         V = ict.neutral if expr == "neutral" else ict.expressions[expr]
-        curves = ct.synthetic_tracked_curves(V, ict.faces, cams, ict_loops, names=["mouth_upper", "mouth_lower"])
-        got[expr] = {c.name: c.loop for c in ct.match_contours(V, ict.faces, cams, curves, ict_loops)[:2]}
+        curves = synthetic_tracked_curves(V, ict.faces, cams, ict_loops, names=["mouth_upper", "mouth_lower"])
+        got[expr] = {c.name: c.loop for c in match_contours(V, ict.faces, cams, curves, ict_loops)[:2]}
     # rolling the upper lip in moves its silhouette outward (higher ring); the lower lip stays put
     assert got["mouthRollUpper"]["mouth_upper"] >= got["neutral"]["mouth_upper"] + 2
     assert abs(got["mouthRollUpper"]["mouth_lower"] - got["neutral"]["mouth_lower"]) <= 1
@@ -418,11 +438,11 @@ def test_ict_selection_moves_with_the_lip_roll(ict, ict_loops):
 def test_match_contours_is_fast_on_ict(ict, ict_loops):
     V = ict.expressions["jawOpen"]
     cams = helmet(V)
-    curves = ct.synthetic_tracked_curves(V, ict.faces, cams, ict_loops, spacing_px=1.0)
-    ct.match_contours(V, ict.faces, cams, curves, ict_loops)
+    curves = synthetic_tracked_curves(V, ict.faces, cams, ict_loops, spacing_px=1.0)
+    match_contours(V, ict.faces, cams, curves, ict_loops)
     t0 = time.process_time()
     for _ in range(10):
-        ct.match_contours(V, ict.faces, cams, curves, ict_loops)
+        match_contours(V, ict.faces, cams, curves, ict_loops)
     ms = (time.process_time() - t0) * 100
     assert ms < 40.0, ms  # a few ms on an idle core; generous for a loaded shared machine
 
@@ -433,36 +453,36 @@ def test_match_contours_is_fast_on_ict(ict, ict_loops):
 def test_bad_input_messages(band, ict, ict_loops):
     V, F, rings, loops = band
     cam = axis_camera()
-    good = ct.synthetic_tracked_curves(V, F, [cam], loops)[0]
+    good = synthetic_tracked_curves(V, F, [cam], loops)[0]
     with pytest.raises(FaceLabError, match="Unknown tracked curve 'lips'"):
-        ct.match_contours(V, F, [cam], [ct.TrackedCurve("lips", 0, good.pixels)], loops)
+        match_contours(V, F, [cam], [TrackedCurve("lips", 0, good.pixels)], loops)
     with pytest.raises(FaceLabError, match="camera 2, but 1 camera"):
-        ct.match_contours(V, F, [cam], [ct.TrackedCurve("mouth_upper", 2, good.pixels)], loops)
+        match_contours(V, F, [cam], [TrackedCurve("mouth_upper", 2, good.pixels)], loops)
     with pytest.raises(FaceLabError, match="has no eyes"):
-        ct.match_contours(V, F, [cam], [ct.TrackedCurve("eyelid_left_upper", 0, good.pixels)], loops)
+        match_contours(V, F, [cam], [TrackedCurve("eyelid_left_upper", 0, good.pixels)], loops)
     with pytest.raises(FaceLabError, match="at least 2 points"):
-        ct.match_contours(V, F, [cam], [ct.TrackedCurve("mouth_upper", 0, good.pixels[:1])], loops)
+        match_contours(V, F, [cam], [TrackedCurve("mouth_upper", 0, good.pixels[:1])], loops)
     with pytest.raises(FaceLabError, match="NaN"):
         bad = good.pixels.copy()
         bad[3] = np.nan
-        ct.match_contours(V, F, [cam], [ct.TrackedCurve("mouth_upper", 0, bad)], loops)
+        match_contours(V, F, [cam], [TrackedCurve("mouth_upper", 0, bad)], loops)
     with pytest.raises(MeshError, match="rebuild the loops"):
-        ct.match_contours(V[:-1], F, [cam], [good], loops)
+        match_contours(V[:-1], F, [cam], [good], loops)
     with pytest.raises(FaceLabError, match="eyelid_height must be"):
-        ct.match_contours(ict.neutral, ict.faces, helmet(ict.neutral), [], ict_loops, eyelid_height="x")
+        match_contours(ict.neutral, ict.faces, helmet(ict.neutral), [], ict_loops, eyelid_height="x")
     with pytest.raises(FaceLabError, match="eyelids must be"):
-        ct.match_contours(V, F, [cam], [good], loops, eyelids="3D")
+        match_contours(V, F, [cam], [good], loops, eyelids="3D")
     behind = Camera.look_at([0, 0, -DIST], [0, 0, -2 * DIST], [0, 1, 0], 50, 36, 1920, 1080)
     with pytest.raises(FaceLabError, match="behind the camera"):
-        ct.match_contours(V, F, [behind], [good], loops)
+        match_contours(V, F, [behind], [good], loops)
     with pytest.raises(MeshError, match="not a closed border"):
-        ct.contour_loops(V, F, mouth_loop=rings[3])
+        contour_loops(V, F, mouth_loop=rings[3])
     with pytest.raises(FaceLabError, match="eyeball needs at least 4"):
-        ct.contour_loops(V, F, mouth_loop=rings[0], eyeballs={"left": [1, 2]})
+        contour_loops(V, F, mouth_loop=rings[0], eyeballs={"left": [1, 2]})
 
 
 def test_default_mouth_loop_is_found_and_loops_do_not_depend_on_scale(ict, ict_loops):
-    L = ct.contour_loops(ict.neutral * 0.01, ict.faces, fixed=~ict.part_vertex_mask("M_Face"))  # metres
+    L = contour_loops(ict.neutral * 0.01, ict.faces, fixed=~ict.part_vertex_mask("M_Face"))  # metres
     assert [set(a.tolist()) for a in L.mouth] == [set(a.tolist()) for a in ict_loops.mouth]
     np.testing.assert_array_equal(L.mouth_corners, ict_loops.mouth_corners)
     assert L.eyes == {}  # no eyeballs given: no eyelid contours
@@ -471,8 +491,8 @@ def test_default_mouth_loop_is_found_and_loops_do_not_depend_on_scale(ict, ict_l
 def test_synthetic_curves_noise_and_off_screen(band):
     V, F, rings, loops = band
     cam = axis_camera()
-    clean = ct.synthetic_tracked_curves(V, F, [cam], loops)
-    noisy = ct.synthetic_tracked_curves(V, F, [cam], loops, noise_px=0.5, seed=3)
+    clean = synthetic_tracked_curves(V, F, [cam], loops)
+    noisy = synthetic_tracked_curves(V, F, [cam], loops, noise_px=0.5, seed=3)
     d = np.concatenate([n.pixels - c.pixels for n, c in zip(noisy, clean)])
     assert abs(d.std() - 0.5) < 0.05
     # spacing: consecutive samples 0.25 px apart along the polyline (ends kept)
@@ -480,7 +500,7 @@ def test_synthetic_curves_noise_and_off_screen(band):
     assert step.max() <= 0.25 + 1e-9 and step.mean() > 0.2
     # a camera that sees the mouth only partly (narrow image) delivers no curve
     narrow = Camera(cam.K, cam.R, cam.t, 1000, 1080)
-    assert ct.synthetic_tracked_curves(V, F, [narrow], loops) == []
+    assert synthetic_tracked_curves(V, F, [narrow], loops) == []
 
 
 def test_silhouettes_far_from_the_tracked_curve_do_not_count(ict, ict_loops):
@@ -488,26 +508,26 @@ def test_silhouettes_far_from_the_tracked_curve_do_not_count(ict, ict_loops):
     ring 5 and an outline on the lip front (ring 13). A curve traced along either is matched to that ring."""
     w = {"jawOpen": 0.53, "mouthFunnel": 0.47, "mouthLowerDown_L": 0.21, "mouthLowerDown_R": 0.24,
          "mouthSmile_L": 0.55, "mouthSmile_R": 0.24, "mouthUpperUp_R": 0.18}
-    from facelab_addon.core.capture_sim import helmet_cameras
+    from facelab_addon.testing.capture_sim import helmet_cameras
 
     X = ict.pose(w)
     cams = helmet_cameras()  # 3 cm below the mouth, 19 cm away, 6 cm either side
     lo, hi = ict_loops._pack.offsets["mouth_lower"]
     for cam in cams:
-        c = ct._half_counts(X, cam, ict_loops)[lo:hi]
+        c = _half_counts(X, cam, ict_loops)[lo:hi]
         assert c[5] == c.max() and c[13] >= 0.5 * c[5]  # both are real silhouettes; the count alone says 5
     for k in (5, 13):
         for ci, cam in enumerate(cams):
-            P = ct.resample_polyline(cam.project(ct._eval_points(X, ict_loops.halves["mouth_lower"][k])), 0.25)
-            corr = ct.match_contours(X, ict.faces, cams, [ct.TrackedCurve("mouth_lower", ci, P)], ict_loops)[0]
+            P = resample_polyline(cam.project(_eval_points(X, ict_loops.halves["mouth_lower"][k])), 0.25)
+            corr = match_contours(X, ict.faces, cams, [TrackedCurve("mouth_lower", ci, P)], ict_loops)[0]
             assert corr.loop == k
-            assert ct.contour_residuals(X, cams, [corr])[0].max() < 0.1
+            assert contour_residuals(X, cams, [corr])[0].max() < 0.1
 
 
 def test_synthetic_tracker_follows_the_opening_not_the_lip_front_outline(ict, ict_loops):
     """A pose where the lower lip's front outline (ring 13) has about as many inner silhouette edges as the
     inner-lip line (ring 6): only the edges nearest the opening make the synthetic tracker's curve."""
-    from facelab_addon.core.capture_sim import helmet_cameras
+    from facelab_addon.testing.capture_sim import helmet_cameras
 
     w = {"browInnerUp_L": 0.496, "eyeBlink_L": 0.272, "eyeBlink_R": 0.596, "jawLeft": -0.049, "jawOpen": 0.526,
          "mouthFunnel": 0.473, "mouthLowerDown_L": 0.209, "mouthLowerDown_R": 0.243, "mouthPucker": 0.066,
@@ -516,16 +536,16 @@ def test_synthetic_tracker_follows_the_opening_not_the_lip_front_outline(ict, ic
     X = ict.pose(w)
     cams = helmet_cameras()
     lo, hi = ict_loops._pack.offsets["mouth_lower"]
-    curves = ct.synthetic_tracked_curves(X, ict.faces, cams, ict_loops, names=["mouth_lower"])
+    curves = synthetic_tracked_curves(X, ict.faces, cams, ict_loops, names=["mouth_lower"])
     for cam, cv in zip(cams, curves):
-        inner = ct._half_counts(X, cam, ict_loops)[lo:hi]
-        env = ct._envelope_counts(X, cam, ict_loops)[lo:hi]
+        inner = _half_counts(X, cam, ict_loops)[lo:hi]
+        env = _envelope_counts(X, cam, ict_loops)[lo:hi]
         assert (env <= inner).all()
         assert inner[13] >= 0.75 * inner.max() and env[13] <= 0.5 * inner[13]
         # ring 13 lies below the chosen ring in the image, away from the opening
         k = int(np.argmax(env))
         assert k in (5, 6)
-        y = [cam.project(ct._eval_points(X, ict_loops.halves["mouth_lower"][j]))[:, 1].mean() for j in (k, 13)]
+        y = [cam.project(_eval_points(X, ict_loops.halves["mouth_lower"][j]))[:, 1].mean() for j in (k, 13)]
         assert y[1] > y[0]
         ends = cam.project(X[ict_loops.halves["mouth_lower"][k].chain[[0, -1]]])
         np.testing.assert_allclose(cv.pixels[[0, -1]], ends, atol=1e-9)

@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
 
-from facelab_addon.core.deform import LaplacianDeformer, PointConstraints
 from facelab_addon.core.errors import FaceLabError
-from facelab_addon.core.laplacian import cotangent_laplacian, uniform_laplacian
+from facelab_addon.core.geometry.deform import LaplacianDeformer, PointConstraints
+from facelab_addon.core.geometry.laplacian import cotangent_laplacian, uniform_laplacian
 
 from .test_laplacian import grid
 

@@ -3,27 +3,21 @@
 import numpy as np
 import pytest
 
-from facelab_addon.core.deformation_transfer import (
+from facelab_addon.core.errors import FaceLabError
+from facelab_addon.core.solve.deformation_transfer import (
     DeformationTransfer,
     deformation_transfer,
     triangle_correspondence_from_markers,
 )
-from facelab_addon.core.errors import FaceLabError
 
 
 def grid(n=15, m=None, size=1.0, bump=0.15):
     """Bumpy height-field patch on [0,size]^2 with n x m vertices (one piece)."""
+    from facelab_addon.testing.meshes import grid_mesh
+
     m = n if m is None else m
-    xs, ys = np.linspace(0, size, n), np.linspace(0, size, m)
-    X, Y = np.meshgrid(xs, ys, indexing="ij")
-    Z = bump * np.sin(2.0 * X) * np.cos(1.5 * Y) + 0.05 * X * Y
-    V = np.stack([X, Y, Z], -1).reshape(-1, 3)
-    F = []
-    for i in range(n - 1):
-        for j in range(m - 1):
-            a, b, c, d = i * m + j, (i + 1) * m + j, (i + 1) * m + j + 1, i * m + j + 1
-            F += [[a, b, c], [a, c, d]]
-    return V, np.array(F, dtype=np.int64)
+    return grid_mesh(np.linspace(0, size, n), np.linspace(0, size, m),
+                     lambda X, Y: bump * np.sin(2.0 * X) * np.cos(1.5 * Y) + 0.05 * X * Y)
 
 
 def two_pieces():

@@ -5,22 +5,19 @@ import itertools
 import numpy as np
 import pytest
 
-from facelab_addon.core.errors import FaceLabError
-from facelab_addon.core.geometric_indexing import (
-    BlendshapeFit,
-    BundleError,
-    DatasetError,
-    GeometricIndexer,
-    JawRig,
-    RigCorrectives,
+from facelab_addon.core.errors import BundleError, DatasetError, FaceLabError
+from facelab_addon.core.lgi.baselines import BlendshapeFit
+from facelab_addon.core.lgi.binding import bind_points
+from facelab_addon.core.lgi.correctives import RigCorrectives, rig_correctives
+from facelab_addon.core.lgi.indexer import GeometricIndexer
+from facelab_addon.core.lgi.jaw import JawRig
+from facelab_addon.core.lgi.natural_neighbor import surface_points
+from facelab_addon.core.lgi.tets import (
     _closest_point_triangles,
     barycentric_tetrahedron,
-    bind_points,
     closest_point_tetrahedron,
-    rig_correctives,
     tetrahedron_quality,
 )
-from facelab_addon.core.natural_neighbor import surface_points
 
 # ---------------------------------------------------------------- a small synthetic face
 
@@ -30,14 +27,9 @@ FTOL = 1e-6
 
 
 def plane(n=17):
-    x, y = np.meshgrid(np.linspace(0, 1, n), np.linspace(0, 1, n), indexing="ij")
-    V = np.stack([x, y, np.zeros_like(x)], -1).reshape(-1, 3)
-    F = []
-    for i in range(n - 1):
-        for j in range(n - 1):
-            a, b, c, d = i * n + j, (i + 1) * n + j, (i + 1) * n + j + 1, i * n + j + 1
-            F += [[a, b, c], [a, c, d]]
-    return V, np.array(F)
+    from facelab_addon.testing.meshes import grid_mesh
+
+    return grid_mesh(np.linspace(0, 1, n), np.linspace(0, 1, n))
 
 
 CENTERS = np.array([[0.25, 0.25], [0.75, 0.25], [0.25, 0.75], [0.75, 0.75], [0.5, 0.5], [0.5, 0.15]])
@@ -278,7 +270,12 @@ def test_local_geometry_beats_the_blendshape_fit_on_nonlinear_combinations(toy):
         e_lgi.append(np.abs(gi.reconstruct(q) - x).max())
         e_fit.append(np.abs(fit.reconstruct(q) - x).max())
     assert np.mean(e_lgi) < 0.01  # 1 % of the face size
-    assert np.isfinite(e_fit).all()
+    # the comparison the name promises, against the baseline it names. On this toy it does not hold: the fit
+    # of all 17 dataset shapes (pairs and halves included) is closer (measured mean max error 8.4e-4 against
+    # 3.2e-3, on every one of the 8 poses). Reported as an expected failure until the claim holds.
+    if not np.mean(e_lgi) < np.mean(e_fit):
+        pytest.xfail(f"the blendshape fit beats local geometric indexing here: mean max error "
+                     f"{np.mean(e_fit):.2e} vs {np.mean(e_lgi):.2e}")
 
 
 def test_blendshape_fit_recovers_linear_weights_and_soft_bounds():
@@ -445,7 +442,7 @@ def test_bad_bundle_bindings_and_frames(toy):
 
 
 def test_ict_expressions_reconstruct_exactly_and_interpolate(ict):
-    from facelab_addon.core.datasets import ict_bundle_layout, ict_triangle_uvs
+    from facelab_addon.testing.datasets import ict_bundle_layout, ict_triangle_uvs
 
     names = ["jawOpen", "mouthSmile_L", "mouthSmile_R", "browInnerUp_L", "browInnerUp_R", "mouthPucker",
              "mouthFunnel", "cheekPuff_L", "noseSneer_L", "eyeBlink_L", "mouthFrown_R", "browDown_R"]

@@ -4,21 +4,16 @@ import numpy as np
 import pytest
 
 from facelab_addon.core.errors import MeshError
-from facelab_addon.core.gradients import deformation_gradients, rest_inverse, shape_matrices
+from facelab_addon.core.geometry.gradients import deformation_gradients, rest_inverse, shape_matrices
 
 
 def bumpy_grid(n=6, seed=0):
     """A non-planar triangulated grid: (V,3), (F,3)."""
+    from facelab_addon.testing.meshes import grid_mesh
+
     rng = np.random.default_rng(seed)
-    x, y = np.meshgrid(np.linspace(0, 1, n), np.linspace(0, 1, n), indexing="ij")
-    z = 0.2 * np.sin(3 * x) * np.cos(2 * y) + 0.02 * rng.standard_normal(x.shape)
-    V = np.stack([x, y, z], -1).reshape(-1, 3)
-    F = []
-    for i in range(n - 1):
-        for j in range(n - 1):
-            a, b, c, d = i * n + j, (i + 1) * n + j, (i + 1) * n + j + 1, i * n + j + 1
-            F += [[a, b, c], [a, c, d]]
-    return V, np.array(F)
+    return grid_mesh(np.linspace(0, 1, n), np.linspace(0, 1, n),
+                     lambda x, y: 0.2 * np.sin(3 * x) * np.cos(2 * y) + 0.02 * rng.standard_normal(x.shape))
 
 
 def rotation(axis, angle):

@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
 
+from facelab_addon.core.capture.ict import find_ict_dir, load_ict
 from facelab_addon.core.errors import DataMissingError
-from facelab_addon.core.ict import find_ict_dir, load_ict
-from facelab_addon.core.mesh import validate_mesh
+from facelab_addon.core.geometry.mesh import validate_mesh
 
 
 def test_ict_layout_and_counts(ict):

@@ -1,6 +1,6 @@
 import numpy as np
 
-from facelab_addon.core.laplacian import cotangent_laplacian, uniform_laplacian
+from facelab_addon.core.geometry.laplacian import cotangent_laplacian, uniform_laplacian
 
 
 def grid(n=7, jitter=0.0, seed=0):

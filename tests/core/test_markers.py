@@ -2,8 +2,13 @@
 
 import numpy as np
 
-from facelab_addon.core.camera import Camera
-from facelab_addon.core.markers import SurfacePoints, bind_surface_points, nearest_surface_points, ray_triangle_hits
+from facelab_addon.core.capture.camera import Camera
+from facelab_addon.core.capture.markers import (
+    SurfacePoints,
+    bind_surface_points,
+    nearest_surface_points,
+    ray_triangle_hits,
+)
 
 # unit square in z=0 (two triangles) and, in front of it (z=1), a triangle covering x + y <= 0.5
 V = np.array(
@@ -77,7 +82,7 @@ def test_surface_points_follow_a_deformation_and_sequences():
 def test_bind_on_ict_recovers_visible_skin_points(ict):
     import time
 
-    from facelab_addon.core.capture_sim import helmet_cameras, sample_markers
+    from facelab_addon.testing.capture_sim import helmet_cameras, sample_markers
 
     cams = helmet_cameras()
     skin = ict.part_face_mask("M_Face")

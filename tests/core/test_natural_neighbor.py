@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from facelab_addon.core.errors import FaceLabError, MeshError
-from facelab_addon.core.natural_neighbor import (
+from facelab_addon.core.lgi.natural_neighbor import (
     gaussian_rbf_weights,
     natural_neighbor_weights,
     sibson_coordinates,
@@ -14,14 +14,10 @@ from facelab_addon.core.natural_neighbor import (
 
 def grid(n=13, size=1.0):
     """Planar (n x n) grid in z=0 over [0, size]^2, its triangles and per-vertex UVs (= xy / size)."""
-    x, y = np.meshgrid(np.linspace(0, size, n), np.linspace(0, size, n), indexing="ij")
-    V = np.stack([x, y, np.zeros_like(x)], -1).reshape(-1, 3)
-    F = []
-    for i in range(n - 1):
-        for j in range(n - 1):
-            a, b, c, d = i * n + j, (i + 1) * n + j, (i + 1) * n + j + 1, i * n + j + 1
-            F += [[a, b, c], [a, c, d]]
-    return V, np.array(F), V[:, :2] / size
+    from facelab_addon.testing.meshes import grid_mesh
+
+    V, F = grid_mesh(np.linspace(0, size, n), np.linspace(0, size, n))
+    return V, F, V[:, :2] / size
 
 
 def raster_sibson(sites, p, n=900, lo=-0.5, hi=1.5):

@@ -3,22 +3,16 @@
 import numpy as np
 import pytest
 
-from facelab_addon.core import regions
-from facelab_addon.core.errors import DataMissingError
-from facelab_addon.core.mesh import vertex_adjacency
-from facelab_addon.core.regions import RegionError
+from facelab_addon.core.geometry import geodesic
+from facelab_addon.core.geometry.mesh import vertex_adjacency
+from facelab_addon.core.lips import lip_loop, regions
+from facelab_addon.core.lips.regions import RegionError
 
 
 def grid(n=7, m=None):
-    m = n if m is None else m
-    x, y = np.meshgrid(np.arange(n, dtype=float), np.arange(m, dtype=float), indexing="ij")
-    V = np.stack([x, y, np.zeros_like(x)], -1).reshape(-1, 3)
-    F = []
-    for i in range(n - 1):
-        for j in range(m - 1):
-            a, b, c, d = i * m + j, (i + 1) * m + j, (i + 1) * m + j + 1, i * m + j + 1
-            F += [[a, b, c], [a, c, d]]
-    return V, np.array(F)
+    from facelab_addon.testing.meshes import grid_mesh
+
+    return grid_mesh(np.arange(n, dtype=float), np.arange(n if m is None else m, dtype=float))
 
 
 def tube(n_around=12, n_up=4):
@@ -90,48 +84,43 @@ def test_order_edge_loop():
     V, F = tube()
     ring = np.arange(12, 24)  # the second ring of the tube
     rng = np.random.default_rng(0)
-    got = regions.order_edge_loop(F, rng.permutation(ring))
+    got = lip_loop.order_edge_loop(F, rng.permutation(ring))
     A = vertex_adjacency(F, len(V))
     assert set(got.tolist()) == set(ring.tolist())
     assert all(A[got[i], got[(i + 1) % 12]] for i in range(12))
-    np.testing.assert_array_equal(regions.order_edge_loop(F, ring), ring)  # an ordered loop is kept
+    np.testing.assert_array_equal(lip_loop.order_edge_loop(F, ring), ring)  # an ordered loop is kept
     with pytest.raises(RegionError, match="not a single closed edge loop"):
-        regions.order_edge_loop(F, ring[:-1])
+        lip_loop.order_edge_loop(F, ring[:-1])
     with pytest.raises(RegionError, match="more than one closed loop"):
-        regions.order_edge_loop(F, np.r_[ring, ring + 24])
+        lip_loop.order_edge_loop(F, np.r_[ring, ring + 24])
 
 
 def test_geodesic_distance_on_a_plane_is_euclidean():
     V, F = grid(9)
     V = V * [1.0, 0.7, 0.0]
-    d = regions.geodesic_distance(V, F, [40], limit=3.0)
+    d = geodesic.geodesic_distance(V, F, [40], limit=3.0)
     e = np.linalg.norm(V - V[40], axis=1)
     inside = e <= 2.5
     np.testing.assert_allclose(d[inside], e[inside], atol=1e-9)
     assert np.isinf(d[e > 4.5]).all()
-    de = regions.geodesic_distance(V, F, [40], limit=3.0, exact=False)
+    de = geodesic.geodesic_distance(V, F, [40], limit=3.0, exact=False)
     assert (de[inside] >= e[inside] - 1e-12).all() and de[inside].max() > e[inside].max()
 
 
 def test_no_mouth_raises():
     V, F = grid(9)
     with pytest.raises(RegionError, match="select the inner-lip edge loop"):
-        regions.inner_lip_loop(V, F)
+        lip_loop.inner_lip_loop(V, F)
 
 
 # ---------------------------------------------------------------- ICT-FaceKit
 
 
 @pytest.fixture(scope="module")
-def ict():
-    from facelab_addon.core.ict import load_ict
-
-    try:
-        m = load_ict()
-    except DataMissingError as e:  # pragma: no cover
-        pytest.skip(str(e))
-    mouth, lip, dist, loop = regions.auto_regions(m.neutral, m.faces, return_distance=True)
-    return m, loop, mouth, lip
+def ict_regions(ict):
+    """The ICT model and its Auto Regions: (model, inner-lip loop, mouth vertex mask, lip vertex mask)."""
+    mouth, lip, dist, loop = regions.auto_regions(ict.neutral, ict.faces, return_distance=True)
+    return ict, loop, mouth, lip
 
 
 def halves(V, loop):
@@ -139,8 +128,8 @@ def halves(V, loop):
     return loop[a : b + 1], np.r_[loop[b:], loop[: a + 1]]
 
 
-def test_ict_inner_lip_loop_is_the_contact_line(ict):
-    m, loop, _, _ = ict
+def test_ict_inner_lip_loop_is_the_contact_line(ict_regions):
+    m, loop, _, _ = ict_regions
     V, F = m.neutral, m.faces
     A = vertex_adjacency(F, len(V))
     assert len(np.unique(loop)) == len(loop) > 40
@@ -157,19 +146,19 @@ def test_ict_inner_lip_loop_is_the_contact_line(ict):
     assert abs(V[h1, 1].mean() - V[h2, 1].mean()) < 0.2
 
 
-def test_ict_loop_is_invariant_to_units_rotation_and_vertex_order(ict):
-    m, loop, _, _ = ict
+def test_ict_loop_is_invariant_to_units_rotation_and_vertex_order(ict_regions):
+    m, loop, _, _ = ict_regions
     rng = np.random.default_rng(3)
     perm = rng.permutation(len(m.neutral))  # new vertex i is old vertex perm[i]
     inv = np.argsort(perm)
     Q, _ = np.linalg.qr(rng.standard_normal((3, 3)))
     X = (m.neutral @ Q.T * 0.01)[perm]  # metres, rotated, shuffled
-    got = regions.inner_lip_loop(X, inv[m.faces])
+    got = lip_loop.inner_lip_loop(X, inv[m.faces])
     assert set(perm[got].tolist()) == set(loop.tolist())
 
 
-def test_ict_auto_regions(ict):
-    m, loop, mouth, lip = ict
+def test_ict_auto_regions(ict_regions):
+    m, loop, mouth, lip = ict_regions
     V, F = m.neutral, m.faces
     assert lip[loop].all() and not (mouth & ~lip)[loop].any()
     mf, lf = regions.faces_in_region(F, mouth), regions.faces_in_region(F, lip)
@@ -178,8 +167,8 @@ def test_ict_auto_regions(ict):
     assert not (mouth & ~lip & m.part_vertex_mask("M_BackHead")).any()
     assert not (mouth | lip)[m.part_vertex_mask("M_Teeth", "M_GumsTongue")].any()
     # widths are relative to the mouth: about 5 mm of lip and 2 cm of mouth on ICT (cm)
-    d = regions.geodesic_distance(V, F, loop, limit=5.0)
-    W = regions.loop_width(V, loop)  # mouth corner to corner: ICT's mouth is about 4.4 cm wide
+    d = geodesic.geodesic_distance(V, F, loop, limit=5.0)
+    W = lip_loop.loop_width(V, loop)  # mouth corner to corner: ICT's mouth is about 4.4 cm wide
     assert 4.0 < W < 5.0
     assert d[lip].max() <= regions.DEFAULT_LIP_WIDTH * W * 1.01
     assert 0.8 * regions.DEFAULT_LIP_WIDTH * W < d[lip].max()

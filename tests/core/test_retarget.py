@@ -4,19 +4,18 @@ import numpy as np
 import pytest
 
 from facelab_addon.core.errors import FaceLabError, RegionError
-from facelab_addon.core.laplacian import uniform_laplacian
-from facelab_addon.core.retarget import (
+from facelab_addon.core.geometry.laplacian import uniform_laplacian
+from facelab_addon.core.solve.lip_contours import (
     EndPoints,
-    LipSync,
-    Retargeter,
     contour_points,
     end_points_from_vertices,
     lip_contours,
     lip_distances,
     lip_sync_end_points,
-    retarget_performance,
-    widen_mouth,
 )
+from facelab_addon.core.solve.lip_sync import LipSync
+from facelab_addon.core.solve.retarget import Retargeter, retarget_performance
+from facelab_addon.testing.creature import widen_mouth
 
 N = 40  # vertices around the mouth (corners at angles 0 and pi)
 
@@ -206,7 +205,7 @@ def test_lip_sync_on_the_zigzag_ict_loop_keeps_the_creature_lips_smooth():
     vertex (millimetres), 99th percentile over the vertices the lip sync moves. The former strong (1000)
     constraints on the raw zigzag targets tore the lips (checked below with those settings).
     """
-    from facelab_addon.core.ict import load_ict
+    from facelab_addon.core.capture.ict import load_ict
 
     m = load_ict(scale=0.01)  # metres
     V, F = m.neutral, m.faces

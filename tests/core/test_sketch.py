@@ -1,10 +1,15 @@
 import numpy as np
 import pytest
 
-from facelab_addon.core.camera import Camera
+from facelab_addon.core.capture.camera import Camera
 from facelab_addon.core.errors import CameraError, MeshError, SketchError
-from facelab_addon.core.silhouette import contour_distance, lip_side, silhouette_edges
-from facelab_addon.core.sketch import press_lips, refine_lips, resample_polyline
+from facelab_addon.core.geometry.polyline import resample_polyline
+from facelab_addon.core.geometry.silhouette import (
+    contour_distance,
+    lip_side,
+    silhouette_edges,
+)
+from facelab_addon.core.lips.sketch import press_lips, refine_lips
 
 from .lipmesh import front_camera, line_px, two_lips
 
@@ -83,6 +88,18 @@ def test_fixed_vertices_are_not_lip_candidates_and_barely_move():
     fixed = ~upper  # the lower lip is "hidden": only the upper may be matched
     with pytest.raises(SketchError, match="lower-lip silhouette"):
         refine_lips(V, F, cam, line_px(cam, 0.1), line_px(cam, -0.1), fixed=fixed)
+    # the left part of the upper lip fixed: free, its silhouette is matched and moves the full 0.1
+    fixed = upper & (V[:, 0] < -0.5)
+    up, lo = line_px(cam, 0.1), line_px(cam, -0.1)
+    X0, free = refine_lips(V, F, cam, up, lo, return_info=True)
+    X1, held = refine_lips(V, F, cam, up, lo, fixed=fixed, return_info=True)
+    ids = np.flatnonzero(fixed)
+    assert np.isin(free["matched_upper"], ids).any()  # measured 10 (the check below can fail)
+    assert not np.isin(np.r_[held["matched_upper"], held["matched_lower"]], ids).any()
+    d0, d1 = np.linalg.norm(X0 - V, axis=1)[fixed], np.linalg.norm(X1 - V, axis=1)[fixed]
+    assert d1.mean() < 0.1 * d0.mean()  # measured 0.0003 vs 0.0094
+    assert d1.max() < 0.5 * d0.max()  # measured 0.029 vs 0.098 (next to the free part, which pulls them)
+    assert np.linalg.norm(X1 - V, axis=1)[upper & (V[:, 0] > 0.5)].max() > 0.09  # the free side still moves
 
 
 def test_bad_input_messages():

@@ -1,0 +1,245 @@
+"""Bake the evaluated mesh of an object to point-cache files (PC2, MDD) or Alembic.
+
+A bake is a generator of one step per frame (:func:`bake_point_cache_steps`), so a modal
+operator can show progress and cancel; :func:`bake_pc2`, :func:`bake_mdd` and
+:func:`bake_alembic` run to the end. Files are written by
+:class:`facelab_addon.core.capture.pointcache_writer.PointCacheWriter`, which never leaves a
+half-written file at the destination. Positions are object-local scene units.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+
+import bpy
+import numpy as np
+
+from ..core.capture import pointcache_writer
+from ..core.errors import FaceLabError
+from .caches import (
+    _frames,
+    _iter_evaluated,
+    _kept_frame,
+    _prefixes,
+    require_mesh_object,
+    scene_fps,
+)
+
+__all__ = ["bake_point_cache_steps", "bake_pc2", "bake_mdd", "bake_alembic"]
+
+
+def _uniform_step(frames, what):
+    if len(frames) == 1:
+        return 1.0
+    steps = np.diff(frames)
+    if not (steps > 0).all() or not np.allclose(steps, steps[0], rtol=0, atol=1e-6):
+        raise FaceLabError(
+            f"{what} needs increasing, evenly spaced frames (got steps {np.unique(np.round(steps, 6))[:5].tolist()}); "
+            "bake a range such as range(start, end + 1)."
+        )
+    return float(steps[0])
+
+
+def _point_cache_header(frames, fmt) -> dict:
+    """Header keywords of a ``PointCacheWriter`` for ``frames``; raises when the frames do not fit ``fmt``."""
+    if fmt == "PC2":
+        return dict(start_frame=float(frames[0]), sample_rate=_uniform_step(frames, "A PC2 bake"))
+    if fmt == "MDD":
+        if len(frames) > 1 and not (np.diff(frames) > 0).all():
+            raise FaceLabError("An MDD bake needs increasing scene frames.")
+        return dict(times=frames / scene_fps())
+    raise FaceLabError(f"Unknown point-cache format {fmt!r}; bake to 'PC2' or 'MDD'.")
+
+
+def _bake_steps(obj, frames, new_writer, *, mute_prefixes=(), progress=None):
+    """Write the evaluated mesh of every frame; yields ``("baking frame F", i + 1, T)``, returns the path.
+
+    ``new_writer()`` opens the ``PointCacheWriter`` on the first step. Closing
+    the generator early, or an error, aborts the writer (an existing file at
+    the destination stays untouched) and restores the scene frame.
+    """
+    writer = new_writer()
+    it = _iter_evaluated(obj, frames, mute_prefixes=mute_prefixes, progress=progress)
+    ok = False
+    try:
+        for i, co in it:
+            writer.write(co)
+            yield f"baking frame {int(frames[i])}", i + 1, len(frames)
+        ok = True
+    finally:
+        it.close()  # restores the scene frame
+        if not ok:
+            writer.abort()
+    return writer.close()
+
+
+def _run(steps):
+    """Run a generator of steps to the end; its return value."""
+    while True:
+        try:
+            next(steps)
+        except StopIteration as stop:
+            return stop.value
+
+
+def bake_point_cache_steps(obj, scene_frames, path, fmt, *, mute_shape_keys_prefix=(), progress=None):
+    """A PC2 or MDD bake of the evaluated mesh of ``obj``, as a generator of one step per frame.
+
+    The arguments are checked at once (errors are raised by this call, before
+    any file is opened); the returned generator opens the file on its first
+    step, yields ``("baking frame F", done, total)`` after each frame and
+    returns the written ``pathlib.Path``. The file is written beside its
+    destination and moved in place at the end, so closing the generator early
+    (a cancel) or an error leaves an existing file untouched; the scene frame
+    is restored either way.
+
+    Parameters
+    ----------
+    obj : bpy.types.Object
+    scene_frames : (T,) array_like of float
+        PC2: increasing, evenly spaced; MDD: increasing.
+    path : str or os.PathLike
+        Destination (``//`` paths are relative to the .blend).
+    fmt : {"PC2", "MDD"}
+    mute_shape_keys_prefix : tuple of str
+        Keys to leave out (default none: the final mesh).
+    progress : callable(i, T), optional
+
+    Returns
+    -------
+    generator
+        Of ``(str, int, int)``; its return value is the ``pathlib.Path``.
+
+    Raises
+    ------
+    MeshError
+        ``obj`` is not a mesh object.
+    FaceLabError
+        Frames unfit for the format (see :func:`bake_pc2`, :func:`bake_mdd`) or an unknown format.
+    """
+    require_mesh_object(obj)
+    frames = _frames(scene_frames)
+    header = _point_cache_header(frames, fmt)
+    dest, n = bpy.path.abspath(os.fspath(path)), len(obj.data.vertices)
+    return _bake_steps(obj, frames, lambda: pointcache_writer.PointCacheWriter(dest, fmt, n, len(frames), **header),
+                       mute_prefixes=_prefixes(mute_shape_keys_prefix), progress=progress)
+
+
+def bake_pc2(obj, scene_frames, path, *, progress=None, mute_shape_keys_prefix=()) -> Path:
+    """Bake the evaluated (corrected) mesh of ``obj`` over ``scene_frames`` to a PC2 file.
+
+    Positions are object-local. The header's start frame is
+    ``scene_frames[0]`` and its sample rate the frame step. The file is
+    written next to its destination and moved in place at the end, so a
+    failed bake leaves any existing file untouched.
+
+    Parameters
+    ----------
+    obj : bpy.types.Object
+    scene_frames : (T,) array_like of float
+        Increasing, evenly spaced scene frames.
+    path : str or os.PathLike
+        Destination (``//`` paths are relative to the .blend).
+    progress : callable(i, T), optional
+    mute_shape_keys_prefix : tuple of str
+        Keys to leave out (default none: the final mesh).
+
+    Returns
+    -------
+    pathlib.Path
+    """
+    return _run(bake_point_cache_steps(obj, scene_frames, path, "PC2", progress=progress,
+                                       mute_shape_keys_prefix=mute_shape_keys_prefix))
+
+
+def bake_mdd(obj, scene_frames, path, *, progress=None, mute_shape_keys_prefix=()) -> Path:
+    """Bake the evaluated (corrected) mesh of ``obj`` to an MDD file.
+
+    Sample ``i`` gets the time ``scene_frames[i] / fps`` seconds (scene fps),
+    Blender's clock, so a Mesh Cache in ``time_mode='TIME'`` with
+    ``frame_start=0`` plays it back on the same frames.
+
+    Parameters
+    ----------
+    obj : bpy.types.Object
+    scene_frames : (T,) array_like of float
+        Increasing scene frames.
+    path : str or os.PathLike
+    progress : callable(i, T), optional
+    mute_shape_keys_prefix : tuple of str
+
+    Returns
+    -------
+    pathlib.Path
+    """
+    return _run(bake_point_cache_steps(obj, scene_frames, path, "MDD", progress=progress,
+                                       mute_shape_keys_prefix=mute_shape_keys_prefix))
+
+
+def bake_alembic(obj, scene_frames, path, *, evaluation_mode="VIEWPORT") -> Path:
+    """Export the evaluated (corrected) animation of ``obj`` alone to an Alembic file.
+
+    Runs ``bpy.ops.wm.alembic_export`` with only ``obj`` selected (works in
+    the headless bpy module without a window), over every frame from
+    ``min(scene_frames)`` to ``max(scene_frames)``. Selection, active object
+    and current frame are restored.
+
+    Parameters
+    ----------
+    obj : bpy.types.Object
+        A visible mesh object in the active view layer.
+    scene_frames : array_like of int
+        Frames to cover (the export is the whole integer range).
+    path : str or os.PathLike
+        Destination ``.abc``.
+    evaluation_mode : {"VIEWPORT", "RENDER"}
+        Which modifier visibility the export uses; ``"VIEWPORT"`` matches
+        ``evaluate_frames``.
+
+    Returns
+    -------
+    pathlib.Path
+
+    Raises
+    ------
+    FaceLabError
+        When the object is hidden or the exporter fails.
+    """
+    require_mesh_object(obj)
+    frames = _frames(scene_frames)
+    start, end = int(math.floor(frames.min())), int(math.ceil(frames.max()))
+    out = Path(bpy.path.abspath(os.fspath(path)))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    vl = bpy.context.view_layer
+    if vl.objects.get(obj.name) is None or not obj.visible_get():
+        raise FaceLabError(f"'{obj.name}' is hidden or not in this view layer; unhide it to export it to Alembic.")
+    scene = bpy.context.scene
+    prev_sel = [o for o in vl.objects if o.select_get()]
+    prev_active = vl.objects.active
+    try:
+        with _kept_frame(scene):
+            for o in prev_sel:
+                o.select_set(False)
+            obj.select_set(True)
+            vl.objects.active = obj
+            with bpy.context.temp_override(active_object=obj, object=obj, selected_objects=[obj]):
+                res = bpy.ops.wm.alembic_export(
+                    filepath=str(out),
+                    start=start,
+                    end=end,
+                    selected=True,
+                    evaluation_mode=evaluation_mode,
+                    as_background_job=False,
+                    init_scene_frame_range=False,
+                )
+    finally:
+        for o in vl.objects:
+            o.select_set(False)
+        for o in prev_sel:
+            o.select_set(True)
+        vl.objects.active = prev_active
+    if "FINISHED" not in res or not out.is_file():
+        raise FaceLabError(f"Alembic export of '{obj.name}' to '{out}' failed ({res}); check the path is writable.")
+    return out

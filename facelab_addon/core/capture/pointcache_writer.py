@@ -1,0 +1,232 @@
+"""Writing PC2 and MDD point-cache files, sample by sample.
+
+The byte layouts are those read by :mod:`.pointcache` (and by Blender's Mesh
+Cache modifier). :class:`PointCacheWriter` writes one (V,3) sample at a time,
+so a bake never holds the whole (T,V,3) sequence, into ``<path>.tmp``, which
+replaces ``path`` only when every announced sample was written.
+``write_pc2`` / ``write_mdd`` write a whole array at once.
+
+Positions are object-local, scene units, stored as float32 (little-endian for
+PC2, big-endian for MDD); MDD sample times are in seconds. No bpy in this
+module.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import CacheFileError, CacheVertexCountError, MeshError
+from .pointcache import _PC2_HEADER, _PC2_HEADER_BYTES, PC2_MAGIC
+
+__all__ = ["PointCacheWriter", "write_pc2", "write_mdd"]
+
+
+def _check_frames(frames, what="frames"):
+    a = np.asarray(frames)
+    if a.ndim == 2 and a.shape[1] == 3:
+        a = a[None]
+    if a.ndim != 3 or a.shape[2] != 3 or a.shape[0] == 0 or a.shape[1] == 0:
+        raise MeshError(f"{what} must be a non-empty (T,V,3) array of positions, got shape {a.shape}.")
+    if not np.issubdtype(a.dtype, np.number):
+        raise MeshError(f"{what} must be numeric, got dtype {a.dtype}.")
+    return a
+
+
+class PointCacheWriter:
+    """Write a PC2 or MDD file sample by sample (for bakes that never hold (T,V,3)).
+
+    The file is written to ``<path>.tmp`` and moved onto ``path`` only when
+    all ``num_samples`` samples were written and the writer is closed, so a
+    failed bake never leaves a truncated file (nor clobbers the cache that
+    is being read while baking).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+    fmt : {"PC2", "MDD"}
+    num_points : int
+        V.
+    num_samples : int
+        T, announced in the header.
+    start_frame : float
+        PC2 header start frame (frames).
+    sample_rate : float
+        PC2 header sample rate (frames between samples).
+    times : (T,) array_like, optional
+        MDD sample times in seconds (required for MDD).
+
+    Examples
+    --------
+    >>> with PointCacheWriter("a.pc2", "PC2", V, T, start_frame=1.0) as w:  # doctest: +SKIP
+    ...     for co in frames:
+    ...         w.write(co)            # (V,3)
+    """
+
+    def __init__(self, path, fmt, num_points, num_samples, *, start_frame=1.0, sample_rate=1.0, times=None):
+        self.path = Path(os.fspath(path))
+        self.format = str(fmt).upper()
+        self.num_points = int(num_points)
+        self.num_samples = int(num_samples)
+        if self.num_points <= 0 or self.num_samples <= 0:
+            raise MeshError(
+                f"A point cache needs at least one point and one sample (got {self.num_points} points, "
+                f"{self.num_samples} samples)."
+            )
+        if self.format == "PC2":
+            self._dtype = np.dtype("<f4")
+            header = np.zeros(1, dtype=_PC2_HEADER)
+            header["magic"] = PC2_MAGIC
+            header["version"] = 1
+            header["num_points"] = self.num_points
+            header["start_frame"] = start_frame
+            header["sample_rate"] = sample_rate
+            header["num_samples"] = self.num_samples
+            head = header.tobytes()
+            assert len(head) == _PC2_HEADER_BYTES and head[:12] == PC2_MAGIC
+        elif self.format == "MDD":
+            if times is None:
+                raise MeshError("MDD needs one time per sample (seconds); pass times=.")
+            t = np.asarray(times, dtype=np.float64).reshape(-1)
+            if len(t) != self.num_samples or not np.isfinite(t).all():
+                raise MeshError(f"MDD times must be {self.num_samples} finite values in seconds, got {len(t)}.")
+            self._dtype = np.dtype(">f4")
+            head = np.array([self.num_samples, self.num_points], dtype=">i4").tobytes() + t.astype(">f4").tobytes()
+        else:
+            raise CacheFileError(f"Unknown point-cache format '{fmt}'; use 'PC2' or 'MDD'.")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._tmp = self.path.with_name(self.path.name + ".tmp")
+        self._f = open(self._tmp, "wb")
+        self._f.write(head)
+        self.written = 0
+
+    def write(self, positions) -> None:
+        """Append samples.
+
+        Parameters
+        ----------
+        positions : (V,3) or (k,V,3) array_like
+            Object-local positions, scene units; must be finite.
+        """
+        a = _check_frames(positions, "positions")
+        if a.shape[1] != self.num_points:
+            raise CacheVertexCountError(
+                f"Sample has {a.shape[1]} points but the cache '{self.path}' was opened for {self.num_points}; "
+                "the mesh changed its vertex count during the bake (disable topology-changing modifiers)."
+            )
+        if self.written + len(a) > self.num_samples:
+            raise MeshError(f"More samples than announced ({self.num_samples}) for '{self.path}'.")
+        for k in range(len(a)):  # one sample at a time: no (T,V,3) temporaries
+            s = a[k]
+            if not np.isfinite(s).all():
+                raise MeshError(
+                    f"Sample {self.written} has NaN or infinite positions; fix the mesh on that frame before baking."
+                )
+            self._f.write(np.ascontiguousarray(s, dtype=self._dtype).tobytes())
+            self.written += 1
+
+    def close(self) -> Path:
+        """Finish the file (moved from ``.tmp`` onto ``path``) and return its path.
+
+        Raises
+        ------
+        MeshError
+            When fewer samples than announced were written (the partial file is removed).
+        """
+        if self._f is None:
+            return self.path
+        self._f.close()
+        self._f = None
+        if self.written != self.num_samples:
+            self._tmp.unlink(missing_ok=True)
+            raise MeshError(
+                f"Only {self.written} of {self.num_samples} samples were written to '{self.path}'; nothing was saved."
+            )
+        os.replace(self._tmp, self.path)
+        return self.path
+
+    def abort(self) -> None:
+        """Drop the partial file; ``path`` is left as it was."""
+        if self._f is not None:
+            self._f.close()
+            self._f = None
+        self._tmp.unlink(missing_ok=True)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        if exc_type is not None:
+            self.abort()
+            return False
+        self.close()
+        return False
+
+
+def write_pc2(path, frames, start=1.0, sample_rate=1.0) -> Path:
+    """Write a PC2 point cache.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+    frames : (T,V,3) array_like
+        Object-local positions, scene units (any float dtype; stored float32).
+        A single (V,3) frame is accepted as T=1.
+    start : float
+        Header start frame (frames), the frame of sample 0.
+    sample_rate : float
+        Header sample rate: frames between two samples (1 = every frame).
+
+    Returns
+    -------
+    pathlib.Path
+
+    Raises
+    ------
+    MeshError
+        On a wrong shape or NaN/inf positions (nothing is written).
+    """
+    a = _check_frames(frames)
+    with PointCacheWriter(path, "PC2", a.shape[1], a.shape[0], start_frame=start, sample_rate=sample_rate) as w:
+        w.write(a)
+    return w.path
+
+
+def write_mdd(path, frames, fps=24.0, start_frame=1, *, times=None) -> Path:
+    """Write an MDD point cache (big-endian).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+    frames : (T,V,3) array_like
+        Object-local positions, scene units.
+    fps : float
+        Frames per second used for the time table.
+    start_frame : float
+        Scene frame of sample 0. Sample ``i`` gets the time
+        ``(start_frame + i) / fps`` seconds, Blender's clock (scene frame
+        ``f`` is at ``f / fps`` s), so a Mesh Cache modifier in
+        ``time_mode='TIME'`` with ``frame_start=0`` plays sample ``i`` on
+        scene frame ``start_frame + i``.
+    times : (T,) array_like, optional
+        Explicit sample times (seconds); overrides ``fps``/``start_frame``.
+
+    Returns
+    -------
+    pathlib.Path
+
+    Raises
+    ------
+    MeshError
+        On a wrong shape, NaN/inf positions or a non-positive ``fps``.
+    """
+    a = _check_frames(frames)
+    if times is None:
+        if not fps > 0:
+            raise MeshError(f"fps must be positive, got {fps}.")
+        times = (float(start_frame) + np.arange(a.shape[0], dtype=np.float64)) / float(fps)
+    with PointCacheWriter(path, "MDD", a.shape[1], a.shape[0], times=times) as w:
+        w.write(a)
+    return w.path

@@ -1,0 +1,318 @@
+"""Choosing a tetrahedron for every bundle (Cong, Lan and Fedkiw 2019, §4, §5.1, Eq. 1).
+
+The per-frame step of :class:`~facelab_addon.core.lgi.indexer.GeometricIndexer`
+(the mixin :class:`IndexerLocate`), with the neighbour tables it reads (built
+once):
+
+* **Eq. 1**: the chosen tetrahedron's barycentric weights blend its four
+  shapes. When no tetrahedron holds the bundle it is projected to the closest
+  point of the tetrahedralized volume (§4): the closest facet of the cloud's
+  convex hull (the union of the tetrahedra), or the closest tetrahedron where
+  the hull does not apply.
+* **Choosing tetrahedra** (§5.1): among the tetrahedra (and cloud points)
+  that hold a bundle, the one whose geometry puts the neighbouring bundles'
+  surface points closest to those bundles (root mean square over the natural
+  neighbours). For animated bundles a candidate's cost is multiplied by
+  ``1 + temporal_bias (4 - shared) / 4`` where ``shared`` counts the shapes it
+  shares with the previous frame's choice. Where the neighbours cannot tell
+  candidates apart (best cost below ``tie_tolerance``), the candidates are
+  re-ranked by a vote of the moving bundles (a nonlocal criterion, §4).
+
+Shapes: bundles ``q`` (B,3); the choice is shape ids (B,4) (0 = neutral,
+``s + 1`` = ``shapes[s]``) and barycentric weights (B,4). Units: positions,
+distances and costs in scene units; weights are unitless.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+from .tets import _closest_point_triangles, closest_point_tetrahedron
+
+__all__ = ["IndexerLocate"]
+
+
+def _ragged_arange(starts, counts):
+    """Concatenation of ``arange(s, s + c)`` for every pair; and the group of each entry."""
+    counts = np.asarray(counts, dtype=np.int64)
+    tot = int(counts.sum())
+    grp = np.repeat(np.arange(len(counts)), counts)
+    if tot == 0:
+        return np.zeros(0, dtype=np.int64), grp
+    off = np.cumsum(counts) - counts
+    idx = np.arange(tot, dtype=np.int64) - np.repeat(off, counts) + np.repeat(np.asarray(starts, np.int64), counts)
+    return idx, grp
+
+
+class IndexerLocate:
+    """Per-frame choice of tetrahedra of :class:`~facelab_addon.core.lgi.indexer.GeometricIndexer` (§4, §5.1).
+
+    A mixin: :meth:`locate` queries the clouds, tetrahedra, hulls and grids
+    built by :class:`~facelab_addon.core.lgi.clouds.IndexerClouds` and the
+    neighbour tables built by :meth:`_neighbor_tables`.
+    """
+
+    def _neighbor_tables(self, P, neighbor_rings):
+        """Neighbouring bundles (§5.1), their positions on every cloud point's shape, and the merged-point keys."""
+        B, S1 = self.B, self.S1
+        Nb = self.nn.neighbors.tocsr()
+        R = Nb.copy()
+        for _ in range(int(neighbor_rings) - 1):
+            R = ((R + R @ Nb) > 0).astype(np.float64)
+        R = R.tolil()
+        R.setdiag(0)
+        Nb = sp.csr_matrix(R)
+        Nb.eliminate_zeros()
+        Nb.sort_indices()
+        self._nbr_ptr, self._nbr_idx = Nb.indptr.astype(np.int64), Nb.indices.astype(np.int64)
+        self._deg = np.diff(self._nbr_ptr)
+        # every cloud point with every neighbour of its bundle: the neighbours' positions on that shape
+        pos, g = _ragged_arange(self._nbr_ptr[self._cloud_bundle], self._deg[self._cloud_bundle])
+        self._pp_point, self._pp_nbr = g, self._nbr_idx[pos]
+        self._pp_pos = P[self._cloud_shape[g], self._pp_nbr]
+        self._pp_off = np.r_[0, np.cumsum(self._deg[self._cloud_bundle])]
+        # merged points: the representative key of every cloud point, and the points of multi-member keys
+        rep_of = np.zeros(len(self._cloud_shape), dtype=np.int64)
+        for i in range(B):
+            lo_, hi_ = self._cloud_off[i], self._cloud_off[i + 1]
+            rep_of[lo_:hi_] = i * S1 + self.cloud_shapes[i][self._cloud_rep_local[i]]
+        self._pt_key = rep_of
+        multi = np.zeros(B * S1, dtype=bool)
+        multi[self._multi_keys] = True
+        self._multi_pts = np.flatnonzero(multi[rep_of])
+
+    def locate(self, q, prev=None):
+        """Choose a tetrahedron and barycentric weights for every bundle (§4, §5.1).
+
+        Parameters
+        ----------
+        q : (B,3) array_like
+            Unskinned bundle positions, scene units.
+        prev : (B,4) int array_like, optional
+            The previous frame's shapes; candidates sharing more shapes with
+            them are preferred (``temporal_bias``).
+
+        Returns
+        -------
+        shape_ids : (B,4) int64 ndarray
+            Shape index of each corner (0 = neutral, ``s + 1`` = ``shapes[s]``).
+        bary : (B,4) float64 ndarray
+            Barycentric weights (non-negative, sum 1).
+        distance : (B,) float64 ndarray
+            Distance from each bundle to its cloud's tetrahedralized volume
+            (0 when a tetrahedron holds it), scene units.
+        """
+        q = np.asarray(q, dtype=np.float64)
+        B, S1 = self.B, self.S1
+        # --- candidates: tetrahedra holding the bundle (grid, float32 screen, exact float64 weights)
+        rel = (q - self._grid_lo) / self._grid_h
+        cidx = np.floor(rel).astype(np.int64)
+        inbox = ((cidx >= 0) & (cidx < self._grid_n)).all(axis=1)
+        cidx = np.clip(cidx, 0, self._grid_n - 1)
+        cell = self._grid_base + (cidx[:, 2] * self._grid_n[:, 1] + cidx[:, 1]) * self._grid_n[:, 0] + cidx[:, 0]
+        s0 = self._cell_start[cell]
+        cnt = np.where(inbox, self._cell_start[cell + 1] - s0, 0)
+        pos, bund = _ragged_arange(s0, cnt)
+        cand = self._cell_tets[pos]
+        # box screen (float32 boxes rounded outwards), then the exact float64 affine maps of the survivors
+        q32 = q.astype(np.float32)
+        qb = q32[bund]
+        ok = ((self._tet_lo[cand] <= qb) & (qb <= self._tet_hi[cand])).all(axis=1)
+        cand, bund = cand[ok], bund[ok]
+        tid = self.tets[cand].astype(np.int64)
+        w3 = np.einsum("nij,nj->ni", self._tet_aff[cand], np.c_[q, np.ones(B)][bund])
+        w = np.column_stack([1 - w3.sum(1), w3])
+        inside = (w >= -1e-9).all(axis=1)
+        bund, tid, w = bund[inside], tid[inside], np.clip(w[inside], 0.0, None)
+        w /= np.maximum(w.sum(axis=1, keepdims=True), 1e-300)
+        # a candidate at a single cloud point is that point's candidate below
+        single = (w > 1 - 1e-9).any(axis=1)
+        bund, tid, w = bund[~single], tid[~single], w[~single]
+        dist = np.zeros(B)
+        dp = np.linalg.norm(self._cloud_pos - q[self._cloud_bundle], axis=1)
+        near = dp <= self.merge_tolerance
+        has = np.zeros(B, dtype=bool)
+        has[bund] = True
+        has[self._cloud_bundle[near]] = True
+        miss = np.flatnonzero(~has)
+        if len(miss):
+            pb, pt, pw, pd = self._project_hull(miss, q)
+            dist[miss] = pd
+            one = (pw > 1 - 1e-9).any(axis=1)
+            # projections onto a cloud point become that point's candidate
+            top = pt[np.arange(len(pt)), np.argmax(pw, axis=1)]
+            key = pb[one] * S1 + top[one]
+            near |= np.isin(self._pt_key, np.unique(key))
+            bund, tid, w = np.r_[bund, pb[~one]], np.vstack([tid, pt[~one]]), np.vstack([w, pw[~one]])
+        # --- cloud points that may be used alone or as members of merged points: their own cost (§5.1)
+        need = np.zeros(B * S1, dtype=bool)
+        need[(bund[:, None] * S1 + tid)[w > 0]] = True
+        mp = self._multi_pts
+        pts = np.union1d(mp[need[self._pt_key[mp]]], np.flatnonzero(near))
+        pc = self._point_costs(q, prev, pts)
+        ids, bary, cost = self._select(q, prev, None, bund, tid, w, pc, near)
+        # Ties: where the neighbours cannot tell candidates apart (best cost below tie_tolerance), prefer
+        # the shapes that the moving bundles chose (each bundle votes with its motion from the neutral).
+        amb = cost <= self.tie_tolerance
+        if amb.any() and self.tie_tolerance > 0:
+            motion = np.linalg.norm(q - self.points_all[0], axis=1)
+            vote = np.bincount(ids.ravel(), weights=(bary * motion[:, None]).ravel(), minlength=S1)
+            vote[0] = 0.0
+            if vote.max() > 0:
+                vote /= vote.max()
+            vote[0] = 0.5  # the neutral beats shapes no moving bundle chose (the least assumption)
+            pc2 = pc + self.tie_tolerance * (1.0 - vote[self._cloud_shape])
+            sel = amb[bund]
+            ids2, bary2, _ = self._select(q, prev, vote, bund[sel], tid[sel], w[sel], pc2, near & amb[self._cloud_bundle])
+            ids[amb], bary[amb] = ids2[amb], bary2[amb]
+        return ids, bary, dist
+
+    def _point_costs(self, q, prev, pts):
+        """(P,) cost of cloud points ``pts`` used alone: neighbour RMS distance (+ temporal term), scene
+        units; ``inf`` for the other points."""
+        c = np.full(len(self._cloud_shape), np.inf)
+        if len(pts) == 0:
+            return c
+        pos, g = _ragged_arange(self._pp_off[pts], self._pp_off[pts + 1] - self._pp_off[pts])
+        e = ((self._pp_pos[pos] - q[self._pp_nbr[pos]]) ** 2).sum(axis=1)
+        cp = np.sqrt(np.bincount(g, weights=e, minlength=len(pts)) / np.maximum(self._deg[self._cloud_bundle[pts]], 1))
+        if prev is not None:
+            pv = np.asarray(prev)[self._cloud_bundle[pts]]
+            cp = cp * (1.0 + self.temporal_bias * ~(pv == self._cloud_shape[pts][:, None]).any(axis=1))
+        c[pts] = cp
+        return c
+
+    def _select(self, q, prev, vote, bund, tid, w, pc, near):
+        """Best candidate per bundle among tetrahedra (bund, tid, w) and the cloud points flagged ``near``.
+
+        Merged points in tetrahedra are replaced by their best member (lowest
+        point cost). Returns (B,4) shapes, (B,4) weights and (B,) costs.
+        """
+        B, S1 = self.B, self.S1
+        sub = np.tile(np.arange(S1, dtype=np.int64), B)
+        mp = self._multi_pts
+        mp = mp[np.isfinite(pc[mp])]  # members without a cost keep their representative (the default)
+        if len(mp):
+            o = np.lexsort((pc[mp], self._pt_key[mp]))
+            k = self._pt_key[mp][o]
+            first = o[np.r_[True, k[1:] != k[:-1]]]
+            sub[self._pt_key[mp][first]] = self._cloud_shape[mp][first]
+        tid = sub[bund[:, None] * S1 + tid]
+        c_t = self._neighbor_cost(bund, tid, w, q, prev, vote) if len(bund) else np.zeros(0)
+        npt = np.flatnonzero(near)
+        ids = np.zeros((B, 4), dtype=np.int64)
+        bary = np.zeros((B, 4))
+        best = np.full(B, np.inf)
+        # cloud points first (a tetrahedron must be strictly better to win)
+        if len(npt):
+            o = np.lexsort((pc[npt], self._cloud_bundle[npt]))
+            bb_ = self._cloud_bundle[npt][o]
+            first = o[np.r_[True, bb_[1:] != bb_[:-1]]]
+            b_ = self._cloud_bundle[npt][first]
+            best[b_] = pc[npt][first]
+            ids[b_] = self._cloud_shape[npt][first][:, None]
+            bary[b_, 0] = 1.0
+        if len(bund):
+            o = np.lexsort((c_t, bund))
+            first = o[np.r_[True, bund[o][1:] != bund[o][:-1]]]
+            b_, c_ = bund[first], c_t[first]
+            better = c_ < best[b_] - 1e-15
+            b_, f_ = b_[better], first[better]
+            best[b_] = c_[better]
+            ids[b_], bary[b_] = tid[f_], w[f_]
+        return ids, bary, best
+
+    def _neighbor_cost(self, bund, tet_ids, w, q, prev, vote=None):
+        """Candidate cost, scene units: RMS distance of the neighbouring bundles to their surface points
+        under the candidate's geometry (§5.1), plus the temporal and tie-break terms."""
+        deg = self._deg[bund]
+        pos, c = _ragged_arange(self._nbr_ptr[bund], deg)
+        j = self._nbr_idx[pos]
+        s = np.einsum("nk,nkx->nx", w[c], self.points_all[tet_ids[c], j[:, None]])
+        e = ((s - q[j]) ** 2).sum(axis=1)
+        cost = np.sqrt(np.bincount(c, weights=e, minlength=len(bund)) / np.maximum(deg, 1))
+        if prev is not None:
+            pv = np.asarray(prev)[bund]
+            shared = (tet_ids[:, :, None] == pv[:, None, :]).any(axis=2).sum(axis=1)
+            cost = cost * (1.0 + self.temporal_bias * (4 - shared) / 4.0)
+        if vote is not None:
+            cost = cost + self.tie_tolerance * (1.0 - (w * vote[tet_ids]).sum(axis=1))
+        return cost
+
+    def _project_hull(self, miss, q):
+        """Closest points on the convex hulls of the missing bundles' clouds (§4).
+
+        Bundles whose cloud is flat (no hull), or that lie inside their hull
+        (in a gap left by a pruned sliver), use the tetrahedra directly
+        (:meth:`_project_candidates`). Returns bundles (n,), representative
+        shapes (n,4), weights (n,4) and the distances (len(miss),).
+        """
+        a, b = self._hull_off[miss], self._hull_off[miss + 1]
+        pos, grp = _ragged_arange(a, b - a)
+        bm = miss[grp]
+        qq = q[bm]
+        eq = self._hull_eq[pos]
+        out = np.full(len(miss), -np.inf)
+        np.maximum.at(out, grp, (eq[:, :3] * qq).sum(1) + eq[:, 3])
+        tri = self._hull_tri[pos]
+        X = self.points_all[tri, bm[:, None]]
+        d, w3 = _closest_point_triangles(qq, X[:, 0], X[:, 1], X[:, 2])
+        dmin = np.full(len(miss), np.inf)
+        np.minimum.at(dmin, grp, d)
+        use = (b > a) & (out > 1e-12 * self.face_size)
+        tie = use[grp] & (d <= dmin[grp] * (1 + 1e-9) + 1e-12 * self.face_size)
+        pb = bm[tie]
+        pt = np.column_stack([tri[tie], tri[tie][:, 2]])
+        pw = np.column_stack([w3[tie], np.zeros(int(tie.sum()))])
+        dist = np.where(use, dmin, 0.0)
+        rest = miss[~use]
+        if len(rest):
+            rb, rt, rw, rd = self._project_candidates(rest, q)
+            pb, pt, pw = np.r_[pb, rb], np.vstack([pt, rt]), np.vstack([pw, rw])
+            dist[~use] = rd
+        return pb, pt, pw, dist
+
+    def _project_candidates(self, miss, q):
+        """Closest points of the missing bundles' tetrahedralized volumes (§4): the tied-closest candidates.
+
+        Returns bundles (n,), representative shapes (n,4), weights (n,4) and
+        the distance of every missing bundle (len(miss),), scene units.
+        """
+        a, b = self.tet_offsets[miss], self.tet_offsets[miss + 1]
+        pos, grp = _ragged_arange(a, b - a)
+        qq = q[miss][grp]
+        # lower bound: distance to each tetrahedron's box; upper bound: distance to the nearest cloud point
+        lb = np.linalg.norm(np.maximum(np.maximum(self._tet_lo[pos] - qq, qq - self._tet_hi[pos]), 0.0), axis=1)
+        ub = np.full(len(miss), np.inf)
+        for k, i in enumerate(miss):
+            ub[k] = np.linalg.norm(self.points_all[self.cloud_reps[i], i] - q[i], axis=1).min()
+        sel = lb <= ub[grp] * (1 + 1e-6) + 1e-9 * self.face_size
+        pos, grp, qq, lb = pos[sel], grp[sel], qq[sel], lb[sel]
+        # exact distances in rounds of increasing box distance, until no box is closer than the best
+        o = np.lexsort((lb, grp))
+        pos, grp, qq, lb = pos[o], grp[o], qq[o], lb[o]
+        first = np.r_[0, np.flatnonzero(np.diff(grp)) + 1]
+        rank = np.arange(len(grp)) - np.repeat(first, np.diff(np.r_[first, len(grp)]))
+        done = np.zeros(len(grp), dtype=bool)
+        dmin = np.full(len(miss), np.inf)
+        d_all = np.full(len(grp), np.inf)
+        w_all = np.zeros((len(grp), 4))
+        tid_all = self.tets[pos].astype(np.int64)
+        lim = 16
+        while True:
+            todo = ~done & (rank < lim) & (lb <= dmin[grp] * (1 + 1e-9) + 1e-12 * self.face_size)
+            if not todo.any():
+                if not (~done & (lb <= dmin[grp] * (1 + 1e-9) + 1e-12 * self.face_size)).any():
+                    break
+                lim *= 4
+                continue
+            t = np.flatnonzero(todo)
+            Xt = self.points_all[tid_all[t], miss[grp[t]][:, None]]
+            d_all[t], w_all[t] = closest_point_tetrahedron(qq[t], Xt)
+            done[t] = True
+            np.minimum.at(dmin, grp[t], d_all[t])
+            lim *= 2
+        tie = done & (d_all <= dmin[grp] * (1 + 1e-9) + 1e-12 * self.face_size)
+        tid, w = tid_all, w_all
+        return miss[grp[tie]], tid[tie], w[tie], dmin

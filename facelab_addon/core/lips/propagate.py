@@ -1,0 +1,581 @@
+"""Regression propagation of lip corrections: the learnt map from mouth to inner-lip gradients.
+
+Dinev et al. 2018, "User-Guided Lip Correction for Facial Performance
+Capture", §4 "Automatic Lip Correction Learning". The deformation gradients
+``y`` of the trusted mouth region predict the gradients ``x`` of the inner-lip
+region through a linear map ``x = θ y`` learnt from ``k`` corrected frames.
+With ``Y = U_Y C_Y`` and ``X = U_X C_X`` (thin SVDs of the training matrices,
+one column per frame), the reduced unknown ``θ̄ = U_Xᵀ θ U_Y`` (at most
+``k × k``) solves the normal equations ``θ̄ C_Y C_Yᵀ = C_X C_Yᵀ``
+(:mod:`.reduced`) and ``θ = U_X θ̄ U_Yᵀ`` is never formed. Predicted gradients become positions by
+a sparse Poisson solve with the lip/mouth border vertices held at their
+captured positions (Dirichlet).
+
+Implementation notes (deviations are marked):
+
+* The Poisson system is the usual gradient-domain least squares
+  ``min_x Σ_t a_t ||∇_t x - F_t||²`` over the lip triangles (``∇_t`` the
+  rest-pose gradient of the piecewise-linear map, ``a_t`` the rest area),
+  i.e. a cotangent Laplacian. Its interior block is factored once, in
+  ``__init__`` (cholespy, else SuperLU). Because the border moves every
+  frame, prediction is linear in (mouth coefficients, border positions): a
+  frame costs its mouth gradients, a few small dense products and one
+  back-substitution; all frames of a chunk share one multi-column solve.
+  The paper reports 5.15 s a frame; this layout needs about a millisecond.
+* ``center="rest"`` (default, an addition to the paper): the regression runs
+  on gradients minus the identity, ``x - I = θ (y - I)``, so the rest pose
+  maps to itself and a single training frame already gives a pose-scaled
+  correction. ``center=None`` is the paper's model verbatim.
+* ``patches=10`` (default, an addition to the paper): the lip region is
+  covered by overlapping local patches, each predicted by its own reduced
+  regression (the same thin SVDs and ``k × k`` θ̄) from the mouth triangles
+  near it, and blended with a partition of unity. One global θ forces every
+  part of the lips to use the same combination of training frames; local
+  maps let, say, the left corner follow a smile while the lower lip follows
+  the jaw, which matters when k is below the number of independent mouth
+  motions. Still exact on the span of the training frames. ``patches=1``
+  is the paper's single map. The patches are built in :mod:`.patches`. On the ICT benchmark
+  (``benchmarks/propagate.py``, k = 10) the held-out inner-lip RMS error is
+  22% of the uncorrected capture's with the defaults, 31% with one
+  rest-centred map and 39% with the paper's uncentred map.
+* Memory: frames are read in their own dtype (a float32 sequence is not
+  upcast as a whole); only the mouth and lip vertices are gathered and
+  converted to float64, a block of frames at a time. ``predict(captured, out=captured)``
+  writes only the interior lip vertices. For :meth:`LipRegressor.extrapolation`
+  and :func:`.suggest.suggest_frames` (the next frames worth correcting) on
+  the same sequence, compute :meth:`LipRegressor.mouth_features` once and
+  pass it as ``features=``.
+* ``ridge`` (default 0, the paper): Tikhonov term ``λ ||θ̄||²`` in the
+  reduced normal equations; ``ridge="loo"`` picks λ by leave-one-out
+  prediction error of the lip gradients. Singular values below ``rtol``
+  times the size of the training deformation are dropped (rank tolerance).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import FaceLabError, MeshError
+from ..geometry.gradients import rest_inverse, shape_matrices
+from ..geometry.laplacian import poisson_operator
+from ..geometry.linsolve import SPDFactor
+from .features import _BLOCK, _as_frames, _shape_components
+from .patches import _lip_patches
+from .reduced import choose_ridge, solve_theta, thin_svd
+from .regions import region_border, validate_regions
+
+__all__ = ["LipRegressor"]
+
+
+def _same_array(a, b):
+    """True when ``a`` and ``b`` are the same elements of the same buffer (e.g. ``out`` is the input)."""
+    return a is b or (
+        isinstance(a, np.ndarray) and a.shape == b.shape and a.dtype == b.dtype and a.strides == b.strides
+        and a.__array_interface__["data"][0] == b.__array_interface__["data"][0]
+    )
+
+
+def _checked_mesh(rest_vertices, faces):
+    """``(R, F)``: the rest positions as (V,3) float64 and the triangles as (F,3) int64, validated."""
+    R = np.asarray(rest_vertices, dtype=np.float64)
+    F = np.asarray(faces)
+    if R.ndim != 2 or R.shape[1] != 3 or len(R) == 0:
+        raise MeshError(f"rest_vertices must be a non-empty (V,3) array, got shape {R.shape}.")
+    if not np.isfinite(R).all():
+        raise MeshError("The rest mesh has NaN or infinite coordinates; fix the rest pose.")
+    if F.ndim != 2 or F.shape[1] != 3 or not np.issubdtype(F.dtype, np.integer):
+        raise MeshError(f"faces must be an (F,3) integer array of triangles, got {F.shape}; triangulate first.")
+    F = F.astype(np.int64)
+    if F.size and (F.min() < 0 or F.max() >= len(R)):
+        raise MeshError(f"Face indices are out of range [0, {len(R)}); the faces do not belong to this mesh.")
+    return R, F
+
+
+class LipRegressor:
+    """Learn inner-lip deformation gradients from the mouth region (Dinev et al. 2018, §4).
+
+    Parameters
+    ----------
+    rest_vertices : (V,3) array_like
+        Rest (neutral) positions, scene units.
+    faces : (F,3) int array_like
+        Triangles.
+    mouth_faces : (m,) int array_like
+        Triangles of the trusted mouth region (vertex group ``FL_mouth``).
+    lip_faces : (n,) int array_like
+        Triangles of the inner-lip region (``FL_lips``), predicted.
+    patches : int
+        Number of local regressions. 1 is the paper's single global map from
+        the whole mouth region to the whole lip region. With ``P > 1`` the lip
+        region is covered by ``P`` overlapping patches (geodesic
+        farthest-point centres, partition-of-unity weights) and each patch is
+        predicted by its own reduced regression from the mouth triangles
+        within ``input_radius`` of it, so, for example, the left corner and
+        the lower lip can combine the training frames differently. Default 10.
+    input_radius : float, optional
+        Geodesic reach (scene units) of each patch's mouth input. Default:
+        the spacing between patch centres (about 1 cm on ICT-FaceKit).
+    center : {"rest", None}
+        ``"rest"`` (default) regresses gradient offsets from the identity, so
+        the rest pose predicts itself; ``None`` is the paper's uncentred model.
+    ridge : float or "loo"
+        Tikhonov weight on each reduced map (unitless, relative to the mean
+        squared singular value of the training mouth matrix); ``"loo"`` picks
+        it per patch by leave-one-out error. 0 (default) is the paper.
+    rtol : float
+        Relative singular-value cut-off for the thin SVDs (rank tolerance).
+    backend : {"auto", "cholespy", "splu"}
+        Sparse factorisation of the Poisson system.
+
+    Attributes
+    ----------
+    lip_vertices : (nL,) int64
+        Vertices of the lip triangles.
+    border_vertices : (nB,) int64
+        Lip vertices also used by a non-lip triangle; kept at captured positions.
+    interior_vertices : (nI,) int64
+        Lip vertices that are solved for.
+    k : int
+        Number of training frames.
+    theta_bars : list of (rX, rY) ndarrays
+        The reduced maps θ̄ of the patches (one for ``patches=1``).
+
+    Raises
+    ------
+    RegionError, MeshError
+        On empty/overlapping regions, a lip region with no border, degenerate
+        triangles or bad shapes (messages say how to fix them).
+    """
+
+    def __init__(self, rest_vertices, faces, mouth_faces, lip_faces, *, patches: int = 10, input_radius=None,
+                 center="rest", ridge=0.0, rtol=1e-4, backend="auto"):
+        R, F = _checked_mesh(rest_vertices, faces)
+        if center not in ("rest", None):
+            raise ValueError(f"center must be 'rest' or None, got {center!r}")
+        if not (ridge == "loo" or (np.isscalar(ridge) and float(ridge) >= 0)):
+            raise ValueError(f"ridge must be a non-negative number or 'loo', got {ridge!r}")
+        self.rest = R
+        self.faces = F
+        self.n_vertices = len(R)
+        self.center = center
+        self.ridge = ridge
+        self.rtol = float(rtol)
+        self._setup_regions(mouth_faces, lip_faces)
+        self._setup_poisson(backend)
+        self._setup_patches(patches, input_radius)
+        self._Y = None  # (9m, k) training mouth features
+        self._X = None  # (9n, k) training lip features
+        self.k = 0
+
+    def _setup_regions(self, mouth_faces, lip_faces):
+        """Validated regions, their rest-pose inverse shape matrices and local vertex indexing."""
+        R, F = self.rest, self.faces
+        self.mouth_faces, self.lip_faces = validate_regions(F, mouth_faces, lip_faces, len(R))
+        self._mouth_tris = F[self.mouth_faces]
+        self._lip_tris = F[self.lip_faces]
+        self._mouth_rinv = rest_inverse(R, self._mouth_tris, name="mouth region")
+        self._lip_rinv = rest_inverse(R, self._lip_tris, name="inner-lip region")
+        self._mouth_verts, inv = np.unique(self._mouth_tris, return_inverse=True)
+        self._mouth_local = inv.reshape(-1, 3)
+        self._lip_verts_all, inv = np.unique(self._lip_tris, return_inverse=True)
+        self._lip_local = inv.reshape(-1, 3)
+        self._used = np.union1d(self._mouth_verts, self._lip_verts_all)  # vertices read per frame
+
+    def _setup_poisson(self, backend):
+        """Poisson system on the lip triangles, Dirichlet on the border: interior block factored once."""
+        R, F = self.rest, self.faces
+        L, D = poisson_operator(R, F, self.lip_faces)
+        self.lip_vertices = self._lip_verts_all
+        self.border_vertices = region_border(F, self.lip_faces, len(R))
+        interior = np.setdiff1d(self.lip_vertices, self.border_vertices)
+        if interior.size == 0:
+            raise FaceLabError(
+                "Every inner-lip vertex is on the border, so nothing would be predicted; widen 'FL_lips' "
+                "(Auto Regions with a larger lip width)."
+            )
+        self.interior_vertices = interior
+        L = L.tocsr()
+        self._L_II = L[interior][:, interior].tocsc()
+        self._L_IB = L[interior][:, self.border_vertices].tocsr()
+        self._D_I = D[interior].tocsr()  # (nI, 3n)
+        try:
+            self._factor = SPDFactor(self._L_II, backend, what="lip Poisson system")
+        except Exception as e:  # pragma: no cover - validated regions make L_II SPD
+            raise FaceLabError(
+                f"The inner-lip Poisson system could not be factored ({e}); check for degenerate or "
+                "disconnected triangles in 'FL_lips'."
+            ) from e
+        # divergence of the identity gradients: the constant part for center="rest"
+        ident = np.broadcast_to(np.eye(3), (len(self.lip_faces), 3, 3))
+        self._b_ident = self._D_I @ ident.transpose(0, 2, 1).reshape(-1, 3)  # (nI, 3)
+
+    def _setup_patches(self, patches, input_radius):
+        """Local patches of the lip region (:mod:`.patches`) and the divergence operator of each."""
+        R, F = self.rest, self.faces
+        self._patches, self.patch_spacing = _lip_patches(R, F, self.mouth_faces, self.lip_faces, int(patches),
+                                                        input_radius)
+        self.n_patches = len(self._patches)
+        Dc = self._D_I.tocsc()
+        self._D_patch = [Dc[:, (3 * ls[:, None] + np.arange(3)).ravel()].tocsr() for _, ls, _ in self._patches]
+
+    # ------------------------------------------------------------------ features
+    def _grad(self, frames, rinv, verts, local):
+        P = frames[:, verts, :]
+        return np.matmul(shape_matrices(P, local), rinv)  # (T, f, 3, 3)
+
+    def mouth_gradients(self, frames) -> np.ndarray:
+        """(T,m,3,3) deformation gradients of the mouth triangles of ``frames`` (T,V,3)."""
+        A = _as_frames(frames, self.n_vertices, "frames", self._used)
+        return self._grad(A, self._mouth_rinv, self._mouth_verts, self._mouth_local)
+
+    def lip_gradients(self, frames) -> np.ndarray:
+        """(T,n,3,3) deformation gradients of the inner-lip triangles of ``frames`` (T,V,3)."""
+        A = _as_frames(frames, self.n_vertices, "frames", self._used)
+        return self._grad(A, self._lip_rinv, self._lip_verts_all, self._lip_local)
+
+    def _feat(self, G):
+        T = G.shape[0]
+        if self.center == "rest":
+            G = G - np.eye(3)
+        return G.reshape(T, -1)
+
+    def _mouth_feat(self, frames):
+        """(T, 9m) mouth features of validated frames (any float dtype; computed in float64)."""
+        return self._feat(self._grad(frames, self._mouth_rinv, self._mouth_verts, self._mouth_local))
+
+    def mouth_features(self, captured) -> np.ndarray:
+        """Whole-mouth feature vectors ``y`` of frames, one row per frame.
+
+        The deformation gradients of the mouth triangles (order of
+        ``mouth_faces``, each 3×3 flattened row-major), minus the identity
+        when ``center="rest"``. They are what :meth:`extrapolation` and
+        :func:`suggest_frames` compare with the training span: compute them
+        once and pass them to both as ``features=`` so the sequence is read
+        once. Needs no fit.
+
+        Parameters
+        ----------
+        captured : (T,V,3) or (V,3) array_like
+            Frames, scene units. float32 frames are read in place (only the
+            mouth vertices are converted to float64, a block at a time).
+
+        Returns
+        -------
+        (T, 9m) float64 ndarray
+            Unitless; ``m = len(mouth_faces)``. 72·m bytes a frame (about
+            0.1 MB on ICT-FaceKit, 100 MB for 1000 frames).
+
+        Raises
+        ------
+        FaceLabError
+            If no frames are given, or they have a different topology or NaN
+            coordinates in the mouth or lip region (``MeshError``).
+        """
+        A = _as_frames(captured, self.n_vertices, "captured frames", self._used)
+        out = np.empty((len(A), 9 * len(self.mouth_faces)))
+        for s in range(0, len(A), _BLOCK):
+            out[s : s + _BLOCK] = self._mouth_feat(A[s : s + _BLOCK])
+        return out
+
+    def _check_features(self, features):
+        Y = np.asarray(features)
+        d = 9 * len(self.mouth_faces)
+        if Y.ndim != 2 or Y.shape[1] != d:
+            raise FaceLabError(
+                f"features have shape {Y.shape}, expected (T, {d}) (9 per mouth triangle); compute them with "
+                "mouth_features() of this regressor."
+            )
+        if len(Y) == 0:
+            raise FaceLabError("No features given (0 frames); pass at least one frame.")
+        return Y
+
+    # ------------------------------------------------------------------ training
+    def fit(self, corrected):
+        """Fit the reduced regression(s) on corrected frames, replacing any earlier training.
+
+        Parameters
+        ----------
+        corrected : (k,V,3) array_like
+            Corrected (ground-truth) frames, scene units. For each, the mouth
+            gradients give ``y`` (the mouth is trusted, so corrected = captured
+            there) and the lip gradients give ``x``.
+
+        Returns
+        -------
+        self
+
+        Raises
+        ------
+        FaceLabError
+            With fewer than one training frame, a topology that differs from
+            the rest mesh, or NaN coordinates.
+        """
+        y, x = self._training_features(corrected)
+        self._Y = y.copy()
+        self._X = x.copy()
+        self._refit()
+        return self
+
+    def add(self, corrected):
+        """Add corrected frame(s) to the training set and update the fit.
+
+        Re-runs the thin SVDs on the stacked ``k+1`` columns (cost
+        ``O(9m k²)`` per patch, milliseconds); the result equals :meth:`fit`
+        on all frames.
+
+        Parameters
+        ----------
+        corrected : (V,3) or (j,V,3) array_like
+            New corrected frame(s), scene units.
+
+        Returns
+        -------
+        self
+        """
+        y, x = self._training_features(corrected)
+        if self._Y is None:
+            self._Y, self._X = y.copy(), x.copy()
+        else:
+            self._Y = np.hstack([self._Y, y])
+            self._X = np.hstack([self._X, x])
+        self._refit()
+        return self
+
+    def _training_frames(self, corrected):
+        c = np.asarray(corrected)
+        if c.size == 0 or (c.ndim == 3 and c.shape[0] == 0):
+            raise FaceLabError(
+                "No corrected frames were given; correct at least one frame (sketch or sculpt it) before training."
+            )
+        return _as_frames(c, self.n_vertices, "corrected frames", self._used)
+
+    def _training_features(self, corrected):
+        """``(y, x)``: (9m, j) mouth and (9n, j) lip features of corrected frames, one column per frame."""
+        C = self._training_frames(corrected)
+        y = self._feat(self._grad(C, self._mouth_rinv, self._mouth_verts, self._mouth_local)).T
+        x = self._feat(self._grad(C, self._lip_rinv, self._lip_verts_all, self._lip_local)).T
+        return y, x
+
+    def _refit(self):
+        """Refit from the training features ``_Y``, ``_X``: global span, then each patch's map and operators."""
+        Y, X = self._Y, self._X
+        self.k = Y.shape[1]
+        m, n = len(self.mouth_faces), len(self.lip_faces)
+        Y3 = Y.reshape(m, 9, self.k)
+        X3 = X.reshape(n, 9, self.k)
+        self._fit_span(Y)
+        self.theta_bars, self.ridges_used = [], []
+        self._pfit = []
+        Zs, Ws, zid = [], [], []
+        for (mouth_sel, lip_sel, w), Dp in zip(self._patches, self._D_patch):
+            UY, UX, th, lam = self._fit_patch(Y3[mouth_sel], X3[lip_sel])
+            self.theta_bars.append(th)
+            self.ridges_used.append(lam)
+            self._pfit.append((UX, th, UY))
+            Z, W, z0 = self._patch_operators(mouth_sel, lip_sel, w, Dp, UY, UX, th)
+            Zs.append(Z)
+            Ws.append(W)
+            zid.append(z0)
+        self._Zdiv = np.concatenate(Zs, axis=1)  # (nI*3, Σ rY)
+        self._Wp = Ws
+        self._z_ident = np.concatenate(zid)
+
+    def _fit_span(self, Y):
+        """Global span ``U_Y`` and RMS deformation of the mouth features: extrapolation score and suggest_frames."""
+        m = len(self.mouth_faces)
+        self._UY, _ = thin_svd(Y, self.center, self.rtol)
+        Yd = Y if self.center == "rest" else Y - np.tile(np.eye(3).ravel(), m)[:, None]
+        self._sigma = float(np.sqrt(np.mean(np.sum(Yd * Yd, axis=0))))
+
+    def _fit_patch(self, Yp, Xp):
+        """One patch's reduced regression from its (m_p,9,k) mouth and (n_p,9,k) lip features.
+
+        Returns ``(U_Y, U_X, θ̄, λ)``: the thin-SVD bases, the (rX, rY) reduced map and the ridge used.
+        """
+        UY, CY = thin_svd(Yp.reshape(-1, self.k), self.center, self.rtol)
+        UX, CX = thin_svd(Xp.reshape(-1, self.k), self.center, self.rtol)
+        lam = choose_ridge(CY, CX, self.ridge)
+        th = solve_theta(CY, CX, lam)  # (rX, rY)
+        return UY, UX, th, lam
+
+    def _patch_operators(self, mouth_sel, lip_sel, w, Dp, UY, UX, th):
+        """A fitted patch folded into the prediction: ``(Z, W, z_ident)``.
+
+        ``Z`` (nI*3, rY): divergence on the interior vertices of the patch's weighted lip gradients per
+        unit coefficient; ``W`` (3, 3, m_p, rY): the mouth coefficients ``U_Yᵀ y`` as sums over shape-matrix
+        entries (:meth:`_coefficients`); ``z_ident`` (rY,): the coefficients of the identity gradients.
+        """
+        nI = len(self.interior_vertices)
+        rY = th.shape[1]
+        # lip gradients of this patch per unit coefficient, weighted: (rY, n_p, 3, 3)
+        Mp = (UX @ th).T.reshape(rY, len(lip_sel), 3, 3) * w[None, :, None, None]
+        # divergence of those gradients on the interior vertices: (nI*3, rY)
+        Fr = Mp.transpose(1, 3, 0, 2).reshape(3 * len(lip_sel), rY * 3)  # rows (t, a), cols (j, c): F[c, a]
+        Z = (Dp @ Fr).reshape(nI, rY, 3).transpose(0, 2, 1).reshape(nI * 3, rY)
+        # U_Yᵀ vec(D_d D_r^-1) = Σ_ik D_d[i,k] W[i,k]:  W[i,k,f,r] = Σ_j U[f,i,j,r] Ri[f,k,j]
+        mp = len(mouth_sel)
+        U4 = UY.reshape(mp, 3, 3, rY).transpose(0, 2, 1, 3).reshape(mp, 3, 3 * rY)  # (f, j, (i, r))
+        Wf = np.matmul(self._mouth_rinv[mouth_sel], U4).reshape(mp, 3, 3, rY)  # (f, k, i, r)
+        W = np.ascontiguousarray(Wf.transpose(2, 1, 0, 3))  # (i, k, f, r)
+        z0 = np.tile(np.eye(3).ravel(), len(mouth_sel)) @ UY if self.center == "rest" else np.zeros(rY)
+        return Z, W, z0
+
+    def _require_fit(self):
+        if self._Y is None:
+            raise FaceLabError("The lip regressor has no training frames; call fit() with corrected frames first.")
+
+    # ------------------------------------------------------------------ prediction
+    def _coefficients(self, frames):
+        """Reduced coefficients ``z_p = U_Y,pᵀ y_p`` of all patches, (T, Σ rY), for validated frames.
+
+        ``y = vec(D_d D_r^-1)`` is linear in the shape matrix ``D_d``, so
+        ``U_Yᵀ y = Σ D_d[i,k] W[i,k]`` with ``W`` folded at fit time: a frame
+        costs its mouth shape matrices and nine small GEMMs per patch.
+        """
+        e = _shape_components(frames, self._mouth_verts, self._mouth_local)
+        zs = []
+        for (mouth_sel, _, _), W in zip(self._patches, self._Wp):
+            z = np.zeros((len(frames), W.shape[-1]))
+            for i in range(3):
+                for k in range(3):
+                    z += e[k][i][:, mouth_sel] @ W[i, k]
+            zs.append(z)
+        return np.concatenate(zs, axis=1) - self._z_ident
+
+    def _residual_norms(self, Y):
+        """(T,) norms of mouth features ``Y`` (T, 9m) outside the global training span."""
+        r = Y - (Y @ self._UY) @ self._UY.T
+        return np.sqrt(np.sum(r * r, axis=1))
+
+    def predict_lip_gradients(self, captured) -> np.ndarray:
+        """Predicted inner-lip deformation gradients ``x = θ y`` (blended over patches).
+
+        Parameters
+        ----------
+        captured : (T,V,3) or (V,3) array_like
+            Captured frames, scene units.
+
+        Returns
+        -------
+        (T,n,3,3) float64 ndarray
+            One unitless 3×3 gradient per lip triangle (order of ``lip_faces``).
+        """
+        self._require_fit()
+        A = _as_frames(captured, self.n_vertices, "captured frames", self._used)
+        T = len(A)
+        z = self._coefficients(A)
+        x = np.zeros((T, len(self.lip_faces), 9))
+        o = 0
+        for (_, lip_sel, w), (UX, th, _) in zip(self._patches, self._pfit):
+            r = th.shape[1]
+            xp = (z[:, o : o + r] @ th.T) @ UX.T  # (T, 9 n_p)
+            x[:, lip_sel] += xp.reshape(T, len(lip_sel), 9) * w[None, :, None]
+            o += r
+        x = x.reshape(T, -1, 3, 3)
+        if self.center == "rest":
+            x = x + np.eye(3)
+        return x
+
+    def predict(self, captured, *, out=None, chunk: int = 256) -> np.ndarray:
+        """Correct the inner lips of captured frames.
+
+        Parameters
+        ----------
+        captured : (T,V,3) or (V,3) array_like
+            Captured frames, scene units, same topology as the rest mesh.
+            float32 or float64 arrays are read without a copy; only the
+            mouth and lip vertices are converted to float64, a chunk at a
+            time, so float32 gives the same result as float64 (up to float32
+            rounding of the written vertices).
+        out : (T,V,3) ndarray, optional
+            Where to write the result, any float dtype. It may be
+            ``captured`` itself, for in-place correction of long sequences:
+            then only the interior lip vertices are written (and they are
+            never read). Another array first receives a copy of
+            ``captured``. Default: a new float64 array. In place, the
+            working memory is a few tens of MB whatever the sequence length
+            and dtype (about 50 MB with the default chunk on ICT-FaceKit).
+        chunk : int
+            Frames per batch (working memory ~ chunk × lip size).
+
+        Returns
+        -------
+        (T,V,3) ndarray
+            ``out`` (float64 when not given): captured positions everywhere
+            except the interior lip vertices, which are the Poisson
+            reconstruction from ``θ y`` with the border vertices held at
+            their captured positions (scene units). A single (V,3) frame
+            gives a (1,V,3) result.
+
+        Raises
+        ------
+        FaceLabError
+            If the regressor was not fitted, or the frames have a different
+            topology or NaN coordinates in the mouth or lip region.
+        """
+        self._require_fit()
+        A = _as_frames(captured, self.n_vertices, "captured frames", self._used)
+        T = len(A)
+        if out is None:
+            out = A.astype(np.float64)  # always a copy
+        elif not _same_array(out, A):
+            if out.shape != A.shape:
+                raise FaceLabError(f"out has shape {out.shape}, expected {A.shape}; pass an array like the frames.")
+            out[...] = A
+        iv, bv = self.interior_vertices, self.border_vertices
+        nI = len(iv)
+        for s in range(0, T, int(chunk)):
+            e = min(T, s + int(chunk))
+            t = e - s
+            z = self._coefficients(A[s:e])
+            rhs = (self._Zdiv @ z.T).reshape(nI, 3, t).transpose(0, 2, 1)  # (nI, t, 3)
+            if self.center == "rest":
+                rhs = rhs + self._b_ident[:, None, :]
+            xb = np.asarray(A[s:e][:, bv, :], dtype=np.float64).transpose(1, 0, 2).reshape(len(bv), 3 * t)
+            rhs = rhs.reshape(nI, 3 * t) - self._L_IB @ xb
+            xi = self._factor.solve(rhs).reshape(nI, t, 3)
+            out[s:e, iv, :] = xi.transpose(1, 0, 2)
+        return out
+
+    def extrapolation(self, captured=None, *, features=None) -> np.ndarray:
+        """How far each frame's mouth gradients lie outside the span of the training frames.
+
+        ``e = ||y - U_Y U_Yᵀ y|| / σ`` where ``y`` is the frame's whole-mouth
+        feature vector (gradients minus the identity when ``center="rest"``),
+        ``U_Y`` an orthonormal basis of the training features, and ``σ`` the
+        RMS deformation ``||y_i - I||`` of the training mouths. It is 0 on
+        training frames and their linear combinations (where the regression
+        is exact), scale-free (gradients are unitless and do not change with
+        the scene unit), and about 1 when a frame departs from the training
+        span as much as a typical training pose departs from rest.
+
+        Parameters
+        ----------
+        captured : (T,V,3) or (V,3) array_like, optional
+            Frames, scene units (read a block at a time, never copied whole).
+        features : (T, 9m) array_like, optional
+            Instead of ``captured``: their :meth:`mouth_features`, for
+            example to share them with :func:`suggest_frames`. Not modified.
+
+        Returns
+        -------
+        (T,) float64 ndarray
+        """
+        self._require_fit()
+        if (captured is None) == (features is None):
+            raise ValueError("extrapolation() takes captured frames or their features, not both or neither")
+        if features is None:
+            A = _as_frames(captured, self.n_vertices, "captured frames", self._used)
+            block = lambda s: self._mouth_feat(A[s : s + _BLOCK])  # noqa: E731
+        else:
+            A = self._check_features(features)
+            block = lambda s: A[s : s + _BLOCK]  # noqa: E731
+        out = np.empty(len(A))
+        for s in range(0, len(A), _BLOCK):
+            out[s : s + _BLOCK] = self._residual_norms(block(s))
+        return out / max(self._sigma, 1e-12)
+
+    def training_span(self) -> np.ndarray:
+        """(9m, r) orthonormal basis ``U_Y`` of the training mouth features (whole mouth region)."""
+        self._require_fit()
+        return self._UY

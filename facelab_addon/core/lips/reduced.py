@@ -1,0 +1,121 @@
+"""The reduced regression of the lip-correction learning: thin SVDs and the small map θ̄.
+
+Dinev et al. 2018, "User-Guided Lip Correction for Facial Performance
+Capture", §4: with ``Y = U_Y C_Y`` and ``X = U_X C_X`` (thin SVDs of the
+training feature matrices, one column per corrected frame), the reduced
+unknown ``θ̄ = U_Xᵀ θ U_Y`` (at most ``k × k``) solves the normal equations
+``θ̄ C_Y C_Yᵀ = C_X C_Yᵀ``. :func:`thin_svd` computes the factorisations with
+a rank tolerance, :func:`solve_theta` the normal equations (with an optional
+Tikhonov term) and :func:`choose_ridge` its weight by leave-one-out error.
+All quantities are unitless (deformation gradients). Used by
+:class:`.propagate.LipRegressor`, once per patch.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["thin_svd", "solve_theta", "choose_ridge"]
+
+
+def thin_svd(M, center, rtol):
+    """Thin SVD ``M = U C`` (``C = Σ Vᵀ``) of a feature matrix (rows = 9 per triangle, k columns).
+
+    Singular values below ``rtol`` times the size of the *deformation*
+    (the Frobenius norm of ``M`` minus the identity gradients, so the
+    uncentred paper model is not dominated by the identity) are dropped.
+    Computed through the k×k Gram matrix (``O(rows·k²)``, several times
+    faster than LAPACK on tall matrices); its precision, ``sqrt(eps)``
+    times the largest singular value, is far below the rank tolerance.
+
+    Parameters
+    ----------
+    M : (9f, k) float64 ndarray
+        Features of f triangles (unitless gradients), one column per training frame.
+    center : {"rest", None}
+        ``"rest"``: ``M`` holds gradients minus the identity; ``None``: plain gradients.
+    rtol : float
+        Relative singular-value cut-off (at least 1e-7).
+
+    Returns
+    -------
+    U : (9f, r) float64 ndarray
+        Orthonormal columns.
+    C : (r, k) float64 ndarray
+        Coefficients ``Σ Vᵀ`` of the frames in ``U``.
+    """
+    w, Vv = np.linalg.eigh(M.T @ M)
+    w, Vv = w[::-1], np.ascontiguousarray(Vv[:, ::-1])  # descending; contiguous for BLAS
+    s = np.sqrt(np.clip(w, 0.0, None))
+    if center == "rest":
+        ref = float(np.sqrt(np.sum(M * M)))
+    else:
+        ident = np.tile(np.eye(3).ravel(), M.shape[0] // 9)[:, None]
+        ref = float(np.linalg.norm(M - ident))
+    ref = max(ref, 1e-12 * (s[0] if s.size else 0.0), 1e-300)
+    r = int(np.sum(s > max(rtol, 1e-7) * ref)) if s.size else 0
+    U = (M @ Vv[:, :r]) / s[:r]
+    return U, s[:r, None] * Vv[:, :r].T
+
+
+def solve_theta(CY, CX, lam):
+    """Reduced map ``θ̄`` from the normal equations ``θ̄ (C_Y C_Yᵀ + λ' I) = C_X C_Yᵀ``.
+
+    Parameters
+    ----------
+    CY : (rY, k) ndarray
+        Mouth coefficients ``C_Y`` of the k training frames (from :func:`thin_svd`).
+    CX : (rX, k) ndarray
+        Lip coefficients ``C_X``.
+    lam : float
+        Ridge weight, relative to the mean of ``diag(C_Y C_Yᵀ)`` (``λ' = lam * mean``); 0 is the paper.
+
+    Returns
+    -------
+    (rX, rY) float64 ndarray
+        ``θ̄`` (zeros when either rank is 0); unitless.
+    """
+    rY = CY.shape[0]
+    if rY == 0 or CX.shape[0] == 0:
+        return np.zeros((CX.shape[0], rY))
+    A = CY @ CY.T  # (rY, rY)
+    B = CX @ CY.T  # (rX, rY)
+    if lam > 0:
+        A = A + lam * np.mean(np.diag(A)) * np.eye(rY)
+    # θ̄ A = B  <=>  A θ̄ᵀ = Bᵀ (A symmetric). The rank was already cut at rtol in the thin SVD
+    # (A = diag(s²) up to rounding); lstsq only guards against exact singularity.
+    sol, *_ = np.linalg.lstsq(A, B.T, rcond=1e-12)
+    return sol.T
+
+
+def choose_ridge(CY, CX, ridge):
+    """The ridge weight for one reduced map: ``ridge`` itself, or picked by leave-one-out.
+
+    Parameters
+    ----------
+    CY, CX : (rY, k), (rX, k) ndarray
+        Mouth and lip coefficients of the k training frames.
+    ridge : float or "loo"
+        A fixed weight (see :func:`solve_theta`), or ``"loo"``: the weight of
+        ``(0, 1e-4, 1e-3, 1e-2, 3e-2, 0.1, 0.3, 1)`` with the smallest
+        leave-one-out error on the lip coefficients (0 with fewer than 3 frames).
+
+    Returns
+    -------
+    float
+    """
+    if ridge != "loo":
+        return float(ridge)
+    k = CY.shape[1]
+    if k < 3:
+        return 0.0
+    best, best_err = 0.0, np.inf
+    for lam in (0.0, 1e-4, 1e-3, 1e-2, 3e-2, 1e-1, 3e-1, 1.0):
+        err = 0.0
+        for i in range(k):
+            keep = np.arange(k) != i
+            th = solve_theta(CY[:, keep], CX[:, keep], lam)
+            err += float(np.sum((th @ CY[:, i] - CX[:, i]) ** 2))
+        if err < best_err * (1 - 1e-9):
+            best, best_err = lam, err
+    return best

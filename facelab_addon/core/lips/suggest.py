@@ -1,0 +1,146 @@
+"""Which frames to correct next: greedy extreme-pose selection for the lip regression.
+
+Dinev et al. 2018, "User-Guided Lip Correction for Facial Performance
+Capture", §6.2: the regression (:mod:`.propagate`) should be trained on
+extreme poses. :func:`suggest_frames` proposes them by pivoted Gram-Schmidt
+on the mouth deformation-gradient features of a captured sequence (one
+unitless row of ``9m`` entries per frame, :mod:`.features`), starting from
+the span of the frames already corrected or of a fitted regressor's
+training frames. The features are projected and deflated in place a block
+of rows at a time. No bpy in this module.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import FaceLabError
+from .features import _BLOCK, _as_frames, _mouth_features
+from .propagate import LipRegressor
+
+__all__ = ["suggest_frames"]
+
+
+def _deflate(R, q, block=_BLOCK):
+    """``R -= (R q) qᵀ`` in place, a block of rows at a time (no full-size temporary)."""
+    for s in range(0, len(R), block):
+        b = R[s : s + block]
+        b -= np.outer(b @ q, q)
+
+
+def suggest_frames(captured=None, count: int = 1, *, regressor: LipRegressor | None = None, rest_vertices=None,
+                   faces=None, mouth_faces=None, exclude=(), features=None,
+                   overwrite_features: bool = False) -> np.ndarray:
+    """Propose the next frames worth correcting.
+
+    Greedy pivoted Gram-Schmidt in mouth-gradient space (Dinev et al. 2018,
+    §6.2: train on extreme poses): each pick is the frame whose mouth
+    gradients lie farthest outside the span of the frames already known, and
+    its direction is then added to the span. With no regressor the span
+    starts empty (features are gradients minus the identity), so the first
+    pick is the most extreme pose (largest deformation from rest) and the
+    next ones are the poses least explained by the earlier picks. With a
+    regressor the span starts as its training span, so the first pick is the
+    frame of largest :meth:`LipRegressor.extrapolation`.
+
+    Memory: one (T, 9m) float64 array of mouth features (``m`` mouth
+    triangles; about 0.1 MB a frame on ICT-FaceKit), projected and deflated
+    in place a block of rows at a time. With ``features=...`` and
+    ``overwrite_features=True`` the given array is that working array, so
+    nothing of full size is allocated.
+
+    Parameters
+    ----------
+    captured : (T,V,3) array_like, optional
+        The captured sequence, scene units (float32 is read in place, a block
+        of frames at a time). Required unless ``features`` is given.
+    count : int
+        Number of frames to propose.
+    regressor : LipRegressor, optional
+        A fitted regressor; supplies the rest mesh, faces, mouth region,
+        feature centring and training span.
+    rest_vertices : (V,3) array_like, optional
+        Rest positions (needed without ``regressor`` and ``features``).
+    faces : (F,3) int array_like, optional
+        Triangles (needed without ``regressor`` and ``features``).
+    mouth_faces : (m,) int array_like, optional
+        Mouth-region triangles (needed without ``regressor`` and ``features``).
+    exclude : sequence of int
+        Frames never to propose (for example the ones already corrected);
+        their directions are added to the starting span.
+    features : (T, 9m) array_like, optional
+        Instead of ``captured``: precomputed mouth features of the sequence,
+        one row per frame. With a regressor, ``regressor.mouth_features(captured)``
+        (the same array can first go to ``regressor.extrapolation(features=...)``,
+        so the sequence is read once). Without one, the mouth deformation
+        gradients minus the identity (any fixed order of the 9m entries), i.e.
+        ``mouth_features`` of a ``center="rest"`` regressor on these mouth
+        triangles. The result equals passing ``captured``.
+    overwrite_features : bool
+        Use ``features`` (if a C-contiguous float64 ndarray) as the working
+        array instead of copying it; its contents are then undefined.
+
+    Returns
+    -------
+    (c,) int64 ndarray
+        Frame indices in order of priority, ``c = min(count, frames left)``;
+        fewer when the remaining frames already lie in the span.
+    """
+    if (captured is None) == (features is None):
+        raise ValueError("suggest_frames() takes captured frames or their features, not both or neither")
+    if features is not None:
+        if regressor is not None:
+            F0 = regressor._check_features(features)
+        else:
+            F0 = np.asarray(features)
+            if F0.ndim != 2 or F0.shape[1] % 9 or len(F0) == 0:
+                raise FaceLabError(f"features have shape {F0.shape}, expected (T, 9m) with T >= 1 (9 per mouth "
+                                   "triangle).")
+            if mouth_faces is not None and F0.shape[1] != 9 * len(np.asarray(mouth_faces).ravel()):
+                raise FaceLabError(f"features have {F0.shape[1]} columns but there are {len(mouth_faces)} mouth "
+                                   "triangles (9 columns each); compute them on the same mouth region.")
+        own = overwrite_features and isinstance(F0, np.ndarray) and F0.dtype == np.float64 and F0.flags.c_contiguous
+        Rz = F0 if own else np.array(F0, dtype=np.float64, order="C")
+    elif regressor is not None:
+        Rz = regressor.mouth_features(captured)
+    else:
+        if rest_vertices is None or faces is None or mouth_faces is None:
+            raise FaceLabError(
+                "suggest_frames needs either a fitted regressor or rest_vertices, faces and mouth_faces; pass them."
+            )
+        R = np.asarray(rest_vertices, dtype=np.float64)
+        A = _as_frames(captured, len(R), "captured frames")
+        Rz = _mouth_features(A, R, faces, mouth_faces)
+    Q = regressor._UY if regressor is not None and regressor._Y is not None else None
+    T = len(Rz)
+    # feature scale (threshold of "already in the span"), then residuals after projecting on Q, in place
+    sq = np.empty(T)
+    for s in range(0, T, _BLOCK):
+        b = Rz[s : s + _BLOCK]
+        sq[s : s + _BLOCK] = np.sum(b * b, axis=1)
+        if Q is not None and Q.shape[1]:
+            b -= (b @ Q) @ Q.T
+    scale = max(float(np.sqrt(np.mean(sq))), 1e-300)
+    excl = np.zeros(T, dtype=bool)
+    ex = np.asarray(list(exclude), dtype=np.int64)
+    if ex.size:
+        excl[ex[(ex >= 0) & (ex < T)]] = True
+    # ... and on the excluded frames
+    for i in np.flatnonzero(excl):
+        nv = np.linalg.norm(Rz[i])
+        if nv > 1e-10 * scale:
+            _deflate(Rz, Rz[i] / nv)
+    picks = []
+    norms = np.empty(T)
+    for _ in range(int(count)):
+        for s in range(0, T, _BLOCK):
+            norms[s : s + _BLOCK] = np.linalg.norm(Rz[s : s + _BLOCK], axis=1)
+        norms[excl] = -1.0
+        if picks:
+            norms[picks] = -1.0
+        i = int(np.argmax(norms))
+        if norms[i] <= 1e-10 * scale:
+            break
+        picks.append(i)
+        _deflate(Rz, Rz[i] / norms[i])
+    return np.asarray(picks, dtype=np.int64)

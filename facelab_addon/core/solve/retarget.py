@@ -1,0 +1,249 @@
+"""Retargeting a solved performance to a creature (Bhat et al. 2013, §5.1 and Fig. 8/10).
+
+"High fidelity facial animation capture and retargeting with contours":
+
+1. the actor's blendshapes are carried to the creature by deformation
+   transfer (:mod:`.deformation_transfer`), giving parallel rigs; the solved
+   weights are copied and the per-frame correctives are transferred too;
+2. on a creature whose mouth is much wider than the actor's, the lip-sync
+   heuristic (:mod:`.lip_sync`) reshapes the creature's lips so the
+   upper-to-lower lip distances along a talking portion of its inner-lip
+   contours (:mod:`.lip_contours`) match the actor's.
+
+:class:`Retargeter` builds the parallel rig and the lip-sync deformer once
+and retargets single frames; :func:`retarget_performance` runs it over a
+whole performance (:class:`RetargetResult`).
+
+Units: positions in scene units; end points are fractions of arc length;
+times in seconds.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import FaceLabError
+from ..geometry.axes import Y_UP, Z_FORWARD
+from .deformation_transfer import DeformationTransfer
+from .lip_contours import lip_contours
+from .lip_sync import LipSync
+
+__all__ = ["RetargetResult", "Retargeter", "retarget_performance"]
+
+
+@dataclass
+class RetargetResult:
+    """A performance carried to the creature.
+
+    Attributes
+    ----------
+    deltas : (S,W,3) float64
+        Creature blendshape deltas (the transferred actor shapes), scene units.
+    weights : (T,S) float64
+        Weights copied from the actor's solve.
+    correctives : (T,W,3) float32
+        Per-frame creature correctives on top of ``rest + weights @ deltas``:
+        the transferred actor corrective plus the lip-sync offset, scene units.
+    end_points : list of EndPoints or None
+        Talking portion used on each frame (``None`` without lip sync).
+    info : dict
+        Timings (seconds) and counts.
+    """
+
+    deltas: np.ndarray
+    weights: np.ndarray
+    correctives: np.ndarray
+    end_points: list
+    info: dict
+
+
+class Retargeter:
+    """Parallel creature rig plus per-frame retargeting (Bhat §5.1).
+
+    Parameters
+    ----------
+    actor_rest : (V,3) array_like
+        Actor neutral, scene units.
+    actor_faces : (F,3) int array_like
+    actor_deltas : (S,V,3) array_like
+        Actor blendshape deltas, scene units.
+    creature_rest : (W,3) array_like
+        Creature neutral, scene units.
+    creature_faces : (F_t,3) int array_like
+    correspondence : (F_t,) int array_like, optional
+        Source triangle per creature triangle; default: shared topology.
+    lip_sync : bool
+        Build the lip-sync deformer.
+    actor_loop, creature_loop : (L,) int array_like, optional
+        Inner-lip edge loops; default: detected (``lip_loop.inner_lip_loop``)
+        on the actor, and the same vertex ids on a creature of the same
+        topology (detected on the creature otherwise).
+    actor_contours, creature_contours : LipContours, optional
+        Give the split contours directly instead of loops.
+    threshold : float
+        Default lip-sync distance threshold, scene units.
+    up, forward : (3,) float
+        Face axes for the corner and upper/lower detection.
+    radius, strength, smooth, seal_strength : float
+        Passed to :class:`LipSync`.
+    """
+
+    def __init__(self, actor_rest, actor_faces, actor_deltas, creature_rest, creature_faces, *, correspondence=None,
+                 lip_sync: bool = True, actor_loop=None, creature_loop=None, actor_contours=None,
+                 creature_contours=None, threshold: float = 0.0, up=Y_UP, forward=Z_FORWARD, radius=None,
+                 strength: float = 10.0, smooth: float = 0.02, seal_strength: float = 100.0):
+        t0 = time.perf_counter()
+        self.transfer = DeformationTransfer(actor_rest, actor_faces, creature_rest, creature_faces, correspondence)
+        t1 = time.perf_counter()
+        D = np.asarray(actor_deltas, dtype=np.float64)
+        if D.ndim == 2:
+            D = D[None]
+        if D.ndim != 3 or D.shape[1:] != self.transfer.source_rest.shape:
+            raise FaceLabError(
+                f"The actor's shape deltas have shape {np.shape(actor_deltas)}, expected (S, {len(actor_rest)}, 3); "
+                "the rig must have shape keys on the actor mesh."
+            )
+        if len(D) == 0:
+            raise FaceLabError("The actor rig has no shape keys; add blendshapes (shape keys) to the actor first.")
+        self.actor_deltas = D
+        self.creature_deltas = self.transfer.transfer_deltas(D)
+        t2 = time.perf_counter()
+        self.threshold = float(threshold)
+        self.lip_sync = None
+        if lip_sync:
+            Va, Fa = self.transfer.source_rest, self.transfer.source_faces
+            Vc, Fc = self.transfer.target_rest, self.transfer.target_faces
+            ac = actor_contours or lip_contours(Va, Fa, actor_loop, up=up, forward=forward)
+            if creature_contours is not None:
+                cc = creature_contours
+            elif creature_loop is None and self.transfer.same_topology:
+                cc = lip_contours(Vc, Fc, np.r_[ac.upper, ac.lower[1:-1][::-1]], corners=ac.corners, up=up,
+                                  forward=forward)
+            else:
+                cc = lip_contours(Vc, Fc, creature_loop, up=up, forward=forward)
+            self.lip_sync = LipSync(Vc, Fc, cc, ac, radius=radius, strength=strength, smooth=smooth,
+                                    seal_strength=seal_strength)
+        t3 = time.perf_counter()
+        self.info = {"factor_s": t1 - t0, "transfer_shapes_s": t2 - t1, "lip_sync_setup_s": t3 - t2}
+
+    @property
+    def creature_rest(self):
+        return self.transfer.target_rest
+
+    def frame(self, weights, corrective=None, *, end_points=None, lip_sync: bool | None = None,
+              threshold: float | None = None):
+        """Retarget one frame.
+
+        Parameters
+        ----------
+        weights : (S,) array_like
+            Actor weights of this frame (copied to the creature).
+        corrective : (V,3) array_like, optional
+            Actor's out-of-subspace corrective of this frame, scene units.
+        end_points : EndPoints or fractions, optional
+            Artist override of the talking portion on this frame.
+        lip_sync : bool, optional
+            Apply the lip-sync heuristic (default: when it was built).
+        threshold : float, optional
+            Distance threshold (default: the one given at construction).
+
+        Returns
+        -------
+        corrective : (W,3) float64 ndarray
+            Creature corrective on top of ``creature_rest + weights @ creature_deltas``,
+            scene units.
+        info : dict
+            ``end_points`` (or None) and ``constraints``.
+        """
+        w = np.asarray(weights, dtype=np.float64).ravel()
+        if w.shape != (len(self.actor_deltas),) or not np.isfinite(w).all():
+            raise FaceLabError(
+                f"Expected {len(self.actor_deltas)} finite weights for this frame, got {w.shape}; solve the frame first."
+            )
+        blend_a = np.tensordot(w, self.actor_deltas, axes=1)
+        blend_c = np.tensordot(w, self.creature_deltas, axes=1)
+        if corrective is not None:
+            dv = np.asarray(corrective, dtype=np.float64)
+            corr_c = self.transfer.transfer_correctives(dv, base=blend_a)
+        else:
+            dv = 0.0
+            corr_c = np.zeros_like(blend_c)
+        info = {"end_points": None, "constraints": 0}
+        use = self.lip_sync is not None if lip_sync is None else bool(lip_sync)
+        if use:
+            if self.lip_sync is None:
+                raise FaceLabError("Lip sync was not set up for this creature; build the Retargeter with lip_sync=True.")
+            actor = self.transfer.source_rest + blend_a + dv
+            creature = self.creature_rest + blend_c + corr_c
+            th = self.threshold if threshold is None else float(threshold)
+            X, info = self.lip_sync.solve(actor, creature, end_points=end_points, threshold=th)
+            corr_c = X - self.creature_rest - blend_c
+        return corr_c, info
+
+
+def retarget_performance(actor_rest, actor_faces, actor_deltas, weights, creature_rest, creature_faces, *,
+                         correctives=None, correspondence=None, lip_sync: bool = True, threshold: float = 0.0,
+                         end_points: dict | None = None, actor_loop=None, creature_loop=None, progress=None,
+                         **kwargs) -> RetargetResult:
+    """Retarget a solved performance to a creature (Bhat §5.1).
+
+    Parameters
+    ----------
+    actor_rest : (V,3) array_like
+        Actor neutral, scene units.
+    actor_faces : (F,3) int array_like
+    actor_deltas : (S,V,3) array_like
+        Actor blendshape deltas.
+    weights : (T,S) array_like
+        Solved weights per frame.
+    creature_rest : (W,3) array_like
+    creature_faces : (F_t,3) int array_like
+    correctives : (T,V,3) array_like, optional
+        Actor correctives per frame, scene units.
+    correspondence : (F_t,) int array_like, optional
+        Default: shared topology.
+    lip_sync : bool
+        Apply the lip-sync heuristic.
+    threshold : float
+        Lip-sync distance threshold, scene units.
+    end_points : dict frame index -> EndPoints or fractions, optional
+        Artist overrides on some frames.
+    actor_loop, creature_loop : (L,) int array_like, optional
+        Inner-lip edge loops (default detected).
+    progress : callable(done, total), optional
+    **kwargs
+        Passed to :class:`Retargeter` (``radius``, ``strength``, ``up``,
+        ``forward``, ``actor_contours``, ``creature_contours``).
+
+    Returns
+    -------
+    RetargetResult
+    """
+    W = np.asarray(weights, dtype=np.float64)
+    if W.ndim != 2:
+        raise FaceLabError(f"Weights must be (frames, shapes), got shape {W.shape}.")
+    rt = Retargeter(actor_rest, actor_faces, actor_deltas, creature_rest, creature_faces,
+                    correspondence=correspondence, lip_sync=lip_sync, actor_loop=actor_loop,
+                    creature_loop=creature_loop, threshold=threshold, **kwargs)
+    T = len(W)
+    C = None if correctives is None else np.asarray(correctives)
+    if C is not None and C.shape != (T,) + rt.transfer.source_rest.shape:
+        raise FaceLabError(
+            f"Correctives have shape {C.shape}, expected ({T}, {len(rt.transfer.source_rest)}, 3): one per frame."
+        )
+    out = np.zeros((T,) + rt.creature_rest.shape, dtype=np.float32)
+    eps = []
+    overrides = end_points or {}
+    t0 = time.perf_counter()
+    for t in range(T):
+        corr, info = rt.frame(W[t], None if C is None else C[t], end_points=overrides.get(t))
+        out[t] = corr
+        eps.append(info["end_points"])
+        if progress is not None:
+            progress(t + 1, T)
+    info = dict(rt.info)
+    info["frames_s"] = time.perf_counter() - t0
+    return RetargetResult(deltas=rt.creature_deltas, weights=W.copy(), correctives=out, end_points=eps, info=info)

@@ -1,0 +1,42 @@
+"""Every name FaceLab gives to things it creates in a Blender scene.
+
+One place for the ``FL_*`` prefixes of shape keys, vertex groups, actions,
+collections, objects and timeline markers, so the operators, the pipelines,
+the adapters and the CLI agree on them. Plain strings; no ``bpy``.
+"""
+
+from __future__ import annotations
+
+#: Prefix shared by everything FaceLab creates (muted when reading the capture).
+PREFIX = "FL_"
+
+# --- vertex groups ---------------------------------------------------------------------------
+#: Trusted mouth region (input of the regression, Dinev et al. 2018 §4).
+MOUTH_GROUP = "FL_mouth"
+#: Inner-lip region the regression predicts.
+LIPS_GROUP = "FL_lips"
+#: Hidden vertices that must never move (mouth bag, teeth, back of the head).
+FIXED_GROUP = "FL_fixed"
+#: Eyeball vertex groups used by the eyelid contours.
+EYEBALL_GROUPS = {"left": "FL_eyeball_left", "right": "FL_eyeball_right"}
+
+# --- shape keys (prefixes; a frame number or index follows) ----------------------------------
+REFINE_PREFIX = "FL_Refine_"
+CORRECTED_PREFIX = "FL_Corrected_"
+PROPAGATE_PREFIX = "FL_Prop_"
+SOLVE_PREFIX = "FL_Solve_"
+RETARGET_PREFIX = "FL_Retarget_"
+RECONSTRUCT_PREFIX = "FL_Recon_"
+RIG_CORRECTIVE_PREFIX = "FL_Corr_"
+
+# --- actions, properties, objects, collections, markers --------------------------------------
+SOLVE_ACTION = "FL_Solve"
+RETARGET_ACTION = "FL_Retarget"
+CORRECTIVES_ACTION = "FL_Correctives"
+#: Object custom property keyed by Propagate: how far each frame is from the training frames.
+EXTRAPOLATION_PROP = "FL_extrapolation"
+SKETCH_OBJECT = "FL_LipSketch"
+BUNDLES_COLLECTION = "FL_bundles"
+TRACK_EMPTY_PREFIX = "FL_track_"
+TRAIN_MARKER = "FL train"
+SUGGEST_MARKER = "FL suggest"

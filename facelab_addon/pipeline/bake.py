@@ -1,0 +1,122 @@
+"""Bake: the corrected performance (capture + FaceLab's corrective keys) to a PC2, MDD or Alembic file
+for other packages.
+
+PC2 and MDD are written one frame a step by :func:`facelab_addon.blender.bakes.bake_point_cache_steps`
+(cancelling leaves an existing file untouched); Alembic is one call of Blender's exporter
+(:func:`facelab_addon.blender.bakes.bake_alembic`), a single step.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..blender import bakes, caches
+from ..core.errors import FaceLabError
+from .steps import run_steps
+
+__all__ = ["FORMATS", "BakeSettings", "BakeResult", "bake_steps", "bake"]
+
+#: Bake formats and their file extensions.
+FORMATS = {"PC2": ".pc2", "MDD": ".mdd", "ABC": ".abc"}
+
+
+@dataclass
+class BakeSettings:
+    """How :func:`bake` writes.
+
+    Attributes
+    ----------
+    format : {"PC2", "MDD", "ABC"}
+    overwrite : bool
+        Replace an existing file (otherwise refuse).
+    """
+
+    format: str = "PC2"
+    overwrite: bool = False
+
+
+@dataclass
+class BakeResult:
+    """What :func:`bake` wrote.
+
+    Attributes
+    ----------
+    object : str
+    path : pathlib.Path
+        The file written.
+    format : str
+    frames : int
+        Number of frames baked.
+    seconds : float
+        From the call to the last step.
+    """
+
+    object: str
+    path: Path
+    format: str
+    frames: int
+    seconds: float = 0.0
+
+
+def bake(obj, frames, path, settings: BakeSettings | None = None, progress=None) -> BakeResult:
+    """Bake the evaluated (corrected) mesh of ``obj`` over ``frames`` to ``path``; runs :func:`bake_steps`.
+
+    Parameters
+    ----------
+    obj : bpy.types.Object
+    frames : (T,) int array_like
+        Scene frames (PC2: evenly spaced; MDD: increasing; Alembic: the whole range they span).
+    path : str or os.PathLike
+        Destination, an absolute path.
+    settings : BakeSettings, optional
+    progress : callable(label, done, total), optional
+
+    Returns
+    -------
+    BakeResult
+    """
+    return run_steps(bake_steps(obj, frames, path, settings), progress)
+
+
+def bake_steps(obj, frames, path, settings: BakeSettings | None = None):
+    """The bake as a generator of steps (one per frame for PC2 / MDD) returning a :class:`BakeResult`.
+
+    The input is checked by this call, before any file is opened.
+
+    Raises
+    ------
+    FaceLabError
+        No destination, the file exists and ``settings.overwrite`` is off, an
+        unknown format, frames unfit for the format; ``MeshError`` when ``obj``
+        is not a mesh object.
+    """
+    settings = settings or BakeSettings()
+    t0 = time.perf_counter()
+    if not path:
+        raise FaceLabError("Choose a file to bake to.")
+    path = Path(path)
+    if settings.format not in FORMATS:
+        raise FaceLabError(f"Unknown bake format {settings.format!r}; choose one of {', '.join(FORMATS)}.")
+    if path.exists() and not settings.overwrite:
+        raise FaceLabError(f"{path} exists; enable Overwrite or choose another file.")
+    frames = np.asarray(frames)
+    caches.require_mesh_object(obj)
+    if settings.format == "ABC":
+        return _alembic_step(obj, frames, path, t0)
+    steps = bakes.bake_point_cache_steps(obj, frames, path, settings.format)
+    return _point_cache(steps, obj, frames, settings.format, t0)
+
+
+def _point_cache(steps, obj, frames, fmt, t0):
+    out = yield from steps
+    return BakeResult(object=obj.name, path=out, format=fmt, frames=len(frames), seconds=time.perf_counter() - t0)
+
+
+def _alembic_step(obj, frames, path, t0):
+    yield "exporting Alembic", 0, 1
+    out = bakes.bake_alembic(obj, frames, path)
+    return BakeResult(object=obj.name, path=out, format="ABC", frames=len(frames), seconds=time.perf_counter() - t0)

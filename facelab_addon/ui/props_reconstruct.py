@@ -1,0 +1,100 @@
+"""Properties of Reconstruct from Bundles and Generate Correctives (Cong, Lan & Fedkiw).
+
+``Scene.facelab_recon`` (:class:`FACELAB_PG_reconstruct`): the bundle source,
+bind frame, smoothing, jaw and the template rig with its combinations.
+:func:`reconstruct_settings` and :func:`corrective_settings` gather them into
+the pipeline's settings (:mod:`facelab_addon.pipeline.reconstruct`).
+"""
+
+import bpy
+from bpy.props import EnumProperty, IntProperty, PointerProperty, StringProperty
+
+from ..names import BUNDLES_COLLECTION
+from ..pipeline.reconstruct import CorrectiveSettings, ReconstructSettings
+
+BUNDLE_SOURCES = [
+    ("SELECTED", "Selected",
+     f"Selected empties (one bundle each, animated) and point meshes; else the collection '{BUNDLES_COLLECTION}'"),
+    ("COLLECTION", "Collection", "The empties (and point meshes) of a collection"),
+    ("MESH", "Point Mesh",
+     "A vertex list: every vertex of a mesh is a bundle, animated by shape keys, a Mesh Cache (PC2/MDD) or an "
+     "Alembic cache"),
+]
+JAW_SOURCES = [
+    ("NONE", "None", "No jaw articulation: the dataset shapes are blended as they are"),
+    ("BONE", "Jaw Bone",
+     "The jaw bone of an armature: its rotation and translation from the bind frame drive linear blend skinning "
+     "(weights: the face's vertex group named after the bone)"),
+    ("OBJECT", "Object", "Any object (an empty, a jaw mesh) whose motion from the bind frame is the jaw's"),
+]
+
+
+def _mesh_poll(self, ob):
+    return ob.type == "MESH"
+
+
+def _armature_poll(self, ob):
+    return ob.type == "ARMATURE"
+
+
+class FACELAB_PG_reconstruct(bpy.types.PropertyGroup):
+    """Scene settings of Reconstruct from Bundles and Generate Correctives (``scene.facelab_recon``)."""
+
+    bundle_source: EnumProperty(name="Bundles", items=BUNDLE_SOURCES, default="SELECTED")
+    bundle_collection: PointerProperty(name="Collection", type=bpy.types.Collection)
+    bundle_mesh: PointerProperty(name="Point Mesh", type=bpy.types.Object, poll=_mesh_poll)
+    bind_frame: IntProperty(name="Bind Frame", default=-1,
+                            description="Frame where the face is neutral: bundles are bound to the surface there "
+                                        "(-1: the scene's first frame)")
+    smooth: IntProperty(name="Smoothing", default=1, min=1, max=15,
+                        description="Central moving average of the barycentric weights over this many frames "
+                                    "(1: off); the surface then passes through the bundles' moving average")
+    jaw_source: EnumProperty(name="Jaw", items=JAW_SOURCES, default="NONE")
+    jaw_armature: PointerProperty(name="Armature", type=bpy.types.Object, poll=_armature_poll)
+    jaw_bone: StringProperty(name="Bone", default="jaw")
+    jaw_object: PointerProperty(name="Jaw Object", type=bpy.types.Object)
+    jaw_group: StringProperty(name="Jaw Weights",
+                              description="Vertex group of the face with the jaw's skinning weights (empty: the "
+                                          "bone's name)")
+    rig_object: PointerProperty(name="Rig", type=bpy.types.Object, poll=_mesh_poll,
+                                description="Mesh whose shape keys are the template rig (same vertex order as the "
+                                            "face); the correctives are added to it")
+    combinations: StringProperty(name="Combinations", default="",
+                                 description="Rig-shape combinations, e.g. 'noseSneer_L+mouthUpperUp_L, "
+                                             "mouthSmile_L+jawOpen'")
+
+
+def reconstruct_settings(scene, selected=(), *, frame_start: int = -1, frame_end: int = -1, bind_frame: int = -2,
+                         smooth: int = 0) -> ReconstructSettings:
+    """Reconstruct's settings from ``scene.facelab_recon``.
+
+    ``selected`` are the selected objects (the ``SELECTED`` bundle source);
+    ``bind_frame`` -2 and ``smooth`` 0 take the panel's values.
+    """
+    r = scene.facelab_recon
+    return ReconstructSettings(
+        frame_start=frame_start, frame_end=frame_end, bind_frame=bind_frame if bind_frame != -2 else r.bind_frame,
+        smooth=smooth or r.smooth, bundle_source=r.bundle_source, selected=tuple(selected),
+        bundle_collection=r.bundle_collection, bundle_mesh=r.bundle_mesh, jaw_source=r.jaw_source,
+        jaw_armature=r.jaw_armature, jaw_bone=r.jaw_bone, jaw_object=r.jaw_object, jaw_group=r.jaw_group)
+
+
+def corrective_settings(scene, combinations: str = "", n_bundles: int = 100, drivers: bool = True):
+    """Generate Correctives' settings: the panel's rig, and its combinations unless ``combinations`` is given."""
+    r = scene.facelab_recon
+    return CorrectiveSettings(rig_object=r.rig_object, combinations=combinations or r.combinations,
+                              n_bundles=n_bundles, drivers=drivers)
+
+
+classes = (FACELAB_PG_reconstruct,)
+_register, _unregister = bpy.utils.register_classes_factory(classes)
+
+
+def register():
+    _register()
+    bpy.types.Scene.facelab_recon = PointerProperty(type=FACELAB_PG_reconstruct)
+
+
+def unregister():
+    del bpy.types.Scene.facelab_recon
+    _unregister()

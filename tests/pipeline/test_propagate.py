@@ -1,0 +1,174 @@
+"""The Propagate pipeline without operators: an animated ICT capture with a systematic inner-lip
+error, three frames corrected by the artist -> ``pipeline.propagate.propagate`` reproduces the
+corrections on the training frames, predicts the held-out frames exactly as an independently fitted
+regressor, removes most of the error, and refits from the scene on every run. Corrected OBJs over a
+Mesh Cache (``add_corrected_frame``) show exactly on their frame."""
+
+import bpy
+import numpy as np
+import pytest
+
+from facelab_addon.blender import caches
+from facelab_addon.blender.mesh import mesh_triangles, vertex_group_mask
+from facelab_addon.blender.shapekeys import (
+    add_corrective_key,
+    find_fcurve,
+    key_spike,
+    rest_vertices,
+)
+from facelab_addon.core.errors import FaceLabError, RegionError
+from facelab_addon.core.lips.propagate import LipRegressor
+from facelab_addon.core.lips.regions import faces_in_region
+from facelab_addon.names import (
+    CORRECTED_PREFIX,
+    EXTRAPOLATION_PROP,
+    LIPS_GROUP,
+    MOUTH_GROUP,
+    PROPAGATE_PREFIX,
+    SUGGEST_MARKER,
+    TRAIN_MARKER,
+)
+from facelab_addon.pipeline.propagate import (
+    PropagateSettings,
+    add_corrected_frame,
+    propagate,
+    propagate_steps,
+    record_training_frame,
+    remove_training_frame,
+    training_frames,
+)
+from facelab_addon.pipeline.regions import auto_regions
+
+from ..blender.test_propagate_operator import FRAMES, SCALE, TRAIN, build
+
+pytestmark = pytest.mark.blender
+
+HELD = [2, 11, 24, 37]
+
+
+def corrected_scene(ict, train=TRAIN):
+    """The capture, Auto Regions, and the artist's sculpted corrections on ``train`` (recorded)."""
+    scene, obj, err, cap_w = build(ict)
+    auto_regions(obj)
+    for f in train:
+        scene.frame_set(f)
+        key_spike(add_corrective_key(obj, f"Sculpt_{f}", -cap_w[np.searchsorted(FRAMES, f)] * err), f)
+        record_training_frame(scene, obj, f, "", "sculpt")
+    return scene, obj, err, cap_w
+
+
+def independent_prediction(obj, train, frames):
+    """LipRegressor fitted here on ``train`` (corrected frames read with the propagated keys muted)."""
+    tris = mesh_triangles(obj.data)
+    reg = LipRegressor(rest_vertices(obj), tris, faces_in_region(tris, vertex_group_mask(obj, MOUTH_GROUP)),
+                       faces_in_region(tris, vertex_group_mask(obj, LIPS_GROUP)))
+    reg.fit(caches.evaluate_frames(obj, train, mute_shape_keys_prefix=(PROPAGATE_PREFIX,)))
+    captured = caches.evaluate_frames(obj, frames, mute_shape_keys_prefix=("FL_",))
+    return reg.predict(captured.astype(np.float64))
+
+
+def prop_keys(obj):
+    return [kb.name for kb in obj.data.shape_keys.key_blocks if kb.name.startswith(PROPAGATE_PREFIX)]
+
+
+def test_propagate_reproduces_the_training_corrections_and_predicts(ict, addon):
+    scene, obj, err, cap_w = corrected_scene(ict)
+    corrected = caches.evaluate_frames(obj, TRAIN, mute_shape_keys_prefix=(PROPAGATE_PREFIX,))
+
+    r = propagate(scene, obj, FRAMES, PropagateSettings(suggestions=2))
+    assert r.keys == prop_keys(obj) and 1 <= r.rank <= 10
+    assert r.training == TRAIN and list(r.frames) == list(FRAMES) and r.note == ""
+    # training frames show exactly the artist's correction (the propagated correction is zero there)
+    np.testing.assert_allclose(caches.evaluate_frames(obj, TRAIN, mute_shape_keys_prefix=()), corrected, atol=1e-7)
+    # held-out frames: the regressor's prediction, within the 0.01 mm compression tolerance (+ float32)
+    got = caches.evaluate_frames(obj, HELD, mute_shape_keys_prefix=())
+    assert np.abs(got - independent_prediction(obj, TRAIN, HELD)).max() < 1e-5 + 1e-6
+    # and closer to the truth (the capture minus the injected error) than the capture
+    i = np.searchsorted(FRAMES, HELD)
+    captured = caches.evaluate_frames(obj, HELD, mute_shape_keys_prefix=("FL_",))
+    truth = captured - cap_w[i, None, None] * err
+    lips = vertex_group_mask(obj, LIPS_GROUP)
+    e = lambda X: np.linalg.norm(X - truth, axis=2)[:, lips].mean()  # noqa: E731
+    assert e(got) < 0.5 * e(captured), (e(captured), e(got))
+    # the extrapolation score it returns is the one keyed on the object; ~0 on training frames
+    fc = find_fcurve(obj, f'["{EXTRAPOLATION_PROP}"]')
+    keyed = np.array([fc.evaluate(f) for f in FRAMES])
+    np.testing.assert_array_equal(keyed, r.extrapolation.astype(np.float32))
+    assert np.abs(r.extrapolation[np.searchsorted(FRAMES, TRAIN)]).max() < 1e-3
+    # the suggested frames are the markers, never a training frame
+    markers = [m.frame for m in scene.timeline_markers if m.name.startswith(SUGGEST_MARKER)]
+    assert len(r.suggested) == 2 and sorted(markers) == sorted(r.suggested) and not set(r.suggested) & set(TRAIN)
+
+
+def test_propagate_refits_from_the_scene_every_run(ict, addon):
+    """Adding or removing a training frame gives the model fitted on exactly the frames now recorded."""
+    scene, obj, err, cap_w = corrected_scene(ict)
+    propagate(scene, obj, FRAMES, PropagateSettings(suggestions=0))
+    f = 24
+    scene.frame_set(f)
+    key_spike(add_corrective_key(obj, f"Sculpt_{f}", -cap_w[np.searchsorted(FRAMES, f)] * err), f)
+    record_training_frame(scene, obj, f, "", "sculpt")
+    r = propagate(scene, obj, FRAMES, PropagateSettings(suggestions=0))
+    assert r.training == sorted(TRAIN + [f]) and r.keys == prop_keys(obj)
+    held = [2, 11, 37]
+    got = caches.evaluate_frames(obj, held, mute_shape_keys_prefix=())
+    assert np.abs(got - independent_prediction(obj, r.training, held)).max() < 1e-5 + 1e-6
+
+    # remove frame 5 from the list: its marker goes, and the model no longer learns from it
+    i = [t.frame for t in obj.facelab.training_frames].index(5)
+    assert remove_training_frame(scene, obj, i) == (5, "")
+    assert 5 not in [m.frame for m in scene.timeline_markers if m.name.startswith(TRAIN_MARKER)]
+    assert training_frames(obj) == [18, 24, 31]
+    r = propagate(scene, obj, FRAMES, PropagateSettings(suggestions=0))
+    assert r.training == [18, 24, 31]
+    got = caches.evaluate_frames(obj, held, mute_shape_keys_prefix=())
+    assert np.abs(got - independent_prediction(obj, r.training, held)).max() < 1e-5 + 1e-6
+    assert not any("." in k for k in prop_keys(obj))  # replaced, never duplicated
+
+
+def test_propagate_refuses_bad_input_before_any_step(ict, addon):
+    scene, obj, err, cap_w = build(ict)
+    with pytest.raises(RegionError, match=MOUTH_GROUP):
+        propagate_steps(scene, obj, FRAMES)  # raised by the call itself, before a step runs
+    auto_regions(obj)
+    with pytest.raises(FaceLabError, match="No training frame"):
+        propagate_steps(scene, obj, FRAMES)
+    record_training_frame(scene, obj, 31, "", "sculpt")
+    with pytest.raises(FaceLabError, match="outside the range"):
+        propagate_steps(scene, obj, np.arange(1, 21))
+    # a sketch's training frame whose key was deleted does not count
+    obj.facelab.training_frames[0].source, obj.facelab.training_frames[0].shape_key = "sketch", "FL_Refine_0031"
+    assert training_frames(obj) == []
+    assert obj.data.shape_keys is not None and not prop_keys(obj)
+    assert not any(m.name.startswith(SUGGEST_MARKER) for m in scene.timeline_markers)
+
+
+def test_corrected_frame_over_a_mesh_cache(ict, addon, tmp_path):
+    """A corrected face (an OBJ's vertices) on frame 9 of a PC2 capture: the cache is switched to
+    Integrate, the key is mapped through the cache surface, and frame 9 shows the corrected face."""
+    from facelab_addon.blender.scene import new_mesh_object
+    from facelab_addon.core.capture.pointcache_writer import write_pc2
+
+    scene, obj, err, cap_w = build(ict)
+    frames = FRAMES[:16]
+    capture = caches.evaluate_frames(obj, frames, mute_shape_keys_prefix=())
+    truth = caches.evaluate_frames(obj, frames, mute_shape_keys_prefix=("CaptureError",))
+    pc2 = write_pc2(tmp_path / "capture.pc2", capture, start=1.0)
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    scene = bpy.context.scene
+    scene.frame_start, scene.frame_end = 1, 16
+    face = new_mesh_object("Face", ict.neutral * SCALE, poly_verts=ict.poly_verts, poly_offsets=ict.poly_offsets)
+    md = face.modifiers.new("Capture", "MESH_CACHE")
+    md.cache_format, md.filepath, md.frame_start = "PC2", str(pc2), 1.0
+    bpy.context.view_layer.objects.active = face
+    assert md.deform_mode == "OVERWRITE"
+
+    c = add_corrected_frame(scene, face, 9, truth[8])
+    assert md.deform_mode == "INTEGRATE" and c.shape_key == f"{CORRECTED_PREFIX}0009"
+    got = caches.evaluate_frames(face, [8, 9, 10], mute_shape_keys_prefix=())
+    assert np.abs(got[1] - truth[8]).max() < 1e-5  # the corrected face, through the cache surface
+    np.testing.assert_allclose(got[[0, 2]], capture[[7, 9]], atol=1e-6)  # neighbours: the capture
+    assert c.max_offset == pytest.approx(np.linalg.norm(truth[8] - capture[8], axis=1).max(), rel=0.05)
+    assert [(t.frame, t.shape_key, t.source) for t in face.facelab.training_frames] == [(9, c.shape_key, "sculpt")]
+    with pytest.raises(FaceLabError, match="vertices"):
+        add_corrected_frame(scene, face, 3, truth[2][:-1])

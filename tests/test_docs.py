@@ -1,0 +1,148 @@
+"""The docs follow the code: docs/api.md is what scripts/api_docs.py generates now, every link in the
+Markdown stays inside the repository and resolves, and every `facelab_addon` path the Markdown names
+(`facelab_addon.core.lips.sketch.refine_lips`, `core.capture.camera.Camera`, `from ... import ...`)
+exists in the code."""
+
+import ast
+import importlib.util
+import re
+import subprocess
+import sys
+from functools import cache
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+MARKDOWN = sorted([ROOT / "README.md", *(ROOT / "docs").glob("*.md")])
+# docs whose Python paths are checked against the code (api.md is generated from it)
+PATH_CHECKED = [p for p in MARKDOWN if p.name != "api.md"]
+
+LINK = re.compile(r"!?\[(?:[^\]\[]|\[[^\]]*\])*\]\(([^)\s]+)(?:\s+\"[^\"]*\")?\)")
+FENCE = re.compile(r"^```.*?^```", re.S | re.M)
+
+
+def load_api_docs():
+    spec = importlib.util.spec_from_file_location("api_docs", ROOT / "scripts" / "api_docs.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_api_md_is_up_to_date(tmp_path):
+    out = tmp_path / "api.md"
+    with out.open("w") as f:
+        r = subprocess.run([sys.executable, str(ROOT / "scripts" / "api_docs.py"), "--stdout"], cwd=ROOT,
+                           stdout=f, stderr=subprocess.PIPE, text=True)
+    assert r.returncode == 0, r.stderr
+    assert out.read_text() == (ROOT / "docs" / "api.md").read_text(), \
+        "docs/api.md is out of date: run python scripts/api_docs.py"
+
+
+def test_api_docs_covers_the_shipped_modules_without_importing_them():
+    api = load_api_docs()
+    names = [m for m, _ in api.modules()]
+    assert names == sorted(names, key=lambda m: m.split("."))
+    assert "facelab_addon.core.lips.sketch" in names and "facelab_addon.blender.strokes" in names
+    assert not [m for m in names if m.startswith(("facelab_addon.ui", "facelab_addon.testing"))]
+    assert not [m for m in names if "._" in m]
+    summary, entries = api.describe("facelab_addon.core.lips.sketch",
+                                    ROOT / "facelab_addon" / "core" / "lips" / "sketch.py")
+    assert summary.startswith("Sketch-based lip refinement")
+    assert ("refine_lips", "function") in [(n, k) for n, k, _ in entries]
+    text = (ROOT / "docs" / "api.md").read_text()
+    assert "## `facelab_addon.blender.strokes`" in text  # imports bpy: parsed, not imported
+
+
+def links(path):
+    text = FENCE.sub("", path.read_text())
+    text = re.sub(r"`[^`\n]*`", "", text)
+    return LINK.findall(text)
+
+
+@pytest.mark.parametrize("path", MARKDOWN, ids=lambda p: str(p.relative_to(ROOT)))
+def test_links_stay_inside_the_repository(path):
+    bad = []
+    for target in links(path):
+        if target.startswith("#"):
+            continue
+        if re.match(r"^[a-z][a-z0-9+.-]*:", target, re.I):
+            bad.append(f"{target}: points outside the repository")
+            continue
+        dest = (path.parent / target.split("#")[0]).resolve()
+        if not dest.is_relative_to(ROOT):
+            bad.append(f"{target}: leaves the repository")
+        elif not dest.exists():
+            bad.append(f"{target}: does not exist")
+    assert not bad, bad
+
+
+def test_readme_links_the_docs():
+    found = {t for t in links(ROOT / "README.md")}
+    for doc in ("docs/conventions.md", "docs/benchmarks.md", "docs/api.md", "docs/install.md", "docs/cli.md"):
+        assert doc in found, doc
+    readme = (ROOT / "README.md").read_text()
+    assert "| case |" not in readme and "## Benchmarks" not in readme  # the numbers live in docs/benchmarks.md
+    assert "DESIGN.md" not in readme
+
+
+@cache
+def module_names(dotted):
+    """Top-level names a module defines, or None if there is no such module."""
+    base = ROOT.joinpath(*dotted.split("."))
+    path = base / "__init__.py" if base.is_dir() else base.with_suffix(".py")
+    if not path.exists():
+        return None
+    names = {p.stem for p in base.glob("*.py")} | {p.name for p in base.iterdir() if p.is_dir()} \
+        if base.is_dir() else set()
+    for node in ast.parse(path.read_text()).body:
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+            names.add(node.name)
+        elif isinstance(node, ast.Assign):
+            names |= {t.id for t in node.targets if isinstance(t, ast.Name)}
+        elif isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name):
+            names.add(node.target.id)
+        elif isinstance(node, (ast.Import, ast.ImportFrom)):
+            names |= {(a.asname or a.name).split(".")[0] for a in node.names}
+    return names
+
+
+def check_path(dotted):
+    """Why a dotted ``facelab_addon`` path does not exist ('' if it does)."""
+    parts = dotted.split(".")
+    for i in range(len(parts), 0, -1):
+        if module_names(".".join(parts[:i])) is not None:
+            rest = parts[i:]
+            if not rest or rest[0] in module_names(".".join(parts[:i])):
+                return ""
+            return f"{dotted}: {'.'.join(parts[:i])} has no {rest[0]}"
+    return f"{dotted}: no such module"
+
+
+LAYERS = r"(?:core|blender|pipeline|ui|cli|testing|names|assets)"
+DOTTED = re.compile(rf"\b(?:facelab_addon\.)?{LAYERS}(?:\.[A-Za-z_]\w*)+")
+
+
+@pytest.mark.parametrize("path", PATH_CHECKED, ids=lambda p: str(p.relative_to(ROOT)))
+def test_python_paths_in_the_docs_exist(path):
+    text = path.read_text()
+    refs = set()
+    for code in re.findall(r"`([^`\n]+)`", FENCE.sub("", text)) + FENCE.findall(text):
+        for m in DOTTED.findall(code):
+            if re.search(r"\.(py|md|json|obj|toml|png|blend|pc2|mdd|zip|txt)$", m):
+                continue
+            refs.add(m if m.startswith("facelab_addon.") else "facelab_addon." + m)
+    for block in FENCE.findall(text):
+        for mod, names in re.findall(r"^\s*from (facelab_addon[\w.]*) import ([\w, ]+)", block, re.M):
+            refs |= {f"{mod}.{n.split()[0]}" for n in names.split(",") if n.strip()}  # "a as b" -> a
+    if path.name in ("README.md", "conventions.md"):
+        assert refs, f"{path.name} names no facelab_addon path"
+    bad = [why for why in map(check_path, sorted(refs)) if why]
+    assert not bad, bad
+
+
+def test_path_check_catches_stale_paths():
+    assert check_path("facelab_addon.core.lips.sketch.refine_lips") == ""
+    assert check_path("facelab_addon.core.capture.camera.Camera") == ""
+    assert "has no sketch" in check_path("facelab_addon.core.sketch.refine_lips")  # the pre-regroup path
+    assert "has no refine" in check_path("facelab_addon.core.lips.sketch.refine")
