@@ -29,6 +29,10 @@ class RegionError(FaceLabError):
     """The mouth/lip regions are unusable: empty, overlapping, no border, no loop."""
 
 
+class RegionMeshError(RegionError, MeshError):
+    """The mesh given to a region finder is unusable (no triangles, bad indices, NaN positions)."""
+
+
 class CacheFileError(FaceLabError):
     """A PC2/MDD file is missing, truncated, of the wrong format or inconsistent."""
 
