@@ -146,10 +146,15 @@ class LaplacianDeformer:
         n = L.shape[0]
         self.n = n
         self.lambda_reg = float(lambda_reg)
+        if not (np.isfinite(self.lambda_reg) and self.lambda_reg >= 0):
+            raise FaceLabError(f"lambda_reg must be a non-negative number, got {lambda_reg!r}; use 1.")
         w = np.broadcast_to(np.asarray(pos_weights, dtype=np.float64), (n,)).copy()
-        pinned = np.zeros(n, bool) if pinned is None else np.asarray(pinned, dtype=bool)
-        if pinned.shape != (n,):
-            raise ValueError("pinned must be a (V,) bool mask")
+        if not (np.isfinite(w).all() and (w >= 0).all()):
+            raise FaceLabError("pos_weights must be non-negative finite numbers; use 0 (no anchoring) or 1.")
+        pinned = np.zeros(n, bool) if pinned is None else np.asarray(pinned)
+        if pinned.shape != (n,) or pinned.dtype != bool:
+            raise FaceLabError(f"pinned must be a ({n},) bool mask, got {pinned.dtype} {pinned.shape}; mark the "
+                               "fixed vertices with True.")
         self.pinned = pinned
         self.free = np.flatnonzero(~pinned)
         if len(self.free) == 0:
