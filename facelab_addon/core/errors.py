@@ -9,6 +9,10 @@ class FaceLabError(Exception):
     """Base class of every error FaceLab raises on bad input."""
 
 
+class UsageError(FaceLabError, ValueError):
+    """An argument is not one the function accepts: an unknown option, or a wrong combination of arguments."""
+
+
 class MeshError(FaceLabError):
     """The mesh is unusable: NaNs, bad indices, degenerate faces, wrong topology."""
 
@@ -31,6 +35,10 @@ class RegionError(FaceLabError):
 
 class RegionMeshError(RegionError, MeshError):
     """The mesh given to a region finder is unusable (no triangles, bad indices, NaN positions)."""
+
+
+class ObjFileError(MeshError, ValueError):
+    """An OBJ file is malformed: a bad vertex, face or texture line, or a NaN coordinate (names file and line)."""
 
 
 class CacheFileError(FaceLabError):

@@ -9,13 +9,16 @@ message names the problem and the fix); any other exception is a bug.
 Deterministic (``derandomize=True``) and bounded (about a minute in all).
 """
 
+import struct
+
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from facelab_addon.core.capture.camera import Camera
-from facelab_addon.core.capture.markers import bind_surface_points, nearest_surface_points
+from facelab_addon.core.capture.markers import SurfacePoints, bind_surface_points, nearest_surface_points
+from facelab_addon.core.capture.obj import read_obj
 from facelab_addon.core.capture.pointcache import read_cache
 from facelab_addon.core.capture.pointcache_writer import write_pc2
 from facelab_addon.core.errors import FaceLabError
@@ -27,6 +30,7 @@ from facelab_addon.core.lips.lip_loop import inner_lip_loop
 from facelab_addon.core.lips.propagate import LipRegressor
 from facelab_addon.core.lips.regions import auto_regions, faces_in_region
 from facelab_addon.core.lips.sketch import refine_lips
+from facelab_addon.core.lips.suggest import suggest_frames
 from facelab_addon.core.solve.blendshape_solve import BlendshapeSolver
 from facelab_addon.testing.meshes import grid_mesh
 
@@ -167,6 +171,10 @@ def test_fuzz_regressor(seed, train, test, center, patches, atol, out):
     if e is not None:
         finite(e)
         assert (e >= 0).all()
+    if outcome(reg.add, X) is not None:
+        idx = outcome(suggest_frames, X, 2, regressor=reg)
+        if idx is not None:
+            assert all(0 <= i < len(X) for i in idx)
 
 
 # ---------------------------------------------------------------- compression
@@ -185,6 +193,8 @@ def test_fuzz_compress(seed, T, nv, kind, tol, mpu, max_rank):
             C = C[:1] * rng.normal(size=(T, 1, 1))
         if kind in ("nan", "inf") and C.size:
             C.flat[rng.integers(C.size)] = np.nan if kind == "nan" else np.inf
+    if seed % 2:
+        C = C.astype(np.float32)
     res = outcome(compress, C, tol, metres_per_unit=mpu, max_rank=max_rank)
     if res is None:
         return
@@ -217,6 +227,47 @@ def test_fuzz_cache_readers_on_random_bytes(tmp_path_factory, data, ext, header,
         finite(arr)
 
 
+@FUZZ
+@given(seed=SEEDS, fmt=st.sampled_from(["PC2", "MDD"]), V=st.sampled_from([0, 1, 3, -1, 2**31 - 1]),
+       T=st.sampled_from([0, 1, 2, -5, 2**31 - 1]), body=st.sampled_from(["exact", "short", "long", "nan"]),
+       rate=st.sampled_from([1.0, 0.0, np.nan, -1.0]), frames=st.sampled_from([None, [0], [1, 0], [-1], [5],
+       [0.5]]), ask=st.sampled_from([None, "PC2", "MDD", "OBJ"]))
+def test_fuzz_cache_readers_on_structured_headers(tmp_path_factory, seed, fmt, V, T, body, rate, frames, ask):
+    rng = np.random.default_rng(seed)
+    nv, nt = max(min(V, 4), 0), max(min(T, 3), 0)
+    data = rng.normal(size=(nt, nv, 3)).astype(np.float32)
+    if body == "nan" and data.size:
+        data.flat[rng.integers(data.size)] = np.nan
+    if fmt == "PC2":
+        head = b"POINTCACHE2\0" + struct.pack("<iiffi", 1, V, 1.0, rate, T)
+        payload = data.astype("<f4").tobytes()
+    else:
+        head = struct.pack(">ii", T, V) + np.arange(nt, dtype=">f4").tobytes()
+        payload = data.astype(">f4").tobytes()
+    payload = {"short": payload[: len(payload) // 2], "long": payload + b"\0" * 7}.get(body, payload)
+    p = tmp_path_factory.mktemp("fuzz") / f"c.{fmt.lower()}"
+    p.write_bytes(head + payload)
+    res = outcome(read_cache, p, frames, fmt=ask)
+    if res is not None:
+        finite(res)
+        assert res.ndim == 3 and res.shape[2] == 3
+
+
+@FUZZ
+@given(text=st.text(alphabet=st.sampled_from(list("vf 0123456789.-/#enai\n")), max_size=120),
+       raw=st.binary(max_size=60), use_raw=st.booleans())
+def test_fuzz_obj_reader(tmp_path_factory, text, raw, use_raw):
+    p = tmp_path_factory.mktemp("fuzz") / "m.obj"
+    p.write_bytes(raw if use_raw else text.encode())
+    m = outcome(read_obj, p)
+    if m is not None:
+        V = np.asarray(m.vertices)
+        finite(V)
+        for F in (getattr(m, "faces", None), getattr(m, "triangles", None)):
+            if F is not None and np.asarray(F).size:
+                assert np.asarray(F).min() >= 0 and np.asarray(F).max() < len(V)
+
+
 # ---------------------------------------------------------------- camera
 
 
@@ -243,8 +294,13 @@ def test_fuzz_camera(seed, f, w, h, tz, pts, R):
     r = outcome(cam.rays, rng.normal(500, 400, (3, 2)))
     if r is not None:
         finite(*r)
-    if outcome(Camera.from_projection, rng.normal(size=(3, 4)), 640, 480) is not None:
-        pass
+    P = {"eye": rng.normal(size=(3, 4)), "random": np.full((3, 4), np.nan), "singular": np.zeros((3, 4))}[R]
+    c2 = outcome(Camera.from_projection, P, 640, 480)
+    if c2 is not None:
+        finite(c2.K, c2.R, c2.t)
+    c3 = outcome(Camera.look_at, [0, 0, tz], [0, 0, 0], [0, 1, 0] if R != "singular" else [0, 0, 1], f, 36, w, h)
+    if c3 is not None:
+        finite(c3.K, c3.R, c3.t)
 
 
 # ---------------------------------------------------------------- binding
@@ -266,6 +322,11 @@ def test_fuzz_binding(seed, flaw, npts, pflaw, maxd):
         fi, bary, dist = res
         finite(bary, dist)
         assert fi.min(initial=0) >= 0 and fi.max(initial=0) < len(F)
+    sv = rng.integers(-1, max(len(V), 1), (npts, 3))
+    bad_shape = pflaw == "far"
+    sp2 = outcome(SurfacePoints, sv, rng.random((npts, 2 if bad_shape else 3)))
+    if sp2 is not None:
+        assert len(sp2) == npts
     sp_ = outcome(nearest_surface_points, V, F, P)
     if sp_ is not None:
         finite(sp_.bary)

@@ -29,7 +29,7 @@ import numpy as np
 import scipy.linalg
 import scipy.sparse as sp
 
-from ..errors import FaceLabError
+from ..errors import FaceLabError, UsageError
 from .linsolve import SPDFactor
 
 __all__ = ["PointConstraints", "LaplacianDeformer"]
@@ -69,7 +69,7 @@ class PointConstraints:
         self.metrics = np.asarray(self.metrics, dtype=np.float64).reshape(c, 3, 3)
         self.strength = np.broadcast_to(np.asarray(self.strength, dtype=np.float64), (c,)).copy()
         if self.bary.shape != self.vertices.shape:
-            raise ValueError("bary must have the shape of vertices")
+            raise UsageError("bary must have the shape of vertices (c,k); give one weight per constrained vertex")
         if not (np.isfinite(self.targets).all() and np.isfinite(self.metrics).all()):
             raise FaceLabError("A constraint target is NaN or infinite; check the markers or strokes on this frame.")
 

@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from ..errors import MeshError
+from ..errors import MeshError, UsageError
 from .mesh import vertex_adjacency
 
 __all__ = ["uniform_laplacian", "cotangent_laplacian", "laplacian", "poisson_operator"]
@@ -97,7 +97,7 @@ def laplacian(vertices, faces, kind: str = "uniform", adjacency=None) -> sp.csr_
         return uniform_laplacian(faces, len(vertices), adjacency)
     if kind in ("cotangent", "cot"):
         return cotangent_laplacian(vertices, faces)
-    raise ValueError(f"unknown Laplacian kind {kind!r}; use 'uniform' or 'cotangent'")
+    raise UsageError(f"unknown Laplacian kind {kind!r}; use 'uniform' or 'cotangent'")
 
 
 def poisson_operator(rest_vertices, faces, region_faces):

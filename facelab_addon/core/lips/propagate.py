@@ -66,7 +66,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import FaceLabError, FrameError, PredictionError
+from ..errors import FaceLabError, FrameError, PredictionError, UsageError
 from ..geometry.gradients import rest_inverse, shape_matrices
 from ..geometry.laplacian import poisson_operator
 from ..geometry.linsolve import SPDFactor
@@ -145,7 +145,7 @@ class LipRegressor:
                  center="rest", ridge=0.0, rtol=1e-4, atol=1e-4, backend="auto"):
         R, F = _checked_mesh(rest_vertices, faces)
         if center not in ("rest", None):
-            raise ValueError(f"center must be 'rest' or None, got {center!r}")
+            raise UsageError(f"center must be 'rest' or None, got {center!r}; use 'rest' (the default)")
         _check_settings(ridge, rtol, atol, patches, input_radius)
         self.rest = R
         self.faces = F
@@ -598,7 +598,7 @@ class LipRegressor:
         """
         self._require_fit()
         if (captured is None) == (features is None):
-            raise ValueError("extrapolation() takes captured frames or their features, not both or neither")
+            raise UsageError("extrapolation() takes captured frames or their features, not both or neither; pass one")
         if features is None:
             A = _as_frames(captured, self.n_vertices, "captured frames", self._used)
             block = lambda s: self._mouth_feat(A[s : s + _BLOCK])  # noqa: E731
