@@ -61,3 +61,15 @@ def test_nan_vertices_and_bad_widths_are_refused_and_inputs_untouched():
         inner_lip_loop(V, F, loop=[0.5, 1.5, 2.5])
     with pytest.raises(RegionError, match="produced an empty mouth region.*increase the widths"):
         auto_regions(G, GF, GF[4])  # the same loop with valid widths: a clear refusal on this tiny grid
+
+
+def test_random_height_grids_end_in_a_region_error_not_an_index_error():
+    """Random bumpy grids (no lips): the contact search keeps only pairs that are near on the mesh, which used
+    to crash with an IndexError on about a third of them; every one now says why no lip line was found."""
+    for seed in range(0, 40, 5):
+        rng = np.random.default_rng(seed)
+        n, m = rng.integers(3, 20, 2)
+        V, F = grid_mesh(np.arange(n, dtype=float), np.arange(m, dtype=float),
+                         lambda x, y: rng.normal(0, rng.uniform(0, 2), x.shape))
+        with pytest.raises(RegionError, match="Cannot find the inner-lip line"):
+            auto_regions(V, F)

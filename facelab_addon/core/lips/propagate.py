@@ -518,8 +518,10 @@ class LipRegressor:
             then only the interior lip vertices are written (and they are
             never read). Another array first receives a copy of
             ``captured``. Default: a new float64 array. In place, the
-            working memory is a few tens of MB whatever the sequence length
-            and dtype (about 50 MB with the default chunk on ICT-FaceKit).
+            working memory is a few tens of MB (about 50 MB with the default
+            chunk on ICT-FaceKit) plus the checked interior lip positions,
+            24 bytes per interior lip vertex and frame, which are held until
+            every frame has passed the checks and only then written.
         chunk : int
             Frames per batch (working memory ~ chunk × lip size).
 
