@@ -179,6 +179,11 @@ def pc2_info(path) -> CacheInfo:
             "one of each. Re-export the cache."
         )
     _check_data_size(p, size, _PC2_HEADER_BYTES, T, V, "PC2")
+    if not (np.isfinite(h["start_frame"]) and np.isfinite(h["sample_rate"]) and h["sample_rate"] > 0):
+        raise CacheFileError(
+            f"PC2 file '{p}' has start frame {float(h['start_frame'])} and sample rate {float(h['sample_rate'])} "
+            "in its header; the sample rate must be a positive number of frames. Re-export the cache."
+        )
     return CacheInfo(
         path=str(p),
         format="PC2",
@@ -237,6 +242,11 @@ def mdd_info(path) -> CacheInfo:
             )
     _check_data_size(p, size, offset, T, V, "MDD")
     times = np.fromfile(p, dtype=">f4", count=T, offset=8).astype(np.float32)
+    if not np.isfinite(times).all():
+        raise CacheFileError(
+            f"MDD file '{p}' has NaN or infinite sample times (first at sample "
+            f"{int(np.flatnonzero(~np.isfinite(times))[0])}); the file is damaged. Re-export the cache."
+        )
     return CacheInfo(
         path=str(p),
         format="MDD",
@@ -344,8 +354,20 @@ def _read_samples(info: CacheInfo, frames, mmap: bool) -> np.ndarray:
     shape = (info.num_samples, info.num_points, 3)
     mm = np.memmap(info.path, dtype=info.dtype, mode="r", offset=info.data_offset, shape=shape)
     if frames is None:
-        return mm if mmap else _gather_f32(mm)
-    return _gather_f32(mm, _sample_index(frames, info.num_samples, info.path))
+        if mmap:
+            return mm
+        out, idx = _gather_f32(mm), np.arange(info.num_samples)
+    else:
+        idx = _sample_index(frames, info.num_samples, info.path)
+        out = _gather_f32(mm, idx)
+    bad = ~np.isfinite(out.reshape(len(out), -1)).all(axis=1)
+    if bad.any():
+        samples = sorted(set(idx[bad].tolist()))
+        raise CacheFileError(
+            f"{info.format} cache '{info.path}' has NaN or infinite positions in samples {samples[:5]} "
+            f"(0-based{', and more' if len(samples) > 5 else ''}); the file is damaged. Re-export the cache."
+        )
+    return out
 
 
 def read_pc2(path, frames=None, *, mmap: bool = False):
