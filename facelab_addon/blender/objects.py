@@ -12,7 +12,8 @@ import numpy as np
 from ..core.errors import FaceLabError
 from .camera import evaluated_depsgraph
 
-__all__ = ["NotEditableError", "require_editable", "ModifierState", "world_affine", "world_matrices", "points_to_local", "triangle_uvs", "same_polygons"]
+__all__ = ["NotEditableError", "require_editable", "ModifierState",
+           "world_affine", "world_matrices", "points_to_local", "triangle_uvs", "same_polygons"]
 
 
 class NotEditableError(FaceLabError):

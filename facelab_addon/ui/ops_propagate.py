@@ -12,7 +12,6 @@ import time
 import traceback
 
 import bpy
-import numpy as np
 from bpy.props import BoolProperty, EnumProperty, IntProperty, StringProperty
 
 from ..core.errors import FaceLabError

@@ -105,10 +105,12 @@ class FACELAB_PG_solve_scene(bpy.types.PropertyGroup):
                           description="Re-match contour correspondences every frame (off: keep the first frame's)")
     use_scene_range: BoolProperty(name="Scene Range", default=True,
                                   description="Work on the scene's frame range (off: the Start / End below)")
-    frame_start: IntProperty(name="Start", get=lambda self: _range_get(self, 0), set=lambda self, v: _range_set(self, 0, v),
+    frame_start: IntProperty(name="Start", get=lambda self: _range_get(self, 0),
+                             set=lambda self, v: _range_set(self, 0, v),
                              description="First frame (the scene's start while Scene Range is on; negative frames "
                                          "are allowed)")
-    frame_end: IntProperty(name="End", get=lambda self: _range_get(self, 1), set=lambda self, v: _range_set(self, 1, v),
+    frame_end: IntProperty(name="End", get=lambda self: _range_get(self, 1),
+                           set=lambda self, v: _range_set(self, 1, v),
                            description="Last frame (the scene's end while Scene Range is on)")
     weight_min: FloatProperty(name="Min Weight", default=-1.0, soft_min=-1.0, soft_max=0.0)
     weight_max: FloatProperty(name="Max Weight", default=1.0, soft_min=0.0, soft_max=1.0)

@@ -29,7 +29,8 @@ def grid(name="Face", n=6):
 
     x, y = np.meshgrid(np.linspace(0, 1, n), np.linspace(0, 1, n))
     V = np.c_[x.ravel(), y.ravel(), np.zeros(n * n)]
-    quads = [[i * n + j, i * n + j + 1, (i + 1) * n + j + 1, (i + 1) * n + j] for i in range(n - 1) for j in range(n - 1)]
+    quads = [[i * n + j, i * n + j + 1, (i + 1) * n + j + 1, (i + 1) * n + j]
+             for i in range(n - 1) for j in range(n - 1)]
     offs = np.arange(0, 4 * len(quads) + 1, 4)
     ob = new_mesh_object(name, V, poly_verts=np.ravel(quads), poly_offsets=offs)
     bpy.context.view_layer.update()
