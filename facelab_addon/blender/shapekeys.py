@@ -2,14 +2,18 @@
 
 from __future__ import annotations
 
+import re
+
 import bpy
 import numpy as np
 
-from ..names import CORRECTIVES_ACTION, PREFIX
+from ..names import CORRECTIVES_ACTION, LEGACY_KEY_PATTERNS, OWNED_KEYS_PROP, PREFIX
 
 __all__ = [
     "unique_key_name",
     "add_corrective_key",
+    "owned_keys",
+    "own_key",
     "key_spike",
     "find_fcurve",
     "shape_key_sequence",
@@ -57,8 +61,51 @@ def add_corrective_key(obj, name: str, deltas_local) -> "bpy.types.ShapeKey":
     kb.relative_key = basis
     kb.data.foreach_set("co", (co + d.ravel()).astype(np.float32))
     kb.value = 0.0
+    own_key(kb)
     obj.data.update()
     return kb
+
+
+# --------------------------------------------------------------------------- ownership
+def _registry(key, create: bool):
+    """The names listed in ``key[OWNED_KEYS_PROP]`` (a list, pruned to existing keys), or None.
+
+    Created on first use; a datablock without one (a file from before the registry) first
+    adopts the keys whose names match :data:`facelab_addon.names.LEGACY_KEY_PATTERNS`."""
+    names = set(key.key_blocks.keys())
+    reg = key.get(OWNED_KEYS_PROP)
+    if reg is None:
+        if not create:
+            return [n for n in names if _legacy(n)]
+        reg = sorted(n for n in names if _legacy(n))
+    return [str(n) for n in reg if str(n) in names]
+
+
+def _legacy(name: str) -> bool:
+    return any(re.fullmatch(p, name) for p in LEGACY_KEY_PATTERNS)
+
+
+def own_key(key_block) -> None:
+    """Record ``key_block`` as created by FaceLab (:data:`facelab_addon.names.OWNED_KEYS_PROP`)."""
+    key = key_block.id_data
+    reg = _registry(key, create=True)
+    if key_block.name not in reg:
+        reg.append(key_block.name)
+    key[OWNED_KEYS_PROP] = reg
+
+
+def owned_keys(obj, prefix: str = "") -> list:
+    """Names of the shape keys of ``obj`` FaceLab created (recorded in the registry), starting with ``prefix``.
+
+    A key the artist made is never listed, whatever its name (an ``FL_Prop_MyFix`` sculpted by hand
+    stays the artist's). In a file from before the registry, keys named exactly as FaceLab named
+    them (``FL_Prop_00``, ``FL_Refine_0012``..., :data:`facelab_addon.names.LEGACY_KEY_PATTERNS`)
+    count as FaceLab's.
+    """
+    key = obj.data.shape_keys
+    if key is None:
+        return []
+    return [n for n in _registry(key, create=False) if n.startswith(prefix)]
 
 
 def key_spike(key_block, frame: int) -> None:
@@ -177,11 +224,14 @@ def shape_key_sequence(obj, frames, *, skip_prefixes=(PREFIX,)):
 
 
 def remove_keys(obj, prefix: str) -> int:
-    """Remove the shape keys named ``prefix*`` and their F-curves (FaceLab's own output only)."""
+    """Remove FaceLab's own shape keys named ``prefix*`` (:func:`owned_keys`) and their F-curves.
+
+    Keys the artist made are kept, even when their name starts with ``prefix``.
+    """
     key = obj.data.shape_keys
     if key is None:
         return 0
-    names = [kb.name for kb in key.key_blocks if kb.name.startswith(prefix)]
+    names = owned_keys(obj, prefix)
     ad = key.animation_data
     for name in names:
         if ad is not None and ad.action is not None:
@@ -191,6 +241,10 @@ def remove_keys(obj, prefix: str) -> int:
             if fc is not None:
                 cb.fcurves.remove(fc)
         obj.shape_key_remove(key.key_blocks[name])
+    if names:
+        key = obj.data.shape_keys
+        if key is not None:
+            key[OWNED_KEYS_PROP] = _registry(key, create=True)
     return len(names)
 
 

@@ -16,6 +16,7 @@ import numpy as np
 
 from ..blender import bakes, caches
 from ..core.errors import FaceLabError
+from .outputs import check_output as _check_output
 from .steps import run_steps
 
 __all__ = ["FORMATS", "BakeSettings", "BakeResult", "bake_steps", "bake"]
@@ -94,6 +95,7 @@ def bake_steps(obj, frames, path, settings: BakeSettings | None = None):
         unknown format, frames unfit for the format; ``MeshError`` when ``obj``
         is not a mesh object.
     """
+    _check_output(path)
     settings = settings or BakeSettings()
     t0 = time.perf_counter()
     if not path:

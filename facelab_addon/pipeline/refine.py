@@ -24,6 +24,7 @@ from ..blender.mesh import (
     require_mesh,
     world_to_local_deltas,
 )
+from ..blender.objects import ModifierState, require_editable
 from ..blender.shapekeys import add_corrective_key, key_spike
 from ..blender.strokes import read_lip_strokes
 from ..core.errors import CameraError
@@ -138,6 +139,7 @@ def refine(scene, obj, frame: int, settings: RefineSettings | None = None, *, ca
     if cam_obj is None:
         raise CameraError(f"Scene '{scene.name}' has no camera; set the camera the sketch was drawn in.")
     obj = require_mesh(obj)
+    require_editable(obj, "Refine Lips")
     dg = evaluated_depsgraph(scene)
     cam = camera_from_blender(scene, cam_obj, dg)
     strokes = read_lip_strokes(scene, cam, frame, gp_obj=sketch, depsgraph=dg)
@@ -148,13 +150,18 @@ def refine(scene, obj, frame: int, settings: RefineSettings | None = None, *, ca
                        **settings.solver_weights())
     note = ""
     on_cache = caches.sequence_source(obj) in _CACHE_SOURCES
-    if on_cache:
-        note = cache_integrate.cache_to_shape_key_ready(obj)  # so the corrective key shows on the cache
-    d_world = X - V
-    d_local = world_to_local_deltas(obj, d_world)
-    if on_cache:
-        captured = caches.read_captured_frames(obj, [frame])[0]
-        d_local = cache_integrate.correction_to_key_offsets(obj, captured, d_local)
+    state = ModifierState(obj)
+    try:
+        if on_cache:
+            note = cache_integrate.cache_to_shape_key_ready(obj)  # so the corrective key shows on the cache
+        d_world = X - V
+        d_local = world_to_local_deltas(obj, d_world)
+        if on_cache:
+            captured = caches.read_captured_frames(obj, [frame])[0]
+            d_local = cache_integrate.correction_to_key_offsets(obj, captured, d_local)
+    except BaseException:
+        state.restore()  # a failure leaves the cache modifiers as they were
+        raise
     kb = add_corrective_key(obj, f"{REFINE_PREFIX}{frame:04d}", d_local)
     key_spike(kb, frame)
     record_training_frame(scene, obj, frame, kb.name, "sketch")
