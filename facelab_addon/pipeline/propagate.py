@@ -32,7 +32,7 @@ from ..blender.shapekeys import (
     rest_vertices,
 )
 from ..core.capture.integrate import integrate_matrices, integrate_offsets_to_key
-from ..core.errors import FaceLabError, MeshError
+from ..core.errors import FaceLabError, FrameError, MeshError
 from ..core.lips.propagate import LipRegressor
 from ..core.lips.suggest import suggest_frames
 from ..names import (
@@ -344,13 +344,19 @@ def _propagate_work(scene, obj, frames, settings, t0, tris, mouth_faces, lip_fac
     corrected = caches.evaluate_frames(obj, train, mute_shape_keys_prefix=(PROPAGATE_PREFIX,))
     _require_finite(corrected, train, "corrected (training)")
     reg = LipRegressor(rest, tris, mouth_faces, lip_faces)
-    reg.fit(corrected)
+    try:
+        reg.fit(corrected)
+    except FrameError as e:  # the core names positions in the training list; the artist reads scene frames
+        raise e.for_frames(list(train)) from None
 
     lipv = np.unique(tris[lip_faces])
     before = captured[:, lipv].astype(np.float64)
     for i, j in _chunks(T, max(chunk, 16)):
         yield "predicting", T + 1 + i, total
-        reg.predict(captured[i:j], out=captured[i:j])  # in place: 1000 frames stay within memory
+        try:
+            reg.predict(captured[i:j], out=captured[i:j])  # in place: 1000 frames stay within memory
+        except FrameError as e:  # positions within this chunk -> scene frames
+            raise e.for_frames([int(f) for f in frames[i:j]]) from None
     pred = captured
     corr = (pred[:, lipv] - before).astype(np.float64)  # (T, n_lip, 3) correction, object local
     corr[np.isin(frames, train)] = 0.0  # training frames keep the artist's own correction

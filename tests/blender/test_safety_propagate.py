@@ -117,3 +117,24 @@ def test_cancel_and_failure_on_a_mesh_cache_leave_the_modifier_as_it_was(ict, ad
     assert md.deform_mode == "OVERWRITE" and md.filepath == str(pc2) and md.show_viewport
     np.testing.assert_allclose(caches.evaluate_frames(face, [5], mute_shape_keys_prefix=())[0], capture[4],
                                atol=1e-6)  # the capture plays as before
+
+
+def test_a_neutral_training_frame_is_refused_naming_its_scene_frame(ict, addon):
+    """The issue's case 1 through the operator: a lip fix sculpted on a still, neutral face as the only
+    training frame used to move the lips by kilometres on other frames; now Propagate refuses, names the
+    scene frame and says what to do, and writes nothing."""
+    from facelab_addon.testing.scenes import build_ict_face_scene
+
+    from .test_propagate_operator import EXPR, lip_capture_error
+
+    fs = build_ict_face_scene(ict, EXPR, weights=np.zeros((len(FRAMES), len(EXPR))), frames=FRAMES, scale=SCALE)
+    scene, obj = fs.scene, fs.obj
+    auto_regions(obj)
+    scene.frame_set(12)
+    key_spike(add_corrective_key(obj, "Sculpt_12", 0.3 * lip_capture_error(ict)), 12)
+    record_training_frame(scene, obj, 12, "", "sculpt")
+    bpy.context.view_layer.objects.active = obj
+    before = obj.data.shape_keys.key_blocks.keys()
+    with pytest.raises(RuntimeError, match=r"do not move the mouth.*frame 12.*Add corrected frames where the mouth"):
+        bpy.ops.facelab.propagate(suggestions=0)
+    assert obj.data.shape_keys.key_blocks.keys() == before
