@@ -43,3 +43,11 @@ class BundleError(FaceLabError):
 
 class DatasetError(FaceLabError):
     """The dataset of shapes is unusable: too few, duplicates, wrong vertex count, NaN."""
+
+
+class ObjFileError(MeshError, ValueError):
+    """An OBJ file is unreadable: a malformed line, a NaN or infinite coordinate, a face index out of range."""
+
+
+class OutputError(FaceLabError):
+    """A file cannot be written: a read-only folder, a parent path that is a file, a full disk."""
