@@ -285,17 +285,24 @@ def detect_format(path) -> str:
     CacheFileError
         Missing file, or a damaged PC2 magic in a file of another extension.
     """
-    p, _ = _open_size(path, "Point cache")
+    p, size = _open_size(path, "Point cache")
     ext = p.suffix.lower()
     if ext == ".pc2":
         return "PC2"
     if ext == ".mdd":
         return "MDD"
     with open(p, "rb") as f:
-        head = f.read(12)
+        raw = f.read(_PC2_HEADER_BYTES)
+    head = raw[:12]
     if head == PC2_MAGIC:
         return "PC2"
-    if head[:5].upper() == PC2_MAGIC[:5] or head[:10].upper().startswith(b"POINTCACH"):
+    like_magic = sum(a == b for a, b in zip(head.upper(), PC2_MAGIC)) >= 6
+    like_header = False
+    if len(raw) == _PC2_HEADER_BYTES:
+        h = np.frombuffer(raw, dtype=_PC2_HEADER)[0]
+        V, T = int(h["num_points"]), int(h["num_samples"])
+        like_header = int(h["version"]) == 1 and V > 0 and T > 0 and _PC2_HEADER_BYTES + 12 * V * T == size
+    if like_magic or like_header:
         raise CacheFileError(
             f"'{p}' starts like a PC2 point cache but its magic is damaged ({head!r} instead of "
             f"{PC2_MAGIC!r}). Re-export the cache (or repair its first 12 bytes)."
