@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -44,9 +45,10 @@ def output_error(path, err: OSError) -> OutputError:
 def check_writable(path) -> Path:
     """Refuse, before any work, a destination file that cannot be written.
 
-    The nearest existing folder of ``path`` must be a writable folder (the
-    missing ones are created by the writers), and ``path`` itself must not be
-    a folder. Nothing is created.
+    The nearest existing folder of ``path`` must be a folder a file can be
+    created in (probed with a temporary file, removed at once; the missing
+    folders are created by the writers), and ``path`` itself must not be a
+    folder.
 
     Parameters
     ----------
@@ -70,8 +72,12 @@ def check_writable(path) -> Path:
         anc = anc.parent
     if anc.exists() and not anc.is_dir():
         raise OutputError(f"Cannot write '{p}': '{anc}' is a file, not a folder. Choose another path.")
-    if anc.is_dir() and not os.access(anc, os.W_OK | os.X_OK):
-        raise OutputError(f"Cannot write '{p}': the folder '{anc}' is read-only. Choose a writable folder.")
+    if anc.is_dir():
+        try:  # a real probe: permission bits do not tell (root, read-only mounts, /sys)
+            with tempfile.TemporaryFile(dir=anc):
+                pass
+        except OSError as e:
+            raise output_error(p, e) from None
     return p
 
 
