@@ -487,8 +487,7 @@ def _read_gp_object(obj, camera: Camera, frame: int, depsgraph) -> dict:
         if not polys:
             raise SketchError(
                 f"The '{nice}' layer of '{obj.name}' has no strokes on frame {frame}; "
-                f"draw the {nice.lower()} contour on it in camera view on this frame "
-                "(or on an earlier keyframe)."
+                f"draw the {nice.lower()} contour on it in camera view on this frame (keyed on it)."
             )
         out[lab] = polys
     return out
@@ -567,7 +566,7 @@ def _read_annotation(ann, camera: Camera, frame: int) -> dict:
         if not polys:
             raise SketchError(
                 f"The '{nice}' annotation layer has no strokes on frame {frame}; "
-                f"draw the {nice.lower()} contour on it in camera view on this frame (or an earlier one)."
+                f"draw the {nice.lower()} contour on it in camera view on this frame (keyed on it)."
             )
         out[lab] = polys
     return out
