@@ -605,9 +605,7 @@ def read_captured_frames(obj, scene_frames, *, mute_shape_keys_prefix=FACELAB_PR
     Raises
     ------
     CacheFileError
-        A cache file is missing or broken (:func:`check_capture_files`), or
-        an Alembic capture does not move over several frames
-        (:func:`check_alembic_moves`).
+        A cache file is missing or broken (:func:`check_capture_files`).
     """
     source = sequence_source(obj, ignore_prefixes=mute_shape_keys_prefix)
     check_capture_files(obj)
@@ -621,7 +619,4 @@ def read_captured_frames(obj, scene_frames, *, mute_shape_keys_prefix=FACELAB_PR
         seq = shape_key_sequence(obj, _frames(scene_frames), skip_prefixes=_prefixes(mute_shape_keys_prefix))
         if seq is not None:  # F-curves mixed directly, 7-9x faster than frame by frame
             return seq
-    out = evaluate_frames(obj, scene_frames, mute_shape_keys_prefix=mute_shape_keys_prefix, progress=progress)
-    if source == "mesh_sequence_cache":
-        check_alembic_moves(obj, _frames(scene_frames), out)
-    return out
+    return evaluate_frames(obj, scene_frames, mute_shape_keys_prefix=mute_shape_keys_prefix, progress=progress)

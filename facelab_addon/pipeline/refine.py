@@ -136,13 +136,13 @@ def refine(scene, obj, frame: int, settings: RefineSettings | None = None, *, ca
     settings = settings or RefineSettings()
     t0 = time.perf_counter()
     require_sketch_keyed_on(scene, frame, sketch)  # never a drawing held from an earlier frame
-    caches.check_capture_files(obj)  # never the static mesh in place of a broken cache
     if scene.frame_current != frame:
         scene.frame_set(frame)
     cam_obj = camera_obj if camera_obj is not None else scene.camera
     if cam_obj is None:
         raise CameraError(f"Scene '{scene.name}' has no camera; set the camera the sketch was drawn in.")
     obj = require_mesh(obj)
+    caches.check_capture_files(obj)  # never the static mesh in place of a broken cache
     dg = evaluated_depsgraph(scene)
     cam = camera_from_blender(scene, cam_obj, dg)
     strokes = read_lip_strokes(scene, cam, frame, gp_obj=sketch, depsgraph=dg)
