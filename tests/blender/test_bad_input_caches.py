@@ -198,3 +198,38 @@ def test_bakes_to_unwritable_places_are_output_errors(tmp_path):
     with pytest.raises(OutputError, match="is a file, not a folder"):
         bakes.bake_alembic(ob, range(1, T + 1), blocker / "sub" / "x.abc")
     assert blocker.read_text() == "not a folder"
+
+
+# --------------------------------------------------------------------------- the operators on a broken cache
+
+
+@pytest.mark.parametrize("kind", ["truncated", "deleted"])
+def test_propagate_operator_refuses_a_broken_mesh_cache(tmp_path, ict, addon, kind):
+    """The probe's case: Propagate over a Mesh Cache whose file broke after the training frames were made."""
+    from facelab_addon.blender.shapekeys import add_corrective_key, key_spike
+    from facelab_addon.testing.scenes import build_ict_face_scene
+
+    frames = 8
+    neutral = ict.neutral * 0.01
+    t = np.linspace(0, 1, frames)
+    seq = np.stack([ict.pose({"jawOpen": 0.1 + 0.2 * a}) * 0.01 for a in t]).astype(np.float32)
+    pc2 = pointcache_writer.write_pc2(tmp_path / "capture.pc2", seq)
+    fs = build_ict_face_scene(ict, frame_range=(1, frames), scale=0.01, fixed_group=True, select=False)
+    scene, obj = fs.scene, fs.obj
+    md = add_mesh_cache(obj, pc2, "PC2", frame_start=1.0)
+    bpy.context.view_layer.objects.active = obj
+    assert bpy.ops.facelab.auto_regions() == {"FINISHED"}
+    scene.frame_set(4)
+    d = np.zeros_like(neutral)
+    d[6632:6706, 1] = 0.0005
+    key_spike(add_corrective_key(obj, "Sculpt_4", d), 4)
+    assert bpy.ops.facelab.mark_training_frame() == {"FINISHED"}
+    before = state(obj)
+    if kind == "deleted":
+        pc2.unlink()
+    else:
+        pc2.write_bytes(pc2.read_bytes()[:-1000])
+    with pytest.raises(RuntimeError, match=r"capture\.pc2"):
+        bpy.ops.facelab.propagate(suggestions=0)
+    assert state(obj) == before and md.deform_mode == "OVERWRITE"  # nothing switched, no FL_Prop key
+    assert not [k for k in obj.data.shape_keys.key_blocks if k.name.startswith("FL_Prop")]
