@@ -73,6 +73,7 @@ __all__ = [
     "find_sketch_object",
     "has_lip_sketch",
     "sketch_keyframes",
+    "require_sketch_keyed_on",
     "read_lip_strokes",
 ]
 
@@ -418,6 +419,54 @@ def sketch_keyframes(gp_obj) -> list:
     return sorted(frames)
 
 
+def require_sketch_keyed_on(scene, frame: int, gp_obj=None) -> None:
+    """Refuse to refine ``frame`` when the lip sketch has no keyframe on it.
+
+    A drawing is shown on every frame until the next keyframe, so the strokes
+    read on a frame without a keyframe of its own were drawn for an earlier
+    frame, over another pose of the face. Both lip layers (of the Grease
+    Pencil sketch, else of the scene annotation) must be keyed on ``frame``.
+
+    Parameters
+    ----------
+    scene : bpy.types.Scene
+    frame : int
+    gp_obj : bpy.types.Object, optional
+        The sketch; default found as in :func:`read_lip_strokes`.
+
+    Raises
+    ------
+    SketchError
+        Naming the frame, the keyframe the strokes are held from, the sketched
+        frames and the fix. (No sketch, or nothing shown on the frame, is
+        left to :func:`read_lip_strokes`.)
+    """
+    frame = int(frame)
+    obj = find_sketch_object(scene, gp_obj)
+    if obj is not None:
+        layers, name_of, what = obj.data.layers, (lambda lay: lay.name), f"The lip sketch '{obj.name}'"
+    else:
+        ann = getattr(scene, "annotation", None)
+        if ann is None:
+            return
+        layers, name_of, what = ann.layers, (lambda lay: lay.info), f"The lip annotation '{ann.name}'"
+    lips = _lip_layers(layers, name_of)
+    keyed = {lab: sorted({int(fr.frame_number) for lay in lips[lab] for fr in lay.frames}) for lab in lips}
+    for lab, nice in (("upper", UPPER_LAYER), ("lower", LOWER_LAYER)):
+        if not lips[lab] or frame in keyed[lab]:
+            continue  # a missing layer is reported by read_lip_strokes
+        held = [f for f in keyed[lab] if f < frame]
+        if not held:
+            continue  # nothing shown on the frame: read_lip_strokes says there are no strokes
+        both = sorted(set(keyed["upper"]) & set(keyed["lower"]))
+        raise SketchError(
+            f"{what} has no '{nice}' keyframe on frame {frame}: the strokes shown there are held from frame "
+            f"{held[-1]}, drawn over another pose of the face. "
+            f"Go to frame {frame}, add a keyframe on the lip layers and draw both lips there, or refine a "
+            f"sketched frame ({', '.join(map(str, both[:12])) or 'none yet'})."
+        )
+
+
 def _read_gp_object(obj, camera: Camera, frame: int, depsgraph) -> dict:
     lips = _lip_layers(obj.data.layers, lambda lay: lay.name)
     out = {}
@@ -438,8 +487,7 @@ def _read_gp_object(obj, camera: Camera, frame: int, depsgraph) -> dict:
         if not polys:
             raise SketchError(
                 f"The '{nice}' layer of '{obj.name}' has no strokes on frame {frame}; "
-                f"draw the {nice.lower()} contour on it in camera view on this frame "
-                "(or on an earlier keyframe)."
+                f"draw the {nice.lower()} contour on it in camera view on this frame (keyed on it)."
             )
         out[lab] = polys
     return out
@@ -518,7 +566,7 @@ def _read_annotation(ann, camera: Camera, frame: int) -> dict:
         if not polys:
             raise SketchError(
                 f"The '{nice}' annotation layer has no strokes on frame {frame}; "
-                f"draw the {nice.lower()} contour on it in camera view on this frame (or an earlier one)."
+                f"draw the {nice.lower()} contour on it in camera view on this frame (keyed on it)."
             )
         out[lab] = polys
     return out

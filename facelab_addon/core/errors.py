@@ -114,3 +114,7 @@ def _name_frames(labels, one="frame", many="frames", limit=8):
     if len(names) > limit:
         return f"{many} " + ", ".join(names[:limit]) + f" and {len(names) - limit} more"
     return f"{many} " + ", ".join(names[:-1]) + f" and {names[-1]}"
+
+
+class OutputError(FaceLabError):
+    """A file cannot be written: a read-only folder, a parent path that is a file, a full disk."""

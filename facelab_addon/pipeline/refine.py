@@ -26,7 +26,7 @@ from ..blender.mesh import (
 )
 from ..blender.objects import ModifierState, require_editable
 from ..blender.shapekeys import add_corrective_key, key_spike
-from ..blender.strokes import read_lip_strokes
+from ..blender.strokes import read_lip_strokes, require_sketch_keyed_on
 from ..core.errors import CameraError
 from ..core.lips.sketch import refine_lips
 from ..names import FIXED_GROUP, REFINE_PREFIX
@@ -127,12 +127,16 @@ def refine(scene, obj, frame: int, settings: RefineSettings | None = None, *, ca
     Raises
     ------
     SketchError, CameraError, MeshError
-        No or incomplete sketch on the frame, strokes outside the frame or
+        No or incomplete sketch on the frame, no sketch keyframe on the frame
+        (strokes held from an earlier one), strokes outside the frame or
         behind the camera, no camera, not a mesh with faces. Nothing is
         changed then.
+    CacheFileError
+        The face's cache file is missing or broken.
     """
     settings = settings or RefineSettings()
     t0 = time.perf_counter()
+    require_sketch_keyed_on(scene, frame, sketch)  # never a drawing held from an earlier frame
     if scene.frame_current != frame:
         scene.frame_set(frame)
     cam_obj = camera_obj if camera_obj is not None else scene.camera
@@ -140,6 +144,7 @@ def refine(scene, obj, frame: int, settings: RefineSettings | None = None, *, ca
         raise CameraError(f"Scene '{scene.name}' has no camera; set the camera the sketch was drawn in.")
     obj = require_mesh(obj)
     require_editable(obj, "Refine Lips")
+    caches.check_capture_files(obj)  # never the static mesh in place of a broken cache
     dg = evaluated_depsgraph(scene)
     cam = camera_from_blender(scene, cam_obj, dg)
     strokes = read_lip_strokes(scene, cam, frame, gp_obj=sketch, depsgraph=dg)

@@ -17,13 +17,14 @@ file's units. No bpy in this module.
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import numpy as np
 
 from ..errors import ObjFileError
 
-__all__ = ["ObjMesh", "read_obj", "read_obj_vertices"]
+__all__ = ["ObjMesh", "ObjFileError", "read_obj", "read_obj_vertices"]
 
 
 class ObjMesh(NamedTuple):
@@ -57,6 +58,43 @@ class ObjMesh(NamedTuple):
     parts: list
 
 
+def _floats(path, lineno: int, line: bytes, n: int, what: str) -> list:
+    """The first ``n`` numbers after the keyword of an OBJ line, checked finite."""
+    toks = line.split()[1 : 1 + n]
+    try:
+        if len(toks) < n:
+            raise ValueError
+        vals = [float(t) for t in toks]
+    except ValueError:
+        raise ObjFileError(
+            f"{path}, line {lineno}: a '{what}' line needs {n} numbers, got {_show(line)}. "
+            "Fix or re-export the OBJ."
+        ) from None
+    if not all(math.isfinite(v) for v in vals):
+        raise ObjFileError(
+            f"{path}, line {lineno}: NaN or infinite coordinate in {_show(line)}. Fix the mesh in the "
+            "program that exported it (or re-export the OBJ); FaceLab does not guess positions."
+        )
+    return vals
+
+
+def _show(line: bytes) -> str:
+    text = line.decode("utf-8", "replace").strip()
+    return repr(text if len(text) <= 60 else text[:57] + "...")
+
+
+def _lines(path):
+    """``(line number, stripped line)`` of a file, 1-based."""
+    try:
+        with open(path, "rb") as fh:
+            data = fh.read()
+    except IsADirectoryError:
+        raise ObjFileError(f"{path} is a folder, not an OBJ file; give the .obj file.") from None
+    if b"\0" in data[:4096]:
+        raise ObjFileError(f"{path} is a binary file, not a Wavefront OBJ (text); give an .obj exported as text.")
+    return [(i + 1, ln.strip()) for i, ln in enumerate(data.split(b"\n"))]
+
+
 def read_obj_vertices(path) -> np.ndarray:
     """Vertex positions of an OBJ file, without parsing its faces.
 
@@ -74,31 +112,12 @@ def read_obj_vertices(path) -> np.ndarray:
     OSError
         When the file cannot be read.
     ObjFileError
-        When a ``v`` line has fewer than three numbers, a non-number or a
-        NaN/infinite coordinate (the message names the file and line).
+        (a ``MeshError`` and a ``ValueError``) naming the file and line: a
+        ``v`` line with fewer than three numbers, a non-number, NaN or
+        infinity; a binary file.
     """
-    with open(path, "rb") as fh:
-        lines = [(n, ln) for n, ln in enumerate(fh.read().split(b"\n"), 1) if ln.startswith(b"v ")]
-    verts = [_vertex(ln, n, path) for n, ln in lines]
-    return np.array(verts, dtype=np.float64).reshape(-1, 3)
-
-
-def _bad(path, n, what):
-    return ObjFileError(f"OBJ file '{path}', line {n}: {what}. Re-export the OBJ (or fix that line).")
-
-
-def _vertex(ln, n, path):
-    """The three coordinates of a ``v`` line as floats (ObjFileError naming the line)."""
-    tok = ln.split()[1:4]
-    try:
-        xyz = [float(t) for t in tok]
-    except ValueError:
-        raise _bad(path, n, f"the vertex {ln[:60]!r} has a coordinate that is not a number") from None
-    if len(xyz) < 3:
-        raise _bad(path, n, f"the vertex {ln[:60]!r} has {len(xyz)} coordinates instead of 3")
-    if not all(np.isfinite(xyz)):
-        raise _bad(path, n, "the vertex has a NaN or infinite coordinate")
-    return xyz
+    V = [_floats(path, n, ln, 3, "v") for n, ln in _lines(path) if ln.startswith(b"v ")]
+    return np.array(V, dtype=np.float64).reshape(-1, 3)
 
 
 def read_obj(path) -> ObjMesh:
@@ -118,62 +137,62 @@ def read_obj(path) -> ObjMesh:
     OSError
         When the file cannot be read.
     ObjFileError
-        When a ``v``/``vt``/``f``/``usemtl`` line is malformed, a coordinate
-        is NaN or infinite, or a face refers to a vertex or UV the file does
-        not have (the message names the file and line).
+        (a ``MeshError`` and a ``ValueError``) naming the file and line: a
+        malformed ``v``/``vt``/``f``/``usemtl`` line, a NaN or infinite
+        coordinate, a face with fewer than 3 corners, a vertex or UV index
+        out of range; a binary file.
     """
     verts, uvs, corners_v, corners_uv, offsets, part_of_poly, parts = [], [], [], [], [0], [], []
+    face_lines = []
     current = -1
-    with open(path, "rb") as fh:
-        data = fh.read()
-    for n, ln in enumerate(data.split(b"\n"), 1):
+    for lineno, ln in _lines(path):
         if ln.startswith(b"v "):
-            verts.append(_vertex(ln, n, path))
+            verts.append(_floats(path, lineno, ln, 3, "v"))
         elif ln.startswith(b"vt "):
-            try:
-                uv = [float(t) for t in ln.split()[1:3]]
-            except ValueError:
-                raise _bad(path, n, "a texture coordinate is not a number") from None
-            if len(uv) < 2 or not all(np.isfinite(uv)):
-                raise _bad(path, n, "a texture coordinate needs two finite numbers")
-            uvs.append(uv)
+            uvs.append(_floats(path, lineno, ln, 2, "vt"))
         elif ln.startswith(b"f "):
             toks = ln.split()[1:]
             if len(toks) < 3:
-                raise _bad(path, n, f"the face has {len(toks)} corners; a face needs at least 3")
+                raise ObjFileError(f"{path}, line {lineno}: a face needs at least 3 corners, got {_show(ln)}. "
+                                   "Fix or re-export the OBJ.")
             for t in toks:
                 s = t.split(b"/")
                 try:
-                    iv = int(s[0])
-                    iuv = int(s[1]) if len(s) > 1 and s[1] else 0
+                    cv = int(s[0])
+                    cuv = int(s[1]) if len(s) > 1 and s[1] else 0
                 except ValueError:
-                    raise _bad(path, n, f"the face corner {t[:30]!r} is not a vertex index") from None
-                if iv == 0:
-                    raise _bad(path, n, "the face refers to vertex 0; OBJ vertex indices start at 1")
-                corners_v.append(iv)
-                corners_uv.append(iuv)
+                    raise ObjFileError(f"{path}, line {lineno}: face corner {t.decode('utf-8', 'replace')!r} is "
+                                       "not 'v', 'v/vt', 'v/vt/vn' or 'v//vn' indices. Fix or re-export the OBJ."
+                                       ) from None
+                if cv == 0 or -cv > len(verts) or -cuv > len(uvs):
+                    raise ObjFileError(f"{path}, line {lineno}: face corner {t.decode('utf-8', 'replace')!r} "
+                                       f"names vertex {cv} / UV {cuv}, but {len(verts)} vertices and {len(uvs)} "
+                                       "UVs come before it (indices start at 1). Fix or re-export the OBJ.")
+                corners_v.append(cv if cv > 0 else len(verts) + cv + 1)
+                corners_uv.append(cuv if cuv >= 0 else len(uvs) + cuv + 1)
             offsets.append(len(corners_v))
             part_of_poly.append(current)
+            face_lines.append(lineno)
         elif ln.startswith(b"usemtl"):
-            tok = ln.split()[1:2]
-            name = tok[0].decode("utf-8", "replace") if tok else "default"
+            toks = ln.split()
+            if len(toks) < 2:
+                raise ObjFileError(f"{path}, line {lineno}: 'usemtl' without a material name. Fix the OBJ.")
+            name = toks[1].decode("utf-8", "replace")
             if name not in parts:
                 parts.append(name)
             current = parts.index(name)
-    if current == -1 or min(part_of_poly, default=0) < 0:
+    if current == -1 or (part_of_poly and min(part_of_poly) < 0):
         parts = parts + ["default"]
         part_of_poly = [p if p >= 0 else len(parts) - 1 for p in part_of_poly]
     V = np.array(verts, dtype=np.float64).reshape(-1, 3)
-    cv = np.array(corners_v, dtype=np.int64)
-    cv = np.where(cv < 0, len(V) + cv, cv - 1)
-    cuv = np.array(corners_uv, dtype=np.int64)
-    cuv = np.where(cuv < 0, len(uvs) + cuv, cuv - 1)
-    if len(cv) and (cv.max() >= len(V) or cv.min() < 0):
-        raise ObjFileError(f"OBJ file '{path}' has faces that refer to vertices it does not have (it has {len(V)}). "
-                           "Re-export the OBJ.")
-    if len(cuv) and (cuv.max() >= len(uvs) or cuv.min() < -1):
-        raise ObjFileError(f"OBJ file '{path}' has faces that refer to texture coordinate {int(cuv.max()) + 1} but "
-                           f"only {len(uvs)}. Re-export the OBJ with its UVs.")
+    cv = np.array(corners_v, dtype=np.int64) - 1
+    cuv = np.array(corners_uv, dtype=np.int64) - 1
+    bad = np.flatnonzero((cv >= len(V)) | (cuv >= len(uvs)))
+    if len(bad):
+        face = int(np.searchsorted(offsets, bad[0], side="right")) - 1
+        raise ObjFileError(f"{path}, line {face_lines[face]}: a face names vertex {int(cv[bad[0]]) + 1} / UV "
+                           f"{int(cuv[bad[0]]) + 1}, but the file has {len(V)} vertices and {len(uvs)} UVs. "
+                           "Fix or re-export the OBJ.")
     return ObjMesh(
         V,
         np.array(uvs, dtype=np.float64).reshape(-1, 2),
