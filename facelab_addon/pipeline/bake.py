@@ -16,7 +16,6 @@ import numpy as np
 
 from ..blender import bakes, caches
 from ..core.errors import FaceLabError
-from .outputs import check_output as _check_output
 from .steps import run_steps
 
 __all__ = ["FORMATS", "BakeSettings", "BakeResult", "bake_steps", "bake"]
@@ -98,7 +97,6 @@ def bake_steps(obj, frames, path, settings: BakeSettings | None = None):
         A relative path, or a destination that cannot be written (a read-only
         folder, a parent that is a file): :func:`facelab_addon.blender.bakes.bake_destination`.
     """
-    _check_output(path)
     settings = settings or BakeSettings()
     t0 = time.perf_counter()
     if not path:

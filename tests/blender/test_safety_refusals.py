@@ -18,7 +18,8 @@ from facelab_addon.names import OWNED_KEYS_PROP, PROPAGATE_PREFIX, SOLVE_PREFIX
 from facelab_addon.pipeline.bake import BakeSettings, bake
 from facelab_addon.pipeline.correctives import write_corrective_keys
 from facelab_addon.pipeline.frames import MAX_FRAME, check_frames, frame_range
-from facelab_addon.pipeline.outputs import OutputPathError, check_output
+from facelab_addon.blender.bakes import bake_destination
+from facelab_addon.core.errors import OutputError
 
 pytestmark = pytest.mark.blender
 
@@ -212,23 +213,23 @@ def test_output_paths_are_checked_before_a_bake(addon, tmp_path):
     bpy.ops.wm.read_factory_settings(use_empty=True)
     obj = grid()
     assert not bpy.data.filepath
-    with pytest.raises(OutputPathError, match=r"relative to the \.blend, which is not saved yet.*save the \.blend"):
+    with pytest.raises(OutputError, match=r"relative to the \.blend, but the \.blend is not saved yet; save it first"):
         bake(obj, np.arange(1, 4), "//face.pc2")
-    with pytest.raises(OutputPathError, match="relative path .*working directory"):
+    with pytest.raises(OutputError, match="is a relative path, which would be written into the folder Blender"):
         bake(obj, np.arange(1, 4), "face.pc2")
     blocker = tmp_path / "notafolder"
     blocker.write_text("artist notes")
-    with pytest.raises(OutputPathError, match="is a file, not a folder"):
+    with pytest.raises(OutputError, match="is a file, not a folder"):
         bake(obj, np.arange(1, 4), blocker / "sub" / "face.pc2")
-    with pytest.raises(OutputPathError, match="is a folder; choose a file name"):
+    with pytest.raises(OutputError, match="it is a folder. Give a file name"):
         bake(obj, np.arange(1, 4), tmp_path)
-    with pytest.raises(OutputPathError, match="cannot write in the folder /proc"):
-        check_output("/proc/facelab_i13c/face.pc2")
+    with pytest.raises(OutputError, match="Cannot write '/proc/facelab_i13c/face.pc2'"):
+        bake_destination("/proc/facelab_i13c/face.pc2")
     ro = tmp_path / "ro.pc2"
     ro.write_bytes(b"keep")
     os.chmod(ro, 0o444)
     if not os.access(ro, os.W_OK):  # (root may write anyway)
-        with pytest.raises(OutputPathError, match="read-only"):
+        with pytest.raises(OutputError, match="read-only"):
             bake(obj, np.arange(1, 4), ro, BakeSettings(overwrite=True))
     assert blocker.read_text() == "artist notes" and ro.read_bytes() == b"keep"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["notafolder", "ro.pc2"]  # no probe or partial file left
@@ -237,7 +238,7 @@ def test_output_paths_are_checked_before_a_bake(addon, tmp_path):
     assert r.path == tmp_path / "new" / "face.pc2" and r.path.is_file()
     # '//' beside a saved .blend
     bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "shot.blend"))
-    assert check_output("//out/face.pc2") == tmp_path / "out" / "face.pc2"
+    assert bake_destination("//out/face.pc2") == tmp_path / "out" / "face.pc2"
 
 
 # --------------------------------------------------------------------------- restoring modifiers

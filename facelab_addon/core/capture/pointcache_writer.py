@@ -62,7 +62,8 @@ def check_writable(path) -> Path:
     Raises
     ------
     OutputError
-        ``path`` is a folder, a parent is a file, or the folder is not writable.
+        ``path`` is a folder, a parent is a file, the folder is not writable,
+        or ``path`` exists and is read-only.
     """
     p = Path(os.fspath(path))
     if p.is_dir():
@@ -78,6 +79,9 @@ def check_writable(path) -> Path:
                 pass
         except OSError as e:
             raise output_error(p, e) from None
+    if p.is_file() and not os.access(p, os.W_OK):
+        raise OutputError(f"Cannot write '{p}': the file exists and is read-only. Choose another file, or make it "
+                          "writable.")
     return p
 
 
