@@ -206,16 +206,12 @@ def test_refine_a_frame_without_its_own_sketch_keyframe(ict, addon, tmp_path):
     from facelab_addon.blender.strokes import write_stroke_pixels
     from facelab_addon.pipeline.refine import refine
 
-    from .test_refine_operator import FRAME, scene_setup
+    from .test_cli import sketched_shot
+    from .test_refine_operator import FRAME
 
-    s = scene_setup(tmp_path, ict)
+    s, shot = sketched_shot(tmp_path, ict)
     scene = s["scene"]
-    assert bpy.ops.facelab.new_lip_sketch() == {"FINISHED"}
     cam = camera_from_blender(scene)
-    write_stroke_pixels(scene.facelab.sketch, "Upper lip", FRAME, [s["up_px"]], cam)
-    write_stroke_pixels(scene.facelab.sketch, "Lower lip", FRAME, [s["lo_px"]], cam)
-    shot = tmp_path / "sketched.blend"
-    bpy.ops.wm.save_as_mainfile(filepath=str(shot))
     later = FRAME + 18
     code, summary = run_main(tmp_path, "refine", shot, "--object", "Face", "--frames", later)
     assert code == 1
