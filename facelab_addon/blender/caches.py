@@ -36,6 +36,7 @@ import numpy as np
 from ..core.capture import meshcache, pointcache
 from ..core.errors import FaceLabError, MeshError
 from ..names import PREFIX
+from . import compat
 
 __all__ = [
     "sequence_source",
@@ -111,9 +112,7 @@ def _anim_fcurves(id_data):
     if action is not None:
         fcurves = None
         try:
-            from bpy_extras import anim_utils
-
-            cb = anim_utils.action_get_channelbag_for_slot(action, getattr(ad, "action_slot", None))
+            cb = compat.action_channelbag(action, getattr(ad, "action_slot", None))
             fcurves = cb.fcurves if cb is not None else []
         except Exception:
             fcurves = getattr(action, "fcurves", None) or []

@@ -374,6 +374,7 @@ def execute(args) -> int:
     t0 = time.perf_counter()
     summary = {"command": args.command, "ok": False}
     code = EXIT_INTERNAL
+    registered_here = False
     try:
         with quiet_stdout():
             try:
@@ -383,6 +384,7 @@ def execute(args) -> int:
                                "or inside Blender.", EXIT_BPY) from None
             try:
                 reg = ensure_registered(bpy)
+                registered_here = not reg.startswith("already")
             except ImportError as e:  # Blender's Python without the extension's wheels
                 raise CliError(f"FaceLab cannot load: {e}. Install the FaceLab extension zip in this Blender (it "
                                "brings SciPy, libigl and cholespy), or use the project's Python (.venv).",
@@ -411,6 +413,11 @@ def execute(args) -> int:
             traceback.print_exc()
             log("internal error: please report it with the traceback above")
     _release_solvers()
+    if registered_here:  # a process exiting with FaceLab registered hangs in bpy 4.5's exit
+        from .. import unregister
+
+        with quiet_stdout():
+            unregister()
     summary.update(exit_code=code, seconds=round(time.perf_counter() - t0, 3))
     text = json.dumps(summary, indent=2, default=_json_default)
     if getattr(args, "json_path", None):
