@@ -380,8 +380,8 @@ def execute(args) -> int:
             try:
                 import bpy
             except ImportError as e:
-                raise CliError(f"Cannot import bpy ({e}); run with the project's Python (.venv with bpy==5.0.1) "
-                               "or inside Blender.", EXIT_BPY) from None
+                raise CliError(f"Cannot import bpy ({e}); run with the project's Python (a venv from "
+                               "scripts/env.sh, with bpy) or inside Blender.", EXIT_BPY) from None
             try:
                 reg = ensure_registered(bpy)
                 registered_here = not reg.startswith("already")
