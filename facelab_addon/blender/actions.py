@@ -1,7 +1,7 @@
 """Shape-key and scene animation <-> arrays: F-curve values on frames, and the action FaceLab writes into.
 
-Blender 5.0 layered actions: curves live in the channelbag of the action
-slot assigned to the animated ID (``bpy_extras.anim_utils``).
+Layered actions: curves live in the channelbag of the action slot assigned
+to the animated ID (``compat.anim_data_channelbag``).
 """
 
 from __future__ import annotations

@@ -103,7 +103,7 @@ def _cache_path(obj, md) -> str:
 
 
 def _anim_fcurves(id_data):
-    """F-curves and drivers of an ID (Blender 5.0 layered actions and older)."""
+    """F-curves and drivers of an ID (layered actions; legacy ``Action.fcurves`` when no channelbag)."""
     ad = getattr(id_data, "animation_data", None)
     if ad is None:
         return []

@@ -95,7 +95,7 @@ def find_fcurve(id_data, data_path: str):
 
 
 def _find_fcurve(anim_data, data_path):
-    """F-curve by data path via the Blender 5.0 channelbag API (layered actions)."""
+    """F-curve by data path in the channelbag of the assigned action slot (layered actions)."""
     action = anim_data.action
     slot = getattr(anim_data, "action_slot", None)
     try:
@@ -201,7 +201,7 @@ def _channelbag(anim_data, create: bool):
 def key_property_bulk(id_data, data_path: str, frames, values, action_name: str = CORRECTIVES_ACTION) -> None:
     """Key ``values`` (T,) of ``id_data.<data_path>`` on ``frames`` (T,) in one bulk insert.
 
-    Uses the Blender 5.0 channelbag API (``keyframe_points.add`` +
+    Uses the channelbag of the assigned action slot (``keyframe_points.add`` +
     ``foreach_set``) with linear interpolation. An existing action (the
     artist's animation) is kept; only this one F-curve is (re)written.
     """

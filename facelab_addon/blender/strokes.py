@@ -30,8 +30,8 @@ Sources, in order of preference
      Outside camera view they are percent of the viewport region and cannot
      be related to the camera (draw in camera view!).
 
-   Blender 5.0.1 does not expose the stroke's space flag to Python (later
-   versions add ``AnnotationStroke.display_mode``, used when present). Without
+   Blender 4.5 and 5.0 do not expose the stroke's space flag to Python (5.3
+   has ``AnnotationStroke.display_mode``, used when present). Without
    it a stroke is taken as "View" percent space when all its ``z`` are exactly
    0, which a 3D stroke drawn in camera view only shows when the camera looks
    along world Z; for such cameras it is read as world points if those lie in
@@ -462,7 +462,7 @@ def _view_percent_to_px(P, camera: Camera) -> np.ndarray:
 
 def _is_view_space(stroke, P, camera: Camera) -> bool:
     """Whether annotation points are camera-view percent coordinates (else world points)."""
-    mode = getattr(stroke, "display_mode", None)  # Blender > 5.0 only
+    mode = getattr(stroke, "display_mode", None)  # not in Blender 4.5 / 5.0; in 5.3
     if mode is not None:
         return mode != "3DSPACE"
     if not np.all(P[:, 2] == 0.0):
