@@ -38,8 +38,12 @@ facelab_find_python() {  # prints an interpreter running Python $1, or nothing
   return 1
 }
 
+# The venv is (re)made when missing or on another Python; pins that changed since the last install
+# (the stamp holds the requirement lines installed, comments ignored) are installed into it.
 STAMP="$VENV/.facelab-requirements"
-if [ ! -x "$VENV/bin/python" ] || ! cmp -s "$REQ" "$STAMP"; then
+pins() { grep -v '^[[:space:]]*#' "$1" 2>/dev/null | sed '/^[[:space:]]*$/d'; }
+if [ ! -x "$VENV/bin/python" ] || \
+   [ "$("$VENV/bin/python" -c 'import sys; print("%d.%d" % sys.version_info[:2])' 2>/dev/null)" != "$PYVER" ]; then
   PY="${FACELAB_PYTHON:-}"
   if [ -z "$PY" ] && ! PY="$(facelab_find_python "$PYVER")"; then
     echo "[facelab] bpy $BPY needs Python $PYVER, which was not found (looked for python$PYVER and python3 on PATH," \
@@ -49,6 +53,8 @@ if [ ! -x "$VENV/bin/python" ] || ! cmp -s "$REQ" "$STAMP"; then
   echo "[facelab] setting up $VENV for bpy $BPY with $PY (first run downloads bpy, ~400 MB)" >&2
   rm -rf "$VENV"
   "$PY" -m venv "$VENV"
+fi
+if [ "$(pins "$REQ")" != "$(pins "$STAMP")" ]; then
   "$VENV/bin/python" -m pip install -q --disable-pip-version-check -r "$REQ"
   cp "$REQ" "$STAMP"
 fi
