@@ -38,6 +38,7 @@ import numpy as np
 from ..core.capture import meshcache, pointcache
 from ..core.errors import CacheFileError, FaceLabError, MeshError
 from ..names import PREFIX
+from . import compat
 
 __all__ = [
     "sequence_source",
@@ -107,7 +108,7 @@ def _cache_path(obj, md) -> str:
 
 
 def _anim_fcurves(id_data):
-    """F-curves and drivers of an ID (Blender 5.0 layered actions and older)."""
+    """F-curves and drivers of an ID (layered actions; legacy ``Action.fcurves`` when no channelbag)."""
     ad = getattr(id_data, "animation_data", None)
     if ad is None:
         return []
@@ -116,9 +117,7 @@ def _anim_fcurves(id_data):
     if action is not None:
         fcurves = None
         try:
-            from bpy_extras import anim_utils
-
-            cb = anim_utils.action_get_channelbag_for_slot(action, getattr(ad, "action_slot", None))
+            cb = compat.action_channelbag(action, getattr(ad, "action_slot", None))
             fcurves = cb.fcurves if cb is not None else []
         except Exception:
             fcurves = getattr(action, "fcurves", None) or []

@@ -8,6 +8,7 @@ import bpy
 import numpy as np
 
 from ..names import CORRECTIVES_ACTION, LEGACY_KEY_PATTERNS, OWNED_KEYS_PROP, PREFIX
+from . import compat
 
 __all__ = [
     "unique_key_name",
@@ -141,13 +142,11 @@ def find_fcurve(id_data, data_path: str):
 
 
 def _find_fcurve(anim_data, data_path):
-    """F-curve by data path via the Blender 5.0 channelbag API (layered actions)."""
+    """F-curve by data path in the channelbag of the assigned action slot (layered actions)."""
     action = anim_data.action
     slot = getattr(anim_data, "action_slot", None)
     try:
-        from bpy_extras import anim_utils
-
-        cb = anim_utils.action_get_channelbag_for_slot(action, slot)
+        cb = compat.action_channelbag(action, slot)
         if cb is not None:
             return cb.fcurves.find(data_path)
     except Exception:
@@ -249,26 +248,14 @@ def remove_keys(obj, prefix: str) -> int:
 
 
 def _channelbag(anim_data, create: bool):
-    """The channelbag of the assigned action slot (Blender 4.4+), creating the slot if asked."""
-    from bpy_extras import anim_utils
-
-    action = anim_data.action
-    slot = anim_data.action_slot
-    if slot is None:
-        if not create:
-            return None
-        idd = anim_data.id_data
-        slot = action.slots.new(id_type=idd.id_type, name=idd.name)
-        anim_data.action_slot = slot
-    if create:
-        return anim_utils.action_ensure_channelbag_for_slot(action, slot)
-    return anim_utils.action_get_channelbag_for_slot(action, slot)
+    """The channelbag of the assigned action slot, creating the slot if asked."""
+    return compat.anim_data_channelbag(anim_data, create=create)
 
 
 def key_property_bulk(id_data, data_path: str, frames, values, action_name: str = CORRECTIVES_ACTION) -> None:
     """Key ``values`` (T,) of ``id_data.<data_path>`` on ``frames`` (T,) in one bulk insert.
 
-    Uses the Blender 5.0 channelbag API (``keyframe_points.add`` +
+    Uses the channelbag of the assigned action slot (``keyframe_points.add`` +
     ``foreach_set``) with linear interpolation. An existing action (the
     artist's animation) is kept; only this one F-curve is (re)written.
     """

@@ -483,15 +483,17 @@ def execute(args) -> int:
     t0 = time.perf_counter()
     summary = {"command": args.command, "ok": False}
     code = EXIT_INTERNAL
+    registered_here = False
     with quiet_stdout():
         try:
             try:
                 import bpy
             except ImportError as e:
-                raise CliError(f"Cannot import bpy ({e}); run with the project's Python (.venv with bpy==5.0.1) "
-                               "or inside Blender.", EXIT_BPY) from None
+                raise CliError(f"Cannot import bpy ({e}); run with the project's Python (a venv from "
+                               "scripts/env.sh, with bpy) or inside Blender.", EXIT_BPY) from None
             try:
                 reg = ensure_registered(bpy)
+                registered_here = not reg.startswith("already")
             except ImportError as e:  # Blender's Python without the extension's wheels
                 raise CliError(f"FaceLab cannot load: {e}. Install the FaceLab extension zip in this Blender (it "
                                "brings SciPy, libigl and cholespy), or use the project's Python (.venv).",
@@ -518,6 +520,10 @@ def execute(args) -> int:
             summary.update(error="interrupted (Ctrl+C); nothing was saved")
             log("error: interrupted; nothing was saved")
         _release_solvers()
+        if registered_here:  # a process exiting with FaceLab registered hangs in bpy 4.5's exit
+            from .. import unregister
+
+            unregister()
     summary.update(exit_code=code, seconds=round(time.perf_counter() - t0, 3))
     text = json.dumps(summary, indent=2, default=_json_default)
     if getattr(args, "json_path", None):

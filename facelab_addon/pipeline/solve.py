@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .. import names as fl
-from ..blender import tracking
+from ..blender import compat, tracking
 from ..blender.actions import prepare_action
 from ..blender.bindings import read_bindings, write_bindings
 from ..blender.bundles import bundle_labels, collection_bundles, read_bundles
@@ -310,7 +310,7 @@ class _SolveInputs:
 
 def _has_curve_sources(scene, settings, views) -> bool:
     return any(v.mask is not None or v.sketch is not None for v in views) or (
-        0 <= settings.annotation_view < len(views) and scene.annotation is not None)
+        0 <= settings.annotation_view < len(views) and compat.scene_annotation(scene) is not None)
 
 
 def _gather(scene, obj, settings: SolveSettings) -> _SolveInputs:
