@@ -345,6 +345,7 @@ def build_blend(npz_path, blend_path):
     os.environ.setdefault("BLENDER_USER_RESOURCES", tempfile.mkdtemp(prefix="facelab-bl-"))
     import bpy
 
+    from facelab_addon.blender import compat
     from facelab_addon.blender.scene import add_studio_lights, new_mesh_object
 
     z = np.load(npz_path)
@@ -357,7 +358,7 @@ def build_blend(npz_path, blend_path):
                              ("Teeth", (0.9, 0.88, 0.8), 0.3)):
         mt = bpy.data.materials.new(name)
         if mt.node_tree is None:
-            mt.use_nodes = True
+            compat.node_tree(mt)
         bsdf = mt.node_tree.nodes["Principled BSDF"]
         bsdf.inputs["Base Color"].default_value = (*col, 1)
         bsdf.inputs["Roughness"].default_value = rough

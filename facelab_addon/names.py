@@ -29,6 +29,16 @@ RETARGET_PREFIX = "FL_Retarget_"
 RECONSTRUCT_PREFIX = "FL_Recon_"
 RIG_CORRECTIVE_PREFIX = "FL_Corr_"
 
+#: ID property on a mesh's shape-key datablock (``mesh.shape_keys``) listing the names of the
+#: keys FaceLab created there: only these are ever replaced or removed by FaceLab.
+OWNED_KEYS_PROP = "facelab_owned"
+#: Key names FaceLab generated before :data:`OWNED_KEYS_PROP` existed (regular expressions): such
+#: keys are adopted into the registry when it is first created on a datablock (older files).
+LEGACY_KEY_PATTERNS = (
+    r"FL_(Prop|Solve|Retarget|Recon)_\d{2}(\.\d{3})?",
+    r"FL_(Refine|Corrected)_-?\d{4,}(\.\d{3})?",
+)
+
 # --- actions, properties, objects, collections, markers --------------------------------------
 SOLVE_ACTION = "FL_Solve"
 RETARGET_ACTION = "FL_Retarget"

@@ -6,20 +6,23 @@
 
 Steps:
 
-1. ``pip download --only-binary=:all: --no-deps --python-version 3.11 --platform TAG`` of the
-   versions pinned in requirements.txt (scipy, libigl, cholespy) into ``build/wheels/<platform>/``
-   (a cache: already-downloaded wheels are reused, so a rebuild needs no network). numpy is NOT
-   bundled: Blender supplies it (Blender 5.0: numpy 1.26, see docs/install.md).
-2. Check the downloaded file names against the ``wheels = [...]`` list of blender_manifest.toml
-   (``--update-manifest`` rewrites that list instead).
+1. For every supported Python (the ``# python: X.Y`` lines of ``requirements/bpy-*.txt``, one file
+   per supported Blender) and every platform: ``pip download --only-binary=:all: --no-deps
+   --python-version X.Y --platform TAG`` of the versions pinned there (scipy, libigl, cholespy; every
+   requirements file must pin the same ones) into ``build/wheels/<platform>/`` (a cache:
+   already-downloaded wheels are reused, so a rebuild needs no network). A ``cp312-abi3`` wheel
+   serves every Python from 3.12 on. numpy is NOT bundled: Blender supplies it (see docs/install.md).
+2. Check that every (platform, Python) pair has one wheel of each package, and the file names
+   against the ``wheels = [...]`` list of blender_manifest.toml (``--update-manifest`` rewrites that
+   list instead).
 3. Stage the extension in ``build/extension/``: the root ``__init__.py``, the manifest (restricted
    to the requested platforms), ``facelab_addon/``, ``assets/`` (presets, sample mesh) and ``wheels/``.
 4. Run Blender's extension CLI (shipped in the bpy wheel, no Blender binary needed):
    ``blender_ext.py build --split-platforms`` -> ``dist/facelab-<version>-<platform>.zip``; the CLI
    keeps only each platform's wheels and appends ``[build.generated] platforms/wheels`` to the
    zip's manifest.
-5. Check every zip: ``blender_ext.py validate``, the expected files, exactly that platform's three
-   wheels, nothing from tests/, benchmarks/, docs/, scripts/, .venv/.
+5. Check every zip: ``blender_ext.py validate``, the expected files, exactly that platform's wheels
+   (a complete set for every supported Python), nothing from tests/, benchmarks/, docs/, scripts/, .venv/.
 
 Prints a JSON summary on stdout (progress goes to stderr). Exit 0 on success, 1 on any failure.
 """
@@ -39,10 +42,11 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 MANIFEST = ROOT / "blender_manifest.toml"
+REQUIREMENTS = ROOT / "requirements"  # bpy-<blender version>.txt, one per supported Blender
 PACKAGES = ("scipy", "libigl", "cholespy")  # bundled; numpy comes with Blender
 
 # Blender platform -> pip --platform tags (pip also accepts older manylinux / macOS versions).
-# Linux: Blender 5.0 needs glibc >= 2.28. macOS arm64: SciPy 1.17's oldest arm64 wheel needs macOS 12.
+# Linux: Blender 4.5 and newer need glibc >= 2.28. macOS arm64: SciPy 1.17's oldest arm64 wheel needs macOS 12.
 PIP_PLATFORMS = {
     "linux-x64": ["manylinux_2_28_x86_64"],
     "windows-x64": ["win_amd64"],
@@ -71,20 +75,58 @@ def extension_cli() -> Path:
         hits = sorted(Path(base).glob("*/scripts/addons_core/bl_pkg/cli/blender_ext.py"))
         if hits:
             return hits[-1]
-    raise SystemExit("blender_ext.py not found inside the bpy package; reinstall bpy==5.0.1.")
+    raise SystemExit("blender_ext.py not found inside the bpy package; reinstall bpy (source scripts/env.sh).")
+
+
+def requirement_files() -> list[Path]:
+    files = sorted(REQUIREMENTS.glob("bpy-*.txt"))
+    if not files:
+        raise SystemExit(f"no requirements/bpy-*.txt in {ROOT}; one per supported Blender is expected.")
+    return files
+
+
+def supported_pythons() -> list[str]:
+    """The Python versions ("3.11", ...) of the supported Blenders (``# python: X.Y`` in requirements/bpy-*.txt)."""
+    out = set()
+    for f in requirement_files():
+        m = re.search(r"(?m)^#\s*python:\s*(\d+\.\d+)\s*$", f.read_text())
+        if not m:
+            raise SystemExit(f"{f.relative_to(ROOT)} has no '# python: X.Y' line; add the Python of that Blender.")
+        out.add(m.group(1))
+    return sorted(out, key=lambda v: tuple(map(int, v.split("."))))
 
 
 def pinned_versions() -> dict[str, str]:
-    """The versions of PACKAGES pinned in requirements.txt (the ones the tests run against)."""
-    pins = {}
-    for line in (ROOT / "requirements.txt").read_text().splitlines():
-        m = re.match(r"^\s*([A-Za-z0-9_.-]+)\s*==\s*([^\s;#]+)", line)
-        if m and m.group(1).lower() in PACKAGES:
-            pins[m.group(1).lower()] = m.group(2)
-    missing = [p for p in PACKAGES if p not in pins]
-    if missing:
-        raise SystemExit(f"requirements.txt pins no version of {missing}; pin them (name==version).")
+    """The versions of PACKAGES pinned in requirements/bpy-*.txt (the ones the tests run against).
+
+    Every file must pin the same version of each package: the zip carries one.
+    """
+    pins: dict[str, str] = {}
+    for f in requirement_files():
+        mine = {}
+        for line in f.read_text().splitlines():
+            m = re.match(r"^\s*([A-Za-z0-9_.-]+)\s*==\s*([^\s;#]+)", line)
+            if m and m.group(1).lower() in PACKAGES:
+                mine[m.group(1).lower()] = m.group(2)
+        missing = [p for p in PACKAGES if p not in mine]
+        if missing:
+            raise SystemExit(f"{f.relative_to(ROOT)} pins no version of {missing}; pin them (name==version).")
+        for p, v in mine.items():
+            if pins.setdefault(p, v) != v:
+                raise SystemExit(f"{f.relative_to(ROOT)} pins {p}=={v} but another requirements file pins "
+                                 f"{p}=={pins[p]}; the zip carries one version, pin the same everywhere.")
     return pins
+
+
+def wheel_serves(filename: str, python: str) -> bool:
+    """Whether a wheel file installs on CPython ``python`` ("3.13"), by its python and ABI tags."""
+    py_tags, abi_tags = (t.split(".") for t in filename[:-len(".whl")].split("-")[-3:-1])
+    major, minor = map(int, python.split("."))
+    if f"cp{major}{minor}" in abi_tags:
+        return f"cp{major}{minor}" in py_tags
+    if "abi3" in abi_tags:
+        return any(t.startswith(f"cp{major}") and int(t[3:] or 0) <= minor for t in py_tags)
+    return "none" in abi_tags and any(t in (f"py{major}", f"cp{major}{minor}") for t in py_tags)
 
 
 def manifest_text() -> str:
@@ -120,38 +162,55 @@ def with_platforms(text: str, platforms: list[str]) -> str:
     return new
 
 
-def download(platform: str, pins: dict[str, str], cache: Path, offline: bool) -> list[Path]:
-    """The platform's wheels for PACKAGES in ``cache/platform`` (downloaded unless already there)."""
+def wheels_for(files, pins: dict[str, str], python: str) -> dict[str, Path]:
+    """Package -> the wheel among ``files`` serving ``python`` (its own ABI preferred over abi3)."""
+    files = list(files)
+    out = {}
+    for pkg in PACKAGES:
+        hits = [f for f in files if f.name.startswith(f"{pkg}-{pins[pkg]}-") and wheel_serves(f.name, python)]
+        hits.sort(key=lambda f: ("abi3" in f.name, f.name))
+        if hits:
+            out[pkg] = hits[0]
+    return out
+
+
+def download(platform: str, pythons: list[str], pins: dict[str, str], cache: Path, offline: bool) -> list[Path]:
+    """The platform's wheels for PACKAGES and every Python of ``pythons``, in ``cache/platform``
+    (downloaded unless already there); fails unless every Python has one wheel of each package."""
     dest = cache / platform
     dest.mkdir(parents=True, exist_ok=True)
+    chosen: dict[str, dict[str, Path]] = {}
+    for py in pythons:
+        found = wheels_for(dest.glob("*.whl"), pins, py)
+        if len(found) < len(PACKAGES) and not offline:
+            cmd = [sys.executable, "-m", "pip", "download", "--only-binary=:all:", "--no-deps", "--python-version", py,
+                   "--implementation", "cp", "--abi", "cp" + py.replace(".", ""), "--dest", str(dest),
+                   "--disable-pip-version-check"]
+            for tag in PIP_PLATFORMS[platform]:
+                cmd += ["--platform", tag]
+            cmd += [f"{pkg}=={pins[pkg]}" for pkg in PACKAGES if pkg not in found]
+            log(f"[{platform}] Python {py}: pip download {' '.join(cmd[-(len(PACKAGES) - len(found)):])} "
+                f"({', '.join(PIP_PLATFORMS[platform])})")
+            r = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+            if r.returncode != 0:
+                raise SystemExit(f"[{platform}] Python {py}: pip download failed:\n{r.stdout[-3000:]}")
+            found = wheels_for(dest.glob("*.whl"), pins, py)
+        chosen[py] = found
+    incomplete = {py: [p for p in PACKAGES if p not in found] for py, found in chosen.items() if len(found) < len(PACKAGES)}
+    if incomplete:
+        hint = " and --offline given; run once with network" if offline else ""
+        raise SystemExit(f"[{platform}] no wheel in {dest} for " +
+                         "; ".join(f"Python {py}: {', '.join(pk)}" for py, pk in incomplete.items()) + hint)
+    files = sorted({f for found in chosen.values() for f in found.values()})
+    log(f"[{platform}] {', '.join(f.name for f in files)}")
+    return files
 
-    def have():
-        out = []
-        for pkg in PACKAGES:
-            hits = sorted(dest.glob(f"{pkg}-{pins[pkg]}-cp311-*.whl"))
-            if hits:
-                out.append(hits[0])
-        return out
 
-    found = have()
-    if len(found) == len(PACKAGES):
-        log(f"[{platform}] cached: {', '.join(p.name for p in found)}")
-        return found
-    if offline:
-        raise SystemExit(f"[{platform}] wheels missing from {dest} and --offline given; run once with network.")
-    cmd = [sys.executable, "-m", "pip", "download", "--only-binary=:all:", "--no-deps", "--python-version", "3.11",
-           "--implementation", "cp", "--abi", "cp311", "--dest", str(dest), "--disable-pip-version-check"]
-    for tag in PIP_PLATFORMS[platform]:
-        cmd += ["--platform", tag]
-    cmd += [f"{pkg}=={pins[pkg]}" for pkg in PACKAGES]
-    log(f"[{platform}] pip download {' '.join(f'{p}=={pins[p]}' for p in PACKAGES)} ({', '.join(PIP_PLATFORMS[platform])})")
-    r = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    if r.returncode != 0:
-        raise SystemExit(f"[{platform}] pip download failed:\n{r.stdout[-3000:]}")
-    found = have()
-    if len(found) != len(PACKAGES):
-        raise SystemExit(f"[{platform}] expected wheels of {PACKAGES} in {dest}, found {[p.name for p in found]}")
-    return found
+def check_complete(names: list[str], pins: dict[str, str], pythons: list[str]) -> list[str]:
+    """Problems: the (Python, package) pairs the wheel file names ``names`` leave without a wheel."""
+    files = [Path(n) for n in names]
+    return [f"no {pkg} wheel for Python {py}" for py in pythons
+            for pkg in PACKAGES if pkg not in wheels_for(files, pins, py)]
 
 
 def stage(stage_dir: Path, text: str, wheels: dict[str, list[Path]]) -> None:
@@ -183,7 +242,8 @@ def run_cli(cli: Path, *args: str) -> str:
     return r.stdout
 
 
-def check_zip(cli: Path, path: Path, platform: str, expected_wheels: list[str]) -> dict:
+def check_zip(cli: Path, path: Path, platform: str, expected_wheels: list[str], pins: dict[str, str],
+              pythons: list[str]) -> dict:
     """Validate one built zip and list what it holds."""
     run_cli(cli, "validate", str(path))
     with zipfile.ZipFile(path) as z:
@@ -195,12 +255,13 @@ def check_zip(cli: Path, path: Path, platform: str, expected_wheels: list[str]) 
     want = sorted(f"wheels/{w}" for w in expected_wheels)
     if got != want:
         problems.append(f"wheels {got} != expected {want}")
+    problems += check_complete(got, pins, pythons)
     if f'platforms = ["{platform}"]' not in manifest:
         problems.append("the zip's manifest does not declare its platform")
     if problems:
         raise SystemExit(f"{path.name}: " + "; ".join(problems))
     return {"zip": str(path), "platform": platform, "bytes": path.stat().st_size, "files": len(names),
-            "wheels": [Path(w).name for w in got]}
+            "pythons": pythons, "wheels": [Path(w).name for w in got]}
 
 
 def main(argv=None) -> int:
@@ -230,7 +291,8 @@ def main(argv=None) -> int:
         raise SystemExit(f"{unknown} not in the manifest's platforms {declared}")
 
     pins = pinned_versions()
-    wheels = {p: download(p, pins, args.wheels_dir, args.offline) for p in platforms}
+    pythons = supported_pythons()
+    wheels = {p: download(p, pythons, pins, args.wheels_dir, args.offline) for p in platforms}
     listed = sorted(f"./wheels/{f.name}" for files in wheels.values() for f in files)
 
     if args.update_manifest:
@@ -245,7 +307,7 @@ def main(argv=None) -> int:
         missing = sorted(set(listed) - set(in_manifest))
         if missing:
             raise SystemExit(f"blender_manifest.toml does not list {missing}; run with --update-manifest "
-                             "(the pinned versions in requirements.txt changed?).")
+                             "(the pinned versions in requirements/bpy-*.txt or the supported Pythons changed?).")
 
     staged = with_platforms(with_wheels(text, listed), platforms)
     stage(args.stage_dir, staged, wheels)
@@ -259,10 +321,10 @@ def main(argv=None) -> int:
         z = args.out / f"facelab-{version}-{p.replace('-', '_')}.zip"
         if not z.exists():
             raise SystemExit(f"the CLI did not produce {z}")
-        results.append(check_zip(cli, z, p, [f.name for f in wheels[p]]))
+        results.append(check_zip(cli, z, p, [f.name for f in wheels[p]], pins, pythons))
         log(f"ok {z.name}: {results[-1]['bytes'] / 2**20:.1f} MB, {results[-1]['files']} files, "
             f"wheels {', '.join(results[-1]['wheels'])}")
-    print(json.dumps({"version": version, "zips": results}, indent=2))
+    print(json.dumps({"version": version, "pythons": pythons, "zips": results}, indent=2))
     return 0
 
 

@@ -21,6 +21,7 @@ selectively with e.g. ``bash scripts/demo.sh --only solve,reconstruct``.
 from __future__ import annotations
 
 import argparse
+import atexit
 import json
 import os
 import subprocess
@@ -75,6 +76,7 @@ def run_refine(ict, out, img_dir, samples):
     import bpy
 
     import facelab_addon
+    from facelab_addon.blender import compat
     from facelab_addon.blender.camera import camera_from_blender, new_camera_object
     from facelab_addon.blender.mesh import evaluated_vertices
     from facelab_addon.blender.scene import add_studio_lights, new_mesh_object, set_backplate
@@ -87,11 +89,12 @@ def run_refine(ict, out, img_dir, samples):
 
     bpy.ops.wm.read_factory_settings(use_empty=True)
     facelab_addon.register()
+    atexit.register(facelab_addon.unregister)  # bpy 4.5 hangs at exit with FaceLab registered
     scene = bpy.context.scene
     scene.frame_start, scene.frame_end = 1, 24
     scene.frame_set(FRAME)
     mat = bpy.data.materials.new("Skin")
-    mat.use_nodes = True
+    compat.node_tree(mat)
     bsdf = mat.node_tree.nodes.get("Principled BSDF")
     bsdf.inputs["Base Color"].default_value = (0.8, 0.55, 0.45, 1)
     bsdf.inputs["Roughness"].default_value = 0.55

@@ -35,6 +35,7 @@ def _drawable(upper, lower, tol_px=2.0):
 def run(ict, out, img_dir, render, samples, n_train=8):
     import bpy
 
+    from facelab_addon.blender import compat
     from facelab_addon.blender.caches import evaluate_frames
     from facelab_addon.blender.camera import camera_from_blender
     from facelab_addon.blender.scene import add_studio_lights
@@ -65,7 +66,7 @@ def run(ict, out, img_dir, render, samples, n_train=8):
     add_corrective_key(face, "CaptureError", err)
     key_values_bulk(face, ["CaptureError"], frames, strength[:, None])
     mat = bpy.data.materials.get("Skin") or bpy.data.materials.new("Skin")
-    mat.use_nodes = True
+    compat.node_tree(mat)
     mat.node_tree.nodes["Principled BSDF"].inputs["Base Color"].default_value = (0.8, 0.55, 0.45, 1)
     face.data.materials.append(mat)
     add_studio_lights(scene)

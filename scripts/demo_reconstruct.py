@@ -14,6 +14,7 @@ docs/images/demo_reconstruct_*.png.
 
 from __future__ import annotations
 
+import atexit
 import json
 import time
 
@@ -30,6 +31,7 @@ def run(ict, out, img_dir, render, samples):
     import bpy
 
     import facelab_addon
+    from facelab_addon.blender import compat
     from facelab_addon.blender.caches import evaluate_frames
     from facelab_addon.blender.camera import new_camera_object
     from facelab_addon.blender.scene import add_studio_lights
@@ -59,8 +61,9 @@ def run(ict, out, img_dir, render, samples):
     scene, face = fs.scene, fs.obj
     if "facelab_solve" not in bpy.types.Scene.bl_rna.properties:  # earlier demo steps registered it
         facelab_addon.register()
+        atexit.register(facelab_addon.unregister)  # bpy 4.5 hangs at exit with FaceLab registered
     mat = bpy.data.materials.new("Skin")
-    mat.use_nodes = True
+    compat.node_tree(mat)
     bsdf = mat.node_tree.nodes.get("Principled BSDF")
     bsdf.inputs["Base Color"].default_value = (0.8, 0.55, 0.45, 1)
     bsdf.inputs["Roughness"].default_value = 0.55

@@ -19,6 +19,7 @@ and docs/images/demo_solve_*.png.
 
 from __future__ import annotations
 
+import atexit
 import json
 import time
 
@@ -95,6 +96,7 @@ def build_scene(ict, s, plates_dir):
     """The artist's scene: rig, cameras, Movie Clips with tracks, Mask and Grease Pencil contours."""
     import bpy
 
+    from facelab_addon.blender import compat
     from facelab_addon.blender.camera import apply_camera_to_blender
     from facelab_addon.blender.scene import add_studio_lights
     from facelab_addon.blender.strokes import write_stroke_pixels
@@ -108,9 +110,10 @@ def build_scene(ict, s, plates_dir):
 
     if "facelab_solve" not in bpy.types.Scene.bl_rna.properties:  # earlier demo steps registered it
         facelab_addon.register()
+        atexit.register(facelab_addon.unregister)  # bpy 4.5 hangs at exit with FaceLab registered
     T, cams = N_FRAMES, s["cams"]
     mat = bpy.data.materials.new("Skin")
-    mat.use_nodes = True
+    compat.node_tree(mat)
     bsdf = mat.node_tree.nodes.get("Principled BSDF")
     bsdf.inputs["Base Color"].default_value = (0.8, 0.55, 0.45, 1)
     bsdf.inputs["Roughness"].default_value = 0.55
@@ -148,7 +151,7 @@ def build_scene(ict, s, plates_dir):
     space = area.spaces.active
     space.clip, space.mode, space.mask = views[0][1], "MASK", mask
     ctx = dict(window=win, area=area, region=next(r for r in area.regions if r.type == "WINDOW"), space_data=space)
-    gp = bpy.data.objects.new("Lip sketch (cam 2)", bpy.data.grease_pencils.new("Lip sketch (cam 2)"))
+    gp = bpy.data.objects.new("Lip sketch (cam 2)", compat.grease_pencil_data().new("Lip sketch (cam 2)"))
     scene.collection.objects.link(gp)
     gp.location = cams[1].center + 0.05 * cams[1].forward
     W, H = cams[0].width, cams[0].height
@@ -204,9 +207,10 @@ def errors(s, X, W_got, ict):
 def run(ict, out, img_dir, render, samples):
     import bpy
 
+    from facelab_addon.blender import compat
+    from facelab_addon.blender.actions import curve_values as _curve_values
     from facelab_addon.blender.caches import evaluate_frames
     from facelab_addon.blender.scene import new_mesh_object
-    from facelab_addon.blender.actions import curve_values as _curve_values
     from facelab_addon.testing.creature import widen_mouth
     from facelab_addon.testing.scenes import baked_sequence_object
 
@@ -244,7 +248,7 @@ def run(ict, out, img_dir, render, samples):
     cre = new_mesh_object("Creature", widen_mouth(s["neutral"], s["mouth_center"], factor=1.5),
                           poly_verts=ict.poly_verts, poly_offsets=ict.poly_offsets)
     cmat = bpy.data.materials.new("Creature skin")
-    cmat.use_nodes = True
+    compat.node_tree(cmat)
     cb = cmat.node_tree.nodes.get("Principled BSDF")
     cb.inputs["Base Color"].default_value = (0.35, 0.62, 0.45, 1)
     cb.inputs["Roughness"].default_value = 0.5

@@ -191,7 +191,7 @@ def addon():
 def test_preferences_and_sketch_material_come_from_the_presets(addon):
     import bpy
 
-    from facelab_addon.blender import strokes
+    from facelab_addon.blender import compat, strokes
     from facelab_addon.ui import prefs
 
     assert prefs.DEFAULTS == load_preset("sketch_refine", SKETCH_SCHEMA)
@@ -201,7 +201,7 @@ def test_preferences_and_sketch_material_come_from_the_presets(addon):
 
     bpy.ops.wm.read_factory_settings(use_empty=True)
     mat = strokes._sketch_material()
-    assert tuple(mat.grease_pencil.color) == (1.0, 1.0, 1.0, 1.0) and not mat.grease_pencil.show_fill
+    assert tuple(mat.grease_pencil.color) == (1.0, 1.0, 1.0, 1.0) and not compat.gp_material_fill_shown(mat.grease_pencil)
 
 
 @pytest.mark.blender

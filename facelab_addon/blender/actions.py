@@ -1,13 +1,15 @@
 """Shape-key and scene animation <-> arrays: F-curve values on frames, and the action FaceLab writes into.
 
-Blender 5.0 layered actions: curves live in the channelbag of the action
-slot assigned to the animated ID (``bpy_extras.anim_utils``).
+Layered actions: curves live in the channelbag of the action slot assigned
+to the animated ID (``compat.anim_data_channelbag``).
 """
 
 from __future__ import annotations
 
 import bpy
 import numpy as np
+
+from . import compat
 
 __all__ = [
     "ACTION_TAG",
@@ -107,12 +109,8 @@ def curve_values(key, names, frames) -> np.ndarray:
     A key without an (unmuted) F-curve in the assigned action slot holds its
     current value on every frame.
     """
-    from bpy_extras import anim_utils
-
     ad = key.animation_data
-    cb = None
-    if ad is not None and ad.action is not None and ad.action_slot is not None:
-        cb = anim_utils.action_get_channelbag_for_slot(ad.action, ad.action_slot)
+    cb = compat.anim_data_channelbag(ad) if ad is not None else None
     out = np.empty((len(frames), len(names)))
     for k, n in enumerate(names):
         fc = cb.fcurves.find(key_path(n)) if cb is not None else None
@@ -134,14 +132,12 @@ def scene_vector_values(scene, path: str, current, frames) -> np.ndarray:
         Its current value, used for every component without an (unmuted) F-curve.
     frames : (T,) array_like of int
     """
-    from bpy_extras import anim_utils
-
     cur = np.array(current, dtype=np.float64)
     out = np.broadcast_to(cur, (len(frames), len(cur))).copy()
     ad = scene.animation_data
-    if ad is None or ad.action is None or ad.action_slot is None:
+    cb = compat.anim_data_channelbag(ad) if ad is not None else None
+    if cb is None:
         return out
-    cb = anim_utils.action_get_channelbag_for_slot(ad.action, ad.action_slot)
     for i in range(len(cur)):
         fc = cb.fcurves.find(path, index=i) if cb is not None else None
         if fc is not None and not fc.mute:

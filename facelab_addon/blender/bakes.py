@@ -17,7 +17,7 @@ import bpy
 import numpy as np
 
 from ..core.capture import pointcache_writer
-from ..core.errors import FaceLabError
+from ..core.errors import FaceLabError, OutputError
 from .caches import (
     _frames,
     _iter_evaluated,
@@ -27,7 +27,43 @@ from .caches import (
     scene_fps,
 )
 
-__all__ = ["bake_point_cache_steps", "bake_pc2", "bake_mdd", "bake_alembic"]
+__all__ = ["bake_point_cache_steps", "bake_pc2", "bake_mdd", "bake_alembic", "bake_destination"]
+
+
+def bake_destination(path) -> Path:
+    """The absolute destination of a bake, checked writable before any frame is evaluated.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Absolute, or ``//``-relative to the saved .blend.
+
+    Returns
+    -------
+    pathlib.Path
+
+    Raises
+    ------
+    OutputError
+        A ``//`` path in an unsaved .blend, a relative path (it would land in
+        whatever folder Blender was started from), or a destination that
+        cannot be written (``pointcache_writer.check_writable``).
+    """
+    text = os.fspath(path)
+    if not text:
+        raise OutputError("Choose a file to bake to.")
+    if text.startswith("//") and not bpy.data.filepath:
+        raise OutputError(
+            f"'{text}' is relative to the .blend, but the .blend is not saved yet; save it first, or choose "
+            "an absolute path."
+        )
+    out = Path(bpy.path.abspath(text))
+    if not out.is_absolute():
+        raise OutputError(
+            f"'{text}' is a relative path, which would be written into the folder Blender was started from; "
+            "choose an absolute path (or save the .blend and use a '//' path relative to it)."
+        )
+    return pointcache_writer.check_writable(out)
 
 
 def _uniform_step(frames, what):
@@ -118,11 +154,13 @@ def bake_point_cache_steps(obj, scene_frames, path, fmt, *, mute_shape_keys_pref
         ``obj`` is not a mesh object.
     FaceLabError
         Frames unfit for the format (see :func:`bake_pc2`, :func:`bake_mdd`) or an unknown format.
+    OutputError
+        The destination cannot be written (:func:`bake_destination`), checked here, before any frame.
     """
     require_mesh_object(obj)
     frames = _frames(scene_frames)
     header = _point_cache_header(frames, fmt)
-    dest, n = bpy.path.abspath(os.fspath(path)), len(obj.data.vertices)
+    dest, n = bake_destination(path), len(obj.data.vertices)
     return _bake_steps(obj, frames, lambda: pointcache_writer.PointCacheWriter(dest, fmt, n, len(frames), **header),
                        mute_prefixes=_prefixes(mute_shape_keys_prefix), progress=progress)
 
@@ -205,13 +243,18 @@ def bake_alembic(obj, scene_frames, path, *, evaluation_mode="VIEWPORT") -> Path
     Raises
     ------
     FaceLabError
-        When the object is hidden or the exporter fails.
+        When the object is hidden.
+    OutputError
+        The destination cannot be written (:func:`bake_destination`) or the exporter fails.
     """
     require_mesh_object(obj)
     frames = _frames(scene_frames)
     start, end = int(math.floor(frames.min())), int(math.ceil(frames.max()))
-    out = Path(bpy.path.abspath(os.fspath(path)))
-    out.parent.mkdir(parents=True, exist_ok=True)
+    out = bake_destination(path)
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise pointcache_writer.output_error(out, e) from None
     vl = bpy.context.view_layer
     if vl.objects.get(obj.name) is None or not obj.visible_get():
         raise FaceLabError(f"'{obj.name}' is hidden or not in this view layer; unhide it to export it to Alembic.")
@@ -241,5 +284,5 @@ def bake_alembic(obj, scene_frames, path, *, evaluation_mode="VIEWPORT") -> Path
             o.select_set(True)
         vl.objects.active = prev_active
     if "FINISHED" not in res or not out.is_file():
-        raise FaceLabError(f"Alembic export of '{obj.name}' to '{out}' failed ({res}); check the path is writable.")
+        raise OutputError(f"Alembic export of '{obj.name}' to '{out}' failed ({res}); check the path is writable.")
     return out

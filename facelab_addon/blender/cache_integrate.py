@@ -16,14 +16,16 @@ from pathlib import Path
 import bpy
 import numpy as np
 
-from ..core.capture import pointcache_writer
+from ..core.capture import pointcache, pointcache_writer
 from ..core.errors import FaceLabError, MeshError
 from .bakes import _bake_steps, _run, _uniform_step
 from .caches import (
+    _alembic_still_error,
     _disabled_modifiers,
     _enabled,
     _frames,
     _msc_modifier,
+    check_capture_files,
     mesh_cache_modifier,
     require_mesh_object,
     sequence_source,
@@ -88,11 +90,19 @@ def cache_to_shape_key_ready(obj, *, directory=None, scene_frames=None, progress
         vertex count.
     FaceLabError
         Unsaved .blend and no ``directory``.
+    CacheFileError
+        The cache file is missing or broken
+        (:func:`~facelab_addon.blender.caches.check_capture_files`), or the
+        Alembic capture does not move over ``scene_frames`` (the baked file is
+        removed, the modifiers are left as they were).
+    OutputError
+        The PC2 cannot be written in ``directory``.
     """
     require_mesh_object(obj)
     src = sequence_source(obj)
     if src in ("mesh_cache", "mesh_sequence_cache") and len(obj.data.polygons) == 0:
         raise MeshError(f"'{obj.name}' has no faces; the Mesh Cache 'Integrate' mode needs faces to carry shape keys.")
+    check_capture_files(obj)  # a broken file is refused before anything changes
     if src == "mesh_cache":
         md = mesh_cache_modifier(obj)
         if md.deform_mode == "INTEGRATE":
@@ -126,6 +136,15 @@ def cache_to_shape_key_ready(obj, *, directory=None, scene_frames=None, progress
     with _disabled_modifiers(later):
         _run(_bake_steps(obj, frames, lambda: pointcache_writer.PointCacheWriter(
             path, "PC2", n, len(frames), start_frame=float(frames[0]), sample_rate=step), progress=progress))
+    try:  # a capture that never moves is a file Blender could not read: keep the artist's modifier on
+        baked = pointcache.read_pc2(path, mmap=True)[0]
+        moved = len(frames) == 1 or any(np.any(baked[t] != baked[0]) for t in range(1, len(frames)))
+        del baked
+        if not moved:
+            raise _alembic_still_error(obj, frames)
+    except FaceLabError:
+        path.unlink(missing_ok=True)
+        raise
 
     msc.show_viewport = False
     msc.show_render = False

@@ -29,13 +29,16 @@ from __future__ import annotations
 
 import contextlib
 import math
+import os
+import struct
 
 import bpy
 import numpy as np
 
 from ..core.capture import meshcache, pointcache
-from ..core.errors import FaceLabError, MeshError
+from ..core.errors import CacheFileError, FaceLabError, MeshError
 from ..names import PREFIX
+from . import compat
 
 __all__ = [
     "sequence_source",
@@ -44,6 +47,9 @@ __all__ = [
     "read_mesh_cache_frames",
     "read_captured_frames",
     "evaluate_frames",
+    "alembic_file_problem",
+    "check_capture_files",
+    "check_alembic_moves",
     "require_mesh_object",
     "scene_fps",
 ]
@@ -102,7 +108,7 @@ def _cache_path(obj, md) -> str:
 
 
 def _anim_fcurves(id_data):
-    """F-curves and drivers of an ID (Blender 5.0 layered actions and older)."""
+    """F-curves and drivers of an ID (layered actions; legacy ``Action.fcurves`` when no channelbag)."""
     ad = getattr(id_data, "animation_data", None)
     if ad is None:
         return []
@@ -111,9 +117,7 @@ def _anim_fcurves(id_data):
     if action is not None:
         fcurves = None
         try:
-            from bpy_extras import anim_utils
-
-            cb = anim_utils.action_get_channelbag_for_slot(action, getattr(ad, "action_slot", None))
+            cb = compat.action_channelbag(action, getattr(ad, "action_slot", None))
             fcurves = cb.fcurves if cb is not None else []
         except Exception:
             fcurves = getattr(action, "fcurves", None) or []
@@ -195,6 +199,7 @@ def _iter_evaluated(obj, frames, *, mute_prefixes=(), progress=None, scene=None)
     """
     scene = scene or bpy.context.scene
     n = len(obj.data.vertices)
+    check_capture_files(obj)
     if bpy.context.view_layer.objects.get(obj.name) is None:
         raise MeshError(
             f"'{obj.name}' is not in the active view layer, so Blender does not evaluate it; "
@@ -219,9 +224,145 @@ def _iter_evaluated(obj, frames, *, mute_prefixes=(), progress=None, scene=None)
                 me.vertices.foreach_get("co", buf)
             finally:
                 ev.to_mesh_clear()
+            if not np.isfinite(buf).all():
+                raise MeshError(
+                    f"On frame {f:g} the evaluated '{obj.name}' has NaN or infinite vertex positions; fix the "
+                    "cache, modifier or shape key that produces them on that frame."
+                )
             if progress is not None:
                 progress(i, T)
             yield i, buf.reshape(n, 3)
+
+
+# --------------------------------------------------------------------------- cache files are checked before use
+
+_OGAWA_DATA = 1 << 63
+
+
+def alembic_file_problem(path) -> str | None:
+    """Why Blender cannot read the Alembic file at ``path``: a short reason, or None when it is whole.
+
+    Blender's Alembic reader aborts the whole program on a truncated Ogawa
+    file and plays a missing one as the static mesh, so the file is checked
+    first: it must exist, be an Ogawa archive (``b"Ogawa"``, finished writing)
+    and every group and data block of its tree must lie inside the file (the
+    root group is written last, so a truncated file always fails this).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        An absolute path.
+
+    Returns
+    -------
+    str or None
+    """
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        return "the file does not exist"
+    size = os.path.getsize(path)
+    with open(path, "rb") as f:
+        data = f.read()
+    if size < 16:
+        return f"it has {size} bytes, too short for an Alembic file (truncated or empty)"
+    if data[:4] == b"\x89HDF":
+        return "it is an HDF5 Alembic, which Blender cannot read (re-export it as Ogawa)"
+    if data[:5] != b"Ogawa":
+        return f"it is not an Alembic (Ogawa) file: it starts with {data[:8]!r}"
+    if data[5] != 0xFF:
+        return "its writer did not finish it (the archive is not frozen): the export was interrupted"
+    root = struct.unpack_from("<Q", data, 8)[0]
+    stack, seen = [root], set()
+    while stack:
+        pos = stack.pop()
+        if pos in seen:
+            continue
+        seen.add(pos)
+        if pos + 8 > size:
+            return f"it is truncated ({size} bytes; a block starts at byte {pos})"
+        k = struct.unpack_from("<Q", data, pos)[0]
+        if pos + 8 + 8 * k > size:
+            return f"it is truncated ({size} bytes; a group at byte {pos} lists {k} children past the end)"
+        for c in struct.unpack_from(f"<{k}Q", data, pos + 8):
+            if c & _OGAWA_DATA:
+                q = c & ~_OGAWA_DATA
+                if q and (q + 8 > size or q + 8 + struct.unpack_from("<Q", data, q)[0] > size):
+                    return f"it is truncated ({size} bytes; a data block at byte {q} ends past the end)"
+            elif c:
+                stack.append(c)
+    return None
+
+
+def check_capture_files(obj) -> None:
+    """Refuse a cache modifier of ``obj`` whose file Blender would silently fail to play.
+
+    Every enabled Mesh Cache with a file must be a whole PC2/MDD file of the
+    modifier's format with one point per vertex; every enabled Mesh Sequence
+    Cache must play a whole Alembic file that holds the modifier's object
+    path. Without this, Blender's modifiers fail quietly and the static mesh
+    is read as if it were the capture.
+
+    Parameters
+    ----------
+    obj : bpy.types.Object
+
+    Raises
+    ------
+    CacheFileError
+        Naming the object, the modifier, the file, the problem and the fix.
+    """
+    for md in obj.modifiers:
+        if _mesh_cache_active(md):
+            try:
+                info = pointcache.cache_info(_cache_path(obj, md), md.cache_format)
+                pointcache.check_vertex_count(info, len(obj.data.vertices), name=f"'{obj.name}'")
+            except CacheFileError as e:
+                raise type(e)(f"Mesh Cache '{md.name}' of '{obj.name}': {e}") from None
+        elif _msc_active(md):
+            cf = md.cache_file
+            path = bpy.path.abspath(cf.filepath, library=cf.library)
+            why = alembic_file_problem(path)
+            if why is None and not len(cf.object_paths):
+                why = "Blender found no object in it (it could not read the file when it was opened)"
+            if why is None and md.object_path and md.object_path not in {o.path for o in cf.object_paths}:
+                why = f"it has no object '{md.object_path}'"
+            if why is not None:
+                raise CacheFileError(
+                    f"Mesh Sequence Cache '{md.name}' of '{obj.name}' plays '{path}', but {why}, so Blender would "
+                    "show the static mesh instead of the capture. Re-export or re-copy the Alembic file (then "
+                    "reload it in the Cache File properties), or point the modifier at the right file and object."
+                )
+
+
+def check_alembic_moves(obj, frames, positions) -> None:
+    """Refuse an Alembic capture that gives the same positions on every one of several frames.
+
+    Parameters
+    ----------
+    obj : bpy.types.Object
+    frames : (T,) float ndarray
+        Scene frames.
+    positions : (T,V,3) float ndarray
+        The evaluated capture on ``frames``.
+
+    Raises
+    ------
+    CacheFileError
+        When ``T > 1`` and no vertex moves between the frames.
+    """
+    if len(frames) > 1 and not np.any(positions != positions[:1]):
+        raise _alembic_still_error(obj, frames)
+
+
+def _alembic_still_error(obj, frames) -> CacheFileError:
+    md = _msc_modifier(obj)
+    what = f"'{md.cache_file.filepath}'" if md is not None else "its Alembic file"
+    return CacheFileError(
+        f"The Alembic capture of '{obj.name}' ({what}) does not move on frames {frames[0]:g}-{frames[-1]:g}: "
+        "every frame has the same positions, so the file holds no animation there or Blender cannot read "
+        "it. Check the frame range (and the Cache File's frame offset), re-export the Alembic file, or "
+        "reload it in the Cache File properties."
+    )
 
 
 # --------------------------------------------------------------------------- what animates the mesh
@@ -330,7 +471,7 @@ def read_mesh_cache_frames(obj, scene_frames, *, modifier=None, mute_shape_keys_
     mesh with FaceLab's keys muted to float32 rounding (verified in
     ``tests/blender/test_caches.py``). When the stack is one the direct
     read cannot reproduce (see ``mesh_cache_direct_read_problem``), falls
-    back to ``evaluate_frames``.
+    back to ``evaluate_frames``, after the file was checked.
 
     Parameters
     ----------
@@ -355,7 +496,9 @@ def read_mesh_cache_frames(obj, scene_frames, *, modifier=None, mute_shape_keys_
     MeshError
         No Mesh Cache modifier.
     pointcache.CacheFileError
-        Missing/bad file or a vertex count that does not match the mesh.
+        Missing/bad file, NaN positions or a vertex count that does not match
+        the mesh (checked before the evaluation fallback too: see
+        :func:`check_capture_files`).
     """
     require_mesh_object(obj)
     frames = _frames(scene_frames)
@@ -365,12 +508,12 @@ def read_mesh_cache_frames(obj, scene_frames, *, modifier=None, mute_shape_keys_
             f"'{obj.name}' has no enabled Mesh Cache modifier with a file; add one (PC2 or MDD) or "
             "read the animation with evaluate_frames."
         )
+    check_capture_files(obj)  # a broken file is refused, never evaluated as the static mesh
     if mesh_cache_direct_read_problem(obj, md, mute_prefixes=mute_shape_keys_prefix) is not None:
         return evaluate_frames(obj, frames, mute_shape_keys_prefix=mute_shape_keys_prefix, progress=progress)
     scene = bpy.context.scene
     path = _cache_path(obj, md)
     info = pointcache.cache_info(path, md.cache_format)
-    pointcache.check_vertex_count(info, len(obj.data.vertices), name=f"'{obj.name}'")
     r = scene.render
     i0, i1, w = meshcache.mesh_cache_samples(
         frames,
@@ -389,6 +532,7 @@ def read_mesh_cache_frames(obj, scene_frames, *, modifier=None, mute_shape_keys_
     mm = pointcache.read_cache(path, fmt=md.cache_format, mmap=True)
     out = meshcache.blend_samples(mm, i0, i1, w)
     del mm
+    pointcache.check_finite_samples(info, out, i0)
     M = meshcache.axis_conversion_matrix(md.forward_axis, md.up_axis, tuple(md.flip_axis))
     if not np.array_equal(M, np.eye(3)):
         Mf = M.astype(np.float32)
@@ -426,7 +570,9 @@ def evaluate_frames(obj, scene_frames, *, mute_shape_keys_prefix=FACELAB_PREFIXE
     ------
     MeshError
         When the evaluated vertex count differs from the mesh's on some frame,
-        or the object is not in the view layer.
+        a position is NaN or infinite, or the object is not in the view layer.
+    CacheFileError
+        A cache modifier's file is missing or broken (:func:`check_capture_files`).
     """
     require_mesh_object(obj)
     frames = _frames(scene_frames)
@@ -454,8 +600,14 @@ def read_captured_frames(obj, scene_frames, *, mute_shape_keys_prefix=FACELAB_PR
     -------
     (T,V,3) float32 ndarray
         Object-local positions, scene units.
+
+    Raises
+    ------
+    CacheFileError
+        A cache file is missing or broken (:func:`check_capture_files`).
     """
     source = sequence_source(obj, ignore_prefixes=mute_shape_keys_prefix)
+    check_capture_files(obj)
     if source == "mesh_cache":
         return read_mesh_cache_frames(
             obj, scene_frames, mute_shape_keys_prefix=mute_shape_keys_prefix, progress=progress

@@ -41,6 +41,7 @@ import numpy as np
 
 from ..core.capture.camera import Camera
 from ..core.errors import SketchError
+from . import compat
 from . import strokes as _st
 from .camera import evaluated_depsgraph
 from .tracking import clip_size
@@ -371,7 +372,7 @@ def read_curves(scene, views, cameras, frames, *, annotation_view: int | None = 
         m = getattr(v, "mask", None)
         if m is not None:
             need |= {f for f in frames if m.frame_start <= f <= m.frame_end}
-    ann = getattr(scene, "annotation", None) if annotation_view is not None else None
+    ann = compat.scene_annotation(scene) if annotation_view is not None else None
     if ann is not None:
         need |= fset if hold else (_keyed_frames(ann.layers, lambda lay: lay.info) & fset)
 

@@ -1,13 +1,115 @@
 """Objects and meshes -> arrays, beyond :mod:`.mesh`: world transforms over frames, world points in
-an object's space, loop-triangle UVs, and whether two meshes share their topology."""
+an object's space, loop-triangle UVs, whether two meshes share their topology, and whether FaceLab
+may write to an object at all (:func:`require_editable`)."""
 
 from __future__ import annotations
 
+import os
+
+import bpy
 import numpy as np
 
+from ..core.errors import FaceLabError
 from .camera import evaluated_depsgraph
 
-__all__ = ["world_affine", "world_matrices", "points_to_local", "triangle_uvs", "same_polygons"]
+__all__ = ["NotEditableError", "require_editable", "ModifierState",
+           "world_affine", "world_matrices", "points_to_local", "triangle_uvs", "same_polygons"]
+
+
+class NotEditableError(FaceLabError):
+    """The object, its mesh or its shape keys are linked from a library (or a library override
+    without editable data): whatever FaceLab wrote would not be saved."""
+
+
+def _linked_part(obj):
+    """``(what, datablock)`` of the first part of ``obj`` FaceLab could not save, or None."""
+    if obj.library is not None or not obj.is_editable:
+        return "object", obj
+    ov = obj.override_library
+    if ov is not None and ov.is_system_override:
+        return "object", obj
+    data = obj.data
+    if data is not None and (data.library is not None or not data.is_editable or data.override_library is not None):
+        return "mesh data", data
+    keys = getattr(data, "shape_keys", None)
+    if keys is not None and (keys.library is not None or not keys.is_editable or keys.override_library is not None):
+        return "shape keys", keys
+    return None
+
+
+def require_editable(obj, what: str = "FaceLab"):
+    """``obj`` if FaceLab may write to it (shape keys, vertex groups, animation), else raise.
+
+    Checked by every pipeline that writes, before anything changes: a linked object (or one
+    whose mesh or shape keys are linked, or a library override whose mesh data is still the
+    library's) accepts edits in memory that are never saved.
+
+    Parameters
+    ----------
+    obj : bpy.types.Object
+    what : str
+        The step asking, for the message (e.g. ``"Propagate"``).
+
+    Raises
+    ------
+    NotEditableError
+        Naming the object, the library file and the fix (make it local).
+    """
+    bad = _linked_part(obj)
+    if bad is None:
+        return obj
+    part, idb = bad
+    if idb.library is not None:
+        where = f"is linked from the library '{idb.library.filepath}'"
+    elif idb.override_library is not None:
+        lib = idb.override_library.reference.library if idb.override_library.reference else None
+        where = "is a library override" + (f" of '{lib.filepath}'" if lib is not None else "") + \
+            " (overrides do not store new shape keys or vertex groups)"
+    else:
+        where = "cannot be edited"
+    raise NotEditableError(
+        f"{what} cannot change '{obj.name}': its {part} {where}, so a change would not be "
+        "saved. Make it local (Object > Relations > Make Local > Selected Objects and Data; for a library "
+        "override, make its mesh local too), or open the library .blend and work there.")
+
+
+class ModifierState:
+    """What an operator may change on an object's modifiers, recorded to put it back on cancel or failure.
+
+    Records each modifier's name, viewport / render switches and (Mesh Cache) deform mode;
+    :meth:`restore` puts them back, removes modifiers added since and deletes the point-cache
+    files those added modifiers were reading (files FaceLab baked for them, e.g. an Alembic
+    capture baked to PC2). Use as ``state = ModifierState(obj)`` ... ``state.restore()``.
+    """
+
+    def __init__(self, obj):
+        self.obj = obj
+        self.saved = {m.name: (m.show_viewport, m.show_render, getattr(m, "deform_mode", None))
+                      for m in obj.modifiers}
+        self.files = {bpy.path.abspath(m.filepath) for m in obj.modifiers if m.type == "MESH_CACHE" and m.filepath}
+
+    def restore(self) -> list:
+        """Put the recorded modifier state back; returns what was undone, one phrase each."""
+        undone = []
+        obj = self.obj
+        for m in list(obj.modifiers):
+            if m.name not in self.saved:
+                name = m.name
+                path = bpy.path.abspath(m.filepath) if m.type == "MESH_CACHE" and m.filepath else ""
+                obj.modifiers.remove(m)
+                undone.append(f"removed the added modifier '{name}'")
+                if path and path not in self.files and os.path.isfile(path):
+                    os.remove(path)
+                    undone.append(f"deleted {path}")
+        for m in obj.modifiers:
+            view, render, mode = self.saved[m.name]
+            if (m.show_viewport, m.show_render) != (view, render):
+                m.show_viewport, m.show_render = view, render
+                undone.append(f"modifier '{m.name}' shown as before")
+            if mode is not None and m.deform_mode != mode:
+                m.deform_mode = mode
+                undone.append(f"modifier '{m.name}' back to {mode.title()}")
+        return undone
 
 
 def world_affine(obj, depsgraph=None):

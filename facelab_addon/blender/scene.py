@@ -8,6 +8,8 @@ from __future__ import annotations
 import bpy
 import numpy as np
 
+from . import compat
+
 __all__ = ["new_mesh_object", "set_backplate"]
 
 
@@ -68,6 +70,5 @@ def add_studio_lights(scene, *, background=(0.05, 0.05, 0.06)):
         light.rotation_euler = rot
         scene.collection.objects.link(light)
     world = bpy.data.worlds.new("World")
-    world.use_nodes = True
-    world.node_tree.nodes["Background"].inputs["Color"].default_value = (*background, 1)
+    compat.node_tree(world).nodes["Background"].inputs["Color"].default_value = (*background, 1)
     scene.world = world

@@ -2,14 +2,19 @@
 
 from __future__ import annotations
 
+import re
+
 import bpy
 import numpy as np
 
-from ..names import CORRECTIVES_ACTION, PREFIX
+from ..names import CORRECTIVES_ACTION, LEGACY_KEY_PATTERNS, OWNED_KEYS_PROP, PREFIX
+from . import compat
 
 __all__ = [
     "unique_key_name",
     "add_corrective_key",
+    "owned_keys",
+    "own_key",
     "key_spike",
     "find_fcurve",
     "shape_key_sequence",
@@ -57,8 +62,51 @@ def add_corrective_key(obj, name: str, deltas_local) -> "bpy.types.ShapeKey":
     kb.relative_key = basis
     kb.data.foreach_set("co", (co + d.ravel()).astype(np.float32))
     kb.value = 0.0
+    own_key(kb)
     obj.data.update()
     return kb
+
+
+# --------------------------------------------------------------------------- ownership
+def _registry(key, create: bool):
+    """The names listed in ``key[OWNED_KEYS_PROP]`` (a list, pruned to existing keys), or None.
+
+    Created on first use; a datablock without one (a file from before the registry) first
+    adopts the keys whose names match :data:`facelab_addon.names.LEGACY_KEY_PATTERNS`."""
+    names = set(key.key_blocks.keys())
+    reg = key.get(OWNED_KEYS_PROP)
+    if reg is None:
+        if not create:
+            return [n for n in names if _legacy(n)]
+        reg = sorted(n for n in names if _legacy(n))
+    return [str(n) for n in reg if str(n) in names]
+
+
+def _legacy(name: str) -> bool:
+    return any(re.fullmatch(p, name) for p in LEGACY_KEY_PATTERNS)
+
+
+def own_key(key_block) -> None:
+    """Record ``key_block`` as created by FaceLab (:data:`facelab_addon.names.OWNED_KEYS_PROP`)."""
+    key = key_block.id_data
+    reg = _registry(key, create=True)
+    if key_block.name not in reg:
+        reg.append(key_block.name)
+    key[OWNED_KEYS_PROP] = reg
+
+
+def owned_keys(obj, prefix: str = "") -> list:
+    """Names of the shape keys of ``obj`` FaceLab created (recorded in the registry), starting with ``prefix``.
+
+    A key the artist made is never listed, whatever its name (an ``FL_Prop_MyFix`` sculpted by hand
+    stays the artist's). In a file from before the registry, keys named exactly as FaceLab named
+    them (``FL_Prop_00``, ``FL_Refine_0012``..., :data:`facelab_addon.names.LEGACY_KEY_PATTERNS`)
+    count as FaceLab's.
+    """
+    key = obj.data.shape_keys
+    if key is None:
+        return []
+    return [n for n in _registry(key, create=False) if n.startswith(prefix)]
 
 
 def key_spike(key_block, frame: int) -> None:
@@ -94,13 +142,11 @@ def find_fcurve(id_data, data_path: str):
 
 
 def _find_fcurve(anim_data, data_path):
-    """F-curve by data path via the Blender 5.0 channelbag API (layered actions)."""
+    """F-curve by data path in the channelbag of the assigned action slot (layered actions)."""
     action = anim_data.action
     slot = getattr(anim_data, "action_slot", None)
     try:
-        from bpy_extras import anim_utils
-
-        cb = anim_utils.action_get_channelbag_for_slot(action, slot)
+        cb = compat.action_channelbag(action, slot)
         if cb is not None:
             return cb.fcurves.find(data_path)
     except Exception:
@@ -177,11 +223,14 @@ def shape_key_sequence(obj, frames, *, skip_prefixes=(PREFIX,)):
 
 
 def remove_keys(obj, prefix: str) -> int:
-    """Remove the shape keys named ``prefix*`` and their F-curves (FaceLab's own output only)."""
+    """Remove FaceLab's own shape keys named ``prefix*`` (:func:`owned_keys`) and their F-curves.
+
+    Keys the artist made are kept, even when their name starts with ``prefix``.
+    """
     key = obj.data.shape_keys
     if key is None:
         return 0
-    names = [kb.name for kb in key.key_blocks if kb.name.startswith(prefix)]
+    names = owned_keys(obj, prefix)
     ad = key.animation_data
     for name in names:
         if ad is not None and ad.action is not None:
@@ -191,30 +240,22 @@ def remove_keys(obj, prefix: str) -> int:
             if fc is not None:
                 cb.fcurves.remove(fc)
         obj.shape_key_remove(key.key_blocks[name])
+    if names:
+        key = obj.data.shape_keys
+        if key is not None:
+            key[OWNED_KEYS_PROP] = _registry(key, create=True)
     return len(names)
 
 
 def _channelbag(anim_data, create: bool):
-    """The channelbag of the assigned action slot (Blender 4.4+), creating the slot if asked."""
-    from bpy_extras import anim_utils
-
-    action = anim_data.action
-    slot = anim_data.action_slot
-    if slot is None:
-        if not create:
-            return None
-        idd = anim_data.id_data
-        slot = action.slots.new(id_type=idd.id_type, name=idd.name)
-        anim_data.action_slot = slot
-    if create:
-        return anim_utils.action_ensure_channelbag_for_slot(action, slot)
-    return anim_utils.action_get_channelbag_for_slot(action, slot)
+    """The channelbag of the assigned action slot, creating the slot if asked."""
+    return compat.anim_data_channelbag(anim_data, create=create)
 
 
 def key_property_bulk(id_data, data_path: str, frames, values, action_name: str = CORRECTIVES_ACTION) -> None:
     """Key ``values`` (T,) of ``id_data.<data_path>`` on ``frames`` (T,) in one bulk insert.
 
-    Uses the Blender 5.0 channelbag API (``keyframe_points.add`` +
+    Uses the channelbag of the assigned action slot (``keyframe_points.add`` +
     ``foreach_set``) with linear interpolation. An existing action (the
     artist's animation) is kept; only this one F-curve is (re)written.
     """

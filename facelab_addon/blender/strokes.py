@@ -15,9 +15,8 @@ Sources, in order of preference
    ``matrix_local``, or the layer parent) maps them to the world, and the
    camera maps them to pixels. The drawing read is the one *shown* at the
    frame (``layer.get_frame_at(frame)``: the latest keyframe <= frame).
-2. The scene annotation (``scene.annotation``; Blender 5.0 renamed
-   ``scene.grease_pencil`` and moved legacy annotation data to
-   ``bpy.data.annotations`` / ``bpy.types.Annotation``), layers matched the
+2. The scene annotation (``compat.scene_annotation``: ``scene.annotation`` in
+   Blender 5.x, ``scene.grease_pencil`` in 4.5), layers matched the
    same way, frame = the latest annotation frame <= ``frame``. What its
    ``point.co`` means depends on the placement used when drawing in the 3D
    viewport (verified in Blender 5.0.1 by running ``gpencil.annotate`` and
@@ -31,8 +30,8 @@ Sources, in order of preference
      Outside camera view they are percent of the viewport region and cannot
      be related to the camera (draw in camera view!).
 
-   Blender 5.0.1 does not expose the stroke's space flag to Python (later
-   versions add ``AnnotationStroke.display_mode``, used when present). Without
+   Blender 4.5 and 5.0 do not expose the stroke's space flag to Python (5.3
+   has ``AnnotationStroke.display_mode``, used when present). Without
    it a stroke is taken as "View" percent space when all its ``z`` are exactly
    0, which a 3D stroke drawn in camera view only shows when the camera looks
    along world Z; for such cameras it is read as world points if those lie in
@@ -63,6 +62,7 @@ from mathutils import Matrix
 from ..core.capture.camera import Camera
 from ..core.errors import CameraError, SketchError
 from ..names import SKETCH_OBJECT
+from . import compat
 from .camera import evaluated_depsgraph
 
 __all__ = [
@@ -73,6 +73,7 @@ __all__ = [
     "find_sketch_object",
     "has_lip_sketch",
     "sketch_keyframes",
+    "require_sketch_keyed_on",
     "read_lip_strokes",
 ]
 
@@ -198,7 +199,7 @@ def _sketch_material():
         mat = bpy.data.materials.new(DEFAULT_SKETCH_NAME)
         bpy.data.materials.create_gpencil_data(mat)
         mat.grease_pencil.color = style["color"]
-        mat.grease_pencil.show_fill = style["show_fill"]
+        compat.set_gp_material_fill(mat.grease_pencil, style["show_fill"])
     return mat
 
 
@@ -247,7 +248,7 @@ def new_lip_sketch(scene, camera_obj=None, name: str = DEFAULT_SKETCH_NAME, dept
             "and press New Lip Sketch again."
         )
     if obj is None:
-        gp = bpy.data.grease_pencils.new(name)
+        gp = compat.grease_pencil_data().new(name)
         obj = bpy.data.objects.new(name, gp)
         if depth is None:
             clip = cam.data.clip_start if cam.type == "CAMERA" else 0.1
@@ -405,7 +406,7 @@ def has_lip_sketch(scene, gp_obj=None) -> bool:
         return True
     if any(o.type == "GREASEPENCIL" and _has_lip_layers(o.data) for o in scene.objects):
         return True
-    ann = getattr(scene, "annotation", None)
+    ann = compat.scene_annotation(scene)
     return ann is not None and any(_label(lay.info) for lay in ann.layers)
 
 
@@ -416,6 +417,54 @@ def sketch_keyframes(gp_obj) -> list:
     for layer in lips["upper"] + lips["lower"]:
         frames.update(int(fr.frame_number) for fr in layer.frames)
     return sorted(frames)
+
+
+def require_sketch_keyed_on(scene, frame: int, gp_obj=None) -> None:
+    """Refuse to refine ``frame`` when the lip sketch has no keyframe on it.
+
+    A drawing is shown on every frame until the next keyframe, so the strokes
+    read on a frame without a keyframe of its own were drawn for an earlier
+    frame, over another pose of the face. Both lip layers (of the Grease
+    Pencil sketch, else of the scene annotation) must be keyed on ``frame``.
+
+    Parameters
+    ----------
+    scene : bpy.types.Scene
+    frame : int
+    gp_obj : bpy.types.Object, optional
+        The sketch; default found as in :func:`read_lip_strokes`.
+
+    Raises
+    ------
+    SketchError
+        Naming the frame, the keyframe the strokes are held from, the sketched
+        frames and the fix. (No sketch, or nothing shown on the frame, is
+        left to :func:`read_lip_strokes`.)
+    """
+    frame = int(frame)
+    obj = find_sketch_object(scene, gp_obj)
+    if obj is not None:
+        layers, name_of, what = obj.data.layers, (lambda lay: lay.name), f"The lip sketch '{obj.name}'"
+    else:
+        ann = getattr(scene, "annotation", None)
+        if ann is None:
+            return
+        layers, name_of, what = ann.layers, (lambda lay: lay.info), f"The lip annotation '{ann.name}'"
+    lips = _lip_layers(layers, name_of)
+    keyed = {lab: sorted({int(fr.frame_number) for lay in lips[lab] for fr in lay.frames}) for lab in lips}
+    for lab, nice in (("upper", UPPER_LAYER), ("lower", LOWER_LAYER)):
+        if not lips[lab] or frame in keyed[lab]:
+            continue  # a missing layer is reported by read_lip_strokes
+        held = [f for f in keyed[lab] if f < frame]
+        if not held:
+            continue  # nothing shown on the frame: read_lip_strokes says there are no strokes
+        both = sorted(set(keyed["upper"]) & set(keyed["lower"]))
+        raise SketchError(
+            f"{what} has no '{nice}' keyframe on frame {frame}: the strokes shown there are held from frame "
+            f"{held[-1]}, drawn over another pose of the face. "
+            f"Go to frame {frame}, add a keyframe on the lip layers and draw both lips there, or refine a "
+            f"sketched frame ({', '.join(map(str, both[:12])) or 'none yet'})."
+        )
 
 
 def _read_gp_object(obj, camera: Camera, frame: int, depsgraph) -> dict:
@@ -438,8 +487,7 @@ def _read_gp_object(obj, camera: Camera, frame: int, depsgraph) -> dict:
         if not polys:
             raise SketchError(
                 f"The '{nice}' layer of '{obj.name}' has no strokes on frame {frame}; "
-                f"draw the {nice.lower()} contour on it in camera view on this frame "
-                "(or on an earlier keyframe)."
+                f"draw the {nice.lower()} contour on it in camera view on this frame (keyed on it)."
             )
         out[lab] = polys
     return out
@@ -462,7 +510,7 @@ def _view_percent_to_px(P, camera: Camera) -> np.ndarray:
 
 def _is_view_space(stroke, P, camera: Camera) -> bool:
     """Whether annotation points are camera-view percent coordinates (else world points)."""
-    mode = getattr(stroke, "display_mode", None)  # Blender > 5.0 only
+    mode = getattr(stroke, "display_mode", None)  # not in Blender 4.5 / 5.0; in 5.3
     if mode is not None:
         return mode != "3DSPACE"
     if not np.all(P[:, 2] == 0.0):
@@ -518,7 +566,7 @@ def _read_annotation(ann, camera: Camera, frame: int) -> dict:
         if not polys:
             raise SketchError(
                 f"The '{nice}' annotation layer has no strokes on frame {frame}; "
-                f"draw the {nice.lower()} contour on it in camera view on this frame (or an earlier one)."
+                f"draw the {nice.lower()} contour on it in camera view on this frame (keyed on it)."
             )
         out[lab] = polys
     return out
@@ -561,7 +609,7 @@ def read_lip_strokes(scene, camera: Camera, frame: int, gp_obj=None, depsgraph=N
         if depsgraph is None:
             depsgraph = evaluated_depsgraph(scene)
         return _read_gp_object(obj, camera, int(frame), depsgraph)
-    ann = getattr(scene, "annotation", None)
+    ann = compat.scene_annotation(scene)
     if ann is not None and any(_label(lay.info) for lay in ann.layers):
         return _read_annotation(ann, camera, int(frame))
     raise SketchError(f"No lip sketch found in scene '{scene.name}': {_HOWTO}.")

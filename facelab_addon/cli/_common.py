@@ -76,11 +76,23 @@ def argparse_suppress():
     return argparse.SUPPRESS
 
 
+#: Blender's frame limits (``MAXFRAME``): no scene frame lies outside them.
+MAX_FRAME = 1048574
+#: More frames than this in one ``--frames`` is refused (a typo such as 1-3000000, not a shot).
+MAX_FRAME_COUNT = 100_000
+
+
 def parse_frames(text: str | None, scene) -> list[int]:
-    """``'A-B'`` / ``'N'`` / ``'A,B,C'`` -> sorted frames; None -> the scene's range."""
+    """``'A-B'`` / ``'N'`` / ``'A,B,C'`` -> sorted frames; None -> the scene's range.
+
+    Ranges are checked arithmetically before any list is built: frames must be
+    0..``MAX_FRAME`` (the scene range of Blender and FaceLab's settings start
+    at 0), a range must not end before it starts, and at most
+    ``MAX_FRAME_COUNT`` frames are taken.
+    """
     if text is None or text == "":
         return list(range(scene.frame_start, scene.frame_end + 1))
-    frames = set()
+    spans = []
     for part in text.split(","):
         part = part.strip()
         m = re.fullmatch(r"(-?\d+)\s*(?:-|\.\.|:)\s*(-?\d+)", part)
@@ -89,19 +101,61 @@ def parse_frames(text: str | None, scene) -> list[int]:
             if b < a:
                 raise CliError(f"--frames {text!r}: the range {a}-{b} ends before it starts; write it as "
                                f"{b}-{a}.", EXIT_USAGE)
-            frames.update(range(a, b + 1))
         elif re.fullmatch(r"-?\d+", part):
-            frames.add(int(part))
+            a = b = int(part)
         else:
             raise CliError(f"--frames {text!r}: expected 'A-B', 'N' or a comma list such as '1-100,120'.", EXIT_USAGE)
-    return sorted(frames)
+        if a < 0:
+            raise CliError(f"--frames {text!r}: frame {a} is negative; Blender's scene range (and FaceLab's) starts "
+                           "at frame 0. Shift the animation to frame 0 or later (or re-export the cache starting "
+                           "there).", EXIT_USAGE)
+        if b > MAX_FRAME:
+            raise CliError(f"--frames {text!r}: frame {b} is past Blender's last frame {MAX_FRAME:,}; give the "
+                           "shot's frames.", EXIT_USAGE)
+        spans.append((a, b))
+    spans.sort()
+    merged = []
+    for a, b in spans:
+        if merged and a <= merged[-1][1] + 1:
+            merged[-1][1] = max(merged[-1][1], b)
+        else:
+            merged.append([a, b])
+    count = sum(b - a + 1 for a, b in merged)
+    if count > MAX_FRAME_COUNT:
+        raise CliError(f"--frames {text!r}: {count:,} frames, more than the {MAX_FRAME_COUNT:,} one run takes; "
+                       "check the range for a typo, or split the shot into several runs.", EXIT_USAGE)
+    return [f for a, b in merged for f in range(a, b + 1)]
 
 
 def contiguous(frames: list[int], what: str) -> tuple[int, int]:
-    """(first, last) of a gap-free frame list (the operators take a range)."""
+    """(first, last) of a gap-free, non-empty frame list (the operators take a range)."""
+    if not frames:
+        raise CliError(f"{what}: no frames to work on; give --frames as 'A-B' (or set the scene's frame range).",
+                       EXIT_USAGE)
     if frames != list(range(frames[0], frames[-1] + 1)):
         raise CliError(f"{what} works on one frame range; give --frames as 'A-B'.", EXIT_USAGE)
     return frames[0], frames[-1]
+
+
+def exit_code_for(e: BaseException) -> int:
+    """The documented exit code of a FaceLab error: 3 for an unreadable input file (cache, OBJ),
+    5 for an output that cannot be written, 1 for data FaceLab refuses; 70 for anything else (a bug)."""
+    from ..core.errors import CacheFileError, FaceLabError, ObjFileError, OutputError
+
+    if isinstance(e, CliError):
+        return e.code
+    if isinstance(e, OutputError):
+        return EXIT_OUTPUT
+    if isinstance(e, (CacheFileError, ObjFileError)):
+        return EXIT_INPUT
+    if isinstance(e, FaceLabError):
+        return EXIT_FAILED
+    return EXIT_INTERNAL
+
+
+def one_line(text) -> str:
+    """A message on one line (stderr's error line and the JSON ``error``)."""
+    return " ".join(str(text).split())
 
 
 class Session:
@@ -193,6 +247,12 @@ class Session:
         if mp.suffix.lower() == ".obj":
             obj = self.import_obj(mp, "Face")
         else:
+            from ..blender.caches import alembic_file_problem
+
+            why = alembic_file_problem(mp.resolve())  # Blender's importer aborts the process on a truncated file
+            if why is not None:
+                raise CliError(f"--mesh {mesh_path}: Blender cannot read this Alembic file: {why}. Re-export or "
+                               "re-copy it.", EXIT_INPUT)
             before = set(bpy.data.objects)
             try:
                 with quiet_stdout():
@@ -223,14 +283,22 @@ class Session:
         """A mesh object from an OBJ, vertex order and coordinates exactly as in the file."""
         from ..blender.scene import new_mesh_object
         from ..core.capture.obj import read_obj
+        from ..core.errors import FaceLabError
 
         try:
             V, _, cv, _, off, _, _ = read_obj(path)
-        except (OSError, ValueError, IndexError) as e:
-            raise CliError(f"{path}: cannot read it as an OBJ ({e}).", EXIT_INPUT) from None
+        except OSError as e:
+            raise CliError(f"{path}: cannot read it ({e.strerror or e}); check the path and its permissions.",
+                           EXIT_INPUT) from None
+        except ValueError as e:  # ObjFileError: names the line and the fix
+            raise CliError(str(e), EXIT_INPUT) from None
         if not len(V) or len(off) < 2:
-            raise CliError(f"{path}: the OBJ has no vertices or no faces.", EXIT_INPUT)
-        return new_mesh_object(name, V, poly_verts=cv, poly_offsets=off)
+            raise CliError(f"{path}: the OBJ has no vertices or no faces; give the face mesh exported as a "
+                           "Wavefront OBJ.", EXIT_INPUT)
+        try:
+            return new_mesh_object(name, V, poly_verts=cv, poly_offsets=off)
+        except FaceLabError as e:
+            raise CliError(f"{path}: {e}", EXIT_INPUT) from None
 
     def import_obj_vertices(self, path: Path):
         """(V,3) float64 vertex positions of an OBJ, in file order."""
@@ -238,8 +306,11 @@ class Session:
 
         try:
             V = read_obj_vertices(Path(path))
-        except (OSError, ValueError, IndexError) as e:
-            raise CliError(f"{path}: cannot read it as an OBJ ({e}).", EXIT_INPUT) from None
+        except OSError as e:
+            raise CliError(f"{path}: cannot read it ({e.strerror or e}); check the path and its permissions.",
+                           EXIT_INPUT) from None
+        except ValueError as e:  # ObjFileError: names the line and the fix
+            raise CliError(str(e), EXIT_INPUT) from None
         if not len(V):
             raise CliError(f"{path}: the OBJ has no vertices.", EXIT_INPUT)
         return V
@@ -253,6 +324,15 @@ class Session:
             pointcache.check_vertex_count(info, len(obj.data.vertices), name=f"'{obj.name}'")
         except FaceLabError as e:
             raise CliError(f"--cache {path}: {e}", EXIT_INPUT) from None
+        if info.start_frame is not None and round(info.start_frame) < 0:
+            raise CliError(f"--cache {path}: its first sample is on frame {info.start_frame:g}, before frame 0, where "
+                           "Blender's scene range starts; re-export the cache starting on frame 0 or later.",
+                           EXIT_INPUT)
+        last = round(info.start_frame or 1) + round((info.num_samples - 1) * (info.sample_rate or 1.0))
+        if last > MAX_FRAME:
+            raise CliError(f"--cache {path}: its samples run to frame {last:,}, past Blender's last frame "
+                           f"{MAX_FRAME:,}; check the header's start frame and sample rate, or re-export it.",
+                           EXIT_INPUT)
         md = obj.modifiers.new("Capture", "MESH_CACHE")
         md.cache_format = info.format
         md.filepath = str(path.resolve())
@@ -301,7 +381,7 @@ class Session:
             with quiet_stdout():
                 return fn(**kw)
         except RuntimeError as e:
-            raise CliError(clean_report(e), EXIT_FAILED) from None
+            raise CliError(*operator_failure(e)) from None
 
     # -- outputs ----------------------------------------------------------------------------------
     def check_out(self) -> None:
@@ -331,6 +411,30 @@ class Session:
 
 def first_line(e) -> str:
     return str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+
+
+def operator_failure(e: RuntimeError) -> tuple[str, int]:
+    """``(message, exit code)`` of a failed ``bpy.ops`` call.
+
+    An operator's error report is FaceLab refusing the data (1). A Python
+    exception that escaped the operator arrives as its traceback: a FaceLab
+    error keeps its documented code (``exit_code_for``: 3 input, 5 output,
+    1 data), anything else is a bug (70), whose traceback goes to stderr.
+    """
+    from ..core import errors
+
+    text = str(e)
+    if "Traceback (most recent call last)" not in text:
+        return clean_report(e), EXIT_FAILED
+    lines = [ln.strip() for ln in text.strip().splitlines() if ln.strip()]
+    last = next((ln for ln in reversed(lines) if re.match(r"^[\w.]+(Error|Exception|Interrupt|Exit)\b", ln)),
+                lines[-1])
+    name, _, msg = last.partition(":")
+    cls = getattr(errors, name.rsplit(".", 1)[-1], None)
+    if isinstance(cls, type) and issubclass(cls, errors.FaceLabError):
+        return one_line(msg), exit_code_for(cls(msg))
+    print(text, file=sys.stderr, flush=True)
+    return f"internal error in an operator: {one_line(last)} (a bug: the traceback is above)", EXIT_INTERNAL
 
 
 def clean_report(e) -> str:
@@ -370,54 +474,63 @@ def ensure_registered(bpy) -> str:
 
 
 def execute(args) -> int:
-    """Run the parsed subcommand: returns the exit code; prints/writes the JSON summary."""
+    """Run the parsed subcommand: returns the exit code; prints/writes the JSON summary.
+
+    Everything the run writes to stdout (Blender's own lines, operator reports) goes to stderr, so
+    stdout carries only the JSON. A failure ends in one ``error: ...`` line on stderr and its
+    documented exit code (``exit_code_for``); a bug adds its traceback.
+    """
     t0 = time.perf_counter()
     summary = {"command": args.command, "ok": False}
     code = EXIT_INTERNAL
-    try:
-        with quiet_stdout():
+    registered_here = False
+    with quiet_stdout():
+        try:
             try:
                 import bpy
             except ImportError as e:
-                raise CliError(f"Cannot import bpy ({e}); run with the project's Python (.venv with bpy==5.0.1) "
-                               "or inside Blender.", EXIT_BPY) from None
+                raise CliError(f"Cannot import bpy ({e}); run with the project's Python (a venv from "
+                               "scripts/env.sh, with bpy) or inside Blender.", EXIT_BPY) from None
             try:
                 reg = ensure_registered(bpy)
+                registered_here = not reg.startswith("already")
             except ImportError as e:  # Blender's Python without the extension's wheels
                 raise CliError(f"FaceLab cannot load: {e}. Install the FaceLab extension zip in this Blender (it "
                                "brings SciPy, libigl and cholespy), or use the project's Python (.venv).",
                                EXIT_BPY) from None
-        session = Session(args)
-        session.log(f"{args.command}: FaceLab {reg}")
-        session.check_out()
-        session.open_inputs()
-        result = args._module.run(args, session)
-        summary.update(result)
-        summary.update(ok=True, inputs=session.inputs)
-        code = EXIT_OK
-    except CliError as e:
-        code = e.code
-        summary.update(error=str(e))
-        log(f"error: {e}")
-    except Exception as e:  # noqa: BLE001  (a bug: report it, never a silent success)
-        from ..core.errors import FaceLabError
+            session = Session(args)
+            session.log(f"{args.command}: FaceLab {reg}")
+            session.check_out()
+            session.open_inputs()
+            result = args._module.run(args, session)
+            summary.update(result)
+            summary.update(ok=True, inputs=session.inputs)
+            code = EXIT_OK
+        except Exception as e:  # noqa: BLE001  (a bug: report it, never a silent success)
+            code = exit_code_for(e)
+            if code == EXIT_INTERNAL:
+                summary.update(error=one_line(f"internal error: {type(e).__name__}: {e}"))
+                traceback.print_exc()
+                log("internal error: please report it with the traceback above")
+            else:
+                summary.update(error=one_line(e))
+                log(f"error: {one_line(e)}")
+        except KeyboardInterrupt:
+            code = EXIT_INTERNAL
+            summary.update(error="interrupted (Ctrl+C); nothing was saved")
+            log("error: interrupted; nothing was saved")
+        _release_solvers()
+        if registered_here:  # a process exiting with FaceLab registered hangs in bpy 4.5's exit
+            from .. import unregister
 
-        if isinstance(e, FaceLabError):
-            code = EXIT_FAILED
-            summary.update(error=str(e))
-            log(f"error: {e}")
-        else:
-            summary.update(error=f"internal error: {type(e).__name__}: {e}")
-            traceback.print_exc()
-            log("internal error: please report it with the traceback above")
-    _release_solvers()
+            unregister()
     summary.update(exit_code=code, seconds=round(time.perf_counter() - t0, 3))
     text = json.dumps(summary, indent=2, default=_json_default)
     if getattr(args, "json_path", None):
         try:
             Path(args.json_path).write_text(text + "\n")
         except OSError as e:
-            log(f"error: --json {args.json_path}: cannot write it ({e})")
+            log(f"error: --json {args.json_path}: cannot write it ({e.strerror or e})")
             return code or EXIT_OUTPUT
     else:
         print(text, flush=True)

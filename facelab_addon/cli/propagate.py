@@ -96,6 +96,14 @@ def run(args, session) -> dict:
     specs = _corrected_specs(args.corrected)
     if args.bake and Path(args.bake).suffix.lower() not in (".pc2", ".mdd", ".abc"):
         raise CliError(f"--bake {args.bake}: give a .pc2, .mdd or .abc file.", EXIT_USAGE)
+    if args.bake:
+        from ..blender.bakes import bake_destination
+        from ..core.errors import OutputError
+
+        try:  # before any work: a read-only folder or a parent that is a file
+            bake_destination(Path(args.bake).resolve())
+        except OutputError as e:
+            raise CliError(f"--bake {args.bake}: {e}", EXIT_OUTPUT) from None
     if args.out and (obj.modifiers and any(m.type == "MESH_SEQUENCE_CACHE" for m in obj.modifiers)):
         session.save(args.out)  # an Alembic capture is baked to a PC2 beside the .blend: save it first
     added = add_corrected_frames(session, obj, specs)

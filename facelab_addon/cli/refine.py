@@ -11,7 +11,7 @@ Needs a .blend with the face, the scene camera and the sketch.
 
 from __future__ import annotations
 
-from ._common import EXIT_FAILED, CliError, parse_frames
+from ._common import CliError, exit_code_for, parse_frames
 
 HELP = "refine the lips on sketched frames (one corrective shape key per frame)"
 INPUTS = ("blend",)
@@ -61,7 +61,7 @@ def run(args, session) -> dict:
         try:
             r = refine(scene, obj, f, settings, sketch=scene.facelab.sketch)
         except FaceLabError as e:
-            raise CliError(f"frame {f}: {e}", EXIT_FAILED) from None
+            raise CliError(f"frame {f}: {e}", exit_code_for(e)) from None
         done.append({"frame": f, "shape_key": r.shape_key, "seconds": round(time.perf_counter() - t, 3)})
         session.log(f"refine {i + 1}/{len(frames)}: frame {f} -> {r.shape_key} ({time.perf_counter() - t:.2f} s)")
     session.log(f"Refined {len(frames)} frames in {time.perf_counter() - t0:.1f} s")

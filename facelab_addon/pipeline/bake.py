@@ -71,7 +71,7 @@ def bake(obj, frames, path, settings: BakeSettings | None = None, progress=None)
     frames : (T,) int array_like
         Scene frames (PC2: evenly spaced; MDD: increasing; Alembic: the whole range they span).
     path : str or os.PathLike
-        Destination, an absolute path.
+        Destination, an absolute path (or ``//``-relative to the saved .blend).
     settings : BakeSettings, optional
     progress : callable(label, done, total), optional
 
@@ -93,14 +93,17 @@ def bake_steps(obj, frames, path, settings: BakeSettings | None = None):
         No destination, the file exists and ``settings.overwrite`` is off, an
         unknown format, frames unfit for the format; ``MeshError`` when ``obj``
         is not a mesh object.
+    OutputError
+        A relative path, or a destination that cannot be written (a read-only
+        folder, a parent that is a file): :func:`facelab_addon.blender.bakes.bake_destination`.
     """
     settings = settings or BakeSettings()
     t0 = time.perf_counter()
     if not path:
         raise FaceLabError("Choose a file to bake to.")
-    path = Path(path)
     if settings.format not in FORMATS:
         raise FaceLabError(f"Unknown bake format {settings.format!r}; choose one of {', '.join(FORMATS)}.")
+    path = bakes.bake_destination(path)
     if path.exists() and not settings.overwrite:
         raise FaceLabError(f"{path} exists; enable Overwrite or choose another file.")
     frames = np.asarray(frames)

@@ -24,6 +24,7 @@ import numpy as np
 
 from ..blender import cache_integrate, caches
 from ..blender.mesh import mesh_triangles, require_mesh
+from ..blender.objects import ModifierState, require_editable
 from ..blender.shapekeys import (
     add_corrective_key,
     key_property_bulk,
@@ -31,7 +32,7 @@ from ..blender.shapekeys import (
     rest_vertices,
 )
 from ..core.capture.integrate import integrate_matrices, integrate_offsets_to_key
-from ..core.errors import FaceLabError, MeshError
+from ..core.errors import FaceLabError, FrameError, MeshError
 from ..core.lips.propagate import LipRegressor
 from ..core.lips.suggest import suggest_frames
 from ..names import (
@@ -42,6 +43,7 @@ from ..names import (
     TRAIN_MARKER,
 )
 from .correctives import write_corrective_keys
+from .frames import check_frames
 from .regions import region_faces
 from .steps import run_steps
 
@@ -196,17 +198,28 @@ def add_corrected_frame(scene, obj, frame: int, vertices) -> CorrectedFrame:
     MeshError
         ``vertices`` does not have the mesh's vertex count.
     """
+    require_mesh(obj)
+    require_editable(obj, "Mark Corrected Frame")
     V = np.asarray(vertices, dtype=np.float64)
     n = len(obj.data.vertices)
     if V.shape != (n, 3):
         raise MeshError(f"The corrected face has {len(V)} vertices, '{obj.name}' has {n}; export it with the "
                         "same topology.")
-    if caches.sequence_source(obj) in _CACHE_SOURCES:
-        cache_integrate.cache_to_shape_key_ready(obj)
-    captured = caches.read_captured_frames(obj, [frame])[0].astype(np.float64)
-    d = V - captured
-    if caches.sequence_source(obj) in _CACHE_SOURCES:
-        d = cache_integrate.correction_to_key_offsets(obj, captured, d)
+    if not np.all(np.isfinite(V)):
+        raise MeshError(f"The corrected face for frame {frame} has NaN or infinite coordinates; fix the file and "
+                        "export it again.")
+    state = ModifierState(obj)
+    try:
+        if caches.sequence_source(obj) in _CACHE_SOURCES:
+            cache_integrate.cache_to_shape_key_ready(obj)
+        captured = caches.read_captured_frames(obj, [frame])[0].astype(np.float64)
+        _require_finite(captured[None], [frame], "captured")
+        d = V - captured
+        if caches.sequence_source(obj) in _CACHE_SOURCES:
+            d = cache_integrate.correction_to_key_offsets(obj, captured, d)
+    except BaseException:
+        state.restore()
+        raise
     kb = add_corrective_key(obj, f"{CORRECTED_PREFIX}{frame:04d}", d)
     key_spike(kb, frame)
     record_training_frame(scene, obj, frame, kb.name, "sculpt")
@@ -245,8 +258,9 @@ def propagate_steps(scene, obj, frames, settings: PropagateSettings | None = Non
     chunks, (over a cache: map every frame's correction onto the cache
     surface) and write. Nothing in the scene changes before the last step,
     except that a Mesh Cache is switched to Integrate (or an Alembic baked to
-    a PC2) first, so closing the generator between steps (a cancel) leaves the
-    corrective keys as they were.
+    a PC2) first; closing the generator between steps (a cancel) or an error
+    in a step puts the modifiers back as they were (and deletes such a PC2)
+    and leaves the corrective keys as they were.
 
     Parameters
     ----------
@@ -262,16 +276,18 @@ def propagate_steps(scene, obj, frames, settings: PropagateSettings | None = Non
     RegionError
         Region groups missing or unusable.
     FaceLabError
-        No frames, no training frame, or training frames outside ``frames``.
+        No frames, frames not one increasing range, no training frame, or
+        training frames outside ``frames``; ``NotEditableError`` when ``obj``
+        is linked from a library.
     MeshError
-        ``obj`` is not a mesh with faces.
+        ``obj`` is not a mesh with faces; (in a step) a captured or corrected
+        frame with NaN coordinates, named by its scene frame.
     """
     settings = settings or PropagateSettings()
     t0 = time.perf_counter()
-    frames = np.asarray(frames)
-    if not len(frames):
-        raise FaceLabError("No frames to propagate to; give a frame range such as 1-250.")
+    frames = check_frames(frames, "Propagate", consecutive=True)
     require_mesh(obj)
+    require_editable(obj, "Propagate")
     tris = mesh_triangles(obj.data)
     mouth_faces, lip_faces = region_faces(obj, tris)
     train = training_frames(obj)
@@ -288,6 +304,28 @@ def _chunks(n, size):
 
 
 def _propagate_steps(scene, obj, frames, settings, t0, tris, mouth_faces, lip_faces, train):
+    state = ModifierState(obj)
+    done = False
+    try:
+        result = yield from _propagate_work(scene, obj, frames, settings, t0, tris, mouth_faces, lip_faces, train)
+        done = True
+        return result
+    finally:
+        if not done:  # cancelled (the generator closed) or failed: put the modifiers back
+            state.restore()
+
+
+def _require_finite(X, frames, what):
+    """Raise naming the scene frames (not list indices) whose vertices of ``X`` (T,V,3) are not finite."""
+    bad = ~np.isfinite(X).reshape(len(X), -1).all(axis=1)
+    if np.any(bad):
+        named = [int(f) for f in np.asarray(frames)[bad][:5]]
+        raise MeshError(f"The {what} face has NaN or infinite coordinates on frame{'s' if len(named) > 1 else ''} "
+                        f"{', '.join(map(str, named))}; fix or re-import those frames (or leave them out of the "
+                        "range).")
+
+
+def _propagate_work(scene, obj, frames, settings, t0, tris, mouth_faces, lip_faces, train):
     T = len(frames)
     # progress units: T frames read + T predicted (+ T mapped onto a cache) + 2 (fit, write)
     on_cache = caches.sequence_source(obj) in _CACHE_SOURCES
@@ -301,16 +339,24 @@ def _propagate_steps(scene, obj, frames, settings, t0, tris, mouth_faces, lip_fa
     for i, j in _chunks(T, chunk):
         yield "reading the capture", i, total
         captured[i:j] = caches.read_captured_frames(obj, frames[i:j])  # FaceLab keys muted
+        _require_finite(captured[i:j], frames[i:j], "captured")
     yield "fitting", T, total
     corrected = caches.evaluate_frames(obj, train, mute_shape_keys_prefix=(PROPAGATE_PREFIX,))
+    _require_finite(corrected, train, "corrected (training)")
     reg = LipRegressor(rest, tris, mouth_faces, lip_faces)
-    reg.fit(corrected)
+    try:
+        reg.fit(corrected)
+    except FrameError as e:  # the core names positions in the training list; the artist reads scene frames
+        raise e.for_frames(list(train)) from None
 
     lipv = np.unique(tris[lip_faces])
     before = captured[:, lipv].astype(np.float64)
     for i, j in _chunks(T, max(chunk, 16)):
         yield "predicting", T + 1 + i, total
-        reg.predict(captured[i:j], out=captured[i:j])  # in place: 1000 frames stay within memory
+        try:
+            reg.predict(captured[i:j], out=captured[i:j])  # in place: 1000 frames stay within memory
+        except FrameError as e:  # positions within this chunk -> scene frames
+            raise e.for_frames([int(f) for f in frames[i:j]]) from None
     pred = captured
     corr = (pred[:, lipv] - before).astype(np.float64)  # (T, n_lip, 3) correction, object local
     corr[np.isin(frames, train)] = 0.0  # training frames keep the artist's own correction

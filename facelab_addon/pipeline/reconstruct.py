@@ -31,11 +31,12 @@ from ..blender.bundles import (
     vertex_group_weights,
 )
 from ..blender.mesh import mesh_triangles, require_mesh
-from ..blender.objects import points_to_local, triangle_uvs
+from ..blender.objects import points_to_local, require_editable, triangle_uvs
 from ..blender.rig import add_product_driver, dataset_shapes, template_shapes
 from ..blender.shapekeys import add_corrective_key, rest_vertices
 from ..core.errors import FaceLabError
 from .correctives import write_corrective_keys
+from .frames import frame_range
 
 __all__ = [
     "ReconstructSettings",
@@ -55,8 +56,8 @@ __all__ = [
 class ReconstructSettings:
     """Options of Reconstruct from Bundles (defaults: FaceLab > Reconstruct's).
 
-    frame_start, frame_end : int
-        The range (-1: the scene's start / end).
+    frame_start, frame_end : int or None
+        The range (None: the scene's start / end; negative frames are honoured).
     bind_frame : int
         Frame where the face is neutral; the bundles are bound to the surface
         there (-1: the first frame of the range).
@@ -71,8 +72,8 @@ class ReconstructSettings:
         ``jaw_group`` (empty: the bone's name).
     """
 
-    frame_start: int = -1
-    frame_end: int = -1
+    frame_start: int | None = None
+    frame_end: int | None = None
     bind_frame: int = -1
     smooth: int = 1
     bundle_source: str = "SELECTED"
@@ -104,10 +105,9 @@ class ReconstructResult:
 
 
 def _frame_range(scene, settings):
-    """``(first frame, (T,) frames)`` of the settings' range (-1: the scene's start / end)."""
-    f0 = scene.frame_start if settings.frame_start < 0 else settings.frame_start
-    f1 = scene.frame_end if settings.frame_end < 0 else settings.frame_end
-    return f0, np.arange(f0, f1 + 1)
+    """``(first frame, (T,) frames)`` of the settings' range (None: the scene's start / end)."""
+    frames = frame_range(scene, settings.frame_start, settings.frame_end, "Reconstruct")
+    return int(frames[0]), frames
 
 
 def _jaw_setup(scene, obj, settings, neutral, shapes, frames, bind):
@@ -170,6 +170,7 @@ def reconstruct_from_bundles(scene, obj, settings: ReconstructSettings, progress
     bind = f0 if settings.bind_frame < 0 else settings.bind_frame
     smooth = settings.smooth
     require_mesh(obj)
+    require_editable(obj, "Reconstruct")
     tris = mesh_triangles(obj.data)
     neutral = rest_vertices(obj)
     names, shapes = dataset_shapes(obj)
@@ -272,6 +273,7 @@ def generate_correctives(scene, obj, settings: CorrectiveSettings) -> Corrective
             "Pick the template rig (a mesh with the rig's shape keys, same vertex order as the face) in "
             "Reconstruct > Rig; the face's own shape keys are the actor's dataset."
         )
+    require_editable(rig_obj, "Generate Correctives")
     combos = parse_combinations(settings.combinations)
     if not combos:
         raise FaceLabError("No combinations: type them as 'shapeA+shapeB, shapeC+shapeD' in Combinations.")

@@ -24,8 +24,9 @@ from ..blender.mesh import (
     require_mesh,
     world_to_local_deltas,
 )
+from ..blender.objects import ModifierState, require_editable
 from ..blender.shapekeys import add_corrective_key, key_spike
-from ..blender.strokes import read_lip_strokes
+from ..blender.strokes import read_lip_strokes, require_sketch_keyed_on
 from ..core.errors import CameraError
 from ..core.lips.sketch import refine_lips
 from ..names import FIXED_GROUP, REFINE_PREFIX
@@ -126,18 +127,24 @@ def refine(scene, obj, frame: int, settings: RefineSettings | None = None, *, ca
     Raises
     ------
     SketchError, CameraError, MeshError
-        No or incomplete sketch on the frame, strokes outside the frame or
+        No or incomplete sketch on the frame, no sketch keyframe on the frame
+        (strokes held from an earlier one), strokes outside the frame or
         behind the camera, no camera, not a mesh with faces. Nothing is
         changed then.
+    CacheFileError
+        The face's cache file is missing or broken.
     """
     settings = settings or RefineSettings()
     t0 = time.perf_counter()
+    require_sketch_keyed_on(scene, frame, sketch)  # never a drawing held from an earlier frame
     if scene.frame_current != frame:
         scene.frame_set(frame)
     cam_obj = camera_obj if camera_obj is not None else scene.camera
     if cam_obj is None:
         raise CameraError(f"Scene '{scene.name}' has no camera; set the camera the sketch was drawn in.")
     obj = require_mesh(obj)
+    require_editable(obj, "Refine Lips")
+    caches.check_capture_files(obj)  # never the static mesh in place of a broken cache
     dg = evaluated_depsgraph(scene)
     cam = camera_from_blender(scene, cam_obj, dg)
     strokes = read_lip_strokes(scene, cam, frame, gp_obj=sketch, depsgraph=dg)
@@ -148,13 +155,18 @@ def refine(scene, obj, frame: int, settings: RefineSettings | None = None, *, ca
                        **settings.solver_weights())
     note = ""
     on_cache = caches.sequence_source(obj) in _CACHE_SOURCES
-    if on_cache:
-        note = cache_integrate.cache_to_shape_key_ready(obj)  # so the corrective key shows on the cache
-    d_world = X - V
-    d_local = world_to_local_deltas(obj, d_world)
-    if on_cache:
-        captured = caches.read_captured_frames(obj, [frame])[0]
-        d_local = cache_integrate.correction_to_key_offsets(obj, captured, d_local)
+    state = ModifierState(obj)
+    try:
+        if on_cache:
+            note = cache_integrate.cache_to_shape_key_ready(obj)  # so the corrective key shows on the cache
+        d_world = X - V
+        d_local = world_to_local_deltas(obj, d_world)
+        if on_cache:
+            captured = caches.read_captured_frames(obj, [frame])[0]
+            d_local = cache_integrate.correction_to_key_offsets(obj, captured, d_local)
+    except BaseException:
+        state.restore()  # a failure leaves the cache modifiers as they were
+        raise
     kb = add_corrective_key(obj, f"{REFINE_PREFIX}{frame:04d}", d_local)
     key_spike(kb, frame)
     record_training_frame(scene, obj, frame, kb.name, "sketch")

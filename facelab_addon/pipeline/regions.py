@@ -20,6 +20,7 @@ from ..blender.mesh import (
     set_vertex_group,
     vertex_group_mask,
 )
+from ..blender.objects import require_editable
 from ..blender.shapekeys import rest_vertices
 from ..core.errors import RegionError
 from ..core.lips import regions as core_regions
@@ -114,6 +115,7 @@ def auto_regions(obj, settings: RegionSettings | None = None) -> RegionsResult:
         raise RegionError(f"{', '.join(existing)} already exist on '{obj.name}'; enable 'Replace Existing "
                           "Groups' to overwrite them, or edit them by weight painting.")
     require_mesh(obj)
+    require_editable(obj, "Auto Regions")
     tris = mesh_triangles(obj.data)
     V = rest_vertices(obj)
     loop = None

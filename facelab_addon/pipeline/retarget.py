@@ -23,7 +23,7 @@ from ..blender import tracking
 from ..blender.actions import prepare_action
 from ..blender.bindings import read_bindings
 from ..blender.mesh import mesh_triangles, require_mesh
-from ..blender.objects import same_polygons
+from ..blender.objects import require_editable, same_polygons
 from ..blender.rig import rig_animation
 from ..blender.shapekeys import (
     add_corrective_key,
@@ -33,7 +33,8 @@ from ..blender.shapekeys import (
 )
 from ..core.errors import FaceLabError
 from .correctives import write_corrective_keys
-from .solve import face_axes, frame_range
+from .frames import frame_range
+from .solve import face_axes
 
 __all__ = ["RetargetSettings", "RetargetResult", "retarget"]
 
@@ -42,8 +43,8 @@ __all__ = ["RetargetSettings", "RetargetResult", "retarget"]
 class RetargetSettings:
     """Options of Retarget (defaults: FaceLab > Retarget's).
 
-    frame_start, frame_end : int
-        The range (-1: the scene's start / end).
+    frame_start, frame_end : int or None
+        The range (None: the scene's start / end; negative frames are honoured).
     correspondence : {"AUTO", "TOPOLOGY", "MARKERS"}
         Same topology (vertex i is vertex i), empties on the creature named
         like the actor's bound tracks, or the first when the meshes share
@@ -64,8 +65,8 @@ class RetargetSettings:
         a readable calibration (views without camera or clip are skipped).
     """
 
-    frame_start: int = -1
-    frame_end: int = -1
+    frame_start: int | None = None
+    frame_end: int | None = None
     correspondence: str = "AUTO"
     creature_markers: object = None
     lip_sync: bool = True
@@ -164,7 +165,8 @@ def retarget(scene, actor, creature, settings: RetargetSettings, progress=None) 
     require_mesh(creature)
     if creature == actor:
         raise FaceLabError("The creature is the face itself; pick another mesh to retarget to.")
-    frames = frame_range(scene, settings.frame_start, settings.frame_end)
+    require_editable(creature, "Retarget")
+    frames = frame_range(scene, settings.frame_start, settings.frame_end, "Retarget")
     names, a_rest, a_deltas, W, C = rig_animation(actor, frames, fl.SOLVE_PREFIX)
     ta = mesh_triangles(actor.data)
     c_rest = rest_vertices(creature)

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .. import names as fl
-from ..blender import tracking
+from ..blender import compat, tracking
 from ..blender.actions import prepare_action
 from ..blender.bindings import read_bindings, write_bindings
 from ..blender.bundles import bundle_labels, collection_bundles, read_bundles
@@ -38,11 +38,12 @@ from ..blender.mesh import (
     require_mesh,
     vertex_group_mask,
 )
-from ..blender.objects import world_affine, world_matrices
+from ..blender.objects import require_editable, world_affine, world_matrices
 from ..blender.rig import rig_shapes
 from ..blender.shapekeys import key_values_bulk, remove_keys
 from ..core.errors import BundleError, CameraError, FaceLabError
 from .correctives import write_corrective_keys
+from .frames import frame_range  # noqa: F401  (re-exported: the CLI's and scripts' range)
 
 __all__ = [
     "DISAGREE_PX",
@@ -103,7 +104,8 @@ class BindResult:
 class SolveSettings:
     """Options of Solve Performance (defaults: FaceLab > Solve's).
 
-    ``frame_start`` / ``frame_end`` of -1 mean the scene's; ``annotation_view``
+    ``frame_start`` / ``frame_end`` of None mean the scene's (negative frames are
+    honoured); ``annotation_view``
     is the index of the view the scene annotation was drawn through (-1: the
     annotation is ignored); the other fields are those of :class:`BindSettings`
     and the solver's options (weight bounds, term weights, sliding contours, the
@@ -112,8 +114,8 @@ class SolveSettings:
     """
 
     views: list = field(default_factory=list)
-    frame_start: int = -1
-    frame_end: int = -1
+    frame_start: int | None = None
+    frame_end: int | None = None
     bundles: str = "NONE"
     bundle_collection: object = None
     fixed_group: str = fl.FIXED_GROUP
@@ -150,21 +152,6 @@ class SolveResult:
 
 
 # --------------------------------------------------------------------------- shared helpers
-def frame_range(scene, frame_start: int = -1, frame_end: int = -1) -> np.ndarray:
-    """(T,) frames ``frame_start..frame_end`` (-1: the scene's start / end).
-
-    Raises
-    ------
-    FaceLabError
-        When the range is empty.
-    """
-    f0 = scene.frame_start if frame_start < 0 else frame_start
-    f1 = scene.frame_end if frame_end < 0 else frame_end
-    if f1 < f0:
-        raise FaceLabError(f"The solve range {f0}-{f1} is empty; set End >= Start (FaceLab > Solve).")
-    return np.arange(f0, f1 + 1)
-
-
 def require_views(views) -> list:
     """``views`` if every one has a camera and a clip; raises ``CameraError`` naming the fix otherwise."""
     views = list(views)
@@ -245,6 +232,7 @@ def bind_tracks(scene, obj, frame: int, settings: BindSettings) -> BindResult:
 
     t0 = time.perf_counter()
     require_mesh(obj)
+    require_editable(obj, "Bind Tracks")
     views = require_views(settings.views)
     keep = scene.frame_current
     scene.frame_set(int(frame))
@@ -322,7 +310,7 @@ class _SolveInputs:
 
 def _has_curve_sources(scene, settings, views) -> bool:
     return any(v.mask is not None or v.sketch is not None for v in views) or (
-        0 <= settings.annotation_view < len(views) and scene.annotation is not None)
+        0 <= settings.annotation_view < len(views) and compat.scene_annotation(scene) is not None)
 
 
 def _gather(scene, obj, settings: SolveSettings) -> _SolveInputs:
@@ -330,7 +318,8 @@ def _gather(scene, obj, settings: SolveSettings) -> _SolveInputs:
     from ..core.solve.contour_loops import contour_loops
 
     require_mesh(obj)
-    frames = frame_range(scene, settings.frame_start, settings.frame_end)
+    require_editable(obj, "Solve")
+    frames = frame_range(scene, settings.frame_start, settings.frame_end, "Solve")
     views = require_views(settings.views)
     notes = []
     names, neutral_l, deltas_l = rig_shapes(obj)

@@ -32,6 +32,12 @@ def progress_callback(context, T, label="FaceLab"):
     return update
 
 
+def operator_range(op) -> tuple:
+    """``(start, end)`` of an operator's ``frame_start`` / ``frame_end``: the values given (negative
+    frames included), None for one not given (the pipeline then takes the scene's)."""
+    return tuple(getattr(op, p) if op.properties.is_property_set(p) else None for p in ("frame_start", "frame_end"))
+
+
 def face_object(context):
     """The face to correct: FaceLab > Setup > Face, else the active mesh object."""
     s = context.scene.facelab

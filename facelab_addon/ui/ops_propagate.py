@@ -9,14 +9,15 @@ pipeline's generator of steps.
 
 import sys
 import time
+import traceback
 
 import bpy
-import numpy as np
 from bpy.props import BoolProperty, EnumProperty, IntProperty, StringProperty
 
 from ..core.errors import FaceLabError
 from ..names import LIPS_GROUP, MOUTH_GROUP
 from ..pipeline import bake as bake_pipeline
+from ..pipeline.frames import frame_range
 from ..pipeline.propagate import (
     PropagateSettings,
     propagate,
@@ -26,7 +27,7 @@ from ..pipeline.propagate import (
 )
 from ..pipeline.regions import REGION_DEFAULTS, RegionSettings, auto_regions
 from ..pipeline.steps import StepJob, run_steps
-from .ops import face_object, poll_face, progress_callback
+from .ops import face_object, operator_range, poll_face, progress_callback
 
 
 class FACELAB_OT_auto_regions(bpy.types.Operator):
@@ -189,9 +190,16 @@ class _ModalJob:
             running = True
             while running and time.perf_counter() < t_end:
                 running = self._job.step()
-        except FaceLabError as e:
+        except FaceLabError as e:  # the job's generator has put back what it changed
             self._finish(context)
             self.report({"ERROR"}, str(e))
+            return {"CANCELLED"}
+        except Exception as e:  # a bug: still leave the scene as it was and say so
+            self._job.cancel()
+            self._finish(context)
+            traceback.print_exc()
+            self.report({"ERROR"}, f"FaceLab failed while {self._job.stage} ({type(e).__name__}: {e}); what it had "
+                                   "changed was put back. Please report this with the console output.")
             return {"CANCELLED"}
         context.window_manager.progress_update(int(1000 * self._job.factor))
         for area in context.screen.areas if context.screen else ():
@@ -229,8 +237,9 @@ class FACELAB_OT_propagate(_ModalJob, bpy.types.Operator):
     bl_label = "Propagate"
     bl_options = {"REGISTER", "UNDO"}
 
-    frame_start: IntProperty(name="Start", default=-1, description="First frame (-1: the scene's start)")
-    frame_end: IntProperty(name="End", default=-1, description="Last frame (-1: the scene's end)")
+    frame_start: IntProperty(name="Start", default=1, description="First frame (not set: the scene's start; "
+                                                                  "negative frames are allowed)")
+    frame_end: IntProperty(name="End", default=250, description="Last frame (not set: the scene's end)")
     suggestions: IntProperty(name="Suggestions", default=3, min=0, max=20,
                              description="How many frames to suggest correcting next")
 
@@ -247,10 +256,7 @@ class FACELAB_OT_propagate(_ModalJob, bpy.types.Operator):
         return True
 
     def _frames(self, context):
-        scene = context.scene
-        f0 = scene.frame_start if self.frame_start < 0 else self.frame_start
-        f1 = scene.frame_end if self.frame_end < 0 else self.frame_end
-        return np.arange(f0, f1 + 1)
+        return frame_range(context.scene, *operator_range(self), "Propagate")
 
     def _report_done(self, r, seconds):
         self.report(
@@ -265,7 +271,8 @@ class FACELAB_OT_propagate(_ModalJob, bpy.types.Operator):
         """Synchronous: scripts, ``blender -b``, the CLI (timers and modal handlers never run there)."""
         t0 = time.perf_counter()
         try:
-            r = propagate(context.scene, face_object(context), self._frames(context),
+            frames = self._frames(context)
+            r = propagate(context.scene, face_object(context), frames,
                           PropagateSettings(suggestions=self.suggestions),
                           progress=stage_progress(context, "FaceLab Propagate"))
         except FaceLabError as e:
@@ -281,8 +288,8 @@ class FACELAB_OT_propagate(_ModalJob, bpy.types.Operator):
         if bpy.app.background or context.window is None:
             return self.execute(context)
         self._t0 = time.perf_counter()
-        frames = self._frames(context)
         try:
+            frames = self._frames(context)
             steps = propagate_steps(context.scene, face_object(context), frames,
                                     PropagateSettings(suggestions=self.suggestions))
         except FaceLabError as e:
@@ -292,7 +299,7 @@ class FACELAB_OT_propagate(_ModalJob, bpy.types.Operator):
 
     def _job_cancelled(self):
         self.report({"WARNING"}, f"Propagate cancelled while {self._job.stage} ({self._job.done:,}/"
-                                 f"{self._job.total:,}); no corrective key was changed")
+                                 f"{self._job.total:,}); no corrective key or modifier was changed")
 
     def _job_done(self, context):
         self._report_done(self._job.result, time.perf_counter() - self._t0)
@@ -326,11 +333,12 @@ class FACELAB_OT_bake(_ModalJob, bpy.types.Operator):
 
     def execute(self, context):
         scene = context.scene
-        path = bpy.path.abspath(self.filepath) if self.filepath else ""
-        frames = np.arange(scene.frame_start, scene.frame_end + 1)
+        path = bpy.path.abspath(self.filepath) if self.filepath.startswith("//") and bpy.data.filepath \
+            else self.filepath  # an unsaved .blend keeps '//', which the bake refuses with its reason
         settings = bake_pipeline.BakeSettings(format=self.format, overwrite=self.overwrite)
         self._t0 = time.perf_counter()
         try:
+            frames = frame_range(scene, None, None, "Bake")
             steps = bake_pipeline.bake_steps(face_object(context), frames, path, settings)
             if self.format != "ABC" and not bpy.app.background and context.window is not None:
                 return self._start_job(context, steps, f"Bake {self.format}")  # after the file browser

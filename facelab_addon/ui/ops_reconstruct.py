@@ -7,13 +7,14 @@ from bpy.props import BoolProperty, IntProperty, StringProperty
 
 from ..core.errors import FaceLabError
 from ..names import BUNDLES_COLLECTION, RECONSTRUCT_PREFIX
+from ..pipeline.frames import frame_range
 from ..pipeline.reconstruct import (
     bundles_from_clip,
     generate_correctives,
     reconstruct_from_bundles,
 )
 from . import props_reconstruct
-from .ops import face_object, poll_face, progress_callback
+from .ops import face_object, operator_range, poll_face, progress_callback
 from .props_reconstruct import corrective_settings, reconstruct_settings
 
 
@@ -24,8 +25,9 @@ class FACELAB_OT_reconstruct_from_bundles(bpy.types.Operator):
     bl_label = "Reconstruct from Bundles"
     bl_options = {"REGISTER", "UNDO"}
 
-    frame_start: IntProperty(name="Start", default=-1, description="First frame (-1: the scene's start)")
-    frame_end: IntProperty(name="End", default=-1, description="Last frame (-1: the scene's end)")
+    frame_start: IntProperty(name="Start", default=1, description="First frame (not set: the scene's start; "
+                                                                  "negative frames are allowed)")
+    frame_end: IntProperty(name="End", default=250, description="Last frame (not set: the scene's end)")
     bind_frame: IntProperty(name="Bind Frame", default=-2,
                             description="Frame where the face is neutral (-1: the first frame; -2: the panel's "
                                         "setting)")
@@ -39,11 +41,15 @@ class FACELAB_OT_reconstruct_from_bundles(bpy.types.Operator):
 
     def execute(self, context):
         scene = context.scene
-        settings = reconstruct_settings(scene, context.selected_objects, frame_start=self.frame_start,
-                                        frame_end=self.frame_end, bind_frame=self.bind_frame, smooth=self.smooth)
-        f0 = scene.frame_start if self.frame_start < 0 else self.frame_start
-        f1 = scene.frame_end if self.frame_end < 0 else self.frame_end
-        prog = progress_callback(context, max(f1 - f0 + 1, 0), "FaceLab Reconstruct")
+        f0, f1 = operator_range(self)
+        settings = reconstruct_settings(scene, context.selected_objects, frame_start=f0, frame_end=f1,
+                                        bind_frame=self.bind_frame, smooth=self.smooth)
+        try:
+            frames = frame_range(scene, f0, f1, "Reconstruct")
+        except FaceLabError as e:
+            self.report({"ERROR"}, str(e))
+            return {"CANCELLED"}
+        prog = progress_callback(context, len(frames), "FaceLab Reconstruct")
         try:
             r = reconstruct_from_bundles(scene, face_object(context), settings, progress=prog)
         except FaceLabError as e:

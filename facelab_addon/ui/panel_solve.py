@@ -51,7 +51,9 @@ def draw_solve_section(layout, context):
     row.prop(s, "use_corrective")
     if s.use_contours:
         col.prop(s, "annotation_view")
+    col.prop(s, "use_scene_range")
     row = col.row(align=True)
+    row.enabled = not s.use_scene_range
     row.prop(s, "frame_start")
     row.prop(s, "frame_end")
     row = col.row(align=True)

@@ -64,7 +64,8 @@ class FACELAB_PG_reconstruct(bpy.types.PropertyGroup):
                                              "mouthSmile_L+jawOpen'")
 
 
-def reconstruct_settings(scene, selected=(), *, frame_start: int = -1, frame_end: int = -1, bind_frame: int = -2,
+def reconstruct_settings(scene, selected=(), *, frame_start: int | None = None, frame_end: int | None = None,
+                         bind_frame: int = -2,
                          smooth: int = 0) -> ReconstructSettings:
     """Reconstruct's settings from ``scene.facelab_recon``.
 

@@ -103,8 +103,15 @@ class FACELAB_PG_solve_scene(bpy.types.PropertyGroup):
                                              f"shape keys {SOLVE_PREFIX}*)")
     sliding: BoolProperty(name="Sliding Contours", default=True,
                           description="Re-match contour correspondences every frame (off: keep the first frame's)")
-    frame_start: IntProperty(name="Start", default=-1, description="First frame (-1: the scene's start)")
-    frame_end: IntProperty(name="End", default=-1, description="Last frame (-1: the scene's end)")
+    use_scene_range: BoolProperty(name="Scene Range", default=True,
+                                  description="Work on the scene's frame range (off: the Start / End below)")
+    frame_start: IntProperty(name="Start", get=lambda self: _range_get(self, 0),
+                             set=lambda self, v: _range_set(self, 0, v),
+                             description="First frame (the scene's start while Scene Range is on; negative frames "
+                                         "are allowed)")
+    frame_end: IntProperty(name="End", get=lambda self: _range_get(self, 1),
+                           set=lambda self, v: _range_set(self, 1, v),
+                           description="Last frame (the scene's end while Scene Range is on)")
     weight_min: FloatProperty(name="Min Weight", default=-1.0, soft_min=-1.0, soft_max=0.0)
     weight_max: FloatProperty(name="Max Weight", default=1.0, soft_min=0.0, soft_max=1.0)
     marker_weight: FloatProperty(name="Marker Weight", default=1.0, min=0.0)
@@ -176,6 +183,23 @@ def bind_settings(scene) -> BindSettings:
                         fixed_group=scene.facelab.fixed_group)
 
 
+def _range_get(s, end: int) -> int:
+    """Start (``end`` 0) or End (1) of FaceLab > Solve: the scene's while Scene Range is on."""
+    scene = s.id_data
+    own = ("_frame_start", "_frame_end")[end]
+    if s.use_scene_range or own not in s:
+        return scene.frame_end if end else scene.frame_start
+    return int(s[own])
+
+
+def _range_set(s, end: int, value: int) -> None:
+    """Setting Start or End turns Scene Range off (so a script's or the CLI's range is honoured)."""
+    if s.use_scene_range:  # the other end starts from the scene's
+        s[("_frame_start", "_frame_end")[1 - end]] = _range_get(s, 1 - end)
+    s[("_frame_start", "_frame_end")[end]] = int(value)
+    s.use_scene_range = False
+
+
 def solve_settings(scene) -> SolveSettings:
     """Solve Performance's settings from ``scene.facelab_solve`` and FaceLab > Setup."""
     s = scene.facelab_solve
@@ -192,8 +216,7 @@ def retarget_settings(scene) -> RetargetSettings:
     of the range (they may be keyed on the timeline)."""
     s = scene.facelab_solve
     up = lo = None
-    f0 = scene.frame_start if s.frame_start < 0 else s.frame_start
-    f1 = scene.frame_end if s.frame_end < 0 else s.frame_end
+    f0, f1 = s.frame_start, s.frame_end
     if s.lip_sync and s.use_end_points and f1 >= f0:  # (an empty range is the pipeline's to report)
         frames = np.arange(f0, f1 + 1)
         up = scene_vector_values(scene, "facelab_solve.end_points_upper", s.end_points_upper, frames)

@@ -21,6 +21,7 @@ from bpy_extras.object_utils import world_to_camera_view  # noqa: E402
 from mathutils import Vector  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
+from facelab_addon.blender import compat  # noqa: E402
 from facelab_addon.blender.camera import apply_camera_to_blender, camera_from_blender  # noqa: E402
 from facelab_addon.blender.strokes import (  # noqa: E402
     new_lip_sketch,
@@ -248,7 +249,7 @@ def test_write_read_strokes_per_frame(empty_scene):
 def test_read_strokes_custom_layer_names_and_transform(empty_scene):
     scene = empty_scene
     cam_obj, camera = face_camera(scene)
-    gp = bpy.data.grease_pencils.new("Sketch")
+    gp = compat.grease_pencil_data().new("Sketch")
     obj = bpy.data.objects.new("Sketch", gp)
     scene.collection.objects.link(obj)
     obj.location = (0.05, -0.5, 1.6)  # not parented; arbitrary transform
@@ -342,8 +343,8 @@ def test_annotation_view_placement_in_camera_view(empty_scene, shift):
     cam_obj.data.shift_x, cam_obj.data.shift_y = shift
     scene.render.resolution_x, scene.render.resolution_y = 1920, 1080
     win, area, region = view3d_in_camera_view(scene, cam_obj)
-    ann = bpy.data.annotations.new("Annotations")
-    scene.annotation = ann
+    ann = compat.annotation_data().new("Annotations")
+    compat.set_scene_annotation(scene, ann)
     cx, cy = region.width // 2, region.height // 2
     strokes = {
         "Upper lip": [(cx - 120, cy + 40), (cx + 90, cy + 60)],
@@ -371,8 +372,8 @@ def test_annotation_world_points_and_frames(empty_scene):
     scene = empty_scene
     cam_obj, camera = face_camera(scene)
     win, area, region = view3d_in_camera_view(scene, cam_obj)
-    ann = bpy.data.annotations.new("Annotations")
-    scene.annotation = ann
+    ann = compat.annotation_data().new("Annotations")
+    compat.set_scene_annotation(scene, ann)
     rng = np.random.default_rng(3)
     expected = {}
     for name in ("upper lip", "LOWER lip"):
@@ -402,8 +403,8 @@ def test_annotation_world_points_and_frames(empty_scene):
 def test_grease_pencil_object_wins_over_annotation(empty_scene):
     scene = empty_scene
     cam_obj, camera = face_camera(scene)
-    ann = bpy.data.annotations.new("Annotations")
-    scene.annotation = ann
+    ann = compat.annotation_data().new("Annotations")
+    compat.set_scene_annotation(scene, ann)
     ann.layers.new("Upper lip")
     ann.layers.new("Lower lip")
     obj = new_lip_sketch(scene, cam_obj)

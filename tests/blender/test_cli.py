@@ -221,7 +221,10 @@ def test_inside_blender_on_the_open_file(shot, tmp_path):
     assert s["saved"] == str(out.resolve()) and out.exists()
 
 
-def test_refine_sketched_frames(ict, addon, tmp_path):
+def sketched_shot(tmp_path, ict):
+    """The Refine Lips test scene with both lips sketched on its frame, saved as ``sketched.blend``.
+
+    Returns ``(setup, path)``: the ``scene_setup`` dictionary and the saved file."""
     from facelab_addon.blender.camera import camera_from_blender
     from facelab_addon.blender.strokes import write_stroke_pixels
 
@@ -235,6 +238,14 @@ def test_refine_sketched_frames(ict, addon, tmp_path):
     write_stroke_pixels(scene.facelab.sketch, "Lower lip", FRAME, [s["lo_px"]], cam)
     shot = tmp_path / "sketched.blend"
     bpy.ops.wm.save_as_mainfile(filepath=str(shot))
+    return s, shot
+
+
+def test_refine_sketched_frames(ict, addon, tmp_path):
+    from .test_refine_operator import FRAME
+
+    s, shot = sketched_shot(tmp_path, ict)
+    scene = s["scene"]
     out = tmp_path / "refined.blend"
     code, summary, log = cli("refine", shot, "--object", "Face", "--out", out)
     assert code == 0, log

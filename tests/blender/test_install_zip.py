@@ -6,10 +6,16 @@ SciPy/libigl/cholespy coming from the zip's wheels.
 The install runs in a subprocess (a fresh user folder is read when bpy starts; a fresh
 ``sys.modules``). That process hides the venv's scipy, igl and cholespy, like Blender's own Python
 which has numpy but none of them, so the add-on can only work if Blender installed the bundled
-wheels (into ``<user>/extensions/.local/lib/python3.11/site-packages``). The repository checkout is
-not importable there either: every FaceLab module must come from the extension folder.
+wheels (into ``<user>/extensions/.local/lib/pythonX.Y/site-packages``, the site folder Blender adds to
+``sys.path``). The repository checkout is not importable there either: every FaceLab module must
+come from the extension folder.
+
+The zip carries wheels for every supported Python (``# python:`` lines of requirements/bpy-*.txt);
+the test runs with whichever bpy the suite runs on (scripts/test.sh runs it on the oldest and the
+newest supported Blender), so the Python at hand must be one of them and get a complete set.
 """
 
+import importlib.util
 import json
 import os
 import subprocess
@@ -45,8 +51,34 @@ def extension_zip(tmp_path_factory):
     summary = json.loads(r.stdout)
     (z,) = summary["zips"]
     assert z["platform"] == this_platform()
-    assert sorted(w.split("-")[0] for w in z["wheels"]) == ["cholespy", "libigl", "scipy"]
+    pythons = summary["pythons"]
+    assert "%d.%d" % sys.version_info[:2] in pythons and pythons == z["pythons"]
+    # a wheel of each package for every supported Python (an abi3 wheel may serve several), nothing else
+    assert sorted({w.split("-")[0] for w in z["wheels"]}) == ["cholespy", "libigl", "scipy"]
+    build = build_script()
+    assert build.check_complete(z["wheels"], build.pinned_versions(), pythons) == []
     return Path(z["zip"])
+
+
+def build_script():
+    spec = importlib.util.spec_from_file_location("build_extension", ROOT / "scripts" / "build_extension.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_wheel_tags_select_the_python():
+    serves = build_script().wheel_serves
+    linux = "manylinux_2_27_x86_64.manylinux_2_28_x86_64.whl"
+    cp311, cp313 = f"scipy-1.17.1-cp311-cp311-{linux}", f"scipy-1.17.1-cp313-cp313-{linux}"
+    assert serves(cp311, "3.11") and not serves(cp311, "3.13")
+    assert serves(cp313, "3.13") and not serves(cp313, "3.11")
+    abi3 = f"libigl-2.6.3-cp312-abi3-{linux}"
+    assert serves(abi3, "3.12") and serves(abi3, "3.13") and not serves(abi3, "3.11")
+    assert serves("pkg-1.0-py3-none-any.whl", "3.13")
+    pins = {"scipy": "1.17.1", "libigl": "2.6.3", "cholespy": "2.2.0"}
+    assert build_script().check_complete([cp311, cp313, abi3], pins, ["3.11", "3.13"]) == [
+        "no libigl wheel for Python 3.11", "no cholespy wheel for Python 3.11", "no cholespy wheel for Python 3.13"]
 
 
 INSTALL_SCRIPT = textwrap.dedent(r'''
@@ -143,6 +175,7 @@ INSTALL_SCRIPT = textwrap.dedent(r'''
         "numpy": np.__file__,
     })
     out["checkout_modules"] = sorted(m for m in sys.modules if m.split(".")[0] == "facelab_addon")
+    out["sys_path"] = list(sys.path)
     print("RESULT " + json.dumps(out))
 ''')
 
@@ -170,7 +203,9 @@ def test_installed_zip_runs_refine_lips(extension_zip, tmp_path):
     assert (installed / "blender_manifest.toml").exists()
     for what in ("extension", "addon", "operator", "core", "lips_obj"):
         assert Path(out["files"][what]).resolve().is_relative_to(installed), (what, out["files"][what])
-    wheels_site = ext / ".local" / "lib" / "python3.11" / "site-packages"
+    # the wheels went to the site folder Blender put on sys.path under <extensions>/.local
+    (wheels_site,) = [Path(p).resolve() for p in out["sys_path"] if Path(p).resolve().is_relative_to(ext / ".local")]
+    assert wheels_site.name == "site-packages"
     for what in ("scipy", "igl", "cholespy"):
         assert Path(out["files"][what]).resolve().is_relative_to(wheels_site), (what, out["files"][what])
     assert not Path(out["files"]["numpy"]).resolve().is_relative_to(ext)  # numpy is Blender's

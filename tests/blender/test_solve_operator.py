@@ -9,6 +9,7 @@ import bpy
 import numpy as np
 import pytest
 
+from facelab_addon.blender import compat
 from facelab_addon.blender.camera import apply_camera_to_blender
 from facelab_addon.blender.scene import new_mesh_object
 from facelab_addon.blender.shapekeys import key_values_bulk
@@ -131,7 +132,7 @@ def add_contours(ict, scene, obj, views, truth, cams):
         sp.points.add(N_MASK_POINTS - 1)
         splines[n] = sp
     ctx = _clip_editor(views[0][1], mask)
-    gp = bpy.data.objects.new("Lips2", bpy.data.grease_pencils.new("Lips2"))
+    gp = bpy.data.objects.new("Lips2", compat.grease_pencil_data().new("Lips2"))
     scene.collection.objects.link(gp)
     gp.location = cams[1].center + 0.05 * cams[1].forward
     got = {}
@@ -444,8 +445,8 @@ def test_retarget_with_marker_correspondence(ict, addon, tmp_path):
     """Correspondence from empties named like the bound tracks; too few of them is refused."""
     from facelab_addon.blender.bindings import read_bindings
     from facelab_addon.core.capture.markers import SurfacePoints
-    from facelab_addon.testing.creature import widen_mouth
     from facelab_addon.pipeline.retarget import retarget
+    from facelab_addon.testing.creature import widen_mouth
     from facelab_addon.ui.props_solve import retarget_settings
 
     scene, obj, cams, markers, truth, views = build(ict, tmp_path)

@@ -6,7 +6,7 @@ import bpy
 import numpy as np
 import pytest
 
-from facelab_addon.blender import masks, tracking
+from facelab_addon.blender import compat, masks, tracking
 from facelab_addon.blender.camera import camera_from_blender
 from facelab_addon.core.capture.camera import Camera
 from facelab_addon.core.errors import BundleError, CameraError, SketchError
@@ -408,7 +408,7 @@ def test_read_curves_per_view(tmp_path, scene):
     sp = mask.layers.new(name="mouth_lower").splines.new()
     sp.points.add(1)
     set_points(sp, [[0.25, 0.5], [0.75, 0.5]])
-    gp = bpy.data.objects.new("Lids", bpy.data.grease_pencils.new("Lids"))
+    gp = bpy.data.objects.new("Lids", compat.grease_pencil_data().new("Lids"))
     scene.collection.objects.link(gp)
     gp.location = cam.center + 0.5 * cam.forward
     write_stroke_pixels(gp, "eyelid_right_upper", 3, [[[10, 10], [20, 12]]], cam)

@@ -203,7 +203,8 @@ def test_property_defaults(addon):
     assert p.is_registered and p.bl_idname == "facelab_addon"  # from a checkout; bl_ext.<repo>.facelab installed
     # operator options
     props = bpy.ops.facelab.propagate.get_rna_type().properties
-    assert (props["frame_start"].default, props["frame_end"].default, props["suggestions"].default) == (-1, -1, 3)
+    assert props["suggestions"].default == 3  # Start / End: the scene's range unless set (negative frames allowed)
+    assert "not set: the scene's" in props["frame_start"].description
     props = bpy.ops.facelab.auto_regions.get_rna_type().properties
     assert not props["replace"].default and not props["use_selection"].default
     props = bpy.ops.facelab.bake.get_rna_type().properties

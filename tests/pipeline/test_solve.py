@@ -93,7 +93,7 @@ def test_bad_input_raises_before_writing(ict, addon, tmp_path):
         bind_tracks(scene, obj, 0, BindSettings(views=vs, bundles="EMPTIES"))
     assert len(obj.facelab_solve.bindings) == 0
     # an empty range
-    with pytest.raises(FaceLabError, match="range 3-1 is empty"):
+    with pytest.raises(FaceLabError, match="range 3-1 ends before it starts; set End >= Start"):
         solve_performance(scene, obj, SolveSettings(views=vs, frame_start=3, frame_end=1))
     assert not [kb for kb in obj.data.shape_keys.key_blocks if kb.name.startswith(SOLVE_PREFIX)]
     assert bpy.data.actions.get(SOLVE_ACTION) is None

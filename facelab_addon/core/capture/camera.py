@@ -53,7 +53,7 @@ class Camera:
                 "Camera rotation is not a proper rotation (scaled or mirrored camera?); "
                 "apply scale to the camera object so it has unit scale."
             )
-        if int(width) <= 0 or int(height) <= 0:
+        if not (np.isfinite(width) and np.isfinite(height)) or int(width) <= 0 or int(height) <= 0:
             raise CameraError("Camera resolution must be positive; set the render resolution.")
         self.K = K
         self.R = R

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import FaceLabError
+from ..errors import FaceLabError, UsageError
 from ..geometry.mesh import validate_mesh
 from .camera import Camera
 
@@ -51,10 +51,14 @@ class SurfacePoints:
     bary: np.ndarray
 
     def __post_init__(self):
-        self.vertices = np.asarray(self.vertices, dtype=np.int64).reshape(-1, 3)
-        self.bary = np.asarray(self.bary, dtype=np.float64).reshape(-1, 3)
+        v, b = np.asarray(self.vertices), np.asarray(self.bary)
+        if v.size % 3 or b.size % 3 or (v.size and not np.issubdtype(v.dtype, np.integer)):
+            raise UsageError(f"SurfacePoints: vertices must be (m,3) integer vertex ids and bary (m,3) weights, got "
+                             f"{v.dtype} {v.shape} and {b.shape}; give three vertices and weights per point")
+        self.vertices = v.astype(np.int64).reshape(-1, 3)
+        self.bary = b.astype(np.float64).reshape(-1, 3)
         if self.bary.shape != self.vertices.shape:
-            raise ValueError("SurfacePoints: bary must have the shape of vertices (m,3)")
+            raise UsageError("SurfacePoints: bary must have the shape of vertices (m,3); give three weights per point")
 
     def __len__(self) -> int:
         return len(self.vertices)

@@ -52,8 +52,10 @@ __all__ = [
     "PC2_MAGIC",
     "pc2_info",
     "mdd_info",
+    "detect_format",
     "cache_info",
     "check_vertex_count",
+    "check_finite_samples",
     "read_pc2",
     "read_mdd",
     "read_cache",
@@ -153,7 +155,8 @@ def pc2_info(path) -> CacheInfo:
     ------
     CacheFileError
         Missing file, wrong magic (not ``b"POINTCACHE2\\0"``), a non-positive
-        point or sample count, or a file shorter than its header announces.
+        point or sample count, a non-finite start frame or a non-positive
+        sample rate, or a file shorter than its header announces.
     """
     p, size = _open_size(path, "PC2")
     if size < _PC2_HEADER_BYTES:
@@ -178,14 +181,20 @@ def pc2_info(path) -> CacheInfo:
             f"PC2 file '{p}' has {V} points and {T} samples in its header; a cache needs at least "
             "one of each. Re-export the cache."
         )
+    start, rate = float(h["start_frame"]), float(h["sample_rate"])
+    if not (np.isfinite(start) and np.isfinite(rate) and rate > 0):
+        raise CacheFileError(
+            f"PC2 file '{p}' has start frame {start:g} and sample rate {rate:g} in its header; the start must "
+            "be a finite frame and the sample rate a positive number of frames. Re-export the cache."
+        )
     _check_data_size(p, size, _PC2_HEADER_BYTES, T, V, "PC2")
     return CacheInfo(
         path=str(p),
         format="PC2",
         num_points=V,
         num_samples=T,
-        start_frame=float(h["start_frame"]),
-        sample_rate=float(h["sample_rate"]),
+        start_frame=start,
+        sample_rate=rate,
         times=None,
         data_offset=_PC2_HEADER_BYTES,
         dtype=np.dtype("<f4"),
@@ -237,6 +246,11 @@ def mdd_info(path) -> CacheInfo:
             )
     _check_data_size(p, size, offset, T, V, "MDD")
     times = np.fromfile(p, dtype=">f4", count=T, offset=8).astype(np.float32)
+    if not np.isfinite(times).all():
+        bad = int(np.flatnonzero(~np.isfinite(times))[0])
+        raise CacheFileError(
+            f"MDD file '{p}' has a NaN or infinite time for sample {bad} in its header. Re-export the cache."
+        )
     return CacheInfo(
         path=str(p),
         format="MDD",
@@ -250,6 +264,52 @@ def mdd_info(path) -> CacheInfo:
     )
 
 
+def detect_format(path) -> str:
+    """``"PC2"`` or ``"MDD"``: the format a point-cache file must be read as.
+
+    The extension decides (``.pc2`` / ``.mdd``, any case); a file with another
+    extension is PC2 when it starts with the PC2 magic and MDD otherwise,
+    except that a file starting like a PC2 header whose magic is damaged is
+    refused rather than read as MDD.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+
+    Returns
+    -------
+    str
+
+    Raises
+    ------
+    CacheFileError
+        Missing file, or a damaged PC2 magic in a file of another extension.
+    """
+    p, size = _open_size(path, "Point cache")
+    ext = p.suffix.lower()
+    if ext == ".pc2":
+        return "PC2"
+    if ext == ".mdd":
+        return "MDD"
+    with open(p, "rb") as f:
+        raw = f.read(_PC2_HEADER_BYTES)
+    head = raw[:12]
+    if head == PC2_MAGIC:
+        return "PC2"
+    like_magic = sum(a == b for a, b in zip(head.upper(), PC2_MAGIC)) >= 6
+    like_header = False
+    if len(raw) == _PC2_HEADER_BYTES:
+        h = np.frombuffer(raw, dtype=_PC2_HEADER)[0]
+        V, T = int(h["num_points"]), int(h["num_samples"])
+        like_header = int(h["version"]) == 1 and V > 0 and T > 0 and _PC2_HEADER_BYTES + 12 * V * T == size
+    if like_magic or like_header:
+        raise CacheFileError(
+            f"'{p}' starts like a PC2 point cache but its magic is damaged ({head!r} instead of "
+            f"{PC2_MAGIC!r}). Re-export the cache (or repair its first 12 bytes)."
+        )
+    return "MDD"
+
+
 def cache_info(path, fmt: str | None = None) -> CacheInfo:
     """Header of a PC2 or MDD file.
 
@@ -257,17 +317,21 @@ def cache_info(path, fmt: str | None = None) -> CacheInfo:
     ----------
     path : str or os.PathLike
     fmt : {"PC2", "MDD"}, optional
-        Default: ``"PC2"`` when the file starts with the PC2 magic, else MDD.
+        Default: :func:`detect_format` (the extension, else the header); a
+        damaged file is refused, never read as the other format.
 
     Returns
     -------
     CacheInfo
+
+    Raises
+    ------
+    CacheFileError
+        See :func:`pc2_info`, :func:`mdd_info` and :func:`detect_format`.
     """
     if fmt is None:
-        p, size = _open_size(path, "Point cache")
-        with open(p, "rb") as f:
-            fmt = "PC2" if f.read(12) == PC2_MAGIC else "MDD"
-    fmt = fmt.upper()
+        fmt = detect_format(path)
+    fmt = str(fmt).upper()
     if fmt == "PC2":
         return pc2_info(path)
     if fmt == "MDD":
@@ -340,12 +404,44 @@ def _gather_f32(source, idx=None) -> np.ndarray:
     return out
 
 
+def check_finite_samples(info: CacheInfo, samples, sample_index=None) -> None:
+    """Raise unless every position read from a cache file is finite.
+
+    Parameters
+    ----------
+    info : CacheInfo
+    samples : (k,V,3) float ndarray
+        Positions read from ``info.path``.
+    sample_index : (k,) int array_like, optional
+        The file's sample of each row (for the message); default ``0..k-1``.
+
+    Raises
+    ------
+    CacheFileError
+        Naming the file and the first sample with a NaN or infinite position.
+    """
+    for k in range(len(samples)):
+        if not np.isfinite(samples[k]).all():
+            s = k if sample_index is None else int(np.asarray(sample_index).reshape(-1)[k])
+            raise CacheFileError(
+                f"{info.format} cache '{info.path}' has NaN or infinite positions in sample {s}; the file is "
+                "damaged or was exported from a broken mesh. Re-export the cache."
+            )
+
+
 def _read_samples(info: CacheInfo, frames, mmap: bool) -> np.ndarray:
     shape = (info.num_samples, info.num_points, 3)
     mm = np.memmap(info.path, dtype=info.dtype, mode="r", offset=info.data_offset, shape=shape)
     if frames is None:
-        return mm if mmap else _gather_f32(mm)
-    return _gather_f32(mm, _sample_index(frames, info.num_samples, info.path))
+        if mmap:
+            return mm
+        out = _gather_f32(mm)
+        check_finite_samples(info, out)
+        return out
+    idx = _sample_index(frames, info.num_samples, info.path)
+    out = _gather_f32(mm, idx)
+    check_finite_samples(info, out, idx)
+    return out
 
 
 def read_pc2(path, frames=None, *, mmap: bool = False):

@@ -13,15 +13,76 @@ module.
 
 from __future__ import annotations
 
+import contextlib
 import os
+import tempfile
 from pathlib import Path
 
 import numpy as np
 
-from ..errors import CacheFileError, CacheVertexCountError, MeshError
+from ..errors import CacheFileError, CacheVertexCountError, MeshError, OutputError
 from .pointcache import _PC2_HEADER, _PC2_HEADER_BYTES, PC2_MAGIC
 
-__all__ = ["PointCacheWriter", "write_pc2", "write_mdd"]
+__all__ = ["PointCacheWriter", "write_pc2", "write_mdd", "check_writable", "output_error"]
+
+
+def output_error(path, err: OSError) -> OutputError:
+    """An :class:`~facelab_addon.core.errors.OutputError` naming ``path``, what the system refused and the fix."""
+    p = Path(os.fspath(path))
+    if isinstance(err, PermissionError):
+        why = "permission denied (a read-only folder or file)"
+    elif isinstance(err, (FileExistsError, NotADirectoryError)):
+        why = "a part of the path is a file, not a folder"
+    elif isinstance(err, IsADirectoryError):
+        why = "it is a folder"
+    elif getattr(err, "errno", None) == 28:
+        why = "the disk is full"
+    else:
+        why = err.strerror or type(err).__name__
+    return OutputError(f"Cannot write '{p}': {why}. Choose a file in a writable folder (or free disk space).")
+
+
+def check_writable(path) -> Path:
+    """Refuse, before any work, a destination file that cannot be written.
+
+    The nearest existing folder of ``path`` must be a folder a file can be
+    created in (probed with a temporary file, removed at once; the missing
+    folders are created by the writers), and ``path`` itself must not be a
+    folder.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+
+    Returns
+    -------
+    pathlib.Path
+        ``path``.
+
+    Raises
+    ------
+    OutputError
+        ``path`` is a folder, a parent is a file, the folder is not writable,
+        or ``path`` exists and is read-only.
+    """
+    p = Path(os.fspath(path))
+    if p.is_dir():
+        raise OutputError(f"Cannot write '{p}': it is a folder. Give a file name, such as '{p / 'capture.pc2'}'.")
+    anc = p.parent
+    while not anc.exists() and anc != anc.parent:
+        anc = anc.parent
+    if anc.exists() and not anc.is_dir():
+        raise OutputError(f"Cannot write '{p}': '{anc}' is a file, not a folder. Choose another path.")
+    if anc.is_dir():
+        try:  # a real probe: permission bits do not tell (root, read-only mounts, /sys)
+            with tempfile.TemporaryFile(dir=anc):
+                pass
+        except OSError as e:
+            raise output_error(p, e) from None
+    if p.is_file() and not os.access(p, os.W_OK):
+        raise OutputError(f"Cannot write '{p}': the file exists and is read-only. Choose another file, or make it "
+                          "writable.")
+    return p
 
 
 def _check_frames(frames, what="frames"):
@@ -57,6 +118,12 @@ class PointCacheWriter:
         PC2 header sample rate (frames between samples).
     times : (T,) array_like, optional
         MDD sample times in seconds (required for MDD).
+
+    Raises
+    ------
+    OutputError
+        The destination cannot be written (read-only folder, a parent that
+        is a file, disk full), here or in :meth:`write` / :meth:`close`.
 
     Examples
     --------
@@ -96,10 +163,16 @@ class PointCacheWriter:
             head = np.array([self.num_samples, self.num_points], dtype=">i4").tobytes() + t.astype(">f4").tobytes()
         else:
             raise CacheFileError(f"Unknown point-cache format '{fmt}'; use 'PC2' or 'MDD'.")
-        self.path.parent.mkdir(parents=True, exist_ok=True)
+        check_writable(self.path)
         self._tmp = self.path.with_name(self.path.name + ".tmp")
-        self._f = open(self._tmp, "wb")
-        self._f.write(head)
+        self._f = None
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._f = open(self._tmp, "wb")
+            self._f.write(head)
+        except OSError as e:
+            self.abort()
+            raise output_error(self.path, e) from None
         self.written = 0
 
     def write(self, positions) -> None:
@@ -124,7 +197,11 @@ class PointCacheWriter:
                 raise MeshError(
                     f"Sample {self.written} has NaN or infinite positions; fix the mesh on that frame before baking."
                 )
-            self._f.write(np.ascontiguousarray(s, dtype=self._dtype).tobytes())
+            try:
+                self._f.write(np.ascontiguousarray(s, dtype=self._dtype).tobytes())
+            except OSError as e:
+                self.abort()
+                raise output_error(self.path, e) from None
             self.written += 1
 
     def close(self) -> Path:
@@ -134,25 +211,38 @@ class PointCacheWriter:
         ------
         MeshError
             When fewer samples than announced were written (the partial file is removed).
+        OutputError
+            When the file cannot be moved in place (the partial file is removed).
         """
         if self._f is None:
             return self.path
-        self._f.close()
+        try:
+            self._f.close()
+        except OSError as e:
+            self._f = None
+            self.abort()
+            raise output_error(self.path, e) from None
         self._f = None
         if self.written != self.num_samples:
             self._tmp.unlink(missing_ok=True)
             raise MeshError(
                 f"Only {self.written} of {self.num_samples} samples were written to '{self.path}'; nothing was saved."
             )
-        os.replace(self._tmp, self.path)
+        try:
+            os.replace(self._tmp, self.path)
+        except OSError as e:
+            self.abort()
+            raise output_error(self.path, e) from None
         return self.path
 
     def abort(self) -> None:
         """Drop the partial file; ``path`` is left as it was."""
         if self._f is not None:
-            self._f.close()
+            with contextlib.suppress(OSError):
+                self._f.close()
             self._f = None
-        self._tmp.unlink(missing_ok=True)
+        with contextlib.suppress(OSError):
+            self._tmp.unlink(missing_ok=True)
 
     def __enter__(self):
         return self
@@ -187,6 +277,8 @@ def write_pc2(path, frames, start=1.0, sample_rate=1.0) -> Path:
     ------
     MeshError
         On a wrong shape or NaN/inf positions (nothing is written).
+    OutputError
+        The destination cannot be written.
     """
     a = _check_frames(frames)
     with PointCacheWriter(path, "PC2", a.shape[1], a.shape[0], start_frame=start, sample_rate=sample_rate) as w:

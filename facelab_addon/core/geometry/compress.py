@@ -71,6 +71,9 @@ def compress(corrections, tol=None, *, metres_per_unit: float = 1.0, max_rank: i
     """
     C = _check(corrections)
     T, V, _ = C.shape
+    if not (np.isscalar(metres_per_unit) and np.isfinite(metres_per_unit) and float(metres_per_unit) > 0):
+        raise FaceLabError(f"metres_per_unit must be a positive number, got {metres_per_unit!r}; set the scene's "
+                           "Unit Scale (1 for metres).")
     tol = DEFAULT_TOL_M / float(metres_per_unit) if tol is None else float(tol)
     if not (tol > 0 and np.isfinite(tol)):
         raise FaceLabError(f"The compression tolerance must be a positive distance in scene units, got {tol}.")

@@ -29,7 +29,7 @@ import numpy as np
 import scipy.linalg
 import scipy.sparse as sp
 
-from ..errors import FaceLabError
+from ..errors import FaceLabError, UsageError
 from .linsolve import SPDFactor
 
 __all__ = ["PointConstraints", "LaplacianDeformer"]
@@ -69,7 +69,7 @@ class PointConstraints:
         self.metrics = np.asarray(self.metrics, dtype=np.float64).reshape(c, 3, 3)
         self.strength = np.broadcast_to(np.asarray(self.strength, dtype=np.float64), (c,)).copy()
         if self.bary.shape != self.vertices.shape:
-            raise ValueError("bary must have the shape of vertices")
+            raise UsageError("bary must have the shape of vertices (c,k); give one weight per constrained vertex")
         if not (np.isfinite(self.targets).all() and np.isfinite(self.metrics).all()):
             raise FaceLabError("A constraint target is NaN or infinite; check the markers or strokes on this frame.")
 
@@ -146,10 +146,15 @@ class LaplacianDeformer:
         n = L.shape[0]
         self.n = n
         self.lambda_reg = float(lambda_reg)
+        if not (np.isfinite(self.lambda_reg) and self.lambda_reg >= 0):
+            raise FaceLabError(f"lambda_reg must be a non-negative number, got {lambda_reg!r}; use 1.")
         w = np.broadcast_to(np.asarray(pos_weights, dtype=np.float64), (n,)).copy()
-        pinned = np.zeros(n, bool) if pinned is None else np.asarray(pinned, dtype=bool)
-        if pinned.shape != (n,):
-            raise ValueError("pinned must be a (V,) bool mask")
+        if not (np.isfinite(w).all() and (w >= 0).all()):
+            raise FaceLabError("pos_weights must be non-negative finite numbers; use 0 (no anchoring) or 1.")
+        pinned = np.zeros(n, bool) if pinned is None else np.asarray(pinned)
+        if pinned.shape != (n,) or pinned.dtype != bool:
+            raise FaceLabError(f"pinned must be a ({n},) bool mask, got {pinned.dtype} {pinned.shape}; mark the "
+                               "fixed vertices with True.")
         self.pinned = pinned
         self.free = np.flatnonzero(~pinned)
         if len(self.free) == 0:

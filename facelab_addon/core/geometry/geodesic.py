@@ -16,7 +16,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.sparse.csgraph import dijkstra as _dijkstra
 
-from .mesh import edge_length_graph
+from ..errors import MeshError
+from .mesh import edge_length_graph, face_areas
 
 __all__ = ["geodesic_distance"]
 
@@ -49,9 +50,23 @@ def geodesic_distance(vertices, faces, sources, limit=np.inf, *, exact: bool = T
         Distance in scene units; ``inf`` beyond ``limit`` or unreachable.
     """
     V = np.asarray(vertices, dtype=np.float64)
-    F = np.asarray(faces, dtype=np.int64)
-    src = np.unique(np.asarray(sources, dtype=np.int64))
+    F = np.asarray(faces)
     nv = len(V)
+    if V.ndim != 2 or V.shape[1] != 3 or F.ndim != 2 or F.shape[1] != 3 or not np.issubdtype(F.dtype, np.integer):
+        raise MeshError(f"Expected vertices (V,3) and integer triangles (F,3), got {V.shape} and {F.shape} "
+                        f"{F.dtype}; triangulate the mesh first.")
+    F = F.astype(np.int64)
+    if F.size and (F.min() < 0 or F.max() >= nv):
+        raise MeshError(f"Face indices are out of range [0, {nv}); the faces do not belong to this mesh.")
+    if not np.isfinite(V).all():
+        raise MeshError("The mesh has NaN or infinite coordinates; fix it before measuring distances on it.")
+    src = np.asarray(sources)
+    if src.size == 0 or not np.issubdtype(src.dtype, np.integer) or src.min() < 0 or src.max() >= nv:
+        raise MeshError(f"The source vertices must be a non-empty set of vertex indices in [0, {nv}); "
+                        "select the vertices to measure from.")
+    src = np.unique(src.astype(np.int64))
+    if not limit >= 0:
+        raise MeshError(f"The distance limit must be a non-negative distance, got {limit!r}.")
     G, _, _ = edge_length_graph(V, F, nv)
     reach = 1.5 * limit if np.isfinite(limit) else np.inf
     dg = _dijkstra(G, directed=False, indices=src, min_only=True, limit=reach)
@@ -63,7 +78,7 @@ def geodesic_distance(vertices, faces, sources, limit=np.inf, *, exact: bool = T
             igl = None
         if igl is not None:
             sub = np.isfinite(dg)
-            fsel = sub[F].all(axis=1)
+            fsel = sub[F].all(axis=1) & (face_areas(V, F) > 0)  # exact geodesics need proper triangles
             SF = F[fsel]
             used = np.unique(SF)
             remap = -np.ones(nv, dtype=np.int64)
@@ -79,8 +94,9 @@ def geodesic_distance(vertices, faces, sources, limit=np.inf, *, exact: bool = T
                     VT=np.arange(len(used), dtype=np.int64),
                     FT=np.zeros(0, dtype=np.int64),
                 )
+                d = np.asarray(d, dtype=np.float64)
                 out = np.full(nv, np.inf)
-                out[used] = np.minimum(np.asarray(d, dtype=np.float64), dg[used])
+                out[used] = np.where(np.isfinite(d), np.minimum(d, dg[used]), dg[used])
                 out[src] = 0.0
     out = np.asarray(out, dtype=np.float64).copy()
     out[out > limit] = np.inf

@@ -19,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
+from ..errors import MeshError, UsageError
 from .mesh import vertex_adjacency
 
 __all__ = ["uniform_laplacian", "cotangent_laplacian", "laplacian", "poisson_operator"]
@@ -42,6 +43,12 @@ def uniform_laplacian(faces, n_vertices: int, adjacency=None) -> sp.csr_matrix:
         Row-normalised, positive on the diagonal; ``L @ X`` are the Laplacian
         coordinates of ``X (V,3)`` in scene units.
     """
+    if adjacency is None:
+        F = np.asarray(faces)
+        if F.size and (F.ndim != 2 or F.shape[1] != 3 or not np.issubdtype(F.dtype, np.integer)
+                       or F.min() < 0 or F.max() >= int(n_vertices)):
+            raise MeshError(f"faces must be an (F,3) integer array with indices in [0, {int(n_vertices)}); "
+                            "the faces do not belong to this mesh.")
     A = vertex_adjacency(faces, n_vertices) if adjacency is None else adjacency
     deg = np.asarray(A.sum(axis=1)).ravel()
     inv = np.divide(1.0, deg, out=np.zeros_like(deg), where=deg > 0)
@@ -90,7 +97,7 @@ def laplacian(vertices, faces, kind: str = "uniform", adjacency=None) -> sp.csr_
         return uniform_laplacian(faces, len(vertices), adjacency)
     if kind in ("cotangent", "cot"):
         return cotangent_laplacian(vertices, faces)
-    raise ValueError(f"unknown Laplacian kind {kind!r}; use 'uniform' or 'cotangent'")
+    raise UsageError(f"unknown Laplacian kind {kind!r}; use 'uniform' or 'cotangent'")
 
 
 def poisson_operator(rest_vertices, faces, region_faces):

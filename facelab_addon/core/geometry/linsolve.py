@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from ..errors import FaceLabError
+from ..errors import FaceLabError, UsageError
 
 __all__ = ["SPDFactor", "idle_core", "one_blas_thread", "small_dense_threads"]
 
@@ -70,7 +70,7 @@ class SPDFactor:
                     "or check the regions for a part with no border."
                 ) from e
         else:
-            raise ValueError(f"unknown backend {backend!r}")
+            raise UsageError(f"unknown backend {backend!r}; use 'auto', 'cholespy' or 'splu'")
 
     def solve(self, B) -> np.ndarray:
         """Solve ``A X = B`` for ``B`` of shape (n,) or (n,k); returns the same shape."""

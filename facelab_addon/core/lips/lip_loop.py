@@ -29,7 +29,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components as _cc
 from scipy.sparse.csgraph import dijkstra as _dijkstra
 
-from ..errors import MeshError, RegionError
+from ..errors import RegionError, RegionMeshError
 from ..geometry.mesh import edge_length_graph, vertex_adjacency, vertex_normals
 
 __all__ = ["order_edge_loop", "inner_lip_loop", "loop_width"]
@@ -60,9 +60,14 @@ def order_edge_loop(faces, loop_vertices, n_vertices: int | None = None) -> np.n
     RegionError
         If the vertices do not form one closed chain of mesh edges.
     """
-    F = np.asarray(faces, dtype=np.int64)
-    loop = np.asarray(loop_vertices, dtype=np.int64).ravel()
+    F = _region_faces(faces)
+    loop = np.asarray(loop_vertices)
+    if loop.size and not np.issubdtype(loop.dtype, np.integer):
+        raise RegionError(f"The lip loop must be vertex indices (integers), got {loop.dtype}; reselect the edge loop.")
+    loop = loop.astype(np.int64).ravel()
     nv = int(F.max() + 1) if n_vertices is None else int(n_vertices)
+    if F.max() >= nv:
+        raise RegionMeshError(f"Face indices are out of range [0, {nv}); the faces do not belong to this mesh.")
     if loop.size < 3 or len(np.unique(loop)) != loop.size:
         raise RegionError(
             f"The lip loop needs at least 3 distinct vertices, got {loop.size} ({len(np.unique(loop))} distinct); "
@@ -96,6 +101,36 @@ def order_edge_loop(faces, loop_vertices, n_vertices: int | None = None) -> np.n
             "The selected vertices form more than one closed loop; select only the inner-lip edge loop."
         )
     return loop[np.asarray(order)]
+
+
+def _region_faces(faces):
+    """(F,3) int64 triangles, non-empty, non-negative (RegionMeshError otherwise)."""
+    F = np.asarray(faces)
+    if F.ndim != 2 or F.shape[1] != 3 or len(F) == 0:
+        raise RegionMeshError(f"Expected a non-empty (F,3) array of triangles, got shape {F.shape}; triangulate "
+                              "the mesh first (Ctrl+T).")
+    if not np.issubdtype(F.dtype, np.integer):
+        raise RegionMeshError(f"Face indices must be integers, got {F.dtype}; pass the mesh's triangle indices.")
+    F = F.astype(np.int64)
+    if F.min() < 0:
+        raise RegionMeshError("Face indices must not be negative; the faces do not belong to this mesh.")
+    return F
+
+
+def _region_mesh(vertices, faces):
+    """``(V, F)`` float64 (V,3) and int64 (F,3), checked: finite positions, indices in range (RegionMeshError)."""
+    V = np.asarray(vertices)
+    if V.ndim != 2 or V.shape[1] != 3 or len(V) == 0 or not np.issubdtype(V.dtype, np.number):
+        raise RegionMeshError(f"Expected vertices as a non-empty (V,3) array of numbers, got shape {V.shape}; "
+                              "pass the mesh's vertex positions.")
+    V = V.astype(np.float64)
+    F = _region_faces(faces)
+    if not np.isfinite(V).all():
+        raise RegionMeshError("The rest mesh has NaN or infinite coordinates; fix the mesh before finding the lip "
+                              "loop.")
+    if F.max() >= len(V):
+        raise RegionMeshError(f"Face indices are out of range [0, {len(V)}); the faces do not belong to this mesh.")
+    return V, F
 
 
 def _largest_component(faces, n_vertices):
@@ -149,6 +184,8 @@ def _contact_pairs(V, F, comp, A, max_gap, hops):
         S.data[:] = 1.0
     near = np.asarray(S[row[i], j]).ravel() > 0
     i, j, dist = i[~near], j[~near], dist[~near]
+    if len(i) == 0:
+        return partner, gap
     # nearest partner per vertex, both directions
     a = np.r_[i, j]
     b = np.r_[j, i]
@@ -196,15 +233,12 @@ def inner_lip_loop(vertices, faces, loop=None, *, max_gap=None, hops: int = 8) -
         If no pair of facing lip surfaces is found, or they cannot be joined
         into a loop; the message suggests ``max_gap`` or selecting the loop.
     """
-    V = np.asarray(vertices, dtype=np.float64)
-    F = np.asarray(faces, dtype=np.int64)
+    V, F = _region_mesh(vertices, faces)
     nv = len(V)
-    if V.ndim != 2 or V.shape[1] != 3 or F.ndim != 2 or F.shape[1] != 3:
-        raise MeshError(f"Expected vertices (V,3) and triangles (F,3), got {V.shape} and {F.shape}; triangulate first.")
-    if not np.isfinite(V).all():
-        raise MeshError("The rest mesh has NaN or infinite coordinates; fix the mesh before finding the lip loop.")
     if loop is not None:
         return order_edge_loop(F, loop, nv)
+    if max_gap is not None and not (np.isfinite(max_gap) and max_gap > 0):
+        raise RegionError(f"max_gap must be a positive distance, got {max_gap!r}; leave it unset or give the lip gap.")
 
     comp, A = _largest_component(F, nv)
     G, E, elen = edge_length_graph(V, F, nv)
@@ -212,6 +246,9 @@ def inner_lip_loop(vertices, faces, loop=None, *, max_gap=None, hops: int = 8) -
     if max_gap is None:
         max_gap = 2.0 * float(np.median(elen[in_comp]))
     max_gap = float(max_gap)
+    if not max_gap > 0:
+        raise RegionError("Every edge of the mesh has zero length, so no lips can be found; fix the mesh "
+                          "(Mesh > Clean Up > Merge by Distance) or select the inner-lip edge loop.")
     partner, gap = _contact_pairs(V, F, comp, A, max_gap, hops)
     has = partner >= 0
     hint = (

@@ -48,47 +48,35 @@ Implementation notes (deviations are marked):
 * ``ridge`` (default 0, the paper): Tikhonov term ``λ ||θ̄||²`` in the
   reduced normal equations; ``ridge="loo"`` picks λ by leave-one-out
   prediction error of the lip gradients. Singular values below ``rtol``
-  times the size of the training deformation are dropped (rank tolerance).
+  times the size of the training deformation, or below an RMS gradient
+  change of ``atol`` per triangle, are dropped (relative and absolute rank
+  tolerance), so round-off directions never enter the map.
+* Guards: with ``center="rest"`` a training set whose mouth does not move
+  (every frame in the rest pose to within ``atol``) is refused with a
+  :class:`~facelab_addon.core.errors.FrameError`: the rest-centred model
+  cannot learn anything from it. A patch whose own mouth input does not move
+  in training reads the whole mouth instead. :meth:`LipRegressor.predict`
+  checks every result before writing it: a non-finite result or a
+  correction larger than the mouth region is refused with a
+  :class:`~facelab_addon.core.errors.PredictionError` naming the frame
+  indices, and ``out`` is left untouched.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from ..errors import FaceLabError, MeshError
+from ..errors import FaceLabError, FrameError, PredictionError, UsageError
 from ..geometry.gradients import rest_inverse, shape_matrices
 from ..geometry.laplacian import poisson_operator
 from ..geometry.linsolve import SPDFactor
 from .features import _BLOCK, _as_frames, _shape_components
+from .guards import _check_prediction, _check_settings, _checked_mesh, _checked_out, _same_array
 from .patches import _lip_patches
 from .reduced import choose_ridge, solve_theta, thin_svd
 from .regions import region_border, validate_regions
 
 __all__ = ["LipRegressor"]
-
-
-def _same_array(a, b):
-    """True when ``a`` and ``b`` are the same elements of the same buffer (e.g. ``out`` is the input)."""
-    return a is b or (
-        isinstance(a, np.ndarray) and a.shape == b.shape and a.dtype == b.dtype and a.strides == b.strides
-        and a.__array_interface__["data"][0] == b.__array_interface__["data"][0]
-    )
-
-
-def _checked_mesh(rest_vertices, faces):
-    """``(R, F)``: the rest positions as (V,3) float64 and the triangles as (F,3) int64, validated."""
-    R = np.asarray(rest_vertices, dtype=np.float64)
-    F = np.asarray(faces)
-    if R.ndim != 2 or R.shape[1] != 3 or len(R) == 0:
-        raise MeshError(f"rest_vertices must be a non-empty (V,3) array, got shape {R.shape}.")
-    if not np.isfinite(R).all():
-        raise MeshError("The rest mesh has NaN or infinite coordinates; fix the rest pose.")
-    if F.ndim != 2 or F.shape[1] != 3 or not np.issubdtype(F.dtype, np.integer):
-        raise MeshError(f"faces must be an (F,3) integer array of triangles, got {F.shape}; triangulate first.")
-    F = F.astype(np.int64)
-    if F.size and (F.min() < 0 or F.max() >= len(R)):
-        raise MeshError(f"Face indices are out of range [0, {len(R)}); the faces do not belong to this mesh.")
-    return R, F
 
 
 class LipRegressor:
@@ -124,6 +112,10 @@ class LipRegressor:
         it per patch by leave-one-out error. 0 (default) is the paper.
     rtol : float
         Relative singular-value cut-off for the thin SVDs (rank tolerance).
+    atol : float
+        Absolute cut-off: deformation directions whose RMS gradient change per
+        triangle (Frobenius norm, unitless) is below ``atol`` are dropped.
+        Default 1e-4 (0.01 % strain), far above round-off and float32 noise.
     backend : {"auto", "cholespy", "splu"}
         Sparse factorisation of the Poisson system.
 
@@ -145,21 +137,23 @@ class LipRegressor:
     RegionError, MeshError
         On empty/overlapping regions, a lip region with no border, degenerate
         triangles or bad shapes (messages say how to fix them).
+    FaceLabError
+        On settings out of range (``patches < 1``, negative ``ridge``, ``rtol`` or ``atol``).
     """
 
     def __init__(self, rest_vertices, faces, mouth_faces, lip_faces, *, patches: int = 10, input_radius=None,
-                 center="rest", ridge=0.0, rtol=1e-4, backend="auto"):
+                 center="rest", ridge=0.0, rtol=1e-4, atol=1e-4, backend="auto"):
         R, F = _checked_mesh(rest_vertices, faces)
         if center not in ("rest", None):
-            raise ValueError(f"center must be 'rest' or None, got {center!r}")
-        if not (ridge == "loo" or (np.isscalar(ridge) and float(ridge) >= 0)):
-            raise ValueError(f"ridge must be a non-negative number or 'loo', got {ridge!r}")
+            raise UsageError(f"center must be 'rest' or None, got {center!r}; use 'rest' (the default)")
+        _check_settings(ridge, rtol, atol, patches, input_radius)
         self.rest = R
         self.faces = F
         self.n_vertices = len(R)
         self.center = center
         self.ridge = ridge
         self.rtol = float(rtol)
+        self.atol = float(atol)
         self._setup_regions(mouth_faces, lip_faces)
         self._setup_poisson(backend)
         self._setup_patches(patches, input_radius)
@@ -180,6 +174,8 @@ class LipRegressor:
         self._lip_verts_all, inv = np.unique(self._lip_tris, return_inverse=True)
         self._lip_local = inv.reshape(-1, 3)
         self._used = np.union1d(self._mouth_verts, self._lip_verts_all)  # vertices read per frame
+        # the largest plausible correction: the extent of the mouth and lip regions (scene units)
+        self.mouth_size = float(np.ptp(R[self._used], axis=0).max())
 
     def _setup_poisson(self, backend):
         """Poisson system on the lip triangles, Dirichlet on the border: interior block factored once."""
@@ -287,6 +283,12 @@ class LipRegressor:
             )
         if len(Y) == 0:
             raise FaceLabError("No features given (0 frames); pass at least one frame.")
+        if not np.issubdtype(Y.dtype, np.floating):
+            raise FaceLabError(f"features have dtype {Y.dtype}, expected floats; compute them with mouth_features().")
+        bad = np.flatnonzero(~np.isfinite(Y).all(axis=1))
+        if bad.size:
+            raise FrameError("The features of {frames} contain NaN or infinite values; recompute them with "
+                             "mouth_features() from frames without NaN coordinates.", bad[:20])
         return Y
 
     # ------------------------------------------------------------------ training
@@ -309,11 +311,12 @@ class LipRegressor:
         FaceLabError
             With fewer than one training frame, a topology that differs from
             the rest mesh, or NaN coordinates.
+        FrameError
+            With ``center="rest"``, when no training frame moves the mouth
+            (all in the rest pose to within ``atol``); the earlier fit is kept.
         """
         y, x = self._training_features(corrected)
-        self._Y = y.copy()
-        self._X = x.copy()
-        self._refit()
+        self._refit(y.copy(), x.copy())
         return self
 
     def add(self, corrected):
@@ -334,11 +337,9 @@ class LipRegressor:
         """
         y, x = self._training_features(corrected)
         if self._Y is None:
-            self._Y, self._X = y.copy(), x.copy()
+            self._refit(y.copy(), x.copy())
         else:
-            self._Y = np.hstack([self._Y, y])
-            self._X = np.hstack([self._X, x])
-        self._refit()
+            self._refit(np.hstack([self._Y, y]), np.hstack([self._X, x]))
         return self
 
     def _training_frames(self, corrected):
@@ -356,19 +357,35 @@ class LipRegressor:
         x = self._feat(self._grad(C, self._lip_rinv, self._lip_verts_all, self._lip_local)).T
         return y, x
 
-    def _refit(self):
-        """Refit from the training features ``_Y``, ``_X``: global span, then each patch's map and operators."""
-        Y, X = self._Y, self._X
-        self.k = Y.shape[1]
+    def _refit(self, Y, X):
+        """Refit on training features ``Y`` (9m, k), ``X`` (9n, k): global span, then each patch's map and operators.
+
+        Refuses (:class:`FrameError`, nothing changed) a rest-centred training set without mouth motion.
+        """
         m, n = len(self.mouth_faces), len(self.lip_faces)
+        k = Y.shape[1]
+        UYg, _ = thin_svd(Y, self.center, self.rtol, self.atol)
+        if UYg.shape[1] == 0:
+            raise FrameError(
+                "The training frames do not move the mouth (in {frames} the mouth is in its rest pose to "
+                f"within an RMS strain of {self.atol:g}), so the regression cannot learn how the lips follow the mouth "
+                "and would extrapolate without bound. Add corrected frames where the mouth moves (open, smile, "
+                "pucker); a fix of the neutral pose itself belongs in the rest mesh.",
+                range(k),
+            )
+        self._Y, self._X, self.k = Y, X, k
         Y3 = Y.reshape(m, 9, self.k)
         X3 = X.reshape(n, 9, self.k)
-        self._fit_span(Y)
+        self._fit_span(Y, UYg)
         self.theta_bars, self.ridges_used = [], []
-        self._pfit = []
+        self._pfit, self._fit_mouth_sel = [], []
         Zs, Ws, zid = [], [], []
         for (mouth_sel, lip_sel, w), Dp in zip(self._patches, self._D_patch):
             UY, UX, th, lam = self._fit_patch(Y3[mouth_sel], X3[lip_sel])
+            if UY.shape[1] == 0:  # this patch's mouth input does not move in training: read the whole mouth
+                mouth_sel = np.arange(m)
+                UY, UX, th, lam = self._fit_patch(Y3, X3[lip_sel])
+            self._fit_mouth_sel.append(mouth_sel)
             self.theta_bars.append(th)
             self.ridges_used.append(lam)
             self._pfit.append((UX, th, UY))
@@ -380,20 +397,23 @@ class LipRegressor:
         self._Wp = Ws
         self._z_ident = np.concatenate(zid)
 
-    def _fit_span(self, Y):
-        """Global span ``U_Y`` and RMS deformation of the mouth features: extrapolation score and suggest_frames."""
+    def _fit_span(self, Y, UY):
+        """Global span ``U_Y`` and RMS deformation of the mouth features: extrapolation score and suggest_frames.
+
+        The RMS deformation is floored at the absolute rank cut, so the score stays bounded.
+        """
         m = len(self.mouth_faces)
-        self._UY, _ = thin_svd(Y, self.center, self.rtol)
+        self._UY = UY
         Yd = Y if self.center == "rest" else Y - np.tile(np.eye(3).ravel(), m)[:, None]
-        self._sigma = float(np.sqrt(np.mean(np.sum(Yd * Yd, axis=0))))
+        self._sigma = max(float(np.sqrt(np.mean(np.sum(Yd * Yd, axis=0)))), self.atol * np.sqrt(m), 1e-12)
 
     def _fit_patch(self, Yp, Xp):
         """One patch's reduced regression from its (m_p,9,k) mouth and (n_p,9,k) lip features.
 
         Returns ``(U_Y, U_X, θ̄, λ)``: the thin-SVD bases, the (rX, rY) reduced map and the ridge used.
         """
-        UY, CY = thin_svd(Yp.reshape(-1, self.k), self.center, self.rtol)
-        UX, CX = thin_svd(Xp.reshape(-1, self.k), self.center, self.rtol)
+        UY, CY = thin_svd(Yp.reshape(-1, self.k), self.center, self.rtol, self.atol)
+        UX, CX = thin_svd(Xp.reshape(-1, self.k), self.center, self.rtol, self.atol)
         lam = choose_ridge(CY, CX, self.ridge)
         th = solve_theta(CY, CX, lam)  # (rX, rY)
         return UY, UX, th, lam
@@ -434,7 +454,7 @@ class LipRegressor:
         """
         e = _shape_components(frames, self._mouth_verts, self._mouth_local)
         zs = []
-        for (mouth_sel, _, _), W in zip(self._patches, self._Wp):
+        for mouth_sel, W in zip(self._fit_mouth_sel, self._Wp):
             z = np.zeros((len(frames), W.shape[-1]))
             for i in range(3):
                 for k in range(3):
@@ -474,6 +494,10 @@ class LipRegressor:
         x = x.reshape(T, -1, 3, 3)
         if self.center == "rest":
             x = x + np.eye(3)
+        bad = np.flatnonzero(~np.isfinite(x).reshape(T, -1).all(axis=1))
+        if bad.size:
+            raise PredictionError("The predicted lip gradients of {frames} are not finite; check those frames "
+                                  "for extreme mouth shapes and retrain with frames like them.", bad[:20])
         return x
 
     def predict(self, captured, *, out=None, chunk: int = 256) -> np.ndarray:
@@ -488,13 +512,16 @@ class LipRegressor:
             time, so float32 gives the same result as float64 (up to float32
             rounding of the written vertices).
         out : (T,V,3) ndarray, optional
-            Where to write the result, any float dtype. It may be
+            Where to write the result, float32 or float64 (the shape of the
+            frames; a (V,3) array for a single (V,3) frame). It may be
             ``captured`` itself, for in-place correction of long sequences:
             then only the interior lip vertices are written (and they are
             never read). Another array first receives a copy of
             ``captured``. Default: a new float64 array. In place, the
-            working memory is a few tens of MB whatever the sequence length
-            and dtype (about 50 MB with the default chunk on ICT-FaceKit).
+            working memory is a few tens of MB (about 50 MB with the default
+            chunk on ICT-FaceKit) plus the checked interior lip positions,
+            24 bytes per interior lip vertex and frame, which are held until
+            every frame has passed the checks and only then written.
         chunk : int
             Frames per batch (working memory ~ chunk × lip size).
 
@@ -505,27 +532,31 @@ class LipRegressor:
             except the interior lip vertices, which are the Poisson
             reconstruction from ``θ y`` with the border vertices held at
             their captured positions (scene units). A single (V,3) frame
-            gives a (1,V,3) result.
+            gives a (1,V,3) result (``out`` itself when given).
 
         Raises
         ------
         FaceLabError
-            If the regressor was not fitted, or the frames have a different
-            topology or NaN coordinates in the mouth or lip region.
+            If the regressor was not fitted, the frames have a different
+            topology or NaN coordinates in the mouth or lip region, or
+            ``out`` is not a writeable float32/float64 array of their shape.
+        PredictionError
+            If a frame's result is not finite, or moves a lip vertex further
+            than the size of the mouth region (:attr:`mouth_size`); it names
+            the frame indices and ``out`` is left unchanged.
         """
         self._require_fit()
         A = _as_frames(captured, self.n_vertices, "captured frames", self._used)
         T = len(A)
-        if out is None:
-            out = A.astype(np.float64)  # always a copy
-        elif not _same_array(out, A):
-            if out.shape != A.shape:
-                raise FaceLabError(f"out has shape {out.shape}, expected {A.shape}; pass an array like the frames.")
-            out[...] = A
+        chunk = int(chunk)
+        if chunk < 1:
+            raise FaceLabError(f"chunk must be at least 1 frame, got {chunk}; use the default 256.")
+        out3 = None if out is None else _checked_out(out, A)
         iv, bv = self.interior_vertices, self.border_vertices
         nI = len(iv)
-        for s in range(0, T, int(chunk)):
-            e = min(T, s + int(chunk))
+        xi_all = np.empty((T, nI, 3))  # checked before anything is written (out may be the captured frames)
+        for s in range(0, T, chunk):
+            e = min(T, s + chunk)
             t = e - s
             z = self._coefficients(A[s:e])
             rhs = (self._Zdiv @ z.T).reshape(nI, 3, t).transpose(0, 2, 1)  # (nI, t, 3)
@@ -534,8 +565,14 @@ class LipRegressor:
             xb = np.asarray(A[s:e][:, bv, :], dtype=np.float64).transpose(1, 0, 2).reshape(len(bv), 3 * t)
             rhs = rhs.reshape(nI, 3 * t) - self._L_IB @ xb
             xi = self._factor.solve(rhs).reshape(nI, t, 3)
-            out[s:e, iv, :] = xi.transpose(1, 0, 2)
-        return out
+            xi_all[s:e] = xi.transpose(1, 0, 2)
+            _check_prediction(xi_all[s:e], A[s:e][:, iv, :], s, self.mouth_size)
+        if out is None:
+            out3 = A.astype(np.float64)  # always a copy
+        elif not _same_array(out3, A):
+            out3[...] = A
+        out3[:, iv, :] = xi_all
+        return out3 if out is None else out
 
     def extrapolation(self, captured=None, *, features=None) -> np.ndarray:
         """How far each frame's mouth gradients lie outside the span of the training frames.
@@ -563,7 +600,7 @@ class LipRegressor:
         """
         self._require_fit()
         if (captured is None) == (features is None):
-            raise ValueError("extrapolation() takes captured frames or their features, not both or neither")
+            raise UsageError("extrapolation() takes captured frames or their features, not both or neither; pass one")
         if features is None:
             A = _as_frames(captured, self.n_vertices, "captured frames", self._used)
             block = lambda s: self._mouth_feat(A[s : s + _BLOCK])  # noqa: E731
@@ -573,7 +610,7 @@ class LipRegressor:
         out = np.empty(len(A))
         for s in range(0, len(A), _BLOCK):
             out[s : s + _BLOCK] = self._residual_norms(block(s))
-        return out / max(self._sigma, 1e-12)
+        return out / self._sigma
 
     def training_span(self) -> np.ndarray:
         """(9m, r) orthonormal basis ``U_Y`` of the training mouth features (whole mouth region)."""

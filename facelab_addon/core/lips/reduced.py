@@ -18,12 +18,17 @@ import numpy as np
 __all__ = ["thin_svd", "solve_theta", "choose_ridge"]
 
 
-def thin_svd(M, center, rtol):
+def thin_svd(M, center, rtol, atol=0.0):
     """Thin SVD ``M = U C`` (``C = Σ Vᵀ``) of a feature matrix (rows = 9 per triangle, k columns).
 
-    Singular values below ``rtol`` times the size of the *deformation*
-    (the Frobenius norm of ``M`` minus the identity gradients, so the
-    uncentred paper model is not dominated by the identity) are dropped.
+    Two rank cuts: singular values below ``rtol`` times the size of the
+    *deformation* (the Frobenius norm of ``M`` minus the identity gradients,
+    so the uncentred paper model is not dominated by the identity) are
+    dropped (relative cut), and so are those below ``atol * sqrt(f)``, a
+    deformation whose RMS gradient change per triangle is below ``atol``
+    (absolute cut). The absolute cut removes round-off directions (a frame
+    in the rest pose gives singular values of about 1e-15, which the
+    relative cut alone would keep and the regression would then divide by).
     Computed through the k×k Gram matrix (``O(rows·k²)``, several times
     faster than LAPACK on tall matrices); its precision, ``sqrt(eps)``
     times the largest singular value, is far below the rank tolerance.
@@ -36,6 +41,8 @@ def thin_svd(M, center, rtol):
         ``"rest"``: ``M`` holds gradients minus the identity; ``None``: plain gradients.
     rtol : float
         Relative singular-value cut-off (at least 1e-7).
+    atol : float
+        Absolute cut-off: RMS Frobenius norm per triangle of a gradient change (unitless).
 
     Returns
     -------
@@ -53,7 +60,8 @@ def thin_svd(M, center, rtol):
         ident = np.tile(np.eye(3).ravel(), M.shape[0] // 9)[:, None]
         ref = float(np.linalg.norm(M - ident))
     ref = max(ref, 1e-12 * (s[0] if s.size else 0.0), 1e-300)
-    r = int(np.sum(s > max(rtol, 1e-7) * ref)) if s.size else 0
+    cut = max(max(rtol, 1e-7) * ref, float(atol) * np.sqrt(M.shape[0] / 9.0))
+    r = int(np.sum(s > cut)) if s.size else 0
     U = (M @ Vv[:, :r]) / s[:r]
     return U, s[:r, None] * Vv[:, :r].T
 

@@ -25,7 +25,7 @@ from scipy.sparse.csgraph import connected_components as _cc
 from ..errors import MeshError, RegionError
 from ..geometry.geodesic import geodesic_distance
 from ..geometry.mesh import vertex_adjacency
-from .lip_loop import inner_lip_loop, loop_width
+from .lip_loop import _region_mesh, inner_lip_loop, loop_width
 
 __all__ = [
     "RegionError",
@@ -241,13 +241,12 @@ def auto_regions(vertices, faces, loop=None, lip_width=None, mouth_width=None, *
     RegionError
         If the loop cannot be found or the widths are not positive.
     """
-    V = np.asarray(vertices, dtype=np.float64)
-    F = np.asarray(faces, dtype=np.int64)
+    V, F = _region_mesh(vertices, faces)
     nv = len(V)
     loop = inner_lip_loop(V, F, loop)
     W = loop_width(V, loop)
-    lw = DEFAULT_LIP_WIDTH * W if lip_width is None else float(lip_width)
-    mw = DEFAULT_MOUTH_WIDTH * W if mouth_width is None else float(mouth_width)
+    lw = DEFAULT_LIP_WIDTH * W if lip_width is None else _width(lip_width, "lip")
+    mw = DEFAULT_MOUTH_WIDTH * W if mouth_width is None else _width(mouth_width, "mouth")
     if not (lw > 0 and mw > 0 and np.isfinite(lw) and np.isfinite(mw)):
         raise RegionError(
             f"Region widths must be positive scene distances, got lip {lw} and mouth {mw}; fix the widths."
@@ -285,6 +284,14 @@ def auto_regions(vertices, faces, loop=None, lip_width=None, mouth_width=None, *
     return mouth, lip
 
 
+def _width(w, what):
+    """A band width as a float (RegionError if it is not a number)."""
+    try:
+        return float(w)
+    except (TypeError, ValueError):
+        raise RegionError(f"The {what} width must be a distance in scene units, got {w!r}; fix the width.") from None
+
+
 def inner_lip_vertices(vertices, faces, loop=None, lip_width=None) -> np.ndarray:
     """(V,) bool mask of the inner-lip region (the ``lip_mask`` of :func:`auto_regions`).
 
@@ -304,8 +311,9 @@ def inner_lip_vertices(vertices, faces, loop=None, lip_width=None) -> np.ndarray
     -------
     (V,) bool ndarray
     """
-    V = np.asarray(vertices, dtype=np.float64)
-    F = np.asarray(faces, dtype=np.int64)
+    V, F = _region_mesh(vertices, faces)
     loop = inner_lip_loop(V, F, loop)
-    lw = DEFAULT_LIP_WIDTH * loop_width(V, loop) if lip_width is None else float(lip_width)
+    lw = DEFAULT_LIP_WIDTH * loop_width(V, loop) if lip_width is None else _width(lip_width, "lip")
+    if not (lw > 0 and np.isfinite(lw)):
+        raise RegionError(f"The lip width must be a positive scene distance, got {lw}; fix the width.")
     return geodesic_distance(V, F, loop, limit=lw) <= lw

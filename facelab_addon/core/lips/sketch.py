@@ -41,7 +41,7 @@ import time
 import numpy as np
 
 from ..capture.camera import Camera
-from ..errors import CameraError, FaceLabError, SketchError
+from ..errors import CameraError, FaceLabError, SketchError, UsageError
 from ..geometry.deform import LaplacianDeformer, PointConstraints
 from ..geometry.laplacian import laplacian as make_laplacian
 from ..geometry.linsolve import small_dense_threads
@@ -237,7 +237,7 @@ def refine_lips(
     if iterations < 1:
         raise FaceLabError("iterations must be at least 1.")
     if silhouette_rays not in ("nearest", "pixel"):
-        raise ValueError("silhouette_rays must be 'nearest' or 'pixel'")
+        raise UsageError(f"silhouette_rays must be 'nearest' or 'pixel', got {silhouette_rays!r}")
     fixed = np.zeros(n, bool) if fixed is None else np.asarray(fixed, dtype=bool)
     if fixed.shape != (n,):
         raise FaceLabError(f"'fixed' must be a mask of {n} vertices, got {fixed.shape}.")

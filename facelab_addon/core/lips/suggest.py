@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import FaceLabError
+from ..errors import FaceLabError, UsageError
 from .features import _BLOCK, _as_frames, _mouth_features
 from .propagate import LipRegressor
 
@@ -87,7 +87,7 @@ def suggest_frames(captured=None, count: int = 1, *, regressor: LipRegressor | N
         fewer when the remaining frames already lie in the span.
     """
     if (captured is None) == (features is None):
-        raise ValueError("suggest_frames() takes captured frames or their features, not both or neither")
+        raise UsageError("suggest_frames() takes captured frames or their features, not both or neither; pass one")
     if features is not None:
         if regressor is not None:
             F0 = regressor._check_features(features)

@@ -168,6 +168,8 @@ class BlendshapeSolver:
         lo, hi = bounds
         self.lo = np.broadcast_to(np.asarray(lo, float), (self.S,)).copy()
         self.hi = np.broadcast_to(np.asarray(hi, float), (self.S,)).copy()
+        if np.isnan(self.lo).any() or np.isnan(self.hi).any():
+            raise FaceLabError("The weight bounds contain NaN; give numbers such as (-1, 1).")
         if (self.lo > self.hi).any():
             raise FaceLabError("Lower weight bounds exceed the upper ones; check the bounds.")
         self.marker_weight = float(marker_weight)
