@@ -79,20 +79,10 @@ def test_broken_frame_is_named_by_its_scene_frame(ict, addon, monkeypatch):
 
 
 def test_cancel_and_failure_on_a_mesh_cache_leave_the_modifier_as_it_was(ict, addon, tmp_path, monkeypatch):
-    from facelab_addon.blender.scene import new_mesh_object
-    from facelab_addon.core.capture.pointcache_writer import write_pc2
+    from ..pipeline.test_propagate import pc2_capture_face
 
-    scene, obj, err, cap_w = build(ict)
-    frames = FRAMES[:16]
-    capture = caches.evaluate_frames(obj, frames, mute_shape_keys_prefix=())
-    pc2 = write_pc2(tmp_path / "capture.pc2", capture, start=1.0)
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    scene = bpy.context.scene
-    scene.frame_start, scene.frame_end = 1, 16
-    face = new_mesh_object("Face", ict.neutral * SCALE, poly_verts=ict.poly_verts, poly_offsets=ict.poly_offsets)
-    md = face.modifiers.new("Capture", "MESH_CACHE")
-    md.cache_format, md.filepath, md.frame_start = "PC2", str(pc2), 1.0
-    bpy.context.view_layer.objects.active = face
+    cap = pc2_capture_face(ict, tmp_path)
+    scene, face, md, frames, capture, pc2 = cap.scene, cap.face, cap.md, cap.frames, cap.capture, cap.pc2
     auto_regions(face)
     record_training_frame(scene, face, 9, "", "sculpt")
     assert md.deform_mode == "OVERWRITE"

@@ -143,24 +143,38 @@ def test_propagate_refuses_bad_input_before_any_step(ict, addon):
     assert not any(m.name.startswith(SUGGEST_MARKER) for m in scene.timeline_markers)
 
 
-def test_corrected_frame_over_a_mesh_cache(ict, addon, tmp_path):
-    """A corrected face (an OBJ's vertices) on frame 9 of a PC2 capture: the cache is switched to
-    Integrate, the key is mapped through the cache surface, and frame 9 shows the corrected face."""
+def pc2_capture_face(ict, tmp_path, n_frames=16):
+    """The first ``n_frames`` of the keyed capture of ``build`` baked to a PC2 and played by a Mesh Cache
+    (Overwrite) on a fresh ICT face in a new scene (frames 1..n).
+
+    Returns a namespace: ``scene``, ``face``, ``md`` (the modifier), ``frames`` (n,) of the source
+    animation, ``capture`` (n,V,3) as baked, ``truth`` (n,V,3) the capture without its error, ``pc2``
+    (the file)."""
+    from types import SimpleNamespace
+
     from facelab_addon.blender.scene import new_mesh_object
     from facelab_addon.core.capture.pointcache_writer import write_pc2
 
     scene, obj, err, cap_w = build(ict)
-    frames = FRAMES[:16]
+    frames = FRAMES[:n_frames]
     capture = caches.evaluate_frames(obj, frames, mute_shape_keys_prefix=())
     truth = caches.evaluate_frames(obj, frames, mute_shape_keys_prefix=("CaptureError",))
     pc2 = write_pc2(tmp_path / "capture.pc2", capture, start=1.0)
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene
-    scene.frame_start, scene.frame_end = 1, 16
+    scene.frame_start, scene.frame_end = 1, n_frames
     face = new_mesh_object("Face", ict.neutral * SCALE, poly_verts=ict.poly_verts, poly_offsets=ict.poly_offsets)
     md = face.modifiers.new("Capture", "MESH_CACHE")
     md.cache_format, md.filepath, md.frame_start = "PC2", str(pc2), 1.0
     bpy.context.view_layer.objects.active = face
+    return SimpleNamespace(scene=scene, face=face, md=md, frames=frames, capture=capture, truth=truth, pc2=pc2)
+
+
+def test_corrected_frame_over_a_mesh_cache(ict, addon, tmp_path):
+    """A corrected face (an OBJ's vertices) on frame 9 of a PC2 capture: the cache is switched to
+    Integrate, the key is mapped through the cache surface, and frame 9 shows the corrected face."""
+    cap = pc2_capture_face(ict, tmp_path)
+    scene, face, md, capture, truth = cap.scene, cap.face, cap.md, cap.capture, cap.truth
     assert md.deform_mode == "OVERWRITE"
 
     c = add_corrected_frame(scene, face, 9, truth[8])
