@@ -10,7 +10,7 @@ A captured performance reaches Blender in one of three ways:
 Cache's file directly (``core.capture.pointcache``), mapping scene frames to samples
 exactly as the modifier does; ``evaluate_frames`` is the generic path (one
 ``frame_set`` and evaluated mesh per frame) for everything else, with
-FaceLab's own corrective keys (``FL_*``) muted so it returns the *capture*.
+FaceLab's own corrective keys (the ``FL_*`` keys it recorded) muted so it returns the *capture*.
 
 Corrective shape keys only show on top of a cache when the cache does not
 overwrite them: ``cache_integrate.cache_to_shape_key_ready`` switches a Mesh Cache to
@@ -136,26 +136,32 @@ def _shape_keys_animated(obj, ignore_prefixes=FACELAB_PREFIXES) -> bool:
     keys = obj.data.shape_keys if obj.type == "MESH" else None
     if keys is None or len(keys.key_blocks) < 2:
         return False
+    from .shapekeys import key_matches
+
     pref = _prefixes(ignore_prefixes)
     for fc in _anim_fcurves(keys):
         if fc.data_path == "eval_time":
             return True
         name = _key_name_from_path(fc.data_path)
-        if name is not None and not name.startswith(pref):
+        if name is not None and not key_matches(keys, name, pref):
             return True
     return False
 
 
 @contextlib.contextmanager
 def _muted_shape_keys(obj, prefixes):
-    """Mute the shape keys whose names start with ``prefixes``; restore on exit."""
+    """Mute the shape keys ``prefixes`` select (``shapekeys.key_matches``: under ``FL_`` only FaceLab's
+    recorded keys); restore on exit."""
+    from .shapekeys import _registry, key_matches
+
     pref = _prefixes(prefixes)
     keys = obj.data.shape_keys if obj.type == "MESH" else None
     saved = []
     try:
         if keys is not None and pref:
+            owned = set(_registry(keys, create=False))
             for kb in keys.key_blocks:
-                if kb.name.startswith(pref) and kb != keys.reference_key:
+                if key_matches(keys, kb.name, pref, owned) and kb != keys.reference_key:
                     saved.append((kb, kb.mute))
                     kb.mute = True
         yield

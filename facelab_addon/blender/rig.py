@@ -1,7 +1,7 @@
 """Shape-key rigs -> arrays: the blendshape rig, the dataset of facial shapes, FaceLab's keys, drivers.
 
 Every reader works in object-local coordinates (shape-key space) and leaves
-out FaceLab's own keys (names starting with :data:`facelab_addon.names.PREFIX`).
+out FaceLab's own keys (those it recorded, :func:`.shapekeys.owned_keys`).
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import numpy as np
 from .. import names as fl
 from ..core.errors import FaceLabError
 from .actions import curve_values, key_path
-from .shapekeys import rest_vertices
+from .shapekeys import owned_keys, rest_vertices
 
 __all__ = [
     "rig_shapes",
@@ -59,9 +59,9 @@ def rig_shapes(obj):
     def co(kb):
         return _key_coords(kb, n, np.float32).astype(np.float64)
 
-    names, deltas = [], []
+    names, deltas, owned = [], [], set(owned_keys(obj))
     for kb in key.key_blocks:
-        if kb == basis or kb.mute or kb.name.startswith(fl.PREFIX):
+        if kb == basis or kb.mute or (kb.name.startswith(fl.PREFIX) and kb.name in owned):
             continue
         names.append(kb.name)
         deltas.append(co(kb) - co(kb.relative_key))
@@ -143,9 +143,9 @@ def dataset_shapes(obj):
         return _key_coords(kb, n, np.float64)
 
     base = co(basis)
-    names, shapes = [], []
+    names, shapes, owned = [], [], set(owned_keys(obj))
     for kb in key.key_blocks:
-        if kb == basis or kb.name.startswith(fl.PREFIX):
+        if kb == basis or (kb.name.startswith(fl.PREFIX) and kb.name in owned):
             continue
         names.append(kb.name)
         shapes.append(base + co(kb) - co(kb.relative_key))

@@ -95,6 +95,32 @@ def own_key(key_block) -> None:
     key[OWNED_KEYS_PROP] = reg
 
 
+def key_matches(key, name: str, prefixes, owned=None) -> bool:
+    """Whether the shape key ``name`` of the Key datablock ``key`` is one ``prefixes`` select.
+
+    A prefix under FaceLab's own (:data:`facelab_addon.names.PREFIX`, ``FL_``) selects only keys
+    FaceLab recorded as its own, so an artist's ``FL_Prop_MyFix`` is never taken for FaceLab's output;
+    any other prefix (``"CaptureError"``) selects by name.
+
+    Parameters
+    ----------
+    key : bpy.types.Key
+    name : str
+    prefixes : tuple of str
+    owned : collection of str, optional
+        FaceLab's recorded keys of ``key`` (computed when omitted; pass it in loops).
+    """
+    for p in prefixes:
+        if name.startswith(p):
+            if not p.startswith(PREFIX):
+                return True
+            if owned is None:
+                owned = set(_registry(key, create=False))
+            if name in owned:
+                return True
+    return False
+
+
 def owned_keys(obj, prefix: str = "") -> list:
     """Names of the shape keys of ``obj`` FaceLab created (recorded in the registry), starting with ``prefix``.
 
@@ -168,8 +194,8 @@ def shape_key_sequence(obj, frames, *, skip_prefixes=(PREFIX,)):
 
     Evaluates each key's value F-curve at ``frames`` and mixes
     ``basis + sum_k value_k (key_k - relative_k)``, honouring mute,
-    slider limits and relative keys. Keys whose name starts with one of
-    ``skip_prefixes`` (FaceLab's own output) are left out.
+    slider limits and relative keys. Keys ``skip_prefixes`` select
+    (:func:`key_matches`: FaceLab's own output) are left out.
 
     Returns ``None`` when this fast path does not apply (modifiers that
     deform, drivers, vertex-group-masked keys, absolute keys): use frame-by-frame
@@ -198,8 +224,9 @@ def shape_key_sequence(obj, frames, *, skip_prefixes=(PREFIX,)):
         return c
 
     deltas, weights = [], []
+    skip, owned = tuple(skip_prefixes), set(_registry(key, create=False))
     for kb in key.key_blocks:
-        if kb == basis or kb.mute or kb.name.startswith(tuple(skip_prefixes)):
+        if kb == basis or kb.mute or key_matches(key, kb.name, skip, owned):
             continue
         if kb.vertex_group:
             return None

@@ -18,6 +18,7 @@ import pytest  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
 from facelab_addon.blender import bakes, cache_integrate, caches  # noqa: E402
+from facelab_addon.blender.shapekeys import own_key  # noqa: E402
 from facelab_addon.core.capture import integrate, meshcache, pointcache, pointcache_writer  # noqa: E402
 from facelab_addon.core.errors import FaceLabError, MeshError  # noqa: E402
 
@@ -231,6 +232,7 @@ def test_evaluate_frames_mutes_and_restores(empty_scene):
     assert caches.sequence_source(ob) == "shape_keys"
     fl = add_key(ob, "FL_fix", np.full_like(rest, 0.01))
     other = add_key(ob, "FL_muted", np.full_like(rest, 5.0))
+    own_key(fl), own_key(other)  # FaceLab's output (an artist's FL_* key is part of the capture)
     other.mute = True
     empty_scene.frame_set(4)
     calls = []
@@ -244,6 +246,7 @@ def test_evaluate_frames_mutes_and_restores(empty_scene):
     # FaceLab's own animated keys do not make a mesh "animated"
     ob2 = ico("Static")
     k = add_key(ob2, "FL_Refine_3", np.zeros((42, 3)))
+    own_key(k)
     k.keyframe_insert("value", frame=3)
     assert caches.sequence_source(ob2) == "static"
 

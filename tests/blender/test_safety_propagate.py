@@ -128,3 +128,28 @@ def test_a_neutral_training_frame_is_refused_naming_its_scene_frame(ict, addon):
     with pytest.raises(RuntimeError, match=r"do not move the mouth.*frame 12.*Add corrected frames where the mouth"):
         bpy.ops.facelab.propagate(suggestions=0)
     assert obj.data.shape_keys.key_blocks.keys() == before
+
+
+def test_an_artist_key_named_like_facelabs_is_read_as_part_of_the_capture(ict, addon):
+    """Reading the capture mutes FaceLab's recorded output only: the artist's own ``FL_Prop_MyFix``
+    shows in what Propagate reads, while a key FaceLab wrote is left out."""
+    scene, obj, err = corrected(ict)
+    fix = obj.shape_key_add(name="FL_Prop_MyFix", from_mix=False)
+    c = coords(obj, "FL_Prop_MyFix")
+    c.reshape(-1, 3)[:30] += 0.001  # the first 30 vertices
+    fix.data.foreach_set("co", c)
+    f = int(FRAMES[0])
+    fix.value = 0.0
+    base = caches.read_captured_frames(obj, [f])[0]
+    fix.value = 1.0
+    with_fix = caches.read_captured_frames(obj, [f])[0]
+    moved = np.abs(with_fix - base).max(axis=1)
+    np.testing.assert_allclose(moved[:30], 0.001, atol=2e-6)
+    assert moved[30:].max() < 1e-7
+    # FaceLab's own key with the same prefix is muted when the capture is read
+    ours = add_corrective_key(obj, f"{PROPAGATE_PREFIX}00", np.full((len(obj.data.vertices), 3), 0.002))
+    from facelab_addon.blender.shapekeys import own_key
+
+    own_key(ours)
+    ours.value = 1.0
+    np.testing.assert_allclose(caches.read_captured_frames(obj, [f])[0], with_fix, atol=1e-7)
