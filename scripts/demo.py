@@ -176,7 +176,10 @@ def run_refine(ict, out, img_dir, samples):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default=str(ROOT / "out" / "demo"))
-    ap.add_argument("--images", default=str(ROOT / "docs" / "images"))
+    ap.add_argument("--images", default=None,
+                    help="where the figures go (default: OUT/images; see --refresh-docs)")
+    ap.add_argument("--refresh-docs", action="store_true",
+                    help="write the figures into docs/images/, the README's pictures (tracked files)")
     ap.add_argument("--samples", type=int, default=24)
     ap.add_argument("--only", default=",".join(PARTS),
                     help="comma-separated parts to run, in this order: " + ",".join(PARTS) + " (default: all)")
@@ -185,7 +188,8 @@ def main(argv=None):
     bad = [p for p in parts if p not in PARTS]
     if bad:
         ap.error(f"unknown part(s) {bad} in --only; choose from {','.join(PARTS)}")
-    out, img_dir = Path(a.out), Path(a.images)
+    out = Path(a.out)
+    img_dir = Path(a.images) if a.images else (ROOT / "docs" / "images" if a.refresh_docs else out / "images")
     out.mkdir(parents=True, exist_ok=True)
     img_dir.mkdir(parents=True, exist_ok=True)
     sys.path.insert(0, str(ROOT / "scripts"))
@@ -217,7 +221,9 @@ def main(argv=None):
 
             print(json.dumps(run_reconstruct(ict, out, img_dir, render, min(a.samples, 16)), indent=2))
         times[part] = round(time.perf_counter() - t0, 1)
-    print(f"[demo] done in {time.perf_counter() - t_all:.0f} s: {times}")
+    for backup in out.rglob("*.blend1"):  # Blender's backup of a re-saved .blend: the demo wants one copy
+        backup.unlink()
+    print(f"[demo] done in {time.perf_counter() - t_all:.0f} s: {times}; figures in {img_dir}")
     return 0
 
 

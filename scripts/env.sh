@@ -9,13 +9,15 @@
 # The Python version comes from the requirements file's "# python: X.Y" line (the bpy wheels of
 # each Blender exist for one Python only). The interpreter is looked up the way a machine offers it:
 # pythonX.Y on PATH, then pyenv's installed versions.
-set -euo pipefail
+#
+# Safe to source into an interactive shell: it sets no shell options, and a failure returns 1
+# with a message instead of exiting the shell.
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 BPY="${FACELAB_BPY:-5.0}"
 REQ="$ROOT/requirements/bpy-$BPY.txt"
 if [ ! -f "$REQ" ]; then
   echo "[facelab] no requirements/bpy-$BPY.txt; supported: $(cd "$ROOT/requirements" && ls bpy-*.txt | sed 's/bpy-//; s/\.txt//' | tr '\n' ' ')" >&2
-  exit 1
+  return 1 2>/dev/null || exit 1
 fi
 if [ "$BPY" = "5.0" ]; then VENV_DEFAULT="$ROOT/.venv"; else VENV_DEFAULT="$ROOT/.venv-bpy${BPY//./}"; fi
 VENV="${FACELAB_VENV:-$VENV_DEFAULT}"
@@ -48,14 +50,20 @@ if [ ! -x "$VENV/bin/python" ] || \
   if [ -z "$PY" ] && ! PY="$(facelab_find_python "$PYVER")"; then
     echo "[facelab] bpy $BPY needs Python $PYVER, which was not found (looked for python$PYVER and python3 on PATH," \
          "and in pyenv). Install Python $PYVER (e.g. 'pyenv install $PYVER'), or set FACELAB_PYTHON." >&2
-    exit 1
+    return 1 2>/dev/null || exit 1
   fi
   echo "[facelab] setting up $VENV for bpy $BPY with $PY (first run downloads bpy, ~400 MB)" >&2
   rm -rf "$VENV"
-  "$PY" -m venv "$VENV"
+  if ! "$PY" -m venv "$VENV"; then
+    echo "[facelab] could not create the venv $VENV with $PY" >&2
+    return 1 2>/dev/null || exit 1
+  fi
 fi
 if [ "$(pins "$REQ")" != "$(pins "$STAMP")" ]; then
-  "$VENV/bin/python" -m pip install -q --disable-pip-version-check -r "$REQ"
+  if ! "$VENV/bin/python" -m pip install -q --disable-pip-version-check -r "$REQ"; then
+    echo "[facelab] installing requirements/bpy-$BPY.txt into $VENV failed (see pip's message above)" >&2
+    return 1 2>/dev/null || exit 1
+  fi
   cp "$REQ" "$STAMP"
 fi
 export PATH="$VENV/bin:$PATH"
