@@ -15,18 +15,16 @@ from facelab_addon.pipeline.propagate import propagate, propagate_steps, record_
 from facelab_addon.pipeline.regions import auto_regions
 from facelab_addon.pipeline.steps import StepJob
 
-from .test_propagate_operator import FRAMES, SCALE, TRAIN, build
+from .test_propagate_operator import FRAMES, SCALE
 
 pytestmark = pytest.mark.blender
 
 
 def corrected(ict):
-    scene, obj, err, cap_w = build(ict)
-    auto_regions(obj)
-    for f in TRAIN:
-        scene.frame_set(f)
-        key_spike(add_corrective_key(obj, f"Sculpt_{f}", -cap_w[np.searchsorted(FRAMES, f)] * err), f)
-        record_training_frame(scene, obj, f, "", "sculpt")
+    """``corrected_scene`` of the pipeline tests with the face as the active object (for the operators)."""
+    from ..pipeline.test_propagate import corrected_scene
+
+    scene, obj, err, _ = corrected_scene(ict)
     bpy.context.view_layer.objects.active = obj
     return scene, obj, err
 
