@@ -16,6 +16,7 @@ import numpy as np
 
 from ..blender import bakes, caches
 from ..core.errors import FaceLabError
+from .settings import setting
 from .steps import run_steps
 
 __all__ = ["FORMATS", "BakeSettings", "BakeResult", "bake_steps", "bake"]
@@ -35,8 +36,11 @@ class BakeSettings:
         Replace an existing file (otherwise refuse).
     """
 
-    format: str = "PC2"
-    overwrite: bool = False
+    format: str = setting("PC2", label="Format", description="File format of the baked point cache",
+                          choices=(("PC2", "PC2", "Point cache 2 (Mesh Cache modifier)"),
+                                   ("MDD", "MDD", "Lightwave MDD (Mesh Cache modifier)"),
+                                   ("ABC", "Alembic", "Alembic (Mesh Sequence Cache modifier)")))
+    overwrite: bool = setting(False, label="Overwrite", description="Replace an existing file (otherwise refuse)")
 
 
 @dataclass

@@ -45,6 +45,7 @@ from ..names import (
 from .correctives import write_corrective_keys
 from .frames import check_frames
 from .regions import region_faces
+from .settings import setting
 from .steps import run_steps
 
 __all__ = [
@@ -72,7 +73,8 @@ class PropagateSettings:
         How many frames to suggest correcting next (timeline markers).
     """
 
-    suggestions: int = 3
+    suggestions: int = setting(3, label="Suggestions", min=0, max=50,
+                               description="How many frames to suggest correcting next (timeline markers)")
 
 
 @dataclass

@@ -31,6 +31,7 @@ from ..core.errors import CameraError
 from ..core.lips.sketch import refine_lips
 from ..names import FIXED_GROUP, REFINE_PREFIX
 from .propagate import record_training_frame
+from .settings import setting
 
 __all__ = ["REFINE_DEFAULTS", "RefineSettings", "RefineResult", "refine"]
 
@@ -61,11 +62,18 @@ class RefineSettings:
         parts separate from the largest piece of the mesh are fixed.
     """
 
-    iterations: int = REFINE_DEFAULTS["iterations"]
-    lambda_pos: float = REFINE_DEFAULTS["lambda_pos"]
-    lambda_reg: float = REFINE_DEFAULTS["lambda_reg"]
-    lambda_silh: float = REFINE_DEFAULTS["lambda_silh"]
-    fixed_group: str = FIXED_GROUP
+    iterations: int = setting(REFINE_DEFAULTS["iterations"], label="Iterations", min=1, max=100,
+                              description="Solve / re-match iterations of the sketch refinement (paper: 5)")
+    lambda_pos: float = setting(REFINE_DEFAULTS["lambda_pos"], label="Position Weight", min=0.0, soft_max=10.0,
+                                description="How strongly vertices keep their captured position "
+                                            "(paper: 0.1; fixed vertices use 1)")
+    lambda_reg: float = setting(REFINE_DEFAULTS["lambda_reg"], label="Rigidity Weight", min=0.0, soft_max=100.0,
+                                description="Preservation of the local shape (Laplacian coordinates) (paper: 3)")
+    lambda_silh: float = setting(REFINE_DEFAULTS["lambda_silh"], label="Silhouette Weight", min=0.0,
+                                 soft_max=100.0, description="Pull of the sketched contours (paper: 1)")
+    fixed_group: str = setting(FIXED_GROUP, label="Fixed Group",
+                               description="Vertex group of hidden vertices that must not move (inner mouth, "
+                                           "teeth, back of the head); without it, separate mesh parts are fixed")
 
     def solver_weights(self) -> dict:
         """The keyword arguments of :func:`~facelab_addon.core.lips.sketch.refine_lips`."""

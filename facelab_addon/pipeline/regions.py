@@ -26,6 +26,7 @@ from ..core.errors import RegionError
 from ..core.lips import regions as core_regions
 from ..core.lips.lip_loop import inner_lip_loop, loop_width
 from ..names import LIPS_GROUP, MOUTH_GROUP
+from .settings import setting
 
 __all__ = ["REGION_DEFAULTS", "RegionSettings", "RegionsResult", "auto_regions", "region_faces"]
 
@@ -53,8 +54,11 @@ class RegionSettings:
 
     replace: bool = False
     use_selection: bool = False
-    lip_width: float = REGION_DEFAULTS["lip_width"]
-    mouth_width: float = REGION_DEFAULTS["mouth_width"]
+    lip_width: float = setting(REGION_DEFAULTS["lip_width"], label="Lip Band", min=0.01, max=1.0, unit="mouth",
+                               description="Half-width of the inner-lip band FL_lips, in mouth widths")
+    mouth_width: float = setting(REGION_DEFAULTS["mouth_width"], label="Mouth Band", min=0.01, max=3.0,
+                                 unit="mouth",
+                                 description="Width of the trusted mouth band FL_mouth around the lips, in mouth widths")
 
 
 @dataclass
