@@ -264,10 +264,10 @@ class CorrectionWriter:
         try:
             path = bakes.correction_cache_path(obj, prefix, s.cache_format.upper(), s.cache_directory or None)
         except OutputError as e:  # no place for a cache (unsaved .blend): as many keys as it takes
-            if T * self.n > 50_000_000:
-                raise
-            C = read(0, T)
-            basis, weights = compress(np.asarray(C, dtype=np.float64), tol=self.tol)
+            if T > 4000 or T * self.n > 50_000_000:  # past that, keys are no answer: the cache is needed
+                raise OutputError(f"{e} (a correction of {T} frames of {self.n} vertices does not fit in "
+                                  f"{budget} keys).") from None
+            basis, weights = compress(read(0, T), tol=self.tol)  # block by block from the spool
             self._remove_previous()
             names = self._write_keys(basis, weights, frames)
             return CorrectionResult("keys", keys=names, rank=len(names), frames=T, max_error_mm=float("nan"),

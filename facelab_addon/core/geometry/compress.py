@@ -15,7 +15,7 @@ face need a few tens of MB beyond the input array.
 *does* the correction fit in at most ``max_rank`` shapes within ``tol``? It reads the frames
 chunk by chunk (from a spool file, or from a low-rank product) and keeps only ``O(k·n)``
 numbers: a randomized range finder of the row space (one pass), a projection (second pass)
-and a per-frame, per-vertex error check of every rank up to ``max_rank`` (third pass).
+and a per-frame, per-vertex error check of the ranks up to ``max_rank`` (third and fourth passes).
 """
 
 from __future__ import annotations
@@ -32,6 +32,7 @@ __all__ = ["compress", "reconstruct", "compress_streamed", "low_rank_reader", "S
 DEFAULT_TOL_M = 1e-5
 
 _BLOCK = 1024  # vertices per block
+_BLOCK_VALUES = 4_000_000  # float64 values per streamed block (32 MB)
 
 
 def _check(C):
@@ -221,8 +222,9 @@ class StreamedBasis:
     weights : (T,r) float64 ndarray
         Per-frame weights in [-1, 1].
     frame_error : (T,) float64 ndarray
-        Largest vertex error of each frame at rank ``r``, scene units (NaN when the rank check was
-        skipped because the energy beyond ``max_rank`` alone exceeds ``tol``).
+        Largest vertex error of each frame at rank ``r``, scene units (NaN for frames not measured
+        when the correction does not fit: the energy beyond ``max_rank`` alone exceeds ``tol``, or a
+        chunk of frames needs more shapes).
     max_error : float
         ``max(frame_error)``.
     """
@@ -298,8 +300,9 @@ def compress_streamed(read, T: int, n: int, tol: float, max_rank: int, *, oversa
     -----
     Pass 1 sketches the row space, ``Z = Ωᵀ A`` with a Gaussian ``Ω`` (T,k), ``k = max_rank +
     oversample``; its orthonormal basis ``Q`` (3n,k) gives pass 2, ``W = A Q`` (T,k), whose small
-    SVD orders the directions. Pass 3 measures, per frame, the largest vertex error of every rank
-    up to ``max_rank`` (incremental rank-1 updates of the residual). When the energy left beyond
+    SVD orders the directions. Pass 3 finds, chunk by chunk, the first rank whose largest vertex error
+    is within ``tol`` on every frame of the chunk (rank-1 updates of the residual, starting where the
+    energy bound allows); pass 4 checks every frame at the largest such rank. When the energy left beyond
     ``max_rank`` already exceeds ``T·n·tol²`` (so the RMS error, a lower bound of the max error,
     is above ``tol``) pass 3 is skipped. Memory: ``O(k·n + chunk·n)`` floats.
     """
@@ -310,6 +313,7 @@ def compress_streamed(read, T: int, n: int, tol: float, max_rank: int, *, oversa
         raise FaceLabError(f"The key budget must be at least 1 shape, got {max_rank}.")
     T, n, max_rank = int(T), int(n), int(max_rank)
     m = 3 * n
+    chunk = max(1, min(int(chunk), _BLOCK_VALUES // max(m, 1)))  # a block of about 32 MB at any mesh size
     if T == 0 or n == 0:
         return StreamedBasis(True, np.zeros((0, n, 3)), np.zeros((T, 0)), np.zeros(T), 0.0)
 
@@ -351,17 +355,44 @@ def compress_streamed(read, T: int, n: int, tol: float, max_rank: int, *, oversa
     if tail > T * n * tol * tol:
         return StreamedBasis(False, *_normalise(basis[:r_cap].reshape(r_cap, n, 3), weights[:, :r_cap].copy()),
                              np.full(T, np.nan), float(np.sqrt(tail / (T * n))))
-    # pass 3: per-frame max vertex error of each rank 0..r_cap
-    err = np.empty((T, r_cap + 1))
+    # pass 3: per chunk, the first rank from r_lo on that keeps its frames within tol (below r_lo the RMS
+    # error alone, energy left / entries, exceeds tol); ranks are added as rank-1 updates of the residual
+    left = total - np.r_[0.0, np.cumsum(s[:r_cap] ** 2)]
+    r_lo = int(np.flatnonzero(left <= T * n * tol * tol)[0])
+    r_need = r_lo
     for i, j in _chunks(T, chunk):
-        R = np.array(block(i, j))  # a copy: the caller's frames stay unchanged
-        for r in range(r_cap + 1):
-            err[i:j, r] = np.sqrt(np.max(np.sum(R.reshape(j - i, n, 3) ** 2, axis=2), axis=1))
-            if r < r_cap:
-                R -= np.outer(weights[i:j, r], basis[r])
-    worst = err.max(axis=0)
-    ok = np.flatnonzero(worst <= tol)
-    fits = len(ok) > 0
-    r = int(ok[0]) if fits else r_cap
+        R = block(i, j) - weights[i:j, :r_lo] @ basis[:r_lo]  # a new array: the caller's frames stay unchanged
+        r = max(r_lo, r_need)
+        if r > r_lo:
+            R -= weights[i:j, r_lo:r] @ basis[r_lo:r]
+        while True:
+            e = _frame_errors(R, n)
+            if e.max() <= tol:
+                break
+            if r == r_cap:  # this chunk needs more than the budget: it does not fit
+                b, w = _normalise(basis[:r_cap].reshape(r_cap, n, 3), weights[:, :r_cap].copy())
+                fe = np.full(T, np.nan)
+                fe[i:j] = e
+                return StreamedBasis(False, b, w, fe, float(e.max()))
+            R -= np.multiply.outer(weights[i:j, r], basis[r])
+            r += 1
+        r_need = r
+    # pass 4: every frame at the rank found (a rank that fits one chunk may not fit an earlier one exactly)
+    r = r_need
+    while True:
+        fe = np.empty(T)
+        for i, j in _chunks(T, chunk):
+            fe[i:j] = _frame_errors(block(i, j) - weights[i:j, :r] @ basis[:r], n)
+        if fe.max() <= tol or r == r_cap:
+            break
+        r += 1
     b, w = _normalise(basis[:r].reshape(r, n, 3), weights[:, :r].copy())
-    return StreamedBasis(fits, b, w, err[:, r].copy(), float(worst[r]))
+    return StreamedBasis(bool(fe.max() <= tol), b, w, fe, float(fe.max()))
+
+
+def _frame_errors(R, n):
+    """Largest vertex norm of each row of ``R`` (c, 3n)."""
+    sq = np.square(R)
+    v = sq[:, 0::3] + sq[:, 1::3]
+    v += sq[:, 2::3]
+    return np.sqrt(v.max(axis=1))
