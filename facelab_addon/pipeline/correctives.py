@@ -30,9 +30,10 @@ from dataclasses import dataclass, field
 import bpy
 import numpy as np
 
-from ..blender import bakes, rest_space
+from ..blender import bakes, cache_integrate, caches, rest_space
 from ..blender.objects import local_length
 from ..blender.shapekeys import add_keys_from_deltas, input_positions, key_values_bulk, remove_keys
+from ..core.capture.integrate import integrate_matrices
 from ..core.capture.pointcache_writer import PointCacheWriter
 from ..core.errors import FaceLabError, MeshError, OutputError
 from ..core.geometry.compress import compress, compress_streamed, low_rank_reader
@@ -307,6 +308,10 @@ class CorrectionWriter:
         caps = [i for i, m in enumerate(mods) if m.show_viewport and m.type in _CAPTURE_CACHES
                 and not bakes.is_correction_cache(obj, m)]  # another feature's correction cache is no capture
         index = caps[-1] + 1 if caps else 0
+        # over a capture cache in Integrate mode the deltas are key offsets (``cache_integrate``): what
+        # they show is their Integrate map on that frame, which the Overwrite cache below must hold
+        integrate = caps and mods[caps[-1]].type == "MESH_CACHE" and mods[caps[-1]].deform_mode == "INTEGRATE"
+        corners = cache_integrate.polygon_corners(obj.data) if integrate else None
         rest = np.empty(self.V * 3, np.float64)
         key = obj.data.shape_keys
         (key.reference_key.data if key else obj.data.vertices).foreach_get("co", rest)
@@ -320,10 +325,15 @@ class CorrectionWriter:
                 fr = span[i:i + 32]
                 base = input_positions(obj, fr, upto=index)
                 static = static and bool(np.all(base == rest[None]))
+                raw = caches.read_captured_frames(obj, fr) if integrate else None
                 for k, f in enumerate(fr):
                     t = row.get(float(round(f, 6)))
                     if t is not None:
-                        d = np.asarray(read(t, t + 1)[0], dtype=np.float32)
+                        d = np.asarray(read(t, t + 1)[0], dtype=np.float64)
+                        if integrate:
+                            M = integrate_matrices(rest, raw[k], *corners)
+                            d = np.einsum("vij,vj->vi", M if self.vertices is None else M[self.vertices], d)
+                        d = d.astype(np.float32)
                         if self.vertices is None:
                             base[k] += d
                         else:

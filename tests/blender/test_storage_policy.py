@@ -255,3 +255,82 @@ def test_bad_input_is_refused_before_anything_changes(addon):
     with pytest.raises(MeshError, match="Subdivision"):
         CorrectionWriter(scene, obj, SOLVE_PREFIX)  # measured on the evaluated mesh: cannot be mapped back
     assert list(obj.data.shape_keys.key_blocks.keys()) == keys
+
+
+def test_reconstruct_solver_result_as_keys_then_as_a_cache(tmp_path, ict, addon, monkeypatch):
+    """A pipeline through the policy: Reconstruct from Bundles stores its per-frame result as keys (default
+    budget), then, with a budget of 2 keys, as a cache replacing those keys; both evaluate to the solver's
+    reconstruction within 0.01 mm."""
+    from facelab_addon.core.lgi.indexer import GeometricIndexer
+    from facelab_addon.names import RECONSTRUCT_PREFIX
+    from facelab_addon.pipeline import correctives
+    from facelab_addon.pipeline.reconstruct import ReconstructSettings, reconstruct_from_bundles
+
+    from ..pipeline.test_reconstruct import EXPR, _shot
+
+    keys = EXPR[:6]
+    poses = [{}, {keys[0]: 0.5}, {keys[1]: 0.7, keys[2]: 0.3}, {keys[3]: 1.0}, {keys[4]: 0.6, keys[5]: 0.4}]
+    scene, obj, empties, truth, pts = _shot(ict, keys, poses)
+    saved(tmp_path)
+    solved = {}
+    real = GeometricIndexer.reconstruct_sequence
+
+    def spy(self, *a, **k):
+        X, skipped = real(self, *a, **k)
+        solved["X"] = np.array(X)
+        return X, skipped
+
+    monkeypatch.setattr(GeometricIndexer, "reconstruct_sequence", spy)
+    frames = range(len(poses))
+    r = reconstruct_from_bundles(scene, obj, ReconstructSettings(bind_frame=0, selected=empties))
+    assert r.keys and r.keys.storage.mode == "keys" and len(r.keys) <= 5
+    assert np.linalg.norm(shown(obj, frames, muted=()) - solved["X"], axis=2).max() <= TOL
+
+    class TwoKeys(correctives.StorageSettings):
+        def __init__(self, **kw):
+            super().__init__(**{"key_budget": 2, **kw})
+
+    monkeypatch.setattr(correctives, "StorageSettings", TwoKeys)
+    r = reconstruct_from_bundles(scene, obj, ReconstructSettings(bind_frame=0, selected=empties))
+    st = r.keys.storage
+    assert r.keys == [] and st.mode == "cache" and "does not fit in 2 keys" in st.note
+    assert not [k for k in obj.data.shape_keys.key_blocks.keys() if k.startswith(RECONSTRUCT_PREFIX)]
+    assert obj.modifiers[st.modifier].deform_mode == "INTEGRATE"  # the dataset keys are not animated
+    assert np.linalg.norm(shown(obj, frames, muted=()) - solved["X"], axis=2).max() <= TOL
+
+
+@pytest.mark.parametrize("budget", [24, 2])
+def test_over_a_captured_point_cache_keys_and_cache_show_the_same(tmp_path, budget, addon):
+    """Over a PC2 capture (Mesh Cache, Integrate) the deltas are key offsets in the cache's local frames
+    (``cache_integrate``); stored as keys or as a correction cache they show the same correction."""
+    from facelab_addon.blender.cache_integrate import polygon_corners
+    from facelab_addon.core.capture.integrate import integrate_matrices, integrate_offsets_to_key
+    from facelab_addon.core.capture.pointcache_writer import write_pc2
+
+    scene, obj = head(False)
+    saved(tmp_path)
+    rest = np.array([v.co[:] for v in obj.data.vertices])
+    frames = FRAMES[:10]
+    a = np.radians(3.0) * np.arange(len(frames))  # the captured head turns
+    R = np.stack([[[np.cos(x), 0, np.sin(x)], [0, 1, 0], [-np.sin(x), 0, np.cos(x)]] for x in a])
+    cap = np.einsum("tij,vj->tvi", R, rest) * (1 + 0.2 * np.clip(rest[:, 1], 0, None))[None, :, None]
+    write_pc2(tmp_path / "capture.pc2", cap, start=float(frames[0]))
+    mc = obj.modifiers.new("Capture", "MESH_CACHE")
+    mc.cache_format, mc.filepath, mc.deform_mode = "PC2", str(tmp_path / "capture.pc2"), "INTEGRATE"
+    mc.frame_start, mc.forward_axis, mc.up_axis = float(frames[0]), "POS_Y", "POS_Z"
+    captured = shown(obj, frames)
+    np.testing.assert_allclose(captured, cap, atol=1e-6)
+    D = (full_rank(obj) if budget == 2 else low_rank(obj))[: len(frames)]  # wanted on the evaluated mesh
+    corners = polygon_corners(obj.data)
+    K = np.stack([integrate_offsets_to_key(integrate_matrices(rest, cap[t], *corners), D[t])
+                  for t in range(len(frames))])
+    res = write_corrective_keys(obj, PROPAGATE_PREFIX, K, frames, scene=scene,
+                                settings=StorageSettings(key_budget=budget)).storage
+    assert res.mode == ("cache" if budget == 2 else "keys")
+    if budget == 2:
+        assert [m.name for m in obj.modifiers] == ["Capture", res.modifier]  # after the capture
+        assert obj.modifiers[res.modifier].deform_mode == "OVERWRITE"
+    assert caches.sequence_source(obj) == "mesh_cache"  # the capture is still the capture
+    np.testing.assert_allclose(shown(obj, frames, muted=("FL_",)), captured, atol=1e-6)
+    err = np.linalg.norm(shown(obj, frames, muted=()) - captured - D, axis=2)
+    assert err.max() <= 2 * TOL, err.max()  # the tolerance on the keys, carried by the cache's frames
