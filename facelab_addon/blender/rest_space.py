@@ -4,10 +4,12 @@ A correction FaceLab computes on the *evaluated* mesh (after an Armature, a Latt
 deforming modifier) must be stored as a shape-key offset *before* those modifiers, or the rig
 deforms it a second time. :func:`to_rest_space` maps each vertex's wanted displacement back
 through the inverse of the per-vertex Jacobian of the modifier stack on that frame, as Blender's
-corrective shape-key tools do for armatures. The Jacobian is measured numerically: the stack is
-evaluated with temporary unit offsets along x, y and z (three temporary shape keys), which is
-exact for linear-blend skinning and any affine deformer; one Newton step, verified on the
-evaluated mesh, corrects stacks that bend space non-linearly.
+corrective shape-key tools do for armatures. When an Armature deforming by linear-blend skinning
+is the only deformer, each vertex's Jacobian is the weighted mean of its bones' pose matrices
+(one scene evaluation per frame). Any other stack is measured numerically: it is evaluated with
+temporary unit offsets along x, y and z (three temporary shape keys), which is exact for any
+affine deformer; one Newton step, verified on the evaluated mesh, corrects stacks that bend
+space non-linearly.
 
 Capture caches (Mesh Cache, Mesh Sequence Cache) and FaceLab's own correction caches are not
 part of the map (their Integrate mapping is ``cache_integrate``'s). Displacements are
@@ -81,7 +83,63 @@ def _solve(J, d):
     return out
 
 
-def to_rest_space(obj, frames, deltas, vertices=None, depsgraph=None, *, newton: bool = True) -> np.ndarray:
+def _linear_armature(obj):
+    """The Armature modifier when it is the only deformer and deforms by linear-blend skinning, else None.
+
+    Linear: vertex groups only (no envelopes, no preserve volume, no multi-modifier, no mask group) and
+    no deforming B-Bone segments, so each vertex's Jacobian is the weighted mean of its bones' matrices.
+    """
+    mods = deforming_modifiers(obj)
+    if len(mods) != 1 or mods[0].type != "ARMATURE":
+        return None
+    md = mods[0]
+    arm = md.object
+    if arm is None or arm.type != "ARMATURE" or not md.use_vertex_groups or md.use_bone_envelopes \
+            or md.use_deform_preserve_volume or md.use_multi_modifier or md.vertex_group:
+        return None
+    if any(b.use_deform and b.bbone_segments > 1 for b in arm.data.bones):
+        return None
+    return md
+
+
+def _skin_weights(obj, arm):
+    """(V,B) float64 weights of ``arm``'s deforming bones from ``obj``'s vertex groups, and the bone names."""
+    bones = [b.name for b in arm.data.bones if b.use_deform and b.name in obj.vertex_groups]
+    col = {obj.vertex_groups[b].index: k for k, b in enumerate(bones)}
+    W = np.zeros((len(obj.data.vertices), len(bones)))
+    for v in obj.data.vertices:
+        for g in v.groups:
+            k = col.get(g.group)
+            if k is not None:
+                W[v.index, k] = g.weight
+    return W, bones
+
+
+def _armature_jacobians(obj, md, frames, idx, W, bones):
+    """(T,n,3,3) object-space Jacobians of a linear-blend-skinning Armature on ``frames``."""
+    scene = bpy.context.scene
+    Wv = W[idx]
+    contrib = Wv.sum(axis=1)
+    skinned = contrib > 1e-4  # Blender's threshold: below it the vertex is left where it is
+    out = np.empty((len(frames), len(idx), 3, 3))
+    with _kept_frame(scene):
+        for t, f in enumerate(frames):
+            _set_frame(scene, float(f))
+            dg = bpy.context.evaluated_depsgraph_get()
+            arm = md.object.evaluated_get(dg)
+            ob = obj.evaluated_get(dg)
+            pre = np.array(arm.matrix_world.inverted() @ ob.matrix_world, dtype=np.float64)[:3, :3]
+            M = np.stack([np.array(arm.pose.bones[b].matrix @ arm.data.bones[b].matrix_local.inverted(),
+                                   dtype=np.float64)[:3, :3] for b in bones]) if bones else np.zeros((0, 3, 3))
+            J = np.einsum("vb,bij->vij", Wv, M)
+            J[skinned] /= contrib[skinned, None, None]
+            J[~skinned] = np.eye(3)
+            out[t] = np.linalg.inv(pre) @ J @ pre  # object space: pre⁻¹ J pre
+    return out
+
+
+def to_rest_space(obj, frames, deltas, vertices=None, depsgraph=None, *, newton: bool = True,
+                  numeric: bool = False) -> np.ndarray:
     """Shape-key offsets that show as ``deltas`` on the evaluated mesh of ``obj``.
 
     Parameters
@@ -97,8 +155,10 @@ def to_rest_space(obj, frames, deltas, vertices=None, depsgraph=None, *, newton:
     depsgraph : bpy.types.Depsgraph, optional
         The evaluated depsgraph (default: the context's).
     newton : bool
-        Verify each frame on the evaluated mesh and take one Newton step where the stack is not
-        linear (skipped after the first frame when the stack is affine to float precision).
+        Numeric path: verify each frame on the evaluated mesh and take one Newton step where the
+        stack is not linear (skipped after the first frame when the stack is affine to float precision).
+    numeric : bool
+        Measure the Jacobian numerically even for a plain Armature (a cross-check).
 
     Returns
     -------
@@ -113,8 +173,9 @@ def to_rest_space(obj, frames, deltas, vertices=None, depsgraph=None, *, newton:
 
     Notes
     -----
-    Costs four (five with the Newton check) evaluations of the object per frame; the scene frame,
-    the shape keys and the active key are restored afterwards, also on errors.
+    A plain Armature costs one scene evaluation per frame; the numeric path four (five with the
+    Newton check). The scene frame, the shape keys and the active key are restored afterwards, also on
+    errors.
     """
     D = np.asarray(deltas, dtype=np.float64)
     frames = np.atleast_1d(np.asarray(frames, dtype=np.float64))
@@ -125,6 +186,16 @@ def to_rest_space(obj, frames, deltas, vertices=None, depsgraph=None, *, newton:
                         f"vertices, got {D.shape}.")
     if not deforming_modifiers(obj) or len(frames) == 0:
         return D.copy()
+    md = None if numeric else _linear_armature(obj)
+    if md is not None:  # analytic: weighted bone matrices, one scene evaluation per frame
+        require_same_vertex_count(obj, depsgraph)
+        W, bones = _skin_weights(obj, md.object)
+        out = np.empty_like(D)
+        for i in range(0, len(frames), 64):
+            J = _armature_jacobians(obj, md, frames[i:i + 64], idx, W, bones)
+            for t in range(len(J)):
+                out[i + t] = _solve(J[t], D[i + t])
+        return out
     scene = depsgraph.scene if depsgraph is not None else bpy.context.scene
     made_basis = obj.data.shape_keys is None
     if made_basis:

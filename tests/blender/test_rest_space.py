@@ -179,3 +179,22 @@ def test_propagate_on_a_rigged_face_shows_the_regression(ict, addon):
     captured = caches.evaluate_frames(obj, HELD, mute_shape_keys_prefix=(PROPAGATE_PREFIX,))
     assert np.abs(want - captured).max() > 1e-4  # the regression does correct these frames
     assert np.linalg.norm(got - want, axis=2).max() < TOL
+
+
+def test_armature_jacobians_agree_with_the_measured_ones(addon):
+    """The analytic path (bone matrices weighted by the vertex groups) equals the numeric one (unit
+    offsets through the evaluated stack), with the rig and the mesh under different transforms."""
+    scene, obj = head(animated=True)
+    obj.location, obj.rotation_euler, obj.scale = (0.2, -0.1, 0.05), (0.3, 0.1, -0.2), (1.5, 1.5, 1.5)
+    rig = head_jaw_rig(obj, (0, 0, 0.1), animate=FRAMES[:4])
+    rig.location, rig.rotation_euler = (-0.3, 0.1, 0.0), (0.0, 0.2, 0.5)
+    bpy.context.view_layer.update()
+    rng = np.random.default_rng(1)
+    D = rng.normal(0, 1e-3, (4, len(obj.data.vertices), 3))
+    a = to_rest_space(obj, FRAMES[:4], D)
+    b = to_rest_space(obj, FRAMES[:4], D, numeric=True)
+    assert np.abs(a - b).max() < 1e-3 * np.abs(D).max()  # float32 finite differences
+    assert np.abs(a - D).max() > 0.1 * np.abs(D).max()  # the rig does turn the offsets
+    rig.data.bones["jaw"].bbone_segments = 4  # B-Bones bend space: the numeric path, with its Newton check
+    c = to_rest_space(obj, FRAMES[:1], D[:1])
+    assert np.isfinite(c).all()
