@@ -353,7 +353,7 @@ def remove_fcurve(id_data, data_path: str) -> bool:
     return True
 
 
-def input_positions(obj, frames, *, upto=None) -> np.ndarray:
+def input_positions(obj, frames, *, upto=None, skip_prefixes=()) -> np.ndarray:
     """(T,V,3) float32 object-local positions entering the modifier ``upto`` (default: the first).
 
     The shape-key mix on each frame (every key, FaceLab's included) when ``upto`` is the first
@@ -365,13 +365,15 @@ def input_positions(obj, frames, *, upto=None) -> np.ndarray:
     frames : (T,) array_like of float
     upto : int, optional
         Index in ``obj.modifiers`` (default 0).
+    skip_prefixes : tuple of str
+        Shape keys to leave out (:func:`key_matches`: under ``FL_`` only FaceLab's recorded keys).
     """
     from .caches import _disabled_modifiers, evaluate_frames
 
     k = 0 if upto is None else int(upto)
     if k == 0:
-        seq = shape_key_sequence(obj, frames, skip_prefixes=(), ignore_modifiers=True)
+        seq = shape_key_sequence(obj, frames, skip_prefixes=tuple(skip_prefixes), ignore_modifiers=True)
         if seq is not None:
             return seq
     with _disabled_modifiers([m for m in list(obj.modifiers)[k:] if m.show_viewport]):
-        return evaluate_frames(obj, frames, mute_shape_keys_prefix=())
+        return evaluate_frames(obj, frames, mute_shape_keys_prefix=tuple(skip_prefixes))

@@ -276,6 +276,13 @@ class CorrectionWriter:
                                     note=f"{len(names)} corrective keys, more than the budget of {budget}: {e}")
         return self._write_cache(path, read, frames, budget)
 
+    def _capture_index(self):
+        """``(modifiers, index)``: where a correction cache goes, right after the last capture cache (or first)."""
+        mods = list(self.obj.modifiers)
+        caps = [i for i, m in enumerate(mods) if m.show_viewport and m.type in _CAPTURE_CACHES
+                and not bakes.is_correction_cache(self.obj, m)]  # FaceLab's correction caches are no capture
+        return mods, (caps[-1] + 1 if caps else 0)
+
     def _remove_previous(self) -> None:
         remove_keys(self.obj, self.prefix)
         bakes.remove_correction_cache(self.obj, self.prefix)
@@ -303,14 +310,11 @@ class CorrectionWriter:
         else:
             raise FaceLabError("A correction cache needs whole or evenly spaced frames; store it on whole frames.")
         row = {float(round(f, 6)): i for i, f in enumerate(frames)}
-        self._remove_previous()  # FaceLab's own previous keys and cache: the input below is the capture's
-        mods = list(obj.modifiers)
-        caps = [i for i, m in enumerate(mods) if m.show_viewport and m.type in _CAPTURE_CACHES
-                and not bakes.is_correction_cache(obj, m)]  # another feature's correction cache is no capture
-        index = caps[-1] + 1 if caps else 0
+        mods, index = self._capture_index()
+        caps = index > 0
         # over a capture cache in Integrate mode the deltas are key offsets (``cache_integrate``): what
         # they show is their Integrate map on that frame, which the Overwrite cache below must hold
-        integrate = caps and mods[caps[-1]].type == "MESH_CACHE" and mods[caps[-1]].deform_mode == "INTEGRATE"
+        integrate = caps and mods[index - 1].type == "MESH_CACHE" and mods[index - 1].deform_mode == "INTEGRATE"
         corners = cache_integrate.polygon_corners(obj.data) if integrate else None
         rest = np.empty(self.V * 3, np.float64)
         key = obj.data.shape_keys
@@ -323,7 +327,7 @@ class CorrectionWriter:
         try:
             for i in range(0, len(span), 32):
                 fr = span[i:i + 32]
-                base = input_positions(obj, fr, upto=index)
+                base = input_positions(obj, fr, upto=index, skip_prefixes=(self.prefix,))  # without our old output
                 static = static and bool(np.all(base == rest[None]))
                 raw = caches.read_captured_frames(obj, fr) if integrate else None
                 for k, f in enumerate(fr):
@@ -343,8 +347,9 @@ class CorrectionWriter:
         except BaseException:
             writer.abort()
             raise
+        self._remove_previous()  # the file is complete: now FaceLab's previous keys and cache go
         name = bakes.add_correction_cache(obj, self.prefix, path, fmt, span[0], span[-1], integrate=static,
-                                          index=index)
+                                          index=self._capture_index()[1])
         obj.data.update()
         mode = "Integrate: shape keys still add on top" if static else \
             "Overwrite: it holds the whole corrected input; later shape-key edits show once the modifier is off"
