@@ -160,7 +160,9 @@ def test_refine_on_a_rigged_face_shows_the_solver_result(tmp_path, ict, addon, m
     got = evaluated_vertices(obj, bpy.context.evaluated_depsgraph_get())
     moved = np.linalg.norm(solved["X"] - solved["V"], axis=1).max()
     assert moved > 3e-4  # a real correction (m)
-    assert np.linalg.norm(got - solved["X"], axis=1).max() < TOL
+    e = np.linalg.norm(got - solved["X"], axis=1).max()
+    print(f"Refine on a posed rig: correction up to {moved * 1e3:.3f} mm, evaluated vs solver {e * 1e3:.6f} mm")
+    assert e < TOL
 
 
 def test_propagate_on_a_rigged_face_shows_the_regression(ict, addon):
@@ -178,7 +180,10 @@ def test_propagate_on_a_rigged_face_shows_the_regression(ict, addon):
     want = independent_prediction(obj, TRAIN, HELD)
     captured = caches.evaluate_frames(obj, HELD, mute_shape_keys_prefix=(PROPAGATE_PREFIX,))
     assert np.abs(want - captured).max() > 1e-4  # the regression does correct these frames
-    assert np.linalg.norm(got - want, axis=2).max() < TOL
+    e = np.linalg.norm(got - want, axis=2).max()
+    print(f"Propagate on a posed rig: correction up to {np.abs(want - captured).max() * 1e3:.3f} mm, "
+          f"evaluated vs regression {e * 1e3:.6f} mm")
+    assert e < TOL
 
 
 def test_armature_jacobians_agree_with_the_measured_ones(addon):
