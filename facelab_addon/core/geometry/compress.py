@@ -336,9 +336,12 @@ def compress_streamed(read, T: int, n: int, tol: float, max_rank: int, *, oversa
         Q = np.linalg.qr(Z.T)[0]
         del Z
     k = Q.shape[1]
-    W = np.empty((T, k))  # pass 2: projections
-    for i, j in _chunks(T, chunk):
-        W[i:j] = block(i, j) @ Q
+    if low_rank is not None:  # pass 2: projections (of the small factors when the product is known)
+        W = np.asarray(low_rank[1], dtype=np.float64) @ (B0 @ Q)
+    else:
+        W = np.empty((T, k))
+        for i, j in _chunks(T, chunk):
+            W[i:j] = block(i, j) @ Q
     U, s, Vt = np.linalg.svd(W, full_matrices=False)
     weights = U * s  # (T,k)
     basis = Vt @ Q.T  # (k,m) orthonormal rows, ordered by energy
