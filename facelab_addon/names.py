@@ -39,6 +39,17 @@ LEGACY_KEY_PATTERNS = (
     r"FL_(Refine|Corrected)_-?\d{4,}(\.\d{3})?",
 )
 
+#: Temporary shape keys (``x``, ``y``, ``z``, ``c`` follow) that measure the modifier stack's
+#: Jacobian in ``blender.rest_space``; removed before it returns.
+REST_SPACE_KEY = "FL_tmp_rest_"
+
+# --- correction caches (dense corrections that do not fit the key budget) -----------------------
+#: Name of the Mesh Cache modifier playing a correction cache; ``{prefix}`` is the key prefix.
+CORRECTION_CACHE_MODIFIER = "{prefix}Cache"
+#: ID property on the object recording, per key prefix, the correction-cache modifier FaceLab
+#: added and the files it wrote: only these are ever replaced or deleted by FaceLab.
+CORRECTION_CACHES_PROP = "facelab_caches"
+
 # --- actions, properties, objects, collections, markers --------------------------------------
 SOLVE_ACTION = "FL_Solve"
 RETARGET_ACTION = "FL_Retarget"

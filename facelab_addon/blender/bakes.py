@@ -5,10 +5,17 @@ operator can show progress and cancel; :func:`bake_pc2`, :func:`bake_mdd` and
 :func:`bake_alembic` run to the end. Files are written by
 :class:`facelab_addon.core.capture.pointcache_writer.PointCacheWriter`, which never leaves a
 half-written file at the destination. Positions are object-local scene units.
+
+Correction caches: a dense per-frame correction that does not fit FaceLab's key budget is
+written as a point cache (:func:`correction_cache_path`, never over an existing file) and
+played by a Mesh Cache modifier FaceLab adds (:func:`add_correction_cache`). Both are recorded
+on the object (:data:`facelab_addon.names.CORRECTION_CACHES_PROP`), so a re-run replaces
+(:func:`remove_correction_cache`) only what FaceLab wrote.
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 from pathlib import Path
@@ -18,6 +25,7 @@ import numpy as np
 
 from ..core.capture import pointcache_writer
 from ..core.errors import FaceLabError, OutputError
+from ..names import CORRECTION_CACHE_MODIFIER, CORRECTION_CACHES_PROP
 from .caches import (
     _frames,
     _iter_evaluated,
@@ -27,7 +35,9 @@ from .caches import (
     scene_fps,
 )
 
-__all__ = ["bake_point_cache_steps", "bake_pc2", "bake_mdd", "bake_alembic", "bake_destination"]
+__all__ = ["bake_point_cache_steps", "bake_pc2", "bake_mdd", "bake_alembic", "bake_destination",
+           "correction_cache_path", "correction_cache", "is_correction_cache", "add_correction_cache",
+           "remove_correction_cache", "muted_correction_caches"]
 
 
 def bake_destination(path) -> Path:
@@ -286,3 +296,168 @@ def bake_alembic(obj, scene_frames, path, *, evaluation_mode="VIEWPORT") -> Path
     if "FINISHED" not in res or not out.is_file():
         raise OutputError(f"Alembic export of '{obj.name}' to '{out}' failed ({res}); check the path is writable.")
     return out
+
+
+# --------------------------------------------------------------------------- correction caches
+_KEEP_FILES = 2  # FaceLab's files kept per prefix: the current one and the one an undo step may show
+
+
+def _record(obj) -> dict:
+    rec = obj.get(CORRECTION_CACHES_PROP)
+    return rec.to_dict() if rec is not None and hasattr(rec, "to_dict") else {}
+
+
+def correction_cache(obj, prefix: str):
+    """``(modifier or None, files)``: the correction cache FaceLab recorded on ``obj`` for ``prefix``.
+
+    ``files`` are the absolute paths FaceLab wrote for it, oldest first (the last is the one the
+    modifier plays).
+    """
+    entry = _record(obj).get(prefix, {})
+    md = obj.modifiers.get(entry.get("modifier", "")) if entry.get("modifier") else None
+    if md is not None and md.type != "MESH_CACHE":
+        md = None
+    return md, [str(f) for f in entry.get("files", [])]
+
+
+def is_correction_cache(obj, md) -> bool:
+    """Whether the modifier ``md`` of ``obj`` is a correction cache FaceLab added (not a capture)."""
+    return md.type == "MESH_CACHE" and any(e.get("modifier") == md.name for e in _record(obj).values())
+
+
+def correction_cache_path(obj, prefix: str, fmt: str, directory=None) -> Path:
+    """A new file for ``obj``'s ``prefix`` correction cache: ``<blend>_<object>_<prefix>.<fmt>``.
+
+    In ``directory`` (default: the .blend's folder). A file that exists is never reused, FaceLab's
+    own included (an undo step may still play it): ``.001``, ``.002``... are tried instead.
+
+    Raises
+    ------
+    OutputError
+        No ``directory`` and the .blend is not saved, or the folder cannot be written.
+    """
+    if not directory:
+        if not bpy.data.filepath:
+            raise OutputError("The correction needs a point cache beside the .blend, but the .blend is not saved; "
+                              "save it first (or set a cache folder).")
+        directory = os.path.dirname(bpy.data.filepath)
+    folder = Path(bpy.path.abspath(os.fspath(directory)))
+    if not folder.is_absolute():
+        raise OutputError(f"The cache folder '{directory}' is a relative path; choose an absolute folder "
+                          "(or save the .blend and use a '//' path relative to it).")
+    stem = bpy.path.clean_name(Path(bpy.data.filepath).stem) + "_" if bpy.data.filepath else ""
+    base = f"{stem}{bpy.path.clean_name(obj.name)}_{prefix.strip('_')}"
+    ext = "." + fmt.lower()
+    path, i = folder / f"{base}{ext}", 0
+    while path.exists() or path.with_name(path.name + ".tmp").exists():
+        i += 1
+        path = folder / f"{base}.{i:03d}{ext}"
+    return pointcache_writer.check_writable(path)
+
+
+def remove_correction_cache(obj, prefix: str) -> list:
+    """Remove FaceLab's correction-cache modifier for ``prefix`` (and its keyed factor).
+
+    Files: only FaceLab's recorded ones, and not the last one (an undo step may play it). Another
+    modifier, or a file FaceLab did not write, is never touched.
+
+    Returns
+    -------
+    list of str
+        What was removed, one phrase each.
+    """
+    from .shapekeys import remove_fcurve
+
+    done = []
+    md, files = correction_cache(obj, prefix)
+    if md is not None:
+        name = md.name
+        remove_fcurve(obj, f'modifiers["{bpy.utils.escape_identifier(name)}"].factor')
+        obj.modifiers.remove(md)
+        done.append(f"removed modifier '{name}'")
+    rec = _record(obj)
+    if prefix in rec:
+        keep = files[-1:]
+        for f in files[:-1]:
+            if os.path.isfile(f):
+                os.remove(f)
+                done.append(f"deleted {f}")
+        rec[prefix] = {"modifier": "", "files": keep}
+        obj[CORRECTION_CACHES_PROP] = rec
+    return done
+
+
+def add_correction_cache(obj, prefix: str, path, fmt: str, first_frame: float, last_frame: float, *,
+                         integrate: bool, index: int = 0) -> str:
+    """Play the point cache ``path`` on ``obj`` with a new Mesh Cache modifier; its name.
+
+    Sample 0 shows on ``first_frame``, one sample per frame; the modifier's factor is keyed 1 from
+    ``first_frame`` to ``last_frame`` and 0 outside (the cache holds its ends otherwise).
+
+    Parameters
+    ----------
+    obj : bpy.types.Object
+    prefix : str
+        The key prefix the cache replaces (recorded with the file).
+    path : pathlib.Path
+        The written PC2 or MDD file (stored relative to the .blend when saved).
+    fmt : {"PC2", "MDD"}
+    first_frame, last_frame : float
+    integrate : bool
+        ``'INTEGRATE'`` deform mode (shape keys show on top: the cache holds rest + correction)
+        or ``'OVERWRITE'`` (the cache holds the whole corrected input).
+    index : int
+        Position in the modifier stack (0: before every deformer, so a rig deforms the result).
+    """
+    from .shapekeys import key_property_bulk, unique_name
+
+    name = unique_name(CORRECTION_CACHE_MODIFIER.format(prefix=prefix), (m.name for m in obj.modifiers))
+    mc = obj.modifiers.new(name, "MESH_CACHE")
+    mc.cache_format = fmt
+    fp = str(path)
+    if bpy.data.filepath:
+        try:
+            fp = bpy.path.relpath(fp)
+        except ValueError:  # another drive on Windows
+            pass
+    mc.filepath = fp
+    mc.play_mode = "SCENE"
+    if fmt == "MDD":
+        mc.time_mode = "TIME"
+        mc.frame_start = 0.0
+    else:
+        mc.time_mode = "FRAME"
+        mc.frame_start = float(first_frame)
+    mc.frame_scale = 1.0
+    mc.interpolation = "LINEAR"
+    mc.deform_mode = "INTEGRATE" if integrate else "OVERWRITE"
+    mc.forward_axis, mc.up_axis = "POS_Y", "POS_Z"
+    obj.modifiers.move(len(obj.modifiers) - 1, int(index))
+    f0, f1 = float(first_frame), float(last_frame)
+    key_property_bulk(obj, f'modifiers["{bpy.utils.escape_identifier(name)}"].factor',
+                      [f0 - 1, f0, f1, f1 + 1], [0.0, 1.0, 1.0, 0.0])
+    rec = _record(obj)
+    files = [f for f in rec.get(prefix, {}).get("files", []) if f != str(path)] + [str(path)]
+    rec[prefix] = {"modifier": name, "files": files[-_KEEP_FILES:]}
+    obj[CORRECTION_CACHES_PROP] = rec
+    return name
+
+
+@contextlib.contextmanager
+def muted_correction_caches(obj, prefixes):
+    """Turn off FaceLab's correction-cache modifiers whose key prefix ``prefixes`` select (as FaceLab's
+    keys are muted when the capture is read); restore on exit."""
+    pref = (prefixes,) if isinstance(prefixes, str) else tuple(prefixes or ())
+    mods = []
+    if obj.type == "MESH" and pref:
+        for p in _record(obj):
+            md = correction_cache(obj, p)[0]
+            if md is not None and md.show_viewport and any(p.startswith(q) for q in pref):
+                mods.append(md)
+    try:
+        for m in mods:
+            m.show_viewport = False
+        yield
+    finally:
+        for m in mods:
+            m.show_viewport = True

@@ -96,7 +96,10 @@ def _enabled(md) -> bool:
 
 
 def _mesh_cache_active(md) -> bool:
-    return md.type == "MESH_CACHE" and _enabled(md) and bool(md.filepath) and md.factor > 0.0
+    from .bakes import is_correction_cache  # a correction cache FaceLab added is not a capture
+
+    return md.type == "MESH_CACHE" and _enabled(md) and bool(md.filepath) and md.factor > 0.0 \
+        and not is_correction_cache(md.id_data, md)
 
 
 def _msc_active(md) -> bool:
@@ -213,7 +216,9 @@ def _iter_evaluated(obj, frames, *, mute_prefixes=(), progress=None, scene=None)
         )
     T = len(frames)
     buf = np.empty(n * 3, dtype=np.float32)
-    with _kept_frame(scene), _muted_shape_keys(obj, mute_prefixes):
+    from .bakes import muted_correction_caches  # FaceLab's correction caches are muted like its keys
+
+    with _kept_frame(scene), _muted_shape_keys(obj, mute_prefixes), muted_correction_caches(obj, mute_prefixes):
         for i, f in enumerate(frames):
             _set_frame(scene, float(f))
             dg = bpy.context.evaluated_depsgraph_get()

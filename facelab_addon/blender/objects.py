@@ -1,6 +1,7 @@
 """Objects and meshes -> arrays, beyond :mod:`.mesh`: world transforms over frames, world points in
 an object's space, loop-triangle UVs, whether two meshes share their topology, and whether FaceLab
-may write to an object at all (:func:`require_editable`)."""
+may write to an object at all (:func:`require_editable`), and how long a physical length is in an
+object's own units (:func:`local_length`)."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ from ..core.errors import FaceLabError
 from .camera import evaluated_depsgraph
 
 __all__ = ["NotEditableError", "require_editable", "ModifierState",
-           "world_affine", "world_matrices", "points_to_local", "triangle_uvs", "same_polygons"]
+           "world_affine", "world_matrices", "local_length", "points_to_local", "triangle_uvs", "same_polygons"]
 
 
 class NotEditableError(FaceLabError):
@@ -116,6 +117,31 @@ def world_affine(obj, depsgraph=None):
     """``(A (3,3), b (3,))`` of the object's world matrix (evaluated in ``depsgraph`` when given)."""
     M = np.array((obj.evaluated_get(depsgraph) if depsgraph else obj).matrix_world, dtype=np.float64)
     return M[:3, :3], M[:3, 3]
+
+
+def local_length(scene, obj, metres: float) -> float:
+    """``metres`` of the object's world space, in the object's local units (its mesh coordinates).
+
+    Accounts for the scene's unit scale (``scene.unit_settings.scale_length``: metres per Blender
+    unit) and for the object's scale (the largest stretch of its world matrix, so a local length
+    never shows longer than ``metres`` in any direction).
+
+    Parameters
+    ----------
+    scene : bpy.types.Scene
+    obj : bpy.types.Object
+    metres : float
+        A physical length, for example a tolerance of 0.01 mm = ``1e-5``.
+
+    Returns
+    -------
+    float
+        The same length in object-local units.
+    """
+    mpu = float(scene.unit_settings.scale_length or 1.0)
+    A = world_affine(obj, evaluated_depsgraph(scene))[0]  # evaluated: a scale just set counts
+    stretch = float(np.linalg.svd(A, compute_uv=False)[0]) if np.isfinite(A).all() else 1.0
+    return float(metres) / mpu / (stretch if stretch > 0 else 1.0)
 
 
 def world_matrices(scene, obj, frames) -> np.ndarray:

@@ -23,6 +23,8 @@ __all__ = [
     "key_property_bulk",
     "add_keys_from_deltas",
     "rest_vertices",
+    "remove_fcurve",
+    "input_positions",
 ]
 
 
@@ -189,7 +191,7 @@ def _fcurve_for_key(key, kb):
     return _find_fcurve(ad, f'key_blocks["{bpy.utils.escape_identifier(kb.name)}"].value')
 
 
-def shape_key_sequence(obj, frames, *, skip_prefixes=(PREFIX,)):
+def shape_key_sequence(obj, frames, *, skip_prefixes=(PREFIX,), ignore_modifiers: bool = False):
     """(T,V,3) float32 object-local positions of a shape-key-animated mesh, without frame_set.
 
     Evaluates each key's value F-curve at ``frames`` and mixes
@@ -197,14 +199,15 @@ def shape_key_sequence(obj, frames, *, skip_prefixes=(PREFIX,)):
     slider limits and relative keys. Keys ``skip_prefixes`` select
     (:func:`key_matches`: FaceLab's own output) are left out.
 
-    Returns ``None`` when this fast path does not apply (modifiers that
+    With ``ignore_modifiers`` the mix is returned even when modifiers deform the mesh (the input
+    of the modifier stack). Returns ``None`` when this fast path does not apply (modifiers that
     deform, drivers, vertex-group-masked keys, absolute keys): use frame-by-frame
     evaluation then.
     """
     key = obj.data.shape_keys
     frames = np.asarray(frames, dtype=np.float64)
     n = len(obj.data.vertices)
-    if any(m.show_viewport for m in obj.modifiers):
+    if not ignore_modifiers and any(m.show_viewport for m in obj.modifiers):
         return None
     if key is None:
         co = np.empty(n * 3, np.float32)
@@ -330,3 +333,47 @@ def rest_vertices(obj) -> np.ndarray:
     key = obj.data.shape_keys
     (key.reference_key.data if key else obj.data.vertices).foreach_get("co", co)
     return co.reshape(n, 3)
+
+
+def remove_fcurve(id_data, data_path: str) -> bool:
+    """Remove the F-curve animating ``id_data.<data_path>`` from its action; whether there was one."""
+    ad = getattr(id_data, "animation_data", None)
+    if ad is None or ad.action is None:
+        return False
+    cb = _channelbag(ad, create=False)
+    fc = cb.fcurves.find(data_path) if cb is not None else None
+    if fc is None:
+        fcurves = getattr(ad.action, "fcurves", None)  # Blender < 5.0 without slots
+        fc = fcurves.find(data_path) if fcurves is not None else None
+        if fc is None:
+            return False
+        fcurves.remove(fc)
+        return True
+    cb.fcurves.remove(fc)
+    return True
+
+
+def input_positions(obj, frames, *, upto=None, skip_prefixes=()) -> np.ndarray:
+    """(T,V,3) float32 object-local positions entering the modifier ``upto`` (default: the first).
+
+    The shape-key mix on each frame (every key, FaceLab's included) when ``upto`` is the first
+    modifier; otherwise the evaluated mesh with ``upto`` and every later modifier turned off.
+
+    Parameters
+    ----------
+    obj : bpy.types.Object
+    frames : (T,) array_like of float
+    upto : int, optional
+        Index in ``obj.modifiers`` (default 0).
+    skip_prefixes : tuple of str
+        Shape keys to leave out (:func:`key_matches`: under ``FL_`` only FaceLab's recorded keys).
+    """
+    from .caches import _disabled_modifiers, evaluate_frames
+
+    k = 0 if upto is None else int(upto)
+    if k == 0:
+        seq = shape_key_sequence(obj, frames, skip_prefixes=tuple(skip_prefixes), ignore_modifiers=True)
+        if seq is not None:
+            return seq
+    with _disabled_modifiers([m for m in list(obj.modifiers)[k:] if m.show_viewport]):
+        return evaluate_frames(obj, frames, mute_shape_keys_prefix=tuple(skip_prefixes))

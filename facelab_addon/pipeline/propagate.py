@@ -371,8 +371,8 @@ def _propagate_work(scene, obj, frames, settings, t0, tris, mouth_faces, lip_fac
                 M = integrate_matrices(rest, _captured_frame(pred[t], lipv, before[t]), sub_off, sub_cv)[lipv]
                 corr[t] = integrate_offsets_to_key(M, corr[t])
     yield "writing the corrective keys", total - 1, total
-    names = write_corrective_keys(obj, PROPAGATE_PREFIX, corr, frames, vertices=lipv,
-                                  metres_per_unit=scene.unit_settings.scale_length or 1.0)
+    names = write_corrective_keys(obj, PROPAGATE_PREFIX, corr, frames, vertices=lipv, scene=scene,
+                                  measured_on="evaluated")
     # where the model guesses: the extrapolation score keyed on the object, suggestions as markers.
     # Mouth features are computed once (mouth triangles never touch the predicted interior lip vertices).
     feats = reg.mouth_features(pred)

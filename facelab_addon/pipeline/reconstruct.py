@@ -194,8 +194,7 @@ def reconstruct_from_bundles(scene, obj, settings: ReconstructSettings, progress
         )
     D = X - neutral[None]
     D[np.isnan(D)] = 0.0  # skipped frames show the neutral
-    keys = write_corrective_keys(obj, fl.RECONSTRUCT_PREFIX, D, frames,
-                                 metres_per_unit=scene.unit_settings.scale_length or 1.0)
+    keys = write_corrective_keys(obj, fl.RECONSTRUCT_PREFIX, D, frames, scene=scene)  # keys, or a cache
     live = [kb.name for kb in obj.data.shape_keys.key_blocks[1:] if not kb.name.startswith(fl.PREFIX) and kb.value]
     jaw_name = None
     if jaw is not None:

@@ -25,6 +25,7 @@ from ..blender.mesh import (
     world_to_local_deltas,
 )
 from ..blender.objects import ModifierState, require_editable
+from ..blender.rest_space import to_rest_space
 from ..blender.shapekeys import add_corrective_key, key_spike
 from ..blender.strokes import read_lip_strokes, require_sketch_keyed_on
 from ..core.errors import CameraError
@@ -175,6 +176,7 @@ def refine(scene, obj, frame: int, settings: RefineSettings | None = None, *, ca
     except BaseException:
         state.restore()  # a failure leaves the cache modifiers as they were
         raise
+    d_local = to_rest_space(obj, [frame], d_local[None], depsgraph=dg)[0]  # through an Armature: rest-space offsets
     kb = add_corrective_key(obj, f"{REFINE_PREFIX}{frame:04d}", d_local)
     key_spike(kb, frame)
     record_training_frame(scene, obj, frame, kb.name, "sketch")

@@ -215,8 +215,7 @@ def retarget(scene, actor, creature, settings: RetargetSettings, progress=None) 
     key_values_bulk(creature, names, frames, W)
     keys = []
     if np.any(res.correctives):
-        keys = write_corrective_keys(creature, fl.RETARGET_PREFIX, res.correctives, frames,
-                                     metres_per_unit=scene.unit_settings.scale_length or 1.0)
+        keys = write_corrective_keys(creature, fl.RETARGET_PREFIX, res.correctives, frames, scene=scene)
     creature.data.update()
     return RetargetResult(frames=frames, created=created, kept=kept, keys=keys, correspondence=how,
                           action_note=note, time_s=time.perf_counter() - t0, core=res)

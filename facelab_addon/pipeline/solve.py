@@ -474,8 +474,7 @@ def solve_performance(scene, obj, settings: SolveSettings, progress=None) -> Sol
     keys = []
     if res.correctives is not None:
         D = res.correctives[solved] @ np.linalg.inv(g.A).T
-        keys = write_corrective_keys(obj, fl.SOLVE_PREFIX, D, frames[solved],
-                                     metres_per_unit=scene.unit_settings.scale_length or 1.0)
+        keys = write_corrective_keys(obj, fl.SOLVE_PREFIX, D, frames[solved], scene=scene)  # keys, or a cache
     obj.data.update()
     return SolveResult(frames=frames, solved=frames[solved],
                        skipped={int(frames[i]): r for i, r in res.skipped.items()}, rig_keys=list(g.names),

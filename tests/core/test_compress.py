@@ -80,3 +80,63 @@ def test_errors():
         compress(C, tol=1e-12, max_rank=1)
     with pytest.raises(FaceLabError, match="do not match"):
         reconstruct(np.zeros((2, 20, 3)), np.zeros((5, 3)))
+
+
+# --------------------------------------------------------------------------- streamed, bounded memory
+def test_streamed_finds_a_low_rank_correction_within_the_budget(tmp_path):
+    from facelab_addon.core.geometry.compress import compress_streamed
+
+    C, idx = corrections(T=300, V=2000, moving=300, rank=5)
+    spool = np.memmap(tmp_path / "spool.f32", dtype="<f4", mode="w+", shape=C.shape)
+    spool[:] = C
+    before = np.array(spool)
+    r = compress_streamed(lambda i, j: spool[i:j], len(C), C.shape[1], 1e-5, max_rank=24, chunk=37)
+    assert r.fits and r.basis.shape == (5, C.shape[1], 3) and r.weights.shape == (300, 5)
+    got = reconstruct(r.basis, r.weights)
+    assert np.sqrt(np.sum((got - before) ** 2, axis=2)).max() <= 1e-5  # float32 spool, every vertex, every frame
+    assert r.frame_error.shape == (300,) and r.max_error == r.frame_error.max() <= 1e-5
+    np.testing.assert_array_equal(np.array(spool), before)  # the spool is read, never written
+
+
+def test_streamed_refuses_a_full_rank_correction_and_says_how_far_off():
+    from facelab_addon.core.geometry.compress import compress_streamed
+
+    rng = np.random.default_rng(3)
+    C = rng.normal(0, 1e-3, (80, 500, 3))  # noise: every frame its own shape
+    r = compress_streamed(lambda i, j: C[i:j], 80, 500, 1e-5, max_rank=16)
+    assert not r.fits and r.basis.shape[0] == 16 and r.max_error > 1e-4  # RMS left beyond 16 shapes
+
+
+def test_streamed_rank_is_the_smallest_within_tolerance_per_frame():
+    """A decaying spectrum: the rank found keeps every frame within tol, one less does not."""
+    from facelab_addon.core.geometry.compress import compress_streamed
+
+    rng = np.random.default_rng(4)
+    T, n, k = 120, 400, 12
+    B = np.linalg.qr(rng.standard_normal((3 * n, k)))[0].T.reshape(k, n, 3)
+    W = rng.standard_normal((T, k)) * (1e-3 * 0.5 ** np.arange(k))
+    C = np.einsum("tr,rvc->tvc", W, B)
+    for tol in (1e-4, 1e-5, 1e-6):
+        r = compress_streamed(lambda i, j: C[i:j], T, n, tol, max_rank=k)
+        e = np.sqrt(np.sum((reconstruct(r.basis, r.weights) - C) ** 2, axis=2)).max(axis=1)
+        assert r.fits and e.max() <= tol and np.allclose(e, r.frame_error, atol=1e-12)
+        q = r.basis.shape[0]
+        b, w = compress(C, tol=tol)
+        assert q <= b.shape[0] + 1  # the randomized basis is as good as the exact SVD, give or take one
+
+
+def test_streamed_takes_a_low_rank_product_without_forming_it():
+    from facelab_addon.core.geometry.compress import compress_streamed, low_rank_reader
+
+    rng = np.random.default_rng(5)
+    B, W = rng.normal(0, 1e-3, (4, 300, 3)), rng.normal(0, 1, (50, 4))
+    B[3] = B[0] + B[1]  # rank 3 in a basis of 4
+    r = compress_streamed(low_rank_reader(B, W), 50, 300, 1e-9, max_rank=8, low_rank=(B, W))
+    assert r.fits and r.basis.shape[0] == 3
+    np.testing.assert_allclose(reconstruct(r.basis, r.weights), np.einsum("tr,rvc->tvc", W, B), atol=1e-9)
+    with pytest.raises(FaceLabError, match="key budget"):
+        compress_streamed(low_rank_reader(B, W), 50, 300, 1e-9, max_rank=0)
+    with pytest.raises(MeshError, match="NaN"):
+        bad = np.einsum("tr,rvc->tvc", W, B)
+        bad[7, 3, 1] = np.nan
+        compress_streamed(lambda i, j: bad[i:j], 50, 300, 1e-6, max_rank=8)
