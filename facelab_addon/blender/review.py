@@ -182,7 +182,7 @@ def set_onion_skin(gp_obj, on: bool, before: int = 2, after: int = 2, factor: fl
     """Show (``on``) the strokes of ``before`` / ``after`` neighbouring keyframes of a Grease Pencil
     object faintly (``factor`` opacity), on every layer; ``on=False`` hides them."""
     gp = gp_obj.data
-    gp.onion_mode = "KEYS"
+    gp.onion_mode = "RELATIVE"  # counted in keyframes, not frames
     gp.ghost_before_range, gp.ghost_after_range = int(before), int(after)
     gp.onion_factor = float(factor)
     gp.use_onion_fade = True

@@ -287,7 +287,7 @@ def add_flags(parser, command: str) -> None:
         else:
             g.add_argument(f, dest=dest, default=None, type=d["type"], help=help_,
                            choices=[c[0] for c in d["choices"]] or None,
-                           metavar=None if d["choices"] else d["name"].upper().split("_")[-1])
+                           metavar=None if d["choices"] else {int: "N", float: "X"}.get(d["type"], "NAME"))
 
 
 def check_value(d: dict, value, f: str) -> str | None:

@@ -354,6 +354,8 @@ class RecordingLayout:
                 cat, op = args[0].split(".")
                 assert hasattr(getattr(bpy.types, "FACELAB_OT_" + op, None), "bl_idname"), args[0]
                 return type("OpProps", (), {})()  # takes any attribute, like OperatorProperties
+            if name == "prop_search":
+                assert args[1] in args[0].bl_rna.properties and args[3] in args[2].bl_rna.properties, args[1:4]
             if name == "template_list":
                 assert hasattr(bpy.types, args[0]) and args[3] in args[2].bl_rna.properties and args[5] in args[4].bl_rna.properties
             return RecordingLayout(self.log)
@@ -426,3 +428,73 @@ def test_panels_draw_the_workflow(addon):
         assert draw(getattr(bpy.types, p), ctx).log
     if bpy.types.FACELAB_PT_solve.poll(ctx):
         assert draw(bpy.types.FACELAB_PT_solve, ctx).log
+
+
+def draw_everything(ctx) -> dict:
+    """Draw every registered FaceLab panel (sub-panels included) whose poll passes; {panel: layout}."""
+    out = {}
+    for n in sorted(n for n in dir(bpy.types) if n.startswith("FACELAB_PT_")):
+        cls = getattr(bpy.types, n)
+        if hasattr(cls, "poll") and not cls.poll(ctx):
+            continue
+        out[n] = draw(cls, ctx)
+    return out
+
+
+def test_panels_draw_in_every_state(ict, addon):
+    """No face, no camera, no regions, regions, training frames, after Propagate, capture shown: every
+    panel draws (every prop / prop_search / operator it names exists), never a -1 placeholder."""
+    from facelab_addon.blender.shapekeys import add_corrective_key, key_spike
+
+    from .test_propagate_operator import FRAMES, TRAIN, build
+
+    ctx = bpy.context
+    empty_scene()
+    states = {"no face": draw_everything(ctx)}
+    assert "Select the captured face mesh" in states["no face"]["FACELAB_PT_main"].texts("label")
+    scene, obj, err, cap_w = build(ict)
+    scene.camera = None
+    states["no camera, no regions"] = draw_everything(ctx)
+    setup = states["no camera, no regions"]["FACELAB_PT_setup"]
+    assert [(a[1], a[3]) for m, a, kw in setup.log if m == "prop_search"] == [("fixed_group", "vertex_groups")]
+    assert "No group 'FL_fixed': separate mesh parts are held" in setup.texts("label")
+    bpy.ops.facelab.auto_regions()
+    states["regions"] = draw_everything(ctx)
+    for f, w in zip(TRAIN[::-1], cap_w[np.searchsorted(FRAMES, TRAIN)][::-1]):  # marked out of order
+        scene.frame_set(f)
+        key_spike(add_corrective_key(obj, f"Sculpt_{f}", -w * err), f)
+        bpy.ops.facelab.mark_training_frame()
+    states["training frames"] = draw_everything(ctx)
+    ul = bpy.types.FACELAB_UL_training_frames
+    flags, order = ul.filter_items(None, ctx, obj.facelab, "training_frames")
+    shown = sorted(range(len(order)), key=lambda i: order[i])
+    assert [obj.facelab.training_frames[i].frame for i in shown] == sorted(TRAIN)  # the list reads by frame
+    assert bpy.ops.facelab.propagate(suggestions=2) == {"FINISHED"}
+    states["after Propagate"] = draw_everything(ctx)
+    bpy.ops.facelab.review_toggle()
+    states["capture shown"] = draw_everything(ctx)
+    for state, panels in states.items():
+        assert {"FACELAB_PT_main", "FACELAB_PT_setup", "FACELAB_PT_review", "FACELAB_PT_bake"} <= set(panels), state
+        for name, lay in panels.items():
+            texts = [str(t) for t in lay.texts()]
+            assert not any(t == "-1" or t.endswith(" -1") for t in texts), (state, name)
+    prop = states["after Propagate"]["FACELAB_PT_propagate"]
+    assert any(t.startswith("Extrapolation on this frame") for t in prop.texts("label"))
+    review_ops = [a[0] for m, a, kw in states["after Propagate"]["FACELAB_PT_review"].log if m == "operator"]
+    assert {"facelab.review_toggle", "facelab.correction_heatmap", "facelab.sketch_onion_skin",
+            "facelab.next_suggested_frame", "facelab.most_extrapolated_frame"} <= set(review_ops)
+    # solve / reconstruct: bind frames and the annotation view are toggles, not -1
+    solve = states["after Propagate"]["FACELAB_PT_solve"]
+    drawn = [a[1] for m, a, kw in solve.log if m == "prop"]
+    assert "bind_current" in drawn and "bind_frame" not in drawn and "annotation_view" not in drawn
+    assert "use_annotation" in drawn and "frame_start" not in drawn  # Scene Range: "Scene: 1-40" instead
+    assert f"Scene: {scene.frame_start}-{scene.frame_end}" in solve.texts("label")
+    scene.facelab_solve.bind_current = False
+    assert scene.facelab_solve.bind_frame == scene.frame_current
+    scene.facelab_solve.use_annotation = True
+    assert scene.facelab_solve.annotation_view == 0
+    solve = draw(bpy.types.FACELAB_PT_solve, ctx)
+    drawn = [a[1] for m, a, kw in solve.log if m == "prop"]
+    assert "bind_frame" in drawn and "annotation_view" in drawn
+    recon = [a[1] for m, a, kw in states["after Propagate"]["FACELAB_PT_reconstruct"].log if m == "prop"]
+    assert "bind_scene_start" in recon and "bind_frame" not in recon
