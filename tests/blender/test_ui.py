@@ -498,3 +498,35 @@ def test_panels_draw_in_every_state(ict, addon):
     assert "bind_frame" in drawn and "annotation_view" in drawn
     recon = [a[1] for m, a, kw in states["after Propagate"]["FACELAB_PT_reconstruct"].log if m == "prop"]
     assert "bind_scene_start" in recon and "bind_frame" not in recon
+
+
+def test_reconstruct_buttons_poll_with_reasons(addon):
+    """Reconstruct, Generate Correctives and Bundles from Tracking are disabled until they can run."""
+    scene = empty_scene()
+    obj = small_face(scene)
+    for k in ("Basis", "A", "B", "C", "D"):
+        obj.shape_key_add(name=k, from_mix=False)
+    with pytest.raises(RuntimeError, match="No bundles: select the bundle empties"):
+        bpy.ops.facelab.reconstruct_from_bundles()
+    e = bpy.data.objects.new("B00", None)
+    scene.collection.objects.link(e)
+    e.select_set(True)
+    assert bpy.ops.facelab.reconstruct_from_bundles.poll()
+    scene.facelab_recon.bundle_source = "COLLECTION"
+    with pytest.raises(RuntimeError, match="pick a Collection"):
+        bpy.ops.facelab.reconstruct_from_bundles()
+    scene.facelab_recon.bundle_collection = bpy.data.collections.new("Bundles")
+    scene.facelab_recon.bundle_collection.objects.link(e)
+    assert bpy.ops.facelab.reconstruct_from_bundles.poll()
+    with pytest.raises(RuntimeError, match="Pick the template Rig"):
+        bpy.ops.facelab.generate_correctives()
+    rig = small_face(scene)
+    scene.facelab.face = obj
+    scene.facelab_recon.rig_object = rig
+    with pytest.raises(RuntimeError, match="has no shape keys: pick the mesh holding the template rig"):
+        bpy.ops.facelab.generate_correctives()
+    rig.shape_key_add(name="Basis")
+    rig.shape_key_add(name="smile")
+    assert bpy.ops.facelab.generate_correctives.poll()
+    with pytest.raises(RuntimeError, match="No Movie Clip: load the footage"):
+        bpy.ops.facelab.bundles_from_clip()
