@@ -193,8 +193,9 @@ def values(scene, entry: Entry) -> dict:
 @bpy.app.handlers.persistent
 def _on_load(_dummy=None):
     for scene in bpy.data.scenes:
-        for e in SCENE_SETTINGS:
-            ensure_initialized(scene, e)
+        if scene.library is None:  # a linked scene is not ours to fill
+            for e in SCENE_SETTINGS:
+                ensure_initialized(scene, e)
 
 
 # --------------------------------------------------------------------------- panel
