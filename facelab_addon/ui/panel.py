@@ -90,6 +90,13 @@ def _operator_if_registered(layout, idname, **kw) -> bool:
     return True
 
 
+def _plate(bg, scene):
+    """The image or Movie Clip a camera background shows (the scene's active clip for 'Camera Clip')."""
+    if bg.source == "IMAGE":
+        return bg.image
+    return scene.active_clip if bg.use_camera_clip else bg.clip
+
+
 class FACELAB_PT_main(_SidebarTab, bpy.types.Panel):
     """The tab's header: which face FaceLab works on."""
 
@@ -117,9 +124,8 @@ class FACELAB_PT_setup(_Section, bpy.types.Panel):
         col.prop(context.scene, "camera")
         cam = context.scene.camera
         if cam is not None and cam.type == "CAMERA":
-            plates = [bg.image.name if bg.source == "IMAGE" else bg.clip.name
-                      for bg in cam.data.background_images
-                      if (bg.image if bg.source == "IMAGE" else bg.clip) is not None]
+            plates = [p.name for p in map(lambda bg: _plate(bg, context.scene), cam.data.background_images)
+                      if p is not None]
             if plates:
                 col.label(text=f"Plate: {plates[0]}", icon="IMAGE_BACKGROUND")
             else:

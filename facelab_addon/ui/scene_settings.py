@@ -113,7 +113,8 @@ def make_group(entry: Entry):
     ann = {d["name"]: make_property(d) for d in fields(entry)}
     ann[INITIALIZED] = BoolProperty(default=False, options={"HIDDEN"})
     name = "FACELAB_PG_" + entry.attr
-    return type(name, (bpy.types.PropertyGroup,), {"__annotations__": ann, "__doc__": entry.cls.__doc__.split("\n")[0]})
+    doc = (entry.cls.__doc__ or entry.cls.__name__).split("\n")[0]
+    return type(name, (bpy.types.PropertyGroup,), {"__annotations__": ann, "__doc__": doc})
 
 
 def group_class(attr: str):
