@@ -54,9 +54,17 @@ CORRECTION_CACHES_PROP = "facelab_caches"
 SOLVE_ACTION = "FL_Solve"
 RETARGET_ACTION = "FL_Retarget"
 CORRECTIVES_ACTION = "FL_Correctives"
+#: The face object's action keying :data:`EXTRAPOLATION_PROP` (an object's own action, not the shape keys').
+EXTRAPOLATION_ACTION = "FL_Extrapolation"
 #: Object custom property keyed by Propagate: how far each frame is from the training frames.
 EXTRAPOLATION_PROP = "FL_extrapolation"
 SKETCH_OBJECT = "FL_LipSketch"
+#: Point color attribute of the review heat map: correction magnitude on the current frame.
+CORRECTION_ATTR = "FL_correction"
+#: Mesh custom property: the heat map's legend range ``[0, max]`` in millimetres and its frame.
+CORRECTION_RANGE_PROP = "FL_correction_range_mm"
+#: Object custom property holding the artist's mutes while Review shows the capture (JSON).
+REVIEW_SAVED_PROP = "FL_review_saved"
 BUNDLES_COLLECTION = "FL_bundles"
 TRACK_EMPTY_PREFIX = "FL_track_"
 TRAIN_MARKER = "FL train"

@@ -196,8 +196,9 @@ def test_preferences_and_sketch_material_come_from_the_presets(addon):
 
     assert prefs.DEFAULTS == load_preset("sketch_refine", SKETCH_SCHEMA)
     assert prefs.REGION_DEFAULTS == load_preset("regions", REGION_SCHEMA)
-    p = prefs.FACELAB_AP_preferences
-    assert {k: p.__annotations__[k].keywords["default"] for k in SKETCH_SCHEMA} == prefs.DEFAULTS
+    # the preferences hold the defaults of new scenes, through the scene settings generated from the presets
+    rna = bpy.types.PropertyGroup.bl_rna_get_subclass_py("FACELAB_PG_facelab_refine").bl_rna.properties
+    assert {k: pytest.approx(rna[k].default) for k in SKETCH_SCHEMA} == prefs.DEFAULTS
 
     bpy.ops.wm.read_factory_settings(use_empty=True)
     mat = strokes._sketch_material()
@@ -206,7 +207,7 @@ def test_preferences_and_sketch_material_come_from_the_presets(addon):
 
 @pytest.mark.blender
 @pytest.mark.slow
-def test_auto_regions_operator_uses_the_region_preset(addon, ict, monkeypatch):
+def test_auto_regions_operator_uses_the_region_preset(addon, ict):
     import bpy
 
     from facelab_addon.blender.mesh import vertex_group_mask
@@ -216,6 +217,8 @@ def test_auto_regions_operator_uses_the_region_preset(addon, ict, monkeypatch):
 
     def run(**kw):
         bpy.ops.wm.read_factory_settings(use_empty=True)
+        for k, v in kw.items():  # the shot's Auto Regions settings (Setup > Settings)
+            setattr(bpy.context.scene.facelab_regions, k, v)
         obj = new_mesh_object("Face", ict.neutral, ict.faces)
         bpy.context.view_layer.objects.active = obj
         obj.select_set(True)
@@ -228,6 +231,6 @@ def test_auto_regions_operator_uses_the_region_preset(addon, ict, monkeypatch):
     core_mouth, core_lips = auto_regions(V, ict.faces)  # the core defaults
     assert np.array_equal(mouth, core_mouth) and np.array_equal(lips, core_lips)
 
-    monkeypatch.setitem(prefs.REGION_DEFAULTS, "lip_width", 0.2)  # a wider lip band in the preset
-    _, lips2 = run()
+    assert prefs.REGION_DEFAULTS["lip_width"] < 0.2
+    _, lips2 = run(lip_width=0.2)  # a wider lip band saved with the shot
     assert lips2.sum() > lips.sum() and not (lips & ~lips2).any()

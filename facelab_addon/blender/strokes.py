@@ -261,6 +261,7 @@ def new_lip_sketch(scene, camera_obj=None, name: str = DEFAULT_SKETCH_NAME, dept
         offset = Matrix.Translation((0.0, 0.0, -depth / scale))
         obj.matrix_basis = offset @ Matrix.Rotation(math.pi / 2, 4, "X")
         obj.show_in_front = True
+        obj.hide_render = True  # a drawing aid: never in the renders
     if scene.objects.get(obj.name) is None:
         scene.collection.objects.link(obj)
     gp = obj.data

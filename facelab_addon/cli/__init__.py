@@ -1,20 +1,22 @@
 """FaceLab's command line: the sidebar's steps, in batch, for render farms and pipeline scripts.
 
     python -m facelab_addon propagate SHOT.blend --object Face --frames 1-1200 --out SHOT_fixed.blend
-    python -m facelab_addon refine SHOT.blend --object Face --frames 40,88 --out SHOT_refined.blend
+    python -m facelab_addon refine SHOT.blend --object Face --frames 40,88 --lambda-silh 2 --out SHOT_refined.blend
     python -m facelab_addon reconstruct SHOT.blend --object Face --frames 1-300 --out SHOT_recon.blend
     python -m facelab_addon propagate --mesh face.obj --cache perf.pc2 --corrected 12:fix12.obj --out fixed.blend
 
-Each subcommand is one module of this package (``refine.py``, ``propagate.py``, ...) found at run
-time: a new one (``solve.py``) is added by dropping in a module that defines
+Each subcommand is one module of this package (``refine.py``, ``propagate.py``, ``solve.py``, ...)
+found at run time: a new one is added by dropping in a module that defines
 
     HELP: str                                   # one line for --help
     def add_arguments(parser) -> None            # its own options (the common ones are already there)
     def run(args, session: Session) -> dict      # call the pipelines (facelab_addon.pipeline); return the JSON summary
 
-The common options (inputs, ``--object``, ``--frames``, ``--out``, ``--json``) and the plumbing
-(opening inputs, finding the object, stdout kept clean for the JSON, exit codes) are in
-``_common.py``. Progress goes to stderr, the JSON summary to stdout (or to ``--json FILE``).
+The common options (inputs, ``--object``, ``--frames``, ``--out``, ``--json``, ``--quiet``,
+``--verbose``) and the plumbing (opening inputs, finding the object, Blender's own output kept off
+the terminal, exit codes) are in ``_common.py``. The settings a command's steps store with the shot
+(:data:`facelab_addon.ui.scene_settings.SCENE_SETTINGS`) are flags too; without a flag the value
+saved in the .blend is used. Progress goes to stderr, the JSON summary to stdout (or ``--json FILE``).
 
 Exit codes (also in docs/cli.md):
 
@@ -53,6 +55,7 @@ from ._common import (  # noqa: F401  (re-exported for subcommand modules and sc
     CliError,
     Session,
     add_common_arguments,
+    add_settings_arguments,
     execute,
 )
 
@@ -82,6 +85,7 @@ def build_parser() -> argparse.ArgumentParser:
                            formatter_class=argparse.RawDescriptionHelpFormatter)
         add_common_arguments(p, inputs=getattr(mod, "INPUTS", ("blend", "mesh")))
         mod.add_arguments(p)
+        add_settings_arguments(p, name)
         p.set_defaults(_module=mod)
     return parser
 

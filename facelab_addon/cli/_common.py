@@ -39,10 +39,60 @@ class CliError(Exception):
 
 _T0 = time.perf_counter()
 
+#: Where FaceLab's own lines go while a command runs (the terminal's stderr, saved by
+#: :func:`blender_output`); None: ``sys.stderr``.
+_LOG = {"stream": None}
+
 
 def log(msg: str) -> None:
     """Progress line on stderr, with the seconds since start (stdout carries only the JSON summary)."""
-    print(f"[facelab {time.perf_counter() - _T0:6.1f}s] {msg}", file=sys.stderr, flush=True)
+    print(f"[facelab {time.perf_counter() - _T0:6.1f}s] {msg}", file=_LOG["stream"] or sys.stderr, flush=True)
+
+
+#: Lines of Blender's own output that are noise for a batch user (shown with ``--verbose`` only).
+NOISE = re.compile(r"EGL|GPU|DeprecationWarning|deprecated|Read blend|Saved as|Info: |^\d\d:\d\d\.\d+ ")
+
+
+@contextlib.contextmanager
+def blender_output(verbose: bool):
+    """While bpy runs, Blender's own output (C-level stdout and stderr: file loading, operator reports,
+    EGL and deprecation warnings) goes to a temporary file instead of the terminal; FaceLab's own
+    lines (:func:`log`) still reach the terminal's stderr, once and in one format. Yields the list the
+    captured lines are put in on exit. ``verbose``: Blender's output goes to stderr as it comes."""
+    captured: list = []
+    if verbose:
+        with quiet_stdout():
+            yield captured
+        return
+    import tempfile
+
+    try:
+        out_fd, err_fd = sys.stdout.fileno(), sys.stderr.fileno()
+    except (AttributeError, OSError, ValueError):  # no real file descriptors (some embeddings)
+        yield captured
+        return
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved_out, saved_err = os.dup(out_fd), os.dup(err_fd)
+    tmp = tempfile.TemporaryFile(mode="w+b")
+    stream = os.fdopen(os.dup(saved_err), "w", buffering=1)
+    _LOG["stream"] = stream
+    try:
+        os.dup2(tmp.fileno(), out_fd)
+        os.dup2(tmp.fileno(), err_fd)
+        yield captured
+    finally:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os.dup2(saved_out, out_fd)
+        os.dup2(saved_err, err_fd)
+        os.close(saved_out)
+        os.close(saved_err)
+        _LOG["stream"] = None
+        stream.close()
+        tmp.seek(0)
+        captured.extend(tmp.read().decode("utf-8", "replace").splitlines())
+        tmp.close()
 
 
 def add_common_arguments(p, inputs=("blend", "mesh")) -> None:
@@ -62,12 +112,16 @@ def add_common_arguments(p, inputs=("blend", "mesh")) -> None:
     p.add_argument("--object", metavar="NAME",
                    help="the face mesh (default: FaceLab > Setup > Face of the scene, else the only mesh)")
     p.add_argument("--frames", metavar="RANGE",
-                   help="frames to work on: 'A-B' or 'N' (default: the scene's frame range)")
+                   help="frames to work on: 'A-B', 'N' or a list such as '40,88' or '1-10,20' (propagate, "
+                        "reconstruct, solve and retarget take one range 'A-B'); default: the scene's frame range")
     p.add_argument("--out", metavar="FILE.blend",
                    help="save the result here (default: nothing is saved, only the summary is printed)")
     p.add_argument("--json", metavar="FILE", dest="json_path",
                    help="write the JSON summary to FILE instead of stdout")
-    p.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    p.add_argument("--quiet", action="store_true",
+                   help="print nothing but the JSON summary (no progress, none of Blender's own lines)")
+    p.add_argument("--verbose", action="store_true",
+                   help="also show Blender's own output (file loading, operator reports, warnings) on stderr")
 
 
 def argparse_suppress():
@@ -476,15 +530,18 @@ def ensure_registered(bpy) -> str:
 def execute(args) -> int:
     """Run the parsed subcommand: returns the exit code; prints/writes the JSON summary.
 
-    Everything the run writes to stdout (Blender's own lines, operator reports) goes to stderr, so
-    stdout carries only the JSON. A failure ends in one ``error: ...`` line on stderr and its
-    documented exit code (``exit_code_for``); a bug adds its traceback.
+    While it runs, Blender's own output (file loading, operator reports, EGL and deprecation
+    warnings) is kept off the terminal (:func:`blender_output`; ``--verbose`` shows it on stderr), so
+    stdout carries only the JSON and stderr only FaceLab's lines, each once (``--quiet``: none).
+    A failure ends in one ``error: ...`` line on stderr and its documented exit code
+    (``exit_code_for``); a bug adds its traceback.
     """
     t0 = time.perf_counter()
     summary = {"command": args.command, "ok": False}
     code = EXIT_INTERNAL
     registered_here = False
-    with quiet_stdout():
+    quiet = getattr(args, "quiet", False)
+    with blender_output(getattr(args, "verbose", False)) as blender_lines:
         try:
             try:
                 import bpy
@@ -502,19 +559,23 @@ def execute(args) -> int:
             session.log(f"{args.command}: FaceLab {reg}")
             session.check_out()
             session.open_inputs()
+            settings = apply_settings(args, session.scene)
             result = args._module.run(args, session)
             summary.update(result)
+            if settings:
+                summary["settings"] = settings
             summary.update(ok=True, inputs=session.inputs)
             code = EXIT_OK
         except Exception as e:  # noqa: BLE001  (a bug: report it, never a silent success)
             code = exit_code_for(e)
             if code == EXIT_INTERNAL:
                 summary.update(error=one_line(f"internal error: {type(e).__name__}: {e}"))
-                traceback.print_exc()
+                traceback.print_exc(file=_LOG["stream"] or sys.stderr)
                 log("internal error: please report it with the traceback above")
             else:
                 summary.update(error=one_line(e))
-                log(f"error: {one_line(e)}")
+                if not quiet:
+                    log(f"error: {one_line(e)}")
         except KeyboardInterrupt:
             code = EXIT_INTERNAL
             summary.update(error="interrupted (Ctrl+C); nothing was saved")
@@ -524,6 +585,9 @@ def execute(args) -> int:
             from .. import unregister
 
             unregister()
+    if code in (EXIT_INPUT, EXIT_INTERNAL) and not quiet:  # what Blender said may be the reason
+        for line in [ln for ln in blender_lines if ln.strip() and not NOISE.search(ln)][-10:]:
+            log(f"blender: {line.strip()}")
     summary.update(exit_code=code, seconds=round(time.perf_counter() - t0, 3))
     text = json.dumps(summary, indent=2, default=_json_default)
     if getattr(args, "json_path", None):
@@ -535,6 +599,27 @@ def execute(args) -> int:
     else:
         print(text, flush=True)
     return code
+
+
+def add_settings_arguments(p, command: str) -> None:
+    """The flags of the settings stored with the shot that ``command`` uses (``ui.scene_settings``);
+    none when FaceLab's Blender side cannot be imported (no bpy: the run then exits with code 6)."""
+    try:
+        from ..ui import scene_settings
+    except ImportError:
+        return
+    scene_settings.add_flags(p, command)
+
+
+def apply_settings(args, scene) -> dict:
+    """Write the settings flags given into the scene (saved with ``--out``); ``{group: {field: value}}``
+    of the settings the command uses."""
+    from ..ui import scene_settings
+
+    try:
+        return scene_settings.apply_flags(args, scene, args.command)
+    except ValueError as e:
+        raise CliError(str(e), EXIT_USAGE) from None
 
 
 def _release_solvers() -> None:

@@ -1,6 +1,9 @@
 """Propagate the corrected (training) frames to every frame (Dinev et al. 2018 §4), like the
 sidebar's Train & Propagate: Auto Regions when FL_mouth/FL_lips are missing, then Propagate.
 
+The Auto Regions band widths and the number of suggestions are the shot's settings (FaceLab >
+Setup / Train & Propagate > Settings), or the flags below (saved with ``--out``).
+
 Training frames are the ones already in the .blend (Refine Lips, Mark Training Frame), plus any
 ``--corrected FRAME:FILE.obj`` (the face corrected by hand on that frame, same vertex order), which
 become corrective keys ``FL_Corrected_<frame>`` marked as training frames.
@@ -14,7 +17,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..names import LIPS_GROUP, MOUTH_GROUP, SUGGEST_MARKER
+from ..names import LIPS_GROUP, MOUTH_GROUP
 from ._common import (
     EXIT_INPUT,
     EXIT_OUTPUT,
@@ -30,8 +33,6 @@ HELP = "propagate the training frames' lip corrections to every frame (correctiv
 def add_arguments(p) -> None:
     p.add_argument("--corrected", action="append", default=[], metavar="FRAME:FILE.obj",
                    help="the face corrected on FRAME (an OBJ with the mesh's vertex order); repeatable")
-    p.add_argument("--suggestions", type=int, default=3, metavar="N",
-                   help=f"how many frames to suggest correcting next (timeline markers '{SUGGEST_MARKER}'); default 3")
     p.add_argument("--no-auto-regions", dest="auto_regions", action="store_false",
                    help=f"fail instead of running Auto Regions when {MOUTH_GROUP} / {LIPS_GROUP} are missing")
     p.add_argument("--bake", metavar="FILE",
@@ -88,6 +89,7 @@ def run(args, session) -> dict:
     from ..pipeline.bake import BakeSettings, bake
     from ..pipeline.propagate import PropagateSettings, propagate
     from ..pipeline.regions import RegionSettings, auto_regions
+    from ..ui.scene_settings import scene_settings
 
     scene = session.scene
     obj = session.face()
@@ -114,7 +116,7 @@ def run(args, session) -> dict:
             raise CliError(f"'{obj.name}' has no {MOUTH_GROUP} / {LIPS_GROUP} vertex groups; paint them, or drop "
                            "--no-auto-regions to propose them automatically.")
         session.log(f"Auto Regions ({MOUTH_GROUP} / {LIPS_GROUP} missing)")
-        auto_regions(obj, RegionSettings())
+        auto_regions(obj, scene_settings(scene, RegionSettings))
         regions = "auto"
 
     train = sorted({t.frame for t in obj.facelab.training_frames})
@@ -122,7 +124,7 @@ def run(args, session) -> dict:
     if not len(obj.facelab.training_frames):
         raise CliError("Correct at least one frame first (Refine Lips, or sculpt and Mark Training Frame)")
     t0 = time.perf_counter()
-    r = propagate(scene, obj, np.arange(f0, f1 + 1), PropagateSettings(suggestions=min(20, max(0, args.suggestions))),
+    r = propagate(scene, obj, np.arange(f0, f1 + 1), scene_settings(scene, PropagateSettings),
                   progress=stage_logger(session, "propagate"))
     dt = time.perf_counter() - t0
     suggested = sorted(r.suggested)

@@ -51,7 +51,7 @@ def run(args, session) -> dict:
     settings = reconstruct_settings(scene, bpy.context.selected_objects, frame_start=f0, frame_end=f1,
                                     bind_frame=args.bind_frame, smooth=max(1, args.smooth))
     t0 = time.perf_counter()
-    with progress(session, len(frames), "FaceLab Reconstruct") as prog:
+    with progress(session, len(frames), "reconstruct") as prog:
         r = reconstruct_from_bundles(scene, obj, settings, progress=prog)
     dt = time.perf_counter() - t0
     keys = r.keys

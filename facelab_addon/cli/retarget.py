@@ -98,7 +98,7 @@ def run(args, session) -> dict:
     session.log(f"retargeting '{obj.name}' -> '{cre.name}', frames {frames[0]}-{frames[-1]} ({len(frames):,}), "
                 f"lip sync {'on' if s.lip_sync else 'off'}")
     t0 = time.perf_counter()
-    with progress(session, len(frames), "FaceLab Retarget") as prog:
+    with progress(session, len(frames), "retarget") as prog:
         r = retarget(scene, obj, cre, retarget_settings(scene), progress=prog)
     dt = time.perf_counter() - t0
     res = r.core

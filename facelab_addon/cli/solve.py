@@ -39,16 +39,12 @@ def add_arguments(p) -> None:
 # --------------------------------------------------------------------------- shared with retarget.py
 @contextlib.contextmanager
 def progress(session, total: int, label: str):
-    """The sidebar's progress callback (a ``label: done/total frames`` line on stderr in background mode),
-    ended afterwards; Blender's own output meanwhile goes to stderr (stdout carries the JSON)."""
-    from ..ui.ops import progress_callback
-
-    ctx = session.bpy.context
-    try:
-        with quiet_stdout():
-            yield progress_callback(ctx, total, label)
-    finally:
-        ctx.window_manager.progress_end()
+    """A ``progress(done, n=total)`` callback for the pipelines (``done`` frames finished): a
+    ``label: done/n (p %)`` line about every 10 %, in the CLI's one format; Blender's own output
+    meanwhile stays off stdout (which carries the JSON)."""
+    step = session.progress(label, total)
+    with quiet_stdout():
+        yield lambda done, n=total: step(done - 1, n)
 
 
 def set_range(session, args, what: str):
@@ -173,7 +169,7 @@ def run(args, session) -> dict:
 
     session.log(f"solving frames {frames[0]}-{frames[-1]} ({len(frames):,})")
     t0 = time.perf_counter()
-    with progress(session, len(frames), "FaceLab Solve") as prog:
+    with progress(session, len(frames), "solve") as prog:
         r = solve_performance(scene, obj, solve_settings(scene), progress=prog)
     dt = time.perf_counter() - t0
     solved = [int(f) for f in r.solved]

@@ -37,6 +37,7 @@ from ..core.lips.propagate import LipRegressor
 from ..core.lips.suggest import suggest_frames
 from ..names import (
     CORRECTED_PREFIX,
+    EXTRAPOLATION_ACTION,
     EXTRAPOLATION_PROP,
     PROPAGATE_PREFIX,
     SUGGEST_MARKER,
@@ -378,7 +379,7 @@ def _propagate_work(scene, obj, frames, settings, t0, tris, mouth_faces, lip_fac
     feats = reg.mouth_features(pred)
     score = reg.extrapolation(features=feats)
     obj[EXTRAPOLATION_PROP] = 0.0
-    key_property_bulk(obj, f'["{EXTRAPOLATION_PROP}"]', frames, score)
+    key_property_bulk(obj, f'["{EXTRAPOLATION_PROP}"]', frames, score, action_name=EXTRAPOLATION_ACTION)
     for m in [m for m in scene.timeline_markers if m.name.startswith(SUGGEST_MARKER)]:
         scene.timeline_markers.remove(m)
     suggested = []

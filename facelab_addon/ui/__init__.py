@@ -1,8 +1,21 @@
 """Blender UI: properties, preferences, operators and panels (registered in this order)."""
 
-from . import ops, ops_propagate, ops_reconstruct, ops_solve, panel, panel_solve, prefs, props, props_solve
+from . import (
+    ops,
+    ops_propagate,
+    ops_reconstruct,
+    ops_review,
+    ops_solve,
+    panel,
+    panel_solve,
+    prefs,
+    props,
+    props_solve,
+    scene_settings,
+)
 
-modules = (props, props_solve, prefs, ops, ops_propagate, ops_reconstruct, ops_solve, panel_solve, panel)
+modules = (props, props_solve, scene_settings, prefs, ops, ops_propagate, ops_reconstruct, ops_solve, ops_review,
+           panel_solve, panel)
 
 
 def register():

@@ -10,7 +10,7 @@ from ..blender.strokes import has_lip_sketch, new_lip_sketch
 from ..core.errors import FaceLabError
 from ..pipeline.propagate import record_training_frame  # noqa: F401  (re-exported for scripts)
 from ..pipeline.refine import RefineSettings, refine
-from .prefs import get_prefs
+from .scene_settings import scene_settings
 
 
 def progress_callback(context, T, label="FaceLab"):
@@ -56,10 +56,9 @@ def poll_face(cls, context) -> bool:
 
 
 def refine_settings(context) -> RefineSettings:
-    """The Refine Lips settings: solver weights from the add-on preferences, fixed group from Setup."""
-    p = get_prefs(context)
-    return RefineSettings(iterations=p["iterations"], lambda_pos=p["lambda_pos"], lambda_reg=p["lambda_reg"],
-                          lambda_silh=p["lambda_silh"], fixed_group=context.scene.facelab.fixed_group)
+    """The Refine Lips settings saved with the shot (FaceLab > Sketch & Refine > Settings; the fixed group
+    from Setup)."""
+    return scene_settings(context.scene, RefineSettings)
 
 
 class FACELAB_OT_new_lip_sketch(bpy.types.Operator):

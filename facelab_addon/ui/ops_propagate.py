@@ -25,9 +25,10 @@ from ..pipeline.propagate import (
     record_training_frame,
     remove_training_frame,
 )
-from ..pipeline.regions import REGION_DEFAULTS, RegionSettings, auto_regions
+from ..pipeline.regions import RegionSettings, auto_regions
 from ..pipeline.steps import StepJob, run_steps
 from .ops import face_object, operator_range, poll_face, progress_callback
+from .scene_settings import scene_settings
 
 
 class FACELAB_OT_auto_regions(bpy.types.Operator):
@@ -51,8 +52,8 @@ class FACELAB_OT_auto_regions(bpy.types.Operator):
         if context.mode == "EDIT_MESH":
             bpy.ops.object.mode_set(mode="OBJECT")
         try:
-            r = auto_regions(obj, RegionSettings(replace=self.replace, use_selection=self.use_selection,
-                                                 **REGION_DEFAULTS))
+            r = auto_regions(obj, scene_settings(context.scene, RegionSettings, replace=self.replace,
+                                                 use_selection=self.use_selection))
         except FaceLabError as e:
             self.report({"ERROR"}, str(e))
             return {"CANCELLED"}
@@ -240,8 +241,9 @@ class FACELAB_OT_propagate(_ModalJob, bpy.types.Operator):
     frame_start: IntProperty(name="Start", default=1, description="First frame (not set: the scene's start; "
                                                                   "negative frames are allowed)")
     frame_end: IntProperty(name="End", default=250, description="Last frame (not set: the scene's end)")
-    suggestions: IntProperty(name="Suggestions", default=3, min=0, max=20,
-                             description="How many frames to suggest correcting next")
+    suggestions: IntProperty(name="Suggestions", default=3, min=0, max=50,
+                             description="How many frames to suggest correcting next (not set: the shot's "
+                                         "setting, FaceLab > Train & Propagate > Settings)")
 
     @classmethod
     def poll(cls, context):
@@ -254,6 +256,10 @@ class FACELAB_OT_propagate(_ModalJob, bpy.types.Operator):
             cls.poll_message_set("Correct at least one frame first (Refine Lips, or sculpt and Mark Training Frame)")
             return False
         return True
+
+    def _settings(self, context):
+        over = {"suggestions": self.suggestions} if self.properties.is_property_set("suggestions") else {}
+        return scene_settings(context.scene, PropagateSettings, **over)
 
     def _frames(self, context):
         return frame_range(context.scene, *operator_range(self), "Propagate")
@@ -273,7 +279,7 @@ class FACELAB_OT_propagate(_ModalJob, bpy.types.Operator):
         try:
             frames = self._frames(context)
             r = propagate(context.scene, face_object(context), frames,
-                          PropagateSettings(suggestions=self.suggestions),
+                          self._settings(context),
                           progress=stage_progress(context, "FaceLab Propagate"))
         except FaceLabError as e:
             self.report({"ERROR"}, str(e))
@@ -291,7 +297,7 @@ class FACELAB_OT_propagate(_ModalJob, bpy.types.Operator):
         try:
             frames = self._frames(context)
             steps = propagate_steps(context.scene, face_object(context), frames,
-                                    PropagateSettings(suggestions=self.suggestions))
+                                    self._settings(context))
         except FaceLabError as e:
             self.report({"ERROR"}, str(e))
             return {"CANCELLED"}
@@ -315,7 +321,8 @@ class FACELAB_OT_bake(_ModalJob, bpy.types.Operator):
 
     filepath: StringProperty(subtype="FILE_PATH")
     format: EnumProperty(items=[("PC2", "PC2", ""), ("MDD", "MDD", ""), ("ABC", "Alembic", "")], default="PC2")
-    overwrite: BoolProperty(name="Overwrite", default=False)
+    overwrite: BoolProperty(name="Overwrite", default=False,
+                            description="Replace an existing file (not set: the shot's setting, Bake > Settings)")
 
     @classmethod
     def poll(cls, context):
@@ -326,7 +333,9 @@ class FACELAB_OT_bake(_ModalJob, bpy.types.Operator):
 
     def invoke(self, context, event):
         if not self.filepath:
-            ext = bake_pipeline.FORMATS[self.format]
+            fmt = self.format if self.properties.is_property_set("format") else \
+                scene_settings(context.scene, bake_pipeline.BakeSettings).format
+            ext = bake_pipeline.FORMATS[fmt]
             self.filepath = bpy.path.abspath("//") + face_object(context).name + "_corrected" + ext
         context.window_manager.fileselect_add(self)
         return {"RUNNING_MODAL"}
@@ -335,16 +344,17 @@ class FACELAB_OT_bake(_ModalJob, bpy.types.Operator):
         scene = context.scene
         path = bpy.path.abspath(self.filepath) if self.filepath.startswith("//") and bpy.data.filepath \
             else self.filepath  # an unsaved .blend keeps '//', which the bake refuses with its reason
-        settings = bake_pipeline.BakeSettings(format=self.format, overwrite=self.overwrite)
+        over = {k: getattr(self, k) for k in ("format", "overwrite") if self.properties.is_property_set(k)}
+        settings = scene_settings(scene, bake_pipeline.BakeSettings, **over)
         self._t0 = time.perf_counter()
         try:
             frames = frame_range(scene, None, None, "Bake")
             steps = bake_pipeline.bake_steps(face_object(context), frames, path, settings)
-            if self.format != "ABC" and not bpy.app.background and context.window is not None:
-                return self._start_job(context, steps, f"Bake {self.format}")  # after the file browser
+            if settings.format != "ABC" and not bpy.app.background and context.window is not None:
+                return self._start_job(context, steps, f"Bake {settings.format}")  # after the file browser
             frame_done = None
-            if self.format != "ABC":  # one call of Blender's exporter: no progress to show
-                frame_done = progress_callback(context, len(frames), f"FaceLab Bake {self.format}")
+            if settings.format != "ABC":  # one call of Blender's exporter: no progress to show
+                frame_done = progress_callback(context, len(frames), f"FaceLab Bake {settings.format}")
             r = run_steps(steps, frame_done and (lambda stage, done, total: frame_done(done, total)))
         except FaceLabError as e:
             self.report({"ERROR"}, str(e))

@@ -18,6 +18,30 @@ from .ops import face_object, operator_range, poll_face, progress_callback
 from .props_reconstruct import corrective_settings, reconstruct_settings
 
 
+def _dataset_keys(obj) -> int:
+    """Shape keys of ``obj`` besides its Basis (the dataset of Reconstruct / Generate Correctives)."""
+    key = obj.data.shape_keys
+    return max(0, len(key.key_blocks) - 1) if key is not None else 0
+
+
+def bundles_problem(context) -> str | None:
+    """Why Reconstruct has no bundles to read with the panel's bundle source (None when it has some)."""
+    r = context.scene.facelab_recon
+    face = face_object(context)
+    if r.bundle_source == "COLLECTION":
+        if r.bundle_collection is None or not len(r.bundle_collection.all_objects):
+            return "No bundles: pick a Collection of bundle empties in Reconstruct from Bundles"
+        return None
+    if r.bundle_source == "MESH":
+        return None if r.bundle_mesh is not None else "No bundles: pick the Point Mesh in Reconstruct from Bundles"
+    picked = [o for o in context.selected_objects if o.type in ("EMPTY", "MESH") and o != face]
+    coll = bpy.data.collections.get(BUNDLES_COLLECTION)
+    if picked or (coll is not None and len(coll.all_objects)):
+        return None
+    return (f"No bundles: select the bundle empties (or point meshes), or fill the collection '{BUNDLES_COLLECTION}' "
+            "(Bundles from Tracking), or pick another bundle source")
+
+
 class FACELAB_OT_reconstruct_from_bundles(bpy.types.Operator):
     """Rebuild the high-resolution face on every frame from animated 3D bundles and the face's shape-key dataset (local geometric indexing); the result passes through the bundles and is keyed as corrective shape keys"""
 
@@ -37,7 +61,17 @@ class FACELAB_OT_reconstruct_from_bundles(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        return poll_face(cls, context)
+        if not poll_face(cls, context):
+            return False
+        if not _dataset_keys(face_object(context)):
+            cls.poll_message_set("The face has no shape keys: Reconstruct needs at least 4 dataset shapes (the "
+                                 "face's shape keys)")
+            return False
+        why = bundles_problem(context)
+        if why:
+            cls.poll_message_set(why)
+            return False
+        return True
 
     def execute(self, context):
         scene = context.scene
@@ -89,7 +123,21 @@ class FACELAB_OT_generate_correctives(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        return poll_face(cls, context)
+        if not poll_face(cls, context):
+            return False
+        if not _dataset_keys(face_object(context)):
+            cls.poll_message_set("The face has no shape keys: its dataset shapes are what the correctives are "
+                                 "learnt from")
+            return False
+        rig = context.scene.facelab_recon.rig_object
+        if rig is None:
+            cls.poll_message_set("Pick the template Rig (a mesh with the rig's shape keys) in Reconstruct from "
+                                 "Bundles")
+            return False
+        if not _dataset_keys(rig):
+            cls.poll_message_set(f"The Rig '{rig.name}' has no shape keys: pick the mesh holding the template rig")
+            return False
+        return True
 
     def execute(self, context):
         scene = context.scene
@@ -121,6 +169,19 @@ class FACELAB_OT_bundles_from_clip(bpy.types.Operator):
 
     clip: StringProperty(name="Movie Clip", default="", description="Movie Clip name (empty: the scene's active clip)")
 
+    @classmethod
+    def poll(cls, context):
+        clips = list(bpy.data.movieclips)
+        if not clips:
+            cls.poll_message_set("No Movie Clip: load the footage in the Movie Clip Editor, track it and Solve Camera "
+                                 "Motion")
+            return False
+        if not any(_solved(c) for c in clips):
+            cls.poll_message_set("No Movie Clip with a camera solve: the clips have no valid camera solve; press "
+                                 "Solve Camera Motion in the Movie Clip Editor (Track tab)")
+            return False
+        return True
+
     def execute(self, context):
         clip = bpy.data.movieclips.get(self.clip) if self.clip else context.scene.active_clip
         try:
@@ -131,6 +192,13 @@ class FACELAB_OT_bundles_from_clip(bpy.types.Operator):
         self.report({"INFO"}, f"Added {len(empties)} bundle empties in '{BUNDLES_COLLECTION}' from '{clip.name}' "
                               "(static bundles: animate them or constrain them per frame before Reconstruct)")
         return {"FINISHED"}
+
+
+def _solved(clip) -> bool:
+    """Whether ``clip`` has a valid camera (or object) solve with at least one bundle."""
+    tr = clip.tracking
+    solved = tr.reconstruction.is_valid or any(o.reconstruction.is_valid for o in tr.objects)
+    return solved and any(t.has_bundle for o in tr.objects for t in o.tracks)
 
 
 classes = (FACELAB_OT_reconstruct_from_bundles, FACELAB_OT_generate_correctives, FACELAB_OT_bundles_from_clip)

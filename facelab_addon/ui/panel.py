@@ -1,17 +1,19 @@
 """The FaceLab sidebar tab in the 3D view, top to bottom as the workflow:
 
-1. Setup (face, camera and plate, regions)  2. Sketch & Refine  3. Train & Propagate
-4. Solve from Markers / Retarget (issue 4, ``panel_solve``) and Reconstruct from Bundles
-(``panel_reconstruct``)  5. Bake / Export.
+1. Setup (face, camera and plate, fixed group, regions)  2. Sketch & Refine  3. Train & Propagate
+4. Review (capture vs corrected, heat map, neighbouring sketches, frames to look at)
+5. Solve from Markers (``panel_solve``)  6. Retarget to a Creature  7. Reconstruct from Bundles
+(``panel_reconstruct``)  8. Bake / Export. Each step with settings has a closed *Settings*
+sub-panel generated from its pipeline's settings (:mod:`.scene_settings`).
 
 Panels only draw; every button is an operator whose ``poll`` explains why it is disabled.
 """
 
 import bpy
-import numpy as np
 
-from ..blender.shapekeys import find_fcurve
-from ..names import EXTRAPOLATION_PROP, LIPS_GROUP, MOUTH_GROUP, SUGGEST_MARKER
+from ..blender.review import keyed_extrapolation, showing_capture
+from ..names import CORRECTION_ATTR, CORRECTION_RANGE_PROP, EXTRAPOLATION_PROP, LIPS_GROUP, MOUTH_GROUP, SUGGEST_MARKER
+from . import scene_settings
 from .ops import face_object
 from .ops_propagate import RUNNING
 from .panel_reconstruct import draw_reconstruct_section
@@ -19,17 +21,6 @@ from .panel_solve import draw_retarget_section, draw_solve_section
 
 # Extrapolation scores above this are flagged (the frame's mouth lies well outside the training poses).
 EXTRAPOLATING = 0.5
-
-
-def keyed_extrapolation(obj):
-    """(frames (T,), scores (T,)) keyed by Propagate on the object's extrapolation property, or None."""
-    fc = find_fcurve(obj, f'["{EXTRAPOLATION_PROP}"]')
-    if fc is None or not len(fc.keyframe_points):
-        return None
-    co = np.empty(2 * len(fc.keyframe_points), np.float32)
-    fc.keyframe_points.foreach_get("co", co)
-    co = co.reshape(-1, 2)
-    return co[:, 0].round().astype(int), co[:, 1]
 
 
 def frame_ranges(frames) -> list:
@@ -54,7 +45,7 @@ def extrapolating_ranges(obj, threshold=EXTRAPOLATING, limit=6):
 
 
 class FACELAB_UL_training_frames(bpy.types.UIList):
-    """Training frames: frame, correction (shape key or sculpt), a warning when its key is gone."""
+    """Training frames, sorted by frame: frame, correction (shape key or sculpt), a warning when its key is gone."""
 
     def draw_item(self, context, layout, data, item, icon, active_data, active_propname, index):
         ob = data.id_data
@@ -68,6 +59,17 @@ class FACELAB_UL_training_frames(bpy.types.UIList):
             row.label(text=item.shape_key or "sculpted mesh", icon="GREASEPENCIL" if item.source == "sketch"
                       else "SCULPTMODE_HLT")
 
+    def filter_items(self, context, data, propname):
+        return [], sorted_order([t.frame for t in getattr(data, propname)])
+
+
+def sorted_order(frames) -> list:
+    """``UIList.filter_items``'s new order: the display position of each item, by frame (stable)."""
+    pos = [0] * len(frames)
+    for rank, i in enumerate(sorted(range(len(frames)), key=lambda i: frames[i])):
+        pos[i] = rank
+    return pos
+
 
 class _SidebarTab:
     bl_space_type = "VIEW_3D"
@@ -77,6 +79,22 @@ class _SidebarTab:
 
 class _Section(_SidebarTab):
     bl_parent_id = "FACELAB_PT_main"
+
+
+def _operator_if_registered(layout, idname, **kw) -> bool:
+    """Draw ``idname``'s button when that operator is registered (another module may add it)."""
+    cat, name = idname.split(".")
+    if not hasattr(bpy.types, f"{cat.upper()}_OT_{name}"):
+        return False
+    layout.operator(idname, **kw)
+    return True
+
+
+def _plate(bg, scene):
+    """The image or Movie Clip a camera background shows (the scene's active clip for 'Camera Clip')."""
+    if bg.source == "IMAGE":
+        return bg.image
+    return scene.active_clip if bg.use_camera_clip else bg.clip
 
 
 class FACELAB_PT_main(_SidebarTab, bpy.types.Panel):
@@ -99,19 +117,28 @@ class FACELAB_PT_setup(_Section, bpy.types.Panel):
     def draw(self, context):
         s = context.scene.facelab
         col = self.layout.column()
+        row = col.row(align=True)
+        _operator_if_registered(row, "facelab.load_plate", icon="FILE_MOVIE")
+        _operator_if_registered(row, "facelab.load_sample", icon="FILE_BLEND")
         col.prop(s, "face")
         col.prop(context.scene, "camera")
         cam = context.scene.camera
         if cam is not None and cam.type == "CAMERA":
-            plates = [bg.image.name for bg in cam.data.background_images if bg.image is not None]
+            plates = [p.name for p in map(lambda bg: _plate(bg, context.scene), cam.data.background_images)
+                      if p is not None]
             if plates:
                 col.label(text=f"Plate: {plates[0]}", icon="IMAGE_BACKGROUND")
             else:
                 col.label(text="No plate: Camera > Background Images", icon="INFO")
-        col.prop(s, "fixed_group")
+        ob = face_object(context)
+        if ob is not None:
+            col.prop_search(s, "fixed_group", ob, "vertex_groups", icon="GROUP_VERTEX")
+            if s.fixed_group and ob.vertex_groups.get(s.fixed_group) is None:
+                col.label(text=f"No group '{s.fixed_group}': separate mesh parts are held", icon="INFO")
+        else:
+            col.prop(s, "fixed_group")
         col.separator()
         col.label(text="Regions")
-        ob = face_object(context)
         if ob is not None:
             row = col.row(align=True)
             for g in (MOUTH_GROUP, LIPS_GROUP):
@@ -176,10 +203,37 @@ class FACELAB_PT_propagate(_Section, bpy.types.Panel):
                 flow.operator("facelab.jump_to_frame", text=str(f)).frame = f
 
 
-class FACELAB_PT_solve(_Section, bpy.types.Panel):
-    """Issue 4 (Bhat et al. 2013): shown once ui/panel_solve.py exists."""
+class FACELAB_PT_review(_Section, bpy.types.Panel):
+    bl_label = "4. Review"
 
-    bl_label = "4. Solve from Markers"
+    def draw(self, context):
+        col = self.layout.column()
+        ob = face_object(context)
+        if ob is None:
+            col.label(text="No face mesh selected", icon="INFO")
+            return
+        capture = showing_capture(ob)
+        col.label(text="Showing: the capture (corrections muted)" if capture else "Showing: the corrected face",
+                  icon="HIDE_ON" if capture else "HIDE_OFF")
+        col.operator("facelab.review_toggle", icon="UV_SYNC_SELECT",
+                     text="Show Corrected" if capture else "Show Capture")
+        row = col.row(align=True)
+        row.operator("facelab.correction_heatmap", icon="COLOR")
+        rng = ob.data.get(CORRECTION_RANGE_PROP)
+        if rng is not None and ob.data.color_attributes.get(CORRECTION_ATTR) is not None:
+            col.label(text=f"Heat map (frame {int(rng[2])}): grey 0 mm - red {rng[1]:.2f} mm", icon="INFO")
+        row = col.row(align=True)
+        row.operator("facelab.sketch_onion_skin", text="Neighbouring Sketches", icon="ONIONSKIN_ON").show = True
+        row.operator("facelab.sketch_onion_skin", text="", icon="ONIONSKIN_OFF").show = False
+        row = col.row(align=True)
+        row.operator("facelab.next_suggested_frame", text="Next Suggested", icon="MARKER_HLT")
+        row.operator("facelab.most_extrapolated_frame", text="Most Extrapolated", icon="ERROR")
+
+
+class FACELAB_PT_solve(_Section, bpy.types.Panel):
+    """Bhat et al. 2013 §4: shown when ui/panel_solve.py and its properties are there."""
+
+    bl_label = "5. Solve from Markers"
     bl_options = {"DEFAULT_CLOSED"}
 
     @classmethod
@@ -188,14 +242,24 @@ class FACELAB_PT_solve(_Section, bpy.types.Panel):
 
     def draw(self, context):
         draw_solve_section(self.layout, context)
-        if draw_retarget_section is not None:
-            self.layout.separator()
-            self.layout.label(text="Retarget to a creature", icon="MOD_DATA_TRANSFER")
-            draw_retarget_section(self.layout, context)
+
+
+class FACELAB_PT_retarget(_Section, bpy.types.Panel):
+    """Bhat et al. 2013 §5.1: carry the solved performance to a creature."""
+
+    bl_label = "6. Retarget to a Creature"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    @classmethod
+    def poll(cls, context):
+        return draw_retarget_section is not None and hasattr(context.scene, "facelab_solve")
+
+    def draw(self, context):
+        draw_retarget_section(self.layout, context)
 
 
 class FACELAB_PT_reconstruct(_Section, bpy.types.Panel):
-    bl_label = "4. Reconstruct from Bundles"
+    bl_label = "7. Reconstruct from Bundles"
     bl_options = {"DEFAULT_CLOSED"}
 
     def draw(self, context):
@@ -203,7 +267,7 @@ class FACELAB_PT_reconstruct(_Section, bpy.types.Panel):
 
 
 class FACELAB_PT_bake(_Section, bpy.types.Panel):
-    bl_label = "5. Bake / Export"
+    bl_label = "8. Bake / Export"
     bl_options = {"DEFAULT_CLOSED"}
 
     def draw(self, context):
@@ -223,10 +287,21 @@ classes = (
     FACELAB_PT_setup,
     FACELAB_PT_sketch,
     FACELAB_PT_propagate,
+    FACELAB_PT_review,
     FACELAB_PT_solve,
+    FACELAB_PT_retarget,
     FACELAB_PT_reconstruct,
     FACELAB_PT_bake,
 )
 
+_register, _unregister = bpy.utils.register_classes_factory(classes)
 
-register, unregister = bpy.utils.register_classes_factory(classes)
+
+def register():
+    _register()
+    scene_settings.register_panels()  # each step's Settings sub-panel, after its parent
+
+
+def unregister():
+    scene_settings.unregister_panels()
+    _unregister()

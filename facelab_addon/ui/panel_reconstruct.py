@@ -29,7 +29,10 @@ def draw_reconstruct_section(layout, context):
     else:
         box.label(text=f"Select the bundle empties (or use '{BUNDLES_COLLECTION}')", icon="EMPTY_DATA")
     box.operator("facelab.bundles_from_clip", icon="TRACKER")
-    box.prop(r, "bind_frame")
+    row = box.row(align=True)
+    row.prop(r, "bind_scene_start", text="Bind on Scene Start")
+    if not r.bind_scene_start:
+        row.prop(r, "bind_frame")
 
     box = col.box()
     box.prop(r, "jaw_source")

@@ -1,8 +1,9 @@
 """Sidebar UI of the contour-based solve and retargeting (Bhat et al. 2013).
 
 ``draw_solve_section(layout, context)`` and ``draw_retarget_section(layout,
-context)`` are called by the lead's panels in ``ui/panel.py``; this module
-registers only the views list.
+context)`` are called by the panels *5. Solve from Markers* and *6. Retarget to a
+Creature* in ``ui/panel.py``; this module registers only the views list. Frames
+whose ``-1`` means "the current / scene frame" are drawn as toggles, never as -1.
 """
 
 import bpy
@@ -37,8 +38,10 @@ def draw_solve_section(layout, context):
     if s.bundles == "EMPTIES":
         col.prop(s, "bundle_collection")
     row = col.row(align=True)
-    row.prop(s, "bind_frame")
-    row.operator("facelab.bind_tracks", icon="PIVOT_CURSOR")
+    row.prop(s, "bind_current", text="Bind on Current Frame")
+    if not s.bind_current:
+        row.prop(s, "bind_frame")
+    col.operator("facelab.bind_tracks", icon="PIVOT_CURSOR")
     ob = face_object(context)
     if ob is not None and hasattr(ob, "facelab_solve"):
         n = len(ob.facelab_solve.bindings)
@@ -50,12 +53,18 @@ def draw_solve_section(layout, context):
     row.prop(s, "sliding")
     row.prop(s, "use_corrective")
     if s.use_contours:
-        col.prop(s, "annotation_view")
-    col.prop(s, "use_scene_range")
+        row = col.row(align=True)
+        row.prop(s, "use_annotation")
+        if s.use_annotation:
+            row.prop(s, "annotation_view", text="View")
     row = col.row(align=True)
-    row.enabled = not s.use_scene_range
-    row.prop(s, "frame_start")
-    row.prop(s, "frame_end")
+    row.prop(s, "use_scene_range")
+    if s.use_scene_range:
+        scene = context.scene
+        row.label(text=f"Scene: {scene.frame_start}-{scene.frame_end}")
+    else:
+        row.prop(s, "frame_start")
+        row.prop(s, "frame_end")
     row = col.row(align=True)
     row.prop(s, "weight_min")
     row.prop(s, "weight_max")

@@ -1,63 +1,64 @@
-"""Add-on preferences: solver weights and iterations (Dinev et al. 2018 §5 defaults).
+"""Add-on preferences: only the defaults of new scenes.
 
-The defaults come from the presets in ``assets/presets/`` (:mod:`facelab_addon.assets`):
-``sketch_refine.json`` for the Refine Lips solver, ``regions.json`` for the Auto Regions band widths.
-A missing or broken preset file raises :class:`facelab_addon.assets.AssetError` naming the file.
+A shot's solver settings live in its scene (:mod:`.scene_settings`, saved with the .blend). The
+preferences hold one group of defaults per settings class of
+:data:`~facelab_addon.ui.scene_settings.SCENE_SETTINGS` (the same generated property groups), copied
+into a scene the first time FaceLab works on it; *Save as Defaults* in a step's Settings sub-panel
+copies a shot's values here. The built-in defaults come from the presets in ``assets/presets/``
+(``sketch_refine.json``, ``regions.json``) through the settings dataclasses.
 """
 
 import bpy
-from bpy.props import FloatProperty, IntProperty
+from bpy.props import PointerProperty
 
 from ..pipeline.refine import REFINE_DEFAULTS
-from ..pipeline.regions import REGION_DEFAULTS  # noqa: F401  (the Auto Regions band widths, see pipeline.regions)
+from ..pipeline.regions import REGION_DEFAULTS  # noqa: F401  (the Auto Regions preset, re-exported)
+from . import scene_settings
 
 # The add-on's module name: "facelab_addon" from a checkout, "bl_ext.<repo>.facelab" as an
 # extension (whose root __init__.py imports the facelab_addon sub-package).
 _parts = __package__.split(".")
 ADDON_ID = ".".join(_parts[: _parts.index("facelab_addon")]) or "facelab_addon"
 
-#: Refine Lips solver settings (keyword arguments of ``core.lips.sketch.refine_lips``), from the preset.
+#: Refine Lips solver settings of the preset ``assets/presets/sketch_refine.json``.
 DEFAULTS = dict(REFINE_DEFAULTS)
 
-
-class FACELAB_AP_preferences(bpy.types.AddonPreferences):
-    bl_idname = ADDON_ID
-
-    iterations: IntProperty(
-        name="Iterations", default=DEFAULTS["iterations"], min=1, max=100,
-        description="Solve / re-match iterations of the sketch refinement (paper: 5)",
-    )
-    lambda_pos: FloatProperty(
-        name="Position Weight", default=DEFAULTS["lambda_pos"], min=0.0, soft_max=10.0,
-        description="λpos: how strongly vertices keep their captured position (paper: 0.1; fixed vertices use 1)",
-    )
-    lambda_reg: FloatProperty(
-        name="Rigidity Weight", default=DEFAULTS["lambda_reg"], min=0.0, soft_max=100.0,
-        description="λreg: preservation of the local shape (Laplacian coordinates) (paper: 3)",
-    )
-    lambda_silh: FloatProperty(
-        name="Silhouette Weight", default=DEFAULTS["lambda_silh"], min=0.0, soft_max=100.0,
-        description="λsilh: pull of the sketched contours (paper: 1)",
-    )
-
-    def draw(self, context):
-        col = self.layout.column()
-        col.label(text="Sketch refinement (Dinev et al. 2018, Eq. 1)")
-        for p in ("iterations", "lambda_pos", "lambda_reg", "lambda_silh"):
-            col.prop(self, p)
+_CLASSES: list = []
 
 
-def get_prefs(context=None) -> dict:
-    """The solver settings: the add-on preferences when enabled as an add-on, else the defaults."""
+def preferences(context=None):
+    """FaceLab's ``AddonPreferences`` when enabled as an add-on (None from the ``bpy`` module or a script)."""
     context = context or bpy.context
     addon = context.preferences.addons.get(ADDON_ID)
-    if addon is None or addon.preferences is None:
-        return dict(DEFAULTS)
-    p = addon.preferences
-    return {k: getattr(p, k) for k in DEFAULTS}
+    return None if addon is None else addon.preferences
 
 
-classes = (FACELAB_AP_preferences,)
+def _draw(self, context):
+    col = self.layout.column()
+    col.label(text="Defaults for new scenes (a shot's own settings are in the FaceLab tab, saved with it)",
+              icon="INFO")
+    for e in scene_settings.SCENE_SETTINGS:
+        box = col.box()
+        box.label(text=e.cls.__name__.removesuffix("Settings"))
+        grp = getattr(self, e.attr)
+        for d in scene_settings.fields(e):
+            box.prop(grp, d["name"])
 
 
-register, unregister = bpy.utils.register_classes_factory(classes)
+def make_preferences_class():
+    """The ``AddonPreferences`` class: a pointer to each registered settings group."""
+    ann = {e.attr: PointerProperty(type=scene_settings.group_class(e.attr)) for e in scene_settings.SCENE_SETTINGS}
+    return type("FACELAB_AP_preferences", (bpy.types.AddonPreferences,),
+                {"bl_idname": ADDON_ID, "__annotations__": ann, "draw": _draw,
+                 "__doc__": "FaceLab's defaults for new scenes"})
+
+
+def register():
+    cls = make_preferences_class()
+    bpy.utils.register_class(cls)
+    _CLASSES.append(cls)
+
+
+def unregister():
+    while _CLASSES:
+        bpy.utils.unregister_class(_CLASSES.pop())

@@ -7,7 +7,7 @@ the pipeline's settings (:mod:`facelab_addon.pipeline.reconstruct`).
 """
 
 import bpy
-from bpy.props import EnumProperty, IntProperty, PointerProperty, StringProperty
+from bpy.props import BoolProperty, EnumProperty, IntProperty, PointerProperty, StringProperty
 
 from ..names import BUNDLES_COLLECTION
 from ..pipeline.reconstruct import CorrectiveSettings, ReconstructSettings
@@ -46,6 +46,10 @@ class FACELAB_PG_reconstruct(bpy.types.PropertyGroup):
     bind_frame: IntProperty(name="Bind Frame", default=-1,
                             description="Frame where the face is neutral: bundles are bound to the surface there "
                                         "(-1: the scene's first frame)")
+    bind_scene_start: BoolProperty(
+        name="Scene Start", get=lambda self: self.bind_frame < 0,
+        set=lambda self, v: setattr(self, "bind_frame", -1 if v else self.id_data.frame_start),
+        description="Bind on the scene's first frame (off: on the Bind Frame below)")
     smooth: IntProperty(name="Smoothing", default=1, min=1, max=15,
                         description="Central moving average of the barycentric weights over this many frames "
                                     "(1: off); the surface then passes through the bundles' moving average")

@@ -83,6 +83,10 @@ class FACELAB_PG_solve_scene(bpy.types.PropertyGroup):
     bind_frame: IntProperty(name="Bind Frame", default=-1,
                             description="Reference frame for binding tracks to the surface (-1: the current frame); "
                                         "the face mesh should match the footage there (e.g. the neutral pose)")
+    bind_current: BoolProperty(
+        name="Current Frame", get=lambda self: self.bind_frame < 0,
+        set=lambda self, v: setattr(self, "bind_frame", -1 if v else self.id_data.frame_current),
+        description="Bind on the frame shown when Bind Tracks runs (off: on the Bind Frame below)")
     bundles: EnumProperty(
         name="Bundles",
         items=[("NONE", "None", "No 3D bundles"),
@@ -98,6 +102,11 @@ class FACELAB_PG_solve_scene(bpy.types.PropertyGroup):
     annotation_view: IntProperty(name="Annotation View", default=-1, min=-1,
                                  description="View whose camera the scene annotation's contour layers were drawn "
                                              "through (-1: ignore the annotation)")
+    use_annotation: BoolProperty(
+        name="Annotation Contours", get=lambda self: self.annotation_view >= 0,
+        set=lambda self, v: setattr(self, "annotation_view", max(0, self.annotation_view) if v else -1),
+        description="Also fit the contour layers of the scene's annotation, drawn through the camera of the "
+                    "Annotation View")
     use_corrective: BoolProperty(name="Corrective", default=True,
                                  description="Add the per-frame out-of-subspace corrective (compressed corrective "
                                              f"shape keys {SOLVE_PREFIX}*)")

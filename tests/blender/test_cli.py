@@ -3,6 +3,7 @@ summary, the saved .blend's content, corrections that really correct, and exit c
 
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -94,7 +95,39 @@ def test_json_file_and_frame_subset(shot, tmp_path):
     assert s is None  # --json FILE: nothing on stdout
     s = json.loads(js.read_text())
     assert s["ok"] and s["frame_count"] == 32 and s["saved"] is None and s["suggested_frames"] == []
-    assert "[facelab]" not in log  # --quiet
+    assert log == ""  # --quiet: nothing but the JSON, not even Blender's own lines
+
+
+def test_output_once_in_one_format_and_settings_flags(shot, tmp_path):
+    """Every stderr line is FaceLab's, once, in one format (Blender's 'Read blend', operator reports and
+    EGL / deprecation noise stay off the terminal); settings flags are written into the saved shot."""
+    out = tmp_path / "flags.blend"
+    code, s, log = cli("propagate", shot["path"], "--object", "Face", "--frames", "1-40", "--suggestions", "4",
+                       "--lip-width", "0.12", "--out", out)
+    assert code == 0, log
+    lines = log.splitlines()
+    assert lines and all(re.match(r"^\[facelab +\d+\.\ds\] \S", ln) for ln in lines), log
+    msgs = [ln.split("] ", 1)[1] for ln in lines]
+    assert len(msgs) == len(set(msgs)), log
+    assert not re.search(r"Read blend|Saved as|Info:|EGL|Deprecat", log)
+    assert s["settings"]["facelab_propagate"] == {"suggestions": 4}
+    assert s["settings"]["facelab_regions"]["lip_width"] == 0.12 and len(s["suggested_frames"]) == 4
+    bpy.ops.wm.open_mainfile(filepath=str(out))
+    sc = bpy.context.scene
+    assert sc.facelab_propagate.suggestions == 4 and sc.facelab_regions.lip_width == pytest.approx(0.12)
+    # without the flags, the values saved in the .blend are used
+    code, s, log = cli("propagate", out, "--object", "Face", "--frames", "1-40", "--quiet")
+    assert code == 0 and log == "" and len(s["suggested_frames"]) == 4 and s["settings"]["facelab_regions"] == \
+        {"lip_width": 0.12, "mouth_width": s["settings"]["facelab_regions"]["mouth_width"]}
+    # a value outside its bounds: a usage error naming the flag and the range
+    code, s, log = cli("propagate", out, "--object", "Face", "--suggestions", "99")
+    assert code == 2 and "--suggestions 99: above the maximum 50" in s["error"]
+    assert log.count("--suggestions 99") == 1  # the error once on stderr (and in the JSON)
+    # refine's help: its example uses the --frames syntax the option documents
+    r = subprocess.run([sys.executable, "-m", "facelab_addon", "refine", "--help"], cwd=ROOT, text=True,
+                       env=dict(os.environ, PYTHONPATH=str(ROOT)), stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    assert "--frames 40,88" in r.stdout and "'40,88'" in " ".join(r.stdout.split())
+    assert "--lambda-silh" in r.stdout and "--fixed-group" in r.stdout
 
 
 @pytest.mark.parametrize("args, code, message", [

@@ -91,7 +91,7 @@ def test_solve_then_retarget(shots, tmp_path):
     assert rp["contour_rms_px"] is None and not s["contours"]
     assert s["timings"]["solve_seconds"] > 0 and "bind_seconds" in s["timings"]
     assert s["action"] == "FL_Solve" and s["saved"] == str(solved.resolve())
-    assert "binding tracks on frame 0" in log and "Solved 5 frames" in log and "FaceLab Solve: 5/5 frames (100 %)" in log
+    assert "binding tracks on frame 0" in log and "Solved 5 frames" in log and "] solve: 5/5 (100 %)" in log
 
     # the saved .blend holds what the JSON says
     bpy.ops.wm.open_mainfile(filepath=str(solved))

@@ -16,13 +16,16 @@ pytestmark = pytest.mark.blender
 
 OPERATORS = ["new_lip_sketch", "refine_lips", "auto_regions", "mark_training_frame", "remove_training_frame",
              "jump_training_frame", "jump_to_frame", "propagate", "bake", "reconstruct_from_bundles",
-             "bind_tracks", "solve_performance", "retarget", "generate_correctives", "bundles_from_clip"]
+             "bind_tracks", "solve_performance", "retarget", "generate_correctives", "bundles_from_clip",
+             "review_toggle", "correction_heatmap", "sketch_onion_skin", "next_suggested_frame",
+             "most_extrapolated_frame", "reset_settings", "save_settings_defaults"]
 # operators that change the scene: they must support undo
 UNDOABLE = ["new_lip_sketch", "refine_lips", "auto_regions", "mark_training_frame", "remove_training_frame",
             "propagate", "reconstruct_from_bundles", "bind_tracks", "solve_performance", "retarget",
-            "generate_correctives", "bundles_from_clip"]
-PANELS = ["FACELAB_PT_main", "FACELAB_PT_setup", "FACELAB_PT_sketch", "FACELAB_PT_propagate", "FACELAB_PT_solve",
-          "FACELAB_PT_reconstruct", "FACELAB_PT_bake"]
+            "generate_correctives", "bundles_from_clip", "review_toggle", "correction_heatmap", "sketch_onion_skin",
+            "next_suggested_frame", "most_extrapolated_frame", "reset_settings"]
+PANELS = ["FACELAB_PT_main", "FACELAB_PT_setup", "FACELAB_PT_sketch", "FACELAB_PT_propagate", "FACELAB_PT_review",
+          "FACELAB_PT_solve", "FACELAB_PT_retarget", "FACELAB_PT_reconstruct", "FACELAB_PT_bake"]
 
 
 def op_class(name):
@@ -81,21 +84,28 @@ def test_panels_read_as_the_workflow(addon):
     order = [c.__name__ for c in panel.classes if c.__name__.startswith("FACELAB_PT_")]
     assert order == PANELS
     labels = [getattr(bpy.types, p).bl_label for p in PANELS[1:]]
-    assert [lab.split(".")[0] for lab in labels] == ["1", "2", "3", "4", "4", "5"]
-    # section 4's solve part appears once issue 4's panel_solve exists
+    numbers = [lab.split(".")[0] for lab in labels]
+    assert numbers == [str(i) for i in range(1, len(PANELS))]  # no two panels with the same number
+    assert bpy.types.FACELAB_PT_retarget.bl_label == "6. Retarget to a Creature"  # findable (docs/retarget.md)
     ctx = bpy.context
-    assert bpy.types.FACELAB_PT_solve.poll(ctx) == (
-        panel.draw_solve_section is not None and hasattr(ctx.scene, "facelab_solve"))
+    assert bpy.types.FACELAB_PT_solve.poll(ctx) and bpy.types.FACELAB_PT_retarget.poll(ctx)
+    # every step with settings has a Settings sub-panel under it
+    from facelab_addon.ui.scene_settings import SCENE_SETTINGS
+
+    for e in SCENE_SETTINGS:
+        sub = getattr(bpy.types, f"FACELAB_PT_{e.attr}")
+        assert sub.bl_parent_id == e.panel and sub.bl_label == "Settings" and "DEFAULT_CLOSED" in sub.bl_options
 
 
 def test_without_a_face_every_operator_explains(addon):
     empty_scene()
     for op in OPERATORS:
-        if op in ("jump_to_frame", "bundles_from_clip"):  # navigation / makes empties from a clip: no face needed
+        if op in ("jump_to_frame", "bundles_from_clip", "sketch_onion_skin", "next_suggested_frame",
+                  "reset_settings", "save_settings_defaults"):  # no face needed
             continue
         fn = getattr(bpy.ops.facelab, op)
         assert not fn.poll(), op
-        with pytest.raises(RuntimeError, match=r"(?i)select|camera|training"):
+        with pytest.raises(RuntimeError, match=r"(?i)select|camera|training|sketch|Propagate"):
             fn()
 
 
@@ -113,16 +123,27 @@ def test_with_a_face_polls_and_messages(addon):
         "jump_to_frame": True,
         "propagate": False,  # no training frames
         "bake": True,
-        "reconstruct_from_bundles": True,
+        "reconstruct_from_bundles": False,  # no shape keys (dataset), no bundles
         "bind_tracks": False,  # no tracking views yet
         "solve_performance": False,  # no tracking views yet
         "retarget": False,  # no creature picked
-        "generate_correctives": True,  # refuses on execute: no template rig picked
-        "bundles_from_clip": True,  # refuses on execute: no solved Movie Clip
+        "generate_correctives": False,  # no shape keys, no template rig picked
+        "bundles_from_clip": False,  # no Movie Clip
+        "review_toggle": False,  # nothing corrected yet
+        "correction_heatmap": True,  # (all grey)
+        "sketch_onion_skin": False,  # no sketch
+        "next_suggested_frame": False,  # no Propagate yet
+        "most_extrapolated_frame": False,
+        "reset_settings": True,
+        "save_settings_defaults": False,  # the bpy module: no add-on preferences
     }
     for op, msg in (("refine_lips", "camera"), ("new_lip_sketch", "camera"), ("propagate", "Correct at least one"),
                     ("remove_training_frame", "No training frames"), ("jump_training_frame", "No training frames"),
-                    ("bind_tracks", "Add a view"), ("solve_performance", "Add a view"), ("retarget", "creature")):
+                    ("bind_tracks", "Add a view"), ("solve_performance", "Add a view"), ("retarget", "creature"),
+                    ("reconstruct_from_bundles", "no shape keys"), ("generate_correctives", "no shape keys"),
+                    ("bundles_from_clip", "No Movie Clip: load the footage"),
+                    ("review_toggle", "No FaceLab correction"), ("next_suggested_frame", "FL suggest"),
+                    ("most_extrapolated_frame", "Propagate first")):
         with pytest.raises(RuntimeError, match=msg):
             getattr(bpy.ops.facelab, op)()
     # a camera enables the sketch; Edit Mode disables Refine with a reason
@@ -196,11 +217,12 @@ def test_property_defaults(addon):
     assert len(obj.facelab.training_frames) == 0 and obj.facelab.active_training_index == 0
     item = obj.facelab.training_frames.add()
     assert (item.frame, item.shape_key, item.source) == (0, "", "sketch")
-    # solver settings: the paper's (Dinev §5) when the add-on preferences are not there
-    assert prefs.get_prefs(bpy.context) == {"iterations": 5, "lambda_pos": 0.1, "lambda_reg": 3.0,
-                                            "lambda_silh": 1.0}
-    p = prefs.FACELAB_AP_preferences
-    assert p.is_registered and p.bl_idname == "facelab_addon"  # from a checkout; bl_ext.<repo>.facelab installed
+    # solver settings: the shot's, the paper's (Dinev §5) when the add-on preferences are not there
+    r = ops.refine_settings(bpy.context)
+    assert (r.iterations, r.lambda_pos, r.lambda_reg, r.lambda_silh, r.fixed_group) == (5, 0.1, 3.0, 1.0, "FL_fixed")
+    assert prefs.preferences(bpy.context) is None  # the bpy module: FaceLab is not an enabled add-on
+    p = bpy.types.AddonPreferences.bl_rna_get_subclass_py("FACELAB_AP_preferences")
+    assert p.bl_idname == "facelab_addon"  # from a checkout; bl_ext.<repo>.facelab installed
     # operator options
     props = bpy.ops.facelab.propagate.get_rna_type().properties
     assert props["suggestions"].default == 3  # Start / End: the scene's range unless set (negative frames allowed)
@@ -332,6 +354,8 @@ class RecordingLayout:
                 cat, op = args[0].split(".")
                 assert hasattr(getattr(bpy.types, "FACELAB_OT_" + op, None), "bl_idname"), args[0]
                 return type("OpProps", (), {})()  # takes any attribute, like OperatorProperties
+            if name == "prop_search":
+                assert args[1] in args[0].bl_rna.properties and args[3] in args[2].bl_rna.properties, args[1:4]
             if name == "template_list":
                 assert hasattr(bpy.types, args[0]) and args[3] in args[2].bl_rna.properties and args[5] in args[4].bl_rna.properties
             return RecordingLayout(self.log)
@@ -404,3 +428,105 @@ def test_panels_draw_the_workflow(addon):
         assert draw(getattr(bpy.types, p), ctx).log
     if bpy.types.FACELAB_PT_solve.poll(ctx):
         assert draw(bpy.types.FACELAB_PT_solve, ctx).log
+
+
+def draw_everything(ctx) -> dict:
+    """Draw every registered FaceLab panel (sub-panels included) whose poll passes; {panel: layout}."""
+    out = {}
+    for n in sorted(n for n in dir(bpy.types) if n.startswith("FACELAB_PT_")):
+        cls = getattr(bpy.types, n)
+        if hasattr(cls, "poll") and not cls.poll(ctx):
+            continue
+        out[n] = draw(cls, ctx)
+    return out
+
+
+def test_panels_draw_in_every_state(ict, addon):
+    """No face, no camera, no regions, regions, training frames, after Propagate, capture shown: every
+    panel draws (every prop / prop_search / operator it names exists), never a -1 placeholder."""
+    from facelab_addon.blender.shapekeys import add_corrective_key, key_spike
+
+    from .test_propagate_operator import FRAMES, TRAIN, build
+
+    ctx = bpy.context
+    empty_scene()
+    states = {"no face": draw_everything(ctx)}
+    assert "Select the captured face mesh" in states["no face"]["FACELAB_PT_main"].texts("label")
+    scene, obj, err, cap_w = build(ict)
+    scene.camera = None
+    states["no camera, no regions"] = draw_everything(ctx)
+    setup = states["no camera, no regions"]["FACELAB_PT_setup"]
+    assert [(a[1], a[3]) for m, a, kw in setup.log if m == "prop_search"] == [("fixed_group", "vertex_groups")]
+    assert "No group 'FL_fixed': separate mesh parts are held" in setup.texts("label")
+    bpy.ops.facelab.auto_regions()
+    states["regions"] = draw_everything(ctx)
+    for f, w in zip(TRAIN[::-1], cap_w[np.searchsorted(FRAMES, TRAIN)][::-1]):  # marked out of order
+        scene.frame_set(f)
+        key_spike(add_corrective_key(obj, f"Sculpt_{f}", -w * err), f)
+        bpy.ops.facelab.mark_training_frame()
+    states["training frames"] = draw_everything(ctx)
+    ul = bpy.types.FACELAB_UL_training_frames
+    flags, order = ul.filter_items(None, ctx, obj.facelab, "training_frames")
+    shown = sorted(range(len(order)), key=lambda i: order[i])
+    assert [obj.facelab.training_frames[i].frame for i in shown] == sorted(TRAIN)  # the list reads by frame
+    assert bpy.ops.facelab.propagate(suggestions=2) == {"FINISHED"}
+    states["after Propagate"] = draw_everything(ctx)
+    bpy.ops.facelab.review_toggle()
+    states["capture shown"] = draw_everything(ctx)
+    for state, panels in states.items():
+        assert {"FACELAB_PT_main", "FACELAB_PT_setup", "FACELAB_PT_review", "FACELAB_PT_bake"} <= set(panels), state
+        for name, lay in panels.items():
+            texts = [str(t) for t in lay.texts()]
+            assert not any(t == "-1" or t.endswith(" -1") for t in texts), (state, name)
+    prop = states["after Propagate"]["FACELAB_PT_propagate"]
+    assert any(t.startswith("Extrapolation on this frame") for t in prop.texts("label"))
+    review_ops = [a[0] for m, a, kw in states["after Propagate"]["FACELAB_PT_review"].log if m == "operator"]
+    assert {"facelab.review_toggle", "facelab.correction_heatmap", "facelab.sketch_onion_skin",
+            "facelab.next_suggested_frame", "facelab.most_extrapolated_frame"} <= set(review_ops)
+    # solve / reconstruct: bind frames and the annotation view are toggles, not -1
+    solve = states["after Propagate"]["FACELAB_PT_solve"]
+    drawn = [a[1] for m, a, kw in solve.log if m == "prop"]
+    assert "bind_current" in drawn and "bind_frame" not in drawn and "annotation_view" not in drawn
+    assert "use_annotation" in drawn and "frame_start" not in drawn  # Scene Range: "Scene: 1-40" instead
+    assert f"Scene: {scene.frame_start}-{scene.frame_end}" in solve.texts("label")
+    scene.facelab_solve.bind_current = False
+    assert scene.facelab_solve.bind_frame == scene.frame_current
+    scene.facelab_solve.use_annotation = True
+    assert scene.facelab_solve.annotation_view == 0
+    solve = draw(bpy.types.FACELAB_PT_solve, ctx)
+    drawn = [a[1] for m, a, kw in solve.log if m == "prop"]
+    assert "bind_frame" in drawn and "annotation_view" in drawn
+    recon = [a[1] for m, a, kw in states["after Propagate"]["FACELAB_PT_reconstruct"].log if m == "prop"]
+    assert "bind_scene_start" in recon and "bind_frame" not in recon
+
+
+def test_reconstruct_buttons_poll_with_reasons(addon):
+    """Reconstruct, Generate Correctives and Bundles from Tracking are disabled until they can run."""
+    scene = empty_scene()
+    obj = small_face(scene)
+    for k in ("Basis", "A", "B", "C", "D"):
+        obj.shape_key_add(name=k, from_mix=False)
+    with pytest.raises(RuntimeError, match="No bundles: select the bundle empties"):
+        bpy.ops.facelab.reconstruct_from_bundles()
+    e = bpy.data.objects.new("B00", None)
+    scene.collection.objects.link(e)
+    e.select_set(True)
+    assert bpy.ops.facelab.reconstruct_from_bundles.poll()
+    scene.facelab_recon.bundle_source = "COLLECTION"
+    with pytest.raises(RuntimeError, match="pick a Collection"):
+        bpy.ops.facelab.reconstruct_from_bundles()
+    scene.facelab_recon.bundle_collection = bpy.data.collections.new("Bundles")
+    scene.facelab_recon.bundle_collection.objects.link(e)
+    assert bpy.ops.facelab.reconstruct_from_bundles.poll()
+    with pytest.raises(RuntimeError, match="Pick the template Rig"):
+        bpy.ops.facelab.generate_correctives()
+    rig = small_face(scene)
+    scene.facelab.face = obj
+    scene.facelab_recon.rig_object = rig
+    with pytest.raises(RuntimeError, match="has no shape keys: pick the mesh holding the template rig"):
+        bpy.ops.facelab.generate_correctives()
+    rig.shape_key_add(name="Basis")
+    rig.shape_key_add(name="smile")
+    assert bpy.ops.facelab.generate_correctives.poll()
+    with pytest.raises(RuntimeError, match="No Movie Clip: load the footage"):
+        bpy.ops.facelab.bundles_from_clip()
