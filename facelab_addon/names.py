@@ -69,3 +69,7 @@ BUNDLES_COLLECTION = "FL_bundles"
 TRACK_EMPTY_PREFIX = "FL_track_"
 TRAIN_MARKER = "FL train"
 SUGGEST_MARKER = "FL suggest"
+
+#: Scene property group holding the shot's :class:`~facelab_addon.pipeline.correctives.StorageSettings`
+#: (registered by ``ui/scene_settings.py``, read by the correction writer when no settings are passed).
+STORE_SETTINGS_ATTR = "facelab_store"

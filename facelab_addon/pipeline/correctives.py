@@ -37,7 +37,8 @@ from ..core.capture.integrate import integrate_matrices
 from ..core.capture.pointcache_writer import PointCacheWriter
 from ..core.errors import FaceLabError, MeshError, OutputError
 from ..core.geometry.compress import compress, compress_streamed, low_rank_reader
-from .settings import setting
+from ..names import STORE_SETTINGS_ATTR
+from .settings import setting, stored
 
 __all__ = ["StorageSettings", "CorrectionResult", "CorrectionWriter", "StoredKeys", "write_corrective_keys"]
 
@@ -158,7 +159,7 @@ class CorrectionWriter:
     def __init__(self, scene, obj, prefix: str, *, vertices=None, settings: StorageSettings | None = None,
                  measured_on: str = "evaluated"):
         self.scene, self.obj, self.prefix = scene, obj, prefix
-        self.settings = settings or StorageSettings()
+        self.settings = settings or stored(scene, STORE_SETTINGS_ATTR, StorageSettings)
         if int(self.settings.key_budget) < 1:
             raise FaceLabError(f"The key budget must be at least 1, got {self.settings.key_budget}.")
         if not self.settings.tolerance_mm > 0:

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 
-__all__ = ["UNITS", "setting", "describe"]
+__all__ = ["UNITS", "setting", "describe", "stored"]
 
 #: The units a setting can be expressed in (see the module docstring).
 UNITS = (None, "mm", "mouth", "edge", "px", "frames")
@@ -71,3 +71,20 @@ def describe(settings_cls) -> list:
             continue
         out.append(dict(name=f.name, type=type(f.default), default=f.default, **meta))
     return out
+
+
+def stored(scene, attr: str, settings_cls):
+    """The settings ``settings_cls`` saved with the shot in ``scene.<attr>``, or its defaults.
+
+    The UI registers one scene property group per settings class (``ui/scene_settings.py``); a
+    pipeline called without explicit settings reads them here, so the panel, the operators and the
+    CLI agree. Values are read back as the decimals they were set to (Blender stores 32-bit floats).
+    """
+    group = getattr(scene, attr, None) if scene is not None else None
+    if group is None:
+        return settings_cls()
+    kw = {}
+    for d in describe(settings_cls):
+        v = getattr(group, d["name"], d["default"])
+        kw[d["name"]] = float(f"{v:.7g}") if d["type"] is float else d["type"](v)
+    return settings_cls(**kw)

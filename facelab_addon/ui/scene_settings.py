@@ -26,7 +26,9 @@ from typing import NamedTuple
 import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
+from ..names import STORE_SETTINGS_ATTR
 from ..pipeline.bake import BakeSettings
+from ..pipeline.correctives import StorageSettings
 from ..pipeline.propagate import PropagateSettings
 from ..pipeline.refine import RefineSettings
 from ..pipeline.regions import RegionSettings
@@ -60,6 +62,7 @@ SCENE_SETTINGS = (
     Entry("facelab_refine", RefineSettings, "FACELAB_PT_sketch", ("refine",)),
     Entry("facelab_propagate", PropagateSettings, "FACELAB_PT_propagate", ("propagate",)),
     Entry("facelab_bake", BakeSettings, "FACELAB_PT_bake", ()),
+    Entry(STORE_SETTINGS_ATTR, StorageSettings, "FACELAB_PT_propagate", ("propagate", "solve", "reconstruct", "retarget")),
 )
 
 #: Fields every step shares, stored once in FaceLab > Setup: ``{field: property of scene.facelab}``.

@@ -104,17 +104,17 @@ class _StorageSettings:
 def test_a_settings_class_is_added_with_one_line(addon, monkeypatch):
     facelab_addon.unregister()
     monkeypatch.setattr(scene_settings, "SCENE_SETTINGS", SCENE_SETTINGS + (
-        Entry("facelab_store", _StorageSettings, "FACELAB_PT_propagate", ("propagate",)),))
+        Entry("facelab_example", _StorageSettings, "FACELAB_PT_propagate", ("propagate",)),))
     facelab_addon.register()
     try:
         scene = empty_scene()
         small_face(scene)
-        grp = scene.facelab_store
+        grp = scene.facelab_example
         assert grp.bl_rna.properties["tolerance"].name == "Tolerance (mm)" and "internal" not in grp.bl_rna.properties
         grp.tolerance, grp.codec = 0.2, "cache"
         assert scene_settings.scene_settings(scene, _StorageSettings) == _StorageSettings(tolerance=0.2, codec="cache")
         # its sub-panel under Train & Propagate draws every field
-        sub = bpy.types.FACELAB_PT_facelab_store
+        sub = bpy.types.FACELAB_PT_facelab_example
         assert sub.bl_parent_id == "FACELAB_PT_propagate"
         fake = type("P", (), {"layout": RecordingLayout()})()
         sub.draw(fake, bpy.context)
@@ -126,7 +126,7 @@ def test_a_settings_class_is_added_with_one_line(addon, monkeypatch):
         args = build_parser().parse_args(["propagate", "x.blend", "--tolerance", "0.5", "--no-sparse",
                                           "--codec", "keys", "--lip-width", "0.2"])
         got = scene_settings.apply_flags(args, scene, "propagate")
-        assert got["facelab_store"] == dict(tolerance=0.5, sparse=False, max_keys=8, codec="keys")
+        assert got["facelab_example"] == dict(tolerance=0.5, sparse=False, max_keys=8, codec="keys")
         assert got["facelab_regions"]["lip_width"] == 0.2 and scene.facelab_regions.lip_width == pytest.approx(0.2)
         args = build_parser().parse_args(["propagate", "x.blend", "--max-keys", "0"])
         with pytest.raises(ValueError, match="--max-keys 0: below the minimum 1"):
@@ -137,7 +137,7 @@ def test_a_settings_class_is_added_with_one_line(addon, monkeypatch):
         facelab_addon.unregister()
         monkeypatch.undo()
         facelab_addon.register()
-    assert not hasattr(bpy.types.Scene, "facelab_store")
+    assert not hasattr(bpy.types.Scene, "facelab_example")
 
 
 def test_settings_subpanels_draw(addon):
@@ -152,6 +152,6 @@ def test_settings_subpanels_draw(addon):
         assert ops_ == ["facelab.reset_settings", "facelab.save_settings_defaults"]
     # flags of a command without FaceLab settings: none added
     p = argparse.ArgumentParser()
-    scene_settings.add_flags(p, "retarget")
+    scene_settings.add_flags(p, "no-such-command")
     assert [a.dest for a in p._actions] == ["help"]
     assert scene is not None

@@ -286,11 +286,7 @@ def test_reconstruct_solver_result_as_keys_then_as_a_cache(tmp_path, ict, addon,
     assert r.keys and r.keys.storage.mode == "keys" and len(r.keys) <= 5
     assert np.linalg.norm(shown(obj, frames, muted=()) - solved["X"], axis=2).max() <= TOL
 
-    class TwoKeys(correctives.StorageSettings):
-        def __init__(self, **kw):
-            super().__init__(**{"key_budget": 2, **kw})
-
-    monkeypatch.setattr(correctives, "StorageSettings", TwoKeys)
+    scene.facelab_store.key_budget = 2  # the shot's storage setting (FaceLab > Train & Propagate > Settings)
     r = reconstruct_from_bundles(scene, obj, ReconstructSettings(bind_frame=0, selected=empties))
     st = r.keys.storage
     assert r.keys == [] and st.mode == "cache" and "does not fit in 2 keys" in st.note
