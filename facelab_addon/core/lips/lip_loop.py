@@ -10,8 +10,8 @@ it.
 How the loop is found (no template, works in any scene unit): on the mesh
 pieces that are not inside another (teeth, tongue and eyes are), vertex pairs
 that are close in space, face each other across an air gap (opposite normals,
-each in front of the other) and are far apart on the mesh (more than ``hops``
-edge rings) are *contact pairs*. On a face in a rest pose they mark the lips,
+each in front of the other) and are far apart on the mesh (a path ``detour``
+times their distance) are *contact pairs*. On a face in a rest pose they mark the lips,
 whose facing surfaces are a fraction of a millimetre to a few millimetres apart
 while the mesh path between them runs around the mouth corner. Contact
 vertices connected on the mesh form groups; on a body, eyelids, fingers and
@@ -38,6 +38,10 @@ from ..errors import RegionError, RegionMeshError
 from ..geometry.mesh import edge_length_graph, vertex_adjacency, vertex_normals
 
 __all__ = ["order_edge_loop", "inner_lip_loop", "loop_width"]
+
+_FLOOR = 0.5
+_FRONT = 0.3  # cosine: a partner lies in front of a vertex along its normal
+_SIDE = 0.5  # coarse meshes: or sideways by at most this many of its edge lengths
 
 
 def order_edge_loop(faces, loop_vertices, n_vertices: int | None = None) -> np.ndarray:
@@ -138,8 +142,8 @@ def _region_mesh(vertices, faces):
     return V, F
 
 
-def _contact_pairs(V, F, comp, A, max_gap, hops):
-    """Nearest facing, far-on-the-mesh partner of each vertex of ``comp``.
+def _contact_pairs(V, F, comp, G, max_gap, detour, side_offset=0.0):
+    """Nearest facing, far-on-the-mesh partner of each vertex of ``comp`` (``G``: edge-length graph).
 
     Returns ``partner (V,) int (-1: none)`` and ``gap (V,) float (inf: none)``.
     """
@@ -164,21 +168,25 @@ def _contact_pairs(V, F, comp, A, max_gap, hops):
     ok = dist > 1e-9 * max_gap  # coincident vertices: an unwelded seam, not a lip contact
     u = d / np.where(ok, dist, 1.0)[:, None]
     ok &= np.einsum("ij,ij->i", N[i], N[j]) < -0.3
-    ok &= np.einsum("ij,ij->i", u, N[i]) > 0.3
-    ok &= np.einsum("ij,ij->i", -u, N[j]) > 0.3
+    # each in front of the other: along its normal, or (on a coarse mesh, where the nearest vertex across
+    # the gap sits up to half an edge to the side) in front with a sideways offset under half an edge
+    ell = _mean_edge_length(V, F)
+    for a, b, sgn in ((i, j, 1.0), (j, i, -1.0)):
+        c = sgn * np.einsum("ij,ij->i", u, N[a])
+        side = dist * np.sqrt(np.maximum(1.0 - c * c, 0.0))
+        ok &= (c > _FRONT) | ((c > 0) & (side <= side_offset * ell[a]))
     i, j, dist = i[ok], j[ok], dist[ok]
     if len(i) == 0:
         return partner, gap
-    # far on the mesh: j is not within `hops` edge rings of i
-    src = np.unique(i)
-    row = -np.ones(nv, dtype=np.int64)
-    row[src] = np.arange(len(src))
-    S = sp.csr_matrix((np.ones(len(src)), (np.arange(len(src)), src)), shape=(len(src), nv))
-    R = (A + sp.identity(nv, format="csr")).tocsr()
-    for _ in range(int(hops)):
-        S = (S @ R).tocsr()
-        S.data[:] = 1.0
-    near = np.asarray(S[row[i], j]).ravel() > 0
+    # far on the mesh: the shortest mesh path from i to j is more than `detour` times their distance
+    # (and more than twice the gap), so they face each other across an opening, not across a crease
+    reach = np.maximum(detour * dist, _FLOOR * max_gap)
+    near = np.zeros(len(i), dtype=bool)
+    src, inv = np.unique(i, return_inverse=True)
+    for s0 in range(0, len(src), 256):
+        sel = (inv >= s0) & (inv < s0 + 256)
+        D = _dijkstra(G, indices=src[s0 : s0 + 256], limit=float(reach.max()))
+        near[sel] = D[inv[sel] - s0, j[sel]] <= reach[sel]
     i, j, dist = i[~near], j[~near], dist[~near]
     if len(i) == 0:
         return partner, gap
@@ -192,6 +200,15 @@ def _contact_pairs(V, F, comp, A, max_gap, hops):
     partner[a[first]] = b[first]
     gap[a[first]] = dd[first]
     return partner, gap
+
+
+def _mean_edge_length(V, F):
+    """(V,) mean length of the edges at each vertex (0 on unused vertices)."""
+    E = np.r_[F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]
+    L = np.linalg.norm(V[E[:, 0]] - V[E[:, 1]], axis=1)
+    tot = np.bincount(E.ravel(), weights=np.r_[L, L], minlength=len(V))
+    cnt = np.bincount(E.ravel(), minlength=len(V))
+    return tot / np.maximum(cnt, 1)
 
 
 def _outer_pieces(V, F, nv):
@@ -308,7 +325,28 @@ def _front(V, F, grp, toward, width):
     return f / n if n > 0 else None
 
 
-def inner_lip_loop(vertices, faces, loop=None, *, max_gap=None, hops: int = 8, rays=None, toward=None,
+def _contact_groups(V, F, comp, A, G, max_gap, detour, side_offset, rays, mirror):
+    """The lip contact group for one pairing rule: ``(partner, gap, group vertex ids, width)``, or None."""
+    nv = len(V)
+    partner, gap = _contact_pairs(V, F, comp, G, max_gap, detour, side_offset)
+    cv = np.flatnonzero(partner >= 0)
+    if len(cv) < 6:
+        return None
+    # groups: contact vertices connected on the mesh, merged across partner links
+    pos = -np.ones(nv, dtype=np.int64)
+    pos[cv] = np.arange(len(cv))
+    pl = pos[partner[cv]]
+    link = pl >= 0
+    Plink = sp.coo_matrix((np.ones(link.sum()), (np.flatnonzero(link), pl[link])), shape=(len(cv), len(cv)))
+    ngrp, glab = _cc(A[cv][:, cv] + Plink + Plink.T, directed=False)
+    groups = [cv[glab == g] for g in range(ngrp) if (glab == g).sum() >= 6]
+    if not groups:
+        return None
+    grp = groups[_choose_group(V, groups, partner, rays, mirror)[0]]
+    return partner, gap, grp, _group_shape(V, grp, partner)[2]
+
+
+def inner_lip_loop(vertices, faces, loop=None, *, max_gap=None, detour: float = 5.0, rays=None, toward=None,
                    gap_name: str = "max_gap") -> np.ndarray:
     """The inner-lip contact loop: the closed line where upper and lower lip meet.
 
@@ -327,9 +365,12 @@ def inner_lip_loop(vertices, faces, loop=None, *, max_gap=None, hops: int = 8, r
         surfaces to count as lips in contact. Default: twice the median edge
         length of the searched mesh pieces (about 5 mm on ICT-FaceKit). Raise it
         if the mouth is open in the rest pose.
-    hops : int
-        Contact pairs must be more than this many edge rings apart on the mesh
-        (rejects ordinary folds such as eyelid creases).
+    detour : float
+        Contact pairs must be further apart along the mesh than ``detour``
+        times their distance (and than twice ``max_gap``): the path between
+        the lips runs around the mouth corner, across an ordinary fold such as
+        an eyelid crease it is short. A ratio of distances, so the same on a
+        fine and on a coarse mesh.
     rays : ((N,3), (N,3)) array_like pair, optional
         Rays through the artist's lip sketch (origins, directions), in the
         space of ``vertices``: of several contact groups (lips, eyelids,
@@ -382,30 +423,19 @@ def inner_lip_loop(vertices, faces, loop=None, *, max_gap=None, hops: int = 8, r
     if not max_gap > 0:
         raise RegionError("Every edge of the mesh has zero length, so no lips can be found; fix the mesh "
                           "(Mesh > Clean Up > Merge by Distance) or select the inner-lip edge loop.")
-    partner, gap = _contact_pairs(V, F, comp, A, max_gap, hops)
-    has = partner >= 0
+    mirror = _mirror_plane(V, comp) if rays is None else None
+    # facing partners along the normals; on a coarse mesh the lips' vertices also pair sideways (within half
+    # an edge), which is used when it reveals a much wider contact than the strict pairs
+    found = [_contact_groups(V, F, comp, A, G, max_gap, detour, s, rays, mirror) for s in (0.0, _SIDE)]
+    if found[0] is None or (found[1] is not None and found[0][3] < 0.75 * found[1][3]):
+        found[0] = found[1]
     hint = (
         f"no pair of facing lip surfaces was found; close the mouth in the rest pose, raise {gap_name}, "
         "or select the inner-lip edge loop and use it instead."
     )
-    if has.sum() < 6:
+    if found[0] is None:
         raise RegionError(f"Cannot find the inner-lip line: {hint}")
-
-    # groups: contact vertices connected on the mesh, merged across partner links
-    cv = np.flatnonzero(has)
-    pos = -np.ones(nv, dtype=np.int64)
-    pos[cv] = np.arange(len(cv))
-    Asub = A[cv][:, cv]
-    pl = pos[partner[cv]]
-    link = pl >= 0
-    Plink = sp.coo_matrix((np.ones(link.sum()), (np.flatnonzero(link), pl[link])), shape=(len(cv), len(cv)))
-    nmesh, mlab = _cc(Asub, directed=False)
-    ngrp, glab = _cc(Asub + Plink + Plink.T, directed=False)
-    groups = [cv[glab == g] for g in range(ngrp) if (glab == g).sum() >= 6]
-    if not groups:
-        raise RegionError(f"Cannot find the inner-lip line: {hint}")
-    best, _how = _choose_group(V, groups, partner, rays, _mirror_plane(V, comp) if rays is None else None)
-    grp = groups[best]
+    partner, gap, grp, _ = found[0]
     # the front of the contact: within a quarter of the mouth width of its front-most point
     _, _, width0 = _group_shape(V, grp, partner)
     front = _front(V, F, grp, toward, width0)
@@ -414,7 +444,7 @@ def inner_lip_loop(vertices, faces, loop=None, *, max_gap=None, hops: int = 8, r
         keep = depth <= 0.25 * width0
         if keep.sum() >= 6:
             grp = grp[keep]
-    gml = mlab[pos[grp]]
+    gml = _cc(A[grp][:, grp], directed=False)[1]  # the mesh pieces of the group
 
     # the two lips: split by the direction to the partner
     u = V[partner[grp]] - V[grp]
@@ -470,7 +500,7 @@ def inner_lip_loop(vertices, faces, loop=None, *, max_gap=None, hops: int = 8, r
         raise RegionError(f"Cannot join the upper and lower lip into a closed loop; {hint}")
     loop = np.r_[p1, p2[::-1][1:-1]].astype(np.int64)
     width = loop_width(V, loop)
-    if width < 4.0 * max_gap:
+    if width < 4.0 * float(np.median(gap[grp])):
         raise RegionError(
             f"Only a small patch of lip contact was found ({width:.3g} scene units wide, near vertex {cl}); "
             f"the mouth is probably open in the rest pose. Close it, raise {gap_name}, or select the inner-lip "
