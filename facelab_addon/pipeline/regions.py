@@ -3,8 +3,10 @@
 The regions are two vertex groups on the face, :data:`~facelab_addon.names.MOUTH_GROUP`
 (the mouth area the regression trusts) and :data:`~facelab_addon.names.LIPS_GROUP` (the
 inner lips it predicts). :func:`auto_regions` proposes them as geodesic bands around the
-inner-lip contact loop (:func:`facelab_addon.core.lips.regions.auto_regions`);
-:func:`region_faces` reads them back, validated, for Propagate.
+inner-lip contact loop (:func:`facelab_addon.core.lips.regions.auto_regions`), found with
+the scene camera and the lip sketch when there are (on a whole body the eyelids, fingers and
+toes touch as the lips do); :func:`region_faces` reads them back, validated, for Propagate.
+Sizes are relative to the mouth (band widths) or millimetres of world space (contact gap).
 """
 
 from __future__ import annotations
