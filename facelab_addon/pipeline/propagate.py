@@ -59,6 +59,7 @@ __all__ = [
     "add_corrected_frame",
     "propagate_steps",
     "propagate",
+    "training_input",
 ]
 
 _CACHE_SOURCES = ("mesh_cache", "mesh_sequence_cache")
@@ -347,6 +348,7 @@ def _propagate_work(scene, obj, frames, settings, t0, tris, mouth_faces, lip_fac
     corrected = caches.evaluate_frames(obj, train, mute_shape_keys_prefix=(PROPAGATE_PREFIX,))
     _require_finite(corrected, train, "corrected (training)")
     reg = LipRegressor(rest, tris, mouth_faces, lip_faces)
+    corrected = training_input(captured[np.searchsorted(frames, train)], corrected, reg.interior_vertices)
     try:
         reg.fit(corrected)
     except FrameError as e:  # the core names positions in the training list; the artist reads scene frames
@@ -392,6 +394,33 @@ def _propagate_work(scene, obj, frames, settings, t0, tris, mouth_faces, lip_fac
     obj.data.update()
     return PropagateResult(object=obj.name, frames=frames, keys=names, training=list(train), suggested=suggested,
                            extrapolation=score, note=note, seconds=time.perf_counter() - t0)
+
+
+def training_input(captured, corrected, interior) -> np.ndarray:
+    """The training frames as the regression learns them: the captured frames with the corrected inner lips.
+
+    The mouth input of a training frame is read from the capture, exactly as on every other frame, so
+    the extrapolation score is 0 on training frames and a correction that also moved the trusted mouth
+    (or the lip border, which the Poisson solve holds at its captured position) never teaches the
+    regression a mouth pose the capture does not have. Only the interior lip vertices, the ones the
+    regression predicts, take the corrected positions.
+
+    Parameters
+    ----------
+    captured : (k,V,3) float array
+        The training frames as captured (FaceLab's keys muted), object-local scene units.
+    corrected : (k,V,3) float array
+        The same frames with the artist's correction.
+    interior : (nI,) int array
+        ``LipRegressor.interior_vertices``.
+
+    Returns
+    -------
+    (k,V,3) float64 ndarray
+    """
+    out = np.array(captured, dtype=np.float64)
+    out[:, interior] = np.asarray(corrected)[:, interior]
+    return out
 
 
 def _polygons_around(corners, verts):

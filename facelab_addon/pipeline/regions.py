@@ -3,8 +3,10 @@
 The regions are two vertex groups on the face, :data:`~facelab_addon.names.MOUTH_GROUP`
 (the mouth area the regression trusts) and :data:`~facelab_addon.names.LIPS_GROUP` (the
 inner lips it predicts). :func:`auto_regions` proposes them as geodesic bands around the
-inner-lip contact loop (:func:`facelab_addon.core.lips.regions.auto_regions`);
-:func:`region_faces` reads them back, validated, for Propagate.
+inner-lip contact loop (:func:`facelab_addon.core.lips.regions.auto_regions`), found with
+the scene camera and the lip sketch when there are (on a whole body the eyelids, fingers and
+toes touch as the lips do); :func:`region_faces` reads them back, validated, for Propagate.
+Sizes are relative to the mouth (band widths) or millimetres of world space (contact gap).
 """
 
 from __future__ import annotations
@@ -12,7 +14,10 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from ..assets import load_preset
+from ..blender.camera import camera_from_blender, evaluated_depsgraph
 from ..blender.mesh import (
     mesh_triangles,
     require_mesh,
@@ -22,7 +27,8 @@ from ..blender.mesh import (
 )
 from ..blender.objects import require_editable
 from ..blender.shapekeys import rest_vertices
-from ..core.errors import RegionError
+from ..blender.strokes import find_sketch_object, read_lip_strokes, sketch_keyframes
+from ..core.errors import RegionError, SketchError
 from ..core.lips import regions as core_regions
 from ..core.lips.lip_loop import inner_lip_loop, loop_width
 from ..names import LIPS_GROUP, MOUTH_GROUP
@@ -50,6 +56,16 @@ class RegionSettings:
         Widths of the inner-lip band and of the mouth band around it, as
         fractions of the mouth width (corner to corner along the loop);
         the add-on's defaults come from ``assets/presets/regions.json``.
+    contact_gap : float
+        Largest distance between the upper and lower lip in the rest pose for
+        them to count as touching, millimetres of the object's world space
+        (the scene's unit scale and the object's scale are accounted for);
+        0 (default): twice the median edge length of the mesh, so a head
+        imported at any scale is searched at its own resolution.
+    use_camera : bool
+        Use the scene camera and the lip sketch when there are: the lips are the
+        contact nearest to the sketched lines, and the loop follows the side of
+        the contact facing the camera.
     """
 
     replace: bool = False
@@ -59,6 +75,13 @@ class RegionSettings:
     mouth_width: float = setting(REGION_DEFAULTS["mouth_width"], label="Mouth Band", min=0.01, max=3.0,
                                  unit="mouth",
                                  description="Width of the trusted mouth band FL_mouth around the lips, in mouth widths")
+    contact_gap: float = setting(0.0, label="Lip Contact Gap", min=0.0, soft_max=20.0, unit="mm",
+                                 description="Largest distance between the lips in the rest pose for them to count "
+                                             "as touching, in millimetres (0: twice the mesh's median edge length); "
+                                             "raise it when the rest mouth is open")
+    use_camera: bool = setting(True, label="Use Camera and Sketch",
+                               description="Find the lips where the lip sketch is drawn and on the side facing the "
+                                           "scene camera (when there are a sketch and a camera)")
 
 
 @dataclass
@@ -86,19 +109,31 @@ class RegionsResult:
     seconds: float = 0.0
 
 
-def auto_regions(obj, settings: RegionSettings | None = None) -> RegionsResult:
+def auto_regions(obj, settings: RegionSettings | None = None, *, scene=None, camera_obj=None,
+                 sketch=None) -> RegionsResult:
     """Propose and write the mouth and inner-lip vertex groups of the face ``obj``.
 
     Reads the rest pose (Basis key, else the mesh) and its triangles, runs
     :func:`facelab_addon.core.lips.regions.auto_regions` and writes the two
     groups with weight 1. ``obj`` must be in Object Mode (the selection of an
-    edited mesh is read from its mesh data).
+    edited mesh is read from its mesh data). With ``settings.use_camera`` and a
+    scene camera, the lips are looked for on the side of the face that faces
+    the camera, and with a lip sketch, where the sketch is drawn (a whole body
+    has eyelids, fingers and toes whose facing surfaces touch as the lips do).
 
     Parameters
     ----------
     obj : bpy.types.Object
         The face mesh.
     settings : RegionSettings, optional
+    scene : bpy.types.Scene, optional
+        For the camera, the sketch and the unit scale; default the first
+        scene using ``obj``.
+    camera_obj : bpy.types.Object, optional
+        Default ``scene.camera``.
+    sketch : bpy.types.Object, optional
+        The Grease Pencil lip sketch; default found in the scene
+        (:func:`facelab_addon.blender.strokes.find_sketch_object`).
 
     Returns
     -------
@@ -120,6 +155,8 @@ def auto_regions(obj, settings: RegionSettings | None = None) -> RegionsResult:
                           "Groups' to overwrite them, or edit them by weight painting.")
     require_mesh(obj)
     require_editable(obj, "Auto Regions")
+    if scene is None and len(obj.users_scene):
+        scene = obj.users_scene[0]
     tris = mesh_triangles(obj.data)
     V = rest_vertices(obj)
     loop = None
@@ -127,7 +164,12 @@ def auto_regions(obj, settings: RegionSettings | None = None) -> RegionsResult:
         loop = selected_vertices(obj)
         if len(loop) < 4:
             raise RegionError("Select the inner-lip edge loop (at least 4 vertices) in Edit Mode first.")
-    loop = inner_lip_loop(V, tris, loop)
+    find = dict(gap_name="the Lip Contact Gap (Auto Regions settings)")
+    if settings.contact_gap > 0:
+        find["max_gap"] = settings.contact_gap / _mm_per_local_unit(obj, scene)
+    if loop is None and settings.use_camera and scene is not None:
+        find.update(_camera_hints(scene, obj, camera_obj, sketch))
+    loop = inner_lip_loop(V, tris, loop, **find)
     width = loop_width(V, loop)
     mouth, lips = core_regions.auto_regions(V, tris, loop=loop, lip_width=settings.lip_width * width,
                                             mouth_width=settings.mouth_width * width)
@@ -135,6 +177,40 @@ def auto_regions(obj, settings: RegionSettings | None = None) -> RegionsResult:
         set_vertex_group(obj, name, mask)
     return RegionsResult(object=obj.name, mouth_vertices=int(mouth.sum()), lip_vertices=int(lips.sum()),
                          replaced=existing, seconds=time.perf_counter() - t0)
+
+
+def _mm_per_local_unit(obj, scene) -> float:
+    """Millimetres of world space per object-local unit: the scene's unit scale times the object's scale."""
+    metres = (scene.unit_settings.scale_length or 1.0) if scene is not None else 1.0
+    M = np.array(obj.matrix_world, dtype=np.float64)[:3, :3]
+    return 1000.0 * metres * float(np.cbrt(abs(np.linalg.det(M))) or 1.0)
+
+
+def _camera_hints(scene, obj, camera_obj, sketch) -> dict:
+    """``inner_lip_loop`` hints in object-local space: ``toward`` the camera, ``rays`` through the lip sketch.
+
+    Empty without a camera; without a readable sketch (none, or none on any of its keyframes) only
+    ``toward``.
+    """
+    cam_obj = camera_obj if camera_obj is not None else scene.camera
+    if cam_obj is None:
+        return {}
+    dg = evaluated_depsgraph(scene)
+    cam = camera_from_blender(scene, cam_obj, dg)
+    inv = np.linalg.inv(np.array(obj.matrix_world, dtype=np.float64))
+    centre = -cam.R.T @ cam.t
+    out = {"toward": inv[:3, :3] @ centre + inv[:3, 3]}
+    try:
+        gp = find_sketch_object(scene, sketch)
+        frames = sketch_keyframes(gp) if gp is not None else []
+        if frames:
+            strokes = read_lip_strokes(scene, cam, frames[0], gp_obj=gp, depsgraph=dg)
+            px = np.vstack([p for lip in ("upper", "lower") for p in strokes[lip]])
+            o, d = cam.rays(px)
+            out["rays"] = (o @ inv[:3, :3].T + inv[:3, 3], d @ inv[:3, :3].T)
+    except SketchError:
+        pass  # no usable sketch: the camera alone
+    return out
 
 
 def region_faces(obj, tris) -> tuple:

@@ -13,6 +13,7 @@ from facelab_addon.core.capture.pointcache_writer import write_pc2
 from facelab_addon.core.geometry.silhouette import contour_distance
 from facelab_addon.core.lips.propagate import LipRegressor
 from facelab_addon.core.lips.regions import faces_in_region
+from facelab_addon.pipeline.propagate import training_input
 from facelab_addon.testing import synthetic as syn
 from facelab_addon.testing.scenes import build_ict_face_scene
 
@@ -73,7 +74,7 @@ def test_refine_and_propagate_on_a_mesh_cache(tmp_path, ict, addon):
     corrected = caches.evaluate_frames(obj, TRAIN, mute_shape_keys_prefix=("FL_Prop_",))
     reg = LipRegressor(neutral, tris, faces_in_region(tris, vertex_group_mask(obj, "FL_mouth")),
                        faces_in_region(tris, vertex_group_mask(obj, "FL_lips")))
-    reg.fit(corrected)
+    reg.fit(training_input(cap[np.array(TRAIN) - 1], corrected, reg.interior_vertices))  # mouth from the capture
     held = [1, 6, 12, 16]
     expect = reg.predict(cap[np.array(held) - 1].astype(np.float64))
     got = caches.evaluate_frames(obj, held, mute_shape_keys_prefix=())

@@ -36,6 +36,7 @@ from facelab_addon.pipeline.propagate import (
     record_training_frame,
     remove_training_frame,
     training_frames,
+    training_input,
 )
 from facelab_addon.pipeline.regions import auto_regions
 
@@ -62,7 +63,9 @@ def independent_prediction(obj, train, frames):
     tris = mesh_triangles(obj.data)
     reg = LipRegressor(rest_vertices(obj), tris, faces_in_region(tris, vertex_group_mask(obj, MOUTH_GROUP)),
                        faces_in_region(tris, vertex_group_mask(obj, LIPS_GROUP)))
-    reg.fit(caches.evaluate_frames(obj, train, mute_shape_keys_prefix=(PROPAGATE_PREFIX,)))
+    corrected = caches.evaluate_frames(obj, train, mute_shape_keys_prefix=(PROPAGATE_PREFIX,))
+    reg.fit(training_input(caches.evaluate_frames(obj, train, mute_shape_keys_prefix=("FL_",)),
+                           corrected, reg.interior_vertices))  # the mouth input comes from the capture
     captured = caches.evaluate_frames(obj, frames, mute_shape_keys_prefix=("FL_",))
     return reg.predict(captured.astype(np.float64))
 

@@ -7,19 +7,24 @@ finds that loop automatically or takes it from a selected edge loop
 (:func:`order_edge_loop`); :func:`loop_width` measures the mouth width from
 it.
 
-How the loop is found (no template, works in any scene unit): on the largest
-connected surface, vertex pairs that are close in space, face each other across
-an air gap (opposite normals, each in front of the other) and are far apart on
-the mesh (more than ``hops`` edge rings) are *contact pairs*. On a face in a
-rest pose they mark the lips, whose facing surfaces are a fraction of a
-millimetre to a few millimetres apart while the mesh path between them runs
-around the mouth corner. The largest group of contact vertices splits into two
-sides (the two lips); the loop is the union of two cheapest edge paths between
-the mouth corners, one over each lip, with edge costs proportional to the local
-gap, so they follow the line where the lips are closest. On ICT-FaceKit the
-loop (about 80 vertices) runs along the 74-vertex lip rings where the
-neutral lips are about 1 mm apart; detection takes about 0.3 s and does not
-depend on the scene unit, orientation or vertex order.
+How the loop is found (no template, works in any scene unit): on the mesh
+pieces that are not inside another (teeth, tongue and eyes are), vertex pairs
+that are close in space, face each other across an air gap (opposite normals,
+each in front of the other) and are far apart on the mesh (a path ``detour``
+times their distance) are *contact pairs*. On a face in a rest pose they mark the lips,
+whose facing surfaces are a fraction of a millimetre to a few millimetres apart
+while the mesh path between them runs around the mouth corner. Contact
+vertices connected on the mesh form groups; on a body, eyelids, fingers and
+toes form bigger groups than the lips, so the mouth is the group nearest to
+the rays through the artist's sketch, else the largest group straddling the
+mesh's mirror plane (:func:`inner_lip_loop`, Notes). It splits into two sides
+(the two lips); the loop is the union of two cheapest edge paths between the
+mouth corners, one over each lip, along the front of the contact, with edge
+costs proportional to the local gap, so they follow the line where the lips
+are closest. On ICT-FaceKit the loop (about 80 vertices) runs along the
+74-vertex lip rings where the neutral lips are about 1 mm apart; detection
+takes about 0.5 s and does not depend on the scene unit, orientation or
+vertex order.
 """
 
 from __future__ import annotations
@@ -33,6 +38,10 @@ from ..errors import RegionError, RegionMeshError
 from ..geometry.mesh import edge_length_graph, vertex_adjacency, vertex_normals
 
 __all__ = ["order_edge_loop", "inner_lip_loop", "loop_width"]
+
+_FLOOR = 0.5
+_FRONT = 0.3  # cosine: a partner lies in front of a vertex along its normal
+_SIDE = 0.5  # coarse meshes: or sideways by at most this many of its edge lengths
 
 
 def order_edge_loop(faces, loop_vertices, n_vertices: int | None = None) -> np.ndarray:
@@ -133,17 +142,8 @@ def _region_mesh(vertices, faces):
     return V, F
 
 
-def _largest_component(faces, n_vertices):
-    A = vertex_adjacency(faces, n_vertices)
-    _, lab = _cc(A, directed=False)
-    used = np.zeros(n_vertices, dtype=bool)
-    used[np.asarray(faces).ravel()] = True
-    counts = np.bincount(lab[used], minlength=lab.max() + 1)
-    return lab == int(np.argmax(counts)), A
-
-
-def _contact_pairs(V, F, comp, A, max_gap, hops):
-    """Nearest facing, far-on-the-mesh partner of each vertex of ``comp``.
+def _contact_pairs(V, F, comp, G, max_gap, detour, side_offset=0.0):
+    """Nearest facing, far-on-the-mesh partner of each vertex of ``comp`` (``G``: edge-length graph).
 
     Returns ``partner (V,) int (-1: none)`` and ``gap (V,) float (inf: none)``.
     """
@@ -168,21 +168,25 @@ def _contact_pairs(V, F, comp, A, max_gap, hops):
     ok = dist > 1e-9 * max_gap  # coincident vertices: an unwelded seam, not a lip contact
     u = d / np.where(ok, dist, 1.0)[:, None]
     ok &= np.einsum("ij,ij->i", N[i], N[j]) < -0.3
-    ok &= np.einsum("ij,ij->i", u, N[i]) > 0.3
-    ok &= np.einsum("ij,ij->i", -u, N[j]) > 0.3
+    # each in front of the other: along its normal, or (on a coarse mesh, where the nearest vertex across
+    # the gap sits up to half an edge to the side) in front with a sideways offset under half an edge
+    ell = _mean_edge_length(V, F)
+    for a, b, sgn in ((i, j, 1.0), (j, i, -1.0)):
+        c = sgn * np.einsum("ij,ij->i", u, N[a])
+        side = dist * np.sqrt(np.maximum(1.0 - c * c, 0.0))
+        ok &= (c > _FRONT) | ((c > 0) & (side <= side_offset * ell[a]))
     i, j, dist = i[ok], j[ok], dist[ok]
     if len(i) == 0:
         return partner, gap
-    # far on the mesh: j is not within `hops` edge rings of i
-    src = np.unique(i)
-    row = -np.ones(nv, dtype=np.int64)
-    row[src] = np.arange(len(src))
-    S = sp.csr_matrix((np.ones(len(src)), (np.arange(len(src)), src)), shape=(len(src), nv))
-    R = (A + sp.identity(nv, format="csr")).tocsr()
-    for _ in range(int(hops)):
-        S = (S @ R).tocsr()
-        S.data[:] = 1.0
-    near = np.asarray(S[row[i], j]).ravel() > 0
+    # far on the mesh: the shortest mesh path from i to j is more than `detour` times their distance
+    # (and more than twice the gap), so they face each other across an opening, not across a crease
+    reach = np.maximum(detour * dist, _FLOOR * max_gap)
+    near = np.zeros(len(i), dtype=bool)
+    src, inv = np.unique(i, return_inverse=True)
+    for s0 in range(0, len(src), 256):
+        sel = (inv >= s0) & (inv < s0 + 256)
+        D = _dijkstra(G, indices=src[s0 : s0 + 256], limit=float(reach.max()))
+        near[sel] = D[inv[sel] - s0, j[sel]] <= reach[sel]
     i, j, dist = i[~near], j[~near], dist[~near]
     if len(i) == 0:
         return partner, gap
@@ -198,7 +202,152 @@ def _contact_pairs(V, F, comp, A, max_gap, hops):
     return partner, gap
 
 
-def inner_lip_loop(vertices, faces, loop=None, *, max_gap=None, hops: int = 8) -> np.ndarray:
+def _mean_edge_length(V, F):
+    """(V,) mean length of the edges at each vertex (0 on unused vertices)."""
+    E = np.r_[F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]
+    L = np.linalg.norm(V[E[:, 0]] - V[E[:, 1]], axis=1)
+    tot = np.bincount(E.ravel(), weights=np.r_[L, L], minlength=len(V))
+    cnt = np.bincount(E.ravel(), minlength=len(V))
+    return tot / np.maximum(cnt, 1)
+
+
+def _outer_pieces(V, F, nv):
+    """(V,) bool: the mesh pieces that can hold the lips, and the vertex adjacency.
+
+    A piece whose bounding box lies inside a larger piece's (teeth, tongue, eyeballs inside a head) is
+    left out: its facing surfaces (upper and lower teeth) are never the lips. Everything else counts,
+    so a head modelled separately from the body, or lips that are separate pieces, are searched too.
+    """
+    A = vertex_adjacency(F, nv)
+    used = np.zeros(nv, dtype=bool)
+    used[F.ravel()] = True
+    ncomp, lab = _cc(A, directed=False)
+    counts = np.bincount(lab[used], minlength=ncomp)
+    ids = np.flatnonzero(counts)
+    lo = np.array([V[lab == c].min(axis=0) for c in ids])
+    hi = np.array([V[lab == c].max(axis=0) for c in ids])
+    keep = np.zeros(ncomp, dtype=bool)
+    for n, c in enumerate(ids):
+        inside = (counts[ids] > counts[c]) & (lo <= lo[n]).all(axis=1) & (hi >= hi[n]).all(axis=1)
+        keep[c] = not inside.any()
+    return keep[lab] & used, A
+
+
+def _mirror_plane(V, mask):
+    """``(axis, centre)`` of the mesh's left-right mirror plane among the x, y, z planes, or None.
+
+    The plane through the median along an axis whose mirror image of the vertices lands on the
+    vertices (mean distance below 2 % of the size); the best of the three axes.
+    """
+    from scipy.spatial import cKDTree
+
+    P = V[mask]
+    if len(P) > 4000:
+        P = P[np.random.default_rng(0).choice(len(P), 4000, replace=False)]
+    size = float(np.linalg.norm(np.ptp(P, axis=0)))
+    if not size > 0:
+        return None
+    tree = cKDTree(P)
+    best = None
+    for a in range(3):
+        c = float(np.median(P[:, a]))
+        Q = P.copy()
+        Q[:, a] = 2 * c - Q[:, a]
+        err = float(np.mean(tree.query(Q)[0])) / size
+        if best is None or err < best[2]:
+            best = (a, c, err)
+    return (best[0], best[1]) if best[2] < 0.02 else None
+
+
+def _group_shape(V, grp, partner):
+    """``(contact_axis, width_axis, width)`` of a contact group: partner direction, corner-to-corner axis."""
+    u = V[partner[grp]] - V[grp]
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    dvert = np.linalg.eigh(u.T @ u)[1][:, -1]
+    P = V[grp] - V[grp].mean(axis=0)
+    P -= np.outer(P @ dvert, dvert)
+    wax = np.linalg.svd(P, full_matrices=False)[2][0]
+    s = P @ wax
+    return dvert, wax, float(s.max() - s.min())
+
+
+def _ray_distance(P, rays):
+    """(N,) distance of points ``P`` to the nearest of the rays ``(origins (R,3), directions (R,3))``."""
+    O, D = (np.asarray(r, dtype=np.float64).reshape(-1, 3) for r in rays)
+    if len(O) > 200:
+        pick = np.linspace(0, len(O) - 1, 200).astype(int)
+        O, D = O[pick], D[pick]
+    D = D / np.linalg.norm(D, axis=1, keepdims=True)
+    out = np.full(len(P), np.inf)
+    for o, d in zip(O, D):
+        w = P - o
+        t = np.maximum(w @ d, 0.0)
+        out = np.minimum(out, np.linalg.norm(w - t[:, None] * d, axis=1))
+    return out
+
+
+def _choose_group(V, groups, partner, rays, mirror):
+    """Index of the lip contact group among ``groups`` (lists of vertex ids), and how it was chosen.
+
+    With sketch ``rays``, the group nearest to them (the lips are where the artist drew). Otherwise
+    the largest group that straddles the mesh's mirror plane with its corners on either side and its
+    lips facing along the plane (the mouth; eyelids, fingers and toes lie off the midline, a cleft
+    between the buttocks faces across it); the largest group when there is none.
+    """
+    if rays is not None:
+        score = [float(np.median(_ray_distance(V[g], rays))) for g in groups]
+        return int(np.argmin(score)), "sketch"
+    sizes = np.array([len(g) for g in groups])
+    if mirror is not None:
+        a, c = mirror
+        ok = []
+        for n, g in enumerate(groups):
+            dvert, wax, width = _group_shape(V, g, partner)
+            x = V[g, a]
+            ok.append(x.min() < c < x.max() and abs(x.mean() - c) < 0.25 * width and abs(wax[a]) > 0.7
+                      and abs(dvert[a]) < 0.5)
+        ok = np.array(ok)
+        if ok.any():
+            return int(np.flatnonzero(ok)[np.argmax(sizes[ok])]), "midline"
+    return int(np.argmax(sizes)), "largest"
+
+
+def _front(V, F, grp, toward, width):
+    """Unit direction the mouth faces: to ``toward`` (a camera centre), else the mean skin normal around it."""
+    c = V[grp].mean(axis=0)
+    if toward is not None:
+        f = np.asarray(toward, dtype=np.float64).reshape(3) - c
+    else:
+        N = vertex_normals(V, F)
+        near = np.linalg.norm(V - c, axis=1) < 0.6 * width
+        f = N[near].sum(axis=0)
+    n = np.linalg.norm(f)
+    return f / n if n > 0 else None
+
+
+def _contact_groups(V, F, comp, A, G, max_gap, detour, side_offset, rays, mirror):
+    """The lip contact group for one pairing rule: ``(partner, gap, group vertex ids, width)``, or None."""
+    nv = len(V)
+    partner, gap = _contact_pairs(V, F, comp, G, max_gap, detour, side_offset)
+    cv = np.flatnonzero(partner >= 0)
+    if len(cv) < 6:
+        return None
+    # groups: contact vertices connected on the mesh, merged across partner links
+    pos = -np.ones(nv, dtype=np.int64)
+    pos[cv] = np.arange(len(cv))
+    pl = pos[partner[cv]]
+    link = pl >= 0
+    Plink = sp.coo_matrix((np.ones(link.sum()), (np.flatnonzero(link), pl[link])), shape=(len(cv), len(cv)))
+    ngrp, glab = _cc(A[cv][:, cv] + Plink + Plink.T, directed=False)
+    groups = [cv[glab == g] for g in range(ngrp) if (glab == g).sum() >= 6]
+    if not groups:
+        return None
+    grp = groups[_choose_group(V, groups, partner, rays, mirror)[0]]
+    return partner, gap, grp, _group_shape(V, grp, partner)[2]
+
+
+def inner_lip_loop(vertices, faces, loop=None, *, max_gap=None, detour: float = 5.0, rays=None, toward=None,
+                   gap_name: str = "max_gap") -> np.ndarray:
     """The inner-lip contact loop: the closed line where upper and lower lip meet.
 
     Parameters
@@ -214,11 +363,24 @@ def inner_lip_loop(vertices, faces, loop=None, *, max_gap=None, hops: int = 8) -
     max_gap : float, optional
         Largest distance between the lips, scene units, for two facing
         surfaces to count as lips in contact. Default: twice the median edge
-        length of the largest mesh piece (about 5 mm on ICT-FaceKit). Raise it
+        length of the searched mesh pieces (about 5 mm on ICT-FaceKit). Raise it
         if the mouth is open in the rest pose.
-    hops : int
-        Contact pairs must be more than this many edge rings apart on the mesh
-        (rejects ordinary folds such as eyelid creases).
+    detour : float
+        Contact pairs must be further apart along the mesh than ``detour``
+        times their distance (and than twice ``max_gap``): the path between
+        the lips runs around the mouth corner, across an ordinary fold such as
+        an eyelid crease it is short. A ratio of distances, so the same on a
+        fine and on a coarse mesh.
+    rays : ((N,3), (N,3)) array_like pair, optional
+        Rays through the artist's lip sketch (origins, directions), in the
+        space of ``vertices``: of several contact groups (lips, eyelids,
+        fingers, toes) the one nearest to the rays is the mouth.
+    toward : (3,) array_like, optional
+        The camera centre in the space of ``vertices``: the loop follows the
+        side of the lip contact that faces it. Default: the side the skin around
+        the mouth faces.
+    gap_name : str
+        How the failure messages name ``max_gap`` (an operator's setting name).
 
     Returns
     -------
@@ -231,16 +393,28 @@ def inner_lip_loop(vertices, faces, loop=None, *, max_gap=None, hops: int = 8) -
     ------
     RegionError
         If no pair of facing lip surfaces is found, or they cannot be joined
-        into a loop; the message suggests ``max_gap`` or selecting the loop.
+        into a loop; the message suggests ``max_gap`` (as ``gap_name``) or
+        selecting the loop.
+
+    Notes
+    -----
+    Without ``rays`` the mouth is told from eyelids, fingers and toes (often
+    bigger contact groups than the lips) by the mesh's mirror plane: the lip
+    contact straddles it with its corners on either side. Pieces lying inside
+    a larger piece's bounding box (teeth, tongue, eyeballs) are not searched.
+    Only the contact within a quarter of the mouth width of its front (along
+    ``toward``) is used, so contact deeper in an attached mouth interior does
+    not pull the loop inside.
     """
     V, F = _region_mesh(vertices, faces)
     nv = len(V)
     if loop is not None:
         return order_edge_loop(F, loop, nv)
     if max_gap is not None and not (np.isfinite(max_gap) and max_gap > 0):
-        raise RegionError(f"max_gap must be a positive distance, got {max_gap!r}; leave it unset or give the lip gap.")
+        raise RegionError(f"{gap_name} must be a positive distance, got {max_gap!r}; leave it unset or give the "
+                          "lip gap.")
 
-    comp, A = _largest_component(F, nv)
+    comp, A = _outer_pieces(V, F, nv)
     G, E, elen = edge_length_graph(V, F, nv)
     in_comp = comp[E[:, 0]]
     if max_gap is None:
@@ -249,28 +423,28 @@ def inner_lip_loop(vertices, faces, loop=None, *, max_gap=None, hops: int = 8) -
     if not max_gap > 0:
         raise RegionError("Every edge of the mesh has zero length, so no lips can be found; fix the mesh "
                           "(Mesh > Clean Up > Merge by Distance) or select the inner-lip edge loop.")
-    partner, gap = _contact_pairs(V, F, comp, A, max_gap, hops)
-    has = partner >= 0
+    mirror = _mirror_plane(V, comp) if rays is None else None
+    # facing partners along the normals; on a coarse mesh the lips' vertices also pair sideways (within half
+    # an edge), which is used when it reveals a much wider contact than the strict pairs
+    found = [_contact_groups(V, F, comp, A, G, max_gap, detour, s, rays, mirror) for s in (0.0, _SIDE)]
+    if found[0] is None or (found[1] is not None and found[0][3] < 0.75 * found[1][3]):
+        found[0] = found[1]
     hint = (
-        "no pair of facing lip surfaces was found; close the mouth in the rest pose, raise max_gap, "
+        f"no pair of facing lip surfaces was found; close the mouth in the rest pose, raise {gap_name}, "
         "or select the inner-lip edge loop and use it instead."
     )
-    if has.sum() < 6:
+    if found[0] is None:
         raise RegionError(f"Cannot find the inner-lip line: {hint}")
-
-    # groups: contact vertices connected on the mesh, merged across partner links
-    cv = np.flatnonzero(has)
-    pos = -np.ones(nv, dtype=np.int64)
-    pos[cv] = np.arange(len(cv))
-    Asub = A[cv][:, cv]
-    pl = pos[partner[cv]]
-    link = pl >= 0
-    Plink = sp.coo_matrix((np.ones(link.sum()), (np.flatnonzero(link), pl[link])), shape=(len(cv), len(cv)))
-    nmesh, mlab = _cc(Asub, directed=False)
-    ngrp, glab = _cc(Asub + Plink + Plink.T, directed=False)
-    best = int(np.argmax(np.bincount(glab)))
-    grp = cv[glab == best]
-    gml = mlab[glab == best]
+    partner, gap, grp, _ = found[0]
+    # the front of the contact: within a quarter of the mouth width of its front-most point
+    _, _, width0 = _group_shape(V, grp, partner)
+    front = _front(V, F, grp, toward, width0)
+    if front is not None:
+        depth = (V[grp] @ front).max() - V[grp] @ front
+        keep = depth <= 0.25 * width0
+        if keep.sum() >= 6:
+            grp = grp[keep]
+    gml = _cc(A[grp][:, grp], directed=False)[1]  # the mesh pieces of the group
 
     # the two lips: split by the direction to the partner
     u = V[partner[grp]] - V[grp]
@@ -326,10 +500,10 @@ def inner_lip_loop(vertices, faces, loop=None, *, max_gap=None, hops: int = 8) -
         raise RegionError(f"Cannot join the upper and lower lip into a closed loop; {hint}")
     loop = np.r_[p1, p2[::-1][1:-1]].astype(np.int64)
     width = loop_width(V, loop)
-    if width < 4.0 * max_gap:
+    if width < 4.0 * float(np.median(gap[grp])):
         raise RegionError(
             f"Only a small patch of lip contact was found ({width:.3g} scene units wide, near vertex {cl}); "
-            "the mouth is probably open in the rest pose. Close it, raise max_gap, or select the inner-lip "
+            f"the mouth is probably open in the rest pose. Close it, raise {gap_name}, or select the inner-lip "
             "edge loop and use it instead."
         )
     return loop

@@ -199,7 +199,8 @@ def validate_regions(faces, mouth_faces, lip_faces, n_vertices: int):
 # --------------------------------------------------------------------------
 
 
-def auto_regions(vertices, faces, loop=None, lip_width=None, mouth_width=None, *, return_distance: bool = False):
+def auto_regions(vertices, faces, loop=None, lip_width=None, mouth_width=None, *, return_distance: bool = False,
+                 **find):
     """Propose the mouth (trusted) and inner-lip (predicted) regions.
 
     Both are geodesic bands around the inner-lip contact loop (Dinev et al.
@@ -227,6 +228,10 @@ def auto_regions(vertices, faces, loop=None, lip_width=None, mouth_width=None, *
         ``DEFAULT_MOUTH_WIDTH`` times the mouth width.
     return_distance : bool
         Also return the (V,) geodesic distance to the loop and the loop.
+    **find
+        Keyword arguments of :func:`inner_lip_loop` for finding the loop
+        (``max_gap``, ``rays`` through the sketch, ``toward`` the camera,
+        ``gap_name``).
 
     Returns
     -------
@@ -243,7 +248,7 @@ def auto_regions(vertices, faces, loop=None, lip_width=None, mouth_width=None, *
     """
     V, F = _region_mesh(vertices, faces)
     nv = len(V)
-    loop = inner_lip_loop(V, F, loop)
+    loop = inner_lip_loop(V, F, loop, **find)
     W = loop_width(V, loop)
     lw = DEFAULT_LIP_WIDTH * W if lip_width is None else _width(lip_width, "lip")
     mw = DEFAULT_MOUTH_WIDTH * W if mouth_width is None else _width(mouth_width, "mouth")
