@@ -2,6 +2,7 @@
 
     python scripts/make_sample.py                # face.npz + 48 plate frames (Cycles CPU, a few minutes)
     python scripts/make_sample.py --no-render    # face.npz only (keeps the plate frames)
+    python scripts/make_sample.py --figure docs/images/sample_shot.png   # the README's picture of it
 
 What it writes (read by ``facelab_addon.blender.sample``; Load Sample builds the scene from it):
 
@@ -159,14 +160,72 @@ def render_worker(npz: str, out: str, samples: int) -> int:
     return 0
 
 
+def figure(path: Path, n: int = 3) -> None:
+    """The sample as an artist sees it: plate frames with the capture's inner-lip contours (the mesh) and
+    the plate's own (the truth the plate was rendered from), on the frames where the capture is worst."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from facelab_addon.testing import synthetic as syn
+
+    with np.load(OUT / "face.npz") as z:
+        a = {k: z[k] for k in z.files}
+    from facelab_addon.core.capture.camera import Camera
+
+    W, H = (int(v) for v in a["image_size"])
+    cam = Camera(a["K"], a["R"], a["t"], W, H)
+    V, pv, po = a["vertices"].astype(float), a["poly_verts"], a["poly_offsets"]
+    F = np.array([[pv[s], pv[s + k], pv[s + k + 1]] for s, e in zip(po[:-1], po[1:]) for k in range(1, e - s - 1)])
+    truth = V[None] + np.einsum("tk,kvd->tvd", a["weights"].astype(float), a["expression_deltas"].astype(float))
+    captured = truth + a["capture_error_weights"][:, None, None] * a["capture_error"][None].astype(float)
+    mouth = syn.find_mouth(V, F, None, near=V[a["inner_lip_loop"]].mean(0), units_per_mm=UNITS_PER_MM)
+    from facelab_addon.core.lips.sketch import _y_at
+
+    def drawable(t):  # the plate's upper lip above its lower lip (frames where the lips overlap are skipped)
+        up, low = syn.lip_contours(truth[t], F, cam, mouth=mouth)
+        ly = _y_at(up[:, 0], low)
+        ok = np.isfinite(ly)
+        return ok.any() and bool((ly[ok] >= up[ok, 1] - 2.0).all())
+
+    bad = np.flatnonzero(a["capture_error_weights"] >= 0.8 * a["capture_error_weights"].max())
+    good = [int(t) for t in bad if drawable(t)]
+    frames = [good[i] for i in np.linspace(0, len(good) - 1, n).round().astype(int)]
+    gap = 2 * np.abs(a["capture_error"][:, 1]).max() * a["capture_error_weights"]  # metres, both lips
+    c = cam.project(V[a["inner_lip_loop"]]).mean(0)
+    lo, hi = c - [150, 70], c + [150, 70]
+    fig, axes = plt.subplots(1, n, figsize=(5 * n, 2.9))
+    for ax, t in zip(np.atleast_1d(axes), frames):
+        ax.imshow(plt.imread(OUT / "plate" / f"plate_{t + 1:04d}.jpg"))
+        for X, col, ls, lab in ((captured[t], "#ffd60a", "-", "capture (the mesh)"),
+                                (truth[t], "#0a84ff", "--", "the plate's lips (what to sketch)")):
+            for k, P in enumerate(syn.lip_contours(X, F, cam, mouth=mouth)):
+                ax.plot(P[:, 0], P[:, 1], color=col, ls=ls, lw=1.4, label=lab if k == 0 else None)
+        ax.set_xlim(lo[0], hi[0])
+        ax.set_ylim(hi[1], lo[1])
+        ax.set_title(f"frame {t + 1}: the capture's lips stay {1e3 * gap[t]:.1f} mm further apart", fontsize=10)
+        ax.axis("off")
+    np.atleast_1d(axes)[0].legend(loc="lower left", fontsize=8, framealpha=0.85)
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+    print(f"wrote {path}")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--no-render", action="store_true", help="write face.npz only, keep the plate frames")
     ap.add_argument("--samples", type=int, default=SAMPLES, help="Cycles samples per plate frame")
+    ap.add_argument("--figure", type=Path, default=None,
+                    help="only draw the sample's figure (plate + capture vs plate lip contours) into this PNG")
     ap.add_argument("--render-worker", nargs=2, metavar=("NPZ", "OUT"), help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
     if a.render_worker:
         return render_worker(*a.render_worker, a.samples)
+    if a.figure:
+        figure(a.figure)
+        return 0
     os.environ.setdefault("BLENDER_USER_RESOURCES", tempfile.mkdtemp(prefix="facelab-sample-"))
     from facelab_addon.core.capture.ict import find_ict_dir, load_ict
 
