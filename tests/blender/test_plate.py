@@ -130,3 +130,15 @@ def test_no_camera_is_refused(addon, sequence):
         load_plate(scene, sequence / "plate_0001.png")
     assert len(bpy.data.movieclips) == 0
     assert not bpy.types.FACELAB_OT_load_plate.poll(bpy.context)
+
+
+def test_undo_takes_the_plate_back(addon, sequence):
+    scene = scene_with_camera()
+    bpy.ops.ed.undo_push(message="before")
+    assert bpy.ops.facelab.load_plate(filepath=str(sequence / "plate_0001.png")) == {"FINISHED"}
+    bpy.ops.ed.undo_push(message="Load Plate")  # headless: the UI would push it
+    assert len(bpy.context.scene.camera.data.background_images) == 1 and bpy.context.scene.frame_end == T
+    bpy.ops.ed.undo()
+    scene = bpy.context.scene
+    assert len(scene.camera.data.background_images) == 0
+    assert (scene.frame_start, scene.frame_end, scene.render.resolution_x) == (10, 500, 640)

@@ -141,3 +141,13 @@ def test_auto_regions_refine_propagate_on_the_sample_close_the_lips(sample):
     assert train_after < 0.35 * train_before, (train_before, train_after)  # Refine Lips matched the sketches
     assert before > 0.3, before
     assert after < 0.65 * before, (before, after)  # measured: 0.49 -> 0.28 mm (8 sketched frames of 48)
+
+
+def test_undo_takes_the_sample_back(addon):
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    bpy.ops.ed.undo_push(message="before")
+    assert bpy.ops.facelab.load_sample(plate=False) == {"FINISHED"}
+    bpy.ops.ed.undo_push(message="Load Sample")  # headless: the UI would push it
+    assert len(bpy.data.scenes) == 2 and "Face" in bpy.data.objects
+    bpy.ops.ed.undo()
+    assert len(bpy.data.scenes) == 1 and "Face" not in bpy.data.objects
