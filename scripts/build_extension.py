@@ -58,7 +58,8 @@ FORBIDDEN_PREFIXES = ("tests/", "benchmarks/", "docs/", "scripts/", "out/", ".ve
 REQUIRED_FILES = ("blender_manifest.toml", "__init__.py", "facelab_addon/__init__.py",
                   "facelab_addon/core/geometry/deform.py", "facelab_addon/ui/panel.py", "facelab_addon/cli/__init__.py",
                   "facelab_addon/assets.py", "assets/presets/sketch_refine.json", "assets/presets/regions.json",
-                  "assets/presets/sketch_material.json", "assets/meshes/lips.obj")
+                  "assets/presets/sketch_material.json", "assets/meshes/lips.obj",
+                  "assets/sample/face.npz", "assets/sample/plate/plate_0001.jpg", "assets/sample/LICENSE-ICT-FaceKit.txt")
 
 
 def log(msg: str) -> None:
@@ -322,7 +323,7 @@ def main(argv=None) -> int:
         if not z.exists():
             raise SystemExit(f"the CLI did not produce {z}")
         results.append(check_zip(cli, z, p, [f.name for f in wheels[p]], pins, pythons))
-        log(f"ok {z.name}: {results[-1]['bytes'] / 2**20:.1f} MB, {results[-1]['files']} files, "
+        log(f"ok {z.name}: {results[-1]['bytes'] / 1e6:.1f} MB, {results[-1]['files']} files, "
             f"wheels {', '.join(results[-1]['wheels'])}")
     print(json.dumps({"version": version, "pythons": pythons, "zips": results}, indent=2))
     return 0

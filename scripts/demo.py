@@ -5,7 +5,8 @@
    (Grease Pencil strokes that trace the truth's inner-lip silhouettes).
 2. Runs the Refine Lips operator on the problem frame.
 3. Saves out/demo/lip_refine.blend and before/after renders with the contours
-   overlaid, plus a 3D error heat map, into docs/images/.
+   overlaid, plus a 3D error heat map, into out/demo/images/ (docs/images/ with
+   --refresh-docs).
 4. Propagation (scripts/demo_propagate.py): sketches a few frames of a 48-frame
    performance, propagates, renders held-out frames and plots the error per frame.
 5. Solve Performance + Retarget (scripts/demo_solve.py): a stereo helmet capture
@@ -15,7 +16,9 @@
    empties of a held-out performance -> Reconstruct from Bundles (reconstruct.blend).
 
 Run it with ``bash scripts/demo.sh`` (it sets up its own environment); run parts
-selectively with e.g. ``bash scripts/demo.sh --only solve,reconstruct``.
+selectively with e.g. ``bash scripts/demo.sh --only solve,reconstruct``. It prints one
+line per step and a final table; everything else (Blender's own messages, per-frame
+numbers) goes to out/demo/demo.log and out/demo/*_summary.json.
 """
 
 from __future__ import annotations
@@ -85,7 +88,7 @@ def run_refine(ict, out, img_dir, samples):
 
     t0 = time.perf_counter()
     s = scenario(ict)
-    print(f"[demo] scenario ready ({time.perf_counter() - t0:.1f} s)")
+    print(f"scenario ready ({time.perf_counter() - t0:.1f} s)")
 
     bpy.ops.wm.read_factory_settings(use_empty=True)
     facelab_addon.register()
@@ -118,7 +121,7 @@ def run_refine(ict, out, img_dir, samples):
     lo_px, hi_px = pu.min(0) - [90, 110], pu.max(0) + [90, 110]
     border = [lo_px[0] / cam.width, hi_px[0] / cam.width, 1 - hi_px[1] / cam.height, 1 - lo_px[1] / cam.height]
     plate = out / "backplate.png"
-    print("[demo] rendering the backplate (Cycles, CPU)")
+    print("[demo]   rendering the backplate (Cycles, CPU)")
     render(blend, plate, hide=["Face"], show=["Truth"], samples=samples)
     set_backplate(cam_obj, plate)
 
@@ -138,7 +141,7 @@ def run_refine(ict, out, img_dir, samples):
     refined = evaluated_vertices(face, dg)
     strokes = read_lip_strokes(scene, bcam, FRAME, depsgraph=dg)
     bpy.ops.wm.save_as_mainfile(filepath=str(blend))
-    print(f"[demo] refined in {t_refine:.2f} s; saved {blend}")
+    print(f"[demo]   Refine Lips: {t_refine:.2f} s; saved {blend}")
 
     # numbers
     F, fixed, lip = s["F"], s["fixed"], s["lip"]
@@ -161,19 +164,90 @@ def run_refine(ict, out, img_dir, samples):
     )
 
     # renders: before (frame FRAME-1: corrective key at 0) and after (FRAME)
-    print("[demo] rendering before/after")
+    print("[demo]   rendering before / after / truth")
     r_before, r_after, r_truth = out / "before.png", out / "after.png", out / "truth_crop.png"
     render(blend, r_before, frame=FRAME - 1, hide=["Truth"], border=border, samples=samples)
     render(blend, r_after, frame=FRAME, hide=["Truth"], border=border, samples=samples)
     render(blend, r_truth, frame=FRAME, hide=["Face"], show=["Truth"], border=border, samples=samples)
     figures(out, img_dir, s, refined, U, L, lo_px, hi_px, r_before, r_after, r_truth, summary, err)
-    (out / "summary.json").write_text(json.dumps(summary, indent=2))
-    print(json.dumps(summary, indent=2))
+    (out / "refine_summary.json").write_text(json.dumps(summary, indent=2))
     return summary
 
 
 
+def _row(part, summary):
+    """One line of the final table: (step, measure, before, after, note)."""
+    if part == "refine":
+        return ("Refine Lips (1 frame)", "inner-lip RMS vs truth", f"{summary['lip_rms_mm_before']:.2f} mm",
+                f"{summary['lip_rms_mm_after']:.2f} mm",
+                f"contour {summary['contour_px_before']:.1f} -> {summary['contour_px_after']:.2f} px")
+    if part == "propagate":
+        return (f"Propagate ({summary['frames']} frames)", "held-out inner-lip RMS",
+                f"{summary['held_out_lip_rms_mm_before']:.3f} mm", f"{summary['held_out_lip_rms_mm_after']:.3f} mm",
+                f"{len(summary['training_frames'])} sketched frames, {summary['corrective_shapes']} FL_Prop keys")
+    if part == "solve":
+        a, b = summary["markers_only"], summary["markers_contours_corrective"]
+        return ("Solve Performance", "inner-lip RMS (markers only -> + contours + corrective)",
+                f"{a['lip_rms_mm']:.2f} mm", f"{b['lip_rms_mm']:.2f} mm",
+                f"contour {a['inner_lip_contour_px_cam1']:.1f} -> {b['inner_lip_contour_px_cam1']:.1f} px")
+    if part == "reconstruct":
+        base = summary["blendshape_fit_baseline"]["front_face_mean_mm"]
+        key = next(k for k in summary if k.startswith("reconstruct_smooth") and k != "reconstruct_smooth1")
+        return ("Reconstruct from Bundles", "front-face mean error (blendshape fit -> FaceLab)", f"{base:.2f} mm",
+                f"{summary[key]['front_face_mean_mm']:.2f} mm", f"{summary['bundles']} bundles")
+    return (part, "", "", "", "")
+
+
+def _table(rows, times, out):
+    head = ("step", "measure", "before", "after", "time", "")
+    body = [(*r[:4], f"{times[p]:.0f} s", r[4]) for p, r in rows]
+    widths = [max(len(str(x[i])) for x in [head, *body]) for i in range(len(head))]
+    line = lambda cells: "  ".join(str(c).ljust(w) for c, w in zip(cells, widths)).rstrip()  # noqa: E731
+    print("[table] " + line(head))
+    print("[table] " + "  ".join("-" * w for w in widths))
+    for b in body:
+        print("[table] " + line(b))
+
+
+def supervise(argv) -> int:
+    """Run the demo in a child process: show its ``[demo]`` progress lines and the final table, and send
+    everything else (Blender's EGL and deprecation messages, render logs, per-frame detail) to
+    ``OUT/demo.log``."""
+    import subprocess
+
+    ap = argparse.ArgumentParser(add_help=False)
+    ap.add_argument("--out", default=str(ROOT / "out" / "demo"))
+    known, _ = ap.parse_known_args(argv)
+    out = Path(known.out)
+    out.mkdir(parents=True, exist_ok=True)
+    log_path = out / "demo.log"
+    env = dict(os.environ, FACELAB_DEMO_CHILD="1", PYTHONUNBUFFERED="1")
+    with open(log_path, "w") as log:
+        p = subprocess.Popen([sys.executable, str(Path(__file__).resolve()), *argv], env=env, text=True,
+                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, bufsize=1)
+        for line in p.stdout:
+            log.write(line)
+            log.flush()
+            if line.startswith("[demo]"):
+                print(line[len("[demo] "):].rstrip(), flush=True)
+            elif line.startswith("[table]"):
+                print(line[len("[table] "):].rstrip(), flush=True)
+            elif line.startswith(("usage:", "demo.py: error")):
+                print(line.rstrip(), flush=True)
+        rc = p.wait()
+    if rc not in (0, 2):  # 2: a usage error, already shown
+        tail = log_path.read_text().splitlines()[-25:]
+        print(f"The demo failed (exit {rc}); the end of {log_path}:", file=sys.stderr)
+        print("\n".join("    " + t for t in tail), file=sys.stderr)
+    else:
+        print(f"Full log (Blender's own messages, renders): {log_path}")
+    return rc
+
+
 def main(argv=None):
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if os.environ.get("FACELAB_DEMO_CHILD") != "1" and not {"-h", "--help"} & set(argv):
+        return supervise(argv)
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default=str(ROOT / "out" / "demo"))
     ap.add_argument("--images", default=None,
@@ -197,34 +271,42 @@ def main(argv=None):
     from facelab_addon.core.capture.ict import load_ict
 
     t_all = time.perf_counter()
+    print("[demo] loading the ICT-FaceKit face")
     ict = load_ict()
-    times = {}
-    for part in PARTS:
-        if part not in parts:
-            continue
+    times, rows = {}, []
+    for i, part in enumerate(p for p in PARTS if p in parts):
         t0 = time.perf_counter()
+        print(f"[demo] step {i + 1}/{len(parts)}: {STEP_TITLES[part]}")
         if part == "refine":
-            run_refine(ict, out, img_dir, a.samples)
+            summary = run_refine(ict, out, img_dir, a.samples)
         elif part == "propagate":
-            print("[demo] step 2: sketch a few frames of a performance, propagate to all, render held-out frames")
             from demo_propagate import run as run_propagation
 
-            print(json.dumps(run_propagation(ict, out, img_dir, render, a.samples), indent=2))
+            summary = run_propagation(ict, out, img_dir, render, a.samples)
         elif part == "solve":
-            print("[demo] step 3: helmet stereo capture -> Bind Tracks -> Solve Performance -> Retarget")
             from demo_solve import run as run_solve
 
-            print(json.dumps(run_solve(ict, out, img_dir, render, min(a.samples, 16)), indent=2))
-        elif part == "reconstruct":
-            print("[demo] step 4: animated bundles -> Reconstruct from Bundles")
+            summary = run_solve(ict, out, img_dir, render, min(a.samples, 16))
+        else:
             from demo_reconstruct import run as run_reconstruct
 
-            print(json.dumps(run_reconstruct(ict, out, img_dir, render, min(a.samples, 16)), indent=2))
-        times[part] = round(time.perf_counter() - t0, 1)
+            summary = run_reconstruct(ict, out, img_dir, render, min(a.samples, 16))
+        times[part] = time.perf_counter() - t0
+        rows.append((part, _row(part, summary)))
+        print(f"[demo]   done in {times[part]:.0f} s; details in {out / (part + '_summary.json')}")
     for backup in out.rglob("*.blend1"):  # Blender's backup of a re-saved .blend: the demo wants one copy
         backup.unlink()
-    print(f"[demo] done in {time.perf_counter() - t_all:.0f} s: {times}; figures in {img_dir}")
+    print(f"[demo] finished in {time.perf_counter() - t_all:.0f} s: scenes (.blend) in {out}, figures in {img_dir}")
+    _table(rows, times, out)
     return 0
+
+
+STEP_TITLES = {
+    "refine": "Refine Lips on one frame of a capture with a 2.5 mm lip gap",
+    "propagate": "sketch a few frames of a 48-frame performance (over its plate), Propagate to all",
+    "solve": "helmet stereo capture -> Bind Tracks -> Solve Performance -> Retarget",
+    "reconstruct": "animated bundles -> Reconstruct from Bundles",
+}
 
 
 def figures(out, img_dir, s, refined, U, L, lo_px, hi_px, r_before, r_after, r_truth, summary, err):
@@ -290,7 +372,7 @@ def figures(out, img_dir, s, refined, U, L, lo_px, hi_px, r_before, r_after, r_t
     fig.colorbar(sc, ax=axes, fraction=0.025, label="mm")
     fig.savefig(img_dir / "refine_error_heatmap.png", dpi=90)
     plt.close(fig)
-    print(f"[demo] wrote {img_dir / 'refine_before_after.png'} and {img_dir / 'refine_error_heatmap.png'}")
+    print(f"wrote {img_dir / 'refine_before_after.png'} and {img_dir / 'refine_error_heatmap.png'}")
 
 
 if __name__ == "__main__":

@@ -3,7 +3,8 @@
 A 48-frame ICT "performance" (mouth expressions keyed as shape keys) carries a
 systematic capture error (a key 'CaptureError': the inner lips fail to close,
 more so when the jaw is closed). The artist sketches the true inner-lip
-contours on a few frames suggested by FaceLab and refines them (Refine Lips),
+contours over the plate (the truth rendered, loaded with Load Plate) on a few
+frames suggested by FaceLab and refines them (Refine Lips),
 then Auto Regions and Propagate correct every frame. Renders compare held-out
 frames before / after / truth, and a plot shows the inner-lip error per frame.
 """
@@ -30,6 +31,26 @@ def _drawable(upper, lower, tol_px=2.0):
     ly = _y_at(upper[:, 0], lower)
     ok = np.isfinite(ly)
     return ok.any() and bool((ly[ok] >= upper[ok, 1] - tol_px).all())
+
+
+def render_plate(plate_dir, frames, scale=1 / 3, samples=4):
+    """Render the truth (``CaptureError`` muted) on ``frames`` into ``plate_dir/plate_0001.png``...;
+    returns the first file."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import bpy
+
+    plate_dir.mkdir(parents=True, exist_ok=True)
+    blend = plate_dir / "plate_scene.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(blend), copy=True)
+    script = Path(__file__).resolve().parent / "demo_plates.py"
+    subprocess.run([sys.executable, str(script), str(blend), str(plate_dir), "--frames", str(int(frames[0])),
+                    str(int(frames[-1])), "--mute-keys", "CaptureError", "--scale", str(scale), "--samples",
+                    str(samples), "--prefix", "plate"], check=True, stdout=subprocess.DEVNULL)
+    blend.unlink()
+    return plate_dir / "plate_0001.png"
 
 
 def run(ict, out, img_dir, render, samples, n_train=8):
@@ -63,6 +84,13 @@ def run(ict, out, img_dir, render, samples, n_train=8):
     cam = syn.frontal_camera(neutral, mouth.center, distance=0.40)
     fs = build_ict_face_scene(ict, EXPR, weights=W, frames=frames, scale=SCALE, fixed_group=True, camera=cam)
     scene, face = fs.scene, fs.obj
+    if "facelab" not in bpy.types.Scene.bl_rna.properties:  # run alone (--only propagate)
+        import atexit
+
+        import facelab_addon
+
+        facelab_addon.register()
+        atexit.register(facelab_addon.unregister)  # bpy 4.5 hangs at exit with FaceLab registered
     add_corrective_key(face, "CaptureError", err)
     key_values_bulk(face, ["CaptureError"], frames, strength[:, None])
     mat = bpy.data.materials.get("Skin") or bpy.data.materials.new("Skin")
@@ -71,6 +99,11 @@ def run(ict, out, img_dir, render, samples, n_train=8):
     face.data.materials.append(mat)
     add_studio_lights(scene)
     bcam = camera_from_blender(scene)
+    # the plate: what the actor did (the capture error muted), rendered from the camera; Load Plate puts it
+    # behind the camera (at a third of the resolution: it is for looking at, the sketch is in full pixels)
+    first = render_plate(out / "propagate_plate", frames)
+    assert bpy.ops.facelab.load_plate(filepath=str(first), match_resolution=False) == {"FINISHED"}
+    print(f"[demo]   plate: {len(frames)} frames rendered (Cycles CPU) and loaded with Load Plate")
 
     # FaceLab suggests the frames worth correcting (extreme poses); the artist sketches them
     from facelab_addon.core.lips.regions import auto_regions, faces_in_region

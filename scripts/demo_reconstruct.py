@@ -75,7 +75,7 @@ def run(ict, out, img_dir, render, samples):
     recon.bundle_source, recon.bundle_collection, recon.bind_frame = "COLLECTION", coll, 0
     scene.facelab.face = face
     t_build = time.perf_counter() - t_start
-    print(f"[demo] reconstruct scene built: {len(data.names)} dataset shape keys, {N_BUNDLES} bundle empties x "
+    print(f"[demo]   reconstruct scene built: {len(data.names)} dataset shape keys, {N_BUNDLES} bundle empties x "
           f"{N_FRAMES} frames ({t_build:.1f} s)")
 
     skin = ict.part_vertex_mask("M_Face")
@@ -95,7 +95,7 @@ def run(ict, out, img_dir, render, samples):
         timings[f"reconstruct_smooth{smooth}_s"] = round(time.perf_counter() - t0, 2)
         X = evaluate_frames(face, frames, mute_shape_keys_prefix=())
         results[f"reconstruct_smooth{smooth}"] = (X, err(X))
-        print(f"[demo] Reconstruct from Bundles (smoothing {smooth}): front-face mean error "
+        print(f"[demo]   Reconstruct from Bundles (smoothing {smooth}): front-face mean error "
               f"{results[f'reconstruct_smooth{smooth}'][1]['front_face_mean_mm']:.3f} mm")
     t0 = time.perf_counter()
     fit = BlendshapeFit(neutral, F, data.shapes * SCALE, bf, bb)
@@ -117,7 +117,7 @@ def run(ict, out, img_dir, render, samples):
     bpy.context.view_layer.objects.active = face
     blend = out / "reconstruct.blend"
     bpy.ops.wm.save_as_mainfile(filepath=str(blend))
-    print(f"[demo] saved {blend}")
+    print(f"[demo]   saved {blend}")
 
     # the figure frame: where the baseline is worst
     f = 1 + int(np.argmax(results["blendshape_fit_baseline"][1]["front_face_mean_mm_per_frame"]))
@@ -127,7 +127,7 @@ def run(ict, out, img_dir, render, samples):
     border = [lo[0] / cam.width, hi[0] / cam.width, 1 - hi[1] / cam.height, 1 - lo[1] / cam.height]
     names = ["Face", "Truth", "Blendshape fit (baseline)"]
     r = {k: out / f"reconstruct_{k}.png" for k in ("truth", "fit", "recon")}
-    print(f"[demo] rendering reconstruct frame {f}, Cycles CPU")
+    print(f"[demo]   rendering reconstruct frame {f}, Cycles CPU")
     t0 = time.perf_counter()
     for k, name in (("truth", "Truth"), ("fit", "Blendshape fit (baseline)"), ("recon", "Face")):
         render(blend, r[k], frame=f, hide=[n for n in names if n != name], show=[name],
@@ -203,4 +203,4 @@ def figure(img_dir, r, cam, box, truth, X, q, front, summary, f):
     fig.tight_layout()
     fig.savefig(img_dir / "demo_reconstruct_errors.png", dpi=90)
     plt.close(fig)
-    print(f"[demo] wrote {img_dir}/demo_reconstruct_before_after.png, demo_reconstruct_errors.png")
+    print(f"wrote {img_dir}/demo_reconstruct_before_after.png, demo_reconstruct_errors.png")

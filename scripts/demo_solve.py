@@ -5,13 +5,15 @@ painted markers on the skin, a smooth rig performance and, on top of it, an
 inner-lip deformation the rig cannot express (the lips fail to close, up to
 2.5 mm). The artist's scene, built through the operators as in production:
 
-* two Movie Clips (image sequences: grey plates with the painted dots) with one
-  track per marker at its projected pixel (0.3 px noise), calibrated cameras;
+* two Movie Clips (image sequences: the truth rendered with Cycles from each helmet
+  camera, with the painted dots) with one track per marker at its projected pixel
+  (0.3 px noise), calibrated cameras;
 * inner-lip contours: a shape-keyed Mask over clip 1 and Grease Pencil strokes
   drawn through camera 2;
 * Bind Tracks on the neutral frame, Solve Performance (markers only first, kept
   as a baked copy, then markers + contours + corrective), Retarget to a creature
-  (ICT with a widened mouth, ``testing.creature.widen_mouth``).
+  (ICT with a widened mouth, ``testing.creature.widen_mouth``), left in view 30 cm
+  beside the actor.
 
 Writes out/demo/solve.blend, out/demo/solve_summary.json (errors vs the truth)
 and docs/images/demo_solve_*.png.
@@ -92,6 +94,44 @@ def _px_to_mask(px, W, H):
     return np.c_[(u - 0.5) * (W / H) + 0.5, v]
 
 
+def render_helmet_plates(s, plates_dir, camera_names, scale=0.5, samples=8):
+    """Footage of each helmet camera: the truth rendered with Cycles (at ``scale`` of the camera's
+    resolution, upscaled), with the painted markers drawn on as dark dots at their tracked pixels.
+    Returns the first PNG of each camera's sequence (``cam<c>_0001.png``...)."""
+    import os
+    import shutil
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import bpy
+    from PIL import Image, ImageDraw
+
+    plates_dir = Path(plates_dir)
+    plates_dir.mkdir(parents=True, exist_ok=True)
+    blend = plates_dir / "plate_scene.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(blend), copy=True)
+    script = Path(__file__).resolve().parent / "demo_plates.py"
+    firsts = []
+    for c, (cam, name) in enumerate(zip(s["cams"], camera_names)):
+        raw = plates_dir / f"render_cam{c + 1}"
+        subprocess.run([sys.executable, str(script), str(blend), str(raw), "--frames", "0", str(N_FRAMES - 1),
+                        "--camera", name, "--show", "Truth", "--hide", "Face", "--scale", str(scale),
+                        "--samples", str(samples), "--prefix", "r"], check=True, stdout=subprocess.DEVNULL,
+                       env=dict(os.environ))
+        for t in range(N_FRAMES):
+            img = Image.open(raw / f"r_{t + 1:04d}.png").convert("RGB").resize((cam.width, cam.height), Image.BILINEAR)
+            draw = ImageDraw.Draw(img)
+            for x, y in s["px"][t, c]:
+                if np.isfinite(x) and np.isfinite(y):
+                    draw.ellipse([x - 4, y - 4, x + 4, y + 4], fill=(20, 20, 20))
+            img.save(plates_dir / f"cam{c + 1}_{t + 1:04d}.png")
+        firsts.append(plates_dir / f"cam{c + 1}_0001.png")
+        shutil.rmtree(raw)
+    blend.unlink()
+    return firsts
+
+
 def build_scene(ict, s, plates_dir):
     """The artist's scene: rig, cameras, Movie Clips with tracks, Mask and Grease Pencil contours."""
     import bpy
@@ -100,8 +140,8 @@ def build_scene(ict, s, plates_dir):
     from facelab_addon.blender.camera import apply_camera_to_blender
     from facelab_addon.blender.scene import add_studio_lights
     from facelab_addon.blender.strokes import write_stroke_pixels
-    from facelab_addon.blender.tracking_io import clip_from_pixels, write_dot_plates
-    from facelab_addon.testing.scenes import build_ict_face_scene
+    from facelab_addon.blender.tracking_io import clip_from_pixels
+    from facelab_addon.testing.scenes import baked_sequence_object, build_ict_face_scene
 
     fs = build_ict_face_scene(ict, EXPR, frame_range=(0, N_FRAMES - 1), scale=SCALE, fixed_group=True,
                               eyeball_groups=True, select=False)
@@ -120,21 +160,25 @@ def build_scene(ict, s, plates_dir):
     face.data.materials.append(mat)
 
     sol = scene.facelab_solve
-    views = []
+    cam_objs = []
     for c, cam in enumerate(cams):
-        W, H = cam.width, cam.height
         cam_obj = bpy.data.objects.new(f"Helmet cam {c + 1}", bpy.data.cameras.new(f"Helmet cam {c + 1}"))
         scene.collection.objects.link(cam_obj)
         apply_camera_to_blender(cam, cam_obj, scene)
-        # the plate: grey with the painted dots (a stand-in for the helmet footage), the tracks, the calibration
-        first = write_dot_plates(plates_dir / f"cam{c + 1}", s["px"][:, c], (W, H), prefix=f"cam{c + 1}")
-        clip = clip_from_pixels(first, s["px"][:, c], cam, names=[f"M{j:02d}" for j in range(len(s["markers"]))],
+        cam_objs.append(cam_obj)
+    # the footage: the truth rendered from each helmet camera, with the painted dots on the skin
+    truth_ob = baked_sequence_object(ict, "Truth", s["truth"], np.arange(T))
+    truth_ob.data.materials.append(mat)
+    add_studio_lights(scene)
+    firsts = render_helmet_plates(s, plates_dir, [o.name for o in cam_objs])
+    views = []
+    for c, (cam, cam_obj) in enumerate(zip(cams, cam_objs)):
+        clip = clip_from_pixels(firsts[c], s["px"][:, c], cam, names=[f"M{j:02d}" for j in range(len(s["markers"]))],
                                 scene_frame_start=0, name=f"Helmet cam {c + 1}")
         v = sol.views.add()
         v.camera, v.clip = cam_obj, clip
         views.append((cam_obj, clip))
     scene.camera = views[0][0]
-    add_studio_lights(scene)
 
     # contours: a Mask over clip 1 (one shape key per frame), Grease Pencil strokes through camera 2
     mask = bpy.data.masks.new("Lips")
@@ -220,7 +264,7 @@ def run(ict, out, img_dir, render, samples):
     sol = scene.facelab_solve
     frames = np.arange(N_FRAMES)
     t_build = time.perf_counter() - t_start
-    print(f"[demo] solve scene built: {len(s['markers'])} markers x 2 Movie Clips, Mask + Grease Pencil lips "
+    print(f"[demo]   solve scene built: {len(s['markers'])} markers x 2 Movie Clips, Mask + Grease Pencil lips "
           f"({t_build:.1f} s)")
 
     timings = {}
@@ -235,13 +279,13 @@ def run(ict, out, img_dir, render, samples):
         X = evaluate_frames(face, frames, mute_shape_keys_prefix=())
         Wg = _curve_values(face.data.shape_keys, EXPR, frames)
         results[label] = (X, errors(s, X, Wg, ict))
-        print(f"[demo] Solve Performance ({label}): lip RMS {results[label][1]['lip_rms_mm']:.2f} mm, "
+        print(f"[demo]   Solve Performance ({label}): lip RMS {results[label][1]['lip_rms_mm']:.2f} mm, "
               f"contour {results[label][1]['inner_lip_contour_px_cam1']:.2f} px")
     X_m, X_c = results["markers_only"][0], results["markers_contours_corrective"][0]
-    truth_ob = baked_sequence_object(ict, "Truth", s["truth"], frames)
+    truth_ob = bpy.data.objects["Truth"]  # built with the footage
     mo_ob = baked_sequence_object(ict, "Solve (markers only)", X_m, frames)
+    mo_ob.data.materials.append(mat)
     for ob in (truth_ob, mo_ob):
-        ob.data.materials.append(mat)
         ob.hide_render = True
         ob.hide_set(True)
 
@@ -263,7 +307,7 @@ def run(ict, out, img_dir, render, samples):
     bpy.context.view_layer.objects.active = face
     blend = out / "solve.blend"
     bpy.ops.wm.save_as_mainfile(filepath=str(blend))
-    print(f"[demo] saved {blend}")
+    print(f"[demo]   saved {blend}")
 
     # the frame with the most visible lip error of the markers-only solve; the retarget frame: the widest jaw
     lip = s["lip"]
@@ -282,7 +326,7 @@ def run(ict, out, img_dir, render, samples):
     lo2, hi2 = np.maximum(lo2, 0), np.minimum(hi2, [W, H])
     border2 = [lo2[0] / W, hi2[0] / W, 1 - hi2[1] / H, 1 - lo2[1] / H]
     del pf
-    print(f"[demo] rendering solve frames {f_lip} (lips) and {f_ret} (retarget), Cycles CPU")
+    print(f"[demo]   rendering solve frames {f_lip} (lips) and {f_ret} (retarget), Cycles CPU")
     t0 = time.perf_counter()
     r = {k: out / f"solve_{k}.png" for k in ("truth", "markers", "full", "actor", "creature_plain", "creature")}
     others = ["Face", "Truth", "Solve (markers only)", "Creature"]
@@ -295,6 +339,11 @@ def run(ict, out, img_dir, render, samples):
         render(blend, r[k], frame=f, hide=[o for o in others if o != name], show=[name], border=b, samples=samples,
                **kw)
     timings["render_s"] = round(time.perf_counter() - t0, 1)
+    # solve.blend keeps the creature in view, beside the actor (its shape keys are object-local)
+    cre.hide_set(False)
+    cre.hide_render = False
+    cre.location.x += 0.3
+    bpy.ops.wm.save_as_mainfile(filepath=str(blend))
 
     summary = dict(
         lip_region="vertices the out-of-rig lip error moves by > 0.5 mm (%d)" % int(s["lip"].sum()),
@@ -373,4 +422,4 @@ def figures(s, img_dir, r, box, box2, f_lip, f_ret, results, summary, X_cre):
     fig.tight_layout()
     fig.savefig(img_dir / "demo_solve_errors.png", dpi=90)
     plt.close(fig)
-    print(f"[demo] wrote {img_dir}/demo_solve_before_after.png, demo_solve_retarget.png, demo_solve_errors.png")
+    print(f"wrote {img_dir}/demo_solve_before_after.png, demo_solve_retarget.png, demo_solve_errors.png")

@@ -234,3 +234,63 @@ def test_auto_regions_operator_uses_the_region_preset(addon, ict):
     assert prefs.REGION_DEFAULTS["lip_width"] < 0.2
     _, lips2 = run(lip_width=0.2)  # a wider lip band saved with the shot
     assert lips2.sum() > lips.sum() and not (lips & ~lips2).any()
+
+
+# --------------------------------------------------------------------------------------------------
+# the sample shot (assets/sample, Load Sample)
+# --------------------------------------------------------------------------------------------------
+
+SAMPLE = ROOT / "assets" / "sample"
+MB = 1e6  # sizes in MB are 10^6 bytes (docs/conventions.md)
+
+
+def _sample_arrays():
+    with np.load(SAMPLE / "face.npz", allow_pickle=False) as z:
+        return {k: z[k] for k in z.files}
+
+
+def test_the_sample_is_small_enough_to_ship_and_carries_the_ict_licence():
+    files = [p for p in SAMPLE.rglob("*") if p.is_file()]
+    total = sum(p.stat().st_size for p in files)
+    assert total < 5 * MB, f"assets/sample is {total / MB:.2f} MB; keep the shipped sample under 5 MB"
+    assert (SAMPLE / "face.npz").stat().st_size < 1 * MB
+    plates = sorted((SAMPLE / "plate").glob("plate_*.jpg"))
+    assert all(p.stat().st_size < 150_000 for p in plates)
+    assert {p.suffix for p in files} <= {".npz", ".jpg", ".txt", ".md"}, "only the sample's own files"
+    lic = (SAMPLE / "LICENSE-ICT-FaceKit.txt").read_text()
+    assert lic.startswith("MIT License") and "USC Institute for Creative Technologies" in lic
+    assert "Permission is hereby granted" in lic
+    readme = (SAMPLE / "README.md").read_text()
+    assert "ICT-FaceKit" in readme and "LICENSE-ICT-FaceKit.txt" in readme and "make_sample.py" in readme
+
+
+def test_the_sample_arrays_and_plate_agree():
+    from PIL import Image
+
+    a = _sample_arrays()
+    V, T, K = len(a["vertices"]), len(a["weights"]), len(a["expression_names"])
+    assert 3000 <= V <= 6000  # a reduced face: a few thousand vertices
+    assert 40 <= T <= 60 and a["expression_deltas"].shape == (K, V, 3) and a["capture_error"].shape == (V, 3)
+    plates = sorted((SAMPLE / "plate").glob("plate_*.jpg"))
+    assert [p.name for p in plates] == [f"plate_{t + 1:04d}.jpg" for t in range(T)]  # one frame per frame
+    with Image.open(plates[0]) as im:
+        assert im.size == tuple(a["image_size"])
+    # the capture's lips fail to close by millimetres (a gap worth fixing), nowhere else
+    err_mm = 1e3 * np.linalg.norm(a["capture_error"], axis=1) * a["capture_error_weights"].max()
+    assert 2.0 < 2 * err_mm.max() < 3.0  # each lip moves half of the 2.5 mm gap
+    moved = err_mm > 0.05
+    loop = a["inner_lip_loop"]
+    d = np.linalg.norm(a["vertices"][moved][:, None] - a["vertices"][loop][None], axis=2).min(axis=1)
+    assert d.max() < 0.015  # within 15 mm of the inner-lip loop
+
+
+def test_the_sample_is_the_ict_face_reduced(ict):
+    """Every sample vertex is an ICT-FaceKit vertex at its upstream position (metres), with its upstream
+    expression offsets: the reduction keeps upstream vertices, it does not resample them."""
+    a = _sample_arrays()
+    src = a["source_vertices"]
+    assert len(np.unique(src)) == len(src) and ict.part_vertex_mask("M_Face")[src].all()
+    np.testing.assert_allclose(a["vertices"], ict.neutral[src] * 0.01, atol=1e-7)
+    for k, name in enumerate(a["expression_names"]):
+        np.testing.assert_allclose(a["expression_deltas"][k], (ict.expressions[str(name)] - ict.neutral)[src] * 0.01,
+                                   atol=1e-7)

@@ -2,6 +2,7 @@
 
 from . import (
     ops,
+    ops_assets,
     ops_propagate,
     ops_reconstruct,
     ops_review,
@@ -14,8 +15,8 @@ from . import (
     scene_settings,
 )
 
-modules = (props, props_solve, scene_settings, prefs, ops, ops_propagate, ops_reconstruct, ops_solve, ops_review,
-           panel_solve, panel)
+modules = (props, props_solve, scene_settings, prefs, ops, ops_assets, ops_propagate, ops_reconstruct, ops_solve,
+           ops_review, panel_solve, panel)
 
 
 def register():

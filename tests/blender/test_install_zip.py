@@ -1,7 +1,7 @@
 """The zip users download works: build this platform's extension zip, install it into a fresh
 Blender user folder with ``bpy.ops.extensions.package_install_files``, enable it and run Refine
 Lips from the *installed* copy on the sample mouth of the installed ``assets/meshes/lips.obj``, with
-SciPy/libigl/cholespy coming from the zip's wheels.
+SciPy/libigl/cholespy coming from the zip's wheels, then Load Sample on the installed sample shot.
 
 The install runs in a subprocess (a fresh user folder is read when bpy starts; a fresh
 ``sys.modules``). That process hides the venv's scipy, igl and cholespy, like Blender's own Python
@@ -164,6 +164,15 @@ INSTALL_SCRIPT = textwrap.dedent(r'''
     out["keys"] = [kb.name for kb in obj.data.shape_keys.key_blocks]
     out["training"] = [t.frame for t in obj.facelab.training_frames]
 
+    # the sample shot shipped in the installed assets: Load Sample builds it in a new scene
+    out["load_sample"] = sorted(bpy.ops.facelab.load_sample())
+    sample = bpy.context.scene
+    face = sample.facelab.face
+    out["sample"] = {"scene": sample.name, "vertices": len(face.data.vertices),
+                     "keys": len(face.data.shape_keys.key_blocks), "frames": [sample.frame_start, sample.frame_end],
+                     "plate": bpy.path.abspath(sample.camera.data.background_images[0].clip.filepath),
+                     "plate_frames": sample.camera.data.background_images[0].clip.frame_duration}
+
     import cholespy, igl, scipy
     op_module = bpy.types.FACELAB_OT_refine_lips.__module__
     out["files"].update({
@@ -221,3 +230,10 @@ def test_installed_zip_runs_refine_lips(extension_zip, tmp_path):
     (u0, u1), (l0, l1) = out["upper_inner_y"], out["lower_inner_y"]
     assert u0 == pytest.approx(0.2, abs=1e-6) and l0 == pytest.approx(-0.2, abs=1e-6)
     assert abs(u1 - 0.1) < 0.03 and abs(l1 + 0.1) < 0.03, (u1, l1)
+
+    # Load Sample ran from the installed add-on, on the installed sample
+    assert out["load_sample"] == ["FINISHED"]
+    smp = out["sample"]
+    assert smp["scene"].startswith("FaceLab Sample") and smp["vertices"] == 4737 and smp["frames"] == [1, 48]
+    assert smp["keys"] == 10 and smp["plate_frames"] == 48  # Basis, 8 expressions, the capture's lip error
+    assert Path(smp["plate"]).resolve() == installed / "assets" / "sample" / "plate" / "plate_0001.jpg"
