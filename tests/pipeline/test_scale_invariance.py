@@ -38,11 +38,6 @@ def route(ict, units):
     return _RUNS[units]
 
 
-_COMPRESSION = pytest.mark.xfail(strict=True, reason="write_corrective_keys' 0.01 mm compression tolerance is taken "
-                                 "in scene units and ignores the object's scale, so on an object scaled 1000x every "
-                                 "propagated correction is dropped (another helper's fix; flip after merging)")
-
-
 @pytest.mark.parametrize("units", ["x0.01", "x100", "mm-object"])
 def test_regions_and_refine_do_not_depend_on_the_units(ict, addon, units):
     ref, got = route(ict, "x1"), route(ict, units)
@@ -52,13 +47,13 @@ def test_regions_and_refine_do_not_depend_on_the_units(ict, addon, units):
     assert np.abs(got["refined"] - ref["refined"]).max() < 2e-3
 
 
-@pytest.mark.parametrize("units", ["x0.01", "x100", pytest.param("mm-object", marks=_COMPRESSION)])
+@pytest.mark.parametrize("units", ["x0.01", "x100", "mm-object"])
 def test_propagate_does_not_depend_on_the_units(ict, addon, units):
     ref, got = route(ict, "x1"), route(ict, units)
     assert np.abs(got["out"] - ref["out"]).max() < 2e-3
     np.testing.assert_allclose(got["extrapolation"], ref["extrapolation"], atol=1e-4)
 
 
-@pytest.mark.parametrize("units", ["x0.01", "x100", pytest.param("mm-object", marks=_COMPRESSION)])
+@pytest.mark.parametrize("units", ["x0.01", "x100", "mm-object"])
 def test_the_number_of_corrective_keys_does_not_depend_on_the_units(ict, addon, units):
     assert route(ict, units)["keys"] == route(ict, "x1")["keys"] >= 1
