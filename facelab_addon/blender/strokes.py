@@ -70,10 +70,7 @@ __all__ = [
     "LOWER_LAYER",
     "new_lip_sketch",
     "write_stroke_pixels",
-    "SKETCH_CAMERA_PROP",
     "find_sketch_object",
-    "sketch_camera",
-    "sketch_views",
     "has_lip_sketch",
     "sketch_keyframes",
     "require_sketch_keyed_on",
@@ -83,8 +80,6 @@ __all__ = [
 UPPER_LAYER = "Upper lip"
 LOWER_LAYER = "Lower lip"
 DEFAULT_SKETCH_NAME = SKETCH_OBJECT
-#: Custom property of a sketch object pointing to the camera object it is drawn through.
-SKETCH_CAMERA_PROP = "facelab_camera"
 _LAYER_TINT = {UPPER_LAYER: (1.0, 0.15, 0.1), LOWER_LAYER: (0.1, 0.35, 1.0)}
 _DEFAULT_GP_RADIUS = 0.01  # Blender's implicit point radius when no "radius" attribute exists
 _HOWTO = (
@@ -218,10 +213,10 @@ def new_lip_sketch(scene, camera_obj=None, name: str | None = None, depth: float
 
     Every camera has its own sketch (a stereo pair or a witness camera sketches
     the same frame from several views): without ``name``, the sketch of this
-    camera is reused (:func:`sketch_camera`), else ``FL_LipSketch`` is created
-    for the first camera and ``FL_LipSketch.<camera name>`` for the others.
-    The sketch records its camera in the custom property
-    :data:`SKETCH_CAMERA_PROP`.
+    camera is reused (:func:`.sketch_views.sketch_camera`), else ``FL_LipSketch``
+    is created for the first camera and ``FL_LipSketch.<camera name>`` for the
+    others. The sketch records its camera in the custom property
+    :data:`.sketch_views.SKETCH_CAMERA_PROP`.
 
     Parameters
     ----------
@@ -254,7 +249,9 @@ def new_lip_sketch(scene, camera_obj=None, name: str | None = None, depth: float
             "add a camera and make it the scene camera."
         )
     if name is None:
-        name = _sketch_name_for(scene, cam)
+        from .sketch_views import sketch_name_for
+
+        name = sketch_name_for(scene, cam)
     obj = bpy.data.objects.get(name)
     if obj is not None and obj.type != "GREASEPENCIL":
         raise SketchError(
@@ -275,6 +272,8 @@ def new_lip_sketch(scene, camera_obj=None, name: str | None = None, depth: float
         offset = Matrix.Translation((0.0, 0.0, -depth / scale))
         obj.matrix_basis = offset @ Matrix.Rotation(math.pi / 2, 4, "X")
         obj.show_in_front = True
+        from .sketch_views import SKETCH_CAMERA_PROP
+
         obj[SKETCH_CAMERA_PROP] = cam
     if scene.objects.get(obj.name) is None:
         scene.collection.objects.link(obj)
@@ -412,52 +411,6 @@ def find_sketch_object(scene, gp_obj=None):
         if o.name == DEFAULT_SKETCH_NAME:
             return o
     return sorted(candidates, key=lambda o: o.name)[0]
-
-
-def sketch_camera(gp_obj):
-    """The camera object a sketch is drawn through, or None when it does not say.
-
-    Its :data:`SKETCH_CAMERA_PROP` custom property (set by :func:`new_lip_sketch`), else its
-    parent when that is a camera.
-    """
-    cam = gp_obj.get(SKETCH_CAMERA_PROP) if hasattr(gp_obj, "get") else None
-    if cam is not None and getattr(cam, "type", None) == "CAMERA":
-        return cam
-    par = gp_obj.parent
-    return par if par is not None and par.type == "CAMERA" else None
-
-
-def _sketch_name_for(scene, cam) -> str:
-    """The name of ``cam``'s sketch: an existing one drawn through it, else a new name."""
-    for o in scene.objects:
-        if o.type == "GREASEPENCIL" and _has_lip_layers(o.data) and sketch_camera(o) == cam:
-            return o.name
-    default = bpy.data.objects.get(DEFAULT_SKETCH_NAME)
-    if default is None or default.type != "GREASEPENCIL" or sketch_camera(default) in (None, cam):
-        return DEFAULT_SKETCH_NAME
-    return f"{DEFAULT_SKETCH_NAME}.{cam.name}"
-
-
-def sketch_views(scene, frame: int) -> list:
-    """``[(sketch, camera_object), ...]``: the Grease Pencil lip sketches keyed on ``frame`` and their cameras.
-
-    A sketch counts when both lip layers have a keyframe on ``frame`` and its camera is known
-    (:func:`sketch_camera`); one sketch per camera (the first by name). Sorted by sketch name.
-    """
-    out, seen = [], set()
-    for o in sorted(scene.objects, key=lambda o: o.name):
-        if o.type != "GREASEPENCIL" or not _has_lip_layers(o.data):
-            continue
-        cam = sketch_camera(o)
-        if cam is None or cam.name in seen:
-            continue
-        lips = _lip_layers(o.data.layers, lambda lay: lay.name)
-        keyed = all(lips[lab] and any(int(fr.frame_number) == int(frame) for lay in lips[lab] for fr in lay.frames)
-                    for lab in ("upper", "lower"))
-        if keyed:
-            seen.add(cam.name)
-            out.append((o, cam))
-    return out
 
 
 def has_lip_sketch(scene, gp_obj=None) -> bool:

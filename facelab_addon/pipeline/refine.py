@@ -7,7 +7,7 @@ corrective key ``FL_Refine_<frame>`` (:data:`~facelab_addon.names.REFINE_PREFIX`
 the frame and 0 on its neighbours; the frame becomes a training frame of Propagate.
 
 Views: every Grease Pencil lip sketch keyed on the frame whose camera is known
-(:func:`facelab_addon.blender.strokes.sketch_views`: one sketch per camera, as New Lip Sketch
+(:func:`facelab_addon.blender.sketch_views.sketch_views`: one sketch per camera, as New Lip Sketch
 makes them) is one view of one solve; with a single sketch the scene camera (or ``camera_obj``)
 is the view, as before. Regions: when the face has ``FL_lips`` / ``FL_mouth``
 (:mod:`facelab_addon.pipeline.regions`), only the interior of ``FL_lips`` moves, its border and
@@ -34,7 +34,8 @@ from ..blender.mesh import (
 )
 from ..blender.objects import ModifierState, require_editable
 from ..blender.shapekeys import add_corrective_key, key_spike
-from ..blender.strokes import read_lip_strokes, require_sketch_keyed_on, sketch_camera, sketch_views
+from ..blender.sketch_views import sketch_camera, sketch_views
+from ..blender.strokes import read_lip_strokes, require_sketch_keyed_on
 from ..core.errors import CameraError
 from ..core.lips.sketch import SketchView, refine_lips_views
 from ..names import FIXED_GROUP, LIPS_GROUP, MOUTH_GROUP, REFINE_PREFIX
