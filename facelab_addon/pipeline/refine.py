@@ -100,7 +100,7 @@ class RefineSettings:
                              "(FaceLab's default: removes more of the 3D lip error)"),
         ("paper", "Paper", "Dinev et al. 2018 Eq. 1 as written: every vertex anchored with the position weight")),
         description="How the vertices away from the sketched silhouettes follow them")
-    smooth_reach: float = setting(0.25, label="Smooth Reach", min=0.01, soft_max=1.0, unit="mouth",
+    smooth_reach: float = setting(0.12, label="Smooth Reach", min=0.01, soft_max=1.0, unit="mouth",
                                   description="How far the correction of a silhouette carries across the lips, "
                                               "in mouth widths (Smooth prior)")
     free_radius: float = setting(0.4, label="Free Region", min=0.01, soft_max=2.0, unit="mouth",

@@ -55,7 +55,7 @@ from ..geometry.laplacian import laplacian as make_laplacian
 from ..geometry.linsolve import small_dense_threads
 from ..geometry.mesh import validate_mesh, vertex_adjacency
 from ..geometry.polyline import resample_polyline  # noqa: F401  (re-exported for the benchmark)
-from .sketch_prior import PRIORS, anchor_weights, free_region, separate_parts, sketch_scale
+from .sketch_prior import PRIORS, anchor_weights, free_region, local_faces, separate_parts, sketch_scale
 from .views import SketchView, ViewMatcher, prepare_sketch, press_lips
 
 __all__ = ["refine_lips", "refine_lips_views", "press_lips", "prepare_sketch", "SketchView"]
@@ -75,7 +75,7 @@ def refine_lips(
     lambda_pos: float = 0.1,
     lambda_reg: float = 3.0,
     lambda_silh: float = 1.0,
-    smooth_reach: float = 0.25,
+    smooth_reach: float = 0.12,
     free_radius: float = 0.4,
     laplacian: str = "uniform",
     reach_px: float | None = None,
@@ -169,7 +169,7 @@ def refine_lips_views(
     lambda_pos: float = 0.1,
     lambda_reg: float = 3.0,
     lambda_silh: float = 1.0,
-    smooth_reach: float = 0.25,
+    smooth_reach: float = 0.12,
     free_radius: float = 0.4,
     laplacian: str = "uniform",
     reach_px: float | None = None,
@@ -207,8 +207,8 @@ def refine_lips_views(
         raise UsageError("refine_lips_views needs at least one SketchView (a camera and its two lip strokes).")
     if iterations < 1:
         raise FaceLabError("iterations must be at least 1.")
-    if silhouette_rays not in ("nearest", "pixel"):
-        raise UsageError(f"silhouette_rays must be 'nearest' or 'pixel', got {silhouette_rays!r}")
+    if silhouette_rays not in ("nearest", "pixel", "normal"):
+        raise UsageError(f"silhouette_rays must be 'nearest', 'normal' or 'pixel', got {silhouette_rays!r}")
     if prior not in PRIORS:
         raise UsageError(f"prior must be one of {PRIORS}, got {prior!r}")
     for nm, val in (("smooth_reach", smooth_reach), ("free_radius", free_radius)):
@@ -237,15 +237,17 @@ def refine_lips_views(
     if not region.any():
         raise FaceLabError("No vertex near the sketch is free to move (all fixed, or outside the lip region "
                            "'lips'); check the FL_fixed / FL_lips groups.")
-    adj = vertex_adjacency(F, n)
-    w = anchor_weights(V0, F, region, prior=prior, lambda_pos=lambda_pos, lambda_reg=lambda_reg,
+    # everything below needs only the triangles near the free region (its rows of L are exact there)
+    Fl = F[local_faces(F, region, rings=2)]
+    adj = vertex_adjacency(Fl, n)
+    w = anchor_weights(V0, Fl, region, prior=prior, lambda_pos=lambda_pos, lambda_reg=lambda_reg,
                        reach=smooth_reach * W, fixed=fixed)
-    L = make_laplacian(V0, F, laplacian, adjacency=adj)
+    L = make_laplacian(V0, Fl, laplacian, adjacency=adj)
     solver = LaplacianDeformer(L, lambda_reg=lambda_reg, pos_weights=w, pinned=~region)
     # silhouettes: on triangles of the region and its held ring (a border vertex may be on the silhouette)
     around = region | (adj @ region.astype(np.float64) > 0)
     for m in matchers:
-        m.restrict(F, around & ~fixed)
+        m.restrict(Fl, around & ~fixed)
 
     def correspondences(X):
         cons, dists, matched = [], [], []

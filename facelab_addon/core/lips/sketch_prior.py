@@ -30,7 +30,8 @@ from scipy.sparse.csgraph import dijkstra
 from ..errors import UsageError
 from ..geometry.mesh import connected_components, edge_length_graph
 
-__all__ = ["PRIORS", "separate_parts", "sketch_scale", "free_region", "anchor_weights", "mean_edge_length"]
+__all__ = ["PRIORS", "separate_parts", "sketch_scale", "crop_faces", "local_faces", "free_region", "anchor_weights",
+           "mean_edge_length"]
 
 #: The energies :func:`anchor_weights` offers: Dinev et al.'s Eq. 1 as written, or the smooth prior.
 PRIORS = ("paper", "smooth")
@@ -82,12 +83,40 @@ def sketch_scale(camera, sketch_px, points) -> float:
     return max(extent, 1.0) * z / float(camera.K[0, 0])
 
 
+def crop_faces(vertices, faces, seeds, radius: float) -> np.ndarray:
+    """(k,) int64 indices of the triangles inside the bounding box of ``seeds`` grown by ``radius``.
+
+    Every vertex within geodesic (or Euclidean) distance ``radius`` of a seed is in the box, so
+    searches and operators bounded by ``radius`` need only these triangles.
+    """
+    V = np.asarray(vertices, dtype=np.float64)
+    P = V[np.asarray(seeds, bool)]
+    lo, hi = P.min(0) - radius, P.max(0) + radius
+    inside = ((V >= lo) & (V <= hi)).all(axis=1)
+    return np.flatnonzero(inside[np.asarray(faces)].all(axis=1))
+
+
+def local_faces(faces, region, rings: int = 2) -> np.ndarray:
+    """(k,) int64 indices of the triangles within ``rings`` triangle rings of the vertices ``region`` (V,) bool.
+
+    With ``rings=2`` every vertex of ``region`` and its neighbours keep their whole one-ring, so a
+    Laplacian built from these triangles has the rows of the whole mesh on them.
+    """
+    F = np.asarray(faces)
+    m = np.asarray(region, bool).copy()
+    sel = m[F].any(axis=1)
+    for _ in range(int(rings) - 1):
+        m[F[sel].ravel()] = True
+        sel = m[F].any(axis=1)
+    return np.flatnonzero(sel)
+
+
 def mean_edge_length(vertices, faces, n_vertices: int | None = None) -> np.ndarray:
     """(V,) mean length of the edges at each vertex, scene units (0 for unused vertices)."""
     V = np.asarray(vertices, dtype=np.float64)
     n = len(V) if n_vertices is None else int(n_vertices)
     G, E, w = edge_length_graph(V, faces, n)
-    s = np.bincount(E.ravel(), weights=np.r_[w, w], minlength=n)
+    s = np.bincount(E.ravel(), weights=np.repeat(w, 2), minlength=n)
     c = np.bincount(E.ravel(), minlength=n)
     return np.divide(s, c, out=np.zeros(n), where=c > 0)
 
@@ -120,9 +149,13 @@ def free_region(vertices, faces, seeds, radius: float, *, fixed=None, lips=None)
     n = len(V)
     seeds = np.asarray(seeds, bool)
     fixed = np.zeros(n, bool) if fixed is None else np.asarray(fixed, bool)
-    G = edge_length_graph(V, F, n, min_length=1e-12)[0]
     src = np.flatnonzero(seeds)
-    d = dijkstra(G, directed=False, indices=src, min_only=True, limit=float(radius)) if len(src) else np.full(n, np.inf)
+    if len(src) == 0:
+        return np.zeros(n, bool)
+    # a geodesic ball lies inside the Euclidean one: search only the triangles in the seeds' box + radius
+    Fc = F[crop_faces(V, F, seeds, radius)]
+    G = edge_length_graph(V, Fc, n, min_length=1e-12)[0]
+    d = dijkstra(G, directed=False, indices=src, min_only=True, limit=float(radius))
     region = np.isfinite(d) & ~fixed
     if lips is not None:
         lips = np.asarray(lips, bool)

@@ -162,6 +162,20 @@ def _vertex_normals_subset(X, F, idx):
     return vn / np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-300)
 
 
+def _contour_planes(camera, samples):
+    """(N,3) unit normals of the planes through the camera centre and the sketch's tangent lines.
+
+    A vertex on such a plane projects onto the sketch's tangent line at that sample: the plane
+    constrains the distance across the contour and leaves the position along it free.
+    """
+    t = np.gradient(samples, axis=0) if len(samples) > 1 else np.array([[1.0, 0.0]])
+    t /= np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
+    _, d0 = camera.rays(samples)
+    _, d1 = camera.rays(samples + t)
+    m = np.cross(d0, d1)
+    return m / np.maximum(np.linalg.norm(m, axis=1, keepdims=True), 1e-300)
+
+
 class ViewMatcher:
     """One sketch view, prepared for the iterations of the refinement.
 
@@ -229,6 +243,8 @@ class ViewMatcher:
         self.near = near
         self.o_u, self.d_u = cam.rays(self.upper)
         self.o_l, self.d_l = cam.rays(self.lower)
+        self.n_u = _contour_planes(cam, self.upper)
+        self.n_l = _contour_planes(cam, self.lower)
 
     def restrict(self, faces, region_vertices):
         """Limit the silhouette search to triangles of ``region_vertices`` (V,) bool near the sketch."""
@@ -264,8 +280,8 @@ class ViewMatcher:
         normals = _vertex_normals_subset(X, self.Fr, sil)
         side = projected_normals(X[sil], normals, cam)[:, 1] > 0  # True: upper lip (image y down)
         cons, dist_px, matched = [], [], {}
-        for name, lipmask, samples, o, d in (("upper", side, self.upper, self.o_u, self.d_u),
-                                             ("lower", ~side, self.lower, self.o_l, self.d_l)):
+        for name, lipmask, samples, o, d, pn in (("upper", side, self.upper, self.o_u, self.d_u, self.n_u),
+                                                 ("lower", ~side, self.lower, self.o_l, self.d_l, self.n_l)):
             ids = sil[lipmask]
             if len(ids) == 0:
                 raise SketchError(
@@ -276,12 +292,17 @@ class ViewMatcher:
             j, dist = _closest_to_rays(X, ids, o, d)
             vid = ids[j]
             matched[name] = np.unique(vid)
-            if silhouette_rays == "nearest":
+            if silhouette_rays in ("nearest", "normal"):
                 uv, cnt = np.unique(vid, return_counts=True)
                 pv = cam.project(X[uv])
                 k = np.argmin(((pv[:, None, :] - samples[None]) ** 2).sum(-1), axis=1)
-                oo, dd = cam.rays(samples[k])
-                cons.append(PointConstraints.rays(uv, oo, dd, strength=lambda_silh * cnt))
+                if silhouette_rays == "normal":
+                    m = pn[k]
+                    cons.append(PointConstraints(uv, np.ones((len(uv), 1)), np.broadcast_to(cam.center, (len(uv), 3)),
+                                                 m[:, :, None] * m[:, None, :], lambda_silh * cnt))
+                else:
+                    oo, dd = cam.rays(samples[k])
+                    cons.append(PointConstraints.rays(uv, oo, dd, strength=lambda_silh * cnt))
             else:
                 cons.append(PointConstraints.rays(vid, o, d, strength=lambda_silh))
             dist_px.append(dist * cam.K[0, 0] / np.maximum(cam.depth(X[vid]), 1e-12))
