@@ -103,7 +103,7 @@ class RefineSettings:
     smooth_reach: float = setting(0.12, label="Smooth Reach", min=0.01, soft_max=1.0, unit="mouth",
                                   description="How far the correction of a silhouette carries across the lips, "
                                               "in mouth widths (Smooth prior)")
-    free_radius: float = setting(0.4, label="Free Region", min=0.01, soft_max=2.0, unit="mouth",
+    free_radius: float = setting(0.1, label="Free Region", min=0.01, soft_max=2.0, unit="mouth",
                                  description="How far from the sketched lips the mesh may move, in mouth widths; "
                                              "everything farther is held exactly")
     use_regions: bool = setting(True, label="Only FL_lips",

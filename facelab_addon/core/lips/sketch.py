@@ -76,7 +76,7 @@ def refine_lips(
     lambda_reg: float = 3.0,
     lambda_silh: float = 1.0,
     smooth_reach: float = 0.12,
-    free_radius: float = 0.4,
+    free_radius: float = 0.1,
     laplacian: str = "uniform",
     reach_px: float | None = None,
     silhouette_rays: str = "nearest",
@@ -170,7 +170,7 @@ def refine_lips_views(
     lambda_reg: float = 3.0,
     lambda_silh: float = 1.0,
     smooth_reach: float = 0.12,
-    free_radius: float = 0.4,
+    free_radius: float = 0.1,
     laplacian: str = "uniform",
     reach_px: float | None = None,
     silhouette_rays: str = "nearest",
@@ -261,10 +261,11 @@ def refine_lips_views(
     X = V0
     hist = []
     with small_dense_threads(1):
+        base = solver.unconstrained(V0, V0)  # E_pos and E_reg refer to the capture: the same every iteration
         for _ in range(int(iterations)):
             cons, dists, matched = correspondences(X)
             hist.append(float(np.mean(np.concatenate(dists))))
-            X = solver.solve(V0, reference=V0, constraints=cons)
+            X = solver.constrain(base, V0, cons)
     if not np.isfinite(X).all():
         raise FaceLabError("The lip solve diverged (non-finite result); check the strokes and the camera.")
     if not return_info:

@@ -153,12 +153,19 @@ def _closest_to_rays(X, idx, origins, dirs):
 
 
 def _vertex_normals_subset(X, F, idx):
-    """(len(idx),3) area-weighted unit normals of vertices ``idx`` using triangles ``F``."""
-    fn = np.cross(X[F[:, 1]] - X[F[:, 0]], X[F[:, 2]] - X[F[:, 0]])
-    vn = np.zeros((len(X), 3))
+    """(len(idx),3) area-weighted unit normals of vertices ``idx`` (sorted unique) using triangles ``F``."""
+    idx = np.asarray(idx, dtype=np.int64)
+    touch = np.isin(F, idx).any(axis=1)
+    Ft = F[touch]
+    fn = np.cross(X[Ft[:, 1]] - X[Ft[:, 0]], X[Ft[:, 2]] - X[Ft[:, 0]])
+    pos = np.searchsorted(idx, Ft)  # position of each corner in idx (valid where it is a member)
+    pos = np.minimum(pos, len(idx) - 1)
+    member = idx[pos] == Ft
+    vn = np.zeros((len(idx), 3))
     for c in range(3):
-        np.add.at(vn, F[:, c], fn)
-    vn = vn[idx]
+        m = member[:, c]
+        for d in range(3):
+            vn[:, d] += np.bincount(pos[m, c], weights=fn[m, d], minlength=len(idx))
     return vn / np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-300)
 
 
