@@ -119,7 +119,7 @@ def refine_lips(
         Laplacian used by ``E_reg``.
     reach_px : float, optional
         Silhouette vertices farther than this (pixels) from the sketch are
-        ignored; default ``max(40, 0.25 * sketch width)``.
+        ignored; default ``max(20, 0.15 * sketch width)`` (about 6 mm on a mouth).
     silhouette_rays : {"nearest", "pixel"}
         Which ray a matched silhouette vertex is pulled to. Matching is always
         the paper's: every sketch pixel picks the closest silhouette vertex of

@@ -196,7 +196,7 @@ class ViewMatcher:
         Hidden vertices: never lip silhouettes.
     reach_px : float, optional
         Silhouette vertices farther than this (pixels) from the sketch are ignored; default
-        ``max(40, 0.25 * sketch width)``.
+        ``max(20, 0.15 * sketch width)``.
     where : str
         Names the view in messages.
 
@@ -220,9 +220,12 @@ class ViewMatcher:
         n = len(V0)
         depth = cam.depth(V0)
         uv = cam.project(V0)
+        width = float(np.ptp(sketch[:, 0]))
         if reach_px is None:
-            reach_px = max(40.0, 0.25 * float(np.ptp(sketch[:, 0])))
-        lo, hi = sketch.min(0) - reach_px, sketch.max(0) + reach_px
+            reach_px = max(20.0, 0.15 * width)
+        # the mouth area in this view: the sketch's box grown by a quarter of its width (at least reach_px)
+        margin = max(reach_px, 40.0, 0.25 * width)
+        lo, hi = sketch.min(0) - margin, sketch.max(0) + margin
         box = (depth > 0) & np.isfinite(uv).all(1) & (uv >= lo).all(1) & (uv <= hi).all(1)
         cand = box & ~fixed
         near = np.zeros(n, bool)
@@ -241,7 +244,7 @@ class ViewMatcher:
                 f"No part of the face projects near the lip strokes{where}; draw them over the mouth in this "
                 "camera's view (or pick the camera they were drawn in)."
             )
-        fs = facing(V0, F[near[F].all(axis=1)], cam)
+        fs = facing(V0, F[cand[F].all(axis=1)], cam)  # judged on the whole mouth area, not only the lip edges
         if fs.size and (fs > 0).mean() < 0.3:
             raise CameraError(
                 f"The camera{where} sees the face from behind (the mouth area faces away from it); use a camera "
