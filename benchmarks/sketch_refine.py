@@ -100,6 +100,7 @@ CASES = [
 #: the second camera of the depth cases: elevation below the frontal view, degrees
 SECOND_VIEW_ELEVATION = 20.0
 FORWARD_ERROR_MM = 2.0
+SKETCH_MARGIN_MM = 3.0  # how far past the lip tips the truth's contour may lie in the depth cases' sketches
 
 
 def _r(x, nd=3):
@@ -284,8 +285,9 @@ def run_depth(model, fixed, name, pose):
     C = T + (0.5 * 2.5 * mm * w * side)[:, None] * mouth.up + (FORWARD_ERROR_MM * mm * w)[:, None] * mouth.forward
     front = S.frontal_camera(T, mouth.center, distance=40.0 * model.scale)
     below = camera_below(mouth, 40.0 * model.scale, SECOND_VIEW_ELEVATION)
-    views = [SketchView(c, *S.lip_contours(T, F, c, mouth=mouth), name=n) for c, n in ((front, "front"),
-                                                                                        (below, "below"))]
+    # from below, the lower lip's inner contour lies up to 2 mm past its tip line: draw it whole
+    views = [SketchView(c, *S.lip_contours(T, F, c, mouth=mouth, margin_mm=SKETCH_MARGIN_MM), name=n)
+             for c, n in ((front, "front"), (below, "below"))]
     e0 = lip_error(C, T, lip, mm)
     axes = np.stack([mouth.lateral, mouth.up, mouth.forward], axis=1)
     out = dict(name=name, pose=pose, error=dict(gap_mm=2.5, forward_mm=FORWARD_ERROR_MM, vertices=int(lip.sum())),

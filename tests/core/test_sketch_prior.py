@@ -87,14 +87,14 @@ def test_two_views_fix_depth_one_view_cannot_see(closed):
     d = np.cos(e) * mouth.forward - np.sin(e) * mouth.up
     below = Camera.look_at(mouth.center + 40.0 * d, mouth.center, mouth.up, 50, 36, 1920, 1080)
     one = SketchView(c["cam"], c["up"], c["lo"], "front")
-    two = SketchView(below, *S.lip_contours(T, F, below, mouth=mouth), "below")
+    two = SketchView(below, *S.lip_contours(T, F, below, mouth=mouth, margin_mm=3.0), "below")  # the whole contour
     X1 = refine_lips_views(C, F, [one], fixed=c["fixed"])
     X2, info = refine_lips_views(C, F, [one, two], fixed=c["fixed"], return_info=True)
     e0, e1, e2 = rms(C, T, lip, mm), rms(X1, T, lip, mm), rms(X2, T, lip, mm)
     fwd = lambda X: np.sqrt(((((X - T)[lip]) @ mouth.forward) ** 2).mean()) / mm  # noqa: E731
     assert fwd(X1) > 0.95 * fwd(C)  # the frontal view cannot see the depth error (measured 1.00)
     assert fwd(X2) < 0.85 * fwd(C)  # the second view corrects part of it (measured 0.76)
-    assert e2 < e1 - 0.1 * e0, (e0, e1, e2)  # measured cuts: one view 13.5 %, two views 28.1 %
+    assert e2 < e1 - 0.1 * e0, (e0, e1, e2)  # measured cuts: one view 13.5 %, two views 30.7 %
     assert [v["name"] for v in info["views"]] == ["front", "below"]
     assert all(v["silhouette_px"] < 3.0 for v in info["views"])
 

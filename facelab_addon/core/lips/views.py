@@ -152,6 +152,34 @@ def _closest_to_rays(X, idx, origins, dirs):
     return j, np.sqrt(np.maximum(perp2[np.arange(len(j)), j], 0.0))
 
 
+def _on_envelope(uv, edges, ids, upper: bool, tol_px: float = 1.0):
+    """The vertices ``ids`` on the envelope of the silhouette edges among them.
+
+    ``uv`` (V,2) projected positions, ``edges`` (E,2) silhouette edges. For the upper lip, a vertex
+    stays when no silhouette edge of that lip passes more than ``tol_px`` below it at its image
+    column (image y down); for the lower lip, above it.
+    """
+    member = np.zeros(len(uv), bool)
+    member[ids] = True
+    E = edges[member[edges].all(axis=1)]
+    if len(E) == 0:
+        return ids
+    a, b = uv[E[:, 0]], uv[E[:, 1]]
+    x0, x1 = np.minimum(a[:, 0], b[:, 0]), np.maximum(a[:, 0], b[:, 0])
+    p = uv[ids]
+    dx = b[:, 0] - a[:, 0]
+    t = (p[:, 0:1] - a[None, :, 0]) / np.where(np.abs(dx) < 1e-12, 1e-12, dx)[None]
+    y = a[None, :, 1] + np.clip(t, 0.0, 1.0) * (b[:, 1] - a[:, 1])[None]
+    cover = (p[:, 0:1] >= x0[None]) & (p[:, 0:1] <= x1[None])
+    if upper:
+        env = np.where(cover, y, -np.inf).max(axis=1)
+        keep = ~np.isfinite(env) | (p[:, 1] >= env - tol_px)
+    else:
+        env = np.where(cover, y, np.inf).min(axis=1)
+        keep = ~np.isfinite(env) | (p[:, 1] <= env + tol_px)
+    return ids[keep]
+
+
 def _vertex_normals_subset(X, F, idx):
     """(len(idx),3) area-weighted unit normals of vertices ``idx`` (sorted unique) using triangles ``F``."""
     idx = np.asarray(idx, dtype=np.int64)
@@ -194,6 +222,10 @@ class ViewMatcher:
     faces : (F,3) int
     fixed : (V,) bool
         Hidden vertices: never lip silhouettes.
+    envelope : bool
+        Match only the silhouette vertices on the lip's envelope (the lowest upper-lip and the
+        highest lower-lip silhouette at each image column: the edge of the mouth opening the artist
+        draws), not those of silhouette folds hidden behind it.
     reach_px : float, optional
         Silhouette vertices farther than this (pixels) from the sketch are ignored; default
         ``max(20, 0.15 * sketch width)``.
@@ -208,7 +240,9 @@ class ViewMatcher:
         The resampled, pressed sketch.
     """
 
-    def __init__(self, view: SketchView, vertices, faces, fixed, reach_px=None, where: str = ""):
+    def __init__(self, view: SketchView, vertices, faces, fixed, reach_px=None, where: str = "",
+                 envelope: bool = True):
+        self.envelope = bool(envelope)
         cam = view.camera
         if not isinstance(cam, Camera):
             raise CameraError("No camera given: set the scene camera (the one the backplate belongs to).")
@@ -281,7 +315,8 @@ class ViewMatcher:
         """
         cam, where = self.camera, self.where
         s = facing(X, self.Fr, cam) > 0
-        sil = np.unique(self.edges[s[self.ef[:, 0]] != s[self.ef[:, 1]]])
+        sil_edges = self.edges[s[self.ef[:, 0]] != s[self.ef[:, 1]]]
+        sil = np.unique(sil_edges)
         if len(sil) == 0:
             raise SketchError(
                 f"The mesh has no lip silhouette near the strokes{where}; check that the strokes follow the inner "
@@ -293,6 +328,8 @@ class ViewMatcher:
         for name, lipmask, samples, o, d, pn in (("upper", side, self.upper, self.o_u, self.d_u, self.n_u),
                                                  ("lower", ~side, self.lower, self.o_l, self.d_l, self.n_l)):
             ids = sil[lipmask]
+            if self.envelope and len(ids):
+                ids = _on_envelope(cam.project(X), sil_edges, ids, upper=(name == "upper"))
             if len(ids) == 0:
                 raise SketchError(
                     f"No {name}-lip silhouette found near the {name}-lip stroke{where}; draw the contours over the "
