@@ -39,6 +39,9 @@ Reported per case:
   which a frontal view cannot see), refined from the frontal view alone and from the frontal view
   plus a second camera 20 degrees below it (``refine_lips_views``): the 3D error one view and two
   views remove;
+* ``regions``: with Auto Regions' ``FL_lips`` / ``FL_mouth``, Refine restricted to the inside of
+  ``FL_lips`` (``lips=``) against the whole face: how much of each correction Propagate's regression,
+  trained on that frame alone, reproduces from the frame's capture, and whether ``FL_mouth`` moved;
 * ``speed``: CPU and wall time of one default ``refine_lips`` call on the 26,719-vertex face and on
   the face subdivided once (each triangle into four, about 105k vertices); wall time moves with the
   load of the shared machine, CPU time much less.
@@ -67,6 +70,8 @@ from facelab_addon.core.capture.ict import load_ict  # noqa: E402
 from facelab_addon.core.errors import FaceLabError  # noqa: E402
 from facelab_addon.core.geometry.mesh import unique_edges  # noqa: E402
 from facelab_addon.core.geometry.silhouette import point_segment_distance  # noqa: E402
+from facelab_addon.core.lips.propagate import LipRegressor  # noqa: E402
+from facelab_addon.core.lips.regions import auto_regions, faces_in_region  # noqa: E402
 from facelab_addon.core.lips.sketch import (  # noqa: E402
     SketchView,
     press_lips,
@@ -301,6 +306,43 @@ def run_depth(model, fixed, name, pose):
     return out
 
 
+def run_regions(model, fixed):
+    """Refine with and without the FL_lips restriction; how much of it Propagate reproduces on the frame itself.
+
+    Regions: Auto Regions on the rest pose (``core.lips.regions.auto_regions``). Propagate's regression
+    (``LipRegressor``, default settings) is trained on the refined frame alone and predicts that frame from
+    its capture; ``reproduced_pct`` = 100 (1 - |prediction - refined| / |refined - captured|) over all vertices.
+    """
+    F = model.faces
+    mm = 0.1 * model.scale
+    mouth_m, lips_m = auto_regions(model.neutral, F)
+    mf, lf = faces_in_region(F, mouth_m), faces_in_region(F, lips_m)
+    out = []
+    for name, pose in (("open_gap", POSE_OPEN), ("closed_gap", POSE_CLOSED)):
+        T = model.pose(pose)
+        mouth = S.find_mouth(T, F, fixed, units_per_mm=mm)
+        cam = S.frontal_camera(T, mouth.center, distance=40.0 * model.scale)
+        up, lo = S.lip_contours(T, F, cam, mouth=mouth)
+        C, _ = S.inject_lip_error(T, F, fixed, mouth=mouth)
+        lip = S.inner_lip_mask(T, F, fixed, mouth=mouth)
+        e0 = lip_error(C, T, lip, mm)["rms"]
+        row = dict(name=name, lips_vertices=int(lips_m.sum()), mouth_vertices=int(mouth_m.sum()))
+        for key, lips in (("whole_face", None), ("fl_lips_only", lips_m)):
+            X = refine_lips(C, F, cam, up, lo, fixed=fixed, lips=lips)
+            reg = LipRegressor(model.neutral, F, mf, lf)
+            reg.fit(X[None])
+            P = reg.predict(C[None])[0]
+            corr = np.linalg.norm(X - C, axis=1)
+            miss = np.linalg.norm(P - X, axis=1)
+            row[key] = dict(reduction_pct=_r(100.0 * (1.0 - lip_error(X, T, lip, mm)["rms"] / e0), 1),
+                            moved_outside_fl_lips_mm=_r(corr[~lips_m].max() / mm, 4),
+                            moved_fl_mouth_mm=_r(corr[mouth_m].max() / mm, 4),
+                            reproduced_pct=_r(100.0 * (1.0 - np.sqrt((miss**2).sum() / (corr**2).sum())), 2),
+                            reproduction_max_miss_mm=_r(miss.max() / mm, 4))
+        out.append(row)
+    return out
+
+
 def subdivide(V, F):
     """Each triangle into four (edge midpoints, positions interpolated linearly): (V',3), (4F,3), edges (E,2)."""
     E, fe = unique_edges(F)
@@ -381,6 +423,7 @@ def main(argv=None):
     out_cases = [run_case(model, fixed, *c, runs=runs) for c in cases]
     speed = run_speed(model, fixed, runs=3 if args.quick else 5)
     depth = [run_depth(model, fixed, n, p) for n, p in (("open_depth", POSE_OPEN), ("closed_depth", POSE_CLOSED))]
+    regions = run_regions(model, fixed)
     blender, bl_err = None, None
     if not args.no_blender:
         try:
@@ -409,6 +452,7 @@ def main(argv=None):
                      cpu_seconds_105k_max=TARGET_SECONDS_105K),
         cases=out_cases,
         depth=depth,
+        regions=regions,
         speed=speed,
         summary=dict(
             contour_mean_pass=all_of("contour_px", "mean_pass"),
