@@ -152,21 +152,21 @@ def _closest_to_rays(X, idx, origins, dirs):
     return j, np.sqrt(np.maximum(perp2[np.arange(len(j)), j], 0.0))
 
 
-def _on_envelope(uv, edges, ids, upper: bool, tol_px: float = 1.0):
+def _on_envelope(sil, sil_uv, edges, ids, upper: bool, tol_px: float = 1.0):
     """The vertices ``ids`` on the envelope of the silhouette edges among them.
 
-    ``uv`` (V,2) projected positions, ``edges`` (E,2) silhouette edges. For the upper lip, a vertex
-    stays when no silhouette edge of that lip passes more than ``tol_px`` below it at its image
-    column (image y down); for the lower lip, above it.
+    ``sil`` (S,) sorted silhouette vertex ids and ``sil_uv`` (S,2) their projections, ``edges``
+    (E,2) silhouette edges, ``ids`` a subset of ``sil`` (one lip). For the upper lip, a vertex stays
+    when no silhouette edge of that lip passes more than ``tol_px`` below it at its image column
+    (image y down); for the lower lip, above it.
     """
-    member = np.zeros(len(uv), bool)
-    member[ids] = True
-    E = edges[member[edges].all(axis=1)]
+    member = np.isin(edges, ids).all(axis=1)
+    E = np.searchsorted(sil, edges[member])
     if len(E) == 0:
         return ids
-    a, b = uv[E[:, 0]], uv[E[:, 1]]
+    a, b = sil_uv[E[:, 0]], sil_uv[E[:, 1]]
     x0, x1 = np.minimum(a[:, 0], b[:, 0]), np.maximum(a[:, 0], b[:, 0])
-    p = uv[ids]
+    p = sil_uv[np.searchsorted(sil, ids)]
     dx = b[:, 0] - a[:, 0]
     t = (p[:, 0:1] - a[None, :, 0]) / np.where(np.abs(dx) < 1e-12, 1e-12, dx)[None]
     y = a[None, :, 1] + np.clip(t, 0.0, 1.0) * (b[:, 1] - a[:, 1])[None]
@@ -323,13 +323,14 @@ class ViewMatcher:
                 "lips and that the camera looks at the mouth."
             )
         normals = _vertex_normals_subset(X, self.Fr, sil)
+        sil_uv = cam.project(X[sil]) if self.envelope else None
         side = projected_normals(X[sil], normals, cam)[:, 1] > 0  # True: upper lip (image y down)
         cons, dist_px, matched = [], [], {}
         for name, lipmask, samples, o, d, pn in (("upper", side, self.upper, self.o_u, self.d_u, self.n_u),
                                                  ("lower", ~side, self.lower, self.o_l, self.d_l, self.n_l)):
             ids = sil[lipmask]
             if self.envelope and len(ids):
-                ids = _on_envelope(cam.project(X), sil_edges, ids, upper=(name == "upper"))
+                ids = _on_envelope(sil, sil_uv, sil_edges, ids, upper=(name == "upper"))
             if len(ids) == 0:
                 raise SketchError(
                     f"No {name}-lip silhouette found near the {name}-lip stroke{where}; draw the contours over the "
