@@ -46,7 +46,7 @@ Reported per case:
   the face subdivided once (each triangle into four, about 105k vertices); wall time moves with the
   load of the shared machine, CPU time much less.
 
-Usage: ``PYTHONPATH=. python benchmarks/sketch_refine.py [--quick] [--no-blender]``.
+Usage: ``PYTHONPATH=. python benchmarks/sketch_refine.py [--quick] [--no-blender] [--png FILE]``.
 Prints one JSON object on stdout.
 """
 
@@ -343,6 +343,54 @@ def run_regions(model, fixed):
     return out
 
 
+def picture(model, fixed, path):
+    """Error maps in the frontal view: closed_wide (capture, paper's Eq. 1, smooth prior) and the depth case
+    (capture, one view, two views), 3D error per vertex in mm."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    F = model.faces
+    mm = 0.1 * model.scale
+    T = model.pose(POSE_CLOSED)
+    mouth = S.find_mouth(T, F, fixed, units_per_mm=mm)
+    cam = S.frontal_camera(T, mouth.center, distance=40.0 * model.scale)
+    up, lo = S.lip_contours(T, F, cam, mouth=mouth)
+    C, _ = S.inject_lip_error(T, F, fixed, mouth=mouth, radius_mm=12.0)
+    rows = [("12 mm wide gap", [("capture", C), ("paper's Eq. 1", refine_lips(C, F, cam, up, lo, fixed=fixed,
+                                                                               prior="paper")),
+                                ("smooth prior (default)", refine_lips(C, F, cam, up, lo, fixed=fixed))])]
+    w, side = S.lip_error_weights(T, F, fixed, mouth=mouth)
+    D = T + (1.25 * mm * w * side)[:, None] * mouth.up + (FORWARD_ERROR_MM * mm * w)[:, None] * mouth.forward
+    below = camera_below(mouth, 40.0 * model.scale, SECOND_VIEW_ELEVATION)
+    vs = [SketchView(c, *S.lip_contours(T, F, c, mouth=mouth, margin_mm=SKETCH_MARGIN_MM)) for c in (cam, below)]
+    rows.append(("gap + 2 mm forward", [("capture", D), ("one view", refine_lips_views(D, F, vs[:1], fixed=fixed)),
+                                        ("two views (+20° below)", refine_lips_views(D, F, vs, fixed=fixed))]))
+    uv = cam.project(T)
+    show = np.flatnonzero(np.isfinite(mouth.loop_distance) & (mouth.loop_distance < 14.0 * mm) & ~fixed)
+    show = show[np.argsort(-cam.depth(T[show]))]  # far first: the lips' front is drawn over their inside
+    sk = np.vstack([up, lo])
+    fig, axes = plt.subplots(2, 3, figsize=(15, 5.2), constrained_layout=True)
+    for r, (title, items) in enumerate(rows):
+        lip = S.inner_lip_mask(T, F, fixed, mouth=mouth, radius_mm=12.0) if r == 0 else w > 1e-3
+        for k, (name, X) in enumerate(items):
+            ax = axes[r, k]
+            e = np.linalg.norm(X - T, axis=1) / mm
+            sc = ax.scatter(uv[show, 0], uv[show, 1], c=e[show], s=9, cmap="magma", vmin=0, vmax=1.25)
+            ax.plot(up[:, 0], up[:, 1], "--", color="deepskyblue", lw=0.8)
+            ax.plot(lo[:, 0], lo[:, 1], "--", color="deepskyblue", lw=0.8)
+            ax.set_title(f"{title}: {name}\ninner-lip RMS {np.sqrt((e[lip] ** 2).mean()):.3f} mm", fontsize=10)
+            ax.set_xlim(sk[:, 0].min() - 15, sk[:, 0].max() + 15)
+            ax.set_ylim(sk[:, 1].max() + 60, sk[:, 1].min() - 60)
+            ax.set_aspect("equal")
+            ax.set_xticks([])
+            ax.set_yticks([])
+    fig.colorbar(sc, ax=axes, shrink=0.8, label="3D error to the truth (mm); dashed: the sketch")
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def subdivide(V, F):
     """Each triangle into four (edge midpoints, positions interpolated linearly): (V',3), (4F,3), edges (E,2)."""
     E, fe = unique_edges(F)
@@ -407,6 +455,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="fewer timing runs and cases")
     ap.add_argument("--no-blender", action="store_true", help="skip the Blender Laplacian Deform timing")
+    ap.add_argument("--png", help="also write error maps (smooth vs paper prior, one vs two views) to this file")
     args = ap.parse_args(argv)
     runs = 3 if args.quick else 9
     # Blender and the libraries may print to stdout; keep it for the JSON alone.
@@ -424,6 +473,8 @@ def main(argv=None):
     speed = run_speed(model, fixed, runs=3 if args.quick else 5)
     depth = [run_depth(model, fixed, n, p) for n, p in (("open_depth", POSE_OPEN), ("closed_depth", POSE_CLOSED))]
     regions = run_regions(model, fixed)
+    if args.png:
+        picture(model, fixed, args.png)
     blender, bl_err = None, None
     if not args.no_blender:
         try:
