@@ -44,7 +44,8 @@ Reported per case:
   trained on that frame alone, reproduces from the frame's capture, and whether ``FL_mouth`` moved;
 * ``speed``: CPU and wall time of one default ``refine_lips`` call on the 26,719-vertex face and on
   the face subdivided once (each triangle into four, about 105k vertices); wall time moves with the
-  load of the shared machine, CPU time much less.
+  load of the shared machine, CPU time much less; and the 3D cut of both priors on both meshes (the same
+  surface and correction): the paper's energy reaches a number of edge rings, the smooth prior a distance.
 
 Usage: ``PYTHONPATH=. python benchmarks/sketch_refine.py [--quick] [--no-blender] [--png FILE]``.
 Prints one JSON object on stdout.
@@ -411,6 +412,16 @@ def run_speed(model, fixed, runs):
     up, lo = S.lip_contours(T0, model.faces, cam, mouth=mouth)
     Vs, Fs, E = subdivide(C0, model.faces)
     fixed_s = np.r_[fixed, fixed[E[:, 0]] & fixed[E[:, 1]]]
+    # resolution independence: the same correction on the face and on the face subdivided once (same surface)
+    lip0 = S.inner_lip_mask(T0, model.faces, fixed, mouth=mouth)
+    Ts = subdivide(T0, model.faces)[0]
+    lip_s = np.r_[lip0, lip0[E[:, 0]] | lip0[E[:, 1]]]
+    for prior in (DEFAULT_PRIOR, OTHER_PRIOR):
+        cuts = []
+        for C, T, F, fx, lip in ((C0, T0, model.faces, fixed, lip0), (Vs, Ts, Fs, fixed_s, lip_s)):
+            X = refine_lips(C, F, cam, up, lo, fixed=fx, prior=prior)
+            cuts.append(_r(100.0 * (1.0 - lip_error(X, T, lip, mm)["rms"] / lip_error(C, T, lip, mm)["rms"]), 1))
+        out[f"reduction_pct_{prior}_26k_vs_subdivided"] = cuts
     for key, (C, F, fx, target) in (("ict_26k", (C0, model.faces, fixed, TARGET_SECONDS)),
                                     ("ict_subdivided", (Vs, Fs, fixed_s, TARGET_SECONDS_105K))):
         wall, cpu = [], []
