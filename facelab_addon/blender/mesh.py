@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..core.errors import MeshError
-from ..core.geometry.mesh import connected_components
+from ..core.lips.sketch_prior import separate_parts
 from ..names import FIXED_GROUP
 
 __all__ = [
@@ -115,7 +115,8 @@ def default_fixed_mask(obj, tris, group: str = FIXED_GROUP):
 
     The vertex group ``group`` if the mesh has one; otherwise every vertex that
     is not on the largest connected piece of the mesh (teeth, tongue, eyes
-    and other separate parts).
+    and other separate parts): :func:`~facelab_addon.core.lips.sketch_prior.separate_parts`,
+    the default of ``refine_lips`` too.
 
     Returns
     -------
@@ -126,7 +127,4 @@ def default_fixed_mask(obj, tris, group: str = FIXED_GROUP):
     m = vertex_group_mask(obj, group)
     if m is not None:
         return m, f"vertex group '{group}'"
-    n = len(obj.data.vertices)
-    lab = connected_components(tris, n)
-    counts = np.bincount(lab)
-    return lab != np.argmax(counts), "separate mesh parts"
+    return separate_parts(tris, len(obj.data.vertices)), "separate mesh parts"

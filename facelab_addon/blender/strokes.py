@@ -203,21 +203,28 @@ def _sketch_material():
     return mat
 
 
-def new_lip_sketch(scene, camera_obj=None, name: str = DEFAULT_SKETCH_NAME, depth: float | None = None):
-    """Create, or complete, the Grease Pencil object the artist sketches the lips on.
+def new_lip_sketch(scene, camera_obj=None, name: str | None = None, depth: float | None = None):
+    """Create, or complete, the Grease Pencil object the artist sketches the lips on through one camera.
 
     Idempotent: an existing object ``name`` is reused as it is (transform and
     strokes untouched); only missing pieces are added: the lip layers, a
     keyframe (empty drawing) on ``scene.frame_current`` on each lip layer, a
     stroke material, and the link to the scene.
 
+    Every camera has its own sketch (a stereo pair or a witness camera sketches
+    the same frame from several views): without ``name``, the sketch of this
+    camera is reused (:func:`.sketch_views.sketch_camera`), else ``FL_LipSketch``
+    is created for the first camera and ``FL_LipSketch.<camera name>`` for the
+    others. The sketch records its camera in the custom property
+    :data:`.sketch_views.SKETCH_CAMERA_PROP`.
+
     Parameters
     ----------
     scene : bpy.types.Scene
     camera_obj : bpy.types.Object, optional
         The camera the sketch is drawn through; defaults to ``scene.camera``.
-    name : str
-        Object and data name.
+    name : str, optional
+        Object and data name (default: this camera's sketch, see above).
     depth : float, optional
         Distance of the drawing plane in front of the camera, scene units;
         default ``1.5 * clip_start``. Only used when creating the object.
@@ -241,6 +248,10 @@ def new_lip_sketch(scene, camera_obj=None, name: str = DEFAULT_SKETCH_NAME, dept
             f"Scene '{scene.name}' has no camera to sketch through; "
             "add a camera and make it the scene camera."
         )
+    if name is None:
+        from .sketch_views import sketch_name_for
+
+        name = sketch_name_for(scene, cam)
     obj = bpy.data.objects.get(name)
     if obj is not None and obj.type != "GREASEPENCIL":
         raise SketchError(
@@ -262,6 +273,9 @@ def new_lip_sketch(scene, camera_obj=None, name: str = DEFAULT_SKETCH_NAME, dept
         obj.matrix_basis = offset @ Matrix.Rotation(math.pi / 2, 4, "X")
         obj.show_in_front = True
         obj.hide_render = True  # a drawing aid: never in the renders
+        from .sketch_views import SKETCH_CAMERA_PROP
+
+        obj[SKETCH_CAMERA_PROP] = cam
     if scene.objects.get(obj.name) is None:
         scene.collection.objects.link(obj)
     gp = obj.data

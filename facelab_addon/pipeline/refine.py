@@ -1,16 +1,23 @@
 """Refine Lips: deform the lips so their silhouettes match the sketched contours on one frame
-(Dinev et al. 2018 §5).
+(Dinev et al. 2018 §5), from one camera or several.
 
-:func:`refine` reads the camera, the lip sketch and the evaluated face on a frame, runs
-:func:`facelab_addon.core.lips.sketch.refine_lips` and stores the correction as a new
+:func:`refine` reads the camera(s), the lip sketch(es) and the evaluated face on a frame, runs
+:func:`facelab_addon.core.lips.sketch.refine_lips_views` and stores the correction as a new
 corrective key ``FL_Refine_<frame>`` (:data:`~facelab_addon.names.REFINE_PREFIX`) keyed 1 on
 the frame and 0 on its neighbours; the frame becomes a training frame of Propagate.
+
+Views: every Grease Pencil lip sketch keyed on the frame whose camera is known
+(:func:`facelab_addon.blender.sketch_views.sketch_views`: one sketch per camera, as New Lip Sketch
+makes them) is one view of one solve; with a single sketch the scene camera (or ``camera_obj``)
+is the view, as before. Regions: when the face has ``FL_lips`` / ``FL_mouth``
+(:mod:`facelab_addon.pipeline.regions`), only the interior of ``FL_lips`` moves, its border and
+``FL_mouth`` are held, so every correction is one Propagate's Poisson solve can reproduce.
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -22,15 +29,17 @@ from ..blender.mesh import (
     evaluated_vertices,
     mesh_triangles,
     require_mesh,
+    vertex_group_mask,
     world_to_local_deltas,
 )
 from ..blender.objects import ModifierState, require_editable
 from ..blender.rest_space import to_rest_space
 from ..blender.shapekeys import add_corrective_key, key_spike
+from ..blender.sketch_views import sketch_camera, sketch_views
 from ..blender.strokes import read_lip_strokes, require_sketch_keyed_on
 from ..core.errors import CameraError
-from ..core.lips.sketch import refine_lips
-from ..names import FIXED_GROUP, REFINE_PREFIX
+from ..core.lips.sketch import SketchView, refine_lips_views
+from ..names import FIXED_GROUP, LIPS_GROUP, MOUTH_GROUP, REFINE_PREFIX
 from .propagate import record_training_frame
 from .settings import setting
 
@@ -61,6 +70,17 @@ class RefineSettings:
     fixed_group : str
         Vertex group of hidden vertices that must not move; without it, the
         parts separate from the largest piece of the mesh are fixed.
+    prior : str
+        ``"smooth"`` (the correction carries across the lip band) or ``"paper"`` (Eq. 1 as
+        written); see :mod:`facelab_addon.core.lips.sketch`.
+    smooth_reach : float
+        How far the correction of a silhouette carries across the lips, in mouth widths.
+    free_radius : float
+        How far from the sketched lips the mesh may move, in mouth widths.
+    use_regions : bool
+        When ``FL_lips`` / ``FL_mouth`` exist, move only the interior of ``FL_lips``.
+    all_views : bool
+        Use every camera with a lip sketch keyed on the frame (one solve), not only one.
     """
 
     iterations: int = setting(REFINE_DEFAULTS["iterations"], label="Iterations", min=1, max=100,
@@ -76,10 +96,30 @@ class RefineSettings:
                                description="Vertex group of hidden vertices that must not move (inner mouth, "
                                            "teeth, back of the head); without it, separate mesh parts are fixed")
 
+    prior: str = setting("smooth", label="Prior", choices=(
+        ("smooth", "Smooth", "The correction of the silhouettes carries smoothly across the lip band "
+                             "(FaceLab's default: removes more of the 3D lip error)"),
+        ("paper", "Paper", "Dinev et al. 2018 Eq. 1 as written: every vertex anchored with the position weight")),
+        description="How the vertices away from the sketched silhouettes follow them")
+    smooth_reach: float = setting(0.12, label="Smooth Reach", min=0.01, soft_max=1.0, unit="mouth",
+                                  description="How far the correction of a silhouette carries across the lips, "
+                                              "in mouth widths (Smooth prior)")
+    free_radius: float = setting(0.1, label="Free Region", min=0.01, soft_max=2.0, unit="mouth",
+                                 description="How far from the sketched lips the mesh may move, in mouth widths; "
+                                             "everything farther is held exactly")
+    use_regions: bool = setting(True, label="Only FL_lips",
+                                description=f"When the face has {LIPS_GROUP} / {MOUTH_GROUP} (Auto Regions), move "
+                                            f"only the inside of {LIPS_GROUP}; its border and {MOUTH_GROUP} are "
+                                            "held, as Propagate holds them")
+    all_views: bool = setting(True, label="All Camera Sketches",
+                              description="Use the lip sketches of every camera keyed on this frame in one solve "
+                                          "(a stereo pair or witness camera fixes the depth of the lips)")
+
     def solver_weights(self) -> dict:
         """The keyword arguments of :func:`~facelab_addon.core.lips.sketch.refine_lips`."""
         return dict(iterations=self.iterations, lambda_pos=self.lambda_pos, lambda_reg=self.lambda_reg,
-                    lambda_silh=self.lambda_silh)
+                    lambda_silh=self.lambda_silh, prior=self.prior, smooth_reach=self.smooth_reach,
+                    free_radius=self.free_radius)
 
 
 @dataclass
@@ -97,6 +137,10 @@ class RefineResult:
         Largest displacement, world scene units.
     fixed_source : str
         What fixed the hidden vertices (a vertex group, or separate mesh parts).
+    cameras : list of str
+        The camera objects whose sketches were used (one view each).
+    lips_region : bool
+        Whether only the inside of ``FL_lips`` was free.
     note : str
         What was changed so the key shows over a cache (empty without one).
     seconds : float
@@ -107,6 +151,8 @@ class RefineResult:
     moved_vertices: int
     max_move: float
     fixed_source: str
+    cameras: list = field(default_factory=list)
+    lips_region: bool = False
     note: str = ""
     seconds: float = 0.0
 
@@ -145,23 +191,25 @@ def refine(scene, obj, frame: int, settings: RefineSettings | None = None, *, ca
     """
     settings = settings or RefineSettings()
     t0 = time.perf_counter()
-    require_sketch_keyed_on(scene, frame, sketch)  # never a drawing held from an earlier frame
+    pairs = _view_sources(scene, frame, sketch, camera_obj, settings.all_views)
+    for gp, _ in pairs:
+        require_sketch_keyed_on(scene, frame, gp)  # never a drawing held from an earlier frame
     if scene.frame_current != frame:
         scene.frame_set(frame)
-    cam_obj = camera_obj if camera_obj is not None else scene.camera
-    if cam_obj is None:
-        raise CameraError(f"Scene '{scene.name}' has no camera; set the camera the sketch was drawn in.")
     obj = require_mesh(obj)
     require_editable(obj, "Refine Lips")
     caches.check_capture_files(obj)  # never the static mesh in place of a broken cache
     dg = evaluated_depsgraph(scene)
-    cam = camera_from_blender(scene, cam_obj, dg)
-    strokes = read_lip_strokes(scene, cam, frame, gp_obj=sketch, depsgraph=dg)
+    views = []
+    for gp, cam_obj in pairs:
+        cam = camera_from_blender(scene, cam_obj, dg)
+        strokes = read_lip_strokes(scene, cam, frame, gp_obj=gp, depsgraph=dg)
+        views.append(SketchView(cam, strokes["upper"], strokes["lower"], name=cam_obj.name))
     V = evaluated_vertices(obj, dg)
     tris = mesh_triangles(obj.data)
     fixed, fixed_src = default_fixed_mask(obj, tris, settings.fixed_group)
-    X, _ = refine_lips(V, tris, cam, strokes["upper"], strokes["lower"], fixed=fixed, return_info=True,
-                       **settings.solver_weights())
+    lips = _lip_region(obj) if settings.use_regions else None
+    X, _ = refine_lips_views(V, tris, views, fixed=fixed, lips=lips, return_info=True, **settings.solver_weights())
     note = ""
     on_cache = caches.sequence_source(obj) in _CACHE_SOURCES
     state = ModifierState(obj)
@@ -182,5 +230,38 @@ def refine(scene, obj, frame: int, settings: RefineSettings | None = None, *, ca
     record_training_frame(scene, obj, frame, kb.name, "sketch")
     moved = np.linalg.norm(d_world, axis=1)
     return RefineResult(frame=frame, shape_key=kb.name, moved_vertices=int((moved > 1e-9).sum()),
-                        max_move=float(moved.max()), fixed_source=fixed_src, note=note,
-                        seconds=time.perf_counter() - t0)
+                        max_move=float(moved.max()), fixed_source=fixed_src, cameras=[v.name for v in views],
+                        lips_region=lips is not None, note=note, seconds=time.perf_counter() - t0)
+
+
+def _view_sources(scene, frame, sketch, camera_obj, all_views) -> list:
+    """``[(sketch or None, camera object), ...]``: one view per camera with a sketch on ``frame``.
+
+    With ``all_views`` and two or more cameras sketched on the frame (the given ``sketch`` among
+    them, drawn through ``camera_obj`` or its own camera), each is a view. Otherwise the one
+    view of the single-camera route: ``sketch`` (or the one found in the scene, else the
+    annotation) through ``camera_obj``, else the scene camera.
+    """
+    found = sketch_views(scene, frame) if all_views else []
+    if sketch is not None and found:
+        own = camera_obj or sketch_camera(sketch) or scene.camera
+        found = [(gp, cam) for gp, cam in found if gp != sketch and cam != own]
+        found.insert(0, (sketch, own))
+    if len(found) >= 2:
+        return found
+    cam_obj = camera_obj if camera_obj is not None else scene.camera
+    if cam_obj is None:
+        raise CameraError(f"Scene '{scene.name}' has no camera; set the camera the sketch was drawn in.")
+    return [(sketch, cam_obj)]
+
+
+def _lip_region(obj):
+    """(V,) bool ``FL_lips`` when both ``FL_lips`` and ``FL_mouth`` exist, else None.
+
+    Only the inside of ``FL_lips`` moves (:func:`~facelab_addon.core.lips.sketch_prior.free_region`):
+    its border, the ring ``FL_mouth`` shares with it, is held, so ``FL_mouth`` never moves.
+    """
+    lips = vertex_group_mask(obj, LIPS_GROUP)
+    if lips is None or vertex_group_mask(obj, MOUTH_GROUP) is None or not lips.any():
+        return None
+    return lips

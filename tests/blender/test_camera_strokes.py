@@ -418,3 +418,33 @@ def test_grease_pencil_object_wins_over_annotation(empty_scene):
     bpy.data.objects.remove(obj)
     with pytest.raises(SketchError, match="no strokes"):
         read_lip_strokes(scene, camera, 1)
+
+
+def test_one_sketch_per_camera_and_the_views_of_a_frame(empty_scene):
+    from facelab_addon.blender.sketch_views import SKETCH_CAMERA_PROP, sketch_camera, sketch_views
+
+    scene = empty_scene
+    cam_a, camera_a = face_camera(scene)
+    cam_b = add_camera(scene, "Witness")
+    witness = Camera.look_at((-0.3, -0.8, 1.4), (0.0, 0.0, 1.6), (0, 0, 1), 50.0, 36.0, 1280, 720)
+    apply_camera_to_blender(witness, cam_b, scene)
+    scene.camera = cam_a
+    scene.frame_current = 5
+    sk_a = new_lip_sketch(scene, cam_a)
+    sk_b = new_lip_sketch(scene, cam_b)
+    assert sk_a.name == "FL_LipSketch" and sk_b.name == "FL_LipSketch.Witness" and sk_a != sk_b
+    assert sketch_camera(sk_a) == cam_a and sketch_camera(sk_b) == cam_b and sk_b[SKETCH_CAMERA_PROP] == cam_b
+    assert new_lip_sketch(scene, cam_b) == sk_b  # again: the witness camera's own sketch
+    camera_b = camera_from_blender(scene, cam_b)
+    up, lo = lip_polylines()
+    for gp, cam in ((sk_a, camera_a), (sk_b, camera_b)):
+        write_stroke_pixels(gp, "Upper lip", 5, up, cam)
+        write_stroke_pixels(gp, "Lower lip", 5, lo, cam)
+    assert [(g.name, c.name) for g, c in sketch_views(scene, 5)] == [("FL_LipSketch", "Cam"),
+                                                                      ("FL_LipSketch.Witness", "Witness")]
+    assert sketch_views(scene, 6) == []  # drawings held from frame 5 are not views of frame 6
+    # each sketch reads back as the pixels drawn in its own camera
+    assert_same_polylines(read_lip_strokes(scene, camera_b, 5, gp_obj=sk_b)["upper"], up)
+    # a sketch without the property belongs to the camera it is parented to
+    del sk_b[SKETCH_CAMERA_PROP]
+    assert sketch_camera(sk_b) == cam_b

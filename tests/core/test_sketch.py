@@ -14,6 +14,11 @@ from facelab_addon.core.lips.sketch import press_lips, refine_lips
 from .lipmesh import front_camera, line_px, two_lips
 
 
+def free(V):
+    """No hidden parts: both tubes may move (without ``fixed`` the smaller piece would be held)."""
+    return np.zeros(len(V), bool)
+
+
 def test_resample_polyline_spacing_and_ends():
     P = np.array([[0.0, 0], [10, 0], [10, 5]])
     S = resample_polyline(P, 1.0)
@@ -50,7 +55,8 @@ def test_refine_moves_silhouettes_onto_sketch():
     V, F, upper = two_lips(gap=0.4)
     V_in = V.copy()
     cam = front_camera()
-    X, info = refine_lips(V, F, cam, line_px(cam, 0.1), line_px(cam, -0.1), return_info=True)
+    X, info = refine_lips(V, F, cam, line_px(cam, 0.1), line_px(cam, -0.1), return_info=True, fixed=free(V),
+                          prior="paper", reach_px=20, free_radius=0.1)
     np.testing.assert_array_equal(V, V_in)  # input untouched
     cu = contour_distance(X, F, cam, info["upper_samples"], +1)
     cl = contour_distance(X, F, cam, info["lower_samples"], -1)
@@ -73,7 +79,7 @@ def test_lower_drawn_above_upper_presses_lips_together():
     V, F, upper = two_lips(gap=0.4)
     cam = front_camera()
     # crossed sketch: upper drawn at y=-0.05, lower at y=+0.05 -> both go to y=0
-    X, info = refine_lips(V, F, cam, line_px(cam, -0.05), line_px(cam, 0.05), iterations=10, return_info=True)
+    X, info = refine_lips(V, F, cam, line_px(cam, -0.05), line_px(cam, 0.05), iterations=10, return_info=True, fixed=free(V), prior="paper")
     mid = cam.project(np.array([[0.0, 0, 0]]))[0, 1]
     np.testing.assert_allclose(info["upper_samples"][:, 1], mid, atol=0.5)
     np.testing.assert_allclose(info["lower_samples"][:, 1], mid, atol=0.5)
@@ -91,10 +97,10 @@ def test_fixed_vertices_are_not_lip_candidates_and_barely_move():
     # the left part of the upper lip fixed: free, its silhouette is matched and moves the full 0.1
     fixed = upper & (V[:, 0] < -0.5)
     up, lo = line_px(cam, 0.1), line_px(cam, -0.1)
-    X0, free = refine_lips(V, F, cam, up, lo, return_info=True)
-    X1, held = refine_lips(V, F, cam, up, lo, fixed=fixed, return_info=True)
+    X0, loose = refine_lips(V, F, cam, up, lo, return_info=True, fixed=free(V), prior="paper")
+    X1, held = refine_lips(V, F, cam, up, lo, fixed=fixed, return_info=True, prior="paper")
     ids = np.flatnonzero(fixed)
-    assert np.isin(free["matched_upper"], ids).any()  # measured 10 (the check below can fail)
+    assert np.isin(loose["matched_upper"], ids).any()  # measured 10 (the check below can fail)
     assert not np.isin(np.r_[held["matched_upper"], held["matched_lower"]], ids).any()
     d0, d1 = np.linalg.norm(X0 - V, axis=1)[fixed], np.linalg.norm(X1 - V, axis=1)[fixed]
     assert d1.mean() < 0.1 * d0.mean()  # measured 0.0003 vs 0.0094
@@ -107,39 +113,39 @@ def test_bad_input_messages():
     cam = front_camera()
     up, lo = line_px(cam, 0.1), line_px(cam, -0.1)
     with pytest.raises(SketchError, match="No lower-lip stroke"):
-        refine_lips(V, F, cam, up, [])
+        refine_lips(V, F, cam, up, [], fixed=free(V))
     with pytest.raises(SketchError, match="leaves the camera frame"):
-        refine_lips(V, F, cam, up + [0, 2000], lo)
+        refine_lips(V, F, cam, up + [0, 2000], lo, fixed=free(V))
     with pytest.raises(SketchError, match="NaN"):
         bad = up.copy()
         bad[3] = np.nan
-        refine_lips(V, F, cam, bad, lo)
+        refine_lips(V, F, cam, bad, lo, fixed=free(V))
     Vn = V.copy()
     Vn[7] = np.nan
     with pytest.raises(MeshError, match="NaN"):
-        refine_lips(Vn, F, cam, up, lo)
+        refine_lips(Vn, F, cam, up, lo, fixed=free(Vn))
     Fd = F.copy()
     Fd[0] = [0, 0, 1]
     with pytest.raises(MeshError, match="degenerate"):
-        refine_lips(V, Fd, cam, up, lo)
+        refine_lips(V, Fd, cam, up, lo, fixed=free(V))
     with pytest.raises(CameraError, match="No camera"):
-        refine_lips(V, F, None, up, lo)
+        refine_lips(V, F, None, up, lo, fixed=free(V))
     # camera looking at the mouth from behind (on -z, looking at +z)
     back = Camera.look_at([0, 0, -20], [0, 0, 0], [0, 1, 0], 50, 36, 1920, 1080)
     with pytest.raises(CameraError, match="behind"):
-        refine_lips(V, F, back, line_px(back, 0.1), line_px(back, -0.1))
+        refine_lips(V, F, back, line_px(back, 0.1), line_px(back, -0.1), fixed=free(V))
     # face behind the camera: camera at +z looking away from the mouth
     away = Camera.look_at([0, 0, 20], [0, 0, 40], [0, 1, 0], 50, 36, 1920, 1080)
     with pytest.raises(CameraError, match="behind the camera"):
-        refine_lips(V, F, away, np.array([[900.0, 500], [1000, 500]]), np.array([[900.0, 560], [1000, 560]]))
+        refine_lips(V, F, away, np.array([[900.0, 500], [1000, 500]]), np.array([[900.0, 560], [1000, 560]]), fixed=free(V))
 
 
 def test_sketch_on_the_current_silhouette_barely_moves_the_mesh():
     # the sketch traces the mesh's own inner silhouettes (y = +-0.2, x in [-1.5, 1.5])
     V, F, _ = two_lips(gap=0.4)
     cam = front_camera()
-    X = refine_lips(V, F, cam, line_px(cam, 0.2), line_px(cam, -0.2))
+    X = refine_lips(V, F, cam, line_px(cam, 0.2), line_px(cam, -0.2), fixed=free(V), prior="paper")
     assert np.abs(X - V).max() < 0.004  # < 0.5 px; only the stroke ends pull at the lip ends
     # the literal per-pixel rays also pull along the contour (x), sliding the lips sideways
-    Xp = refine_lips(V, F, cam, line_px(cam, 0.2), line_px(cam, -0.2), silhouette_rays="pixel")
+    Xp = refine_lips(V, F, cam, line_px(cam, 0.2), line_px(cam, -0.2), silhouette_rays="pixel", fixed=free(V), prior="paper")
     assert np.abs(Xp - V)[:, 0].max() > 5 * np.abs(X - V)[:, 0].max()

@@ -98,3 +98,60 @@ def test_refine_bad_input_changes_nothing(tmp_path, ict, addon):
     assert obj.data.shape_keys is None and len(obj.facelab.training_frames) == 0
     assert len(scene.timeline_markers) == markers
     np.testing.assert_allclose(evaluated_vertices(obj, bpy.context.evaluated_depsgraph_get()), s["C"], atol=1e-7)
+
+
+def test_refine_with_regions_moves_only_the_inside_of_fl_lips(tmp_path, ict, addon):
+    from facelab_addon.blender.mesh import set_vertex_group
+    from facelab_addon.core.lips.regions import auto_regions
+    from facelab_addon.names import LIPS_GROUP, MOUTH_GROUP
+
+    s, gp, cam = sketched(tmp_path, ict)
+    scene, obj = s["scene"], s["obj"]
+    mouth, lips = auto_regions(ict.neutral, s["F"])  # Auto Regions on the rest pose
+    set_vertex_group(obj, MOUTH_GROUP, mouth)
+    set_vertex_group(obj, LIPS_GROUP, lips)
+    r = refine(scene, obj, FRAME, RefineSettings(), sketch=gp)
+    assert r.lips_region and r.cameras == [scene.camera.name]
+    X = evaluated_vertices(obj, bpy.context.evaluated_depsgraph_get())
+    moved = np.linalg.norm(X - s["C"], axis=1)
+    assert moved[mouth].max() < 1e-7 and moved[~lips].max() < 1e-7  # FL_mouth and the rest: untouched
+    assert moved[lips].max() > 0.0005  # the lips moved (1.25 mm gap per lip)
+    assert silhouette_px(X, s, cam).mean() < 1.5
+    # without the regions option the same face moves beyond FL_lips
+    r2 = refine(scene, obj, FRAME, RefineSettings(use_regions=False), sketch=gp)
+    kb = obj.data.shape_keys.key_blocks
+    d = np.array([p.co[:] for p in kb[r2.shape_key].data]) - np.array([p.co[:] for p in kb[0].data])
+    assert not r2.lips_region and np.linalg.norm(d, axis=1)[~lips].max() > 1e-5
+
+
+def test_refine_uses_every_camera_sketched_on_the_frame(tmp_path, ict, addon):
+    from facelab_addon.blender.camera import new_camera_object
+    from facelab_addon.core.capture.camera import Camera
+    from facelab_addon.testing import synthetic as S
+
+    s, gp, cam = sketched(tmp_path, ict)
+    scene, obj, T, F = s["scene"], s["obj"], s["T"], s["F"]
+    fixed = ~s["face_mask"]
+    mouth = S.find_mouth(T, F, fixed, units_per_mm=0.001)
+    e = np.radians(20.0)
+    below = Camera.look_at(mouth.center + 0.40 * (np.cos(e) * mouth.forward - np.sin(e) * mouth.up), mouth.center,
+                           mouth.up, 50, 36, 1920, 1080)
+    main_cam = scene.camera
+    cam_b = new_camera_object(scene, below, "Below", make_active=False)
+    gp_b = new_lip_sketch(scene, cam_b)
+    assert gp_b != gp
+    cb = camera_from_blender(scene, cam_b)
+    up_b, lo_b = S.lip_contours(T, F, cb, mouth=mouth)
+    write_stroke_pixels(gp_b, "Upper lip", FRAME, [up_b], cb)
+    write_stroke_pixels(gp_b, "Lower lip", FRAME, [lo_b], cb)
+    scene.camera = main_cam
+    r = refine(scene, obj, FRAME, RefineSettings(), sketch=gp)
+    assert r.cameras == [main_cam.name, "Below"]
+    X = evaluated_vertices(obj, bpy.context.evaluated_depsgraph_get())
+    assert silhouette_px(X, s, cam).mean() < 1.0  # on the sketch in the main view
+    fm = s["face_mask"]
+    dist_b = np.r_[contour_distance(X, F, cb, up_b, +1, candidates=fm), contour_distance(X, F, cb, lo_b, -1, candidates=fm)]
+    assert np.median(dist_b) < 1.5  # and in the second one
+    # one camera only: the single-view route
+    r1 = refine(scene, obj, FRAME, RefineSettings(all_views=False), sketch=gp)
+    assert r1.cameras == [main_cam.name]

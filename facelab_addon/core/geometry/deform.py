@@ -172,21 +172,23 @@ class LaplacianDeformer:
         self._w_f = w[self.free]
         M = self.lambda_reg * (self._Lf.T @ self._Lf) + sp.diags(self._w_f)
         self.factor = SPDFactor(M.tocsr(), backend=backend)
-        self._cols: dict[int, np.ndarray] = {}
+        # cached columns M^-1 e_v, stored as rows of one growing array: slot[v] is v's row or -1
+        self._slot = -np.ones(len(self.free), np.int64)
+        self._rows_cache = np.zeros((0, len(self.free)))
 
     # ------------------------------------------------------------------ utils
     def _columns(self, free_ids):
-        """(n_free, u) columns ``M^-1 e_v`` for free indices ``free_ids`` (cached)."""
-        missing = [int(i) for i in free_ids if int(i) not in self._cols]
-        if missing:
+        """(u, n_free) rows ``(M^-1 e_v)ᵀ`` for free indices ``free_ids`` (cached between calls)."""
+        ids = np.asarray(free_ids, dtype=np.int64)
+        missing = np.unique(ids[self._slot[ids] < 0])
+        if len(missing):
             E = np.zeros((len(self.free), len(missing)))
             E[missing, np.arange(len(missing))] = 1.0
             Z = self.factor.solve(E)
-            for j, i in enumerate(missing):
-                self._cols[i] = Z[:, j]
-        if len(free_ids) == 0:
-            return np.zeros((len(self.free), 0))
-        return np.stack([self._cols[int(i)] for i in free_ids]).T  # row stack + view: 3-5x faster than axis=1
+            start = len(self._rows_cache)
+            self._rows_cache = np.concatenate([self._rows_cache, Z.T])
+            self._slot[missing] = start + np.arange(len(missing))
+        return self._rows_cache[self._slot[ids]]
 
     # ------------------------------------------------------------------ solve
     def solve(self, anchor, reference=None, constraints=None) -> np.ndarray:
@@ -210,11 +212,22 @@ class LaplacianDeformer:
         a = np.asarray(anchor, dtype=np.float64)
         if a.shape != (self.n, 3):
             raise FaceLabError(f"Expected {self.n} vertices, got {a.shape[0]}; the mesh topology changed.")
+        return self.constrain(self.unconstrained(a, reference), a, constraints)
+
+    def unconstrained(self, anchor, reference=None) -> np.ndarray:
+        """(n_free,3) minimiser without point constraints (the part of :meth:`solve` that only depends on the
+        anchor and the reference; compute it once when only the constraints change between calls)."""
+        a = np.asarray(anchor, dtype=np.float64)
         ref = a if reference is None else np.asarray(reference, dtype=np.float64)
         delta = self._L_rows @ ref
         xp = a[self.pinned_idx]
         B = self.lambda_reg * (self._Lf.T @ (delta - self._Lp @ xp)) + self._w_f[:, None] * a[self.free]
-        X0 = self.factor.solve(B)
+        return self.factor.solve(B)
+
+    def constrain(self, X0, anchor, constraints=None) -> np.ndarray:
+        """(V,3) positions: the unconstrained minimiser ``X0`` (:meth:`unconstrained`) with ``constraints`` added
+        exactly (Woodbury); pinned vertices at ``anchor``."""
+        a = np.asarray(anchor, dtype=np.float64)
         if isinstance(constraints, (list, tuple)):
             constraints = PointConstraints.concat(constraints)
         X = X0
@@ -245,8 +258,8 @@ class LaplacianDeformer:
             np.add.at(r, pos[:, i], b[:, i, None] * Hq)
             for j in range(k):
                 np.add.at(Q, (pos[:, i], slice(None), pos[:, j]), (b[:, i] * b[:, j])[:, None, None] * H)
-        Z = self._columns(used)  # (n_f, u)
-        Zuu = Z[used]  # (u, u) = principal block of M^-1, SPD
+        Zt = self._columns(used)  # (u, n_f)
+        Zuu = Zt[:, used]  # (u, u) = principal block of M^-1, SPD
         Q2 = Q.reshape(3 * u, 3 * u)
         # Optimality: x_U = x0_U - (Zuu ⊗ I3)(Q x_U - r). Multiplying by (Zuu ⊗ I3)^-1 gives the
         # SPD system ((Zuu^-1 ⊗ I3) + Q) x_U = (Zuu^-1 ⊗ I3) x0_U + r, solved by Cholesky.
@@ -261,4 +274,4 @@ class LaplacianDeformer:
             check_finite=False,
         )
         G = (Q2 @ xU - r.reshape(-1)).reshape(u, 3)
-        return X0 - Z @ G
+        return X0 - Zt.T @ G

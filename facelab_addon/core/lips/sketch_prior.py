@@ -1,0 +1,206 @@
+"""Where the sketch refinement may move the mesh, and how strongly each vertex keeps its place.
+
+Dinev et al. 2018 §5 (Eq. 1) anchor every vertex to its captured position with one weight
+``lambda_pos`` and preserve the captured Laplacian coordinates with ``lambda_reg``. Because
+``E_reg = ||L (X - X̄)||^2`` is a bi-Laplacian energy of the displacement, the balance of the two
+sets how far a silhouette's displacement carries across the lips: about
+``(lambda_reg / lambda_pos)^(1/4)`` edge rings (2.3 with the paper's 3 / 0.1), so a capture error
+that is smooth across the whole lip band is corrected only beside the silhouette. This module
+provides the parts that make the refinement independent of the mesh's resolution, units and
+topology:
+
+* :func:`separate_parts`: the vertices off the largest connected piece (teeth, tongue, eyes): the
+  hidden parts held when no ``fixed`` mask is given;
+* :func:`sketch_scale`: the width of the sketched mouth in scene units (the sketch's width in
+  pixels back-projected at the depth of the lips), the unit of every size below;
+* :func:`free_region`: the vertices within a geodesic radius (a multiple of the mouth width) of
+  the lip area, or the interior of a painted lip region (``FL_lips``) with its border held;
+* :func:`anchor_weights`: the per-vertex ``w_i`` of ``E_pos``: the paper's constant, or the
+  ``"smooth"`` prior where ``w_i = lambda_reg * (h_i / reach)^4`` (``h_i`` the local edge length)
+  so the displacement decays over ``reach`` scene units whatever the mesh density.
+
+Shapes: vertices (V,3) float64 scene units, triangles (F,3) int64, masks (V,) bool.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.sparse.csgraph import dijkstra
+
+from ..errors import UsageError
+from ..geometry.mesh import connected_components, edge_length_graph
+
+__all__ = ["PRIORS", "separate_parts", "sketch_scale", "crop_faces", "local_faces", "free_region", "anchor_weights",
+           "mean_edge_length"]
+
+#: The energies :func:`anchor_weights` offers: Dinev et al.'s Eq. 1 as written, or the smooth prior.
+PRIORS = ("paper", "smooth")
+
+
+def separate_parts(faces, n_vertices: int) -> np.ndarray:
+    """(V,) bool: vertices not on the largest connected piece of the mesh (teeth, tongue, eyes...).
+
+    Vertices used by no triangle count as separate. With one piece, nothing is separate.
+
+    Parameters
+    ----------
+    faces : (F,3) int array_like
+    n_vertices : int
+    """
+    F = np.asarray(faces, dtype=np.int64)
+    lab = connected_components(F, int(n_vertices))
+    used = np.zeros(int(n_vertices), bool)
+    used[F.ravel()] = True
+    if not used.any():
+        return np.zeros(int(n_vertices), bool)
+    counts = np.bincount(lab[used], minlength=lab.max() + 1)
+    return lab != int(np.argmax(counts))
+
+
+def sketch_scale(camera, sketch_px, points) -> float:
+    """Width of the sketched mouth in scene units.
+
+    The horizontal extent of the sketch in pixels times the median depth of ``points`` (the lips
+    near the sketch) over the focal length: independent of the mesh, its units and the image size.
+
+    Parameters
+    ----------
+    camera : Camera
+    sketch_px : (N,2) float
+        Sketch samples, pixels.
+    points : (k,3) float
+        Lip vertices near the sketch, scene units (in front of the camera).
+
+    Returns
+    -------
+    float
+        Scene units (> 0).
+    """
+    P = np.asarray(sketch_px, dtype=np.float64)
+    extent = float(np.hypot(np.ptp(P[:, 0]), np.ptp(P[:, 1])))
+    z = camera.depth(np.asarray(points, dtype=np.float64))
+    z = float(np.median(z[z > 0])) if np.any(z > 0) else 1.0
+    return max(extent, 1.0) * z / float(camera.K[0, 0])
+
+
+def crop_faces(vertices, faces, seeds, radius: float) -> np.ndarray:
+    """(k,) int64 indices of the triangles inside the bounding box of ``seeds`` grown by ``radius``.
+
+    Every vertex within geodesic (or Euclidean) distance ``radius`` of a seed is in the box, so
+    searches and operators bounded by ``radius`` need only these triangles.
+    """
+    V = np.asarray(vertices, dtype=np.float64)
+    P = V[np.asarray(seeds, bool)]
+    lo, hi = P.min(0) - radius, P.max(0) + radius
+    inside = ((V >= lo) & (V <= hi)).all(axis=1)
+    return np.flatnonzero(inside[np.asarray(faces)].all(axis=1))
+
+
+def local_faces(faces, region, rings: int = 2) -> np.ndarray:
+    """(k,) int64 indices of the triangles within ``rings`` triangle rings of the vertices ``region`` (V,) bool.
+
+    With ``rings=2`` every vertex of ``region`` and its neighbours keep their whole one-ring, so a
+    Laplacian built from these triangles has the rows of the whole mesh on them.
+    """
+    F = np.asarray(faces)
+    m = np.asarray(region, bool).copy()
+    sel = m[F].any(axis=1)
+    for _ in range(int(rings) - 1):
+        m[F[sel].ravel()] = True
+        sel = m[F].any(axis=1)
+    return np.flatnonzero(sel)
+
+
+def mean_edge_length(vertices, faces, n_vertices: int | None = None) -> np.ndarray:
+    """(V,) mean length of the edges at each vertex, scene units (0 for unused vertices)."""
+    V = np.asarray(vertices, dtype=np.float64)
+    n = len(V) if n_vertices is None else int(n_vertices)
+    G, E, w = edge_length_graph(V, faces, n)
+    s = np.bincount(E.ravel(), weights=np.repeat(w, 2), minlength=n)
+    c = np.bincount(E.ravel(), minlength=n)
+    return np.divide(s, c, out=np.zeros(n), where=c > 0)
+
+
+def free_region(vertices, faces, seeds, radius: float, *, fixed=None, lips=None):
+    """The vertices the refinement solves for; every other vertex is held exactly.
+
+    Parameters
+    ----------
+    vertices : (V,3) float
+        Scene units.
+    faces : (F,3) int
+    seeds : (V,) bool
+        The lip area near the sketch.
+    radius : float
+        Geodesic reach (along edges, scene units) of the region from ``seeds``.
+    fixed : (V,) bool, optional
+        Hidden vertices: never free.
+    lips : (V,) bool, optional
+        A painted inner-lip region (``FL_lips``). When given, the free vertices are those of its
+        triangles except its border (the vertices it shares with outside triangles, held as the
+        Poisson solve of Propagate holds them); ``radius`` still bounds them.
+
+    Returns
+    -------
+    (V,) bool
+    """
+    V = np.asarray(vertices, dtype=np.float64)
+    F = np.asarray(faces, dtype=np.int64)
+    n = len(V)
+    seeds = np.asarray(seeds, bool)
+    fixed = np.zeros(n, bool) if fixed is None else np.asarray(fixed, bool)
+    src = np.flatnonzero(seeds)
+    if len(src) == 0:
+        return np.zeros(n, bool)
+    # a geodesic ball lies inside the Euclidean one: search only the triangles in the seeds' box + radius
+    Fc = F[crop_faces(V, F, seeds, radius)]
+    G = edge_length_graph(V, Fc, n, min_length=1e-12)[0]
+    d = dijkstra(G, directed=False, indices=src, min_only=True, limit=float(radius))
+    region = np.isfinite(d) & ~fixed
+    if lips is not None:
+        lips = np.asarray(lips, bool)
+        inside = lips[F].all(axis=1)
+        on_lip = np.zeros(n, bool)
+        on_lip[F[inside].ravel()] = True
+        outside = np.zeros(n, bool)
+        outside[F[~inside].ravel()] = True
+        region &= on_lip & ~outside
+    return region
+
+
+def anchor_weights(vertices, faces, region, *, prior: str, lambda_pos: float, lambda_reg: float,
+                   reach: float | None = None, fixed=None, edge_length=None) -> np.ndarray:
+    """(V,) weights ``w_i`` of ``E_pos = sum_i w_i ||x_i - x̄_i||^2``.
+
+    Parameters
+    ----------
+    vertices : (V,3) float
+        Scene units.
+    faces : (F,3) int
+    region : (V,) bool
+        Free vertices (others are held exactly; their weight does not matter).
+    prior : {"paper", "smooth"}
+        ``"paper"``: ``lambda_pos`` everywhere and 1 on ``fixed`` (Eq. 1). ``"smooth"``:
+        ``lambda_reg * (h_i / reach)^4`` with ``h_i`` the mean edge length at the vertex, so the
+        bi-Laplacian ``E_reg`` carries a silhouette's displacement about ``reach`` scene units
+        across the lips on any mesh density; never more than ``lambda_pos``.
+    lambda_pos, lambda_reg : float
+        Weights of Eq. 1.
+    reach : float, optional
+        Decay length of the smooth prior, scene units (required for ``"smooth"``).
+    fixed : (V,) bool, optional
+    edge_length : (V,) float, optional
+        Precomputed :func:`mean_edge_length`.
+    """
+    n = len(vertices)
+    fixed = np.zeros(n, bool) if fixed is None else np.asarray(fixed, bool)
+    if prior == "paper":
+        return np.where(fixed, 1.0, float(lambda_pos))
+    if prior != "smooth":
+        raise UsageError(f"prior must be one of {PRIORS}, got {prior!r}")
+    if reach is None or not reach > 0:
+        raise UsageError(f"the smooth prior needs a positive reach (scene units), got {reach!r}")
+    h = mean_edge_length(vertices, faces, n) if edge_length is None else np.asarray(edge_length, float)
+    w = float(lambda_reg) * (h / float(reach)) ** 4
+    w = np.minimum(w, float(lambda_pos))
+    return np.where(fixed, 1.0, np.maximum(w, 1e-12))

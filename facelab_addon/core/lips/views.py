@@ -1,0 +1,357 @@
+"""Sketch views of the lip refinement: one camera and its two inner-lip contours.
+
+Dinev et al. 2018 §5 sketch the inner-lip silhouettes from one camera. A single view cannot see
+how far the lips sit toward the camera, so FaceLab lets the artist sketch the same frame from
+several cameras (a helmet stereo pair, a witness camera); each :class:`SketchView` contributes its
+own ``E_silh`` terms to one solve. :class:`ViewMatcher` holds what one view needs between
+iterations: the resampled (and pressed) sketch, its camera rays, the candidate silhouette edges
+near the sketch, and the matching of every sketch pixel to the closest silhouette vertex of its
+lip (upper / lower told apart by the image-space direction of the vertex normals).
+
+Shapes: vertices (V,3) float64 scene units; pixels (N,2), top-left origin, y down.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..capture.camera import Camera
+from ..errors import CameraError, SketchError
+from ..geometry.deform import PointConstraints
+from ..geometry.mesh import edge_faces
+from ..geometry.polyline import resample_polyline
+from ..geometry.silhouette import facing, projected_normals
+
+__all__ = ["SketchView", "ViewMatcher", "press_lips", "prepare_sketch"]
+
+
+@dataclass
+class SketchView:
+    """One camera and the inner-lip contours sketched through it.
+
+    Attributes
+    ----------
+    camera : Camera
+    upper, lower : (N,2) float or list of (N_i,2)
+        Upper and lower inner-lip strokes, pixels of ``camera`` (top-left origin, y down).
+    name : str
+        What to call the view in messages (for example the camera object's name).
+    """
+
+    camera: Camera
+    upper: object
+    lower: object
+    name: str = ""
+
+
+def _y_at(x, curve):
+    """Interpolate a roughly x-monotonic curve's y at ``x`` (NaN outside its span)."""
+    o = np.argsort(curve[:, 0], kind="stable")
+    cx, cy = curve[o, 0], curve[o, 1]
+    y = np.interp(x, cx, cy)
+    y[(x < cx[0]) | (x > cx[-1])] = np.nan
+    return y
+
+
+def press_lips(upper, lower):
+    """Where the lower contour is drawn above the upper one, move both to their mid-line.
+
+    Parameters
+    ----------
+    upper, lower : (N,2), (M,2) float
+        Resampled contours, pixels (image y down, so "above" = smaller y).
+
+    Returns
+    -------
+    upper, lower : ndarrays of the same shapes
+        Copies with the crossing stretches replaced by the mid-line.
+    pressed_upper, pressed_lower : (N,), (M,) bool
+        Which samples were moved.
+    """
+    U = np.array(upper, dtype=np.float64)
+    Lw = np.array(lower, dtype=np.float64)
+    ly = _y_at(U[:, 0], Lw)  # lower's y under each upper sample
+    pu = np.isfinite(ly) & (ly < U[:, 1])
+    uy = _y_at(Lw[:, 0], U)
+    pl = np.isfinite(uy) & (Lw[:, 1] < uy)
+    U[pu, 1] = 0.5 * (U[pu, 1] + ly[pu])
+    Lw[pl, 1] = 0.5 * (Lw[pl, 1] + uy[pl])
+    return U, Lw, pu, pl
+
+
+def _as_polylines(sketch):
+    if sketch is None:
+        return []
+    if isinstance(sketch, np.ndarray) and sketch.ndim == 2:
+        return [sketch]
+    if isinstance(sketch, (list, tuple)) and len(sketch) and np.ndim(sketch[0]) == 1:
+        return [np.asarray(sketch, dtype=np.float64)]
+    return [np.asarray(s, dtype=np.float64) for s in sketch]
+
+
+def prepare_sketch(camera: Camera, upper, lower, spacing: float = 1.0, where: str = ""):
+    """Validate, resample (1 px) and press the sketched contours.
+
+    Parameters
+    ----------
+    camera : Camera
+    upper, lower : (N,2) float or list of (N_i,2)
+        Sketched polylines in pixels (one or several strokes per lip).
+    spacing : float
+        Sample spacing, pixels.
+    where : str
+        Names the view in messages (``" in camera 'Cam'"``); empty for one view.
+
+    Returns
+    -------
+    upper, lower : (N,2), (M,2) ndarrays
+        Samples about ``spacing`` px apart, pressed where they cross.
+
+    Raises
+    ------
+    SketchError
+        Missing lip, too-short or non-finite stroke, or a stroke outside the frame.
+    """
+    out = []
+    for name, sk in (("upper", upper), ("lower", lower)):
+        lines = [np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in _as_polylines(sk) if len(p)]
+        if not lines:
+            raise SketchError(
+                f"No {name}-lip stroke{where}: draw both the upper and the lower inner-lip contour "
+                f"(layers 'Upper lip' and 'Lower lip') on this frame."
+            )
+        samples = []
+        for p in lines:
+            if not np.isfinite(p).all():
+                raise SketchError(f"The {name}-lip stroke{where} has invalid (NaN) points; erase it and draw it again.")
+            if len(p) < 2 or np.linalg.norm(p.max(0) - p.min(0)) < 2.0:
+                raise SketchError(f"The {name}-lip stroke{where} is too short (under 2 px); draw the whole contour.")
+            bad = ~camera.in_frame(p, margin=-0.5)
+            if bad.any():
+                q = p[np.flatnonzero(bad)[0]]
+                raise SketchError(
+                    f"The {name}-lip stroke{where} leaves the camera frame (point at {q[0]:.0f}, {q[1]:.0f} px, "
+                    f"frame {camera.width}x{camera.height}); redraw it inside the camera frame."
+                )
+            samples.append(resample_polyline(p, spacing))
+        out.append(np.concatenate(samples))
+    U, Lw, _, _ = press_lips(out[0], out[1])
+    return U, Lw
+
+
+def _closest_to_rays(X, idx, origins, dirs):
+    """For each ray, the index (into ``idx``) of the closest point and its distance."""
+    P = X[idx]  # (S,3)
+    rel = P[None, :, :] - origins[:, None, :]  # (N,S,3)
+    along = np.einsum("nsd,nd->ns", rel, dirs)
+    perp2 = np.einsum("nsd,nsd->ns", rel, rel) - along**2
+    perp2[along <= 0] = np.inf  # behind the camera
+    j = np.argmin(perp2, axis=1)
+    return j, np.sqrt(np.maximum(perp2[np.arange(len(j)), j], 0.0))
+
+
+def _on_envelope(sil, sil_uv, edges, ids, upper: bool, tol_px: float = 1.0):
+    """The vertices ``ids`` on the envelope of the silhouette edges among them.
+
+    ``sil`` (S,) sorted silhouette vertex ids and ``sil_uv`` (S,2) their projections, ``edges``
+    (E,2) silhouette edges, ``ids`` a subset of ``sil`` (one lip). For the upper lip, a vertex stays
+    when no silhouette edge of that lip passes more than ``tol_px`` below it at its image column
+    (image y down); for the lower lip, above it.
+    """
+    member = np.isin(edges, ids).all(axis=1)
+    E = np.searchsorted(sil, edges[member])
+    if len(E) == 0:
+        return ids
+    a, b = sil_uv[E[:, 0]], sil_uv[E[:, 1]]
+    x0, x1 = np.minimum(a[:, 0], b[:, 0]), np.maximum(a[:, 0], b[:, 0])
+    p = sil_uv[np.searchsorted(sil, ids)]
+    dx = b[:, 0] - a[:, 0]
+    t = (p[:, 0:1] - a[None, :, 0]) / np.where(np.abs(dx) < 1e-12, 1e-12, dx)[None]
+    y = a[None, :, 1] + np.clip(t, 0.0, 1.0) * (b[:, 1] - a[:, 1])[None]
+    cover = (p[:, 0:1] >= x0[None]) & (p[:, 0:1] <= x1[None])
+    if upper:
+        env = np.where(cover, y, -np.inf).max(axis=1)
+        keep = ~np.isfinite(env) | (p[:, 1] >= env - tol_px)
+    else:
+        env = np.where(cover, y, np.inf).min(axis=1)
+        keep = ~np.isfinite(env) | (p[:, 1] <= env + tol_px)
+    return ids[keep]
+
+
+def _vertex_normals_subset(X, F, idx):
+    """(len(idx),3) area-weighted unit normals of vertices ``idx`` (sorted unique) using triangles ``F``."""
+    idx = np.asarray(idx, dtype=np.int64)
+    touch = np.isin(F, idx).any(axis=1)
+    Ft = F[touch]
+    fn = np.cross(X[Ft[:, 1]] - X[Ft[:, 0]], X[Ft[:, 2]] - X[Ft[:, 0]])
+    pos = np.searchsorted(idx, Ft)  # position of each corner in idx (valid where it is a member)
+    pos = np.minimum(pos, len(idx) - 1)
+    member = idx[pos] == Ft
+    vn = np.zeros((len(idx), 3))
+    for c in range(3):
+        m = member[:, c]
+        for d in range(3):
+            vn[:, d] += np.bincount(pos[m, c], weights=fn[m, d], minlength=len(idx))
+    return vn / np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-300)
+
+
+def _contour_planes(camera, samples):
+    """(N,3) unit normals of the planes through the camera centre and the sketch's tangent lines.
+
+    A vertex on such a plane projects onto the sketch's tangent line at that sample: the plane
+    constrains the distance across the contour and leaves the position along it free.
+    """
+    t = np.gradient(samples, axis=0) if len(samples) > 1 else np.array([[1.0, 0.0]])
+    t /= np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
+    _, d0 = camera.rays(samples)
+    _, d1 = camera.rays(samples + t)
+    m = np.cross(d0, d1)
+    return m / np.maximum(np.linalg.norm(m, axis=1, keepdims=True), 1e-300)
+
+
+class ViewMatcher:
+    """One sketch view, prepared for the iterations of the refinement.
+
+    Parameters
+    ----------
+    view : SketchView
+    vertices : (V,3) float
+        The captured mesh, scene units.
+    faces : (F,3) int
+    fixed : (V,) bool
+        Hidden vertices: never lip silhouettes.
+    envelope : bool
+        Match only the silhouette vertices on the lip's envelope (the lowest upper-lip and the
+        highest lower-lip silhouette at each image column: the edge of the mouth opening the artist
+        draws), not those of silhouette folds hidden behind it.
+    reach_px : float, optional
+        Silhouette vertices farther than this (pixels) from the sketch are ignored; default
+        ``max(20, 0.15 * sketch width)``.
+    where : str
+        Names the view in messages.
+
+    Attributes
+    ----------
+    near : (V,) bool
+        Free vertices in front of the camera projecting within ``reach_px`` of the sketch.
+    upper, lower : (N,2), (M,2) float
+        The resampled, pressed sketch.
+    """
+
+    def __init__(self, view: SketchView, vertices, faces, fixed, reach_px=None, where: str = "",
+                 envelope: bool = True):
+        self.envelope = bool(envelope)
+        cam = view.camera
+        if not isinstance(cam, Camera):
+            raise CameraError("No camera given: set the scene camera (the one the backplate belongs to).")
+        self.camera, self.where = cam, where
+        self.upper, self.lower = prepare_sketch(cam, view.upper, view.lower, where=where)
+        sketch = np.concatenate([self.upper, self.lower])
+        self.sketch = sketch
+        V0, F = vertices, faces
+        n = len(V0)
+        depth = cam.depth(V0)
+        uv = cam.project(V0)
+        width = float(np.ptp(sketch[:, 0]))
+        if reach_px is None:
+            reach_px = max(20.0, 0.15 * width)
+        # the mouth area in this view: the sketch's box grown by a quarter of its width (at least reach_px)
+        margin = max(reach_px, 40.0, 0.25 * width)
+        lo, hi = sketch.min(0) - margin, sketch.max(0) + margin
+        box = (depth > 0) & np.isfinite(uv).all(1) & (uv >= lo).all(1) & (uv <= hi).all(1)
+        cand = box & ~fixed
+        near = np.zeros(n, bool)
+        if cand.any():
+            from scipy.spatial import cKDTree
+
+            d_sk, _ = cKDTree(sketch).query(uv[cand], distance_upper_bound=reach_px)
+            near[np.flatnonzero(cand)[np.isfinite(d_sk)]] = True
+        if not near.any():
+            if (depth[~fixed] <= 0).mean() > 0.5:
+                raise CameraError(
+                    f"The face is behind the camera{where}; select the camera that looks at the face (the one the "
+                    "backplate belongs to)."
+                )
+            raise SketchError(
+                f"No part of the face projects near the lip strokes{where}; draw them over the mouth in this "
+                "camera's view (or pick the camera they were drawn in)."
+            )
+        fs = facing(V0, F[cand[F].all(axis=1)], cam)  # judged on the whole mouth area, not only the lip edges
+        if fs.size and (fs > 0).mean() < 0.3:
+            raise CameraError(
+                f"The camera{where} sees the face from behind (the mouth area faces away from it); use a camera "
+                "in front of the face."
+            )
+        self.near = near
+        self.o_u, self.d_u = cam.rays(self.upper)
+        self.o_l, self.d_l = cam.rays(self.lower)
+        self.n_u = _contour_planes(cam, self.upper)
+        self.n_l = _contour_planes(cam, self.lower)
+
+    def restrict(self, faces, region_vertices):
+        """Limit the silhouette search to triangles of ``region_vertices`` (V,) bool near the sketch."""
+        F = np.asarray(faces)
+        rf = np.flatnonzero(region_vertices[F].all(axis=1))
+        self.Fr = F[rf]
+        edges, ef = edge_faces(self.Fr)
+        inner = (ef >= 0).all(axis=1)
+        edges, ef = edges[inner], ef[inner]
+        keep = self.near[edges].all(axis=1)
+        self.edges, self.ef = edges[keep], ef[keep]
+
+    def correspondences(self, X, lambda_silh: float, silhouette_rays: str = "nearest"):
+        """Silhouette vertices of ``X`` matched to the sketch rays.
+
+        Returns
+        -------
+        constraints : list of PointConstraints
+            Point-to-ray terms of ``E_silh`` (weight ``lambda_silh`` per sketch pixel).
+        distance_px : (N+M,) float
+            Distance of every sketch ray to its matched vertex, in pixels at the vertex's depth.
+        matched : dict
+            ``{"upper": ids, "lower": ids}`` matched vertex indices.
+        """
+        cam, where = self.camera, self.where
+        s = facing(X, self.Fr, cam) > 0
+        sil_edges = self.edges[s[self.ef[:, 0]] != s[self.ef[:, 1]]]
+        sil = np.unique(sil_edges)
+        if len(sil) == 0:
+            raise SketchError(
+                f"The mesh has no lip silhouette near the strokes{where}; check that the strokes follow the inner "
+                "lips and that the camera looks at the mouth."
+            )
+        normals = _vertex_normals_subset(X, self.Fr, sil)
+        sil_uv = cam.project(X[sil]) if self.envelope else None
+        side = projected_normals(X[sil], normals, cam)[:, 1] > 0  # True: upper lip (image y down)
+        cons, dist_px, matched = [], [], {}
+        for name, lipmask, samples, o, d, pn in (("upper", side, self.upper, self.o_u, self.d_u, self.n_u),
+                                                 ("lower", ~side, self.lower, self.o_l, self.d_l, self.n_l)):
+            ids = sil[lipmask]
+            if self.envelope and len(ids):
+                ids = _on_envelope(sil, sil_uv, sil_edges, ids, upper=(name == "upper"))
+            if len(ids) == 0:
+                raise SketchError(
+                    f"No {name}-lip silhouette found near the {name}-lip stroke{where}; draw the contours over the "
+                    "inner lips in camera view, upper above lower (a lip that is a separate mesh piece is held "
+                    "unless it is the largest piece: pass the hidden parts as 'fixed' / the FL_fixed group)."
+                )
+            j, dist = _closest_to_rays(X, ids, o, d)
+            vid = ids[j]
+            matched[name] = np.unique(vid)
+            if silhouette_rays in ("nearest", "normal"):
+                uv, cnt = np.unique(vid, return_counts=True)
+                pv = cam.project(X[uv])
+                k = np.argmin(((pv[:, None, :] - samples[None]) ** 2).sum(-1), axis=1)
+                if silhouette_rays == "normal":
+                    m = pn[k]
+                    cons.append(PointConstraints(uv, np.ones((len(uv), 1)), np.broadcast_to(cam.center, (len(uv), 3)),
+                                                 m[:, :, None] * m[:, None, :], lambda_silh * cnt))
+                else:
+                    oo, dd = cam.rays(samples[k])
+                    cons.append(PointConstraints.rays(uv, oo, dd, strength=lambda_silh * cnt))
+            else:
+                cons.append(PointConstraints.rays(vid, o, d, strength=lambda_silh))
+            dist_px.append(dist * cam.K[0, 0] / np.maximum(cam.depth(X[vid]), 1e-12))
+        return cons, np.concatenate(dist_px), matched
