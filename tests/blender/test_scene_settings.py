@@ -72,12 +72,12 @@ def test_settings_are_saved_with_the_shot_and_used(addon, tmp_path):
 def test_new_scenes_take_the_preferences_defaults(addon, monkeypatch):
     empty_scene()
     scene = bpy.data.scenes.new("Shot")  # (a loaded file's scenes are filled on load)
-    fake = types.SimpleNamespace(facelab_refine=types.SimpleNamespace(iterations=9, lambda_pos=0.2, lambda_reg=4.0,
-                                                                      lambda_silh=1.5))
-    monkeypatch.setattr(prefs, "preferences", lambda context=None: fake)
     entry = scene_settings.entry_for("facelab_refine")
-    assert scene_settings.preference_defaults(entry) == dict(iterations=9, lambda_pos=0.2, lambda_reg=4.0,
-                                                             lambda_silh=1.5)
+    mine = dict(iterations=9, lambda_pos=0.2, lambda_reg=4.0, lambda_silh=1.5)
+    stored = {d["name"]: d["default"] for d in scene_settings.fields(entry)} | mine
+    fake = types.SimpleNamespace(facelab_refine=types.SimpleNamespace(**stored))
+    monkeypatch.setattr(prefs, "preferences", lambda context=None: fake)
+    assert scene_settings.preference_defaults(entry) == stored
     r = scene_settings.scene_settings(scene, RefineSettings)  # first use: filled from the preferences
     assert (r.iterations, r.lambda_reg) == (9, 4.0)
     fake.facelab_refine.iterations = 3  # preferences changed later: this shot keeps its own
