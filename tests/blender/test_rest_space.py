@@ -148,14 +148,14 @@ def test_refine_on_a_rigged_face_shows_the_solver_result(tmp_path, ict, addon, m
     write_stroke_pixels(gp, "Upper lip", FRAME, [s["up_px"]], cam)
     write_stroke_pixels(gp, "Lower lip", FRAME, [s["lo_px"]], cam)
     solved = {}
-    real = refine_mod.refine_lips
+    real = refine_mod.refine_lips_views
 
     def spy(V, *a, **k):
         X, info = real(V, *a, **k)
         solved["V"], solved["X"] = V.copy(), X.copy()
         return X, info
 
-    monkeypatch.setattr(refine_mod, "refine_lips", spy)
+    monkeypatch.setattr(refine_mod, "refine_lips_views", spy)
     refine_mod.refine(scene, obj, FRAME, sketch=gp)
     got = evaluated_vertices(obj, bpy.context.evaluated_depsgraph_get())
     moved = np.linalg.norm(solved["X"] - solved["V"], axis=1).max()
