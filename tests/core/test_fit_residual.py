@@ -51,13 +51,31 @@ def test_dataset_shapes_and_the_neutral_are_reproduced(toy):
 
 
 def test_clean_bundles_are_interpolated_and_the_fit_weights_are_bounded(toy):
-    rec, V, F = toy["rec"], toy["V"], toy["F"]
+    V, F = toy["V"], toy["F"]
+    # without the learned gain the whole residual is stitched: exactly through the bundles
+    rec = FitResidual(V, F, toy["X"], toy["bf"], toy["bb"], uvs=V[:, :2], learn_gain=False)
+    assert (rec.gain[rec.falloff_weights > 0] == 1).all()
     q = surface_points(face_model(V, np.full(6, 1.3)), F, toy["bf"], toy["bb"])  # beyond the dataset
     X = rec.reconstruct(q)
     w = rec.last["weights"]
     assert w.min() >= 0 and w.max() <= 1 and rec.last["residual"] > 1e-3
     np.testing.assert_allclose(surface_points(X, F, toy["bf"], toy["bb"]), q, atol=1e-9)
     np.testing.assert_allclose(rec.fit_weights(q), w, atol=1e-9)
+
+
+def test_learned_gain_reduces_the_held_out_error(toy):
+    V, F, rec = toy["V"], toy["F"], toy["rec"]
+    plain = FitResidual(V, F, toy["X"], toy["bf"], toy["bb"], uvs=V[:, :2], learn_gain=False)
+    g = rec.gain[rec.falloff_weights > 0]
+    assert 0 <= g.min() and g.max() <= 1 and 0.2 < g.mean() < 1
+    e_g, e_p = [], []
+    for w in poses(12, 21):
+        x = face_model(V, w)
+        q = surface_points(x, F, toy["bf"], toy["bb"])
+        e_g.append(np.linalg.norm(rec.reconstruct(q) - x, axis=1).mean())
+        e_p.append(np.linalg.norm(plain.reconstruct(q) - x, axis=1).mean())
+    print("held-out mean error, learned gain %.3g, whole residual %.3g" % (np.mean(e_g), np.mean(e_p)))
+    assert np.mean(e_g) < np.mean(e_p)
 
 
 def test_noise_is_filtered_and_never_worse_than_the_bounded_fit(toy):
@@ -90,6 +108,7 @@ def test_the_residual_fades_far_from_the_bundles():
     rec = FitResidual(V, F, X, bf, bb, uvs=V[:, :2])
     far = (V[:, 0] > 0.8) & (V[:, 1] > 0.8)
     assert (rec.falloff_weights[far] == 0).all() and rec.falloff_weights[(V[:, 0] < 0.3) & (V[:, 1] < 0.3)].min() == 1
+    assert (rec.residual_weights[far] == 0).all()
     x = face_model(V, np.array([0.5, 0, 0, 0.7, 0, 0]))
     q = surface_points(x, F, bf, bb)
     Xr = rec.reconstruct(q)

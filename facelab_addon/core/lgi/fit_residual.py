@@ -25,10 +25,16 @@ the fit as the base and adds, locally, what the fit misses:
    without noise the surface passes exactly through every bundle; with noise
    only the part of the residual that stands above it is kept, and pure noise
    leaves the fit unchanged.
-4. **Falloff** ``f`` (V,): 1 up to ``falloff[0]`` bundle spacings (median
-   distance between neighbouring bundles) from the nearest bundle, smoothly 0
-   at ``falloff[1]``, and 0 on vertices that no dataset shape moves: far from
-   bundles the global fit stands alone.
+4. **Where the residual acts** ``f`` (V,): a falloff, 1 up to
+   ``falloff[0]`` bundle spacings (median distance between neighbouring
+   bundles) from the nearest bundle, smoothly 0 at ``falloff[1]``, and 0 on
+   vertices that no dataset shape moves, times a per-vertex *gain* in [0, 1]
+   learned from the dataset by leaving each shape out (how well the stitched
+   residual predicts the true one there). Far from bundles, and where the
+   skin does not move like its nearest bundles (the inner lips, behind the
+   outer-lip bundles), the global fit stands alone. With the learned gain
+   the surface no longer passes exactly through the bundles
+   (``learn_gain=False``: exactly through them when there is no noise).
 
 :func:`estimate_noise` estimates ``sigma`` from a sequence's jitter (the
 second difference of every bundle's track) when the noise level is not given.
@@ -155,6 +161,9 @@ class FitResidual:
         only where it stands above this many times the noise variance
         (unitless; 1 would be unbiased for white noise, larger is safer
         because the fit has already absorbed part of the noise).
+    learn_gain : bool
+        Learn the per-vertex gain of the residual from the dataset (leave
+        one shape out; about one bounded fit per shape at build time).
     bundle_names : list of str, optional
         Bundle names for messages.
 
@@ -164,6 +173,9 @@ class FitResidual:
         Bundles, shapes, bundle spacing, memory in bytes, build time.
     face_size : float
         Bounding-box diagonal of the natural-neighbour domain, scene units.
+    falloff_weights, gain, residual_weights : (V,) float64
+        The distance falloff, the learned gain (1 without learning) and
+        their product, the weight of the stitched residual at every vertex.
     last : dict
         Of the last frame: ``weights`` (S,), ``residual`` (largest bundle
         residual of the fit, scene units), ``lambda`` (the residual's
@@ -172,7 +184,7 @@ class FitResidual:
 
     def __init__(self, neutral, faces, shapes, bundle_faces, bundle_bary, *, names=None, uvs=None, nn_method=None,
                  nn=None, weight_prior: float = 1.0, falloff=(1.0, 2.5), noise_margin: float = 1.5,
-                 bundle_names=None):
+                 learn_gain: bool = True, bundle_names=None):
         t0 = time.perf_counter()
         x0, F = validate_mesh(neutral, faces, name="neutral mesh")
         X = np.asarray(shapes, dtype=np.float64)
@@ -265,7 +277,10 @@ class FitResidual:
         self.falloff_weights = f
         keep = np.flatnonzero(f > 0)
         self._keep = keep
-        self._Wf = sp.csr_matrix(sp.diags(f[keep]) @ W[keep])
+        self.gain = np.zeros(nv)
+        self.gain[keep] = self._learned_gain(D, W, keep) if learn_gain else 1.0
+        self.residual_weights = f * self.gain
+        self._Wf = sp.csr_matrix(sp.diags(self.residual_weights[keep]) @ W[keep])
         self.last = {}
         self.stats = {
             "method": "fit_residual",
@@ -276,12 +291,38 @@ class FitResidual:
             "bundle_spacing": self.spacing,
             "shapes_no_bundle_sees": list(self.unseen),
             "vertices_with_residual": int(len(keep)),
+            "mean_residual_gain": float(self.gain[keep].mean()) if len(keep) else 0.0,
             "residual_matrix_condition": float(np.linalg.cond(G)),
             "natural_neighbor_method": self.nn.method,
             "memory_bytes_total": int(self._D.nbytes + A.nbytes + G.nbytes + EV.nbytes + self._Wf.data.nbytes
                                       + self._Wf.indices.nbytes + self._Wf.indptr.nbytes),
             "build_seconds": time.perf_counter() - t0,
         }
+
+    def _learned_gain(self, D, W, keep):
+        """(len(keep),) per-vertex gain in [0, 1] of the stitched residual, learned on the dataset.
+
+        Leave one shape out: fit it (bounded) with the others, stitch the
+        fit's residual at the bundles as :meth:`reconstruct` does, and compare
+        with the fit's true residual at every vertex. The gain is the
+        least-squares scale of the stitched residual onto the true one over
+        all shapes, clipped to [0, 1]: 1 where stitching predicts the
+        residual, 0 where it does not (typically vertices whose motion is not
+        that of the nearest bundles, such as the inner lips).
+        """
+        A, S, B = self.A, self.S, self.B
+        Wl = np.zeros((S, S))
+        for s in range(S):
+            others = np.r_[0:s, s + 1:S]
+            Wl[s, others] = lsq_linear(A[:, others], A[:, s], bounds=(0.0, 1.0), method="bvls").x
+        r = (A.T - Wl @ A.T).reshape(S, B, 3)  # fit residuals at the bundles
+        C = np.linalg.solve(self._G, r.transpose(1, 0, 2).reshape(B, 3 * S))  # (B, 3S)
+        P = np.asarray(W[keep] @ C).reshape(len(keep), S, 3)  # stitched
+        Dk = D[:, keep]
+        R = Dk - np.tensordot(Wl, Dk, axes=1)  # (S, k, 3) true residuals
+        num = np.einsum("ksd,skd->k", P, R)
+        den = np.einsum("ksd,ksd->k", P, P)
+        return np.clip(num / np.maximum(den, 1e-300), 0.0, 1.0) * (den > 0)
 
     # ------------------------------------------------------------------ the fit
 
@@ -354,7 +395,7 @@ class FitResidual:
             Bundle positions (in the neutral's rigid frame), scene units.
         noise : float
             Bundle noise, standard deviation per axis, scene units (0: the
-            surface passes exactly through every bundle within the falloff).
+            whole residual at the bundles is stitched).
 
         Returns
         -------
