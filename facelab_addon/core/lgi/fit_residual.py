@@ -356,12 +356,12 @@ class FitResidual:
         """(S,) bounded blendshape weights in [0, 1] for one frame of bundles (B,3); ``noise`` in scene units."""
         q = self._check_bundles(bundles)
         R, Qt = self._system(noise)
-        return lsq_linear(R, Qt @ (q - self.p0).ravel(), bounds=(0.0, 1.0), method="bvls").x
+        return np.clip(lsq_linear(R, Qt @ (q - self.p0).ravel(), bounds=(0.0, 1.0), method="bvls").x, 0.0, 1.0)
 
     def _coefficients(self, q, noise):
         """Fit weights (S,) and residual coefficients (B,3) of one frame."""
         R, Qt = self._system(noise)
-        w = lsq_linear(R, Qt @ (q - self.p0).ravel(), bounds=(0.0, 1.0), method="bvls").x
+        w = np.clip(lsq_linear(R, Qt @ (q - self.p0).ravel(), bounds=(0.0, 1.0), method="bvls").x, 0.0, 1.0)
         r = (q - self.p0) - (self.A @ w).reshape(self.B, 3)
         sig2 = float(noise) ** 2
         if sig2 > 0:
