@@ -306,7 +306,8 @@ class FitResidual:
         fit's residual at the bundles as :meth:`reconstruct` does, and compare
         with the fit's true residual at every vertex. The gain is the
         least-squares scale of the stitched residual onto the true one over
-        all shapes, clipped to [0, 1]: 1 where stitching predicts the
+        all shapes, clipped to [0, 1] and squared (a shrinkage: the scale is
+        fitted on the shapes it is judged on): 1 where stitching predicts the
         residual, 0 where it does not (typically vertices whose motion is not
         that of the nearest bundles, such as the inner lips).
         """
@@ -322,7 +323,8 @@ class FitResidual:
         R = Dk - np.tensordot(Wl, Dk, axes=1)  # (S, k, 3) true residuals
         num = np.einsum("ksd,skd->k", P, R)
         den = np.einsum("ksd,ksd->k", P, P)
-        return np.clip(num / np.maximum(den, 1e-300), 0.0, 1.0) * (den > 0)
+        g = np.clip(num / np.maximum(den, 1e-300), 0.0, 1.0) * (den > 0)
+        return g * g  # squared: the scale is fitted on the same shapes it is judged on, so shrink it
 
     # ------------------------------------------------------------------ the fit
 
