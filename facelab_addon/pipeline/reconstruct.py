@@ -1,9 +1,11 @@
 """Reconstruct from Bundles and Generate Correctives (Cong, Lan & Fedkiw, local geometric indexing).
 
 :func:`reconstruct_from_bundles` rebuilds the face on every frame from
-animated 3D bundles and the face's own shape keys (the dataset), optionally
-with a jaw driving linear blend skinning; the result passes through the
-bundles and is written as compressed ``FL_Recon_*`` keys.
+animated 3D bundles and the face's own shape keys (the dataset): by default a
+bounded blendshape fit plus the noise-filtered residual at the bundles
+(:mod:`facelab_addon.core.lgi.fit_residual`), or the paper's exact local
+geometric indexing, optionally with a jaw driving linear blend skinning; the
+result is written as compressed ``FL_Recon_*`` keys.
 :func:`generate_correctives` adds actor-specific corrective shapes for
 combinations of a template rig's shapes (Fig. 7) to the rig, driven by the
 product of their components. :func:`bundles_from_clip` turns a Movie Clip's
@@ -37,6 +39,7 @@ from ..blender.shapekeys import add_corrective_key, rest_vertices
 from ..core.errors import FaceLabError
 from .correctives import write_corrective_keys
 from .frames import frame_range
+from .settings import setting
 
 __all__ = [
     "ReconstructSettings",
@@ -63,6 +66,18 @@ class ReconstructSettings:
         there (-1: the first frame of the range).
     smooth : int
         Central moving average of the barycentric weights over this many frames (1: off).
+    method : {"FIT_RESIDUAL", "INDEXING"}
+        ``FIT_RESIDUAL`` (default): a bounded blendshape fit of the dataset
+        plus the fit's residual at the bundles, spread by natural-neighbour
+        weights and filtered by the noise level
+        (:class:`~facelab_addon.core.lgi.fit_residual.FitResidual`).
+        ``INDEXING``: the paper's local geometric indexing, exact through the
+        bundles (:class:`~facelab_addon.core.lgi.indexer.GeometricIndexer`;
+        the only method that uses the jaw settings).
+    noise : float
+        Bundle noise, standard deviation per axis in millimetres of the
+        face's world space (``FIT_RESIDUAL``); negative: estimated from the
+        bundles' jitter over the frame range; 0: through every bundle.
     bundle_source : {"SELECTED", "COLLECTION", "MESH"}
         See :func:`facelab_addon.blender.bundles.bundle_objects`; ``selected``
         are the selected objects for ``SELECTED``.
@@ -74,8 +89,22 @@ class ReconstructSettings:
 
     frame_start: int | None = None
     frame_end: int | None = None
-    bind_frame: int = -1
-    smooth: int = 1
+    bind_frame: int = setting(-1, label="Bind Frame", min=-1,
+                              description="Frame where the face is neutral: bundles are bound to the surface there "
+                                          "(-1: the first frame of the range)")
+    smooth: int = setting(1, label="Smoothing", min=1, max=15, unit="frames",
+                          description="Central moving average of the per-frame weights over this many frames (1: off)")
+    method: str = setting("FIT_RESIDUAL", label="Method",
+                          description="How the face is rebuilt from the bundles",
+                          choices=(("FIT_RESIDUAL", "Fit + Residual",
+                                    "Bounded blendshape fit of the shape keys plus the fit's residual at the bundles, "
+                                    "spread locally and filtered by the bundle noise (most accurate)"),
+                                   ("INDEXING", "Local Indexing (exact)",
+                                    "The paper's local geometric indexing: per-bundle dataset shapes, exactly through "
+                                    "every bundle; uses the jaw settings")))
+    noise: float = setting(-1.0, label="Bundle Noise", min=-1.0, soft_max=2.0, unit="mm",
+                           description="Standard deviation of the bundles' noise per axis, in millimetres (-1: "
+                                       "estimated from the bundles' jitter; 0: pass exactly through every bundle)")
     bundle_source: str = "SELECTED"
     selected: tuple = ()
     bundle_collection: object = None
@@ -99,8 +128,10 @@ class ReconstructResult:
     n_shapes: int          # dataset shapes
     jaw: str | None        # what drove the jaw (bone or object name), None without a jaw
     smooth: int
+    method: str            # "FIT_RESIDUAL" or "INDEXING"
+    noise_mm: float        # the bundle noise used (FIT_RESIDUAL; estimated when the setting is negative), else 0
     live_keys: list        # dataset keys with a non-zero value: they add on top of the reconstruction
-    stats: dict            # the indexer's statistics (tetrahedra kept, memory...)
+    stats: dict            # the reconstructor's statistics (tetrahedra kept for INDEXING, memory, build time...)
     time_s: float
 
 
@@ -128,6 +159,13 @@ def _jaw_setup(scene, obj, settings, neutral, shapes, frames, bind):
     driver = settings.jaw_armature if settings.jaw_source == "BONE" else settings.jaw_object
     J = jaw_poses(scene, obj, frames, bind, source=settings.jaw_source, driver=driver, bone=settings.jaw_bone)
     return rig, shape_jaw, J
+
+
+def _mm_per_local_unit(scene, obj) -> float:
+    """Millimetres of world space per unit of the object's local space (scene unit scale times object scale)."""
+    m = np.array(obj.matrix_world.to_3x3(), dtype=np.float64)
+    scale = float(np.cbrt(abs(np.linalg.det(m)))) or 1.0
+    return 1000.0 * (scene.unit_settings.scale_length or 1.0) * scale
 
 
 def missing_bundles(Q, labels, skipped) -> str:
@@ -163,6 +201,7 @@ def reconstruct_from_bundles(scene, obj, settings: ReconstructSettings, progress
         frame missing bundles; nothing is written then.
     """
     from ..core.lgi.binding import bind_points
+    from ..core.lgi.fit_residual import FitResidual
     from ..core.lgi.indexer import GeometricIndexer
 
     t0 = time.perf_counter()
@@ -180,13 +219,24 @@ def reconstruct_from_bundles(scene, obj, settings: ReconstructSettings, progress
     Qw = read_bundles(scene, objs, np.r_[bind, frames])
     q_bind, Q = points_to_local(obj, Qw[0]), points_to_local(obj, Qw[1:])
     bf, bb, _ = bind_points(neutral, tris, q_bind, bundle_names=labels)
-    jaw, shape_jaw, J = _jaw_setup(scene, obj, settings, neutral, shapes, frames, bind)
-    indexer = GeometricIndexer(neutral, tris, shapes, bf, bb, names=names, uvs=triangle_uvs(obj.data),
+    if settings.method not in ("FIT_RESIDUAL", "INDEXING"):
+        raise FaceLabError(f"Unknown reconstruction method {settings.method!r}; use 'FIT_RESIDUAL' or 'INDEXING'.")
+    noise_mm = 0.0
+    jaw, shape_jaw, J = _jaw_setup(scene, obj, settings, neutral, shapes, frames, bind)  # checked for both methods
+    if settings.method == "INDEXING":
+        rec = GeometricIndexer(neutral, tris, shapes, bf, bb, names=names, uvs=triangle_uvs(obj.data),
                                jaw=jaw, shape_jaw=shape_jaw, bundle_names=labels)
-    try:
-        X, skipped = indexer.reconstruct_sequence(Q, J, smooth=smooth, progress=progress)
-    finally:
-        indexer.close()
+        try:
+            X, skipped = rec.reconstruct_sequence(Q, J, smooth=smooth, progress=progress)
+        finally:
+            rec.close()
+    else:
+        jaw = None  # the fit takes the jaw from the dataset's jaw shapes
+        mm = _mm_per_local_unit(scene, obj)
+        rec = FitResidual(neutral, tris, shapes, bf, bb, names=names, uvs=triangle_uvs(obj.data), bundle_names=labels)
+        noise = None if settings.noise < 0 else settings.noise / mm
+        X, skipped = rec.reconstruct_sequence(Q, noise=noise, smooth=smooth, progress=progress)
+        noise_mm = float(rec.noise * mm)
     if len(skipped) == len(frames):
         raise FaceLabError(
             f"Every frame has missing bundles (e.g. {missing_bundles(Q, labels, skipped[:1])}); check the "
@@ -201,8 +251,8 @@ def reconstruct_from_bundles(scene, obj, settings: ReconstructSettings, progress
         jaw_name = settings.jaw_bone if settings.jaw_source == "BONE" else settings.jaw_object.name
     return ReconstructResult(frames=frames, keys=keys, skipped=[int(frames[i]) for i in skipped],
                              missing=missing_bundles(Q, labels, skipped) if skipped else "", n_bundles=Q.shape[1],
-                             n_shapes=len(names), jaw=jaw_name, smooth=smooth, live_keys=live,
-                             stats=dict(indexer.stats), time_s=time.perf_counter() - t0)
+                             n_shapes=len(names), jaw=jaw_name, smooth=smooth, method=settings.method,
+                             noise_mm=noise_mm, live_keys=live, stats=dict(rec.stats), time_s=time.perf_counter() - t0)
 
 
 # --------------------------------------------------------------------------- rig correctives

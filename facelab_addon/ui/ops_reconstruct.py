@@ -43,7 +43,7 @@ def bundles_problem(context) -> str | None:
 
 
 class FACELAB_OT_reconstruct_from_bundles(bpy.types.Operator):
-    """Rebuild the high-resolution face on every frame from animated 3D bundles and the face's shape-key dataset (local geometric indexing); the result passes through the bundles and is keyed as corrective shape keys"""
+    """Rebuild the high-resolution face on every frame from animated 3D bundles and the face's shape-key dataset (a bounded blendshape fit plus the noise-filtered residual at the bundles, or the paper's exact local geometric indexing); the result is keyed as corrective shape keys"""
 
     bl_idname = "facelab.reconstruct_from_bundles"
     bl_label = "Reconstruct from Bundles"
@@ -92,14 +92,18 @@ class FACELAB_OT_reconstruct_from_bundles(bpy.types.Operator):
         finally:
             context.window_manager.progress_end()
         st = r.stats
+        how = (f"{st['tetrahedra_kept']:,} tetrahedra ({st['memory_bytes_total'] / 2**20:.0f} MB)"
+               if r.method == "INDEXING" else f"fit + residual, bundle noise {r.noise_mm:.2f} mm"
+               + (" (estimated)" if scene.facelab_recon.noise < 0 else ""))
         msg = (f"Reconstructed {len(r.frames) - len(r.skipped):,} frames from {r.n_bundles} bundles and {r.n_shapes} "
-               f"shapes in {r.time_s:.1f} s: {len(r.keys)} corrective keys ({RECONSTRUCT_PREFIX}*), "
-               f"{st['tetrahedra_kept']:,} tetrahedra ({st['memory_bytes_total'] / 2**20:.0f} MB)"
+               f"shapes in {r.time_s:.1f} s: {len(r.keys)} corrective keys ({RECONSTRUCT_PREFIX}*), {how}"
                + (", jaw from " + r.jaw if r.jaw is not None else "")
                + (f", smoothing {r.smooth} frames" if r.smooth > 1 else ""))
         if r.skipped:
             msg += (f"; skipped {len(r.skipped)} frames with missing bundles (shown neutral): {r.skipped[:10]} "
                     f"({r.missing})")
+        if r.method != "INDEXING" and scene.facelab_recon.jaw_source != "NONE":
+            msg += "; the jaw setting is used by Local Indexing only"
         if r.live_keys:
             msg += f"; note: dataset keys {r.live_keys[:5]} are not zero and add on top"
         self.report({"WARNING"} if r.skipped or r.live_keys else {"INFO"}, msg)

@@ -9,7 +9,7 @@ from .ops import face_object
 
 
 def draw_reconstruct_section(layout, context):
-    """Bundles, bind frame, jaw and smoothing; Reconstruct; the corrective-shape tool."""
+    """Bundles, bind frame, method and noise, jaw and smoothing; Reconstruct; the corrective-shape tool."""
     r = getattr(context.scene, "facelab_recon", None)
     col = layout.column()
     if r is None:  # not registered (partial reload)
@@ -35,6 +35,11 @@ def draw_reconstruct_section(layout, context):
         row.prop(r, "bind_frame")
 
     box = col.box()
+    box.prop(r, "method")
+    if r.method == "FIT_RESIDUAL":
+        box.prop(r, "noise")
+
+    box = col.box()
     box.prop(r, "jaw_source")
     if r.jaw_source == "BONE":
         box.prop(r, "jaw_armature")
@@ -44,6 +49,8 @@ def draw_reconstruct_section(layout, context):
             box.prop(r, "jaw_bone")
     elif r.jaw_source == "OBJECT":
         box.prop(r, "jaw_object")
+    if r.jaw_source != "NONE" and r.method != "INDEXING":
+        box.label(text="The jaw drives Local Indexing only", icon="INFO")
     if r.jaw_source != "NONE":
         if face is not None:
             box.prop_search(r, "jaw_group", face, "vertex_groups")

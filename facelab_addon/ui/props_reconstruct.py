@@ -1,16 +1,21 @@
 """Properties of Reconstruct from Bundles and Generate Correctives (Cong, Lan & Fedkiw).
 
 ``Scene.facelab_recon`` (:class:`FACELAB_PG_reconstruct`): the bundle source,
-bind frame, smoothing, jaw and the template rig with its combinations.
+bind frame, method and bundle noise, smoothing, jaw and the template rig with
+its combinations.
 :func:`reconstruct_settings` and :func:`corrective_settings` gather them into
 the pipeline's settings (:mod:`facelab_addon.pipeline.reconstruct`).
 """
 
 import bpy
-from bpy.props import BoolProperty, EnumProperty, IntProperty, PointerProperty, StringProperty
+from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
 from ..names import BUNDLES_COLLECTION
 from ..pipeline.reconstruct import CorrectiveSettings, ReconstructSettings
+from ..pipeline.settings import describe
+
+_SETTINGS = {d["name"]: d for d in describe(ReconstructSettings)}
+METHODS = [tuple(c) for c in _SETTINGS["method"]["choices"]]
 
 BUNDLE_SOURCES = [
     ("SELECTED", "Selected",
@@ -51,8 +56,13 @@ class FACELAB_PG_reconstruct(bpy.types.PropertyGroup):
         set=lambda self, v: setattr(self, "bind_frame", -1 if v else self.id_data.frame_start),
         description="Bind on the scene's first frame (off: on the Bind Frame below)")
     smooth: IntProperty(name="Smoothing", default=1, min=1, max=15,
-                        description="Central moving average of the barycentric weights over this many frames "
-                                    "(1: off); the surface then passes through the bundles' moving average")
+                        description="Central moving average of the per-frame weights over this many frames "
+                                    "(1: off); Local Indexing then passes through the bundles' moving average")
+    method: EnumProperty(name=_SETTINGS["method"]["label"], items=METHODS, default=_SETTINGS["method"]["default"],
+                         description=_SETTINGS["method"]["description"])
+    noise: FloatProperty(name=_SETTINGS["noise"]["label"], default=_SETTINGS["noise"]["default"],
+                         min=_SETTINGS["noise"]["min"], soft_max=_SETTINGS["noise"]["soft_max"], precision=3,
+                         description=_SETTINGS["noise"]["description"])
     jaw_source: EnumProperty(name="Jaw", items=JAW_SOURCES, default="NONE")
     jaw_armature: PointerProperty(name="Armature", type=bpy.types.Object, poll=_armature_poll)
     jaw_bone: StringProperty(name="Bone", default="jaw")
@@ -80,6 +90,7 @@ def reconstruct_settings(scene, selected=(), *, frame_start: int | None = None, 
     return ReconstructSettings(
         frame_start=frame_start, frame_end=frame_end, bind_frame=bind_frame if bind_frame != -2 else r.bind_frame,
         smooth=smooth or r.smooth, bundle_source=r.bundle_source, selected=tuple(selected),
+        method=r.method, noise=r.noise,
         bundle_collection=r.bundle_collection, bundle_mesh=r.bundle_mesh, jaw_source=r.jaw_source,
         jaw_armature=r.jaw_armature, jaw_bone=r.jaw_bone, jaw_object=r.jaw_object, jaw_group=r.jaw_group)
 

@@ -63,18 +63,31 @@ def test_reconstruct_from_bundles_end_to_end(ict, addon):
     q = read_bundles(scene, empties, frames)
     np.testing.assert_allclose(q, pts, atol=1e-6)
     bf, bb, _ = bind_points(n0, tris, q[0])
-    idx = GeometricIndexer(n0, tris, data, bf, bb, names=names)
-    expect, skipped = idx.reconstruct_sequence(q)
-    assert skipped == []
-    assert np.abs(got - expect).max() < 1.2e-5, np.abs(got - expect).max()
-    # and it passes through the bundles
-    surf = np.einsum("bk,tbkd->tbd", bb, got[:, tris[bf]])
-    assert np.abs(surf - q).max() < 1.5e-5
-    # and it recovers the truth (every frame is a blend of two dataset shapes)
     front = ict.part_vertex_mask("M_Face") & (neutral[:, 2] > 0.07)
-    e = np.linalg.norm(got - truth_all(truth, neutral), axis=2)[:, front]
-    print("front-face error mm: mean %.4f max %.4f" % (e.mean() * 1e3, e.max() * 1e3))
-    assert e.mean() < 1e-4  # 0.1 mm
+    from facelab_addon.blender.objects import triangle_uvs
+    from facelab_addon.core.lgi.fit_residual import FitResidual
+
+    # the default (fit + residual, noise estimated: 0 for 7 frames) and the paper's exact local indexing
+    fr = FitResidual(n0, tris, data, bf, bb, names=names, uvs=triangle_uvs(obj.data))
+    for method in ("FIT_RESIDUAL", "INDEXING"):
+        if method == "INDEXING":
+            scene.facelab_recon.method = "INDEXING"
+            assert bpy.ops.facelab.reconstruct_from_bundles(bind_frame=0) == {"FINISHED"}
+            got = evaluate_frames(obj, frames, mute_shape_keys_prefix=())
+            idx = GeometricIndexer(n0, tris, data, bf, bb, names=names, uvs=triangle_uvs(obj.data))
+            expect, skipped = idx.reconstruct_sequence(q)
+        else:
+            expect, skipped = fr.reconstruct_sequence(q)
+            assert fr.last_sequence["noise"] == 0.0
+        assert skipped == []
+        assert np.abs(got - expect).max() < 1.2e-5, (method, np.abs(got - expect).max())
+        # and it passes through the bundles
+        surf = np.einsum("bk,tbkd->tbd", bb, got[:, tris[bf]])
+        assert np.abs(surf - q).max() < 1.5e-5
+        # and it recovers the truth (every frame is a blend of two dataset shapes)
+        e = np.linalg.norm(got - truth_all(truth, neutral), axis=2)[:, front]
+        print("%s front-face error mm: mean %.4f max %.4f" % (method, e.mean() * 1e3, e.max() * 1e3))
+        assert e.mean() < 1e-4  # 0.1 mm
 
 
 # --------------------------------------------------------------------------- shared scene builders
@@ -253,6 +266,7 @@ def test_jaw_bone_drives_the_jaw(ict, addon, gen):
     bpy.context.view_layer.objects.active = obj
     scene.facelab.face = obj
     r = scene.facelab_recon
+    r.method = "INDEXING"  # the jaw drives local indexing (Eq. 2)
     front = ict.part_vertex_mask("M_Face") & (ict.neutral[:, 2] > 7)
 
     errs = {}
@@ -433,7 +447,26 @@ def test_panel_section_draws_existing_properties(addon):
             r.bundle_source, r.jaw_source = src, jaw
             draw_reconstruct_section(Layout(), bpy.context)
     assert {"facelab.reconstruct_from_bundles", "facelab.generate_correctives", "jaw_bone", "bundle_mesh",
-            "combinations", "smooth"} <= set(drawn)
+            "combinations", "smooth", "method", "noise"} <= set(drawn)
+
+
+def test_method_and_noise_are_declared_settings_that_reach_the_pipeline(addon):
+    from facelab_addon.pipeline.reconstruct import ReconstructSettings
+    from facelab_addon.pipeline.settings import describe
+    from facelab_addon.ui.props_reconstruct import reconstruct_settings
+
+    d = {x["name"]: x for x in describe(ReconstructSettings)}
+    assert d["method"]["default"] == "FIT_RESIDUAL" and [c[0] for c in d["method"]["choices"]] == ["FIT_RESIDUAL",
+                                                                                                  "INDEXING"]
+    assert d["noise"]["unit"] == "mm" and d["noise"]["default"] < 0 and d["smooth"]["unit"] == "frames"
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    scene = bpy.context.scene
+    r = scene.facelab_recon
+    st = reconstruct_settings(scene)
+    assert (st.method, st.noise) == ("FIT_RESIDUAL", -1.0)  # the scene's defaults are the dataclass's
+    r.method, r.noise = "INDEXING", 0.3
+    st = reconstruct_settings(scene)
+    assert st.method == "INDEXING" and st.noise == pytest.approx(0.3)
 
 
 def test_bundles_from_tracking_explains_an_unsolved_clip(addon, tmp_path):

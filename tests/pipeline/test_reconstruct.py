@@ -86,6 +86,35 @@ def test_lost_bundle_skips_its_frame_and_bad_input_writes_nothing(ict, addon):
     assert [kb.name for kb in obj.data.shape_keys.key_blocks] == before
 
 
+def test_noise_setting_in_millimetres_and_estimated_from_jitter(ict, addon):
+    keys = EXPR[:6]
+    T = 24
+    s = 0.5 + 0.4 * np.sin(np.linspace(0, np.pi, T - 1))
+    poses = [{}] + [{keys[0]: float(a), keys[3]: float(1 - a)} for a in s]  # frame 0 neutral: the bind frame
+    scene, obj, empties, truth, pts = _shot(ict, keys, poses)
+    # replace the bundles' motion by the noisy one: 0.3 mm per axis in world space (the face is in metres)
+    sigma_mm = 0.3
+    noisy = pts + sigma_mm * 1e-3 * np.random.default_rng(2).standard_normal(pts.shape)
+    noisy[0] = pts[0]  # bind frame: the neutral
+    for e, track in zip(empties, noisy.transpose(1, 0, 2)):
+        for t, p in enumerate(track):
+            e.location = p
+            e.keyframe_insert("location", frame=t)
+    front = ict.part_vertex_mask("M_Face") & (ict.neutral[:, 2] > 7)
+    err = {}
+    for label, noise in (("estimated", -1.0), ("given", sigma_mm), ("exact", 0.0)):
+        r = reconstruct_from_bundles(scene, obj, ReconstructSettings(bind_frame=0, selected=empties, noise=noise))
+        assert r.method == "FIT_RESIDUAL"
+        if label == "estimated":
+            assert r.noise_mm == pytest.approx(sigma_mm, rel=0.25)
+        else:
+            assert r.noise_mm == pytest.approx(noise)
+        got = evaluate_frames(obj, range(1, T), mute_shape_keys_prefix=())
+        err[label] = np.linalg.norm(got - truth[1:], axis=2)[:, front].mean() * 1e3
+    print("mean error mm:", err)
+    assert err["given"] < 0.9 * err["exact"] and err["estimated"] < 0.9 * err["exact"]
+
+
 def test_generate_correctives_matches_the_core_and_beats_the_linear_rig(ict, addon):
     from facelab_addon.blender.objects import triangle_uvs
     from facelab_addon.blender.rig import dataset_shapes
