@@ -23,18 +23,24 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..blender import cache_integrate, caches
+from ..blender.capture_stream import CaptureReader
 from ..blender.mesh import mesh_triangles, require_mesh
 from ..blender.objects import ModifierState, require_editable
 from ..blender.shapekeys import (
     add_corrective_key,
+    add_keys_from_deltas,
     key_property_bulk,
     key_spike,
+    key_values_bulk,
+    remove_keys,
     rest_vertices,
 )
 from ..core.capture.integrate import integrate_matrices, integrate_offsets_to_key
 from ..core.errors import FaceLabError, FrameError, MeshError
+from ..core.geometry.compress import DEFAULT_TOL_M
 from ..core.lips.propagate import LipRegressor
-from ..core.lips.suggest import suggest_frames
+from ..core.lips.reduced import StreamingBasis
+from ..core.lips.suggest import SuggestScreen
 from ..names import (
     CORRECTED_PREFIX,
     EXTRAPOLATION_PROP,
@@ -42,7 +48,6 @@ from ..names import (
     SUGGEST_MARKER,
     TRAIN_MARKER,
 )
-from .correctives import write_corrective_keys
 from .frames import check_frames
 from .regions import region_faces
 from .settings import setting
@@ -61,6 +66,8 @@ __all__ = [
 ]
 
 _CACHE_SOURCES = ("mesh_cache", "mesh_sequence_cache")
+_CHUNK = 256  # frames per streamed chunk: working memory ~ chunk x (mouth + lip vertices), not the shot
+_FEATURE_BLOCK = 64  # frames per block of mouth features (9 numbers per mouth triangle and frame)
 
 
 @dataclass
@@ -229,7 +236,8 @@ def add_corrected_frame(scene, obj, frame: int, vertices) -> CorrectedFrame:
 
 
 # --------------------------------------------------------------------------- propagate
-def propagate(scene, obj, frames, settings: PropagateSettings | None = None, progress=None) -> PropagateResult:
+def propagate(scene, obj, frames, settings: PropagateSettings | None = None, progress=None, *,
+              chunk: int | None = None) -> PropagateResult:
     """Fit the regressor on the training frames, predict every frame, write the corrective keys.
 
     Runs :func:`propagate_steps` to the end at once.
@@ -244,21 +252,29 @@ def propagate(scene, obj, frames, settings: PropagateSettings | None = None, pro
     settings : PropagateSettings, optional
     progress : callable(label, done, total), optional
         Called after each step.
+    chunk : int, optional
+        Frames read, corrected and compressed at a time (memory is bounded by the chunk, not
+        the shot; the result does not depend on it). Default: a 40th of the shot (a step of
+        the progress bar), at least 4 and at most 256 frames.
 
     Returns
     -------
     PropagateResult
     """
-    return run_steps(propagate_steps(scene, obj, frames, settings), progress)
+    return run_steps(propagate_steps(scene, obj, frames, settings, chunk=chunk), progress)
 
 
-def propagate_steps(scene, obj, frames, settings: PropagateSettings | None = None):
+def propagate_steps(scene, obj, frames, settings: PropagateSettings | None = None, *, chunk: int | None = None):
     """Propagate as a generator: yields ``(stage, done, total)`` between steps and returns a :class:`PropagateResult`.
 
     The input is checked by this call (errors are raised before any step);
-    the steps then read the capture in chunks of frames, fit, predict in
-    chunks, (over a cache: map every frame's correction onto the cache
-    surface) and write. Nothing in the scene changes before the last step,
+    the steps then fit on the training frames and stream the shot a chunk of
+    frames at a time: read only the mouth and lip vertices
+    (:class:`~facelab_addon.blender.capture_stream.CaptureReader`), predict the
+    interior lip correction, (over a cache: map it onto the cache surface), add it to
+    a :class:`~facelab_addon.core.lips.reduced.StreamingBasis` and score the
+    mouth; then write the few shapes and their weights. Memory is bounded by
+    the chunk, not the shot. Nothing in the scene changes before the last step,
     except that a Mesh Cache is switched to Integrate (or an Alembic baked to
     a PC2) first; closing the generator between steps (a cancel) or an error
     in a step puts the modifiers back as they were (and deletes such a PC2)
@@ -266,7 +282,7 @@ def propagate_steps(scene, obj, frames, settings: PropagateSettings | None = Non
 
     Parameters
     ----------
-    scene, obj, frames, settings
+    scene, obj, frames, settings, chunk
         As :func:`propagate`.
 
     Returns
@@ -298,18 +314,22 @@ def propagate_steps(scene, obj, frames, settings: PropagateSettings | None = Non
     outside = [f for f in train if f < frames[0] or f > frames[-1]]
     if outside:
         raise FaceLabError(f"Training frames {outside} lie outside the range {frames[0]}-{frames[-1]}; widen the range.")
-    return _propagate_steps(scene, obj, frames, settings, t0, tris, mouth_faces, lip_faces, train)
+    chunk = min(_CHUNK, max(4, len(frames) // 40)) if chunk is None else chunk
+    if int(chunk) < 1:
+        raise FaceLabError(f"Propagate: chunk must be at least 1 frame, got {chunk}; use the default {_CHUNK}.")
+    return _propagate_steps(scene, obj, frames, settings, t0, tris, mouth_faces, lip_faces, train, int(chunk))
 
 
 def _chunks(n, size):
     return [(i, min(n, i + size)) for i in range(0, n, size)]
 
 
-def _propagate_steps(scene, obj, frames, settings, t0, tris, mouth_faces, lip_faces, train):
+def _propagate_steps(scene, obj, frames, settings, t0, tris, mouth_faces, lip_faces, train, chunk):
     state = ModifierState(obj)
     done = False
     try:
-        result = yield from _propagate_work(scene, obj, frames, settings, t0, tris, mouth_faces, lip_faces, train)
+        result = yield from _propagate_work(scene, obj, frames, settings, t0, tris, mouth_faces, lip_faces, train,
+                                            chunk)
         done = True
         return result
     finally:
@@ -327,22 +347,13 @@ def _require_finite(X, frames, what):
                         "range).")
 
 
-def _propagate_work(scene, obj, frames, settings, t0, tris, mouth_faces, lip_faces, train):
+def _propagate_work(scene, obj, frames, settings, t0, tris, mouth_faces, lip_faces, train, chunk):
     T = len(frames)
-    # progress units: T frames read + T predicted (+ T mapped onto a cache) + 2 (fit, write)
+    total = T + 2  # progress units: fit, T frames corrected, write
     on_cache = caches.sequence_source(obj) in _CACHE_SOURCES
-    total = 2 * T + 2 + (T if on_cache else 0)
-    note = ""
-    if on_cache:
-        note = cache_integrate.cache_to_shape_key_ready(obj, scene_frames=frames)
+    note = cache_integrate.cache_to_shape_key_ready(obj, scene_frames=frames) if on_cache else ""
+    yield "fitting", 0, total
     rest = rest_vertices(obj)
-    chunk = max(4, T // 40)
-    captured = np.empty((T, len(rest), 3), np.float32)
-    for i, j in _chunks(T, chunk):
-        yield "reading the capture", i, total
-        captured[i:j] = caches.read_captured_frames(obj, frames[i:j])  # FaceLab keys muted
-        _require_finite(captured[i:j], frames[i:j], "captured")
-    yield "fitting", T, total
     corrected = caches.evaluate_frames(obj, train, mute_shape_keys_prefix=(PROPAGATE_PREFIX,))
     _require_finite(corrected, train, "corrected (training)")
     reg = LipRegressor(rest, tris, mouth_faces, lip_faces)
@@ -350,41 +361,50 @@ def _propagate_work(scene, obj, frames, settings, t0, tris, mouth_faces, lip_fac
         reg.fit(corrected)
     except FrameError as e:  # the core names positions in the training list; the artist reads scene frames
         raise e.for_frames(list(train)) from None
-
-    lipv = np.unique(tris[lip_faces])
-    before = captured[:, lipv].astype(np.float64)
-    for i, j in _chunks(T, max(chunk, 16)):
-        yield "predicting", T + 1 + i, total
+    del corrected
+    # Only the mouth and lip vertices are read (plus, over a cache, the polygons around the interior lips).
+    iv = reg.interior_vertices
+    read_v, ring = reg.used_vertices, None
+    if on_cache:
+        ring = _Ring(cache_integrate.polygon_corners(obj.data), iv, rest)
+        read_v = np.union1d(read_v, ring.vertices)
+    reader = CaptureReader(obj, read_v)
+    at_used = np.searchsorted(read_v, reg.used_vertices)
+    at_ring = None if ring is None else np.searchsorted(read_v, ring.vertices)
+    store = StreamingBasis(len(iv), DEFAULT_TOL_M / (scene.unit_settings.scale_length or 1.0))
+    is_train = np.isin(frames, train)
+    screen = SuggestScreen(reg, T, exclude=np.flatnonzero(is_train)) if settings.suggestions else None
+    score = np.empty(T)
+    for i, j in _chunks(T, chunk):
+        yield "correcting the frames", 1 + i, total
+        X = reader.read(frames[i:j])  # FaceLab keys muted
+        _require_finite(X, frames[i:j], "captured")
+        Xu = X[:, at_used]
         try:
-            reg.predict(captured[i:j], out=captured[i:j])  # in place: 1000 frames stay within memory
-        except FrameError as e:  # positions within this chunk -> scene frames
-            raise e.for_frames([int(f) for f in frames[i:j]]) from None
-    pred = captured
-    corr = (pred[:, lipv] - before).astype(np.float64)  # (T, n_lip, 3) correction, object local
-    corr[np.isin(frames, train)] = 0.0  # training frames keep the artist's own correction
-    if on_cache:  # keys ride on the cache surface (INTEGRATE): map each frame's offsets through it
-        sub_off, sub_cv = _polygons_around(cache_integrate.polygon_corners(obj.data), lipv)
-        for t in range(T):
-            if t % 4 == 0:
-                yield "mapping onto the cache", 2 * T + 1 + t, total
-            if np.any(corr[t]):
-                M = integrate_matrices(rest, _captured_frame(pred[t], lipv, before[t]), sub_off, sub_cv)[lipv]
-                corr[t] = integrate_offsets_to_key(M, corr[t])
+            corr = reg.lip_corrections(Xu, used_only=True, first=i)  # (t, nI, 3), object local
+        except FrameError as e:  # positions in the shot -> scene frames
+            raise e.for_frames([int(f) for f in frames]) from None
+        corr[is_train[i:j]] = 0.0  # training frames keep the artist's own correction
+        if ring is not None:  # keys ride on the cache surface (INTEGRATE): map each frame's offsets through it
+            for t in np.flatnonzero(np.any(corr, axis=(1, 2))):
+                corr[t] = ring.to_key(X[t, at_ring], corr[t])
+        store.add(corr)
+        for s in range(0, j - i, _FEATURE_BLOCK):  # where the model guesses: mouth features, never kept
+            Y = reg.mouth_features(Xu[s : s + _FEATURE_BLOCK], used_only=True)
+            score[i + s : i + s + len(Y)] = reg.extrapolation(features=Y)
+            if screen is not None:
+                screen.add(i + s, Y)
     yield "writing the corrective keys", total - 1, total
-    names = write_corrective_keys(obj, PROPAGATE_PREFIX, corr, frames, vertices=lipv,
-                                  metres_per_unit=scene.unit_settings.scale_length or 1.0)
-    # where the model guesses: the extrapolation score keyed on the object, suggestions as markers.
-    # Mouth features are computed once (mouth triangles never touch the predicted interior lip vertices).
-    feats = reg.mouth_features(pred)
-    score = reg.extrapolation(features=feats)
+    basis, weights = store.finish()
+    names = _store_corrections(obj, frames, basis, weights, iv)
+    score[is_train] = 0.0
     obj[EXTRAPOLATION_PROP] = 0.0
     key_property_bulk(obj, f'["{EXTRAPOLATION_PROP}"]', frames, score)
     for m in [m for m in scene.timeline_markers if m.name.startswith(SUGGEST_MARKER)]:
         scene.timeline_markers.remove(m)
     suggested = []
-    if settings.suggestions:
-        idx = suggest_frames(None, settings.suggestions, regressor=reg, exclude=np.flatnonzero(np.isin(frames, train)),
-                             features=feats, overwrite_features=True)
+    if screen is not None:
+        idx = _suggest(reg, reader, frames, at_used, screen, settings.suggestions, is_train)
         suggested = [int(frames[i]) for i in idx]
         for f in suggested:
             scene.timeline_markers.new(f"{SUGGEST_MARKER} {f}", frame=f)
@@ -393,22 +413,63 @@ def _propagate_work(scene, obj, frames, settings, t0, tris, mouth_faces, lip_fac
                            extrapolation=score, note=note, seconds=time.perf_counter() - t0)
 
 
-def _polygons_around(corners, verts):
-    """``(face_offsets, corner_verts)`` of only the polygons touching ``verts``.
+def _store_corrections(obj, frames, basis, weights, vertices) -> list:
+    """Replace FaceLab's ``FL_Prop_*`` keys with the corrective shapes ``basis`` keyed with ``weights``.
 
-    The Integrate map of a vertex averages over its own corners, all in polygons that touch it, so
-    on this subset it is exactly the whole mesh's (``core.capture.integrate.integrate_matrices``), at a
-    fraction of the cost: the lips are ~4 % of a face."""
-    offs, cv = corners
-    sizes = np.diff(offs)
-    face_of = np.repeat(np.arange(len(sizes)), sizes)
-    touch = np.zeros(len(sizes), bool)
-    touch[face_of[np.isin(cv, verts)]] = True
-    return np.r_[0, np.cumsum(sizes[touch])], cv[touch[face_of]]
+    The one place Propagate writes its result: ``basis`` (r, n, 3) offsets of ``vertices``
+    (object local, on the evaluated mesh; over a cache already mapped through its surface),
+    ``weights`` (T, r) the key value of each shape on each of ``frames``. Returns the key names.
+    """
+    remove_keys(obj, PROPAGATE_PREFIX)
+    if not len(basis):
+        return []
+    full = np.zeros((len(basis), len(obj.data.vertices), 3))
+    full[:, vertices] = basis
+    names = add_keys_from_deltas(obj, PROPAGATE_PREFIX, full)
+    key_values_bulk(obj, names, frames, weights)
+    return names
 
 
-def _captured_frame(pred_t, lipv, before_t):
-    """The captured frame (V,3) float64: the prediction with the lip vertices put back."""
-    out = np.array(pred_t, dtype=np.float64)
-    out[lipv] = before_t
-    return out
+def _suggest(reg, reader, frames, at_used, screen, count, is_train):
+    """Frame indices to correct next: :class:`SuggestScreen` passes until every pick is exact."""
+
+    def features_of(idx):
+        return reg.mouth_features(reader.read(frames[idx])[:, at_used], used_only=True)
+
+    picks, scale = [], None
+    while True:
+        more, done, dirs, scale = screen.select(count - len(picks), features_of, scale)
+        picks += more
+        if done or len(picks) >= count:
+            return picks
+        screen = SuggestScreen(reg, len(frames), exclude=np.r_[np.flatnonzero(is_train), picks], directions=dirs)
+        for i, j in _chunks(len(frames), _CHUNK):
+            Xu = reader.read(frames[i:j])[:, at_used]
+            for s in range(0, j - i, _FEATURE_BLOCK):
+                screen.add(i + s, reg.mouth_features(Xu[s : s + _FEATURE_BLOCK], used_only=True))
+
+
+class _Ring:
+    """The polygons around the interior lip vertices, for the Integrate map of a Mesh Cache.
+
+    The Integrate map of a vertex averages over its own corners, all in polygons that touch it,
+    so on these polygons it is exactly the whole mesh's (``core.capture.integrate.integrate_matrices``)
+    at a fraction of the cost: the lips are a few % of a face."""
+
+    def __init__(self, corners, verts, rest):
+        offs, cv = corners
+        sizes = np.diff(offs)
+        face_of = np.repeat(np.arange(len(sizes)), sizes)
+        touch = np.zeros(len(sizes), bool)
+        touch[face_of[np.isin(cv, verts)]] = True
+        sub_cv = cv[touch[face_of]]
+        self.vertices = np.unique(sub_cv)
+        self._off = np.r_[0, np.cumsum(sizes[touch])]
+        self._cv = np.searchsorted(self.vertices, sub_cv)
+        self._rest = rest[self.vertices]
+        self._at = np.searchsorted(self.vertices, verts)
+
+    def to_key(self, captured, deltas):
+        """Key offsets (n,3) that show ``deltas`` of the vertices on a frame whose ring is ``captured``."""
+        M = integrate_matrices(self._rest, captured, self._off, self._cv)[self._at]
+        return integrate_offsets_to_key(M, deltas)
