@@ -67,7 +67,6 @@ __all__ = [
 
 _CACHE_SOURCES = ("mesh_cache", "mesh_sequence_cache")
 _CHUNK = 256  # frames per streamed chunk: working memory ~ chunk x (mouth + lip vertices), not the shot
-_FEATURE_BLOCK = 64  # frames per block of mouth features (9 numbers per mouth triangle and frame)
 
 
 @dataclass
@@ -380,20 +379,17 @@ def _propagate_work(scene, obj, frames, settings, t0, tris, mouth_faces, lip_fac
         X = reader.read(frames[i:j])  # FaceLab keys muted
         _require_finite(X, frames[i:j], "captured")
         Xu = X[:, at_used]
-        try:
-            corr = reg.lip_corrections(Xu, used_only=True, first=i)  # (t, nI, 3), object local
+        try:  # (t, nI, 3) correction, object local; where the model guesses: the extrapolation score
+            corr, score[i:j], feature_sq = reg.correct_chunk(Xu, used_only=True, first=i)
         except FrameError as e:  # positions in the shot -> scene frames
             raise e.for_frames([int(f) for f in frames]) from None
+        if screen is not None:
+            screen.add_scores(i, feature_sq, score[i:j])
         corr[is_train[i:j]] = 0.0  # training frames keep the artist's own correction
         if ring is not None:  # keys ride on the cache surface (INTEGRATE): map each frame's offsets through it
             for t in np.flatnonzero(np.any(corr, axis=(1, 2))):
                 corr[t] = ring.to_key(X[t, at_ring], corr[t])
         store.add(corr)
-        for s in range(0, j - i, _FEATURE_BLOCK):  # where the model guesses: mouth features, never kept
-            Y = reg.mouth_features(Xu[s : s + _FEATURE_BLOCK], used_only=True)
-            score[i + s : i + s + len(Y)] = reg.extrapolation(features=Y)
-            if screen is not None:
-                screen.add(i + s, Y)
     yield "writing the corrective keys", total - 1, total
     basis, weights = store.finish()
     names = _store_corrections(obj, frames, basis, weights, iv)
@@ -444,9 +440,7 @@ def _suggest(reg, reader, frames, at_used, screen, count, is_train):
             return picks
         screen = SuggestScreen(reg, len(frames), exclude=np.r_[np.flatnonzero(is_train), picks], directions=dirs)
         for i, j in _chunks(len(frames), _CHUNK):
-            Xu = reader.read(frames[i:j])[:, at_used]
-            for s in range(0, j - i, _FEATURE_BLOCK):
-                screen.add(i + s, reg.mouth_features(Xu[s : s + _FEATURE_BLOCK], used_only=True))
+            screen.add_frames(i, reader.read(frames[i:j])[:, at_used], used_only=True)
 
 
 class _Ring:

@@ -122,3 +122,38 @@ def test_midpoint_subdivision_keeps_the_surface_and_attributes():
     mid = F2[3::4]  # (ab, bc, ca) of each input triangle
     np.testing.assert_allclose((S @ d)[mid[:, 0]], 0.5 * (d[F[:, 0]] + d[F[:, 1]]), atol=1e-15)
     np.testing.assert_allclose((S @ d)[mid[:, 1]], 0.5 * (d[F[:, 1]] + d[F[:, 2]]), atol=1e-15)
+
+
+@pytest.mark.parametrize("center", ["rest", None])
+def test_correct_chunk_scores_and_projections_without_forming_features(center):
+    V, F, mouth, lips = grid(bumpy=True)
+    reg = LipRegressor(V, F, mouth, lips, center=center)
+    reg.fit(np.stack([smooth_random_deformation(V, s) for s in range(4)]))
+    cap = _sequence(V, 12, seed=3)
+    corr, score, sq = reg.correct_chunk(cap, first=0)
+    np.testing.assert_allclose(corr, reg.lip_corrections(cap), rtol=0, atol=1e-12)
+    Y = reg.mouth_features(cap)
+    np.testing.assert_allclose(sq, np.sum(Y * Y, axis=1), rtol=1e-10)
+    # ||y||² - ||U_Yᵀ y||² cancels for frames in the span: about 1e-6 instead of 1e-15 there
+    np.testing.assert_allclose(score, reg.extrapolation(features=Y), rtol=1e-6, atol=2e-6)
+    A = np.random.default_rng(0).standard_normal((Y.shape[1], 3))
+    P, sq2 = reg.mouth_projections(cap, A)
+    np.testing.assert_allclose(P, Y @ A, rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(sq2, sq, rtol=1e-12)
+
+
+def test_suggest_screen_from_positions_and_scores():
+    V, F, reg = fitted()
+    cap = _sequence(V, 30, seed=13)
+    feats = reg.mouth_features(cap)
+    want = suggest_frames(None, 3, regressor=reg, features=feats, exclude=[4])
+    a = SuggestScreen(reg, 30, exclude=[4])
+    b = SuggestScreen(reg, 30, exclude=[4])
+    for s in range(0, 30, 8):
+        _, score, sq = reg.correct_chunk(cap[s : s + 8], first=s)
+        a.add_scores(s, sq, score)
+        b.add_frames(s, cap[s : s + 8])
+    np.testing.assert_allclose(a.res, b.res, rtol=1e-6, atol=1e-9)
+    for screen in (a, b):
+        picks, done, _, _ = screen.select(3, lambda idx: feats[idx])
+        assert done and picks == list(want)

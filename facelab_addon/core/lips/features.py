@@ -20,6 +20,7 @@ import numpy as np
 
 from ..errors import FaceLabError, MeshError
 from ..geometry.gradients import rest_inverse, shape_matrices
+from .guards import _check_prediction
 
 __all__: list[str] = []
 
@@ -211,3 +212,111 @@ def _patch_operators(nI, rinv, lip_sel, w, Dp, UY, UX, th, center):
     W = np.ascontiguousarray(Wf.transpose(2, 1, 0, 3))  # (i, k, f, r)
     z0 = np.tile(np.eye(3).ravel(), mp) @ UY if center else np.zeros(rY)
     return Z, W, z0
+
+
+def _fold_directions(A, rinv, local, n_verts):
+    """(Mx, Mc) of :func:`_fold_coefficients` giving ``Aᵀ vec(D D_r^-1)`` for feature-space directions A (9m, c)."""
+    m = len(local)
+    W = np.einsum("fijc,fkj->ikfc", A.reshape(m, 3, 3, -1), rinv)  # W[i,k,f,c] = Σ_j A[f,i,j,c] Ri[f,k,j]
+    return _fold_coefficients(local, n_verts, [np.arange(m)], [W], m)
+
+
+def _mouth_terms(frames, verts, local, Mx, Mc, P):
+    """Folded projections and squared norms of the mouth gradients of frames (T,*,3), without forming them.
+
+    Returns ``(Z, sq)``: ``Z`` (T, c) the products ``Mxᵀ X + Mcᵀ c`` (projections of
+    ``vec(D D_r^-1)`` on the folded directions), ``sq`` (T,) ``Σ_f ||D_f D_r,f^-1||²`` computed
+    as ``Σ_f <D_fᵀ D_f, P_f>`` with ``P = D_r^-1 D_r^-T`` (m,3,3): six dot products per triangle.
+    """
+    T = len(frames)
+    Xr = np.ascontiguousarray(frames[:, verts, :].transpose(1, 2, 0), dtype=np.float64)  # (nv, 3, T)
+    e = _columns(Xr, local)
+    Z = Mx.T @ Xr.reshape(-1, T)
+    Z += Mc.T @ e[2].reshape(-1, T)
+    sq = np.zeros(T)
+    for k in range(3):
+        for j in range(k, 3):
+            g = np.einsum("fit,fit->ft", e[k], e[j])  # (m, T) column products
+            sq += (2.0 if j > k else 1.0) * (P[:, k, j] @ g)
+    return Z.T, sq
+
+
+class _StreamingPrediction:
+    """The per-chunk entry points of :class:`.propagate.LipRegressor` for long shots (mixed into it).
+
+    They take a chunk of frames (or only its :attr:`used_vertices`) and return what a streaming
+    caller keeps: the interior lip corrections, the extrapolation score and the mouth features'
+    norms and projections, computed from folded operators without forming the (t, 9m) features.
+    """
+
+    def lip_corrections(self, captured, *, used_only: bool = False, first: int = 0) -> np.ndarray:
+        """The correction of the interior lip vertices, predicted minus captured, frame by frame.
+
+        What :meth:`predict` adds to ``captured[:, interior_vertices]``, without writing a
+        (T,V,3) result: the streaming form for long shots (the caller feeds chunks).
+
+        Parameters
+        ----------
+        captured : (T,V,3) array_like, or (T, len(used_vertices), 3) with ``used_only``
+            Captured frames (or only their :attr:`used_vertices`), scene units, float32 or float64.
+        used_only : bool
+            ``captured`` holds only the used vertices, in the order of :attr:`used_vertices`.
+        first : int
+            Index of the chunk's first frame in the shot, for the frame indices of errors.
+
+        Returns
+        -------
+        (T, nI, 3) float64 ndarray
+            Offsets of :attr:`interior_vertices`, scene units; the border vertices' are zero.
+
+        Raises
+        ------
+        FaceLabError, PredictionError
+            As :meth:`predict`.
+        """
+        self._require_fit()
+        A = self._frames(captured, "captured frames", used_only)
+        xi, xc = self._interior(A, used_only)
+        _check_prediction(xi, xc, first, self.mouth_size)
+        xi -= xc
+        return xi
+
+    def _norms(self, Z, sq):
+        """``(U_Yᵀ y, ||y||²)`` from folded projections ``Z`` whose last column is the identity's."""
+        c = 1.0 if self.center == "rest" else 0.0
+        return Z[:, :-1] - self._span_ident, sq - 2 * c * Z[:, -1] + 3 * c * len(self.mouth_faces)
+
+    def correct_chunk(self, captured, *, used_only: bool = False, first: int = 0):
+        """:meth:`lip_corrections` and the mouth's distance from the training span, in one pass over the mouth.
+
+        Returns ``(corrections (t,nI,3), extrapolation (t,), feature_sq (t,))``: the score of
+        :meth:`extrapolation` (from ``||y||² - ||U_Yᵀ y||²``, never forming ``y``) and ``||y||²``
+        (for :class:`.suggest.SuggestScreen`). Arguments as :meth:`lip_corrections`.
+        """
+        self._require_fit()
+        A = self._frames(captured, "captured frames", used_only)
+        verts = self._mouth_u if used_only else self._mouth_verts
+        Z, sq = _mouth_terms(A, verts, self._mouth_local, self._Mx_all, self._Mc_all, self._mouth_P)
+        R = self._Mx.shape[1]
+        xi, xc = self._interior(A, used_only, z=Z[:, :R] - self._z_ident)
+        _check_prediction(xi, xc, first, self.mouth_size)
+        zU, sq = self._norms(Z[:, R:], sq)
+        res = np.sqrt(np.clip(sq - np.sum(zU * zU, axis=1), 0.0, None))
+        return xi - xc, res / self._sigma, sq
+
+    def mouth_projections(self, captured, directions, *, used_only: bool = False):
+        """``(Aᵀ y (t,d), ||y||² (t,))`` of frames' mouth features ``y`` on directions ``A`` (9m, d), never forming ``y``."""
+        self._require_fit()
+        A = self._frames(captured, "captured frames", used_only)
+        D = np.asarray(directions, dtype=np.float64)
+        if self._dir_fold[0] is not D:
+            ident = np.tile(np.eye(3).ravel(), len(self.mouth_faces))[:, None]
+            ext = np.hstack([D, ident])
+            self._dir_fold = (D, _fold_directions(ext, self._mouth_rinv, self._mouth_local, len(self._mouth_verts)),
+                              (ident.T @ D).ravel() if self.center == "rest" else np.zeros(D.shape[1]))
+        _, (Mx, Mc), d_ident = self._dir_fold
+        verts = self._mouth_u if used_only else self._mouth_verts
+        Z, sq = _mouth_terms(A, verts, self._mouth_local, Mx, Mc, self._mouth_P)
+        c = 1.0 if self.center == "rest" else 0.0
+        return Z[:, :-1] - d_ident, sq - 2 * c * Z[:, -1] + 3 * c * len(self.mouth_faces)
+

@@ -74,9 +74,11 @@ from .features import (
     _BLOCK,
     _as_frames,
     _fold_coefficients,
+    _fold_directions,
     _gradient_features,
     _mouth_coefficients,
     _patch_operators,
+    _StreamingPrediction,
 )
 from .guards import _check_prediction, _check_settings, _checked_mesh, _checked_out, _same_array
 from .patches import _lip_patches
@@ -86,7 +88,7 @@ from .regions import region_border, validate_regions
 __all__ = ["LipRegressor"]
 
 
-class LipRegressor:
+class LipRegressor(_StreamingPrediction):
     """Learn inner-lip deformation gradients from the mouth region (Dinev et al. 2018, §4).
 
     Parameters
@@ -175,6 +177,7 @@ class LipRegressor:
         self._mouth_tris = F[self.mouth_faces]
         self._lip_tris = F[self.lip_faces]
         self._mouth_rinv = rest_inverse(R, self._mouth_tris, name="mouth region")
+        self._mouth_P = np.matmul(self._mouth_rinv, self._mouth_rinv.transpose(0, 2, 1))  # ||D R^-1||² = <DᵀD, P>
         self._lip_rinv = rest_inverse(R, self._lip_tris, name="inner-lip region")
         self._mouth_verts, inv = np.unique(self._mouth_tris, return_inverse=True)
         self._mouth_local = inv.reshape(-1, 3)
@@ -418,6 +421,12 @@ class LipRegressor:
         self._Zdiv = np.concatenate(Zs, axis=1)  # (nI*3, Σ rY)
         self._Mx, self._Mc = _fold_coefficients(self._mouth_local, len(self._mouth_verts), self._fit_mouth_sel, Ws, m)
         self._z_ident = np.concatenate(zid)
+        # the global span and the identity, folded beside the coefficients: one pass gives both (correct_chunk)
+        ident = np.tile(np.eye(3).ravel(), m)[:, None]
+        Ms = _fold_directions(np.hstack([self._UY, ident]), self._mouth_rinv, self._mouth_local, len(self._mouth_verts))
+        self._Mx_all, self._Mc_all = np.hstack([self._Mx, Ms[0]]), np.hstack([self._Mc, Ms[1]])
+        self._span_ident = (ident.T @ self._UY).ravel() if self.center == "rest" else np.zeros(self._UY.shape[1])
+        self._dir_fold = (None, None)
 
     def _fit_span(self, Y, UY):
         """Global span ``U_Y`` and RMS deformation of the mouth features: extrapolation score and suggest_frames.
@@ -457,11 +466,11 @@ class LipRegressor:
         verts = self._mouth_u if used_only else self._mouth_verts
         return _mouth_coefficients(frames, verts, self._mouth_local, self._Mx, self._Mc) - self._z_ident
 
-    def _interior(self, A, used_only=False):
+    def _interior(self, A, used_only=False, z=None):
         """``(xi, xc)``: predicted and captured interior lip positions (t, nI, 3) float64 of validated frames."""
         iv, bv = (self._iv_u, self._bv_u) if used_only else (self.interior_vertices, self.border_vertices)
         nI, t = len(iv), len(A)
-        z = self._coefficients(A, used_only)
+        z = self._coefficients(A, used_only) if z is None else z
         rhs = (self._Zdiv @ z.T).reshape(nI, 3, t).transpose(0, 2, 1)  # (nI, t, 3)
         if self.center == "rest":
             rhs = rhs + self._b_ident[:, None, :]
@@ -469,38 +478,6 @@ class LipRegressor:
         rhs = rhs.reshape(nI, 3 * t) - self._L_IB @ xb
         xi = self._factor.solve(rhs).reshape(nI, t, 3).transpose(1, 0, 2)
         return xi, np.asarray(A[:, iv, :], dtype=np.float64)
-
-    def lip_corrections(self, captured, *, used_only: bool = False, first: int = 0) -> np.ndarray:
-        """The correction of the interior lip vertices, predicted minus captured, frame by frame.
-
-        What :meth:`predict` adds to ``captured[:, interior_vertices]``, without writing a
-        (T,V,3) result: the streaming form for long shots (the caller feeds chunks).
-
-        Parameters
-        ----------
-        captured : (T,V,3) array_like, or (T, len(used_vertices), 3) with ``used_only``
-            Captured frames (or only their :attr:`used_vertices`), scene units, float32 or float64.
-        used_only : bool
-            ``captured`` holds only the used vertices, in the order of :attr:`used_vertices`.
-        first : int
-            Index of the chunk's first frame in the shot, for the frame indices of errors.
-
-        Returns
-        -------
-        (T, nI, 3) float64 ndarray
-            Offsets of :attr:`interior_vertices`, scene units; the border vertices' are zero.
-
-        Raises
-        ------
-        FaceLabError, PredictionError
-            As :meth:`predict`.
-        """
-        self._require_fit()
-        A = self._frames(captured, "captured frames", used_only)
-        xi, xc = self._interior(A, used_only)
-        _check_prediction(xi, xc, first, self.mouth_size)
-        xi -= xc
-        return xi
 
     def _residual_norms(self, Y):
         """(T,) norms of mouth features ``Y`` (T, 9m) outside the global training span."""

@@ -193,6 +193,25 @@ class SuggestScreen:
         self.sq[start : start + len(Y)] = np.sum(Y * Y, axis=1)
         self.res[start : start + len(Y)] = np.sqrt(np.sum(r * r, axis=1))
 
+    def add_scores(self, start: int, feature_sq, extrapolation) -> None:
+        """Record frames from ``||y||²`` and :meth:`LipRegressor.extrapolation` (a screen without directions).
+
+        What :meth:`LipRegressor.correct_chunk` returns beside the corrections, so the first pass
+        costs nothing more.
+        """
+        if len(self.dirs):
+            raise FaceLabError("This screen deflates by directions; record its frames with add() or add_frames().")
+        n = len(feature_sq)
+        self.sq[start : start + n] = feature_sq
+        self.res[start : start + n] = np.asarray(extrapolation) * self.reg._sigma
+
+    def add_frames(self, start: int, frames, *, used_only: bool = False) -> None:
+        """Record frames from their positions (T,V,3) (or used vertices): features projected, never formed."""
+        A = np.hstack([self.reg._UY, self.dirs.T])
+        P, sq = self.reg.mouth_projections(frames, A, used_only=used_only)
+        self.sq[start : start + len(sq)] = sq
+        self.res[start : start + len(sq)] = np.sqrt(np.clip(sq - np.sum(P * P, axis=1), 0.0, None))
+
     def select(self, count: int, features_of, scale: float | None = None):
         """Greedy picks among the candidates, as far as they are exact.
 
