@@ -35,7 +35,6 @@ from ..blender.shapekeys import (
     remove_keys,
     rest_vertices,
 )
-from ..core.capture.integrate import integrate_matrices, integrate_offsets_to_key
 from ..core.errors import FaceLabError, FrameError, MeshError
 from ..core.geometry.compress import DEFAULT_TOL_M
 from ..core.lips.propagate import LipRegressor
@@ -365,7 +364,7 @@ def _propagate_work(scene, obj, frames, settings, t0, tris, mouth_faces, lip_fac
     iv = reg.interior_vertices
     read_v, ring = reg.used_vertices, None
     if on_cache:
-        ring = _Ring(cache_integrate.polygon_corners(obj.data), iv, rest)
+        ring = cache_integrate.IntegrateMap(cache_integrate.polygon_corners(obj.data), iv, rest)
         read_v = np.union1d(read_v, ring.vertices)
     reader = CaptureReader(obj, read_v)
     at_used = np.searchsorted(read_v, reg.used_vertices)
@@ -386,9 +385,8 @@ def _propagate_work(scene, obj, frames, settings, t0, tris, mouth_faces, lip_fac
         if screen is not None:
             screen.add_scores(i, feature_sq, score[i:j])
         corr[is_train[i:j]] = 0.0  # training frames keep the artist's own correction
-        if ring is not None:  # keys ride on the cache surface (INTEGRATE): map each frame's offsets through it
-            for t in np.flatnonzero(np.any(corr, axis=(1, 2))):
-                corr[t] = ring.to_key(X[t, at_ring], corr[t])
+        if ring is not None:  # keys ride on the cache surface (INTEGRATE): map the offsets through it
+            corr = ring.to_key(X[:, at_ring], corr)
         store.add(corr)
     yield "writing the corrective keys", total - 1, total
     basis, weights = store.finish()
@@ -441,29 +439,3 @@ def _suggest(reg, reader, frames, at_used, screen, count, is_train):
         screen = SuggestScreen(reg, len(frames), exclude=np.r_[np.flatnonzero(is_train), picks], directions=dirs)
         for i, j in _chunks(len(frames), _CHUNK):
             screen.add_frames(i, reader.read(frames[i:j])[:, at_used], used_only=True)
-
-
-class _Ring:
-    """The polygons around the interior lip vertices, for the Integrate map of a Mesh Cache.
-
-    The Integrate map of a vertex averages over its own corners, all in polygons that touch it,
-    so on these polygons it is exactly the whole mesh's (``core.capture.integrate.integrate_matrices``)
-    at a fraction of the cost: the lips are a few % of a face."""
-
-    def __init__(self, corners, verts, rest):
-        offs, cv = corners
-        sizes = np.diff(offs)
-        face_of = np.repeat(np.arange(len(sizes)), sizes)
-        touch = np.zeros(len(sizes), bool)
-        touch[face_of[np.isin(cv, verts)]] = True
-        sub_cv = cv[touch[face_of]]
-        self.vertices = np.unique(sub_cv)
-        self._off = np.r_[0, np.cumsum(sizes[touch])]
-        self._cv = np.searchsorted(self.vertices, sub_cv)
-        self._rest = rest[self.vertices]
-        self._at = np.searchsorted(self.vertices, verts)
-
-    def to_key(self, captured, deltas):
-        """Key offsets (n,3) that show ``deltas`` of the vertices on a frame whose ring is ``captured``."""
-        M = integrate_matrices(self._rest, captured, self._off, self._cv)[self._at]
-        return integrate_offsets_to_key(M, deltas)

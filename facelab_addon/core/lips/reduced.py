@@ -228,7 +228,7 @@ class StreamingBasis:
             o += len(w)
         if r == 0:
             return np.zeros((0, self.n, 3)), W
-        s2, V = np.linalg.eigh(W.T @ W)
+        _, V = np.linalg.eigh(W.T @ W)
         V = V[:, ::-1]
         Wr = W @ V
         Ur = V.T @ self._U  # rotated shapes (r, 3n), orthonormal
@@ -240,7 +240,15 @@ class StreamingBasis:
                 e = max(e, float(np.sqrt(np.max(np.sum(D.reshape(len(D), self.n, 3) ** 2, axis=2)))))
             return e
 
-        lo, hi = 0, r  # max_err(r) = 0; the greedy residual already used a quarter of the tolerance
+        # bounds from each frame's dropped weights: its L2 norm bounds every vertex's error from above,
+        # and from below after dividing by sqrt(n); search between them (exactly while that is cheap)
+        tail = np.sqrt(np.cumsum((Wr * Wr)[:, ::-1], axis=1)[:, ::-1].max(axis=0)) if T else np.zeros(r)
+        tail = np.r_[tail, 0.0]  # tail[k]: largest L2 error of a frame keeping k shapes
+        budget = 0.75 * self.tol  # the greedy residual already used a quarter of the tolerance
+        hi = int(np.flatnonzero(tail <= budget)[0])
+        lo = int(np.flatnonzero(tail <= budget * np.sqrt(max(self.n, 1)))[0])
+        if (hi - lo) * T * self.n > 2e9:  # exact search too costly (a correction that does not compress)
+            lo = hi
         while lo < hi:
             mid = (lo + hi) // 2
             if max_err(mid) <= 0.75 * self.tol:

@@ -172,7 +172,7 @@ class SuggestScreen:
         Frames re-read per pass (besides the excluded ones).
     """
 
-    def __init__(self, regressor, n_frames: int, exclude=(), directions=None, candidates: int = 48):
+    def __init__(self, regressor, n_frames: int, exclude=(), directions=None, candidates: int = 128):
         regressor._require_fit()
         self.reg, self.T = regressor, int(n_frames)
         self.excl = np.zeros(self.T, dtype=bool)
