@@ -284,6 +284,11 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true", help="1k and 2k frames at 26.7k vertices, shape keys and PC2")
     ap.add_argument("--png", default=str(ROOT / "docs" / "images" / "scale.png"))
     ap.add_argument("--repeats", type=int, default=3, help="runs of each 1,000-frame case (median reported)")
+    ap.add_argument("--sizes", default=None, help="comma list of 26k,105k (default: both; --quick: 26k)")
+    ap.add_argument("--frames", default=None, help="comma list of frame counts (default 1000,5000,10000)")
+    ap.add_argument("--sources", default="keys,pc2", help="comma list of keys,pc2")
+    ap.add_argument("--pc2-max-frames", type=int, default=10000,
+                    help="skip PC2 cases longer than this (a 10k-frame 105k PC2 is 12 GB to write)")
     ap.add_argument("--_build", nargs=4, help=argparse.SUPPRESS)
     ap.add_argument("--_run", nargs=3, help=argparse.SUPPRESS)
     ap.add_argument("--_core", nargs=1, help=argparse.SUPPRESS)
@@ -299,20 +304,27 @@ def main(argv=None):
         print(json.dumps(core_predict(a._core[0])))
         return
 
-    sizes = ["26k"] if a.quick else ["26k", "105k"]
-    counts = [1000, 2000] if a.quick else [1000, 5000, 10000]
+    sizes = a.sizes.split(",") if a.sizes else (["26k"] if a.quick else ["26k", "105k"])
+    counts = [int(x) for x in a.frames.split(",")] if a.frames else ([1000, 2000] if a.quick else [1000, 5000, 10000])
     out = dict(machine=dict(cpus=os.cpu_count(), load_before=_uptime()), targets=TARGET, cases=[], core_predict={})
     t_all = time.perf_counter()
     for size in sizes:
         out["core_predict"][size] = _sub(["--_core", size])
     with tempfile.TemporaryDirectory(prefix="facelab_scale_") as tmp:
         for size in sizes:
-            for source in ("keys", "pc2"):
+            for source in a.sources.split(","):
                 for n in counts:
+                    if source == "pc2" and n > a.pc2_max_frames:
+                        continue
                     path = Path(tmp) / f"{size}_{source}_{n}.blend"
-                    b = _sub(["--_build", size, str(n), source, str(path)])
-                    reps = a.repeats if n <= 1000 else 1
-                    runs = [_sub(["--_run", str(path), size, source]) for _ in range(reps)]
+                    try:
+                        b = _sub(["--_build", size, str(n), source, str(path)])
+                        reps = a.repeats if n <= 1000 else 1
+                        runs = [_sub(["--_run", str(path), size, source]) for _ in range(reps)]
+                    except RuntimeError as e:  # reported, not hidden
+                        out["cases"].append(dict(size=size, source=source, frames=n, failed=str(e)[-800:]))
+                        print(f"{size} {source} {n}: FAILED", file=sys.stderr)
+                        continue
                     r = dict(runs[0])
                     for k in ("wall_s", "peak_rss_mb", "peak_growth_mb"):
                         r[k] = float(np.median([x[k] for x in runs]))
@@ -324,9 +336,10 @@ def main(argv=None):
                                                         "blend_growth_mb", "keys")}), file=sys.stderr)
                     for ext in (".blend", ".pc2", ".npz"):
                         path.with_suffix(ext).unlink(missing_ok=True)
-    big = [r for r in out["cases"] if r["frames"] == max(counts) and r["size"] == sizes[-1]]
-    for r in out["cases"]:
-        same = [x for x in out["cases"] if x["size"] == r["size"] and x["source"] == r["source"]]
+    ok = [r for r in out["cases"] if "failed" not in r]
+    big = [r for r in ok if r["frames"] == max(counts) and r["size"] == sizes[-1]]
+    for r in ok:
+        same = [x for x in ok if x["size"] == r["size"] and x["source"] == r["source"]]
         r["ms_per_frame_vs_smallest_shot"] = round(r["ms_per_frame"] / same[0]["ms_per_frame"], 2)
     out["summary"] = dict(
         largest=[{k: r[k] for k in ("size", "source", "frames", "wall_s", "peak_rss_mb", "blend_growth_mb")}
@@ -337,7 +350,7 @@ def main(argv=None):
     out["machine"]["load_after"] = _uptime()
     out["seconds"] = round(time.perf_counter() - t_all, 1)
     if a.png:
-        plot(out["cases"], a.png)
+        plot(ok, a.png)
         out["png"] = os.path.relpath(a.png, ROOT)
     print(json.dumps(out, indent=1))
 

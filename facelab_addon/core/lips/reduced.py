@@ -229,7 +229,7 @@ class StreamingBasis:
         if r == 0:
             return np.zeros((0, self.n, 3)), W
         _, V = np.linalg.eigh(W.T @ W)
-        V = V[:, ::-1]
+        V = np.ascontiguousarray(V[:, ::-1])  # a reversed view would take numpy's slow non-BLAS matmul
         Wr = W @ V
         Ur = V.T @ self._U  # rotated shapes (r, 3n), orthonormal
 
