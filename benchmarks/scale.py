@@ -319,7 +319,7 @@ def main(argv=None):
                     path = Path(tmp) / f"{size}_{source}_{n}.blend"
                     try:
                         b = _sub(["--_build", size, str(n), source, str(path)])
-                        reps = a.repeats if n <= 1000 else 1
+                        reps = a.repeats if n <= 1000 and source == "keys" else 1
                         runs = [_sub(["--_run", str(path), size, source]) for _ in range(reps)]
                     except RuntimeError as e:  # reported, not hidden
                         out["cases"].append(dict(size=size, source=source, frames=n, failed=str(e)[-800:]))
