@@ -18,6 +18,7 @@ import numpy as np
 
 from ..core.capture import pointcache, pointcache_writer
 from ..core.errors import FaceLabError, MeshError
+from ..core.geometry.gradients import _inv3
 from .bakes import _bake_steps, _run, _uniform_step
 from .caches import (
     _alembic_still_error,
@@ -252,7 +253,7 @@ class IntegrateMap:
         self._ok = self._area > 0
         Bs = np.stack([e1[0], e2[0], nrm[0]], axis=2)
         self._inv = np.zeros_like(Bs)
-        self._inv[self._ok] = np.linalg.inv(Bs[self._ok])
+        self._inv[self._ok] = _inv3(Bs[self._ok])
         rows = np.searchsorted(verts, cur)
         cnt = np.bincount(rows, minlength=len(verts)).astype(np.float64)
         import scipy.sparse as sp
@@ -283,9 +284,9 @@ class IntegrateMap:
             L = Bo @ self._inv  # zero where the rest corner is degenerate
             M = (self._avg @ L.transpose(1, 0, 2, 3).reshape(L.shape[1], -1)).reshape(-1, t, 3, 3).transpose(1, 0, 2, 3)
             d = np.asarray(deltas[s : s + block], dtype=np.float64)
-            good = np.abs(np.linalg.det(M)) > 1e-12
+            good = np.abs(np.sum(M[..., 0, :] * np.cross(M[..., 1, :], M[..., 2, :]), axis=-1)) > 1e-12  # det
             res = np.zeros_like(d)
-            res[good] = np.linalg.solve(M[good], d[good][..., None])[..., 0]
+            res[good] = np.einsum("nij,nj->ni", _inv3(M[good]), d[good])  # closed form: no LAPACK call per vertex
             for i, v in zip(*np.nonzero(~good)):
                 res[i, v] = np.linalg.lstsq(M[i, v], d[i, v], rcond=None)[0]
             out[s : s + t] = res

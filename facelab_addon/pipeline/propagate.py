@@ -398,7 +398,7 @@ def _propagate_work(scene, obj, frames, settings, t0, tris, mouth_faces, lip_fac
         scene.timeline_markers.remove(m)
     suggested = []
     if screen is not None:
-        idx = _suggest(reg, reader, frames, at_used, screen, settings.suggestions, is_train)
+        idx = _suggest(reg, reader, frames, at_used, screen, settings.suggestions)
         suggested = [int(frames[i]) for i in idx]
         for f in suggested:
             scene.timeline_markers.new(f"{SUGGEST_MARKER} {f}", frame=f)
@@ -424,18 +424,11 @@ def _store_corrections(obj, frames, basis, weights, vertices) -> list:
     return names
 
 
-def _suggest(reg, reader, frames, at_used, screen, count, is_train):
-    """Frame indices to correct next: :class:`SuggestScreen` passes until every pick is exact."""
+def _suggest(reg, reader, frames, at_used, screen, count):
+    """Frame indices to correct next: the greedy choice of :func:`suggest_frames` among the
+    :class:`SuggestScreen` candidates (the frames farthest from the training span), re-read once."""
 
     def features_of(idx):
         return reg.mouth_features(reader.read(frames[idx])[:, at_used], used_only=True)
 
-    picks, scale = [], None
-    while True:
-        more, done, dirs, scale = screen.select(count - len(picks), features_of, scale)
-        picks += more
-        if done or len(picks) >= count:
-            return picks
-        screen = SuggestScreen(reg, len(frames), exclude=np.r_[np.flatnonzero(is_train), picks], directions=dirs)
-        for i, j in _chunks(len(frames), _CHUNK):
-            screen.add_frames(i, reader.read(frames[i:j])[:, at_used], used_only=True)
+    return screen.select(count, features_of, exact=False)[0]

@@ -212,7 +212,7 @@ class SuggestScreen:
         self.sq[start : start + len(sq)] = sq
         self.res[start : start + len(sq)] = np.sqrt(np.clip(sq - np.sum(P * P, axis=1), 0.0, None))
 
-    def select(self, count: int, features_of, scale: float | None = None):
+    def select(self, count: int, features_of, scale: float | None = None, *, exact: bool = True):
         """Greedy picks among the candidates, as far as they are exact.
 
         Parameters
@@ -223,6 +223,10 @@ class SuggestScreen:
             Mouth features of the given frame indices (re-read from the shot).
         scale : float, optional
             Feature scale (from the first pass; default this screen's).
+        exact : bool
+            Stop at the first pick a frame not re-read could beat (``done`` False: run another
+            pass). False: keep picking among the candidates (one pass; the picks are the greedy
+            choice among the ``candidates`` frames farthest from the span).
 
         Returns
         -------
@@ -262,7 +266,7 @@ class SuggestScreen:
             j = int(np.argmax(norms))
             if norms[j] <= 1e-10 * scale and tau <= 1e-10 * scale:
                 break
-            if norms[j] < tau:  # a frame not re-read may beat it: deflate by the picks so far and pass again
+            if exact and norms[j] < tau:  # a frame not re-read may beat it: deflate by the picks so far, pass again
                 done = False
                 break
             picks.append(int(idx[j]))
