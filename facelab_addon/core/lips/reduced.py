@@ -233,25 +233,27 @@ class StreamingBasis:
         Wr = W @ V
         Ur = V.T @ self._U  # rotated shapes (r, 3n), orthonormal
 
-        def max_err(k):  # largest vertex error over all frames when only the first k shapes are kept
-            e = 0.0
-            for s in range(0, T, 512):
-                D = Wr[s : s + 512, k:] @ Ur[k:]
-                e = max(e, float(np.sqrt(np.max(np.sum(D.reshape(len(D), self.n, 3) ** 2, axis=2)))))
-            return e
-
-        # bounds from each frame's dropped weights: its L2 norm bounds every vertex's error from above,
-        # and from below after dividing by sqrt(n); search between them (exactly while that is cheap)
-        tail = np.sqrt(np.cumsum((Wr * Wr)[:, ::-1], axis=1)[:, ::-1].max(axis=0)) if T else np.zeros(r)
-        tail = np.r_[tail, 0.0]  # tail[k]: largest L2 error of a frame keeping k shapes
+        # per frame: the L2 norm of its dropped weights bounds every vertex's error from above, and
+        # from below after dividing by sqrt(n); only frames above the budget are reconstructed
         budget = 0.75 * self.tol  # the greedy residual already used a quarter of the tolerance
+        C = np.zeros((T, r + 1))
+        C[:, :r] = np.sqrt(np.cumsum((Wr * Wr)[:, ::-1], axis=1)[:, ::-1])  # C[t, k]: keeping k shapes
+        tail = C.max(axis=0) if T else np.zeros(r + 1)
+
+        def fits(k):  # every vertex of every frame within the budget when the first k shapes are kept
+            for s in np.array_split(np.flatnonzero(C[:, k] > budget), max(1, T // 512)):
+                D = Wr[s, k:] @ Ur[k:]
+                if len(s) and np.max(np.sum(D.reshape(len(s), self.n, 3) ** 2, axis=2)) > budget * budget:
+                    return False
+            return True
+
         hi = int(np.flatnonzero(tail <= budget)[0])
         lo = int(np.flatnonzero(tail <= budget * np.sqrt(max(self.n, 1)))[0])
         if (hi - lo) * T * self.n > 2e9:  # exact search too costly (a correction that does not compress)
             lo = hi
         while lo < hi:
             mid = (lo + hi) // 2
-            if max_err(mid) <= 0.75 * self.tol:
+            if fits(mid):
                 hi = mid
             else:
                 lo = mid + 1
