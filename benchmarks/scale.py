@@ -8,7 +8,8 @@ the truth), either as shape-key animation (``keys``) or baked to a PC2 played by
 (``pc2``, the corrections then made with ``add_corrected_frame`` over the cache). Another fresh
 subprocess opens the .blend and runs ``bpy.ops.facelab.propagate()`` once: wall time, the process's
 peak RSS (``resource.getrusage`` max RSS: numpy and Blender allocations alike) and its RSS before
-the operator, the .blend growth (uncompressed, saved before and after), FL_Prop keys written, and
+the operator, the CPU time it used (user + system, all threads: on a machine shared with other jobs
+the wall time is inflated by the load, the CPU time much less), the .blend growth (uncompressed, saved before and after), FL_Prop keys written, and
 the held-out inner-lip error against the truth on 20 frames of the evaluated mesh.
 
 Also: core ``LipRegressor.predict`` frames/s at both sizes (in place, float32, after a warm-up),
@@ -178,9 +179,12 @@ def run(path, size, source):
     before_mb = Path(path).stat().st_size / 2**20
     rss0, peak0 = _rss_mb(), _peak_mb()
     load = _uptime()
+    ru0 = resource.getrusage(resource.RUSAGE_SELF)
     t0 = time.perf_counter()
     res = bpy.ops.facelab.propagate()
     wall = time.perf_counter() - t0
+    ru1 = resource.getrusage(resource.RUSAGE_SELF)
+    cpu = (ru1.ru_utime - ru0.ru_utime) + (ru1.ru_stime - ru0.ru_stime)  # this process, all its threads
     peak = _peak_mb()
     out = Path(path).with_name(Path(path).stem + "_after.blend")
     bpy.ops.wm.save_as_mainfile(filepath=str(out), compress=False, copy=True)
@@ -188,7 +192,7 @@ def run(path, size, source):
     out.unlink()
     keys = [kb.name for kb in obj.data.shape_keys.key_blocks if kb.name.startswith("FL_Prop_")]
     acc = _accuracy(obj, path, source)
-    return dict(result=sorted(res), wall_s=round(wall, 2), rss_before_mb=round(rss0, 1),
+    return dict(result=sorted(res), wall_s=round(wall, 2), cpu_s=round(cpu, 2), rss_before_mb=round(rss0, 1),
                 peak_rss_mb=round(peak, 1), peak_before_operator_mb=round(peak0, 1),
                 peak_growth_mb=round(peak - rss0, 1), blend_growth_mb=round(growth, 2), keys=len(keys),
                 load_during=load, **acc)
@@ -229,14 +233,16 @@ def core_predict(size, n=512, repeats=3):
     reg.fit(X[:: n // N_TRAIN][:N_TRAIN] + 1e-4 * np.sin(np.arange(len(V)))[None, :, None])
     X32 = X.astype(np.float32)
     reg.predict(X32[:32], out=X32[:32])
-    times = []
+    times, cpus = [], []
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         reg.predict(X32, out=X32)
         times.append(time.perf_counter() - t0)
+        cpus.append(time.process_time() - c0)
     fps = [n / t for t in times]
     return dict(vertices=len(V), frames=n, fps_median=round(float(np.median(fps)), 1),
-                fps_all=[round(f, 1) for f in fps], paper_s_per_frame=PAPER_S_PER_FRAME,
+                fps_all=[round(f, 1) for f in fps], cpu_ms_per_frame=round(1e3 * float(np.median(cpus)) / n, 3),
+                load=_uptime(), paper_s_per_frame=PAPER_S_PER_FRAME,
                 speedup_vs_paper=round(float(np.median(fps)) * PAPER_S_PER_FRAME))
 
 
@@ -249,7 +255,13 @@ def _sub(args, timeout=3600):
     return json.loads(p.stdout.strip().splitlines()[-1])
 
 
-def plot(results, png):
+def _note(out):
+    loads = [float(x) for r in out["cases"] for x in r.get("load_during", [])[:1]]
+    return (f"Propagate operator, 10 training frames; shared {out['machine']['cpus']}-core machine, 1-min load "
+            f"{min(loads):.0f}-{max(loads):.0f} during the runs (other jobs)") if loads else ""
+
+
+def plot(results, png, note=""):
     import matplotlib
 
     matplotlib.use("Agg")
@@ -275,6 +287,8 @@ def plot(results, png):
     for a in ax:
         a.grid(alpha=0.3)
         a.legend(fontsize=7, loc="upper left")
+    if note:
+        fig.suptitle(note, fontsize=9)
     fig.tight_layout()
     fig.savefig(png, dpi=110)
 
@@ -295,7 +309,8 @@ def main(argv=None):
     ap.add_argument("--_core", nargs=1, help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
     if a.replot:
-        plot([r for r in json.loads(Path(a.replot).read_text())["cases"] if "failed" not in r], a.png)
+        d = json.loads(Path(a.replot).read_text())
+        plot([r for r in d["cases"] if "failed" not in r], a.png, _note(d))
         return
     if a._build:
         size, n, source, path = a._build
@@ -330,8 +345,9 @@ def main(argv=None):
                         print(f"{size} {source} {n}: FAILED", file=sys.stderr)
                         continue
                     r = dict(runs[0])
-                    for k in ("wall_s", "peak_rss_mb", "peak_growth_mb"):
-                        r[k] = float(np.median([x[k] for x in runs]))
+                    for k in ("wall_s", "cpu_s", "peak_rss_mb", "peak_growth_mb"):
+                        if k in runs[0]:
+                            r[k] = float(np.median([x[k] for x in runs]))
                     r.update(size=size, source=source, frames=n, vertices=b["vertices"], build=b, repeats=reps,
                              wall_s_all=[x["wall_s"] for x in runs], ms_per_frame=round(1e3 * r["wall_s"] / n, 2),
                              speedup_vs_paper=round(PAPER_S_PER_FRAME * n / r["wall_s"]))
@@ -354,7 +370,7 @@ def main(argv=None):
     out["machine"]["load_after"] = _uptime()
     out["seconds"] = round(time.perf_counter() - t_all, 1)
     if a.png:
-        plot(ok, a.png)
+        plot(ok, a.png, _note(out))
         out["png"] = os.path.relpath(a.png, ROOT)
     print(json.dumps(out, indent=1))
 
