@@ -156,11 +156,17 @@ def _fold_coefficients(local, n_verts, sels, Ws, m):
     return Mx.reshape(3 * n_verts, R), Mc.reshape(3 * m, R)
 
 
+_CACHE_BLOCK = 32  # frames per pass over the mouth triangles: the (m,3,t) temporaries stay in cache
+
+
 def _mouth_coefficients(frames, verts, local, Mx, Mc):
     """(T, R) reduced mouth coefficients (without the identity's) of frames (T,*,3), float64.
 
     ``verts`` are the mouth vertices' indices in ``frames``; ``local`` the triangles over them.
     """
+    if len(frames) > _CACHE_BLOCK:
+        return np.concatenate([_mouth_coefficients(frames[s : s + _CACHE_BLOCK], verts, local, Mx, Mc)
+                               for s in range(0, len(frames), _CACHE_BLOCK)])
     T = len(frames)
     Xr = np.ascontiguousarray(frames[:, verts, :].transpose(1, 2, 0), dtype=np.float64)  # (nv, 3, T)
     z = Mx.T @ Xr.reshape(-1, T)
@@ -228,6 +234,10 @@ def _mouth_terms(frames, verts, local, Mx, Mc, P):
     ``vec(D D_r^-1)`` on the folded directions), ``sq`` (T,) ``Σ_f ||D_f D_r,f^-1||²`` computed
     as ``Σ_f <D_fᵀ D_f, P_f>`` with ``P = D_r^-1 D_r^-T`` (m,3,3): six dot products per triangle.
     """
+    if len(frames) > _CACHE_BLOCK:
+        parts = [_mouth_terms(frames[s : s + _CACHE_BLOCK], verts, local, Mx, Mc, P)
+                 for s in range(0, len(frames), _CACHE_BLOCK)]
+        return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
     T = len(frames)
     Xr = np.ascontiguousarray(frames[:, verts, :].transpose(1, 2, 0), dtype=np.float64)  # (nv, 3, T)
     e = _columns(Xr, local)
