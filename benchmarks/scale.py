@@ -12,7 +12,8 @@ the operator, the CPU time it used (user + system, all threads: on a machine sha
 the wall time is inflated by the load, the CPU time much less), the .blend growth (uncompressed, saved before and after), FL_Prop keys written, and
 the held-out inner-lip error against the truth on 20 frames of the evaluated mesh.
 
-Also: core ``LipRegressor.predict`` frames/s at both sizes (in place, float32, after a warm-up),
+Also: core ``LipRegressor.predict`` frames/s at both sizes (in place, float32, after a warm-up) and
+core ``refine_lips`` seconds at both sizes (``--core-only`` runs just these two),
 medians of repeated runs where cheap, the machine's load (``uptime``) before and after, and a plot
 of time and peak memory against frames for both sizes with the paper's timing for scale (Dinev et
 al. 2018 report 5.15 s a frame for the prediction).
@@ -246,6 +247,33 @@ def core_predict(size, n=512, repeats=3):
                 speedup_vs_paper=round(float(np.median(fps)) * PAPER_S_PER_FRAME))
 
 
+def refine_time(size, runs=4):
+    """Subprocess: core ``refine_lips`` (5 iterations, whole face) on the neutral face with a 2.5 mm inner-lip gap,
+    sketch from the truth (as ``benchmarks/sketch_refine.py``); median of the warm runs."""
+    from facelab_addon.core.capture.ict import load_ict
+    from facelab_addon.core.lips.sketch import refine_lips
+    from facelab_addon.testing import synthetic as syn
+    from facelab_addon.testing.subdivide import subdivide_midpoint
+
+    m = load_ict()
+    T, F, mm = m.neutral, m.faces, 0.1 * m.scale
+    fixed = ~m.part_vertex_mask("M_Face")
+    if size != "26k":
+        T, F, S = subdivide_midpoint(T, F)
+        fixed = (S @ fixed.astype(float)) > 0.99
+    mouth = syn.find_mouth(T, F, fixed, units_per_mm=mm)
+    cam = syn.frontal_camera(T, mouth.center, distance=40.0 * m.scale)
+    sk_u, sk_l = syn.lip_contours(T, F, cam, mouth=mouth)
+    C, _ = syn.inject_lip_error(T, F, fixed, kind="gap", amount_mm=2.5, mouth=mouth)
+    ts = []
+    for _ in range(runs):
+        t0 = time.perf_counter()
+        refine_lips(C, F, cam, sk_u, sk_l, fixed=fixed, iterations=5)
+        ts.append(time.perf_counter() - t0)
+    return dict(vertices=len(T), seconds_median_warm=round(float(np.median(ts[1:])), 3),
+                seconds_all=[round(t, 3) for t in ts], load=_uptime(), target_s=0.1 if size == "26k" else 0.3)
+
+
 # --------------------------------------------------------------------------- driver
 def _sub(args, timeout=3600):
     env = dict(os.environ, PYTHONPATH=str(ROOT))
@@ -307,6 +335,8 @@ def main(argv=None):
     ap.add_argument("--_build", nargs=4, help=argparse.SUPPRESS)
     ap.add_argument("--_run", nargs=3, help=argparse.SUPPRESS)
     ap.add_argument("--_core", nargs=1, help=argparse.SUPPRESS)
+    ap.add_argument("--_refine", nargs=1, help=argparse.SUPPRESS)
+    ap.add_argument("--core-only", action="store_true", help="only core predict and Refine at both sizes (JSON)")
     a = ap.parse_args(argv)
     if a.replot:
         d = json.loads(Path(a.replot).read_text())
@@ -322,13 +352,21 @@ def main(argv=None):
     if a._core:
         print(json.dumps(core_predict(a._core[0])))
         return
+    if a._refine:
+        print(json.dumps(refine_time(a._refine[0])))
+        return
 
     sizes = a.sizes.split(",") if a.sizes else (["26k"] if a.quick else ["26k", "105k"])
     counts = [int(x) for x in a.frames.split(",")] if a.frames else ([1000, 2000] if a.quick else [1000, 5000, 10000])
     out = dict(machine=dict(cpus=os.cpu_count(), load_before=_uptime()), targets=TARGET, cases=[], core_predict={})
     t_all = time.perf_counter()
+    out["refine"] = {}
     for size in sizes:
         out["core_predict"][size] = _sub(["--_core", size])
+        out["refine"][size] = _sub(["--_refine", size])
+    if a.core_only:
+        print(json.dumps({k: out[k] for k in ("machine", "core_predict", "refine")}, indent=1))
+        return
     with tempfile.TemporaryDirectory(prefix="facelab_scale_") as tmp:
         for size in sizes:
             for source in a.sources.split(","):
