@@ -163,31 +163,31 @@ class Timers:
 
 def instrument(timers):
     """Wrap the parts of ``pipeline.propagate.propagate`` (module attributes it looks up at call time)."""
-    from facelab_addon.blender import caches
+    from facelab_addon.blender import cache_integrate, caches, capture_stream
     from facelab_addon.core.lips import propagate as cprop
-    from facelab_addon.pipeline import correctives
+    from facelab_addon.core.lips import reduced, suggest
     from facelab_addon.pipeline import propagate as op
 
-    timers.patch(caches, "read_captured_frames", "read_captured (frame_set x T)")
+    timers.patch(capture_stream.CaptureReader, "read", "read captured chunk (mouth + lip vertices)")
     timers.patch(caches, "evaluate_frames", "read_corrected (training frames)",
-                 inside_passthrough=("read_captured (frame_set x T)",))
+                 inside_passthrough=("read captured chunk (mouth + lip vertices)",))
     timers.patch(op, "mesh_triangles", "setup: mesh_triangles")
     timers.patch(op, "region_faces", "setup: region_faces")
     timers.patch(op, "rest_vertices", "setup: rest_vertices")
     timers.patch(cprop.LipRegressor, "__init__", "regressor: LipRegressor.__init__ (Poisson factor, patches)")
     timers.patch(cprop.LipRegressor, "fit", "regressor: fit")
-    timers.patch(cprop.LipRegressor, "add", "regressor: add (incremental)")
-    timers.patch(cprop.LipRegressor, "predict", "predict (T frames, in place)")
-    timers.patch(cprop.LipRegressor, "extrapolation", "extrapolation score")
-    timers.patch(op, "suggest_frames", "suggest_frames (3 markers)")
-    timers.patch(correctives, "compress", "compress (SVD basis, 0.01 mm)")
-    timers.patch(correctives, "remove_keys", "write: remove old FL_Prop keys")
-    timers.patch(correctives, "add_keys_from_deltas", "write: add FL_Prop keys")
-    timers.patch(correctives, "key_values_bulk", "write: key FL_Prop values")
+    timers.patch(cprop.LipRegressor, "correct_chunk", "correct_chunk (predict + extrapolation, per chunk)")
+    timers.patch(cache_integrate.IntegrateMap, "to_key", "map onto the cache (Integrate)")
+    timers.patch(reduced.StreamingBasis, "add", "compress: StreamingBasis.add")
+    timers.patch(reduced.StreamingBasis, "finish", "compress: StreamingBasis.finish (SVD, 0.01 mm)")
+    timers.patch(suggest.SuggestScreen, "select", "suggest: select (re-read candidates)")
+    timers.patch(op, "_suggest", "suggest (3 markers, all passes)")
+    timers.patch(op, "remove_keys", "write: remove old FL_Prop keys")
+    timers.patch(op, "add_keys_from_deltas", "write: add FL_Prop keys")
+    timers.patch(op, "key_values_bulk", "write: key FL_Prop values")
     timers.patch(op, "key_property_bulk", "write: key FL_extrapolation")
 
 
-# --------------------------------------------------------------------------- scene
 def capture_error_weight(W):
     """(T,) CaptureError key value: + gap when the lips should be closed, - crossing when pressed (non-linear)."""
     jaw, close = W[:, 0], W[:, 1]

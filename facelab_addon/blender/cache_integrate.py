@@ -18,6 +18,7 @@ import numpy as np
 
 from ..core.capture import pointcache, pointcache_writer
 from ..core.errors import FaceLabError, MeshError
+from ..core.geometry.gradients import _inv3
 from .bakes import _bake_steps, _run, _uniform_step
 from .caches import (
     _alembic_still_error,
@@ -31,7 +32,7 @@ from .caches import (
     sequence_source,
 )
 
-__all__ = ["cache_to_shape_key_ready", "polygon_corners", "correction_to_key_offsets"]
+__all__ = ["cache_to_shape_key_ready", "polygon_corners", "correction_to_key_offsets", "IntegrateMap"]
 
 
 def _unique_file(path: Path) -> Path:
@@ -207,3 +208,86 @@ def correction_to_key_offsets(obj, cache_positions, deltas, corners=None):
     offs, cv = polygon_corners(obj.data) if corners is None else corners
     M = integrate_matrices(rest_vertices(obj), cache_positions, offs, cv)
     return integrate_offsets_to_key(M, deltas)
+
+
+class IntegrateMap:
+    """Key offsets that show wanted corrections of a few vertices over an Integrate Mesh Cache, many frames at once.
+
+    The map of :func:`facelab_addon.core.capture.integrate.integrate_matrices` restricted to
+    ``verts``: only their own polygon corners enter it (a vertex's map averages over its
+    corners), and the rest side of every corner frame is inverted once here instead of on
+    every frame. :meth:`to_key` maps a chunk of frames; equal to ``integrate_offsets_to_key``
+    of ``integrate_matrices`` frame by frame.
+
+    Parameters
+    ----------
+    corners : tuple
+        ``polygon_corners(mesh)``.
+    verts : (n,) int array_like
+        The vertices corrected.
+    rest : (V,3) array_like
+        The mesh's own positions (the Basis), object local.
+
+    Attributes
+    ----------
+    vertices : (k,) int64
+        The vertices whose captured positions :meth:`to_key` needs (``verts`` and their polygon neighbours).
+    """
+
+    def __init__(self, corners, verts, rest):
+        offs, cv = corners
+        sizes = np.diff(offs)
+        face_of = np.repeat(np.arange(len(sizes)), sizes)
+        local = np.arange(len(cv)) - offs[face_of]
+        n = sizes[face_of]
+        prev = cv[offs[face_of] + (local - 1) % n]
+        nxt = cv[offs[face_of] + (local + 1) % n]
+        verts = np.asarray(verts, dtype=np.int64)
+        sel = np.isin(cv, verts)
+        cur, prev, nxt = cv[sel], prev[sel], nxt[sel]
+        self.vertices = np.unique(np.r_[cur, prev, nxt])
+        self._c, self._p, self._n = (np.searchsorted(self.vertices, a) for a in (cur, prev, nxt))
+        S = np.asarray(rest, dtype=np.float64)[self.vertices]
+        e1, e2, nrm, area = self._frames(S[None])
+        self._area = area[0]
+        self._ok = self._area > 0
+        Bs = np.stack([e1[0], e2[0], nrm[0]], axis=2)
+        self._inv = np.zeros_like(Bs)
+        self._inv[self._ok] = _inv3(Bs[self._ok])
+        rows = np.searchsorted(verts, cur)
+        cnt = np.bincount(rows, minlength=len(verts)).astype(np.float64)
+        import scipy.sparse as sp
+
+        self._avg = sp.csr_matrix((1.0 / cnt[rows], (rows, np.arange(len(cur)))), shape=(len(verts), len(cur)))
+
+    def _frames(self, P):
+        c, p, n = P[:, self._c], P[:, self._p], P[:, self._n]
+        e1, e2 = p - c, n - c
+        nrm = np.cross(c - p, n - c)  # normal_tri_v3(prev, cur, next)
+        area2 = np.linalg.norm(nrm, axis=-1)
+        nrm /= np.where(area2 > 0, area2, 1.0)[..., None]
+        return e1, e2, nrm, 0.5 * area2
+
+    def to_key(self, captured, deltas, block: int = 32) -> np.ndarray:
+        """Key offsets (t, n, 3) showing ``deltas`` (t, n, 3) of ``verts`` on frames whose cache output is ``captured``.
+
+        ``captured`` (t, k, 3): positions of :attr:`vertices`, object local. Vertices whose map is
+        singular get the least-squares offset.
+        """
+        out = np.empty(np.shape(deltas))
+        for s in range(0, len(out), block):
+            P = np.asarray(captured[s : s + block], dtype=np.float64)
+            t = len(P)
+            e1, e2, nrm, area = self._frames(P)
+            k = np.sqrt(area / np.where(self._area > 0, self._area, 1.0))
+            Bo = np.stack([e1, e2, nrm * k[..., None]], axis=3)  # (t, C, 3, 3) columns
+            L = Bo @ self._inv  # zero where the rest corner is degenerate
+            M = (self._avg @ L.transpose(1, 0, 2, 3).reshape(L.shape[1], -1)).reshape(-1, t, 3, 3).transpose(1, 0, 2, 3)
+            d = np.asarray(deltas[s : s + block], dtype=np.float64)
+            good = np.abs(np.sum(M[..., 0, :] * np.cross(M[..., 1, :], M[..., 2, :]), axis=-1)) > 1e-12  # det
+            res = np.zeros_like(d)
+            res[good] = np.einsum("nij,nj->ni", _inv3(M[good]), d[good])  # closed form: no LAPACK call per vertex
+            for i, v in zip(*np.nonzero(~good)):
+                res[i, v] = np.linalg.lstsq(M[i, v], d[i, v], rcond=None)[0]
+            out[s : s + t] = res
+        return out

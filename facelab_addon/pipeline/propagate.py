@@ -23,30 +23,32 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..blender import cache_integrate, caches
+from ..blender.capture_stream import CaptureReader
 from ..blender.mesh import mesh_triangles, require_mesh
-from ..blender.objects import ModifierState, require_editable
+from ..blender.objects import ModifierState, local_length, require_editable
 from ..blender.shapekeys import (
     add_corrective_key,
     key_property_bulk,
     key_spike,
     rest_vertices,
 )
-from ..core.capture.integrate import integrate_matrices, integrate_offsets_to_key
 from ..core.errors import FaceLabError, FrameError, MeshError
 from ..core.lips.propagate import LipRegressor
-from ..core.lips.suggest import suggest_frames
+from ..core.lips.reduced import StreamingBasis
+from ..core.lips.suggest import SuggestScreen
 from ..names import (
     CORRECTED_PREFIX,
     EXTRAPOLATION_ACTION,
     EXTRAPOLATION_PROP,
     PROPAGATE_PREFIX,
+    STORE_SETTINGS_ATTR,
     SUGGEST_MARKER,
     TRAIN_MARKER,
 )
-from .correctives import write_corrective_keys
+from .correctives import CorrectionWriter, StorageSettings, StoredKeys
 from .frames import check_frames
 from .regions import region_faces
-from .settings import setting
+from .settings import setting, stored
 from .steps import run_steps
 
 __all__ = [
@@ -63,6 +65,7 @@ __all__ = [
 ]
 
 _CACHE_SOURCES = ("mesh_cache", "mesh_sequence_cache")
+_CHUNK = 256  # frames per streamed chunk: working memory ~ chunk x (mouth + lip vertices), not the shot
 
 
 @dataclass
@@ -231,7 +234,8 @@ def add_corrected_frame(scene, obj, frame: int, vertices) -> CorrectedFrame:
 
 
 # --------------------------------------------------------------------------- propagate
-def propagate(scene, obj, frames, settings: PropagateSettings | None = None, progress=None) -> PropagateResult:
+def propagate(scene, obj, frames, settings: PropagateSettings | None = None, progress=None, *,
+              chunk: int | None = None) -> PropagateResult:
     """Fit the regressor on the training frames, predict every frame, write the corrective keys.
 
     Runs :func:`propagate_steps` to the end at once.
@@ -246,21 +250,29 @@ def propagate(scene, obj, frames, settings: PropagateSettings | None = None, pro
     settings : PropagateSettings, optional
     progress : callable(label, done, total), optional
         Called after each step.
+    chunk : int, optional
+        Frames read, corrected and compressed at a time (memory is bounded by the chunk, not
+        the shot; the result does not depend on it). Default: a 40th of the shot (a step of
+        the progress bar), at least 4 and at most 256 frames.
 
     Returns
     -------
     PropagateResult
     """
-    return run_steps(propagate_steps(scene, obj, frames, settings), progress)
+    return run_steps(propagate_steps(scene, obj, frames, settings, chunk=chunk), progress)
 
 
-def propagate_steps(scene, obj, frames, settings: PropagateSettings | None = None):
+def propagate_steps(scene, obj, frames, settings: PropagateSettings | None = None, *, chunk: int | None = None):
     """Propagate as a generator: yields ``(stage, done, total)`` between steps and returns a :class:`PropagateResult`.
 
     The input is checked by this call (errors are raised before any step);
-    the steps then read the capture in chunks of frames, fit, predict in
-    chunks, (over a cache: map every frame's correction onto the cache
-    surface) and write. Nothing in the scene changes before the last step,
+    the steps then fit on the training frames and stream the shot a chunk of
+    frames at a time: read only the mouth and lip vertices
+    (:class:`~facelab_addon.blender.capture_stream.CaptureReader`), predict the
+    interior lip correction, (over a cache: map it onto the cache surface), add it to
+    a :class:`~facelab_addon.core.lips.reduced.StreamingBasis` and score the
+    mouth; then write the few shapes and their weights. Memory is bounded by
+    the chunk, not the shot. Nothing in the scene changes before the last step,
     except that a Mesh Cache is switched to Integrate (or an Alembic baked to
     a PC2) first; closing the generator between steps (a cancel) or an error
     in a step puts the modifiers back as they were (and deletes such a PC2)
@@ -268,7 +280,7 @@ def propagate_steps(scene, obj, frames, settings: PropagateSettings | None = Non
 
     Parameters
     ----------
-    scene, obj, frames, settings
+    scene, obj, frames, settings, chunk
         As :func:`propagate`.
 
     Returns
@@ -300,18 +312,22 @@ def propagate_steps(scene, obj, frames, settings: PropagateSettings | None = Non
     outside = [f for f in train if f < frames[0] or f > frames[-1]]
     if outside:
         raise FaceLabError(f"Training frames {outside} lie outside the range {frames[0]}-{frames[-1]}; widen the range.")
-    return _propagate_steps(scene, obj, frames, settings, t0, tris, mouth_faces, lip_faces, train)
+    chunk = min(_CHUNK, max(4, len(frames) // 40)) if chunk is None else chunk
+    if int(chunk) < 1:
+        raise FaceLabError(f"Propagate: chunk must be at least 1 frame, got {chunk}; use the default {_CHUNK}.")
+    return _propagate_steps(scene, obj, frames, settings, t0, tris, mouth_faces, lip_faces, train, int(chunk))
 
 
 def _chunks(n, size):
     return [(i, min(n, i + size)) for i in range(0, n, size)]
 
 
-def _propagate_steps(scene, obj, frames, settings, t0, tris, mouth_faces, lip_faces, train):
+def _propagate_steps(scene, obj, frames, settings, t0, tris, mouth_faces, lip_faces, train, chunk):
     state = ModifierState(obj)
     done = False
     try:
-        result = yield from _propagate_work(scene, obj, frames, settings, t0, tris, mouth_faces, lip_faces, train)
+        result = yield from _propagate_work(scene, obj, frames, settings, t0, tris, mouth_faces, lip_faces, train,
+                                            chunk)
         done = True
         return result
     finally:
@@ -329,65 +345,68 @@ def _require_finite(X, frames, what):
                         "range).")
 
 
-def _propagate_work(scene, obj, frames, settings, t0, tris, mouth_faces, lip_faces, train):
+def _propagate_work(scene, obj, frames, settings, t0, tris, mouth_faces, lip_faces, train, chunk):
     T = len(frames)
-    # progress units: T frames read + T predicted (+ T mapped onto a cache) + 2 (fit, write)
+    total = T + 2  # progress units: fit, T frames corrected, write
     on_cache = caches.sequence_source(obj) in _CACHE_SOURCES
-    total = 2 * T + 2 + (T if on_cache else 0)
-    note = ""
-    if on_cache:
-        note = cache_integrate.cache_to_shape_key_ready(obj, scene_frames=frames)
+    note = cache_integrate.cache_to_shape_key_ready(obj, scene_frames=frames) if on_cache else ""
+    yield "fitting", 0, total
     rest = rest_vertices(obj)
-    chunk = max(4, T // 40)
-    captured = np.empty((T, len(rest), 3), np.float32)
-    for i, j in _chunks(T, chunk):
-        yield "reading the capture", i, total
-        captured[i:j] = caches.read_captured_frames(obj, frames[i:j])  # FaceLab keys muted
-        _require_finite(captured[i:j], frames[i:j], "captured")
-    yield "fitting", T, total
     corrected = caches.evaluate_frames(obj, train, mute_shape_keys_prefix=(PROPAGATE_PREFIX,))
     _require_finite(corrected, train, "corrected (training)")
     reg = LipRegressor(rest, tris, mouth_faces, lip_faces)
-    corrected = training_input(captured[np.searchsorted(frames, train)], corrected, reg.interior_vertices)
+    captured_train = caches.read_captured_frames(obj, list(train)).astype(np.float64)  # FaceLab keys muted
+    _require_finite(captured_train, train, "captured (training)")
+    corrected = training_input(captured_train, corrected, reg.interior_vertices)
+    del captured_train
     try:
         reg.fit(corrected)
     except FrameError as e:  # the core names positions in the training list; the artist reads scene frames
         raise e.for_frames(list(train)) from None
-
-    lipv = np.unique(tris[lip_faces])
-    before = captured[:, lipv].astype(np.float64)
-    for i, j in _chunks(T, max(chunk, 16)):
-        yield "predicting", T + 1 + i, total
-        try:
-            reg.predict(captured[i:j], out=captured[i:j])  # in place: 1000 frames stay within memory
-        except FrameError as e:  # positions within this chunk -> scene frames
-            raise e.for_frames([int(f) for f in frames[i:j]]) from None
-    pred = captured
-    corr = (pred[:, lipv] - before).astype(np.float64)  # (T, n_lip, 3) correction, object local
-    corr[np.isin(frames, train)] = 0.0  # training frames keep the artist's own correction
-    if on_cache:  # keys ride on the cache surface (INTEGRATE): map each frame's offsets through it
-        sub_off, sub_cv = _polygons_around(cache_integrate.polygon_corners(obj.data), lipv)
-        for t in range(T):
-            if t % 4 == 0:
-                yield "mapping onto the cache", 2 * T + 1 + t, total
-            if np.any(corr[t]):
-                M = integrate_matrices(rest, _captured_frame(pred[t], lipv, before[t]), sub_off, sub_cv)[lipv]
-                corr[t] = integrate_offsets_to_key(M, corr[t])
+    del corrected
+    # Only the mouth and lip vertices are read (plus, over a cache, the polygons around the interior lips).
+    iv = reg.interior_vertices
+    read_v, ring = reg.used_vertices, None
+    if on_cache:
+        ring = cache_integrate.IntegrateMap(cache_integrate.polygon_corners(obj.data), iv, rest)
+        read_v = np.union1d(read_v, ring.vertices)
+    reader = CaptureReader(obj, read_v)
+    at_used = np.searchsorted(read_v, reg.used_vertices)
+    at_ring = None if ring is None else np.searchsorted(read_v, ring.vertices)
+    # half the storage tolerance here, half for the writer's own compression (the shot's setting, world mm)
+    tol = local_length(scene, obj, 0.5e-3 * stored(scene, STORE_SETTINGS_ATTR, StorageSettings).tolerance_mm)
+    store = StreamingBasis(len(iv), tol)
+    is_train = np.isin(frames, train)
+    screen = SuggestScreen(reg, T, exclude=np.flatnonzero(is_train)) if settings.suggestions else None
+    score = np.empty(T)
+    for i, j in _chunks(T, chunk):
+        yield "correcting the frames", 1 + i, total
+        X = reader.read(frames[i:j])  # FaceLab keys muted
+        _require_finite(X, frames[i:j], "captured")
+        Xu = X[:, at_used]
+        try:  # (t, nI, 3) correction, object local; where the model guesses: the extrapolation score
+            corr, score[i:j], feature_sq = reg.correct_chunk(Xu, used_only=True, first=i)
+        except FrameError as e:  # positions in the shot -> scene frames
+            raise e.for_frames([int(f) for f in frames]) from None
+        if screen is not None:
+            screen.add_scores(i, feature_sq, score[i:j])
+        corr[is_train[i:j]] = 0.0  # training frames keep the artist's own correction
+        if ring is not None:  # keys ride on the cache surface (INTEGRATE): map the offsets through it
+            corr = ring.to_key(X[:, at_ring], corr)
+        store.add(corr)
     yield "writing the corrective keys", total - 1, total
-    names = write_corrective_keys(obj, PROPAGATE_PREFIX, corr, frames, vertices=lipv, scene=scene,
-                                  measured_on="evaluated")
-    # where the model guesses: the extrapolation score keyed on the object, suggestions as markers.
-    # Mouth features are computed once (mouth triangles never touch the predicted interior lip vertices).
-    feats = reg.mouth_features(pred)
-    score = reg.extrapolation(features=feats)
+    basis, weights = store.finish()
+    names = _store_corrections(scene, obj, frames, basis, weights, iv)
+    if names.storage.mode == "cache" or "more than the budget" in names.storage.note:  # say where it went
+        note = f"{note} {names.storage.note}".strip()
+    score[is_train] = 0.0
     obj[EXTRAPOLATION_PROP] = 0.0
     key_property_bulk(obj, f'["{EXTRAPOLATION_PROP}"]', frames, score, action_name=EXTRAPOLATION_ACTION)
     for m in [m for m in scene.timeline_markers if m.name.startswith(SUGGEST_MARKER)]:
         scene.timeline_markers.remove(m)
     suggested = []
-    if settings.suggestions:
-        idx = suggest_frames(None, settings.suggestions, regressor=reg, exclude=np.flatnonzero(np.isin(frames, train)),
-                             features=feats, overwrite_features=True)
+    if screen is not None:
+        idx = _suggest(reg, reader, frames, at_used, screen, settings.suggestions)
         suggested = [int(frames[i]) for i in idx]
         for f in suggested:
             scene.timeline_markers.new(f"{SUGGEST_MARKER} {f}", frame=f)
@@ -423,22 +442,29 @@ def training_input(captured, corrected, interior) -> np.ndarray:
     return out
 
 
-def _polygons_around(corners, verts):
-    """``(face_offsets, corner_verts)`` of only the polygons touching ``verts``.
+def _store_corrections(scene, obj, frames, basis, weights, vertices) -> StoredKeys:
+    """Replace FaceLab's ``FL_Prop_*`` output with the correction ``weights @ basis``, by the storage policy.
 
-    The Integrate map of a vertex averages over its own corners, all in polygons that touch it, so
-    on this subset it is exactly the whole mesh's (``core.capture.integrate.integrate_matrices``), at a
-    fraction of the cost: the lips are ~4 % of a face."""
-    offs, cv = corners
-    sizes = np.diff(offs)
-    face_of = np.repeat(np.arange(len(sizes)), sizes)
-    touch = np.zeros(len(sizes), bool)
-    touch[face_of[np.isin(cv, verts)]] = True
-    return np.r_[0, np.cumsum(sizes[touch])], cv[touch[face_of]]
-
-
-def _captured_frame(pred_t, lipv, before_t):
-    """The captured frame (V,3) float64: the prediction with the lip vertices put back."""
-    out = np.array(pred_t, dtype=np.float64)
-    out[lipv] = before_t
+    The one place Propagate writes its result: ``basis`` (r, n, 3) offsets of ``vertices`` (object
+    local, measured on the evaluated mesh; over a cache already mapped through its surface),
+    ``weights`` (T, r) the value of each shape on each of ``frames``. The correction writer
+    (:class:`~facelab_addon.pipeline.correctives.CorrectionWriter`) maps it to rest space under
+    deforming modifiers and stores it as at most the shot's key budget of keys, or as a point cache.
+    Returns the key names, with the storage result as ``.storage``.
+    """
+    with CorrectionWriter(scene, obj, PROPAGATE_PREFIX, vertices=vertices, measured_on="evaluated") as w:
+        w.add_low_rank(frames, basis, weights)
+        res = w.finish()
+    out = StoredKeys(res.keys)
+    out.storage = res
     return out
+
+
+def _suggest(reg, reader, frames, at_used, screen, count):
+    """Frame indices to correct next: the greedy choice of :func:`suggest_frames` among the
+    :class:`SuggestScreen` candidates (the frames farthest from the training span), re-read once."""
+
+    def features_of(idx):
+        return reg.mouth_features(reader.read(frames[idx])[:, at_used], used_only=True)
+
+    return screen.select(count, features_of, exact=False)[0]

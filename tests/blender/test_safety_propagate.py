@@ -62,14 +62,14 @@ def test_negative_start_frame_is_honoured(ict, addon):
 
 def test_broken_frame_is_named_by_its_scene_frame(ict, addon, monkeypatch):
     scene, obj, err = corrected(ict)
-    read = caches.read_captured_frames
+    read = propagate_module.CaptureReader.read  # Propagate streams the capture through a CaptureReader
 
-    def nan_on_frame_12(o, frames, **kw):
-        X = read(o, frames, **kw)
+    def nan_on_frame_12(reader, frames):
+        X = read(reader, frames)
         X[np.asarray(frames) == 12] = np.nan
         return X
 
-    monkeypatch.setattr(propagate_module.caches, "read_captured_frames", nan_on_frame_12)
+    monkeypatch.setattr(propagate_module.CaptureReader, "read", nan_on_frame_12)
     keys_before = list(obj.data.shape_keys.key_blocks.keys())
     with pytest.raises(MeshError, match=r"captured face has NaN or infinite coordinates on frame 12;"):
         propagate(scene, obj, FRAMES)
@@ -93,12 +93,12 @@ def test_cancel_and_failure_on_a_mesh_cache_leave_the_modifier_as_it_was(ict, ad
     assert md.deform_mode == "OVERWRITE" and [m.name for m in face.modifiers] == ["Capture"]
     assert not face.data.shape_keys or not owned_keys(face, PROPAGATE_PREFIX)
 
-    def fails(o, fr, **kw):
+    def fails(reader, fr):
         raise MeshError("cache broke half way")
 
     steps = propagate_steps(scene, face, frames)
     next(steps)
-    monkeypatch.setattr(propagate_module.caches, "read_captured_frames", fails)
+    monkeypatch.setattr(propagate_module.CaptureReader, "read", fails)
     with pytest.raises(MeshError, match="half way"):
         for _ in steps:
             pass

@@ -282,12 +282,12 @@ def test_reconstruct_solver_result_as_keys_then_as_a_cache(tmp_path, ict, addon,
 
     monkeypatch.setattr(GeometricIndexer, "reconstruct_sequence", spy)
     frames = range(len(poses))
-    r = reconstruct_from_bundles(scene, obj, ReconstructSettings(bind_frame=0, selected=empties))
+    r = reconstruct_from_bundles(scene, obj, ReconstructSettings(bind_frame=0, selected=empties, method="INDEXING"))
     assert r.keys and r.keys.storage.mode == "keys" and len(r.keys) <= 5
     assert np.linalg.norm(shown(obj, frames, muted=()) - solved["X"], axis=2).max() <= TOL
 
     scene.facelab_store.key_budget = 2  # the shot's storage setting (FaceLab > Train & Propagate > Settings)
-    r = reconstruct_from_bundles(scene, obj, ReconstructSettings(bind_frame=0, selected=empties))
+    r = reconstruct_from_bundles(scene, obj, ReconstructSettings(bind_frame=0, selected=empties, method="INDEXING"))
     st = r.keys.storage
     assert r.keys == [] and st.mode == "cache" and "does not fit in 2 keys" in st.note
     assert not [k for k in obj.data.shape_keys.key_blocks.keys() if k.startswith(RECONSTRUCT_PREFIX)]

@@ -271,7 +271,7 @@ def test_propagate_job_steps_and_cancels(ict, addon):
     job = StepJob(propagate_pipeline.propagate_steps(scene, obj, FRAMES, settings))
     for _ in range(3):
         assert job.step()
-    assert job.stage == "reading the capture" and 0 < job.factor < 0.5
+    assert job.stage == "correcting the frames" and 0 < job.factor < 0.5
     job.cancel()  # Esc
     assert not job.step() and job.result is None
     assert [kb.name for kb in obj.data.shape_keys.key_blocks] == keys_before
@@ -283,7 +283,7 @@ def test_propagate_job_steps_and_cancels(ict, addon):
         factors.append(job.factor)
         if not stages or stages[-1] != job.stage:
             stages.append(job.stage)
-    assert stages == ["reading the capture", "fitting", "predicting", "writing the corrective keys"]
+    assert stages == ["fitting", "correcting the frames", "writing the corrective keys"]
     assert factors == sorted(factors) and factors[-1] < 1.0
     summary = job.result
     assert summary.rank >= 1 and summary.keys == [kb.name for kb in obj.data.shape_keys.key_blocks

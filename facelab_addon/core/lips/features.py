@@ -5,7 +5,7 @@ Capture", §4: the input of the regression is the vector ``y`` of deformation
 gradients of the trusted mouth triangles. This module holds the helpers that
 :mod:`.propagate` (the regression) and :mod:`.suggest` (training-frame
 suggestion) share for it: validating a (T,V,3) sequence without copying it,
-the shape-matrix columns of a block of frames, and the whole-mouth feature
+the shape-matrix columns of a block of frames (vertex-major), the dense coefficient operators of a fit, and the whole-mouth feature
 rows ``vec(F_t - I)``, all computed a block of ``_BLOCK`` frames at a time so
 a long float32 sequence is never converted whole. Positions are scene units;
 gradients and features are unitless, float64.
@@ -20,6 +20,7 @@ import numpy as np
 
 from ..errors import FaceLabError, MeshError
 from ..geometry.gradients import rest_inverse, shape_matrices
+from .guards import _check_prediction
 
 __all__: list[str] = []
 
@@ -62,26 +63,6 @@ def _as_frames(a, n_vertices, what, used=None):
     return A
 
 
-def _shape_components(frames, verts, local):
-    """Shape-matrix columns of triangles ``local`` over vertices ``verts`` for frames (T,V,3), in float64.
-
-    Returns three (3,T,f) arrays ``e[k][i]``: column k (edge 1, edge 2,
-    phantom offset), coordinate i. Component-major layout keeps every
-    operation contiguous (about 3x faster than (T,f,3,3) for many frames).
-    """
-    Xt = np.ascontiguousarray(frames[:, verts, :].transpose(2, 0, 1), dtype=np.float64)  # (3, T, nv)
-    p0 = Xt[:, :, local[:, 0]]
-    e1 = Xt[:, :, local[:, 1]] - p0
-    e2 = Xt[:, :, local[:, 2]] - p0
-    c = np.empty_like(e1)
-    np.subtract(e1[1] * e2[2], e1[2] * e2[1], out=c[0])
-    np.subtract(e1[2] * e2[0], e1[0] * e2[2], out=c[1])
-    np.subtract(e1[0] * e2[1], e1[1] * e2[0], out=c[2])
-    s = np.sqrt(np.sqrt(c[0] * c[0] + c[1] * c[1] + c[2] * c[2]))
-    c *= np.divide(1.0, s, out=np.zeros_like(s), where=s > 0)
-    return e1, e2, c
-
-
 def _mouth_features(frames, rest_vertices, faces, mouth_faces, chunk=_BLOCK):
     """(T, 9m) mouth gradients minus the identity of validated frames (any float dtype), float64."""
     F = np.asarray(faces, dtype=np.int64)[np.asarray(mouth_faces, dtype=np.int64)]
@@ -94,4 +75,258 @@ def _mouth_features(frames, rest_vertices, faces, mouth_faces, chunk=_BLOCK):
         P = frames[s : s + chunk][:, verts, :]  # shape_matrices converts these to float64
         out[s : s + chunk] = (np.matmul(shape_matrices(P, local), rinv) - np.eye(3)).reshape(len(P), -1)
     return out
+
+
+
+def _edge_columns(frames, verts, local):
+    """Shape-matrix columns of triangles ``local`` over vertices ``verts`` of frames (T,*,3), vertex-major.
+
+    Returns three (f,3,T) float64 arrays: edge 1, edge 2 and the phantom column ``n / sqrt(|n|)``
+    (``n`` the unnormalised normal; zero for a zero-area triangle), per triangle, coordinate and
+    frame. Rows are gathered whole (one triangle corner = 3T contiguous numbers), several times
+    faster than gathering along the last axis.
+    """
+    Xr = np.ascontiguousarray(frames[:, verts, :].transpose(1, 2, 0), dtype=np.float64)  # (nv, 3, T)
+    return _columns(Xr, local)
+
+
+def _columns(Xr, local):
+    p0 = Xr[local[:, 0]]
+    e1 = Xr[local[:, 1]]
+    e1 -= p0
+    e2 = Xr[local[:, 2]]
+    e2 -= p0
+    c = np.empty_like(e1)
+    a0, a1, a2, b0, b1, b2 = e1[:, 0], e1[:, 1], e1[:, 2], e2[:, 0], e2[:, 1], e2[:, 2]
+    np.multiply(a1, b2, out=c[:, 0])
+    c[:, 0] -= a2 * b1
+    np.multiply(a2, b0, out=c[:, 1])
+    c[:, 1] -= a0 * b2
+    np.multiply(a0, b1, out=c[:, 2])
+    c[:, 2] -= a1 * b0
+    s = np.einsum("fit,fit->ft", c, c)
+    np.sqrt(s, out=s)
+    np.sqrt(s, out=s)
+    np.divide(1.0, s, out=s, where=s > 0)
+    c *= s[:, None, :]
+    return e1, e2, c
+
+
+def _fold_coefficients(local, n_verts, sels, Ws, m):
+    """Fold the per-patch coefficient maps into two dense operators, once per fit.
+
+    The reduced mouth coefficients of patch ``p`` are ``z_p = Σ_ik D[i,k] W_p[i,k]`` over the
+    shape-matrix entries of its mouth triangles ``sels[p]``. The edge columns (``k = 0, 1``)
+    are differences of vertex positions, so their part is one linear map of the mouth
+    vertices; only the phantom column (``k = 2``) needs the per-triangle cross product.
+
+    Parameters
+    ----------
+    local : (m,3) int ndarray
+        Mouth triangles in local vertex indices ``0..n_verts-1``.
+    n_verts : int
+        Number of mouth vertices.
+    sels : list of (m_p,) int ndarray
+        Mouth triangles (indices into ``local``) read by each patch.
+    Ws : list of (3,3,m_p,r_p) ndarray
+        ``W[i,k,f,r]`` of each patch (``LipRegressor._patch_operators``).
+    m : int
+        Number of mouth triangles.
+
+    Returns
+    -------
+    Mx : (3 n_verts, R) float64 ndarray
+        ``zᵀ += Mxᵀ X`` for vertex-major positions ``X`` (n_verts, 3, T) flattened to (3 n_verts, T).
+    Mc : (3m, R) float64 ndarray
+        ``zᵀ += Mcᵀ c`` for the phantom columns ``c`` (m, 3, T) of :func:`_edge_columns`, flattened.
+    """
+    R = sum(W.shape[-1] for W in Ws)
+    Mx = np.zeros((n_verts, 3, R))
+    Mc = np.zeros((m, 3, R))
+    o = 0
+    for sel, W in zip(sels, Ws):
+        r = W.shape[-1]
+        L = local[sel]
+        for i in range(3):
+            for k in range(2):
+                np.add.at(Mx[:, i, o : o + r], L[:, k + 1], W[i, k])
+                np.add.at(Mx[:, i, o : o + r], L[:, 0], -W[i, k])
+            Mc[sel, i, o : o + r] = W[i, 2]
+        o += r
+    return Mx.reshape(3 * n_verts, R), Mc.reshape(3 * m, R)
+
+
+_CACHE_BLOCK = 32  # frames per pass over the mouth triangles: the (m,3,t) temporaries stay in cache
+
+
+def _mouth_coefficients(frames, verts, local, Mx, Mc):
+    """(T, R) reduced mouth coefficients (without the identity's) of frames (T,*,3), float64.
+
+    ``verts`` are the mouth vertices' indices in ``frames``; ``local`` the triangles over them.
+    """
+    if len(frames) > _CACHE_BLOCK:
+        return np.concatenate([_mouth_coefficients(frames[s : s + _CACHE_BLOCK], verts, local, Mx, Mc)
+                               for s in range(0, len(frames), _CACHE_BLOCK)])
+    T = len(frames)
+    Xr = np.ascontiguousarray(frames[:, verts, :].transpose(1, 2, 0), dtype=np.float64)  # (nv, 3, T)
+    z = Mx.T @ Xr.reshape(-1, T)
+    _, _, c = _columns(Xr, local)
+    z += Mc.T @ c.reshape(-1, T)
+    return z.T
+
+
+def _gradient_features(frames, verts, local, rinv, center):
+    """(T, 9m) mouth gradients ``D D_r^-1`` (minus the identity when ``center``) of frames (T,*,3), float64.
+
+    Row-major 3×3 per triangle, the layout of ``LipRegressor.mouth_features``; computed from the
+    vertex-major shape-matrix columns (no batched 3×3 products).
+    """
+    e = _edge_columns(frames, verts, local)
+    m, T = e[0].shape[0], e[0].shape[2]
+    Y = np.empty((m, 3, 3, T))
+    for j in range(3):
+        r0, r1, r2 = (rinv[:, k, j, None, None] for k in range(3))  # (m,1,1)
+        y = Y[:, :, j, :]
+        np.multiply(e[0], r0, out=y)
+        y += e[1] * r1
+        y += e[2] * r2
+        if center:
+            y[:, j, :] -= 1.0
+    return np.ascontiguousarray(Y.transpose(3, 0, 1, 2)).reshape(T, 9 * m)
+
+
+def _patch_operators(nI, rinv, lip_sel, w, Dp, UY, UX, th, center):
+    """A fitted patch of ``LipRegressor`` folded into the prediction: ``(Z, W, z_ident)``.
+
+    ``rinv`` (m_p,3,3) are the inverse rest shape matrices of the patch's mouth triangles,
+    ``Dp`` the divergence of its lip triangles on the ``nI`` interior vertices, ``w`` its
+    partition-of-unity weights, ``UY``, ``UX``, ``th`` its fit. ``Z`` (nI*3, rY): divergence on
+    the interior vertices of the patch's weighted lip gradients per unit coefficient; ``W``
+    (3, 3, m_p, rY): the mouth coefficients ``U_Yᵀ y`` as sums over shape-matrix entries;
+    ``z_ident`` (rY,): the coefficients of the identity gradients (zeros unless ``center``).
+    """
+    rY = th.shape[1]
+    # lip gradients of this patch per unit coefficient, weighted: (rY, n_p, 3, 3)
+    Mp = (UX @ th).T.reshape(rY, len(lip_sel), 3, 3) * w[None, :, None, None]
+    # divergence of those gradients on the interior vertices: (nI*3, rY)
+    Fr = Mp.transpose(1, 3, 0, 2).reshape(3 * len(lip_sel), rY * 3)  # rows (t, a), cols (j, c): F[c, a]
+    Z = (Dp @ Fr).reshape(nI, rY, 3).transpose(0, 2, 1).reshape(nI * 3, rY)
+    # U_Yᵀ vec(D_d D_r^-1) = Σ_ik D_d[i,k] W[i,k]:  W[i,k,f,r] = Σ_j U[f,i,j,r] Ri[f,k,j]
+    mp = len(rinv)
+    U4 = UY.reshape(mp, 3, 3, rY).transpose(0, 2, 1, 3).reshape(mp, 3, 3 * rY)  # (f, j, (i, r))
+    Wf = np.matmul(rinv, U4).reshape(mp, 3, 3, rY)  # (f, k, i, r)
+    W = np.ascontiguousarray(Wf.transpose(2, 1, 0, 3))  # (i, k, f, r)
+    z0 = np.tile(np.eye(3).ravel(), mp) @ UY if center else np.zeros(rY)
+    return Z, W, z0
+
+
+def _fold_directions(A, rinv, local, n_verts):
+    """(Mx, Mc) of :func:`_fold_coefficients` giving ``Aᵀ vec(D D_r^-1)`` for feature-space directions A (9m, c)."""
+    m = len(local)
+    W = np.einsum("fijc,fkj->ikfc", A.reshape(m, 3, 3, -1), rinv)  # W[i,k,f,c] = Σ_j A[f,i,j,c] Ri[f,k,j]
+    return _fold_coefficients(local, n_verts, [np.arange(m)], [W], m)
+
+
+def _mouth_terms(frames, verts, local, Mx, Mc, P):
+    """Folded projections and squared norms of the mouth gradients of frames (T,*,3), without forming them.
+
+    Returns ``(Z, sq)``: ``Z`` (T, c) the products ``Mxᵀ X + Mcᵀ c`` (projections of
+    ``vec(D D_r^-1)`` on the folded directions), ``sq`` (T,) ``Σ_f ||D_f D_r,f^-1||²`` computed
+    as ``Σ_f <D_fᵀ D_f, P_f>`` with ``P = D_r^-1 D_r^-T`` (m,3,3): six dot products per triangle.
+    """
+    if len(frames) > _CACHE_BLOCK:
+        parts = [_mouth_terms(frames[s : s + _CACHE_BLOCK], verts, local, Mx, Mc, P)
+                 for s in range(0, len(frames), _CACHE_BLOCK)]
+        return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+    T = len(frames)
+    Xr = np.ascontiguousarray(frames[:, verts, :].transpose(1, 2, 0), dtype=np.float64)  # (nv, 3, T)
+    e = _columns(Xr, local)
+    Z = Mx.T @ Xr.reshape(-1, T)
+    Z += Mc.T @ e[2].reshape(-1, T)
+    sq = np.zeros(T)
+    for k in range(3):
+        for j in range(k, 3):
+            g = np.einsum("fit,fit->ft", e[k], e[j])  # (m, T) column products
+            sq += (2.0 if j > k else 1.0) * (P[:, k, j] @ g)
+    return Z.T, sq
+
+
+class _StreamingPrediction:
+    """The per-chunk entry points of :class:`.propagate.LipRegressor` for long shots (mixed into it).
+
+    They take a chunk of frames (or only its :attr:`used_vertices`) and return what a streaming
+    caller keeps: the interior lip corrections, the extrapolation score and the mouth features'
+    norms and projections, computed from folded operators without forming the (t, 9m) features.
+    """
+
+    def lip_corrections(self, captured, *, used_only: bool = False, first: int = 0) -> np.ndarray:
+        """The correction of the interior lip vertices, predicted minus captured, frame by frame.
+
+        What :meth:`predict` adds to ``captured[:, interior_vertices]``, without writing a
+        (T,V,3) result: the streaming form for long shots (the caller feeds chunks).
+
+        Parameters
+        ----------
+        captured : (T,V,3) array_like, or (T, len(used_vertices), 3) with ``used_only``
+            Captured frames (or only their :attr:`used_vertices`), scene units, float32 or float64.
+        used_only : bool
+            ``captured`` holds only the used vertices, in the order of :attr:`used_vertices`.
+        first : int
+            Index of the chunk's first frame in the shot, for the frame indices of errors.
+
+        Returns
+        -------
+        (T, nI, 3) float64 ndarray
+            Offsets of :attr:`interior_vertices`, scene units; the border vertices' are zero.
+
+        Raises
+        ------
+        FaceLabError, PredictionError
+            As :meth:`predict`.
+        """
+        self._require_fit()
+        A = self._frames(captured, "captured frames", used_only)
+        xi, xc = self._interior(A, used_only)
+        _check_prediction(xi, xc, first, self.mouth_size)
+        xi -= xc
+        return xi
+
+    def _norms(self, Z, sq):
+        """``(U_Yᵀ y, ||y||²)`` from folded projections ``Z`` whose last column is the identity's."""
+        c = 1.0 if self.center == "rest" else 0.0
+        return Z[:, :-1] - self._span_ident, sq - 2 * c * Z[:, -1] + 3 * c * len(self.mouth_faces)
+
+    def correct_chunk(self, captured, *, used_only: bool = False, first: int = 0):
+        """:meth:`lip_corrections` and the mouth's distance from the training span, in one pass over the mouth.
+
+        Returns ``(corrections (t,nI,3), extrapolation (t,), feature_sq (t,))``: the score of
+        :meth:`extrapolation` (from ``||y||² - ||U_Yᵀ y||²``, never forming ``y``) and ``||y||²``
+        (for :class:`.suggest.SuggestScreen`). Arguments as :meth:`lip_corrections`.
+        """
+        self._require_fit()
+        A = self._frames(captured, "captured frames", used_only)
+        verts = self._mouth_u if used_only else self._mouth_verts
+        Z, sq = _mouth_terms(A, verts, self._mouth_local, self._Mx_all, self._Mc_all, self._mouth_P)
+        R = self._Mx.shape[1]
+        xi, xc = self._interior(A, used_only, z=Z[:, :R] - self._z_ident)
+        _check_prediction(xi, xc, first, self.mouth_size)
+        zU, sq = self._norms(Z[:, R:], sq)
+        res = np.sqrt(np.clip(sq - np.sum(zU * zU, axis=1), 0.0, None))
+        return xi - xc, res / self._sigma, sq
+
+    def mouth_projections(self, captured, directions, *, used_only: bool = False):
+        """``(Aᵀ y (t,d), ||y||² (t,))`` of frames' mouth features ``y`` on directions ``A`` (9m, d), never forming ``y``."""
+        self._require_fit()
+        A = self._frames(captured, "captured frames", used_only)
+        D = np.asarray(directions, dtype=np.float64)
+        if self._dir_fold[0] is not D:
+            ident = np.tile(np.eye(3).ravel(), len(self.mouth_faces))[:, None]
+            ext = np.hstack([D, ident])
+            self._dir_fold = (D, _fold_directions(ext, self._mouth_rinv, self._mouth_local, len(self._mouth_verts)),
+                              (ident.T @ D).ravel() if self.center == "rest" else np.zeros(D.shape[1]))
+        _, (Mx, Mc), d_ident = self._dir_fold
+        verts = self._mouth_u if used_only else self._mouth_verts
+        Z, sq = _mouth_terms(A, verts, self._mouth_local, Mx, Mc, self._mouth_P)
+        c = 1.0 if self.center == "rest" else 0.0
+        return Z[:, :-1] - d_ident, sq - 2 * c * Z[:, -1] + 3 * c * len(self.mouth_faces)
 

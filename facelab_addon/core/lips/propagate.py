@@ -70,7 +70,16 @@ from ..errors import FaceLabError, FrameError, PredictionError, UsageError
 from ..geometry.gradients import rest_inverse, shape_matrices
 from ..geometry.laplacian import poisson_operator
 from ..geometry.linsolve import SPDFactor
-from .features import _BLOCK, _as_frames, _shape_components
+from .features import (
+    _BLOCK,
+    _as_frames,
+    _fold_coefficients,
+    _fold_directions,
+    _gradient_features,
+    _mouth_coefficients,
+    _patch_operators,
+    _StreamingPrediction,
+)
 from .guards import _check_prediction, _check_settings, _checked_mesh, _checked_out, _same_array
 from .patches import _lip_patches
 from .reduced import choose_ridge, solve_theta, thin_svd
@@ -79,7 +88,7 @@ from .regions import region_border, validate_regions
 __all__ = ["LipRegressor"]
 
 
-class LipRegressor:
+class LipRegressor(_StreamingPrediction):
     """Learn inner-lip deformation gradients from the mouth region (Dinev et al. 2018, §4).
 
     Parameters
@@ -168,12 +177,15 @@ class LipRegressor:
         self._mouth_tris = F[self.mouth_faces]
         self._lip_tris = F[self.lip_faces]
         self._mouth_rinv = rest_inverse(R, self._mouth_tris, name="mouth region")
+        self._mouth_P = np.matmul(self._mouth_rinv, self._mouth_rinv.transpose(0, 2, 1))  # ||D R^-1||² = <DᵀD, P>
         self._lip_rinv = rest_inverse(R, self._lip_tris, name="inner-lip region")
         self._mouth_verts, inv = np.unique(self._mouth_tris, return_inverse=True)
         self._mouth_local = inv.reshape(-1, 3)
         self._lip_verts_all, inv = np.unique(self._lip_tris, return_inverse=True)
         self._lip_local = inv.reshape(-1, 3)
         self._used = np.union1d(self._mouth_verts, self._lip_verts_all)  # vertices read per frame
+        self.used_vertices = self._used
+        self._mouth_u = np.searchsorted(self._used, self._mouth_verts)  # the same in a (T, len(used), 3) array
         # the largest plausible correction: the extent of the mouth and lip regions (scene units)
         self.mouth_size = float(np.ptp(R[self._used], axis=0).max())
 
@@ -190,6 +202,8 @@ class LipRegressor:
                 "(Auto Regions with a larger lip width)."
             )
         self.interior_vertices = interior
+        self._iv_u = np.searchsorted(self._used, interior)
+        self._bv_u = np.searchsorted(self._used, self.border_vertices)
         L = L.tocsr()
         self._L_II = L[interior][:, interior].tocsc()
         self._L_IB = L[interior][:, self.border_vertices].tocsr()
@@ -235,11 +249,18 @@ class LipRegressor:
             G = G - np.eye(3)
         return G.reshape(T, -1)
 
-    def _mouth_feat(self, frames):
+    def _mouth_feat(self, frames, used_only=False):
         """(T, 9m) mouth features of validated frames (any float dtype; computed in float64)."""
-        return self._feat(self._grad(frames, self._mouth_rinv, self._mouth_verts, self._mouth_local))
+        verts = self._mouth_u if used_only else self._mouth_verts
+        return _gradient_features(frames, verts, self._mouth_local, self._mouth_rinv, self.center == "rest")
 
-    def mouth_features(self, captured) -> np.ndarray:
+    def _frames(self, captured, what, used_only):
+        """Validated frames, full (T,V,3) or, with ``used_only``, (T, len(used_vertices), 3)."""
+        if used_only:
+            return _as_frames(captured, len(self._used), what + " (used vertices only)")
+        return _as_frames(captured, self.n_vertices, what, self._used)
+
+    def mouth_features(self, captured, *, used_only: bool = False) -> np.ndarray:
         """Whole-mouth feature vectors ``y`` of frames, one row per frame.
 
         The deformation gradients of the mouth triangles (order of
@@ -254,6 +275,9 @@ class LipRegressor:
         captured : (T,V,3) or (V,3) array_like
             Frames, scene units. float32 frames are read in place (only the
             mouth vertices are converted to float64, a block at a time).
+        used_only : bool
+            ``captured`` holds only the :attr:`used_vertices` (T, len(used_vertices), 3),
+            e.g. a chunk read from a cache for just those vertices.
 
         Returns
         -------
@@ -267,10 +291,10 @@ class LipRegressor:
             If no frames are given, or they have a different topology or NaN
             coordinates in the mouth or lip region (``MeshError``).
         """
-        A = _as_frames(captured, self.n_vertices, "captured frames", self._used)
+        A = self._frames(captured, "captured frames", used_only)
         out = np.empty((len(A), 9 * len(self.mouth_faces)))
         for s in range(0, len(A), _BLOCK):
-            out[s : s + _BLOCK] = self._mouth_feat(A[s : s + _BLOCK])
+            out[s : s + _BLOCK] = self._mouth_feat(A[s : s + _BLOCK], used_only)
         return out
 
     def _check_features(self, features):
@@ -389,13 +413,20 @@ class LipRegressor:
             self.theta_bars.append(th)
             self.ridges_used.append(lam)
             self._pfit.append((UX, th, UY))
-            Z, W, z0 = self._patch_operators(mouth_sel, lip_sel, w, Dp, UY, UX, th)
+            Z, W, z0 = _patch_operators(len(self.interior_vertices), self._mouth_rinv[mouth_sel], lip_sel, w, Dp, UY, UX,
+                                        th, self.center == "rest")
             Zs.append(Z)
             Ws.append(W)
             zid.append(z0)
         self._Zdiv = np.concatenate(Zs, axis=1)  # (nI*3, Σ rY)
-        self._Wp = Ws
+        self._Mx, self._Mc = _fold_coefficients(self._mouth_local, len(self._mouth_verts), self._fit_mouth_sel, Ws, m)
         self._z_ident = np.concatenate(zid)
+        # the global span and the identity, folded beside the coefficients: one pass gives both (correct_chunk)
+        ident = np.tile(np.eye(3).ravel(), m)[:, None]
+        Ms = _fold_directions(np.hstack([self._UY, ident]), self._mouth_rinv, self._mouth_local, len(self._mouth_verts))
+        self._Mx_all, self._Mc_all = np.hstack([self._Mx, Ms[0]]), np.hstack([self._Mc, Ms[1]])
+        self._span_ident = (ident.T @ self._UY).ravel() if self.center == "rest" else np.zeros(self._UY.shape[1])
+        self._dir_fold = (None, None)
 
     def _fit_span(self, Y, UY):
         """Global span ``U_Y`` and RMS deformation of the mouth features: extrapolation score and suggest_frames.
@@ -418,49 +449,35 @@ class LipRegressor:
         th = solve_theta(CY, CX, lam)  # (rX, rY)
         return UY, UX, th, lam
 
-    def _patch_operators(self, mouth_sel, lip_sel, w, Dp, UY, UX, th):
-        """A fitted patch folded into the prediction: ``(Z, W, z_ident)``.
-
-        ``Z`` (nI*3, rY): divergence on the interior vertices of the patch's weighted lip gradients per
-        unit coefficient; ``W`` (3, 3, m_p, rY): the mouth coefficients ``U_Yᵀ y`` as sums over shape-matrix
-        entries (:meth:`_coefficients`); ``z_ident`` (rY,): the coefficients of the identity gradients.
-        """
-        nI = len(self.interior_vertices)
-        rY = th.shape[1]
-        # lip gradients of this patch per unit coefficient, weighted: (rY, n_p, 3, 3)
-        Mp = (UX @ th).T.reshape(rY, len(lip_sel), 3, 3) * w[None, :, None, None]
-        # divergence of those gradients on the interior vertices: (nI*3, rY)
-        Fr = Mp.transpose(1, 3, 0, 2).reshape(3 * len(lip_sel), rY * 3)  # rows (t, a), cols (j, c): F[c, a]
-        Z = (Dp @ Fr).reshape(nI, rY, 3).transpose(0, 2, 1).reshape(nI * 3, rY)
-        # U_Yᵀ vec(D_d D_r^-1) = Σ_ik D_d[i,k] W[i,k]:  W[i,k,f,r] = Σ_j U[f,i,j,r] Ri[f,k,j]
-        mp = len(mouth_sel)
-        U4 = UY.reshape(mp, 3, 3, rY).transpose(0, 2, 1, 3).reshape(mp, 3, 3 * rY)  # (f, j, (i, r))
-        Wf = np.matmul(self._mouth_rinv[mouth_sel], U4).reshape(mp, 3, 3, rY)  # (f, k, i, r)
-        W = np.ascontiguousarray(Wf.transpose(2, 1, 0, 3))  # (i, k, f, r)
-        z0 = np.tile(np.eye(3).ravel(), len(mouth_sel)) @ UY if self.center == "rest" else np.zeros(rY)
-        return Z, W, z0
-
     def _require_fit(self):
         if self._Y is None:
             raise FaceLabError("The lip regressor has no training frames; call fit() with corrected frames first.")
 
     # ------------------------------------------------------------------ prediction
-    def _coefficients(self, frames):
+    def _coefficients(self, frames, used_only=False):
         """Reduced coefficients ``z_p = U_Y,pᵀ y_p`` of all patches, (T, Σ rY), for validated frames.
 
         ``y = vec(D_d D_r^-1)`` is linear in the shape matrix ``D_d``, so
-        ``U_Yᵀ y = Σ D_d[i,k] W[i,k]`` with ``W`` folded at fit time: a frame
-        costs its mouth shape matrices and nine small GEMMs per patch.
+        ``U_Yᵀ y = Σ D_d[i,k] W[i,k]`` with ``W`` folded at fit time; the edge columns of ``D_d``
+        are linear in the positions, so a frame costs one product with its mouth vertices, the
+        phantom columns of its mouth triangles and three more products
+        (:func:`.features._fold_coefficients`).
         """
-        e = _shape_components(frames, self._mouth_verts, self._mouth_local)
-        zs = []
-        for mouth_sel, W in zip(self._fit_mouth_sel, self._Wp):
-            z = np.zeros((len(frames), W.shape[-1]))
-            for i in range(3):
-                for k in range(3):
-                    z += e[k][i][:, mouth_sel] @ W[i, k]
-            zs.append(z)
-        return np.concatenate(zs, axis=1) - self._z_ident
+        verts = self._mouth_u if used_only else self._mouth_verts
+        return _mouth_coefficients(frames, verts, self._mouth_local, self._Mx, self._Mc) - self._z_ident
+
+    def _interior(self, A, used_only=False, z=None):
+        """``(xi, xc)``: predicted and captured interior lip positions (t, nI, 3) float64 of validated frames."""
+        iv, bv = (self._iv_u, self._bv_u) if used_only else (self.interior_vertices, self.border_vertices)
+        nI, t = len(iv), len(A)
+        z = self._coefficients(A, used_only) if z is None else z
+        rhs = (self._Zdiv @ z.T).reshape(nI, 3, t).transpose(0, 2, 1)  # (nI, t, 3)
+        if self.center == "rest":
+            rhs = rhs + self._b_ident[:, None, :]
+        xb = np.asarray(A[:, bv, :], dtype=np.float64).transpose(1, 0, 2).reshape(len(bv), 3 * t)
+        rhs = rhs.reshape(nI, 3 * t) - self._L_IB @ xb
+        xi = self._factor.solve(rhs).reshape(nI, t, 3).transpose(1, 0, 2)
+        return xi, np.asarray(A[:, iv, :], dtype=np.float64)
 
     def _residual_norms(self, Y):
         """(T,) norms of mouth features ``Y`` (T, 9m) outside the global training span."""
@@ -552,21 +569,12 @@ class LipRegressor:
         if chunk < 1:
             raise FaceLabError(f"chunk must be at least 1 frame, got {chunk}; use the default 256.")
         out3 = None if out is None else _checked_out(out, A)
-        iv, bv = self.interior_vertices, self.border_vertices
-        nI = len(iv)
-        xi_all = np.empty((T, nI, 3))  # checked before anything is written (out may be the captured frames)
+        iv = self.interior_vertices
+        xi_all = np.empty((T, len(iv), 3))  # checked before anything is written (out may be the captured frames)
         for s in range(0, T, chunk):
-            e = min(T, s + chunk)
-            t = e - s
-            z = self._coefficients(A[s:e])
-            rhs = (self._Zdiv @ z.T).reshape(nI, 3, t).transpose(0, 2, 1)  # (nI, t, 3)
-            if self.center == "rest":
-                rhs = rhs + self._b_ident[:, None, :]
-            xb = np.asarray(A[s:e][:, bv, :], dtype=np.float64).transpose(1, 0, 2).reshape(len(bv), 3 * t)
-            rhs = rhs.reshape(nI, 3 * t) - self._L_IB @ xb
-            xi = self._factor.solve(rhs).reshape(nI, t, 3)
-            xi_all[s:e] = xi.transpose(1, 0, 2)
-            _check_prediction(xi_all[s:e], A[s:e][:, iv, :], s, self.mouth_size)
+            xi, xc = self._interior(A[s : s + chunk])
+            _check_prediction(xi, xc, s, self.mouth_size)
+            xi_all[s : s + chunk] = xi
         if out is None:
             out3 = A.astype(np.float64)  # always a copy
         elif not _same_array(out3, A):

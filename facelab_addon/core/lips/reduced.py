@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["thin_svd", "solve_theta", "choose_ridge"]
+__all__ = ["thin_svd", "solve_theta", "choose_ridge", "StreamingBasis"]
 
 
 def thin_svd(M, center, rtol, atol=0.0):
@@ -127,3 +127,139 @@ def choose_ridge(CY, CX, ridge):
         if err < best_err * (1 - 1e-9):
             best, best_err = lam, err
     return best
+
+
+class StreamingBasis:
+    """A few corrective shapes and per-frame weights for a long shot, built a chunk of frames at a time.
+
+    The propagated corrections of the interior lips (Dinev et al. 2018 §4) are a linear
+    function of the reduced mouth coefficients plus the capture's own lip detail, so a
+    shot of thousands of frames is well described by a handful of shapes. This class
+    finds them without holding the (T, n, 3) corrections: each frame is projected on the
+    shapes found so far, and a frame that the shapes miss by more than a quarter of the tolerance
+    adds its residual as a new shape (a pivoted Gram-Schmidt in frame order, so the result
+    does not depend on how the shot is split into chunks). :meth:`finish` then rotates the
+    shapes by the SVD of the weights and drops the weakest while every frame stays within
+    the tolerance. Memory: the shapes (r, 3n) and the weights (T, r).
+
+    Parameters
+    ----------
+    n : int
+        Vertices per frame.
+    tol : float
+        Largest reconstruction error of any vertex in any frame, scene units (> 0).
+    max_rank : int
+        Most shapes kept; a shot that needs more raises :class:`~facelab_addon.core.errors.FaceLabError`.
+    """
+
+    def __init__(self, n: int, tol: float, *, max_rank: int = 1024):
+        from ..errors import FaceLabError
+
+        if not (tol > 0 and np.isfinite(tol)):
+            raise FaceLabError(f"The compression tolerance must be a positive distance in scene units, got {tol}.")
+        self.n, self.tol, self.max_rank = int(n), float(tol), int(max_rank)
+        self._U = np.zeros((0, 3 * self.n))  # orthonormal rows
+        self._W = []  # per chunk: (t, r at the end of that chunk)
+
+    @property
+    def frames(self) -> int:
+        """Frames added so far."""
+        return sum(len(w) for w in self._W)
+
+    def add(self, deltas) -> None:
+        """Add the corrections of the next frames.
+
+        Parameters
+        ----------
+        deltas : (t, n, 3) array_like
+            Per-frame offsets, scene units, in shot order.
+        """
+        from ..errors import FaceLabError
+
+        X = np.asarray(deltas, dtype=np.float64).reshape(len(deltas), 3 * self.n)
+        t, gtol = len(X), 0.25 * self.tol
+        U = self._U
+        P = X @ U.T  # (t, r)
+        Rs = X - P @ U
+        err = np.sqrt(np.max(np.sum(Rs.reshape(t, self.n, 3) ** 2, axis=2), axis=1)) if self.n else np.zeros(t)
+        new, cols = [], []
+        i = 0
+        while True:
+            bad = np.flatnonzero(err[i:] > gtol)
+            if not bad.size:
+                break
+            i += int(bad[0])
+            q = Rs[i].copy()
+            for B in (U, np.asarray(new).reshape(-1, 3 * self.n)):  # re-orthogonalise against round-off
+                q -= (B @ q) @ B
+            q /= np.linalg.norm(q)
+            c = np.zeros(t)
+            c[i:] = Rs[i:] @ q  # frames before i never see the new shape (order, not chunking, decides)
+            Rs[i:] -= np.outer(c[i:], q)
+            err[i:] = np.sqrt(np.max(np.sum(Rs[i:].reshape(t - i, self.n, 3) ** 2, axis=2), axis=1))
+            new.append(q)
+            cols.append(c)
+            if len(U) + len(new) > self.max_rank:
+                raise FaceLabError(
+                    f"The corrections need more than {self.max_rank} corrective shapes to stay within "
+                    f"{self.tol:.3g} scene units (they do not compress: a noisy capture?); smooth the capture's "
+                    "lips or store the result as a point cache.")
+        if new:
+            self._U = np.vstack([U, np.asarray(new)])
+            P = np.hstack([P, np.stack(cols, 1)])
+        self._W.append(P)
+
+    def finish(self):
+        """The shapes and weights, rotated to the weights' SVD and truncated within the tolerance.
+
+        Returns
+        -------
+        basis : (r, n, 3) float64 ndarray
+            Corrective shapes, scene units, scaled so each weight peaks at magnitude 1.
+        weights : (T, r) float64 ndarray
+            Per-frame weights in [-1, 1]; ``r`` is 0 when every frame is within the tolerance of zero.
+        """
+        r = len(self._U)
+        T = self.frames
+        W = np.zeros((T, r))
+        o = 0
+        for w in self._W:
+            W[o : o + len(w), : w.shape[1]] = w
+            o += len(w)
+        if r == 0:
+            return np.zeros((0, self.n, 3)), W
+        _, V = np.linalg.eigh(W.T @ W)
+        V = np.ascontiguousarray(V[:, ::-1])  # a reversed view would take numpy's slow non-BLAS matmul
+        Wr = W @ V
+        Ur = V.T @ self._U  # rotated shapes (r, 3n), orthonormal
+
+        # per frame: the L2 norm of its dropped weights bounds every vertex's error from above, and
+        # from below after dividing by sqrt(n); only frames above the budget are reconstructed
+        budget = 0.75 * self.tol  # the greedy residual already used a quarter of the tolerance
+        C = np.zeros((T, r + 1))
+        C[:, :r] = np.sqrt(np.cumsum((Wr * Wr)[:, ::-1], axis=1)[:, ::-1])  # C[t, k]: keeping k shapes
+        tail = C.max(axis=0) if T else np.zeros(r + 1)
+
+        def fits(k):  # every vertex of every frame within the budget when the first k shapes are kept
+            for s in np.array_split(np.flatnonzero(C[:, k] > budget), max(1, T // 512)):
+                D = Wr[s, k:] @ Ur[k:]
+                if len(s) and np.max(np.sum(D.reshape(len(s), self.n, 3) ** 2, axis=2)) > budget * budget:
+                    return False
+            return True
+
+        hi = int(np.flatnonzero(tail <= budget)[0])
+        lo = int(np.flatnonzero(tail <= budget * np.sqrt(max(self.n, 1)))[0])
+        if (hi - lo) * T * self.n > 2e9:  # exact search too costly (a correction that does not compress)
+            lo = hi
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if fits(mid):
+                hi = mid
+            else:
+                lo = mid + 1
+        k = hi
+        basis = Ur[:k].reshape(k, self.n, 3)
+        weights = Wr[:, :k]
+        peak = np.max(np.abs(weights), axis=0) if T else np.ones(k)
+        peak = np.where(peak > 0, peak, 1.0)
+        return basis * peak[:, None, None], weights / peak

@@ -18,7 +18,7 @@ from ..errors import FaceLabError, UsageError
 from .features import _BLOCK, _as_frames, _mouth_features
 from .propagate import LipRegressor
 
-__all__ = ["suggest_frames"]
+__all__ = ["suggest_frames", "SuggestScreen"]
 
 
 def _deflate(R, q, block=_BLOCK):
@@ -144,3 +144,134 @@ def suggest_frames(captured=None, count: int = 1, *, regressor: LipRegressor | N
         picks.append(i)
         _deflate(Rz, Rz[i] / norms[i])
     return np.asarray(picks, dtype=np.int64)
+
+
+class SuggestScreen:
+    """:func:`suggest_frames` for a shot too long to hold its features: one streaming pass, then a few frames.
+
+    :meth:`add` takes the mouth features of each chunk of frames and keeps only their
+    norms outside the span (the regressor's training span, then ``directions``). :meth:`select`
+    re-reads the features of the ``candidates`` frames of largest norm (and of the excluded
+    frames) through a callback and runs the greedy selection of :func:`suggest_frames` on
+    them. A pick is exact (the one :func:`suggest_frames` makes on the whole shot) when its
+    norm after deflation is at least the largest norm of the frames not re-read; the first
+    pick always is. When a later pick is not, :meth:`select` stops there and returns the
+    directions to deflate by, for another pass (a new screen with ``directions``).
+
+    Parameters
+    ----------
+    regressor : LipRegressor
+        A fitted regressor (features and training span).
+    n_frames : int
+        Frames in the shot (indices ``0..n_frames-1``).
+    exclude : sequence of int
+        Frames never proposed (training frames; their directions join the span).
+    directions : (d, 9m) ndarray, optional
+        Orthonormal directions to deflate by first (from an earlier :meth:`select`).
+    candidates : int
+        Frames re-read per pass (besides the excluded ones).
+    """
+
+    def __init__(self, regressor, n_frames: int, exclude=(), directions=None, candidates: int = 128):
+        regressor._require_fit()
+        self.reg, self.T = regressor, int(n_frames)
+        self.excl = np.zeros(self.T, dtype=bool)
+        ex = np.asarray(list(exclude), dtype=np.int64)
+        self.excl[ex[(ex >= 0) & (ex < self.T)]] = True
+        self.dirs = np.zeros((0, 9 * len(regressor.mouth_faces))) if directions is None else np.asarray(directions)
+        self.K = int(candidates)
+        self.sq = np.zeros(self.T)  # ||y||²: the feature scale of suggest_frames
+        self.res = np.zeros(self.T)  # norm outside the span and the directions
+
+    def add(self, start: int, features) -> None:
+        """Record frames ``start..start+t-1`` from their (t, 9m) mouth features (not kept)."""
+        Y = np.asarray(features, dtype=np.float64)
+        Q = self.reg._UY
+        r = Y - (Y @ Q) @ Q.T
+        if len(self.dirs):
+            r -= (r @ self.dirs.T) @ self.dirs
+        self.sq[start : start + len(Y)] = np.sum(Y * Y, axis=1)
+        self.res[start : start + len(Y)] = np.sqrt(np.sum(r * r, axis=1))
+
+    def add_scores(self, start: int, feature_sq, extrapolation) -> None:
+        """Record frames from ``||y||²`` and :meth:`LipRegressor.extrapolation` (a screen without directions).
+
+        What :meth:`LipRegressor.correct_chunk` returns beside the corrections, so the first pass
+        costs nothing more.
+        """
+        if len(self.dirs):
+            raise FaceLabError("This screen deflates by directions; record its frames with add() or add_frames().")
+        n = len(feature_sq)
+        self.sq[start : start + n] = feature_sq
+        self.res[start : start + n] = np.asarray(extrapolation) * self.reg._sigma
+
+    def add_frames(self, start: int, frames, *, used_only: bool = False) -> None:
+        """Record frames from their positions (T,V,3) (or used vertices): features projected, never formed."""
+        A = np.hstack([self.reg._UY, self.dirs.T])
+        P, sq = self.reg.mouth_projections(frames, A, used_only=used_only)
+        self.sq[start : start + len(sq)] = sq
+        self.res[start : start + len(sq)] = np.sqrt(np.clip(sq - np.sum(P * P, axis=1), 0.0, None))
+
+    def select(self, count: int, features_of, scale: float | None = None, *, exact: bool = True):
+        """Greedy picks among the candidates, as far as they are exact.
+
+        Parameters
+        ----------
+        count : int
+            Frames wanted.
+        features_of : callable((k,) int ndarray) -> (k, 9m) ndarray
+            Mouth features of the given frame indices (re-read from the shot).
+        scale : float, optional
+            Feature scale (from the first pass; default this screen's).
+        exact : bool
+            Stop at the first pick a frame not re-read could beat (``done`` False: run another
+            pass). False: keep picking among the candidates (one pass; the picks are the greedy
+            choice among the ``candidates`` frames farthest from the span).
+
+        Returns
+        -------
+        picks : list of int
+            Frame indices, best first.
+        done : bool
+            False when the next pick could lie outside the candidates: run another pass.
+        directions : (d, 9m) ndarray
+            This screen's directions plus the excluded frames' and the picks'.
+        scale : float
+        """
+        scale = max(float(np.sqrt(np.mean(self.sq))), 1e-300) if scale is None else scale
+        free = np.flatnonzero(~self.excl)
+        order = free[np.argsort(-self.res[free], kind="stable")]
+        cand, rest = order[: self.K], order[self.K :]
+        tau = float(self.res[rest].max()) if rest.size else -1.0
+        ex = np.flatnonzero(self.excl)
+        idx = np.concatenate([ex, np.sort(cand)]).astype(np.int64)
+        F = np.array(features_of(idx), dtype=np.float64) if idx.size else np.zeros((0, self.dirs.shape[1]))
+        Q = self.reg._UY
+        F -= (F @ Q) @ Q.T
+        if len(self.dirs):
+            F -= (F @ self.dirs.T) @ self.dirs
+        dirs = list(self.dirs)
+        for i in range(len(ex)):  # the excluded frames join the span, in frame order
+            nv = np.linalg.norm(F[i])
+            if nv > 1e-10 * scale:
+                q = F[i] / nv
+                _deflate(F, q)
+                dirs.append(q)
+        picks, done = [], True
+        pickable = np.r_[np.zeros(len(ex), bool), np.ones(len(idx) - len(ex), bool)]
+        for _ in range(int(count)):
+            norms = np.where(pickable, np.linalg.norm(F, axis=1), -1.0)
+            if not norms.size:
+                break
+            j = int(np.argmax(norms))
+            if norms[j] <= 1e-10 * scale and tau <= 1e-10 * scale:
+                break
+            if exact and norms[j] < tau:  # a frame not re-read may beat it: deflate by the picks so far, pass again
+                done = False
+                break
+            picks.append(int(idx[j]))
+            pickable[j] = False
+            q = F[j] / norms[j]
+            _deflate(F, q)
+            dirs.append(q)
+        return picks, done, np.asarray(dirs).reshape(-1, self.dirs.shape[1]), scale

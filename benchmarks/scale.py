@@ -1,0 +1,417 @@
+"""Benchmark: Propagate at production scale (issue 14): 1k-10k frames on the 26.7k- and 105k-vertex face.
+
+For each case a fresh subprocess *builds* the scene and saves it (ICT-FaceKit in metres, or ICT
+subdivided once at its edge midpoints, ``testing.subdivide``: 105,569 vertices; eight mouth
+expressions keyed with speech-like weights; a pose-dependent inner-lip ``CaptureError`` inside
+``FL_lips``, as ``benchmarks/propagate_blender.py``; Auto Regions; 10 training frames corrected to
+the truth), either as shape-key animation (``keys``) or baked to a PC2 played by a Mesh Cache
+(``pc2``, the corrections then made with ``add_corrected_frame`` over the cache). Another fresh
+subprocess opens the .blend and runs ``bpy.ops.facelab.propagate()`` once: wall time, the process's
+peak RSS (``resource.getrusage`` max RSS: numpy and Blender allocations alike) and its RSS before
+the operator, the CPU time it used (user + system, all threads: on a machine shared with other jobs
+the wall time is inflated by the load, the CPU time much less), the .blend growth (uncompressed, saved before and after), FL_Prop keys written, and
+the held-out inner-lip error against the truth on 20 frames of the evaluated mesh.
+
+Also: core ``LipRegressor.predict`` frames/s at both sizes (in place, float32, after a warm-up) and
+core ``refine_lips`` seconds at both sizes (``--core-only`` runs just these two),
+medians of repeated runs where cheap, the machine's load (``uptime``) before and after, and a plot
+of time and peak memory against frames for both sizes with the paper's timing for scale (Dinev et
+al. 2018 report 5.15 s a frame for the prediction).
+
+Usage: ``PYTHONPATH=. python benchmarks/scale.py [--quick] [--png docs/images/scale.png]``.
+Prints one JSON object on stdout (save it to ``benchmarks/results/scale.json``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+SCALE = 0.01
+N_TRAIN = 10
+PAPER_S_PER_FRAME = 5.15  # Dinev et al. 2018: prediction, a frame
+TARGET = dict(wall_s=60.0, peak_mb=2048.0, frames=10000, vertices=105_000)
+
+
+def _uptime():
+    return Path("/proc/loadavg").read_text().split()[:3]
+
+
+def _rss_mb():
+    for ln in Path("/proc/self/status").read_text().splitlines():
+        if ln.startswith("VmRSS:"):
+            return int(ln.split()[1]) / 1024.0
+    return float("nan")
+
+
+def _peak_mb():
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+# --------------------------------------------------------------------------- the face at both sizes
+def face_model(size):
+    """(neutral (V,3) m, faces (F,3), expression deltas (8,V,3) m, S or None) at ``size`` ('26k' or '105k')."""
+    from propagate_blender import EXPR
+
+    from facelab_addon.core.capture.ict import load_ict
+    from facelab_addon.testing.subdivide import subdivide_midpoint
+
+    ict = load_ict()
+    V = ict.neutral * SCALE
+    D = np.stack([(ict.expressions[n] - ict.neutral) * SCALE for n in EXPR])
+    if size == "26k":
+        return ict, V, ict.faces, D, None
+    V2, F2, S = subdivide_midpoint(V, ict.faces)
+    return ict, V2, F2, np.stack([S @ d for d in D]), S
+
+
+def _lip_error(obj, V, faces):
+    """(V,3) CaptureError at value 1: upper and lower inner lips pulled apart (1 mm each), zero on the FL_lips border."""
+    from facelab_addon.blender.mesh import mesh_triangles, vertex_group_mask
+    from facelab_addon.core.geometry.geodesic import geodesic_distance
+    from facelab_addon.core.lips import regions
+
+    tris = mesh_triangles(obj.data)
+    lips = vertex_group_mask(obj, "FL_lips")
+    border = regions.region_border(tris, regions.faces_in_region(tris, lips), len(V))
+    interior = lips.copy()
+    interior[border] = False
+    width = float(np.ptp(V[lips, 1])) * 0.5
+    db = geodesic_distance(V, tris, border, limit=width)
+    u = np.clip(np.where(np.isfinite(db), db, width) / (0.35 * width), 0.0, 1.0)
+    fade = u * u * (3 - 2 * u) * interior
+    y0 = float(np.median(V[lips, 1]))
+    err = np.zeros_like(V)
+    err[:, 1] = np.sign(V[:, 1] - y0) * fade * 1e-3
+    return err
+
+
+def build(size, n_frames, source, path):
+    """Subprocess: build the case's scene and save it to ``path``; returns build facts."""
+    import bpy
+    from propagate_blender import capture_error_weight
+
+    import facelab_addon
+    from facelab_addon.blender.scene import new_mesh_object
+    from facelab_addon.blender.shapekeys import add_corrective_key, key_spike, key_values_bulk
+    from facelab_addon.core.capture.pointcache_writer import PointCacheWriter
+    from facelab_addon.pipeline.propagate import add_corrected_frame, record_training_frame
+    from facelab_addon.testing.weights import speech_weights
+
+    facelab_addon.register()
+    t0 = time.perf_counter()
+    ict, V, F, D, S = face_model(size)
+    frames = np.arange(1, n_frames + 1)
+    W = speech_weights(n_frames, channels=__import__("propagate_blender").EXPR)
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    scene = bpy.context.scene
+    scene.frame_start, scene.frame_end = 1, n_frames
+    if S is None:
+        obj = new_mesh_object("Face", V, poly_verts=ict.poly_verts, poly_offsets=ict.poly_offsets)
+    else:
+        obj = new_mesh_object("Face", V, poly_verts=F.ravel(), poly_offsets=np.arange(0, 3 * len(F) + 1, 3))
+    bpy.context.view_layer.objects.active = obj
+    obj.select_set(True)
+    assert bpy.ops.facelab.auto_regions() == {"FINISHED"}
+    err = _lip_error(obj, V, F)
+    cap_w = capture_error_weight(W)
+    # training frames: the most extreme mouth poses, spread over the shot
+    order = np.argsort(-np.linalg.norm(W, axis=1))
+    train = []
+    for i in order:
+        if all(abs(int(i) - j) > n_frames // (2 * N_TRAIN) for j in train):
+            train.append(int(i))
+        if len(train) == N_TRAIN:
+            break
+    train = sorted(train)
+    if source == "keys":
+        obj.shape_key_add(name="Basis", from_mix=False)
+        names = [add_corrective_key(obj, f"E{k}", D[k]).name for k in range(len(D))]
+        kb = add_corrective_key(obj, "CaptureError", err)
+        kb.slider_min = -2.0
+        key_values_bulk(obj, names + ["CaptureError"], frames, np.c_[W, cap_w])
+        for i in train:
+            key_spike(add_corrective_key(obj, f"Sculpt_{frames[i]}", -cap_w[i] * err), int(frames[i]))
+            record_training_frame(scene, obj, int(frames[i]), "", "sculpt")
+    else:
+        pc2 = Path(path).with_suffix(".pc2")
+        Df = D.reshape(len(D), -1)
+        with PointCacheWriter(pc2, "PC2", len(V), n_frames, start_frame=1.0) as w:
+            for s in range(0, n_frames, 256):
+                X = (V.ravel() + W[s : s + 256] @ Df).reshape(-1, len(V), 3) + cap_w[s : s + 256, None, None] * err
+                for x in X.astype(np.float32):
+                    w.write(x)
+        md = obj.modifiers.new("Capture", "MESH_CACHE")
+        md.cache_format, md.filepath, md.frame_start = "PC2", str(pc2), 1.0
+        for i in train:
+            truth = (V.ravel() + W[i] @ Df).reshape(len(V), 3)
+            add_corrected_frame(scene, obj, int(frames[i]), truth)
+    bpy.ops.wm.save_as_mainfile(filepath=str(path), compress=False)
+    np.savez(Path(path).with_suffix(".npz"), W=W, cap_w=cap_w, err=err, train=np.asarray(train))
+    return dict(build_s=round(time.perf_counter() - t0, 1), blend_mb=round(Path(path).stat().st_size / 2**20, 2),
+                vertices=len(V), training_frames=[int(frames[i]) for i in train],
+                pc2_mb=round(Path(path).with_suffix(".pc2").stat().st_size / 2**20, 1) if source == "pc2" else 0.0)
+
+
+def run(path, size, source):
+    """Subprocess: open the case, run the Propagate operator once, measure."""
+    import bpy
+
+    import facelab_addon
+
+    facelab_addon.register()
+    bpy.ops.wm.open_mainfile(filepath=str(path))
+    scene = bpy.context.scene
+    obj = bpy.data.objects["Face"]
+    bpy.context.view_layer.objects.active = obj
+    before_mb = Path(path).stat().st_size / 2**20
+    rss0, peak0 = _rss_mb(), _peak_mb()
+    load = _uptime()
+    ru0 = resource.getrusage(resource.RUSAGE_SELF)
+    t0 = time.perf_counter()
+    res = bpy.ops.facelab.propagate()
+    wall = time.perf_counter() - t0
+    ru1 = resource.getrusage(resource.RUSAGE_SELF)
+    cpu = (ru1.ru_utime - ru0.ru_utime) + (ru1.ru_stime - ru0.ru_stime)  # this process, all its threads
+    peak = _peak_mb()
+    out = Path(path).with_name(Path(path).stem + "_after.blend")
+    bpy.ops.wm.save_as_mainfile(filepath=str(out), compress=False, copy=True)
+    growth = out.stat().st_size / 2**20 - before_mb
+    out.unlink()
+    keys = [kb.name for kb in obj.data.shape_keys.key_blocks if kb.name.startswith("FL_Prop_")]
+    acc = _accuracy(obj, path, source)
+    return dict(result=sorted(res), wall_s=round(wall, 2), cpu_s=round(cpu, 2), rss_before_mb=round(rss0, 1),
+                peak_rss_mb=round(peak, 1), peak_before_operator_mb=round(peak0, 1),
+                peak_growth_mb=round(peak - rss0, 1), blend_growth_mb=round(growth, 2), keys=len(keys),
+                load_during=load, **acc)
+
+
+def _accuracy(obj, path, source, n=20):
+    """Held-out inner-lip error (mm) vs the truth on ``n`` frames of the evaluated mesh, before and after."""
+    from facelab_addon.blender import caches
+    from facelab_addon.blender.mesh import vertex_group_mask
+
+    d = np.load(Path(path).with_suffix(".npz"))
+    T = len(d["W"])
+    held = np.setdiff1d(np.linspace(0, T - 1, n + N_TRAIN).astype(int), d["train"])[:n]
+    frames = held + 1
+    lips = vertex_group_mask(obj, "FL_lips")
+    got = caches.evaluate_frames(obj, frames, mute_shape_keys_prefix=())[:, lips].astype(np.float64)
+    cap = caches.read_captured_frames(obj, frames)[:, lips].astype(np.float64)
+    truth = cap - d["cap_w"][held, None, None] * d["err"][None, lips]
+    eb = np.linalg.norm(cap - truth, axis=-1) * 1e3
+    ea = np.linalg.norm(got - truth, axis=-1) * 1e3
+    return dict(held_out_lip_rms_mm_before=round(float(np.sqrt(np.mean(eb**2))), 4),
+                held_out_lip_rms_mm_after=round(float(np.sqrt(np.mean(ea**2))), 4))
+
+
+def core_predict(size, n=512, repeats=3):
+    """Subprocess: LipRegressor.predict frames/s, in place on float32 frames (median of ``repeats``)."""
+    from propagate_blender import EXPR
+
+    from facelab_addon.core.lips import regions
+    from facelab_addon.core.lips.propagate import LipRegressor
+    from facelab_addon.testing.weights import speech_weights
+
+    ict, V, F, D, S = face_model(size)
+    W = speech_weights(n, channels=EXPR)
+    X = (V.ravel() + W @ D.reshape(len(D), -1)).reshape(n, len(V), 3)
+    mouth, lip = regions.auto_regions(V, F)
+    reg = LipRegressor(V, F, regions.faces_in_region(F, mouth), regions.faces_in_region(F, lip))
+    reg.fit(X[:: n // N_TRAIN][:N_TRAIN] + 1e-4 * np.sin(np.arange(len(V)))[None, :, None])
+    X32 = X.astype(np.float32)
+    reg.predict(X32[:32], out=X32[:32])
+    times, cpus = [], []
+    for _ in range(repeats):
+        t0, c0 = time.perf_counter(), time.process_time()
+        reg.predict(X32, out=X32)
+        times.append(time.perf_counter() - t0)
+        cpus.append(time.process_time() - c0)
+    fps = [n / t for t in times]
+    return dict(vertices=len(V), frames=n, fps_median=round(float(np.median(fps)), 1),
+                fps_all=[round(f, 1) for f in fps], cpu_ms_per_frame=round(1e3 * float(np.median(cpus)) / n, 3),
+                load=_uptime(), paper_s_per_frame=PAPER_S_PER_FRAME,
+                speedup_vs_paper=round(float(np.median(fps)) * PAPER_S_PER_FRAME))
+
+
+def refine_time(size, runs=4):
+    """Subprocess: core ``refine_lips`` (5 iterations, whole face) on the neutral face with a 2.5 mm inner-lip gap,
+    sketch from the truth (as ``benchmarks/sketch_refine.py``); median of the warm runs."""
+    from facelab_addon.core.capture.ict import load_ict
+    from facelab_addon.core.lips.sketch import refine_lips
+    from facelab_addon.testing import synthetic as syn
+    from facelab_addon.testing.subdivide import subdivide_midpoint
+
+    m = load_ict()
+    T, F, mm = m.neutral, m.faces, 0.1 * m.scale
+    fixed = ~m.part_vertex_mask("M_Face")
+    if size != "26k":
+        T, F, S = subdivide_midpoint(T, F)
+        fixed = (S @ fixed.astype(float)) > 0.99
+    mouth = syn.find_mouth(T, F, fixed, units_per_mm=mm)
+    cam = syn.frontal_camera(T, mouth.center, distance=40.0 * m.scale)
+    sk_u, sk_l = syn.lip_contours(T, F, cam, mouth=mouth)
+    C, _ = syn.inject_lip_error(T, F, fixed, kind="gap", amount_mm=2.5, mouth=mouth)
+    ts = []
+    for _ in range(runs):
+        t0 = time.perf_counter()
+        refine_lips(C, F, cam, sk_u, sk_l, fixed=fixed, iterations=5)
+        ts.append(time.perf_counter() - t0)
+    return dict(vertices=len(T), seconds_median_warm=round(float(np.median(ts[1:])), 3),
+                seconds_all=[round(t, 3) for t in ts], load=_uptime(), target_s=0.1 if size == "26k" else 0.3)
+
+
+# --------------------------------------------------------------------------- driver
+def _sub(args, timeout=3600):
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    p = subprocess.run([sys.executable, __file__, *args], capture_output=True, text=True, env=env, timeout=timeout)
+    if p.returncode:
+        raise RuntimeError(f"{args}: exit {p.returncode}\n{p.stderr[-3000:]}")
+    return json.loads(p.stdout.strip().splitlines()[-1])
+
+
+def _note(out):
+    loads = [float(x) for r in out["cases"] for x in r.get("load_during", [])[:1]]
+    return (f"Propagate operator, 10 training frames; shared {out['machine']['cpus']}-core machine, 1-min load "
+            f"{min(loads):.0f}-{max(loads):.0f} during the runs (other jobs)") if loads else ""
+
+
+def plot(results, png, note=""):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(1, 2, figsize=(11, 4))
+    for (size, source), mk, col in zip([("26k", "keys"), ("26k", "pc2"), ("105k", "keys"), ("105k", "pc2")],
+                                       ["o-", "s--", "o-", "s--"], ["C0", "C0", "C2", "C2"]):
+        rows = [r for r in results if r["size"] == size and r["source"] == source]
+        if not rows:
+            continue
+        f = [r["frames"] for r in rows]
+        lab = f"{size} vertices, {'shape keys' if source == 'keys' else 'PC2 cache'}"
+        ax[0].plot(f, [r["wall_s"] for r in rows], mk, color=col, label=lab)
+        ax[1].plot(f, [r["peak_rss_mb"] / 1024 for r in rows], mk, color=col, label=lab)
+    fmax = max(r["frames"] for r in results)
+    ax[0].axhline(TARGET["wall_s"], color="r", lw=0.8, ls=":", label="target at 10k frames, 105k vertices")
+    ax[0].text(0.98, 0.45, f"paper (Dinev et al. 2018): {PAPER_S_PER_FRAME} s a frame\n= {PAPER_S_PER_FRAME * fmax / 3600:.0f} h "
+               f"for {fmax:,} frames", transform=ax[0].transAxes, va="bottom", ha="right", fontsize=8)
+    ax[1].axhline(TARGET["peak_mb"] / 1024, color="r", lw=0.8, ls=":", label="target peak 2 GB")
+    ax[0].set(xlabel="frames", ylabel="Propagate operator wall time (s)", title="Time")
+    ax[1].set(xlabel="frames", ylabel="process peak RSS (GB)", title="Peak memory", ylim=(0, None))
+    for a in ax:
+        a.grid(alpha=0.3)
+        a.legend(fontsize=7, loc="upper left")
+    if note:
+        fig.suptitle(note, fontsize=9)
+    fig.tight_layout()
+    fig.savefig(png, dpi=110)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--quick", action="store_true", help="1k and 2k frames at 26.7k vertices, shape keys and PC2")
+    ap.add_argument("--png", default=str(ROOT / "docs" / "images" / "scale.png"))
+    ap.add_argument("--repeats", type=int, default=3, help="runs of each 1,000-frame case (median reported)")
+    ap.add_argument("--sizes", default=None, help="comma list of 26k,105k (default: both; --quick: 26k)")
+    ap.add_argument("--frames", default=None, help="comma list of frame counts (default 1000,5000,10000)")
+    ap.add_argument("--sources", default="keys,pc2", help="comma list of keys,pc2")
+    ap.add_argument("--pc2-max-frames", type=int, default=10000,
+                    help="skip PC2 cases longer than this (a 10k-frame 105k PC2 is 12 GB to write)")
+    ap.add_argument("--replot", metavar="JSON", help="only redraw the plot from a saved result")
+    ap.add_argument("--_build", nargs=4, help=argparse.SUPPRESS)
+    ap.add_argument("--_run", nargs=3, help=argparse.SUPPRESS)
+    ap.add_argument("--_core", nargs=1, help=argparse.SUPPRESS)
+    ap.add_argument("--_refine", nargs=1, help=argparse.SUPPRESS)
+    ap.add_argument("--core-only", action="store_true", help="only core predict and Refine at both sizes (JSON)")
+    a = ap.parse_args(argv)
+    if a.replot:
+        d = json.loads(Path(a.replot).read_text())
+        plot([r for r in d["cases"] if "failed" not in r], a.png, _note(d))
+        return
+    if a._build:
+        size, n, source, path = a._build
+        print(json.dumps(build(size, int(n), source, path)))
+        return
+    if a._run:
+        print(json.dumps(run(*a._run)))
+        return
+    if a._core:
+        print(json.dumps(core_predict(a._core[0])))
+        return
+    if a._refine:
+        print(json.dumps(refine_time(a._refine[0])))
+        return
+
+    sizes = a.sizes.split(",") if a.sizes else (["26k"] if a.quick else ["26k", "105k"])
+    counts = [int(x) for x in a.frames.split(",")] if a.frames else ([1000, 2000] if a.quick else [1000, 5000, 10000])
+    out = dict(machine=dict(cpus=os.cpu_count(), load_before=_uptime()), targets=TARGET, cases=[], core_predict={})
+    t_all = time.perf_counter()
+    out["refine"] = {}
+    for size in sizes:
+        out["core_predict"][size] = _sub(["--_core", size])
+        out["refine"][size] = _sub(["--_refine", size])
+    if a.core_only:
+        print(json.dumps({k: out[k] for k in ("machine", "core_predict", "refine")}, indent=1))
+        return
+    with tempfile.TemporaryDirectory(prefix="facelab_scale_") as tmp:
+        for size in sizes:
+            for source in a.sources.split(","):
+                for n in counts:
+                    if source == "pc2" and n > a.pc2_max_frames:
+                        continue
+                    path = Path(tmp) / f"{size}_{source}_{n}.blend"
+                    try:
+                        b = _sub(["--_build", size, str(n), source, str(path)])
+                        reps = a.repeats if n <= 1000 and source == "keys" else 1
+                        runs = [_sub(["--_run", str(path), size, source]) for _ in range(reps)]
+                    except RuntimeError as e:  # reported, not hidden
+                        out["cases"].append(dict(size=size, source=source, frames=n, failed=str(e)[-800:]))
+                        print(f"{size} {source} {n}: FAILED", file=sys.stderr)
+                        continue
+                    r = dict(runs[0])
+                    for k in ("wall_s", "cpu_s", "peak_rss_mb", "peak_growth_mb"):
+                        if k in runs[0]:
+                            r[k] = float(np.median([x[k] for x in runs]))
+                    r.update(size=size, source=source, frames=n, vertices=b["vertices"], build=b, repeats=reps,
+                             wall_s_all=[x["wall_s"] for x in runs], ms_per_frame=round(1e3 * r["wall_s"] / n, 2),
+                             speedup_vs_paper=round(PAPER_S_PER_FRAME * n / r["wall_s"]))
+                    out["cases"].append(r)
+                    print(json.dumps({k: r[k] for k in ("size", "source", "frames", "wall_s", "peak_rss_mb",
+                                                        "blend_growth_mb", "keys")}), file=sys.stderr)
+                    for ext in (".blend", ".pc2", ".npz"):
+                        path.with_suffix(ext).unlink(missing_ok=True)
+    ok = [r for r in out["cases"] if "failed" not in r]
+    big = [r for r in ok if r["frames"] == max(counts) and r["size"] == sizes[-1]]
+    for r in ok:
+        same = [x for x in ok if x["size"] == r["size"] and x["source"] == r["source"]]
+        r["ms_per_frame_vs_smallest_shot"] = round(r["ms_per_frame"] / same[0]["ms_per_frame"], 2)
+    out["summary"] = dict(
+        largest=[{k: r[k] for k in ("size", "source", "frames", "wall_s", "peak_rss_mb", "blend_growth_mb")}
+                 for r in big],
+        meets_wall=all(r["wall_s"] <= TARGET["wall_s"] for r in big) if not a.quick else None,
+        meets_peak=all(r["peak_rss_mb"] <= TARGET["peak_mb"] for r in big) if not a.quick else None,
+    )
+    out["machine"]["load_after"] = _uptime()
+    out["seconds"] = round(time.perf_counter() - t_all, 1)
+    if a.png:
+        plot(ok, a.png, _note(out))
+        out["png"] = os.path.relpath(a.png, ROOT)
+    print(json.dumps(out, indent=1))
+
+
+if __name__ == "__main__":
+    main()
