@@ -51,7 +51,7 @@ from ..geometry.mesh import grow_region, validate_mesh, vertex_adjacency
 from .bounded_lsq import box_least_squares
 from .matching import match_contours
 
-__all__ = ["FrameResult", "BlendshapeSolver"]
+__all__ = ["FrameResult", "BlendshapeSolver", "contour_region", "ANCHOR_RINGS_MOUTH", "ANCHOR_EYE_RADIUS"]
 
 #: Edge rings around the mouth loops (and, plus the number of eyelid loops, around the eyes) left out of the
 #: tie to the markers-only fit (``BlendshapeSolver(anchor_weight=...)``).
@@ -80,6 +80,37 @@ class FrameResult:
     weights: np.ndarray
     correspondences: list = field(default_factory=list)
     info: dict = field(default_factory=dict)
+
+
+def contour_region(vertices, faces, loops) -> np.ndarray:
+    """(V,) bool: where tracked curves inform the face: around the mouth loops and the eyes.
+
+    The mouth loops (lip weld to lip fronts) grown by :data:`ANCHOR_RINGS_MOUTH`
+    edge rings, and every vertex within :data:`ANCHOR_EYE_RADIUS` eye widths
+    (corner to corner) of an eye's lid loops and eyeball (the lids' skin moves
+    with a blink well beyond the lid loops).
+
+    Parameters
+    ----------
+    vertices : (V,3) float
+        Rest mesh, scene units.
+    faces : (F,3) int
+    loops : ContourLoops
+    """
+    V = np.asarray(vertices, float)
+    n = len(V)
+    mouth = np.zeros(n, bool)
+    for v in loops.mouth:
+        mouth[np.asarray(v, np.int64).ravel()] = True
+    region = grow_region(mouth, vertex_adjacency(faces, n), ANCHOR_RINGS_MOUTH)
+    for side, lp in loops.eyes.items():
+        ids = np.unique(np.concatenate([np.asarray(v, np.int64).ravel() for v in lp]
+                                       + [np.asarray(loops.eyeballs.get(side, []), np.int64)]))
+        P = V[ids]
+        width = float(np.linalg.norm(P.max(axis=0) - P.min(axis=0)))
+        d, _ = cKDTree(P).query(V, distance_upper_bound=ANCHOR_EYE_RADIUS * width)
+        region |= np.isfinite(d)
+    return region
 
 
 def _collect_ints(obj, out, depth=0):
@@ -242,28 +273,13 @@ class BlendshapeSolver:
         """``G`` (S,S): ``w^T G w`` is the mean squared pixel-equivalent motion of the anchored vertices.
 
         Anchored vertices: ``anchor_mask`` or, by default, every vertex the
-        rig moves except the contour regions (the mouth and eyelid loops and
-        the eyeballs, grown by two rings). Motions are converted to pixels
+        rig moves outside :func:`contour_region`. Motions are converted to pixels
         with the cameras' focal length over the markers' mean depth.
         """
         n = len(self.neutral)
         if anchor_mask is None:
             moving = (np.abs(self.deltas).max(axis=(0, 2)) > 1e-9 * max(1.0, float(np.abs(self.neutral).max())))
-            adj = vertex_adjacency(self.faces, n)
-            mouth = np.zeros(n, bool)
-            for v in loops.mouth:
-                mouth[np.asarray(v, np.int64).ravel()] = True
-            region = grow_region(mouth, adj, ANCHOR_RINGS_MOUTH)
-            # the lids' skin moves with a blink well beyond the lid loops: leave out everything within half an
-            # eye's width (corner to corner) of the lid loops and the eyeball
-            for side, lp in loops.eyes.items():
-                ids = np.unique(np.concatenate([np.asarray(v, np.int64).ravel() for v in lp]
-                                               + [np.asarray(loops.eyeballs.get(side, []), np.int64)]))
-                P = self.neutral[ids]
-                width = float(np.linalg.norm(P.max(axis=0) - P.min(axis=0)))
-                d, _ = cKDTree(P).query(self.neutral, distance_upper_bound=ANCHOR_EYE_RADIUS * width)
-                region |= np.isfinite(d)
-            mask = moving & ~region
+            mask = moving & ~contour_region(self.neutral, self.faces, loops)
         else:
             mask = np.asarray(anchor_mask, bool)
             if mask.shape != (n,):

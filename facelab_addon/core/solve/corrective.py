@@ -91,6 +91,15 @@ class OutOfSubspaceCorrective:
     warm_vertices : (k,) int, optional
         Vertices whose Woodbury columns are computed up front (e.g. all
         candidate contour-loop vertices), so the first frames are not slower.
+    region : (V,) bool, optional
+        Where the rig is expected to miss what the curves show (the mouth
+        and the eyes: ``blendshape_solve.contour_region``). The damping is
+        then ``damping`` inside and ``outside_damping`` elsewhere, so away
+        from the curves the corrective moves only where the markers clearly
+        disagree with the rig instead of following their noise. None (no
+        region): ``damping`` everywhere. Not in the paper.
+    outside_damping : float
+        Damping outside ``region`` (0.1, chosen on the tuning captures).
     pixel_units : bool
         False (default, the paper's form): 2D marker / contour terms are
         scene-unit distances to the camera rays; with the dimensionless
@@ -104,7 +113,7 @@ class OutOfSubspaceCorrective:
                  boundary=None, marker_weight: float = 1.0, bundle_weight: float = 1.0,
                  contour_weight: float = 0.5, eyelid_weight: float = 0.5, laplacian_weight: float = 1.0,
                  warm_vertices=None, pixel_units: bool = False, damping: float = 0.01,
-                 contour_metric: str = "plane"):
+                 contour_metric: str = "plane", region=None, outside_damping: float = 0.1):
         V0, F = validate_mesh(neutral, faces, name="neutral mesh")
         self.neutral, self.faces = V0, F
         self.cameras = _check_cameras(cameras)
@@ -127,7 +136,17 @@ class OutOfSubspaceCorrective:
         L = cotangent_laplacian(V0, F)
         t0 = time.perf_counter()
         self.damping = float(damping)
-        self.deformer = LaplacianDeformer(L, lambda_reg=float(laplacian_weight), pos_weights=self.damping,
+        self.outside_damping = float(outside_damping)
+        pos = self.damping
+        if region is not None:
+            region = np.asarray(region, bool)
+            if region.shape != (n,):
+                raise FaceLabError(f"The region mask must have one entry per vertex ({n}), got {region.shape}.")
+            if not (np.isfinite(self.outside_damping) and self.outside_damping >= 0):
+                raise FaceLabError(f"outside_damping must be a non-negative number, got {outside_damping!r}.")
+            pos = np.where(region, self.damping, self.outside_damping)
+        self.region = region
+        self.deformer = LaplacianDeformer(L, lambda_reg=float(laplacian_weight), pos_weights=pos,
                                           pinned=boundary)
         self.factor_time_s = time.perf_counter() - t0
         if warm_vertices is not None:
