@@ -130,9 +130,9 @@ class SolveSettings:
     contour_weight: float = 1.0
     existing_animation: str = "NEW_ACTION"
     anchor_weight: float = setting(
-        100.0, label="Markers Anchor", min=0.0, soft_max=1000.0,
+        50.0, label="Markers Anchor", min=0.0, soft_max=1000.0,
         description="How strongly the contour fit keeps the face away from the mouth and eyes where the markers "
-                    "alone put it (0: the paper's fit; 100 chosen on test captures)")
+                    "alone put it, relative to their own misfit (0: the paper's fit; 50 chosen on test captures)")
     outside_damping: float = setting(
         0.1, label="Corrective Damping Outside", min=0.0, soft_max=1.0,
         description="How strongly the corrective stays still away from the mouth and eyes (the contours' "

@@ -117,9 +117,9 @@ class FACELAB_PG_solve_scene(bpy.types.PropertyGroup):
     marker_weight: FloatProperty(name="Marker Weight", default=1.0, min=0.0)
     contour_weight: FloatProperty(name="Contour Weight", default=1.0, min=0.0)
     anchor_weight: FloatProperty(
-        name="Markers Anchor", default=100.0, min=0.0, soft_max=1000.0,
+        name="Markers Anchor", default=50.0, min=0.0, soft_max=1000.0,
         description="How strongly the contour fit keeps the face away from the mouth and eyes where the markers "
-                    "alone put it (0: the paper's fit; 100 chosen on test captures)")
+                    "alone put it, relative to their own misfit (0: the paper's fit; 50 chosen on test captures)")
     outside_damping: FloatProperty(
         name="Corrective Damping Outside", default=0.1, min=0.0, soft_max=1.0,
         description="How strongly the corrective stays still away from the mouth and eyes (the contours' "

@@ -50,26 +50,29 @@ def test_held_out_cases_are_not_the_tuning_cases():
     assert not {c for _, _, c in HELD_OUT_CASES} & {c for _, _, c in TUNING_CASES}
 
 
-def test_contours_never_worsen_the_face_and_help_the_inner_lips_on_a_held_out_capture(held_out):
+@pytest.mark.parametrize("clean", [False, True], ids=["noise0.5px", "clean"])
+def test_contours_never_worsen_the_face_and_help_the_inner_lips_on_a_held_out_capture(held_out, clean):
     model, cap, loops, face, lip = held_out
+    px = cap.markers_px_clean if clean else cap.markers_px
     D = model.deltas(cap.names)
     markers = BlendshapeSolver(model.neutral, D, model.faces, cap.cameras, cap.markers, None, loops=loops)
-    r_m = solve_performance(markers, None, cap.markers_px, None, None)
+    r_m = solve_performance(markers, None, px, None, None)
     solver = BlendshapeSolver(model.neutral, D, model.faces, cap.cameras, cap.markers, None, loops=loops)
     corr = OutOfSubspaceCorrective(model.neutral, model.faces, cap.cameras, cap.markers, None, boundary=~face,
                                    region=contour_region(model.neutral, model.faces, loops))
-    r_c = solve_performance(solver, corr, cap.markers_px, None, cap.curves)
+    r_c = solve_performance(solver, corr, px, None, cap.curves)
     face_m, lip_m = _errors(model, r_m, cap, face, lip)
     face_c, lip_c = _errors(model, r_c, cap, face, lip)
     assert face_c <= face_m, (face_c, face_m)
-    assert lip_c < 0.95 * lip_m, (lip_c, lip_m)
+    assert lip_c < 0.9 * lip_m, (lip_c, lip_m)
     # the previous defaults (no anchor, uniform damping) made this face worse than markers alone
     solver0 = BlendshapeSolver(model.neutral, D, model.faces, cap.cameras, cap.markers, None, loops=loops,
                                anchor_weight=0.0)
     corr0 = OutOfSubspaceCorrective(model.neutral, model.faces, cap.cameras, cap.markers, None, boundary=~face)
-    face_0, lip_0 = _errors(model, solve_performance(solver0, corr0, cap.markers_px, None, cap.curves), cap, face,
-                            lip)
+    face_0, lip_0 = _errors(model, solve_performance(solver0, corr0, px, None, cap.curves), cap, face, lip)
     assert face_c < face_0 and lip_c < lip_0, (face_c, face_0, lip_c, lip_0)
+    if clean:
+        assert face_0 > face_m, (face_0, face_m)  # what issue 15 reported: contours made the face worse
 
 
 def test_a_strong_anchor_keeps_the_markers_only_face_outside_the_contour_regions(held_out):

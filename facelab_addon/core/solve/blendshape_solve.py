@@ -186,29 +186,35 @@ class BlendshapeSolver:
     anchor_weight : float
         Tie to the markers-only fit away from the contours (not in the
         paper). With markers and curves, the contour solves add
-        ``anchor_weight * n * mean_v |s (x_v(w) - x_v(w_m))|^2`` over the
-        anchored vertices ``v``: ``w_m`` is the frame's markers-only fit,
+        ``anchor_weight * n * mean_v |s (x_v(w) - x_v(w_m))|^2 / r^2`` over
+        the anchored vertices ``v``: ``w_m`` is the frame's markers-only
+        fit, ``r`` its marker reprojection RMS (pixels, at least
+        ``anchor_noise_floor_px``: how far the markers can be trusted),
         ``n`` the number of marker observations and ``s`` the cameras'
-        pixels per scene unit at the markers, so 1 weighs a pixel of mean
-        motion there like one pixel of marker error. The curves then move
-        the lips and lids without explaining a lip the rig cannot reach
-        with jaw and cheek shapes the markers contradict; the corrective
-        fits the rest. 0: the paper's fit. Default 100, chosen on the
-        tuning captures (docs/solve.md).
+        pixels per scene unit at the markers. The curves then move the lips
+        and lids without explaining a lip the rig cannot reach with jaw and
+        cheek shapes the markers contradict; the corrective fits the rest.
+        Clean markers (small ``r``) hold the face firmly, noisy ones less.
+        0: the paper's fit. Default 50, chosen on the tuning captures
+        (docs/solve.md).
     anchor_mask : (V,) bool, optional
         The anchored vertices. Default: every vertex the rig moves except
         the mouth loops grown by :data:`ANCHOR_RINGS_MOUTH` rings and
         everything within :data:`ANCHOR_EYE_RADIUS` eye widths of the
-        eyelid loops and eyeballs.
+        eyelid loops and eyeballs (:func:`contour_region`).
+    anchor_noise_floor_px : float or None
+        Smallest marker misfit ``r`` (pixels) the anchor is scaled by;
+        None or 0: no scaling (``r = 1``).
     """
 
     def __init__(self, neutral, deltas, faces, cameras, markers: SurfacePoints | None, bundles: SurfacePoints | None,
                  loops=None, *, bounds=(-1.0, 1.0), marker_weight: float = 1.0, contour_weight: float = 1.0,
                  bundle_weight: float = 1.0, regularization: float = 1e-6, eyelids: str = "3d",
-                 contour_huber_px: float | None = 1.0, robust_iterations: int = 2, anchor_weight: float = 100.0,
-                 anchor_mask=None):
+                 contour_huber_px: float | None = 1.0, robust_iterations: int = 2, anchor_weight: float = 50.0,
+                 anchor_mask=None, anchor_noise_floor_px: float | None = 0.05):
         V0, F = validate_mesh(neutral, faces, name="neutral mesh")
         self.anchor_weight = float(anchor_weight)
+        self.anchor_noise_floor_px = float(anchor_noise_floor_px or 0.0)
         if not (np.isfinite(self.anchor_weight) and self.anchor_weight >= 0):
             raise FaceLabError(f"anchor_weight must be a non-negative number, got {anchor_weight!r}; use 0 to turn "
                                "the tie to the markers-only fit off.")
@@ -468,7 +474,11 @@ class BlendshapeSolver:
                     # tie to the markers-only fit away from the contours: the contours may move the lips and lids,
                     # not explain an out-of-span lip with jaw and cheek shapes the markers do not see
                     n_obs = sum(len(sel) for _, sel, _ in md)
-                    anchor = (self.anchor_weight * n_obs * self._anchor_G, w.copy())
+                    k = self.anchor_weight * n_obs
+                    if self.anchor_noise_floor_px > 0:  # in units of the markers' own misfit (noise level)
+                        res_px = self.residuals(w, markers_px)["marker_rms_px"]
+                        k /= max(res_px, self.anchor_noise_floor_px) ** 2
+                    anchor = (k * self._anchor_G, w.copy())
             n_it = max(1, int(iterations)) if use_curves else max(2, int(iterations))  # markers: re-linearise once
             for it in range(n_it):
                 if use_curves:
