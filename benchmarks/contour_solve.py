@@ -217,7 +217,7 @@ def main(argv=None):
                                    anchor_weight=0.0)
             corr = OutOfSubspaceCorrective(
                 model.neutral, model.faces, cap.cameras, cap.markers, None, boundary=~face, warm_vertices=warm,
-                pixel_units=args.corrective_units == "pixels")
+                pixel_units=args.corrective_units == "pixels", damping=0.01)
         corr.eyelid_weight = cfg.get("eyelid_weight", 0.5)
         res = solve_performance(slv, corr if cfg["corrective"] else None, cap.markers_px, None,
                                 cap.curves if cfg["curves"] else None, sliding=cfg["sliding"])
@@ -274,9 +274,9 @@ def main(argv=None):
 MATRIX_CONFIGS = {
     # markers only: the baseline an artist would otherwise use
     "markers": dict(curves=False, corrective=False),
-    # markers + contours + corrective, FaceLab's defaults (anchored fit, corrective damped outside the contours)
+    # markers + contours + corrective, FaceLab's defaults (anchored fit, corrective damped more at the contours)
     "full": dict(curves=True, corrective=True),
-    # the same with the previous defaults (no anchor, uniform damping): what issue 15 measured
+    # the same with the previous defaults (no anchor, uniform damping 0.01): what issue 15 measured
     "full_unanchored": dict(curves=True, corrective=True, anchor_weight=0.0, region=False),
 }
 MATRIX_KEYS = ("vertex_mm_face", "vertex_mm_lips", "vertex_mm_lip_silhouette", "contour_rms_px", "marker_rms_px",
@@ -306,9 +306,9 @@ def run_case(base, identity, amount, layout, noise_px, frames, lip_error_mm, con
         solver = BlendshapeSolver(model.neutral, D, model.faces, cap.cameras, cap.markers, None, loops=loops, **kw)
         corr = None
         if cfg["corrective"]:
+            ckw = dict(region=region) if cfg.get("region") is not False else dict(region=None, damping=0.01)
             corr = OutOfSubspaceCorrective(model.neutral, model.faces, cap.cameras, cap.markers, None,
-                                           boundary=~face, warm_vertices=warm,
-                                           region=None if cfg.get("region") is False else region)
+                                           boundary=~face, warm_vertices=warm, **ckw)
         res = solve_performance(solver, corr, cap.markers_px, None, cap.curves if cfg["curves"] else None)
         m = evaluate(model, cap, loops, names, res, face, lip)
         fr = [f for f in res.info["frames"] if f is not None][1:]

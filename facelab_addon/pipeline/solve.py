@@ -133,10 +133,10 @@ class SolveSettings:
         50.0, label="Markers Anchor", min=0.0, soft_max=1000.0,
         description="How strongly the contour fit keeps the face away from the mouth and eyes where the markers "
                     "alone put it, relative to their own misfit (0: the paper's fit; 50 chosen on test captures)")
-    outside_damping: float = setting(
-        0.1, label="Corrective Damping Outside", min=0.0, soft_max=1.0,
-        description="How strongly the corrective stays still away from the mouth and eyes (the contours' "
-                    "regions); 0.01 is the damping inside them")
+    contour_damping: float = setting(
+        0.03, label="Corrective Damping at Contours", min=0.0, soft_max=1.0,
+        description="How strongly the corrective stays near the contours around the mouth and eyes (0.01 "
+                    "elsewhere); lower lets lip and lid corrections spread further")
 
 
 @dataclass
@@ -464,7 +464,7 @@ def solve_performance(scene, obj, settings: SolveSettings, progress=None) -> Sol
         region = None if g.loops is None else contour_region(g.neutral, g.tris, g.loops)
         corr = OutOfSubspaceCorrective(g.neutral, g.tris, g.cameras, g.marker_points, g.bundle_points,
                                        boundary=boundary | g.fixed, region=region,
-                                       outside_damping=settings.outside_damping)
+                                       region_damping=settings.contour_damping)
     frames = g.frames
     markers = g.markers
     if markers is None:

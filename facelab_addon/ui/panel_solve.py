@@ -64,7 +64,7 @@ def draw_solve_section(layout, context):
     row.prop(s, "contour_weight")
     row = col.row(align=True)
     row.prop(s, "anchor_weight")
-    row.prop(s, "outside_damping")
+    row.prop(s, "contour_damping")
     col.prop(s, "existing_animation")
     col.operator("facelab.solve_performance", icon="SHAPEKEY_DATA")
 

@@ -120,10 +120,10 @@ class FACELAB_PG_solve_scene(bpy.types.PropertyGroup):
         name="Markers Anchor", default=50.0, min=0.0, soft_max=1000.0,
         description="How strongly the contour fit keeps the face away from the mouth and eyes where the markers "
                     "alone put it, relative to their own misfit (0: the paper's fit; 50 chosen on test captures)")
-    outside_damping: FloatProperty(
-        name="Corrective Damping Outside", default=0.1, min=0.0, soft_max=1.0,
-        description="How strongly the corrective stays still away from the mouth and eyes (the contours' "
-                    "regions); 0.01 is the damping inside them")
+    contour_damping: FloatProperty(
+        name="Corrective Damping at Contours", default=0.03, min=0.0, soft_max=1.0,
+        description="How strongly the corrective stays near the contours around the mouth and eyes (0.01 "
+                    "elsewhere); lower lets lip and lid corrections spread further")
     existing_animation: EnumProperty(
         name="Existing Animation",
         items=[("NEW_ACTION", "New Action", "Keep the artist's shape-key action (fake user) and write the solve to a "
@@ -217,7 +217,7 @@ def solve_settings(scene) -> SolveSettings:
         annotation_view=s.annotation_view, use_corrective=s.use_corrective, sliding=s.sliding,
         weight_min=s.weight_min, weight_max=s.weight_max, marker_weight=s.marker_weight,
         contour_weight=s.contour_weight, existing_animation=s.existing_animation, anchor_weight=s.anchor_weight,
-        outside_damping=s.outside_damping)
+        contour_damping=s.contour_damping)
 
 
 def retarget_settings(scene) -> RetargetSettings:

@@ -111,21 +111,22 @@ def test_contour_region_covers_the_lips_and_lids_but_not_the_chin_or_forehead(ic
     assert (contour_region(V * 0.01, ict.faces, loops) == region).all()
 
 
-def test_damping_outside_the_region_keeps_marker_noise_out_of_the_corrective(ict):
-    """Truth inside the rig's span: the corrective should stay near zero; outside the contour regions it
-    only fits marker noise, which the larger outside damping suppresses."""
+def test_region_damping_applies_inside_the_contour_region_only(ict):
+    """Truth inside the rig's span, 1 px marker noise: the corrective only fits noise. A larger damping
+    outside the contour region keeps it out there; ``region_damping`` sets the damping inside."""
     names = ["jawOpen", "mouthSmile_L", "browInnerUp_L", "eyeBlink_L"]
     cap = make_capture(ict, names=names, n_frames=1, n_markers=60, noise_px=1.0, seed=4, curves=False)
     loops = ict_contour_loops(ict)
     face = ict.part_vertex_mask("M_Face")
     region = contour_region(ict.neutral, ict.faces, loops)
     s = BlendshapeSolver(ict.neutral, ict.deltas(names), ict.faces, cap.cameras, cap.markers, None)
-    w = s.solve_frame(cap.markers_px[0], iterations=2).weights
-    Vb = s.vertices(w)
-    err = {}
-    for od in (None, 0.1):
+    Vb = s.vertices(s.solve_frame(cap.markers_px[0], iterations=2).weights)
+    err, inside = {}, {}
+    for damping, region_damping in ((0.01, 0.01), (0.3, 0.01), (0.01, 0.3)):
         c = OutOfSubspaceCorrective(ict.neutral, ict.faces, cap.cameras, cap.markers, None, boundary=~face,
-                                    region=None if od is None else region, outside_damping=od or 0.1)
+                                    damping=damping, region=region, region_damping=region_damping)
         dV = c.solve(Vb, cap.markers_px[0])
-        err[od] = float(np.linalg.norm(Vb + dV - cap.truth[0], axis=1)[face & ~region].mean())
-    assert err[0.1] < err[None], err
+        err[damping, region_damping] = float(np.linalg.norm(Vb + dV - cap.truth[0], axis=1)[face & ~region].mean())
+        inside[damping, region_damping] = float(np.linalg.norm(dV, axis=1)[face & region].mean())
+    assert err[0.3, 0.01] < err[0.01, 0.01], err  # outside: noise kept out
+    assert inside[0.01, 0.3] < inside[0.01, 0.01], inside  # inside: the region's own damping
