@@ -21,7 +21,14 @@ Configurations:
    eyelid-curve weight set to 0;
 6. (extra) ``markers+contours+corrective_paper_energy``: 3 with the paper's
    corrective energy (no ``damping``, contour points tied to the camera
-   rays instead of the curve's tangent planes).
+   rays instead of the curve's tangent planes, contour weight 0.5);
+7. (extra) ``markers+contours+corrective_unanchored``: 3 with the previous
+   defaults (fit not tied to the markers-only fit, uniform corrective
+   damping 0.01, contour weight 0.5).
+
+``--matrix`` runs markers only against 3 (and 7) side by side on the tuning
+and held-out faces and camera rigs of ``testing.solve_cases``, clean and with
+0.5 / 1 px marker noise (``benchmarks/results/contour_solve_matrix.json``).
 
 3D eyelid targets are lifted onto the eyeball grown by each lid point's
 current height over it (``contours.match_contours(eyelid_height='current')``)
@@ -209,7 +216,7 @@ def main(argv=None):
         if cfg.get("paper"):
             paper_corrective = OutOfSubspaceCorrective(
                 model.neutral, model.faces, cap.cameras, cap.markers, None, boundary=~face, warm_vertices=warm,
-                pixel_units=args.corrective_units == "pixels", damping=0.0, contour_metric="ray")
+                pixel_units=args.corrective_units == "pixels", damping=0.0, contour_metric="ray", contour_weight=0.5)
             corr = paper_corrective
         slv = solver
         if cfg.get("unanchored"):
@@ -217,7 +224,7 @@ def main(argv=None):
                                    anchor_weight=0.0)
             corr = OutOfSubspaceCorrective(
                 model.neutral, model.faces, cap.cameras, cap.markers, None, boundary=~face, warm_vertices=warm,
-                pixel_units=args.corrective_units == "pixels", damping=0.01)
+                pixel_units=args.corrective_units == "pixels", damping=0.01, contour_weight=0.5)
         corr.eyelid_weight = cfg.get("eyelid_weight", 0.5)
         res = solve_performance(slv, corr if cfg["corrective"] else None, cap.markers_px, None,
                                 cap.curves if cfg["curves"] else None, sliding=cfg["sliding"])
@@ -276,7 +283,7 @@ MATRIX_CONFIGS = {
     "markers": dict(curves=False, corrective=False),
     # markers + contours + corrective, FaceLab's defaults (anchored fit, corrective damped more at the contours)
     "full": dict(curves=True, corrective=True),
-    # the same with the previous defaults (no anchor, uniform damping 0.01): what issue 15 measured
+    # the same with the previous defaults (no anchor, uniform damping 0.01, contour weight 0.5): issue 15's numbers
     "full_unanchored": dict(curves=True, corrective=True, anchor_weight=0.0, region=False),
 }
 MATRIX_KEYS = ("vertex_mm_face", "vertex_mm_lips", "vertex_mm_lip_silhouette", "contour_rms_px", "marker_rms_px",
@@ -306,7 +313,8 @@ def run_case(base, identity, amount, layout, noise_px, frames, lip_error_mm, con
         solver = BlendshapeSolver(model.neutral, D, model.faces, cap.cameras, cap.markers, None, loops=loops, **kw)
         corr = None
         if cfg["corrective"]:
-            ckw = dict(region=region) if cfg.get("region") is not False else dict(region=None, damping=0.01)
+            ckw = dict(region=region) if cfg.get("region") is not False else dict(region=None, damping=0.01,
+                                                                                  contour_weight=0.5)
             corr = OutOfSubspaceCorrective(model.neutral, model.faces, cap.cameras, cap.markers, None,
                                            boundary=~face, warm_vertices=warm, **ckw)
         res = solve_performance(solver, corr, cap.markers_px, None, cap.curves if cfg["curves"] else None)
