@@ -3,7 +3,7 @@
 "High fidelity facial animation capture and retargeting with contours": the
 rig cannot reach every expression, so each frame gets a corrective ``ΔV``
 minimising the cotangent-Laplacian energy of ``ΔV`` (weight 1) plus the 2D
-marker (1), 3D bundle (1), 2D contour (1; paper 0.5) and 3D eyelid curve (0.5)
+marker (1), 3D bundle (1), 2D contour (0.5) and 3D eyelid curve (0.5)
 residuals on ``V_blend + ΔV``, with the mesh boundary held fixed: a linear
 least-squares problem solved with the shared
 ``core.geometry.deform.LaplacianDeformer`` (factored once, per-frame solves
@@ -67,10 +67,7 @@ class OutOfSubspaceCorrective:
         Vertices held fixed (``ΔV = 0``). Default: the mesh border plus every
         connected component no marker or bundle lies on.
     marker_weight, bundle_weight, contour_weight, eyelid_weight, laplacian_weight : float
-        Energy weights (paper: 1, 1, 0.5, 0.5, 1; the 2D contour weight is 1
-        here: with the fit anchored to the markers the corrective fits the
-        lip line, 0.5 left it at 0.8-0.9 px on the tuning captures, 1 at
-        0.5-0.6 px with the same face error, docs/solve.md).
+        Energy weights (paper: 1, 1, 0.5, 0.5, 1).
     damping : float
         Weight of ``|ΔV|^2`` (not in the paper, whose energy has only the
         Laplacian): keeps the corrective local. With the Laplacian alone a
@@ -116,7 +113,7 @@ class OutOfSubspaceCorrective:
 
     def __init__(self, neutral, faces, cameras, markers: SurfacePoints | None, bundles: SurfacePoints | None, *,
                  boundary=None, marker_weight: float = 1.0, bundle_weight: float = 1.0,
-                 contour_weight: float = 1.0, eyelid_weight: float = 0.5, laplacian_weight: float = 1.0,
+                 contour_weight: float = 0.5, eyelid_weight: float = 0.5, laplacian_weight: float = 1.0,
                  warm_vertices=None, pixel_units: bool = False, damping: float = 0.01,
                  contour_metric: str = "plane", region=None, region_damping: float = 0.03):
         V0, F = validate_mesh(neutral, faces, name="neutral mesh")
