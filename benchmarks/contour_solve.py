@@ -21,7 +21,14 @@ Configurations:
    eyelid-curve weight set to 0;
 6. (extra) ``markers+contours+corrective_paper_energy``: 3 with the paper's
    corrective energy (no ``damping``, contour points tied to the camera
-   rays instead of the curve's tangent planes).
+   rays instead of the curve's tangent planes, contour weight 0.5);
+7. (extra) ``markers+contours+corrective_unanchored``: 3 with the previous
+   defaults (fit not tied to the markers-only fit, uniform corrective
+   damping 0.01, contour weight 0.5).
+
+``--matrix`` runs markers only against 3 (and 7) side by side on the tuning
+and held-out faces and camera rigs of ``testing.solve_cases``, clean and with
+0.5 / 1 px marker noise (``benchmarks/results/contour_solve_matrix.json``).
 
 3D eyelid targets are lifted onto the eyeball grown by each lid point's
 current height over it (``contours.match_contours(eyelid_height='current')``)
@@ -78,7 +85,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from facelab_addon.core.capture.ict import load_ict  # noqa: E402
 from facelab_addon.core.lips.mouth import find_mouth  # noqa: E402
-from facelab_addon.core.solve.blendshape_solve import BlendshapeSolver  # noqa: E402
+from facelab_addon.core.solve.blendshape_solve import BlendshapeSolver, contour_region  # noqa: E402
 from facelab_addon.core.solve.corrective import OutOfSubspaceCorrective  # noqa: E402
 from facelab_addon.core.solve.matching import (  # noqa: E402
     contour_curve_distance,
@@ -88,6 +95,12 @@ from facelab_addon.core.solve.matching import (  # noqa: E402
 from facelab_addon.core.solve.performance import solve_performance  # noqa: E402
 from facelab_addon.testing.capture_sim import make_capture  # noqa: E402
 from facelab_addon.testing.contour_truth import ict_contour_loops  # noqa: E402
+from facelab_addon.testing.solve_cases import (  # noqa: E402
+    HELD_OUT_CASES,
+    TUNING_CASES,
+    identity_model,
+    layout_cameras,
+)
 from facelab_addon.testing.synthetic import ICT_MOUTH_LOOP, inner_lip_mask  # noqa: E402
 
 TARGET_CONTOUR_PX = 1.0
@@ -95,7 +108,7 @@ TARGET_MS_NO_CORRECTIVE = 50.0
 TARGET_MS_CORRECTIVE = 200.0
 HERE = os.path.dirname(os.path.abspath(__file__))
 LABELS = ["1 markers", "2 +contours", "3 +corrective", "4 fixed contours", "5 = 3 w/o eyelid 3D",
-          "6 = 3, paper energy"]
+          "6 = 3, paper energy", "7 = 3, unanchored"]
 ROOT = os.path.dirname(HERE)
 
 
@@ -148,8 +161,16 @@ def main(argv=None):
     ap.add_argument("--no-plot", action="store_true")
     ap.add_argument("--corrective-units", choices=("scene", "pixels"), default="scene",
                     help="2D corrective residuals as scene-unit ray distances (paper) or pixels")
-    ap.add_argument("--out", default=os.path.join(HERE, "results", "contour_solve.json"))
+    ap.add_argument("--out", default=None, help="JSON path (default benchmarks/results/contour_solve[_matrix].json)")
+    ap.add_argument("--matrix", action="store_true",
+                    help="markers-only vs contours on the tuning and held-out identities / camera rigs")
+    ap.add_argument("--noise", type=float, nargs="+", default=[0.0, 0.5, 1.0], help="marker noise levels (px), --matrix")
     args = ap.parse_args(argv)
+    if args.matrix:
+        args.frames = args.frames if "--frames" in (argv or sys.argv) else 12
+        args.out = args.out or os.path.join(HERE, "results", "contour_solve_matrix.json")
+        return matrix(args)
+    args.out = args.out or os.path.join(HERE, "results", "contour_solve.json")
     T = 8 if args.quick else args.frames
 
     load0 = _load()
@@ -170,8 +191,9 @@ def main(argv=None):
     t_solver = time.perf_counter() - t0
     t0 = time.perf_counter()
     warm = np.concatenate(list(loops.mouth) + [x for v in loops.eyes.values() for x in v])
+    region = contour_region(model.neutral, model.faces, loops)
     corrective = OutOfSubspaceCorrective(model.neutral, model.faces, cap.cameras, cap.markers, None,
-                                         boundary=~face, warm_vertices=warm,
+                                         boundary=~face, warm_vertices=warm, region=region,
                                          pixel_units=args.corrective_units == "pixels")
     t_corr = time.perf_counter() - t0
 
@@ -184,6 +206,8 @@ def main(argv=None):
         "markers+contours+corrective_no_eyelid3d": dict(curves=True, corrective=True, sliding=True, eyelid_weight=0.0),
         # extra: the paper's corrective energy (Laplacian only, contour points on the camera rays)
         "markers+contours+corrective_paper_energy": dict(curves=True, corrective=True, sliding=True, paper=True),
+        # extra: 3 with the previous defaults (fit not tied to the markers-only fit, uniform corrective damping)
+        "markers+contours+corrective_unanchored": dict(curves=True, corrective=True, sliding=True, unanchored=True),
     }
     paper_corrective = None
     out, results = {}, {}
@@ -192,10 +216,17 @@ def main(argv=None):
         if cfg.get("paper"):
             paper_corrective = OutOfSubspaceCorrective(
                 model.neutral, model.faces, cap.cameras, cap.markers, None, boundary=~face, warm_vertices=warm,
-                pixel_units=args.corrective_units == "pixels", damping=0.0, contour_metric="ray")
+                pixel_units=args.corrective_units == "pixels", damping=0.0, contour_metric="ray", contour_weight=0.5)
             corr = paper_corrective
+        slv = solver
+        if cfg.get("unanchored"):
+            slv = BlendshapeSolver(model.neutral, D, model.faces, cap.cameras, cap.markers, None, loops=loops,
+                                   anchor_weight=0.0)
+            corr = OutOfSubspaceCorrective(
+                model.neutral, model.faces, cap.cameras, cap.markers, None, boundary=~face, warm_vertices=warm,
+                pixel_units=args.corrective_units == "pixels", damping=0.01, contour_weight=0.5)
         corr.eyelid_weight = cfg.get("eyelid_weight", 0.5)
-        res = solve_performance(solver, corr if cfg["corrective"] else None, cap.markers_px, None,
+        res = solve_performance(slv, corr if cfg["corrective"] else None, cap.markers_px, None,
                                 cap.curves if cfg["curves"] else None, sliding=cfg["sliding"])
         results[name] = res
         m = evaluate(model, cap, loops, names, res, face, lip)
@@ -245,6 +276,106 @@ def main(argv=None):
         with open(args.out, "w") as fh:
             json.dump(result, fh, indent=2)
     print(json.dumps(result, indent=2))
+
+
+MATRIX_CONFIGS = {
+    # markers only: the baseline an artist would otherwise use
+    "markers": dict(curves=False, corrective=False),
+    # markers + contours + corrective, FaceLab's defaults (anchored fit, corrective damped more at the contours)
+    "full": dict(curves=True, corrective=True),
+    # the same with the previous defaults (no anchor, uniform damping 0.01, contour weight 0.5): issue 15's numbers
+    "full_unanchored": dict(curves=True, corrective=True, anchor_weight=0.0, region=False),
+}
+MATRIX_KEYS = ("vertex_mm_face", "vertex_mm_lips", "vertex_mm_lip_silhouette", "contour_rms_px", "marker_rms_px",
+               "weight_mae", "ms_per_frame", "cpu_ms_per_frame")
+
+
+def run_case(base, identity, amount, layout, noise_px, frames, lip_error_mm, configs=None, seed=0):
+    """Markers-only and contour solves of one simulated capture, side by side on the same frames.
+
+    Returns ``{config: metrics}`` plus ``ratios`` (each config over ``markers``).
+    """
+    model = identity_model(base, identity, amount)
+    names = model.expression_names
+    cams = layout_cameras(model, layout)
+    cap = make_capture(model, names=names, n_frames=frames, n_markers=80, noise_px=noise_px, seed=seed,
+                       lip_error_mm=lip_error_mm, curves=True, cameras=cams)
+    loops = ict_contour_loops(model)
+    face = model.part_vertex_mask("M_Face")
+    mouth = find_mouth(model.neutral, model.faces, ~face, loop=ICT_MOUTH_LOOP)
+    lip = inner_lip_mask(model.neutral, model.faces, ~face, mouth=mouth)
+    D = model.deltas(names)
+    warm = np.concatenate(list(loops.mouth) + [x for v in loops.eyes.values() for x in v])
+    region = contour_region(model.neutral, model.faces, loops)
+    out = {}
+    for name, cfg in (configs or MATRIX_CONFIGS).items():
+        kw = {} if "anchor_weight" not in cfg else dict(anchor_weight=cfg["anchor_weight"])
+        solver = BlendshapeSolver(model.neutral, D, model.faces, cap.cameras, cap.markers, None, loops=loops, **kw)
+        corr = None
+        if cfg["corrective"]:
+            ckw = dict(region=region) if cfg.get("region") is not False else dict(region=None, damping=0.01,
+                                                                                  contour_weight=0.5)
+            corr = OutOfSubspaceCorrective(model.neutral, model.faces, cap.cameras, cap.markers, None,
+                                           boundary=~face, warm_vertices=warm, **ckw)
+        res = solve_performance(solver, corr, cap.markers_px, None, cap.curves if cfg["curves"] else None)
+        m = evaluate(model, cap, loops, names, res, face, lip)
+        fr = [f for f in res.info["frames"] if f is not None][1:]
+        m["ms_per_frame"] = 1000 * float(np.median([f["time_s"] + f.get("corrective_time_s", 0.0) for f in fr]))
+        m["cpu_ms_per_frame"] = 1000 * float(np.median([f["cpu_s"] + f.get("corrective_cpu_s", 0.0) for f in fr]))
+        out[name] = {k: m[k] for k in MATRIX_KEYS}
+    base_m = out["markers"]
+    out["ratios"] = {n: dict(face=out[n]["vertex_mm_face"] / base_m["vertex_mm_face"],
+                             inner_lips=out[n]["vertex_mm_lips"] / base_m["vertex_mm_lips"],
+                             lip_line=out[n]["vertex_mm_lip_silhouette"] / base_m["vertex_mm_lip_silhouette"])
+                     for n in out if n != "markers"}
+    return out
+
+
+def matrix(args):
+    """Every tuning and held-out case, clean and with 0.5 / 1 px marker noise; JSON to ``args.out``."""
+    base = load_ict()
+    load0 = _load()
+    rows = []
+    cases = [("tuning",) + c for c in TUNING_CASES] + [("held_out",) + c for c in HELD_OUT_CASES]
+    for split, identity, amount, layout in cases:
+        for noise in args.noise:
+            t0 = time.perf_counter()
+            r = run_case(base, identity, amount, layout, noise, args.frames, args.lip_error_mm)
+            rows.append(dict(split=split, identity=identity, identity_amount=amount, cameras=layout,
+                             marker_noise_px=noise, seconds=time.perf_counter() - t0, **r))
+            rf = r["ratios"]["full"]
+            print(f"{split:8s} {identity:11s} {layout:8s} noise {noise:.1f}: face {r['markers']['vertex_mm_face']:.3f}"
+                  f" -> {r['full']['vertex_mm_face']:.3f} ({rf['face']:.2f}x), inner lips "
+                  f"{r['markers']['vertex_mm_lips']:.3f} -> {r['full']['vertex_mm_lips']:.3f} ({rf['inner_lips']:.2f}x),"
+                  f" lip line {r['full']['contour_rms_px']:.2f} px, {r['full']['ms_per_frame']:.0f} ms"
+                  f" [unanchored: face {r['ratios']['full_unanchored']['face']:.2f}x, lips "
+                  f"{r['ratios']['full_unanchored']['inner_lips']:.2f}x]", file=sys.stderr, flush=True)
+    summary = {}
+    for split in ("tuning", "held_out"):
+        sel = [r for r in rows if r["split"] == split]
+        for cfg in ("full", "full_unanchored"):
+            summary[f"{split}/{cfg}"] = dict(
+                face_ratio_max=max(r["ratios"][cfg]["face"] for r in sel),
+                face_ratio_mean=float(np.mean([r["ratios"][cfg]["face"] for r in sel])),
+                inner_lip_ratio_max=max(r["ratios"][cfg]["inner_lips"] for r in sel),
+                inner_lip_ratio_mean=float(np.mean([r["ratios"][cfg]["inner_lips"] for r in sel])),
+                lip_line_px_max=max(r[cfg]["contour_rms_px"] for r in sel),
+                ms_per_frame_median=float(np.median([r[cfg]["ms_per_frame"] for r in sel])),
+                cpu_ms_per_frame_median=float(np.median([r[cfg]["cpu_ms_per_frame"] for r in sel])))
+    result = dict(benchmark="contour_solve_matrix",
+                  paper="Bhat et al. 2013, §4; issue 15: contours must beat markers-only on unseen captures",
+                  setup=dict(frames=args.frames, lip_error_mm_peak=args.lip_error_mm, markers=80,
+                             marker_noise_px=list(args.noise), tuning_cases=TUNING_CASES,
+                             held_out_cases=HELD_OUT_CASES, configs=MATRIX_CONFIGS),
+                  targets=dict(face_ratio=1.0, inner_lip_ratio=0.8, lip_line_px=1.0, ms_per_frame=200.0),
+                  summary=summary, cases=rows,
+                  machine=dict(python=platform.python_version(), cpu_count=os.cpu_count(),
+                               load_average_at_start=load0, load_average_at_end=_load(),
+                               note="2 cores shared with other jobs: times are noisy"))
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+    with open(args.out, "w") as fh:
+        json.dump(result, fh, indent=2)
+    print(json.dumps(dict(summary=summary), indent=2))
 
 
 def _load():
@@ -310,7 +441,7 @@ def plot(out, path, frames=40):
             ("marker_rms_px", "marker reproj. (px)"), ("contour_rms_px", "contour reproj. (px)"),
             ("ms_per_frame", "wall time / frame (ms, median)")]
     names = list(out)
-    colors = ["#888888", "#4c72b0", "#55a868", "#c44e52", "#8172b2", "#ccb974"]
+    colors = ["#888888", "#4c72b0", "#55a868", "#c44e52", "#8172b2", "#ccb974", "#64b5cd"]
     fig, axes = plt.subplots(1, len(keys), figsize=(20, 4.2))
     for ax, (k, label) in zip(axes, keys):
         vals = [out[n][k] for n in names]

@@ -44,6 +44,7 @@ from ..blender.shapekeys import key_values_bulk, remove_keys
 from ..core.errors import BundleError, CameraError, FaceLabError
 from .correctives import write_corrective_keys
 from .frames import frame_range  # noqa: F401  (re-exported: the CLI's and scripts' range)
+from .settings import setting
 
 __all__ = [
     "DISAGREE_PX",
@@ -128,6 +129,14 @@ class SolveSettings:
     marker_weight: float = 1.0
     contour_weight: float = 1.0
     existing_animation: str = "NEW_ACTION"
+    anchor_weight: float = setting(
+        50.0, label="Markers Anchor", min=0.0, soft_max=1000.0,
+        description="How strongly the contour fit keeps the face away from the mouth and eyes where the markers "
+                    "alone put it, relative to their own misfit (0: the paper's fit; 50 chosen on test captures)")
+    contour_damping: float = setting(
+        0.03, label="Corrective Damping at Contours", min=0.0, soft_max=1.0,
+        description="How strongly the corrective stays near the contours around the mouth and eyes (0.01 "
+                    "elsewhere); lower lets lip and lid corrections spread further")
 
 
 @dataclass
@@ -438,7 +447,7 @@ def solve_performance(scene, obj, settings: SolveSettings, progress=None) -> Sol
         Bad input (no rig, no views, nothing bound, cameras moving relative to
         the face...) or no frame could be solved; nothing is written then.
     """
-    from ..core.solve.blendshape_solve import BlendshapeSolver
+    from ..core.solve.blendshape_solve import BlendshapeSolver, contour_region
     from ..core.solve.corrective import OutOfSubspaceCorrective
     from ..core.solve.performance import solve_performance as core_solve
 
@@ -447,12 +456,15 @@ def solve_performance(scene, obj, settings: SolveSettings, progress=None) -> Sol
     t_gather = time.perf_counter() - t0
     solver = BlendshapeSolver(g.neutral, g.deltas, g.tris, g.cameras, g.marker_points, g.bundle_points, g.loops,
                               bounds=(settings.weight_min, settings.weight_max),
-                              marker_weight=settings.marker_weight, contour_weight=settings.contour_weight)
+                              marker_weight=settings.marker_weight, contour_weight=settings.contour_weight,
+                              anchor_weight=settings.anchor_weight)
     corr = None
     if settings.use_corrective:
         boundary = OutOfSubspaceCorrective.default_boundary(g.neutral, g.tris, g.marker_points, g.bundle_points)
+        region = None if g.loops is None else contour_region(g.neutral, g.tris, g.loops)
         corr = OutOfSubspaceCorrective(g.neutral, g.tris, g.cameras, g.marker_points, g.bundle_points,
-                                       boundary=boundary | g.fixed)
+                                       boundary=boundary | g.fixed, region=region,
+                                       region_damping=settings.contour_damping)
     frames = g.frames
     markers = g.markers
     if markers is None:

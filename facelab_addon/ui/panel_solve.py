@@ -71,6 +71,9 @@ def draw_solve_section(layout, context):
     row = col.row(align=True)
     row.prop(s, "marker_weight")
     row.prop(s, "contour_weight")
+    row = col.row(align=True)
+    row.prop(s, "anchor_weight")
+    row.prop(s, "contour_damping")
     col.prop(s, "existing_animation")
     col.operator("facelab.solve_performance", icon="SHAPEKEY_DATA")
 

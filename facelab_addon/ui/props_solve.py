@@ -125,6 +125,14 @@ class FACELAB_PG_solve_scene(bpy.types.PropertyGroup):
     weight_max: FloatProperty(name="Max Weight", default=1.0, soft_min=0.0, soft_max=1.0)
     marker_weight: FloatProperty(name="Marker Weight", default=1.0, min=0.0)
     contour_weight: FloatProperty(name="Contour Weight", default=1.0, min=0.0)
+    anchor_weight: FloatProperty(
+        name="Markers Anchor", default=50.0, min=0.0, soft_max=1000.0,
+        description="How strongly the contour fit keeps the face away from the mouth and eyes where the markers "
+                    "alone put it, relative to their own misfit (0: the paper's fit; 50 chosen on test captures)")
+    contour_damping: FloatProperty(
+        name="Corrective Damping at Contours", default=0.03, min=0.0, soft_max=1.0,
+        description="How strongly the corrective stays near the contours around the mouth and eyes (0.01 "
+                    "elsewhere); lower lets lip and lid corrections spread further")
     existing_animation: EnumProperty(
         name="Existing Animation",
         items=[("NEW_ACTION", "New Action", "Keep the artist's shape-key action (fake user) and write the solve to a "
@@ -217,7 +225,8 @@ def solve_settings(scene) -> SolveSettings:
         bundle_collection=s.bundle_collection, fixed_group=scene.facelab.fixed_group, use_contours=s.use_contours,
         annotation_view=s.annotation_view, use_corrective=s.use_corrective, sliding=s.sliding,
         weight_min=s.weight_min, weight_max=s.weight_max, marker_weight=s.marker_weight,
-        contour_weight=s.contour_weight, existing_animation=s.existing_animation)
+        contour_weight=s.contour_weight, existing_animation=s.existing_animation, anchor_weight=s.anchor_weight,
+        contour_damping=s.contour_damping)
 
 
 def retarget_settings(scene) -> RetargetSettings:

@@ -41,6 +41,7 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ..capture.camera import Camera
 from ..capture.markers import SurfacePoints
@@ -50,7 +51,13 @@ from ..geometry.mesh import grow_region, validate_mesh, vertex_adjacency
 from .bounded_lsq import box_least_squares
 from .matching import match_contours
 
-__all__ = ["FrameResult", "BlendshapeSolver"]
+__all__ = ["FrameResult", "BlendshapeSolver", "contour_region", "ANCHOR_RINGS_MOUTH", "ANCHOR_EYE_RADIUS"]
+
+#: Edge rings around the mouth loops (and, plus the number of eyelid loops, around the eyes) left out of the
+#: tie to the markers-only fit (``BlendshapeSolver(anchor_weight=...)``).
+ANCHOR_RINGS_MOUTH = 2
+#: Radius, in eye widths, around the eyelid loops left out of that tie (the lids' skin moves with a blink).
+ANCHOR_EYE_RADIUS = 0.5
 
 
 @dataclass
@@ -73,6 +80,37 @@ class FrameResult:
     weights: np.ndarray
     correspondences: list = field(default_factory=list)
     info: dict = field(default_factory=dict)
+
+
+def contour_region(vertices, faces, loops) -> np.ndarray:
+    """(V,) bool: where tracked curves inform the face: around the mouth loops and the eyes.
+
+    The mouth loops (lip weld to lip fronts) grown by :data:`ANCHOR_RINGS_MOUTH`
+    edge rings, and every vertex within :data:`ANCHOR_EYE_RADIUS` eye widths
+    (corner to corner) of an eye's lid loops and eyeball (the lids' skin moves
+    with a blink well beyond the lid loops).
+
+    Parameters
+    ----------
+    vertices : (V,3) float
+        Rest mesh, scene units.
+    faces : (F,3) int
+    loops : ContourLoops
+    """
+    V = np.asarray(vertices, float)
+    n = len(V)
+    mouth = np.zeros(n, bool)
+    for v in loops.mouth:
+        mouth[np.asarray(v, np.int64).ravel()] = True
+    region = grow_region(mouth, vertex_adjacency(faces, n), ANCHOR_RINGS_MOUTH)
+    for side, lp in loops.eyes.items():
+        ids = np.unique(np.concatenate([np.asarray(v, np.int64).ravel() for v in lp]
+                                       + [np.asarray(loops.eyeballs.get(side, []), np.int64)]))
+        P = V[ids]
+        width = float(np.linalg.norm(P.max(axis=0) - P.min(axis=0)))
+        d, _ = cKDTree(P).query(V, distance_upper_bound=ANCHOR_EYE_RADIUS * width)
+        region |= np.isfinite(d)
+    return region
 
 
 def _collect_ints(obj, out, depth=0):
@@ -145,13 +183,41 @@ class BlendshapeSolver:
         None or 0: the paper's plain least squares. Not in the paper.
     robust_iterations : int
         IRLS re-solves for ``contour_huber_px`` (2: a few ms a frame).
+    anchor_weight : float
+        Tie to the markers-only fit away from the contours (not in the
+        paper). With markers and curves, the contour solves add
+        ``anchor_weight * n * mean_v |s (x_v(w) - x_v(w_m))|^2 / r^2`` over
+        the anchored vertices ``v``: ``w_m`` is the frame's markers-only
+        fit, ``r`` its marker reprojection RMS (pixels, at least
+        ``anchor_noise_floor_px``: how far the markers can be trusted),
+        ``n`` the number of marker observations and ``s`` the cameras'
+        pixels per scene unit at the markers. The curves then move the lips
+        and lids without explaining a lip the rig cannot reach with jaw and
+        cheek shapes the markers contradict; the corrective fits the rest.
+        Clean markers (small ``r``) hold the face firmly, noisy ones less.
+        0: the paper's fit. Default 50, chosen on the tuning captures
+        (docs/solve.md).
+    anchor_mask : (V,) bool, optional
+        The anchored vertices. Default: every vertex the rig moves except
+        the mouth loops grown by :data:`ANCHOR_RINGS_MOUTH` rings and
+        everything within :data:`ANCHOR_EYE_RADIUS` eye widths of the
+        eyelid loops and eyeballs (:func:`contour_region`).
+    anchor_noise_floor_px : float or None
+        Smallest marker misfit ``r`` (pixels) the anchor is scaled by;
+        None or 0: no scaling (``r = 1``).
     """
 
     def __init__(self, neutral, deltas, faces, cameras, markers: SurfacePoints | None, bundles: SurfacePoints | None,
                  loops=None, *, bounds=(-1.0, 1.0), marker_weight: float = 1.0, contour_weight: float = 1.0,
                  bundle_weight: float = 1.0, regularization: float = 1e-6, eyelids: str = "3d",
-                 contour_huber_px: float | None = 1.0, robust_iterations: int = 2):
+                 contour_huber_px: float | None = 1.0, robust_iterations: int = 2, anchor_weight: float = 50.0,
+                 anchor_mask=None, anchor_noise_floor_px: float | None = 0.05):
         V0, F = validate_mesh(neutral, faces, name="neutral mesh")
+        self.anchor_weight = float(anchor_weight)
+        self.anchor_noise_floor_px = float(anchor_noise_floor_px or 0.0)
+        if not (np.isfinite(self.anchor_weight) and self.anchor_weight >= 0):
+            raise FaceLabError(f"anchor_weight must be a non-negative number, got {anchor_weight!r}; use 0 to turn "
+                               "the tie to the markers-only fit off.")
         self.contour_huber_px = None if not contour_huber_px else float(contour_huber_px)
         self.robust_iterations = int(robust_iterations)
         self.eyelids = eyelids
@@ -195,6 +261,9 @@ class BlendshapeSolver:
                 self._need = np.flatnonzero(m)
                 self._Dneed = np.ascontiguousarray(D[:, self._need].reshape(self.S, -1))
         self._D2 = D.reshape(self.S, -1)
+        self._anchor_G, self.anchor_vertices = None, np.zeros(0, np.int64)
+        if loops is not None and self.anchor_weight > 0 and markers is not None and len(markers):
+            self._anchor_G, self.anchor_vertices = self._anchor_matrix(loops, anchor_mask)
 
     # ------------------------------------------------------------------ model
     def _bind(self, pts: SurfacePoints | None):
@@ -205,6 +274,33 @@ class BlendshapeSolver:
         x0 = np.einsum("mk,mkd->md", pts.bary, self.neutral[vid])
         B = np.einsum("mk,smkd->mds", pts.bary, self.deltas[:, vid])  # (m,3,S)
         return dict(ok=ok, x0=x0, B=B)
+
+    def _anchor_matrix(self, loops, anchor_mask):
+        """``G`` (S,S): ``w^T G w`` is the mean squared pixel-equivalent motion of the anchored vertices.
+
+        Anchored vertices: ``anchor_mask`` or, by default, every vertex the
+        rig moves outside :func:`contour_region`. Motions are converted to pixels
+        with the cameras' focal length over the markers' mean depth.
+        """
+        n = len(self.neutral)
+        if anchor_mask is None:
+            moving = (np.abs(self.deltas).max(axis=(0, 2)) > 1e-9 * max(1.0, float(np.abs(self.neutral).max())))
+            mask = moving & ~contour_region(self.neutral, self.faces, loops)
+        else:
+            mask = np.asarray(anchor_mask, bool)
+            if mask.shape != (n,):
+                raise FaceLabError(f"anchor_mask must have one entry per vertex ({n}), got {mask.shape}.")
+        idx = np.flatnonzero(mask)
+        if len(idx) == 0:
+            return None, idx
+        X = self._mk["x0"][self._mk["ok"]] if self._mk is not None else self.neutral[idx]
+        scale2 = []
+        for c in self.cameras:
+            z = np.maximum(c.depth(X), 1e-12)
+            scale2.append(np.mean((0.5 * (c.K[0, 0] + c.K[1, 1]) / z) ** 2))
+        Dm = self.deltas[:, idx].reshape(self.S, -1)
+        G = (Dm @ Dm.T) * (float(np.mean(scale2)) / len(idx))
+        return G, idx
 
     def vertices(self, weights) -> np.ndarray:
         """(V,3) full mesh ``neutral + sum_s w_s deltas_s``."""
@@ -368,11 +464,21 @@ class BlendshapeSolver:
         prev_corr = None if previous is None else previous.correspondences
         corr = []
         it_done = 0
+        anchor = None
         with small_dense_threads(1):
             if use_curves and (md or bd is not None):
                 # markers/bundles first: the contour correspondence is then built on a close mesh
                 for _ in range(1 if previous is not None else 2):  # 2: re-linearise the depths from the neutral
                     w = self._solve_linear(w, *self._system(w, md, bd, None))
+                if self._anchor_G is not None and md:
+                    # tie to the markers-only fit away from the contours: the contours may move the lips and lids,
+                    # not explain an out-of-span lip with jaw and cheek shapes the markers do not see
+                    n_obs = sum(len(sel) for _, sel, _ in md)
+                    k = self.anchor_weight * n_obs
+                    if self.anchor_noise_floor_px > 0:  # in units of the markers' own misfit (noise level)
+                        res_px = self.residuals(w, markers_px)["marker_rms_px"]
+                        k /= max(res_px, self.anchor_noise_floor_px) ** 2
+                    anchor = (k * self._anchor_G, w.copy())
             n_it = max(1, int(iterations)) if use_curves else max(2, int(iterations))  # markers: re-linearise once
             for it in range(n_it):
                 if use_curves:
@@ -382,7 +488,7 @@ class BlendshapeSolver:
                     corr = match_contours(Vc, self.faces, self.cameras, curves, self.loops, sliding=sliding,
                                           previous=None if sliding else prev_corr, eyelids=self.eyelids)
                     prev_corr = corr
-                w_new = self._solve_linear(w, *self._system(w, md, bd, corr))
+                w_new = self._solve_linear(w, *self._system(w, md, bd, corr), anchor=anchor if corr else None)
                 change = float(np.abs(w_new - w).max())
                 w = w_new
                 it_done = it + 1
@@ -393,7 +499,7 @@ class BlendshapeSolver:
                 # its span) loses its pull instead of bending the whole lower face; the corrective fits it
                 for _ in range(int(self.robust_iterations)):
                     pw = self._robust_weights(w, corr)
-                    w_new = self._solve_linear(w, *self._system(w, md, bd, corr, pw))
+                    w_new = self._solve_linear(w, *self._system(w, md, bd, corr, pw), anchor=anchor)
                     change = float(np.abs(w_new - w).max())
                     w = w_new
                     if change < tol:
@@ -406,12 +512,20 @@ class BlendshapeSolver:
         info["cpu_s"] = time.process_time() - c0
         return FrameResult(weights=w, correspondences=list(corr), info=info)
 
-    def _solve_linear(self, w, J, r):
-        """Bounded least squares ``min |J w - r|^2 + ridge |w|^2`` in the bounds, warm-started at ``w``."""
+    def _solve_linear(self, w, J, r, anchor=None):
+        """Bounded least squares ``min |J w - r|^2 + ridge |w|^2`` in the bounds, warm-started at ``w``.
+
+        ``anchor``: optional ``(A (S,S), w_a (S,))`` adding ``(w - w_a)^T A (w - w_a)``.
+        """
         H = J.T @ J
+        g = J.T @ r
         ridge = self.regularization * max(float(np.trace(H)) / self.S, 1e-12)
+        if anchor is not None:
+            A, wa = anchor
+            H = H + A
+            g = g + A @ wa
         H[np.diag_indices_from(H)] += ridge
-        w_new, _ = box_least_squares(H, J.T @ r, self.lo, self.hi, w)
+        w_new, _ = box_least_squares(H, g, self.lo, self.hi, w)
         return w_new
 
     def _robust_weights(self, w, corr):
