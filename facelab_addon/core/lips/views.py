@@ -55,13 +55,17 @@ def _y_at(x, curve):
     return y
 
 
-def press_lips(upper, lower):
+def press_lips(upper, lower, may_press_upper=None, may_press_lower=None):
     """Where the lower contour is drawn above the upper one, move both to their mid-line.
 
     Parameters
     ----------
     upper, lower : (N,2), (M,2) float
         Resampled contours, pixels (image y down, so "above" = smaller y).
+    may_press_upper, may_press_lower : (N,), (M,) bool, optional
+        Samples that may be pressed (default all). :class:`ViewMatcher` leaves out the columns
+        where the captured lips already overlap in the image: a crossing drawn there is the
+        overlap itself, taken as drawn.
 
     Returns
     -------
@@ -76,6 +80,10 @@ def press_lips(upper, lower):
     pu = np.isfinite(ly) & (ly < U[:, 1])
     uy = _y_at(Lw[:, 0], U)
     pl = np.isfinite(uy) & (Lw[:, 1] < uy)
+    if may_press_upper is not None:
+        pu &= np.asarray(may_press_upper, bool)
+    if may_press_lower is not None:
+        pl &= np.asarray(may_press_lower, bool)
     U[pu, 1] = 0.5 * (U[pu, 1] + ly[pu])
     Lw[pl, 1] = 0.5 * (Lw[pl, 1] + uy[pl])
     return U, Lw, pu, pl
@@ -91,7 +99,7 @@ def _as_polylines(sketch):
     return [np.asarray(s, dtype=np.float64) for s in sketch]
 
 
-def prepare_sketch(camera: Camera, upper, lower, spacing: float = 1.0, where: str = ""):
+def prepare_sketch(camera: Camera, upper, lower, spacing: float = 1.0, where: str = "", press: bool = True):
     """Validate, resample (1 px) and press the sketched contours.
 
     Parameters
@@ -103,11 +111,13 @@ def prepare_sketch(camera: Camera, upper, lower, spacing: float = 1.0, where: st
         Sample spacing, pixels.
     where : str
         Names the view in messages (``" in camera 'Cam'"``); empty for one view.
+    press : bool
+        Press the contours where they cross (:func:`press_lips`); False returns them as drawn.
 
     Returns
     -------
     upper, lower : (N,2), (M,2) ndarrays
-        Samples about ``spacing`` px apart, pressed where they cross.
+        Samples about ``spacing`` px apart, pressed where they cross (with ``press``).
 
     Raises
     ------
@@ -137,8 +147,57 @@ def prepare_sketch(camera: Camera, upper, lower, spacing: float = 1.0, where: st
                 )
             samples.append(resample_polyline(p, spacing))
         out.append(np.concatenate(samples))
+    if not press:
+        return out[0], out[1]
     U, Lw, _, _ = press_lips(out[0], out[1])
     return U, Lw
+
+
+def _envelope_y(x, a, b, upper: bool):
+    """(N,) image y of the envelope of segments ``a``-``b`` (E,2) at columns ``x`` (N,), NaN where none covers.
+
+    The upper lip's envelope is its lowest silhouette (largest y, image y down), the lower lip's its highest.
+    """
+    if len(a) == 0:
+        return np.full(len(x), np.nan)
+    x0, x1 = np.minimum(a[:, 0], b[:, 0]), np.maximum(a[:, 0], b[:, 0])
+    dx = b[:, 0] - a[:, 0]
+    t = (x[:, None] - a[None, :, 0]) / np.where(np.abs(dx) < 1e-12, 1e-12, dx)[None]
+    y = a[None, :, 1] + np.clip(t, 0.0, 1.0) * (b[:, 1] - a[:, 1])[None]
+    cover = (x[:, None] >= x0[None]) & (x[:, None] <= x1[None])
+    env = np.where(cover, y, -np.inf).max(axis=1) if upper else np.where(cover, y, np.inf).min(axis=1)
+    return np.where(np.isfinite(env), env, np.nan)
+
+
+def _overlapping_columns(camera, X, faces, near, x):
+    """(N,) bool: at image columns ``x`` (N,), the lower lip's silhouette of ``X`` lies above the upper lip's.
+
+    The silhouette edges among ``faces`` with both ends in ``near`` are split into upper and lower
+    lip by their projected normals; the lips overlap at a column where the lower lip's highest
+    silhouette is above the upper lip's lowest one (image y down).
+    """
+    F = np.asarray(faces)
+    Fn = F[near[F].all(axis=1)]
+    if len(Fn) == 0:
+        return np.zeros(len(x), bool)
+    edges, ef = edge_faces(Fn)
+    inner = (ef >= 0).all(axis=1)
+    edges, ef = edges[inner], ef[inner]
+    s = facing(X, Fn, camera) > 0
+    E = edges[s[ef[:, 0]] != s[ef[:, 1]]]
+    if len(E) == 0:
+        return np.zeros(len(x), bool)
+    sil = np.unique(E)
+    side = projected_normals(X[sil], _vertex_normals_subset(X, Fn, sil), camera)[:, 1] > 0
+    up_v = np.zeros(len(X), bool)
+    up_v[sil[side]] = True
+    lo_v = np.zeros(len(X), bool)
+    lo_v[sil[~side]] = True
+    uv = camera.project(X)
+    Eu, El = E[up_v[E].all(axis=1)], E[lo_v[E].all(axis=1)]
+    yu = _envelope_y(x, uv[Eu[:, 0]], uv[Eu[:, 1]], upper=True)
+    yl = _envelope_y(x, uv[El[:, 0]], uv[El[:, 1]], upper=False)
+    return np.isfinite(yu) & np.isfinite(yl) & (yl < yu)
 
 
 def _closest_to_rays(X, idx, origins, dirs):
@@ -247,9 +306,8 @@ class ViewMatcher:
         if not isinstance(cam, Camera):
             raise CameraError("No camera given: set the scene camera (the one the backplate belongs to).")
         self.camera, self.where = cam, where
-        self.upper, self.lower = prepare_sketch(cam, view.upper, view.lower, where=where)
-        sketch = np.concatenate([self.upper, self.lower])
-        self.sketch = sketch
+        up_raw, lo_raw = prepare_sketch(cam, view.upper, view.lower, where=where, press=False)
+        sketch = np.concatenate([up_raw, lo_raw])
         V0, F = vertices, faces
         n = len(V0)
         depth = cam.depth(V0)
@@ -285,6 +343,11 @@ class ViewMatcher:
                 "in front of the face."
             )
         self.near = near
+        # a crossing drawn where the captured lips already overlap in this view is that overlap, not a press
+        self.upper, self.lower, _, _ = press_lips(
+            up_raw, lo_raw, ~_overlapping_columns(cam, V0, F, near, up_raw[:, 0]),
+            ~_overlapping_columns(cam, V0, F, near, lo_raw[:, 0]))
+        self.sketch = np.concatenate([self.upper, self.lower])
         self.o_u, self.d_u = cam.rays(self.upper)
         self.o_l, self.d_l = cam.rays(self.lower)
         self.n_u = _contour_planes(cam, self.upper)
