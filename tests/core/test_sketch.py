@@ -149,3 +149,35 @@ def test_sketch_on_the_current_silhouette_barely_moves_the_mesh():
     # the literal per-pixel rays also pull along the contour (x), sliding the lips sideways
     Xp = refine_lips(V, F, cam, line_px(cam, 0.2), line_px(cam, -0.2), silhouette_rays="pixel", fixed=free(V), prior="paper")
     assert np.abs(Xp - V)[:, 0].max() > 5 * np.abs(X - V)[:, 0].max()
+
+
+def test_press_lips_only_where_allowed():
+    x = np.arange(0, 11.0)
+    upper = np.c_[x, np.full_like(x, 10.0)]
+    lower = np.c_[x, np.full_like(x, 6.0)]  # drawn above the upper lip everywhere
+    allow = x < 5
+    U, L, pu, pl = press_lips(upper, lower, allow, allow)
+    np.testing.assert_array_equal(pu, allow)
+    np.testing.assert_allclose(U[allow, 1], 8.0)
+    np.testing.assert_allclose(U[~allow], upper[~allow])
+    np.testing.assert_allclose(L[~allow], lower[~allow])
+
+
+def test_crossing_sketch_over_lips_that_already_overlap_is_taken_as_drawn():
+    """Lips that overlap in the view (lower lip's silhouette 0.1 above the upper's), captured 0.05 too
+    high: the truth's crossing contours are followed as drawn, not pressed to their mid-line."""
+    V, F, upper = two_lips(gap=-0.1)
+    C = V.copy()
+    C[:, 1] += 0.05
+    cam = front_camera()
+    X, info = refine_lips(C, F, cam, line_px(cam, -0.05), line_px(cam, 0.05), return_info=True, fixed=free(V),
+                          iterations=10)
+    mid = cam.project(np.array([[0.0, 0.0, 0.0]]))[0, 1]
+    assert info["upper_samples"][:, 1].mean() > mid + 5 and info["lower_samples"][:, 1].mean() < mid - 5
+    i_u = np.flatnonzero((np.abs(V[:, 0]) < 1e-9) & upper & (np.abs(V[:, 1] + 0.05) < 1e-9))
+    i_l = np.flatnonzero((np.abs(V[:, 0]) < 1e-9) & ~upper & (np.abs(V[:, 1] - 0.05) < 1e-9))
+    assert len(i_u) and len(i_l)
+    # both lips go back down to the truth (pressed to the mid-line, the upper lip would stay and the lower
+    # one go down twice as far)
+    np.testing.assert_allclose((X - C)[i_u, 1], -0.05, atol=0.005)
+    np.testing.assert_allclose((X - C)[i_l, 1], -0.05, atol=0.015)
