@@ -32,8 +32,7 @@ Two priors (``prior``):
   length, ``reach`` a fraction of the mouth width), so the displacement of the silhouette
   carries across the lip band, the same distance on any mesh density; hidden
   (``fixed``) vertices are held exactly. On the sketch benchmark it removes more of the
-  3D lip error (``benchmarks/sketch_refine.py``). Given a lip region (``lips``), its held
-  border is the anchor and ``w_i`` is 0 inside it.
+  3D lip error (``benchmarks/sketch_refine.py``).
 
 Only the vertices within ``free_radius`` mouth widths (geodesic) of the lip area near
 the sketch are solved for (or, given a painted lip region ``lips`` such as ``FL_lips``,
@@ -115,8 +114,6 @@ def refine_lips(
     smooth_reach : float
         Smooth prior: how far a silhouette's displacement carries across the
         lips, in mouth widths (the sketch's width at the depth of the lips).
-        With ``lips`` the region's held border bounds the correction instead
-        (the smooth prior has no ``E_pos`` inside it).
     free_radius : float
         Geodesic reach of the solved region from the lip area near the sketch,
         in mouth widths; vertices beyond are held exactly.
@@ -245,11 +242,8 @@ def refine_lips_views(
     # everything below needs only the triangles near the free region (its rows of L are exact there)
     Fl = F[local_faces(F, region, rings=2)]
     adj = vertex_adjacency(Fl, n)
-    # with a lip region its held border anchors the correction: the smooth prior then carries it across
-    # the whole region (no E_pos), as Propagate's Poisson solve spreads a correction between the same border
-    reach = smooth_reach * W if lips is None else np.inf
     w = anchor_weights(V0, Fl, region, prior=prior, lambda_pos=lambda_pos, lambda_reg=lambda_reg,
-                       reach=reach, fixed=fixed)
+                       reach=smooth_reach * W, fixed=fixed)
     L = make_laplacian(V0, Fl, laplacian, adjacency=adj)
     if lips is not None:
         # the held border of the lip region keeps its position, not its Laplacian coordinates: the
