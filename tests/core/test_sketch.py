@@ -151,16 +151,16 @@ def test_sketch_on_the_current_silhouette_barely_moves_the_mesh():
     assert np.abs(Xp - V)[:, 0].max() > 5 * np.abs(X - V)[:, 0].max()
 
 
-def test_press_lips_only_where_allowed():
+def test_press_lips_by_what_the_crossing_adds_to_the_captured_overlap():
     x = np.arange(0, 11.0)
     upper = np.c_[x, np.full_like(x, 10.0)]
-    lower = np.c_[x, np.full_like(x, 6.0)]  # drawn above the upper lip everywhere
-    allow = x < 5
-    U, L, pu, pl = press_lips(upper, lower, allow, allow)
-    np.testing.assert_array_equal(pu, allow)
-    np.testing.assert_allclose(U[allow, 1], 8.0)
-    np.testing.assert_allclose(U[~allow], upper[~allow])
-    np.testing.assert_allclose(L[~allow], lower[~allow])
+    lower = np.c_[x, np.full_like(x, 6.0)]  # drawn 4 px above the upper lip everywhere
+    overlap = np.where(x < 5, 0.0, np.where(x < 8, 2.0, 6.0))  # the capture: apart, 2 px and 6 px overlap
+    U, L, pu, pl = press_lips(upper, lower, overlap, overlap)
+    np.testing.assert_allclose(U[:, 1], np.where(x < 5, 8.0, np.where(x < 8, 9.0, 10.0)))
+    np.testing.assert_allclose(L[:, 1], np.where(x < 5, 8.0, np.where(x < 8, 7.0, 6.0)))
+    np.testing.assert_array_equal(pu, x < 8)
+    np.testing.assert_array_equal(pl, x < 8)
 
 
 def test_crossing_sketch_over_lips_that_already_overlap_is_taken_as_drawn():
