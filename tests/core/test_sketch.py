@@ -149,3 +149,35 @@ def test_sketch_on_the_current_silhouette_barely_moves_the_mesh():
     # the literal per-pixel rays also pull along the contour (x), sliding the lips sideways
     Xp = refine_lips(V, F, cam, line_px(cam, 0.2), line_px(cam, -0.2), silhouette_rays="pixel", fixed=free(V), prior="paper")
     assert np.abs(Xp - V)[:, 0].max() > 5 * np.abs(X - V)[:, 0].max()
+
+
+def test_press_lips_by_what_the_crossing_adds_to_the_captured_overlap():
+    x = np.arange(0, 11.0)
+    upper = np.c_[x, np.full_like(x, 10.0)]
+    lower = np.c_[x, np.full_like(x, 6.0)]  # drawn 4 px above the upper lip everywhere
+    overlap = np.where(x < 5, 0.0, np.where(x < 8, 2.0, 6.0))  # the capture: apart, 2 px and 6 px overlap
+    U, L, pu, pl = press_lips(upper, lower, overlap, overlap)
+    np.testing.assert_allclose(U[:, 1], np.where(x < 5, 8.0, np.where(x < 8, 9.0, 10.0)))
+    np.testing.assert_allclose(L[:, 1], np.where(x < 5, 8.0, np.where(x < 8, 7.0, 6.0)))
+    np.testing.assert_array_equal(pu, x < 8)
+    np.testing.assert_array_equal(pl, x < 8)
+
+
+def test_crossing_sketch_over_lips_that_already_overlap_is_taken_as_drawn():
+    """Lips that overlap in the view (lower lip's silhouette 0.2 = 27 px above the upper's), captured 0.05 too
+    high: the truth's crossing contours are followed as drawn, not pressed to their mid-line."""
+    V, F, upper = two_lips(gap=-0.2)
+    C = V.copy()
+    C[:, 1] += 0.05
+    cam = front_camera()
+    X, info = refine_lips(C, F, cam, line_px(cam, -0.1), line_px(cam, 0.1), return_info=True, fixed=free(V),
+                          iterations=10)
+    mid = cam.project(np.array([[0.0, 0.0, 0.0]]))[0, 1]
+    assert info["upper_samples"][:, 1].mean() > mid + 12 and info["lower_samples"][:, 1].mean() < mid - 12
+    i_u = np.flatnonzero((np.abs(V[:, 0]) < 1e-9) & upper & (np.abs(V[:, 1] + 0.1) < 1e-9))
+    i_l = np.flatnonzero((np.abs(V[:, 0]) < 1e-9) & ~upper & (np.abs(V[:, 1] - 0.1) < 1e-9))
+    assert len(i_u) and len(i_l)
+    # both lips go back down to the truth (pressed to the mid-line, the upper lip would go up and the lower
+    # one down twice as far)
+    np.testing.assert_allclose((X - C)[i_u, 1], -0.05, atol=0.005)
+    np.testing.assert_allclose((X - C)[i_l, 1], -0.05, atol=0.015)

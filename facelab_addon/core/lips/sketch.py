@@ -36,7 +36,8 @@ Two priors (``prior``):
 
 Only the vertices within ``free_radius`` mouth widths (geodesic) of the lip area near
 the sketch are solved for (or, given a painted lip region ``lips`` such as ``FL_lips``,
-that region's interior, its border held); everything else is held exactly. The mouth
+that region's interior, its border held in place but free to bend: ``E_reg`` has no rows for
+the border vertices); everything else is held exactly. The mouth
 width is measured on the sketch (:func:`~facelab_addon.core.lips.sketch_prior.sketch_scale`),
 so the settings mean the same on any mesh, in any units. The system matrix does not change
 between iterations, so it is factored once, and the moving silhouette constraints are
@@ -48,6 +49,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
+import scipy.sparse as sp
 
 from ..errors import FaceLabError, UsageError
 from ..geometry.deform import LaplacianDeformer
@@ -243,6 +245,11 @@ def refine_lips_views(
     w = anchor_weights(V0, Fl, region, prior=prior, lambda_pos=lambda_pos, lambda_reg=lambda_reg,
                        reach=smooth_reach * W, fixed=fixed)
     L = make_laplacian(V0, Fl, laplacian, adjacency=adj)
+    if lips is not None:
+        # the held border of the lip region keeps its position, not its Laplacian coordinates: the
+        # correction may meet it at an angle (as Propagate's Poisson solve, which holds the same border,
+        # reproduces it), instead of flattening out before it
+        L = sp.diags((~(lips & ~region & ~fixed)).astype(np.float64)) @ L
     solver = LaplacianDeformer(L, lambda_reg=lambda_reg, pos_weights=w, pinned=~region)
     # silhouettes: on triangles of the region and its held ring (a border vertex may be on the silhouette)
     around = region | (adj @ region.astype(np.float64) > 0)

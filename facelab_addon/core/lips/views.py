@@ -55,29 +55,38 @@ def _y_at(x, curve):
     return y
 
 
-def press_lips(upper, lower):
+def press_lips(upper, lower, overlap_upper=None, overlap_lower=None):
     """Where the lower contour is drawn above the upper one, move both to their mid-line.
 
     Parameters
     ----------
     upper, lower : (N,2), (M,2) float
         Resampled contours, pixels (image y down, so "above" = smaller y).
+    overlap_upper, overlap_lower : (N,), (M,) float, optional
+        How far (pixels) the captured lips already overlap in the image at each sample's column
+        (the captured lower lip's silhouette that far above the upper lip's; 0 or less: none).
+        A crossing that deep is the overlap itself and is taken as drawn; a deeper one is pressed
+        by what it adds, so a crossing of ``c`` px over an overlap of ``o`` px moves each contour
+        ``max(c - o, 0) / 2`` toward the other. Default: no overlap (every crossing is pressed).
 
     Returns
     -------
     upper, lower : ndarrays of the same shapes
-        Copies with the crossing stretches replaced by the mid-line.
+        Copies with the crossing stretches moved toward their mid-line.
     pressed_upper, pressed_lower : (N,), (M,) bool
         Which samples were moved.
     """
     U = np.array(upper, dtype=np.float64)
     Lw = np.array(lower, dtype=np.float64)
-    ly = _y_at(U[:, 0], Lw)  # lower's y under each upper sample
-    pu = np.isfinite(ly) & (ly < U[:, 1])
-    uy = _y_at(Lw[:, 0], U)
-    pl = np.isfinite(uy) & (Lw[:, 1] < uy)
-    U[pu, 1] = 0.5 * (U[pu, 1] + ly[pu])
-    Lw[pl, 1] = 0.5 * (Lw[pl, 1] + uy[pl])
+    out = []
+    for P, Q, ov, sign in ((U, Lw, overlap_upper, 1.0), (Lw, U, overlap_lower, -1.0)):
+        qy = _y_at(P[:, 0], Q)  # the other contour's y at each sample's column
+        cross = np.where(np.isfinite(qy), sign * (P[:, 1] - qy), 0.0)  # > 0: lower drawn above upper
+        o = np.zeros(len(P)) if ov is None else np.nan_to_num(np.maximum(np.asarray(ov, float), 0.0))
+        move = np.maximum(cross - o, 0.0)
+        out.append((P[:, 1] - sign * 0.5 * move, move > 0))
+    U[:, 1], pu = out[0]
+    Lw[:, 1], pl = out[1]
     return U, Lw, pu, pl
 
 
@@ -91,7 +100,7 @@ def _as_polylines(sketch):
     return [np.asarray(s, dtype=np.float64) for s in sketch]
 
 
-def prepare_sketch(camera: Camera, upper, lower, spacing: float = 1.0, where: str = ""):
+def prepare_sketch(camera: Camera, upper, lower, spacing: float = 1.0, where: str = "", press: bool = True):
     """Validate, resample (1 px) and press the sketched contours.
 
     Parameters
@@ -103,11 +112,13 @@ def prepare_sketch(camera: Camera, upper, lower, spacing: float = 1.0, where: st
         Sample spacing, pixels.
     where : str
         Names the view in messages (``" in camera 'Cam'"``); empty for one view.
+    press : bool
+        Press the contours where they cross (:func:`press_lips`); False returns them as drawn.
 
     Returns
     -------
     upper, lower : (N,2), (M,2) ndarrays
-        Samples about ``spacing`` px apart, pressed where they cross.
+        Samples about ``spacing`` px apart, pressed where they cross (with ``press``).
 
     Raises
     ------
@@ -137,8 +148,58 @@ def prepare_sketch(camera: Camera, upper, lower, spacing: float = 1.0, where: st
                 )
             samples.append(resample_polyline(p, spacing))
         out.append(np.concatenate(samples))
+    if not press:
+        return out[0], out[1]
     U, Lw, _, _ = press_lips(out[0], out[1])
     return U, Lw
+
+
+def _envelope_y(x, a, b, upper: bool):
+    """(N,) image y of the envelope of segments ``a``-``b`` (E,2) at columns ``x`` (N,), NaN where none covers.
+
+    The upper lip's envelope is its lowest silhouette (largest y, image y down), the lower lip's its highest.
+    """
+    if len(a) == 0:
+        return np.full(len(x), np.nan)
+    x0, x1 = np.minimum(a[:, 0], b[:, 0]), np.maximum(a[:, 0], b[:, 0])
+    dx = b[:, 0] - a[:, 0]
+    t = (x[:, None] - a[None, :, 0]) / np.where(np.abs(dx) < 1e-12, 1e-12, dx)[None]
+    y = a[None, :, 1] + np.clip(t, 0.0, 1.0) * (b[:, 1] - a[:, 1])[None]
+    cover = (x[:, None] >= x0[None]) & (x[:, None] <= x1[None])
+    env = np.where(cover, y, -np.inf).max(axis=1) if upper else np.where(cover, y, np.inf).min(axis=1)
+    return np.where(np.isfinite(env), env, np.nan)
+
+
+def _lip_overlap_px(camera, X, faces, near, x):
+    """(N,) how far (pixels) the lower lip's silhouette of ``X`` lies above the upper lip's at image columns ``x``.
+
+    The silhouette edges among ``faces`` with both ends in ``near`` are split into upper and lower
+    lip by their projected normals; the overlap at a column is the upper lip's lowest silhouette
+    minus the lower lip's highest one (image y down): positive where the lips overlap in the image,
+    0 where a lip has no silhouette.
+    """
+    F = np.asarray(faces)
+    Fn = F[near[F].all(axis=1)]
+    if len(Fn) == 0:
+        return np.zeros(len(x))
+    edges, ef = edge_faces(Fn)
+    inner = (ef >= 0).all(axis=1)
+    edges, ef = edges[inner], ef[inner]
+    s = facing(X, Fn, camera) > 0
+    E = edges[s[ef[:, 0]] != s[ef[:, 1]]]
+    if len(E) == 0:
+        return np.zeros(len(x))
+    sil = np.unique(E)
+    side = projected_normals(X[sil], _vertex_normals_subset(X, Fn, sil), camera)[:, 1] > 0
+    up_v = np.zeros(len(X), bool)
+    up_v[sil[side]] = True
+    lo_v = np.zeros(len(X), bool)
+    lo_v[sil[~side]] = True
+    uv = camera.project(X)
+    Eu, El = E[up_v[E].all(axis=1)], E[lo_v[E].all(axis=1)]
+    yu = _envelope_y(x, uv[Eu[:, 0]], uv[Eu[:, 1]], upper=True)
+    yl = _envelope_y(x, uv[El[:, 0]], uv[El[:, 1]], upper=False)
+    return np.nan_to_num(yu - yl)
 
 
 def _closest_to_rays(X, idx, origins, dirs):
@@ -247,9 +308,8 @@ class ViewMatcher:
         if not isinstance(cam, Camera):
             raise CameraError("No camera given: set the scene camera (the one the backplate belongs to).")
         self.camera, self.where = cam, where
-        self.upper, self.lower = prepare_sketch(cam, view.upper, view.lower, where=where)
-        sketch = np.concatenate([self.upper, self.lower])
-        self.sketch = sketch
+        up_raw, lo_raw = prepare_sketch(cam, view.upper, view.lower, where=where, press=False)
+        sketch = np.concatenate([up_raw, lo_raw])
         V0, F = vertices, faces
         n = len(V0)
         depth = cam.depth(V0)
@@ -285,6 +345,18 @@ class ViewMatcher:
                 "in front of the face."
             )
         self.near = near
+        # a crossing drawn where the captured lips already overlap in this view is, up to that overlap, the
+        # overlap itself: only what it adds is pressed
+        # overlaps under 2.5 % of the sketch's width (about 1 mm; where the silhouettes meet near the corners)
+        # count as none, from 5 % on in full, so the pressing does not hinge on near-ties of the silhouettes
+        tol = 0.025 * width
+
+        def overlap(x):
+            o = _lip_overlap_px(cam, V0, F, near, x)
+            return o * np.clip(o / tol - 1.0, 0.0, 1.0)
+
+        self.upper, self.lower, _, _ = press_lips(up_raw, lo_raw, overlap(up_raw[:, 0]), overlap(lo_raw[:, 0]))
+        self.sketch = np.concatenate([self.upper, self.lower])
         self.o_u, self.d_u = cam.rays(self.upper)
         self.o_l, self.d_l = cam.rays(self.lower)
         self.n_u = _contour_planes(cam, self.upper)
