@@ -89,8 +89,7 @@ def test_noise_is_filtered_and_never_worse_than_the_bounded_fit(toy):
         e_rec.append(np.linalg.norm(rec.reconstruct(q, noise=sigma) - x, axis=1).mean())
         e_exact.append(np.linalg.norm(rec.reconstruct(q) - x, axis=1).mean())
         e_fit.append(np.linalg.norm(hard_fit(toy, q) - x, axis=1).mean())
-    # so noisy that the residual cannot be told from the noise: the default falls back to the fit (the weight
-    # prior moves it by about 1 % on this toy; on ICT it gains 5 %, tests below and the benchmark)
+    # so noisy that the residual cannot be told from the noise: the default falls back to the bounded fit
     assert np.mean(e_rec) <= 1.02 * np.mean(e_fit), (np.mean(e_rec), np.mean(e_fit))
     assert np.mean(e_rec) < 0.9 * np.mean(e_exact)  # exact interpolation passes the noise through
     # bundles that are pure noise around the neutral: the residual is filtered out entirely
