@@ -89,8 +89,7 @@ def test_noise_is_filtered_and_never_worse_than_the_bounded_fit(toy):
         e_rec.append(np.linalg.norm(rec.reconstruct(q, noise=sigma) - x, axis=1).mean())
         e_exact.append(np.linalg.norm(rec.reconstruct(q) - x, axis=1).mean())
         e_fit.append(np.linalg.norm(hard_fit(toy, q) - x, axis=1).mean())
-    # so noisy that the residual cannot be told from the noise: the default falls back to the fit (the weight
-    # prior moves it by about 1 % on this toy; on ICT it gains 5 %, tests below and the benchmark)
+    # so noisy that the residual cannot be told from the noise: the default falls back to the bounded fit
     assert np.mean(e_rec) <= 1.02 * np.mean(e_fit), (np.mean(e_rec), np.mean(e_fit))
     assert np.mean(e_rec) < 0.9 * np.mean(e_exact)  # exact interpolation passes the noise through
     # bundles that are pure noise around the neutral: the residual is filtered out entirely
@@ -205,3 +204,37 @@ def test_ict_beats_the_bounded_fit_on_another_actor_and_layout(ict):
         print(f"noise {sigma * 10:.1f} mm: skin ratio {ratio:.3f}, inner-lip ratio {lip_ratio:.3f}")
         assert ratio <= target, (sigma, ratio)
         assert lip_ratio <= 1.0, (sigma, lip_ratio)  # measured 0.82, 0.97 clean; 0.96, 0.99 with 0.2 mm
+
+
+def test_ict_inner_lips_never_worse_than_the_bounded_fit_with_sparse_bundles(ict):
+    # issue 15: the sparse 60-bundle layout on another identity, where the inner lips (far from every bundle) were
+    # 0.5 % above the bounded fit, clean (the residual leaked onto them through a gain learned by chance) and with
+    # 0.2 mm noise (the weight prior shrank the weights of shapes the bundles see weakly)
+    from facelab_addon.testing import datasets as ds
+    from facelab_addon.testing.recon_cases import ict_identity
+    from facelab_addon.testing.synthetic import inner_lip_mask
+
+    actor = ict_identity(ict, seed=2)
+    data = ds.ict_dataset(actor, generator=ds.ICTShapeGenerator(actor, inbetween_bulge=0.1, combination_bulge=0.2))
+    F, x0 = actor.faces, actor.neutral
+    bf, bb = ds.ict_bundle_layout(actor, 60, seed=0)
+    rec = FitResidual(x0, F, data.shapes, bf, bb, uvs=ds.ict_triangle_uvs(actor))
+    skin = actor.part_vertex_mask("M_Face")
+    lips = inner_lip_mask(x0, F, ~skin)
+    H = ds.held_out_weights(20, seed=23)
+    truth = np.stack([data.generator(w) for w in H])
+    Q = surface_points(truth, F, bf, bb)
+    D = data.shapes - x0
+    for sigma, target in ((0.0, 0.9), (0.02, 1.0)):  # centimetres: 0.2 mm
+        QQ = Q + sigma * np.random.default_rng(5).standard_normal(Q.shape)
+        e_rec, e_fit = [], []
+        for k in range(len(H)):
+            wf = lsq_linear(rec.A, (QQ[k] - rec.p0).ravel(), bounds=(0, 1), method="bvls").x
+            e_fit.append(np.linalg.norm(x0 + np.tensordot(wf, D, axes=1) - truth[k], axis=1))
+            e_rec.append(np.linalg.norm(rec.reconstruct(QQ[k], noise=sigma) - truth[k], axis=1))
+        e_rec, e_fit = np.array(e_rec), np.array(e_fit)
+        ratio = e_rec[:, skin].mean() / e_fit[:, skin].mean()
+        lip_ratio = e_rec[:, lips].mean() / e_fit[:, lips].mean()
+        print(f"noise {sigma * 10:.1f} mm: skin ratio {ratio:.4f}, inner-lip ratio {lip_ratio:.4f}")
+        assert ratio <= target, (sigma, ratio)
+        assert lip_ratio <= 1.0, (sigma, lip_ratio)  # before issue 15's fix: 1.005 clean, 1.006 with 0.2 mm

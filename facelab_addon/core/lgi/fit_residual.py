@@ -8,13 +8,16 @@ stronger baseline: exact local indexing passes bundle noise straight through
 and takes poorly constrained local shapes far from bundles. This module keeps
 the fit as the base and adds, locally, what the fit misses:
 
-1. **Bounded fit.** ``w = argmin |A w - (q - p0)|^2 + (sigma / tau_w)^2 |w|^2``
-   with ``0 <= w <= 1``: ``A`` (3B,S) is every dataset shape's motion at the
-   bundles, ``sigma`` the bundle noise (per axis) and ``tau_w`` the prior
-   spread of a weight (``weight_prior``). Without noise it is the plain
-   bounded least-squares fit; with noise the prior keeps the 100-odd weights
-   from fitting it. Solved with ``scipy.optimize.lsq_linear`` (BVLS) on the
-   ``S x S`` triangular factor of the system.
+1. **Bounded fit.** ``w = argmin |A w - (q - p0)|^2`` with ``0 <= w <= 1``:
+   ``A`` (3B,S) is every dataset shape's motion at the bundles. By default
+   this is exactly the bounded least-squares fit, noisy bundles or not (a
+   ridge of 1e-6 of the mean column energy only keeps shapes that no bundle
+   sees at 0). An optional weight prior ``(sigma / tau_w)^2 |w|^2``
+   (``weight_prior=tau_w``, ``sigma`` the bundle noise per axis) lowers the
+   skin error with noisy bundles but shrinks the weights of shapes that the
+   bundles see weakly, which the inner lips need (they then end up slightly
+   worse than the bounded fit's). Solved with ``scipy.optimize.lsq_linear``
+   (BVLS) on the ``S x S`` triangular factor of the system.
 2. **Residual at the bundles** ``r = q - Bary (x0 + D^T w)`` (B,3): the part of
    the pose the dataset cannot reach linearly (bulges of combinations and
    in-betweens, jaw arcs).
@@ -30,7 +33,9 @@ the fit as the base and adds, locally, what the fit misses:
    bundles) from the nearest bundle, smoothly 0 at ``falloff[1]``, and 0 on
    vertices that no dataset shape moves, times a per-vertex *gain* in [0, 1]
    learned from the dataset by leaving each shape out (how well the stitched
-   residual predicts the true one there). Far from bundles, and where the
+   residual predicts the true one there, kept only as far as the dataset's
+   shapes agree on it: a James-Stein shrinkage by its standard error). Far
+   from bundles, and where the
    skin does not move like its nearest bundles (the inner lips, behind the
    outer-lip bundles), the global fit stands alone. With the learned gain
    the surface no longer passes exactly through the bundles
@@ -150,9 +155,11 @@ class FitResidual:
         Precomputed natural-neighbour weights of these bundles (e.g. a
         :class:`GeometricIndexer`'s ``nn``); ``uvs`` and ``nn_method`` are
         then unused.
-    weight_prior : float
+    weight_prior : float, optional
         ``tau_w``: prior standard deviation of a blendshape weight (unitless).
-        Only acts with noise; smaller values shrink the weights more.
+        None (default): no prior, the fit is the bounded fit. Only acts with
+        noise; smaller values shrink the weights more (lower skin error with
+        noisy bundles, slightly higher inner-lip error; ``docs/reconstruct.md``).
     falloff : (float, float)
         The residual acts fully up to ``falloff[0]`` bundle spacings from the
         nearest bundle and fades to 0 at ``falloff[1]`` spacings.
@@ -183,7 +190,7 @@ class FitResidual:
     """
 
     def __init__(self, neutral, faces, shapes, bundle_faces, bundle_bary, *, names=None, uvs=None, nn_method=None,
-                 nn=None, weight_prior: float = 1.0, falloff=(1.0, 2.5), noise_margin: float = 1.5,
+                 nn=None, weight_prior=None, falloff=(1.0, 2.5), noise_margin: float = 1.5,
                  learn_gain: bool = True, bundle_names=None):
         t0 = time.perf_counter()
         x0, F = validate_mesh(neutral, faces, name="neutral mesh")
@@ -216,8 +223,8 @@ class FitResidual:
         if bf.min() < 0 or bf.max() >= len(F):
             raise BundleError(f"A bundle is bound to a triangle the mesh (of {len(F)}) does not have; re-bind the "
                               "bundles (bind_points) on this mesh.")
-        if weight_prior <= 0:
-            raise ValueError(f"weight_prior must be positive, got {weight_prior}.")
+        if weight_prior is not None and not weight_prior > 0:
+            raise ValueError(f"weight_prior must be positive or None, got {weight_prior}.")
         a, b = (float(v) for v in falloff)
         if not 0 <= a < b:
             raise ValueError(f"falloff must be two spacings 0 <= start < end, got {falloff}.")
@@ -225,7 +232,7 @@ class FitResidual:
         self.bundle_faces, self.bundle_bary = bf.astype(np.int64), bb
         self.B, self.S, self.V = B, S, nv
         self.bundle_names = None if bundle_names is None else [str(n) for n in bundle_names]
-        self.weight_prior = float(weight_prior)
+        self.weight_prior = None if weight_prior is None else float(weight_prior)
         self.falloff = (a, b)
         self.noise_margin = float(noise_margin)
 
@@ -304,12 +311,16 @@ class FitResidual:
 
         Leave one shape out: fit it (bounded) with the others, stitch the
         fit's residual at the bundles as :meth:`reconstruct` does, and compare
-        with the fit's true residual at every vertex. The gain is the
-        least-squares scale of the stitched residual onto the true one over
-        all shapes, clipped to [0, 1] and squared (a shrinkage: the scale is
-        fitted on the shapes it is judged on): 1 where stitching predicts the
-        residual, 0 where it does not (typically vertices whose motion is not
-        that of the nearest bundles, such as the inner lips).
+        with the fit's true residual at every vertex. ``beta`` is the
+        least-squares scale of the stitched residual ``P_s`` onto the true one
+        ``R_s`` over all shapes ``s``, ``se`` its standard error with the shapes
+        as samples (``sqrt(sum_s (P_s . (R_s - beta P_s))^2) / sum_s |P_s|^2``).
+        The gain is ``clip(beta, 0, 1)^2 max(0, 1 - (se / beta)^2)``: squared
+        because the scale is fitted on the shapes it is judged on, and shrunk
+        (James-Stein) where the shapes disagree, so that the residual acts only
+        where it helps *confidently*: 1 where stitching predicts the residual,
+        0 where it does not (typically vertices whose motion is not that of the
+        nearest bundles, such as the inner lips) or only by chance.
         """
         A, S, B = self.A, self.S, self.B
         Wl = np.zeros((S, S))
@@ -321,10 +332,14 @@ class FitResidual:
         P = np.asarray(W[keep] @ C).reshape(len(keep), S, 3)  # stitched
         Dk = D[:, keep]
         R = Dk - np.tensordot(Wl, Dk, axes=1)  # (S, k, 3) true residuals
-        num = np.einsum("ksd,skd->k", P, R)
-        den = np.einsum("ksd,ksd->k", P, P)
-        g = np.clip(num / np.maximum(den, 1e-300), 0.0, 1.0) * (den > 0)
-        return g * g  # squared: the scale is fitted on the same shapes it is judged on, so shrink it
+        num_s = np.einsum("ksd,skd->ks", P, R)  # (k, S) per-shape agreement
+        den_s = np.einsum("ksd,ksd->ks", P, P)
+        den = den_s.sum(axis=1)
+        beta = num_s.sum(axis=1) / np.maximum(den, 1e-300) * (den > 0)
+        # standard error of beta with the shapes as samples: P_s . (R_s - beta P_s) = num_s - beta den_s
+        se = np.sqrt(np.sum((num_s - beta[:, None] * den_s) ** 2, axis=1)) / np.maximum(den, 1e-300)
+        confidence = np.clip(1.0 - se * se / np.maximum(beta * beta, 1e-300), 0.0, 1.0) * (beta > 0)
+        return np.clip(beta, 0.0, 1.0) ** 2 * confidence
 
     # ------------------------------------------------------------------ the fit
 
@@ -333,7 +348,7 @@ class FitResidual:
         key = round(float(noise), 15)
         sysm = self._systems.get(key)
         if sysm is None:
-            lam = self._ridge0 + (float(noise) / self.weight_prior) ** 2
+            lam = self._ridge0 + (0.0 if self.weight_prior is None else (float(noise) / self.weight_prior) ** 2)
             Aa = np.vstack([self.A, np.sqrt(lam) * np.eye(self.S)])
             Qf, R = np.linalg.qr(Aa, mode="reduced")  # Aa = Qf R, Qf (3B+S, S)
             sysm = (R, np.ascontiguousarray(Qf[: len(self.A)].T))
