@@ -61,8 +61,8 @@ from scipy.spatial import cKDTree
 
 from ..errors import BundleError, DatasetError
 from ..geometry.linsolve import one_blas_thread
-from ..geometry.mesh import validate_mesh
 from .binding import _labels
+from .inputs import check_reconstruction_inputs
 from .natural_neighbor import natural_neighbor_weights, surface_points
 
 __all__ = ["FitResidual", "estimate_noise"]
@@ -193,36 +193,9 @@ class FitResidual:
                  nn=None, weight_prior=None, falloff=(1.0, 2.5), noise_margin: float = 1.5,
                  learn_gain: bool = True, bundle_names=None):
         t0 = time.perf_counter()
-        x0, F = validate_mesh(neutral, faces, name="neutral mesh")
-        X = np.asarray(shapes, dtype=np.float64)
-        nv = len(x0)
-        if X.ndim != 3 or X.shape[1:] != (nv, 3):
-            raise DatasetError(
-                f"Dataset shapes must be an (S,V,3) array with V={nv} (the neutral's vertex count), got "
-                f"{X.shape}; every shape key must come from the same mesh."
-            )
-        S = len(X)
-        self.names = [str(n) for n in names] if names is not None else [f"shape {i}" for i in range(S)]
-        if len(self.names) != S:
-            raise DatasetError(f"{len(self.names)} names for {S} shapes; give one name per shape.")
-        if S < 4:
-            raise DatasetError(
-                f"Reconstruct needs at least 4 dataset shapes, got {S}; add shape keys (expressions, in-betweens "
-                "or combinations)."
-            )
-        bad = ~np.isfinite(X).all(axis=(1, 2))
-        if bad.any():
-            raise DatasetError(f"Dataset shapes {[self.names[i] for i in np.flatnonzero(bad)[:5]]} contain NaN; fix them.")
-        bf = np.asarray(bundle_faces)
-        bb = np.asarray(bundle_bary, dtype=np.float64)
-        B = len(bf)
-        if bf.ndim != 1 or B == 0 or not np.issubdtype(bf.dtype, np.integer):
-            raise BundleError(f"bundle_faces must be a non-empty (B,) integer array, got {bf.shape} {bf.dtype}.")
-        if bb.shape != (B, 3) or not np.isfinite(bb).all():
-            raise BundleError(f"bundle_bary must be a finite (B,3)=({B},3) array, got {bb.shape}.")
-        if bf.min() < 0 or bf.max() >= len(F):
-            raise BundleError(f"A bundle is bound to a triangle the mesh (of {len(F)}) does not have; re-bind the "
-                              "bundles (bind_points) on this mesh.")
+        x0, F, X, self.names, bf, bb = check_reconstruction_inputs(neutral, faces, shapes, names, bundle_faces,
+                                                                   bundle_bary)
+        nv, S, B = len(x0), len(X), len(bf)
         if weight_prior is not None and not weight_prior > 0:
             raise ValueError(f"weight_prior must be positive or None, got {weight_prior}.")
         a, b = (float(v) for v in falloff)

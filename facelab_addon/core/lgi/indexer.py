@@ -42,9 +42,9 @@ import scipy.linalg as sla
 
 from ..errors import BundleError, DatasetError, FaceLabError
 from ..geometry.linsolve import one_blas_thread
-from ..geometry.mesh import validate_mesh
 from .binding import _labels
 from .clouds import IndexerClouds
+from .inputs import check_reconstruction_inputs
 from .locate import IndexerLocate
 from .natural_neighbor import natural_neighbor_weights
 from .stitch import IndexerStitch
@@ -179,41 +179,9 @@ class GeometricIndexer(IndexerClouds, IndexerLocate, IndexerStitch):
 
     def _set_inputs(self, neutral, faces, shapes, names, bundle_faces, bundle_bary, exact, threads, bundle_names):
         """Check and store the mesh, the dataset shapes (S,V,3) and names, the bundle binding and the settings."""
-        x0, F = validate_mesh(neutral, faces, name="neutral mesh")
-        nv = len(x0)
-        X = np.asarray(shapes, dtype=np.float64)
-        if X.ndim != 3 or X.shape[1:] != (nv, 3):
-            raise DatasetError(
-                f"Dataset shapes must be an (S,V,3) array with V={nv} (the neutral's vertex count), got "
-                f"{X.shape}; every shape key must come from the same mesh."
-            )
-        S = len(X)
-        self.names = [str(n) for n in names] if names is not None else [f"shape {i}" for i in range(S)]
-        if len(self.names) != S:
-            raise DatasetError(f"{len(self.names)} names for {S} shapes; give one name per shape.")
-        if S < 4:
-            raise DatasetError(
-                f"Local geometric indexing needs at least 4 dataset shapes, got {S}; add shape keys "
-                "(expressions, in-betweens or combinations)."
-            )
-        bad = ~np.isfinite(X).all(axis=(1, 2))
-        if bad.any():
-            raise DatasetError(f"Dataset shapes {[self.names[i] for i in np.flatnonzero(bad)[:5]]} contain NaN; fix them.")
-        bf = np.asarray(bundle_faces)
-        bb = np.asarray(bundle_bary, dtype=np.float64)
-        B = len(bf)
-        if bf.ndim != 1 or B == 0 or not np.issubdtype(bf.dtype, np.integer):
-            raise BundleError(f"bundle_faces must be a non-empty (B,) integer array, got {bf.shape} {bf.dtype}.")
-        bf = bf.astype(np.int64)
-        if bb.shape != (B, 3) or not np.isfinite(bb).all():
-            raise BundleError(f"bundle_bary must be a finite (B,3)=({B},3) array, got {bb.shape}.")
-        if bf.min() < 0 or bf.max() >= len(F):
-            raise BundleError(
-                f"A bundle is bound to triangle {int(bf.max()) if bf.max() >= len(F) else int(bf.min())} but the "
-                f"mesh has {len(F)}; re-bind the bundles (bind_points) on this mesh."
-            )
-        if (bb < -1e-6).any() or np.abs(bb.sum(1) - 1) .max() > 1e-6:
-            raise BundleError("Bundle barycentric coordinates must be non-negative and sum to 1; re-bind the bundles.")
+        x0, F, X, self.names, bf, bb = check_reconstruction_inputs(
+            neutral, faces, shapes, names, bundle_faces, bundle_bary, method="Local geometric indexing")
+        nv, S, B = len(x0), len(X), len(bf)
         self.neutral, self.faces = x0, F
         self.bundle_faces, self.bundle_bary = bf, bb
         self.B, self.S, self.V = B, S, nv

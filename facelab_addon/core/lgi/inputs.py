@@ -1,0 +1,88 @@
+"""The inputs every bundle reconstruction checks: a mesh, its dataset shapes and the bundles' binding.
+
+Both reconstruction methods (:class:`~facelab_addon.core.lgi.indexer.GeometricIndexer`, the paper's
+local indexing, and :class:`~facelab_addon.core.lgi.fit_residual.FitResidual`, the default) take the
+same inputs and refuse the same bad ones with the same messages.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import BundleError, DatasetError
+from ..geometry.mesh import validate_mesh
+
+__all__ = ["check_reconstruction_inputs"]
+
+
+def check_reconstruction_inputs(neutral, faces, shapes, names, bundle_faces, bundle_bary, *,
+                                method: str = "Reconstruct"):
+    """Validate and convert the mesh, the dataset shapes and the bundles' surface binding.
+
+    Parameters
+    ----------
+    neutral : (V,3) array_like
+        Neutral mesh vertices, scene units.
+    faces : (F,3) int array_like
+        Triangles.
+    shapes : (S,V,3) array_like
+        Dataset shapes as positions, scene units; at least 4.
+    names : sequence of str or None
+        One name per shape (``"shape i"`` when None), used in messages.
+    bundle_faces : (B,) int array_like
+        Triangle each bundle is bound to.
+    bundle_bary : (B,3) array_like
+        Barycentric coordinates of each bundle in its triangle (non-negative, summing to 1).
+    method : str
+        The method's name, for the "needs at least 4 dataset shapes" message.
+
+    Returns
+    -------
+    x0 : (V,3) float64 ndarray
+    F : (F,3) int64 ndarray
+    X : (S,V,3) float64 ndarray
+    names : list of str
+    bf : (B,) int64 ndarray
+    bb : (B,3) float64 ndarray
+
+    Raises
+    ------
+    MeshError, DatasetError, BundleError
+        Naming the problem and the fix (re-bind the bundles, add shape keys, ...).
+    """
+    x0, F = validate_mesh(neutral, faces, name="neutral mesh")
+    nv = len(x0)
+    X = np.asarray(shapes, dtype=np.float64)
+    if X.ndim != 3 or X.shape[1:] != (nv, 3):
+        raise DatasetError(
+            f"Dataset shapes must be an (S,V,3) array with V={nv} (the neutral's vertex count), got "
+            f"{X.shape}; every shape key must come from the same mesh."
+        )
+    S = len(X)
+    names = [str(n) for n in names] if names is not None else [f"shape {i}" for i in range(S)]
+    if len(names) != S:
+        raise DatasetError(f"{len(names)} names for {S} shapes; give one name per shape.")
+    if S < 4:
+        raise DatasetError(
+            f"{method} needs at least 4 dataset shapes, got {S}; add shape keys "
+            "(expressions, in-betweens or combinations)."
+        )
+    bad = ~np.isfinite(X).all(axis=(1, 2))
+    if bad.any():
+        raise DatasetError(f"Dataset shapes {[names[i] for i in np.flatnonzero(bad)[:5]]} contain NaN; fix them.")
+    bf = np.asarray(bundle_faces)
+    bb = np.asarray(bundle_bary, dtype=np.float64)
+    B = len(bf)
+    if bf.ndim != 1 or B == 0 or not np.issubdtype(bf.dtype, np.integer):
+        raise BundleError(f"bundle_faces must be a non-empty (B,) integer array, got {bf.shape} {bf.dtype}.")
+    bf = bf.astype(np.int64)
+    if bb.shape != (B, 3) or not np.isfinite(bb).all():
+        raise BundleError(f"bundle_bary must be a finite (B,3)=({B},3) array, got {bb.shape}.")
+    if bf.min() < 0 or bf.max() >= len(F):
+        raise BundleError(
+            f"A bundle is bound to triangle {int(bf.max()) if bf.max() >= len(F) else int(bf.min())} but the "
+            f"mesh has {len(F)}; re-bind the bundles (bind_points) on this mesh."
+        )
+    if (bb < -1e-6).any() or np.abs(bb.sum(1) - 1).max() > 1e-6:
+        raise BundleError("Bundle barycentric coordinates must be non-negative and sum to 1; re-bind the bundles.")
+    return x0, F, X, names, bf, bb
