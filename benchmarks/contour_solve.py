@@ -285,6 +285,9 @@ MATRIX_CONFIGS = {
     "full": dict(curves=True, corrective=True),
     # the same with the previous defaults (no anchor, uniform damping 0.01, contour weight 0.5): issue 15's numbers
     "full_unanchored": dict(curves=True, corrective=True, anchor_weight=0.0, region=False),
+    # "full" plus the lip-line pass (solve_performance(lip_line_pass=True)): a second corrective pass on the contour
+    # points still > 0.5 px off their curve after the first pass
+    "full_lip_line_pass": dict(curves=True, corrective=True, lip_line_pass=True),
 }
 MATRIX_KEYS = ("vertex_mm_face", "vertex_mm_lips", "vertex_mm_lip_silhouette", "contour_rms_px", "marker_rms_px",
                "weight_mae", "ms_per_frame", "cpu_ms_per_frame")
@@ -317,7 +320,10 @@ def run_case(base, identity, amount, layout, noise_px, frames, lip_error_mm, con
                                                                                   contour_weight=0.5)
             corr = OutOfSubspaceCorrective(model.neutral, model.faces, cap.cameras, cap.markers, None,
                                            boundary=~face, warm_vertices=warm, **ckw)
-        res = solve_performance(solver, corr, cap.markers_px, None, cap.curves if cfg["curves"] else None)
+        res = solve_performance(solver, corr, cap.markers_px, None, cap.curves if cfg["curves"] else None,
+                                lip_line_pass=cfg.get("lip_line_pass", False),
+                                lip_line_threshold_px=cfg.get("lip_line_threshold_px", 0.5),
+                                lip_line_curve_px=cfg.get("lip_line_curve_px", 0.0))
         m = evaluate(model, cap, loops, names, res, face, lip)
         fr = [f for f in res.info["frames"] if f is not None][1:]
         m["ms_per_frame"] = 1000 * float(np.median([f["time_s"] + f.get("corrective_time_s", 0.0) for f in fr]))
@@ -349,11 +355,14 @@ def matrix(args):
                   f"{r['markers']['vertex_mm_lips']:.3f} -> {r['full']['vertex_mm_lips']:.3f} ({rf['inner_lips']:.2f}x),"
                   f" lip line {r['full']['contour_rms_px']:.2f} px, {r['full']['ms_per_frame']:.0f} ms"
                   f" [unanchored: face {r['ratios']['full_unanchored']['face']:.2f}x, lips "
-                  f"{r['ratios']['full_unanchored']['inner_lips']:.2f}x]", file=sys.stderr, flush=True)
+                  f"{r['ratios']['full_unanchored']['inner_lips']:.2f}x]"
+                  f" [lip-line pass: face {r['ratios']['full_lip_line_pass']['face']:.2f}x, lips "
+                  f"{r['ratios']['full_lip_line_pass']['inner_lips']:.2f}x, "
+                  f"{r['full_lip_line_pass']['contour_rms_px']:.2f} px]", file=sys.stderr, flush=True)
     summary = {}
     for split in ("tuning", "held_out"):
         sel = [r for r in rows if r["split"] == split]
-        for cfg in ("full", "full_unanchored"):
+        for cfg in ("full", "full_unanchored", "full_lip_line_pass"):
             summary[f"{split}/{cfg}"] = dict(
                 face_ratio_max=max(r["ratios"][cfg]["face"] for r in sel),
                 face_ratio_mean=float(np.mean([r["ratios"][cfg]["face"] for r in sel])),
