@@ -24,7 +24,9 @@ Configurations:
    rays instead of the curve's tangent planes, contour weight 0.5);
 7. (extra) ``markers+contours+corrective_unanchored``: 3 with the previous
    defaults (fit not tied to the markers-only fit, uniform corrective
-   damping 0.01, contour weight 0.5).
+   damping 0.01, contour weight 0.5);
+8. (extra) ``markers+contours+corrective_lip_line_pass``: 3 with the
+   lip-line pass (``solve_performance(lip_line_pass=True)``, off by default).
 
 ``--matrix`` runs markers only against 3 (and 7) side by side on the tuning
 and held-out faces and camera rigs of ``testing.solve_cases``, clean and with
@@ -108,7 +110,7 @@ TARGET_MS_NO_CORRECTIVE = 50.0
 TARGET_MS_CORRECTIVE = 200.0
 HERE = os.path.dirname(os.path.abspath(__file__))
 LABELS = ["1 markers", "2 +contours", "3 +corrective", "4 fixed contours", "5 = 3 w/o eyelid 3D",
-          "6 = 3, paper energy", "7 = 3, unanchored"]
+          "6 = 3, paper energy", "7 = 3, unanchored", "8 = 3 + lip-line pass"]
 ROOT = os.path.dirname(HERE)
 
 
@@ -208,6 +210,9 @@ def main(argv=None):
         "markers+contours+corrective_paper_energy": dict(curves=True, corrective=True, sliding=True, paper=True),
         # extra: 3 with the previous defaults (fit not tied to the markers-only fit, uniform corrective damping)
         "markers+contours+corrective_unanchored": dict(curves=True, corrective=True, sliding=True, unanchored=True),
+        # extra: 3 with the lip-line pass (solve_performance(lip_line_pass=True); an option, off by default)
+        "markers+contours+corrective_lip_line_pass": dict(curves=True, corrective=True, sliding=True,
+                                                          lip_line_pass=True),
     }
     paper_corrective = None
     out, results = {}, {}
@@ -227,7 +232,8 @@ def main(argv=None):
                 pixel_units=args.corrective_units == "pixels", damping=0.01, contour_weight=0.5)
         corr.eyelid_weight = cfg.get("eyelid_weight", 0.5)
         res = solve_performance(slv, corr if cfg["corrective"] else None, cap.markers_px, None,
-                                cap.curves if cfg["curves"] else None, sliding=cfg["sliding"])
+                                cap.curves if cfg["curves"] else None, sliding=cfg["sliding"],
+                                lip_line_pass=cfg.get("lip_line_pass", False))
         results[name] = res
         m = evaluate(model, cap, loops, names, res, face, lip)
         fr = [f for f in res.info["frames"] if f is not None][1:]
@@ -450,7 +456,7 @@ def plot(out, path, frames=40):
             ("marker_rms_px", "marker reproj. (px)"), ("contour_rms_px", "contour reproj. (px)"),
             ("ms_per_frame", "wall time / frame (ms, median)")]
     names = list(out)
-    colors = ["#888888", "#4c72b0", "#55a868", "#c44e52", "#8172b2", "#ccb974", "#64b5cd"]
+    colors = ["#888888", "#4c72b0", "#55a868", "#c44e52", "#8172b2", "#ccb974", "#64b5cd", "#dd8452"]
     fig, axes = plt.subplots(1, len(keys), figsize=(20, 4.2))
     for ax, (k, label) in zip(axes, keys):
         vals = [out[n][k] for n in names]
