@@ -24,7 +24,9 @@ Configurations:
    rays instead of the curve's tangent planes, contour weight 0.5);
 7. (extra) ``markers+contours+corrective_unanchored``: 3 with the previous
    defaults (fit not tied to the markers-only fit, uniform corrective
-   damping 0.01, contour weight 0.5).
+   damping 0.01, contour weight 0.5);
+8. (extra) ``markers+contours+corrective_lip_line_pass``: 3 with the
+   lip-line pass (``solve_performance(lip_line_pass=True)``, off by default).
 
 ``--matrix`` runs markers only against 3 (and 7) side by side on the tuning
 and held-out faces and camera rigs of ``testing.solve_cases``, clean and with
@@ -108,7 +110,7 @@ TARGET_MS_NO_CORRECTIVE = 50.0
 TARGET_MS_CORRECTIVE = 200.0
 HERE = os.path.dirname(os.path.abspath(__file__))
 LABELS = ["1 markers", "2 +contours", "3 +corrective", "4 fixed contours", "5 = 3 w/o eyelid 3D",
-          "6 = 3, paper energy", "7 = 3, unanchored"]
+          "6 = 3, paper energy", "7 = 3, unanchored", "8 = 3 + lip-line pass"]
 ROOT = os.path.dirname(HERE)
 
 
@@ -208,6 +210,9 @@ def main(argv=None):
         "markers+contours+corrective_paper_energy": dict(curves=True, corrective=True, sliding=True, paper=True),
         # extra: 3 with the previous defaults (fit not tied to the markers-only fit, uniform corrective damping)
         "markers+contours+corrective_unanchored": dict(curves=True, corrective=True, sliding=True, unanchored=True),
+        # extra: 3 with the lip-line pass (solve_performance(lip_line_pass=True); an option, off by default)
+        "markers+contours+corrective_lip_line_pass": dict(curves=True, corrective=True, sliding=True,
+                                                          lip_line_pass=True),
     }
     paper_corrective = None
     out, results = {}, {}
@@ -227,7 +232,8 @@ def main(argv=None):
                 pixel_units=args.corrective_units == "pixels", damping=0.01, contour_weight=0.5)
         corr.eyelid_weight = cfg.get("eyelid_weight", 0.5)
         res = solve_performance(slv, corr if cfg["corrective"] else None, cap.markers_px, None,
-                                cap.curves if cfg["curves"] else None, sliding=cfg["sliding"])
+                                cap.curves if cfg["curves"] else None, sliding=cfg["sliding"],
+                                lip_line_pass=cfg.get("lip_line_pass", False))
         results[name] = res
         m = evaluate(model, cap, loops, names, res, face, lip)
         fr = [f for f in res.info["frames"] if f is not None][1:]
@@ -285,6 +291,9 @@ MATRIX_CONFIGS = {
     "full": dict(curves=True, corrective=True),
     # the same with the previous defaults (no anchor, uniform damping 0.01, contour weight 0.5): issue 15's numbers
     "full_unanchored": dict(curves=True, corrective=True, anchor_weight=0.0, region=False),
+    # "full" plus the lip-line pass (solve_performance(lip_line_pass=True)): a second corrective pass on the contour
+    # points still > 0.5 px off their curve after the first pass
+    "full_lip_line_pass": dict(curves=True, corrective=True, lip_line_pass=True),
 }
 MATRIX_KEYS = ("vertex_mm_face", "vertex_mm_lips", "vertex_mm_lip_silhouette", "contour_rms_px", "marker_rms_px",
                "weight_mae", "ms_per_frame", "cpu_ms_per_frame")
@@ -317,7 +326,10 @@ def run_case(base, identity, amount, layout, noise_px, frames, lip_error_mm, con
                                                                                   contour_weight=0.5)
             corr = OutOfSubspaceCorrective(model.neutral, model.faces, cap.cameras, cap.markers, None,
                                            boundary=~face, warm_vertices=warm, **ckw)
-        res = solve_performance(solver, corr, cap.markers_px, None, cap.curves if cfg["curves"] else None)
+        res = solve_performance(solver, corr, cap.markers_px, None, cap.curves if cfg["curves"] else None,
+                                lip_line_pass=cfg.get("lip_line_pass", False),
+                                lip_line_threshold_px=cfg.get("lip_line_threshold_px", 0.5),
+                                lip_line_curve_px=cfg.get("lip_line_curve_px", 0.0))
         m = evaluate(model, cap, loops, names, res, face, lip)
         fr = [f for f in res.info["frames"] if f is not None][1:]
         m["ms_per_frame"] = 1000 * float(np.median([f["time_s"] + f.get("corrective_time_s", 0.0) for f in fr]))
@@ -349,11 +361,14 @@ def matrix(args):
                   f"{r['markers']['vertex_mm_lips']:.3f} -> {r['full']['vertex_mm_lips']:.3f} ({rf['inner_lips']:.2f}x),"
                   f" lip line {r['full']['contour_rms_px']:.2f} px, {r['full']['ms_per_frame']:.0f} ms"
                   f" [unanchored: face {r['ratios']['full_unanchored']['face']:.2f}x, lips "
-                  f"{r['ratios']['full_unanchored']['inner_lips']:.2f}x]", file=sys.stderr, flush=True)
+                  f"{r['ratios']['full_unanchored']['inner_lips']:.2f}x]"
+                  f" [lip-line pass: face {r['ratios']['full_lip_line_pass']['face']:.2f}x, lips "
+                  f"{r['ratios']['full_lip_line_pass']['inner_lips']:.2f}x, "
+                  f"{r['full_lip_line_pass']['contour_rms_px']:.2f} px]", file=sys.stderr, flush=True)
     summary = {}
     for split in ("tuning", "held_out"):
         sel = [r for r in rows if r["split"] == split]
-        for cfg in ("full", "full_unanchored"):
+        for cfg in ("full", "full_unanchored", "full_lip_line_pass"):
             summary[f"{split}/{cfg}"] = dict(
                 face_ratio_max=max(r["ratios"][cfg]["face"] for r in sel),
                 face_ratio_mean=float(np.mean([r["ratios"][cfg]["face"] for r in sel])),
@@ -441,7 +456,7 @@ def plot(out, path, frames=40):
             ("marker_rms_px", "marker reproj. (px)"), ("contour_rms_px", "contour reproj. (px)"),
             ("ms_per_frame", "wall time / frame (ms, median)")]
     names = list(out)
-    colors = ["#888888", "#4c72b0", "#55a868", "#c44e52", "#8172b2", "#ccb974", "#64b5cd"]
+    colors = ["#888888", "#4c72b0", "#55a868", "#c44e52", "#8172b2", "#ccb974", "#64b5cd", "#dd8452"]
     fig, axes = plt.subplots(1, len(keys), figsize=(20, 4.2))
     for ax, (k, label) in zip(axes, keys):
         vals = [out[n][k] for n in names]

@@ -231,6 +231,85 @@ class OutOfSubspaceCorrective:
             X = self.deformer.solve(Vb, Vb, C)
         return X - Vb
 
+    def off_the_line(self, vertices, correspondences, curves, curve_px: float) -> bool:
+        """Whether any 2D contour's RMS pixel distance to its tracked curve on ``vertices`` is above ``curve_px``.
+
+        Parameters
+        ----------
+        vertices : (V,3) float
+            Mesh, scene units.
+        correspondences : list of CurveCorrespondence
+        curves : list of TrackedCurve
+        curve_px : float
+            Pixels.
+        """
+        from .matching import contour_curve_distance
+
+        for cc in correspondences or []:
+            if getattr(cc, "pixels", None) is None or cc.camera < 0:
+                continue
+            r = contour_curve_distance(vertices, self.cameras, [cc], curves)
+            if len(r) and np.sqrt(np.mean(r ** 2)) > float(curve_px):
+                return True
+        return False
+
+    def lip_line_pass(self, vertices_blend, delta, markers_px, bundles, correspondences, curves,
+                      threshold_px: float = 0.5, curve_threshold_px: float = 0.0) -> np.ndarray:
+        """A second corrective pass on the 2D contour points still off their curve; returns the new ``ΔV``.
+
+        The first pass (:meth:`solve`) stops short of a curve the rig misses by
+        a lot: its damping and Laplacian pull every correction back towards
+        ``V_blend``. This pass starts from ``X1 = V_blend + ΔV``, penalises
+        only the increment (Laplacian and damping of ``X - X1``), holds the
+        markers and bundles, and adds the contour terms of the points whose
+        pixel distance to their tracked curve on ``X1`` is above
+        ``threshold_px`` (points already on the line are left out, so they are
+        not pulled twice). Not in the paper.
+
+        Parameters
+        ----------
+        vertices_blend : (V,3) float
+            The rig's fitted mesh, scene units.
+        delta : (V,3) float
+            The first pass's ``ΔV``, scene units.
+        markers_px, bundles
+            As for :meth:`solve`.
+        correspondences : list of CurveCorrespondence
+            Matched on ``V_blend + ΔV`` (re-match before calling).
+        curves : list of TrackedCurve
+            The frame's tracked curves (to measure the distance to the line).
+        threshold_px : float
+            Points within this many pixels of their curve get no term.
+
+        Returns
+        -------
+        (V,3) float64
+            ``ΔV`` after the pass (zero on the boundary).
+        """
+        from .matching import contour_curve_distance
+
+        Vb = np.asarray(vertices_blend, dtype=np.float64)
+        X1 = Vb + np.asarray(delta, dtype=np.float64)
+        items = [self.constraints(X1, markers_px, bundles, [])]
+        for cc in correspondences or []:
+            if getattr(cc, "pixels", None) is None or cc.camera < 0:
+                continue
+            r = contour_curve_distance(X1, self.cameras, [cc], curves)
+            if len(r) != len(cc.vertices):
+                continue
+            keep = r > float(threshold_px)
+            if not keep.any() or np.sqrt(np.mean(r ** 2)) <= float(curve_threshold_px):
+                continue
+            C = self.constraints(X1, None, None, [cc])  # planes from the whole curve, then the points kept
+            items.append(PointConstraints(C.vertices[keep], C.bary[keep], C.targets[keep], C.metrics[keep],
+                                          C.strength[keep]))
+        C = PointConstraints.concat(items)
+        if C is None:
+            return X1 - Vb
+        with small_dense_threads(1):
+            X = self.deformer.solve(X1, X1, C)
+        return X - Vb
+
 
 def _contour_planes(d):
     """(c,3,3) metrics ``n n^T`` of the planes through a curve's camera rays and the curve tangent.

@@ -60,7 +60,9 @@ class PerformanceResult:
 def solve_performance(solver: BlendshapeSolver, corrective: OutOfSubspaceCorrective | None, markers_px,
                       bundles=None, curves_per_frame=None, *, progress=None, sliding: bool = True,
                       iterations: int = 1, rematch: bool = True,
-                      corrective_iterations: int = 1) -> PerformanceResult:
+                      corrective_iterations: int = 1, lip_line_pass: bool = False,
+                      lip_line_threshold_px: float = 0.5,
+                      lip_line_curve_px: float = 0.0) -> PerformanceResult:
     """Solve a whole sequence, warm-starting every frame from the previous one.
 
     Parameters
@@ -85,6 +87,16 @@ def solve_performance(solver: BlendshapeSolver, corrective: OutOfSubspaceCorrect
         Corrective passes; each further pass re-matches the contours on
         ``V_blend + ΔV`` and solves the corrective again (§4.2's alternation
         of correspondence and solve, applied to the corrective).
+    lip_line_pass : bool
+        After the corrective, re-match the contours on ``V_blend + ΔV`` and
+        run :meth:`OutOfSubspaceCorrective.lip_line_pass` on the contour
+        points still more than ``lip_line_threshold_px`` from their curve
+        (on frames where a curve is more than ``lip_line_curve_px`` RMS off):
+        a tighter visible lip line at some cost in the hidden inner-lip band
+        (measured in docs/solve.md; off by default). About one more
+        corrective solve and contour match per frame.
+    lip_line_threshold_px, lip_line_curve_px : float
+        Pixels; see ``lip_line_pass``.
 
     Returns
     -------
@@ -131,6 +143,10 @@ def solve_performance(solver: BlendshapeSolver, corrective: OutOfSubspaceCorrect
                         break
                     cc = solver.match(res.weights, cv, sliding=sliding, previous=cc, vertices=Vb + D[i])
                     D[i] = corrective.solve(Vb, mp, bd, cc)
+                if lip_line_pass and cv and corrective.off_the_line(Vb + D[i], cc, cv, lip_line_curve_px):
+                    cc = solver.match(res.weights, cv, sliding=sliding, previous=cc, vertices=Vb + D[i])
+                    D[i] = corrective.lip_line_pass(Vb, D[i], mp, bd, cc, cv, threshold_px=lip_line_threshold_px,
+                                                          curve_threshold_px=lip_line_curve_px)
                 res.info["corrective_contour_points"] = int(sum(len(c.vertices) for c in cc))
                 res.info["corrective_time_s"] = time.perf_counter() - t1
                 res.info["corrective_cpu_s"] = time.process_time() - c1
