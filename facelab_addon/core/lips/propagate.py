@@ -73,6 +73,7 @@ from ..geometry.linsolve import SPDFactor
 from .features import (
     _BLOCK,
     _as_frames,
+    _coordinate_major,
     _fold_coefficients,
     _fold_directions,
     _gradient_features,
@@ -86,6 +87,8 @@ from .reduced import choose_ridge, solve_theta, thin_svd
 from .regions import region_border, validate_regions
 
 __all__ = ["LipRegressor"]
+
+_DENSE_MAX = 20_000_000  # numbers in the dense Poisson maps of LipRegressor._dense_solution (160 MB)
 
 
 class LipRegressor(_StreamingPrediction):
@@ -464,20 +467,55 @@ class LipRegressor(_StreamingPrediction):
         (:func:`.features._fold_coefficients`).
         """
         verts = self._mouth_u if used_only else self._mouth_verts
-        return _mouth_coefficients(frames, verts, self._mouth_local, self._Mx, self._Mc) - self._z_ident
+        if getattr(self, "_cm", (None,))[0] is not self._Mx:
+            nv, m = len(self._mouth_verts), len(self.mouth_faces)
+            self._cm = (self._Mx, _coordinate_major(self._Mx, nv), _coordinate_major(self._Mc, m))
+        return _mouth_coefficients(frames, verts, self._mouth_local, *self._cm[1:]) - self._z_ident
 
     def _interior(self, A, used_only=False, z=None):
         """``(xi, xc)``: predicted and captured interior lip positions (t, nI, 3) float64 of validated frames."""
         iv, bv = (self._iv_u, self._bv_u) if used_only else (self.interior_vertices, self.border_vertices)
         nI, t = len(iv), len(A)
         z = self._coefficients(A, used_only) if z is None else z
+        xb = np.asarray(A[:, bv, :], dtype=np.float64).transpose(1, 0, 2).reshape(len(bv), 3 * t)
+        dense = self._dense_solution()
+        if dense is not None:  # x_I = K z + x_0 - H x_B: two dense products instead of a sparse solve
+            K, H, x0 = dense
+            xi = (K @ z.T).reshape(nI, 3, t).transpose(0, 2, 1).reshape(nI, 3 * t)
+            xi -= H @ xb
+            xi = xi.reshape(nI, t, 3).transpose(1, 0, 2)
+            if x0 is not None:
+                xi += x0[None]
+            return xi, np.asarray(A[:, iv, :], dtype=np.float64)
         rhs = (self._Zdiv @ z.T).reshape(nI, 3, t).transpose(0, 2, 1)  # (nI, t, 3)
         if self.center == "rest":
             rhs = rhs + self._b_ident[:, None, :]
-        xb = np.asarray(A[:, bv, :], dtype=np.float64).transpose(1, 0, 2).reshape(len(bv), 3 * t)
         rhs = rhs.reshape(nI, 3 * t) - self._L_IB @ xb
         xi = self._factor.solve(rhs).reshape(nI, t, 3).transpose(1, 0, 2)
         return xi, np.asarray(A[:, iv, :], dtype=np.float64)
+
+    def _dense_solution(self):
+        """``(K, H, x0)`` of the Poisson solve as dense maps, or None when they would be large.
+
+        The interior positions are linear in the coefficients ``z`` and the border positions:
+        ``x_I = L_II⁻¹ (Zdiv z + b_ident - L_IB x_B) = K z + x0 - H x_B`` with ``K = L_II⁻¹ Zdiv``
+        (nI*3, R) (per coordinate), ``H = L_II⁻¹ L_IB`` (nI, nB) and ``x0 = L_II⁻¹ b_ident``.
+        Built once per fit from the factor (``H`` once per regressor); two dense products per
+        chunk replace the chunk's sparse back-substitution. Used while ``K`` and ``H`` together
+        stay below :data:`_DENSE_MAX` numbers.
+        """
+        nI, nB, R = len(self.interior_vertices), len(self.border_vertices), self._Zdiv.shape[1]
+        if nI * (nB + 3 * R) > _DENSE_MAX:
+            return None
+        if getattr(self, "_dense", None) is not None and self._dense[0] is self._Zdiv:
+            return self._dense[1]
+        if getattr(self, "_H", None) is None:
+            self._H = self._factor.solve(self._L_IB.toarray())  # (nI, nB)
+        Zr = self._Zdiv.reshape(nI, 3 * R)  # rows: vertex; columns: (coordinate, coefficient)
+        K = self._factor.solve(Zr).reshape(nI, 3, R).reshape(3 * nI, R)
+        x0 = self._factor.solve(self._b_ident) if self.center == "rest" else None
+        self._dense = (self._Zdiv, (K, self._H, x0))
+        return self._dense[1]
 
     def _residual_norms(self, Y):
         """(T,) norms of mouth features ``Y`` (T, 9m) outside the global training span."""
