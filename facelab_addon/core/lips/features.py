@@ -27,13 +27,14 @@ __all__: list[str] = []
 _BLOCK = 64  # frames per block of the per-frame loops (working memory ~ block x region size)
 
 
-def _as_frames(a, n_vertices, what, used=None):
+def _as_frames(a, n_vertices, what, used=None, check_finite=True):
     """Validate frames as a (T,V,3) float32 or float64 array, without copying them.
 
     float32 and float64 arrays are returned as they are (a (V,3) frame as a
     (1,V,3) view); other dtypes are converted to float64. Callers convert
     only the vertices they read to float64. NaNs are looked for in ``used``
-    vertices only, a block of frames at a time.
+    vertices only, a block of frames at a time (not at all without ``check_finite``: the caller
+    checks what it reads and calls again with the check to report).
     """
     A = np.asarray(a)
     if A.dtype != np.float32 and A.dtype != np.float64:
@@ -49,7 +50,7 @@ def _as_frames(a, n_vertices, what, used=None):
     if A.shape[0] == 0:
         raise FaceLabError(f"No {what} given (0 frames); pass at least one frame.")
     bad = []
-    for s in range(0, len(A), _BLOCK):
+    for s in range(0, len(A) if check_finite else 0, _BLOCK):
         blk = A[s : s + _BLOCK] if used is None else A[s : s + _BLOCK, used]
         fin = np.isfinite(blk).reshape(len(blk), -1).all(axis=1)
         bad.extend((s + np.flatnonzero(~fin)).tolist())
@@ -270,28 +271,35 @@ def _fold_directions(A, rinv, local, n_verts):
     return _fold_coefficients(local, n_verts, [np.arange(m)], [W], m)
 
 
-def _mouth_terms(frames, verts, local, Mx, Mc, P):
+def _mouth_terms(frames, verts, local, MxT, McT, P):
     """Folded projections and squared norms of the mouth gradients of frames (T,*,3), without forming them.
 
+    ``MxT``, ``McT``: folded maps (:func:`_fold_coefficients`) in :func:`_coordinate_major` order.
     Returns ``(Z, sq)``: ``Z`` (T, c) the products ``Mxᵀ X + Mcᵀ c`` (projections of
     ``vec(D D_r^-1)`` on the folded directions), ``sq`` (T,) ``Σ_f ||D_f D_r,f^-1||²`` computed
     as ``Σ_f <D_fᵀ D_f, P_f>`` with ``P = D_r^-1 D_r^-T`` (m,3,3): six dot products per triangle.
+    The columns are computed coordinate-major, :data:`_SUB_BLOCK` frames at a time (:func:`_columns_cm`).
     """
-    if len(frames) > _CACHE_BLOCK:
-        parts = [_mouth_terms(frames[s : s + _CACHE_BLOCK], verts, local, Mx, Mc, P)
-                 for s in range(0, len(frames), _CACHE_BLOCK)]
-        return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
-    T = len(frames)
-    Xr = np.ascontiguousarray(frames[:, verts, :].transpose(1, 2, 0), dtype=np.float64)  # (nv, 3, T)
-    e = _columns(Xr, local)
-    Z = Mx.T @ Xr.reshape(-1, T)
-    Z += Mc.T @ e[2].reshape(-1, T)
+    T, m = len(frames), len(local)
+    l0, l1, l2 = (np.ascontiguousarray(local[:, k]) for k in range(3))
+    Pw = [(k, j, (2.0 if j > k else 1.0) * np.ascontiguousarray(P[:, k, j])) for k in range(3) for j in range(k, 3)]
+    Z = np.empty((T, MxT.shape[0]))
     sq = np.zeros(T)
-    for k in range(3):
-        for j in range(k, 3):
-            g = np.einsum("fit,fit->ft", e[k], e[j])  # (m, T) column products
-            sq += (2.0 if j > k else 1.0) * (P[:, k, j] @ g)
-    return Z.T, sq
+    for s in range(0, T, _CACHE_BLOCK):
+        G = frames[s : s + _CACHE_BLOCK][:, verts, :]
+        t = len(G)
+        Xc = np.ascontiguousarray(G.transpose(2, 1, 0), dtype=np.float64)  # (3, nv, t)
+        zb = MxT @ Xc.reshape(-1, t)
+        C = np.empty((3, m, t))
+        for b in range(0, t, _SUB_BLOCK):
+            e = _columns_cm(np.ascontiguousarray(Xc[:, :, b : b + _SUB_BLOCK]), l0, l1, l2, edges=True)
+            C[:, :, b : b + _SUB_BLOCK] = e[2]
+            for k, j, w in Pw:
+                g = np.einsum("imt,imt->mt", e[k], e[j])  # (m, t') column products
+                sq[s + b : s + b + g.shape[1]] += w @ g
+        zb += McT @ C.reshape(3 * m, t)
+        Z[s : s + t] = zb.T
+    return Z, sq
 
 
 class _StreamingPrediction:
@@ -349,7 +357,10 @@ class _StreamingPrediction:
         self._require_fit()
         A = self._frames(captured, "captured frames", used_only)
         verts = self._mouth_u if used_only else self._mouth_verts
-        Z, sq = _mouth_terms(A, verts, self._mouth_local, self._Mx_all, self._Mc_all, self._mouth_P)
+        if getattr(self, "_cm_all", (None,))[0] is not self._Mx_all:
+            nv, m = len(self._mouth_verts), len(self.mouth_faces)
+            self._cm_all = (self._Mx_all, _coordinate_major(self._Mx_all, nv), _coordinate_major(self._Mc_all, m))
+        Z, sq = _mouth_terms(A, verts, self._mouth_local, *self._cm_all[1:], self._mouth_P)
         R = self._Mx.shape[1]
         xi, xc = self._interior(A, used_only, z=Z[:, :R] - self._z_ident)
         _check_prediction(xi, xc, first, self.mouth_size)
@@ -365,7 +376,9 @@ class _StreamingPrediction:
         if self._dir_fold[0] is not D:
             ident = np.tile(np.eye(3).ravel(), len(self.mouth_faces))[:, None]
             ext = np.hstack([D, ident])
-            self._dir_fold = (D, _fold_directions(ext, self._mouth_rinv, self._mouth_local, len(self._mouth_verts)),
+            nv, m = len(self._mouth_verts), len(self.mouth_faces)
+            Mx, Mc = _fold_directions(ext, self._mouth_rinv, self._mouth_local, nv)
+            self._dir_fold = (D, (_coordinate_major(Mx, nv), _coordinate_major(Mc, m)),
                               (ident.T @ D).ravel() if self.center == "rest" else np.zeros(D.shape[1]))
         _, (Mx, Mc), d_ident = self._dir_fold
         verts = self._mouth_u if used_only else self._mouth_verts

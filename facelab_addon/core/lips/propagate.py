@@ -601,7 +601,7 @@ class LipRegressor(_StreamingPrediction):
             the frame indices and ``out`` is left unchanged.
         """
         self._require_fit()
-        A = _as_frames(captured, self.n_vertices, "captured frames", self._used)
+        A = _as_frames(captured, self.n_vertices, "captured frames", self._used, check_finite=False)
         T = len(A)
         chunk = int(chunk)
         if chunk < 1:
@@ -609,10 +609,17 @@ class LipRegressor(_StreamingPrediction):
         out3 = None if out is None else _checked_out(out, A)
         iv = self.interior_vertices
         xi_all = np.empty((T, len(iv), 3))  # checked before anything is written (out may be the captured frames)
-        for s in range(0, T, chunk):
-            xi, xc = self._interior(A[s : s + chunk])
+        bad = False
+        for s in range(0, T, chunk):  # the used vertices are gathered once per chunk
+            U = A[s : s + chunk][:, self._used]
+            if not np.isfinite(U).all():
+                bad = True
+                break
+            xi, xc = self._interior(U, used_only=True)
             _check_prediction(xi, xc, s, self.mouth_size)
             xi_all[s : s + chunk] = xi
+        if bad:  # raises MeshError naming the frames with NaNs (the whole shot is scanned for them)
+            _as_frames(captured, self.n_vertices, "captured frames", self._used)
         if out is None:
             out3 = A.astype(np.float64)  # always a copy
         elif not _same_array(out3, A):
