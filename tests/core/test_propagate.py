@@ -324,7 +324,7 @@ def test_mouth_features_are_shared_by_extrapolation_and_suggest_frames():
 def test_dense_poisson_maps_agree_with_the_sparse_solve(monkeypatch):
     """Small lip regions are predicted through dense maps K, H (LipRegressor._dense_solution); large ones through
     the sparse back-substitution. Both give the same positions, and a refit rebuilds the dense maps."""
-    import facelab_addon.core.lips.propagate as prop
+    import facelab_addon.core.lips.features as prop
 
     V, F, mouth, lips = grid(bumpy=True)
     train = np.stack([smooth_random_deformation(V, s) for s in range(3)])

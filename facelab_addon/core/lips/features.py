@@ -7,7 +7,9 @@ gradients of the trusted mouth triangles. This module holds the helpers that
 suggestion) share for it: validating a (T,V,3) sequence without copying it,
 the shape-matrix columns of a block of frames (vertex-major), the dense coefficient operators of a fit, and the whole-mouth feature
 rows ``vec(F_t - I)``, all computed a block of ``_BLOCK`` frames at a time so
-a long float32 sequence is never converted whole. Positions are scene units;
+a long float32 sequence is never converted whole; the per-triangle columns
+are computed coordinate-major in cache-sized blocks of frames, and the
+Poisson solve of a prediction is folded into dense maps while they are small. Positions are scene units;
 gradients and features are unitless, float64.
 
 Package-internal: the public API is :class:`.propagate.LipRegressor` and
@@ -20,10 +22,20 @@ import numpy as np
 
 from ..errors import FaceLabError, MeshError
 from ..geometry.gradients import rest_inverse, shape_matrices
+from ..geometry.linsolve import idle_core, one_blas_thread
 from .guards import _check_prediction
 
 __all__: list[str] = []
 
+def _blas_threads():
+    """One BLAS thread on a busy machine (its threads would only spin: at 105k vertices, load 12, predict
+    took 1.1-1.5 ms CPU a frame with two, 1.1 with one), all of them when a core is idle."""
+    import contextlib
+
+    return contextlib.nullcontext() if idle_core() else one_blas_thread()
+
+
+_DENSE_MAX = 20_000_000  # numbers in the dense Poisson maps of _StreamingPrediction._dense_solution (160 MB)
 _BLOCK = 64  # frames per block of the per-frame loops (working memory ~ block x region size)
 
 
@@ -360,9 +372,10 @@ class _StreamingPrediction:
         if getattr(self, "_cm_all", (None,))[0] is not self._Mx_all:
             nv, m = len(self._mouth_verts), len(self.mouth_faces)
             self._cm_all = (self._Mx_all, _coordinate_major(self._Mx_all, nv), _coordinate_major(self._Mc_all, m))
-        Z, sq = _mouth_terms(A, verts, self._mouth_local, *self._cm_all[1:], self._mouth_P)
-        R = self._Mx.shape[1]
-        xi, xc = self._interior(A, used_only, z=Z[:, :R] - self._z_ident)
+        with _blas_threads():
+            Z, sq = _mouth_terms(A, verts, self._mouth_local, *self._cm_all[1:], self._mouth_P)
+            R = self._Mx.shape[1]
+            xi, xc = self._interior(A, used_only, z=Z[:, :R] - self._z_ident)
         _check_prediction(xi, xc, first, self.mouth_size)
         zU, sq = self._norms(Z[:, R:], sq)
         res = np.sqrt(np.clip(sq - np.sum(zU * zU, axis=1), 0.0, None))
@@ -386,3 +399,25 @@ class _StreamingPrediction:
         c = 1.0 if self.center == "rest" else 0.0
         return Z[:, :-1] - d_ident, sq - 2 * c * Z[:, -1] + 3 * c * len(self.mouth_faces)
 
+    def _dense_solution(self):
+        """``(K, H, x0)`` of the Poisson solve as dense maps, or None when they would be large.
+
+        The interior positions are linear in the coefficients ``z`` and the border positions:
+        ``x_I = L_II⁻¹ (Zdiv z + b_ident - L_IB x_B) = K z + x0 - H x_B`` with ``K = L_II⁻¹ Zdiv``
+        (nI*3, R) (per coordinate), ``H = L_II⁻¹ L_IB`` (nI, nB) and ``x0 = L_II⁻¹ b_ident``.
+        Built once per fit from the factor (``H`` once per regressor); two dense products per
+        chunk replace the chunk's sparse back-substitution. Used while ``K`` and ``H`` together
+        stay below :data:`_DENSE_MAX` numbers.
+        """
+        nI, nB, R = len(self.interior_vertices), len(self.border_vertices), self._Zdiv.shape[1]
+        if nI * (nB + 3 * R) > _DENSE_MAX:
+            return None
+        if getattr(self, "_dense", None) is not None and self._dense[0] is self._Zdiv:
+            return self._dense[1]
+        if getattr(self, "_H", None) is None:
+            self._H = self._factor.solve(self._L_IB.toarray())  # (nI, nB)
+        Zr = self._Zdiv.reshape(nI, 3 * R)  # rows: vertex; columns: (coordinate, coefficient)
+        K = self._factor.solve(Zr).reshape(nI, 3, R).reshape(3 * nI, R)
+        x0 = self._factor.solve(self._b_ident) if self.center == "rest" else None
+        self._dense = (self._Zdiv, (K, self._H, x0))
+        return self._dense[1]

@@ -19,8 +19,8 @@ Implementation notes (deviations are marked):
   i.e. a cotangent Laplacian. Its interior block is factored once, in
   ``__init__`` (cholespy, else SuperLU). Because the border moves every
   frame, prediction is linear in (mouth coefficients, border positions): a
-  frame costs its mouth gradients, a few small dense products and one
-  back-substitution; all frames of a chunk share one multi-column solve.
+  frame costs its mouth gradients and a few dense products (the solve folded
+  into dense maps while they are small, else one shared back-substitution).
   The paper reports 5.15 s a frame; this layout needs about a millisecond.
 * ``center="rest"`` (default, an addition to the paper): the regression runs
   on gradients minus the identity, ``x - I = θ (y - I)``, so the rest pose
@@ -73,6 +73,7 @@ from ..geometry.linsolve import SPDFactor
 from .features import (
     _BLOCK,
     _as_frames,
+    _blas_threads,
     _coordinate_major,
     _fold_coefficients,
     _fold_directions,
@@ -88,7 +89,6 @@ from .regions import region_border, validate_regions
 
 __all__ = ["LipRegressor"]
 
-_DENSE_MAX = 20_000_000  # numbers in the dense Poisson maps of LipRegressor._dense_solution (160 MB)
 
 
 class LipRegressor(_StreamingPrediction):
@@ -494,29 +494,6 @@ class LipRegressor(_StreamingPrediction):
         xi = self._factor.solve(rhs).reshape(nI, t, 3).transpose(1, 0, 2)
         return xi, np.asarray(A[:, iv, :], dtype=np.float64)
 
-    def _dense_solution(self):
-        """``(K, H, x0)`` of the Poisson solve as dense maps, or None when they would be large.
-
-        The interior positions are linear in the coefficients ``z`` and the border positions:
-        ``x_I = L_II⁻¹ (Zdiv z + b_ident - L_IB x_B) = K z + x0 - H x_B`` with ``K = L_II⁻¹ Zdiv``
-        (nI*3, R) (per coordinate), ``H = L_II⁻¹ L_IB`` (nI, nB) and ``x0 = L_II⁻¹ b_ident``.
-        Built once per fit from the factor (``H`` once per regressor); two dense products per
-        chunk replace the chunk's sparse back-substitution. Used while ``K`` and ``H`` together
-        stay below :data:`_DENSE_MAX` numbers.
-        """
-        nI, nB, R = len(self.interior_vertices), len(self.border_vertices), self._Zdiv.shape[1]
-        if nI * (nB + 3 * R) > _DENSE_MAX:
-            return None
-        if getattr(self, "_dense", None) is not None and self._dense[0] is self._Zdiv:
-            return self._dense[1]
-        if getattr(self, "_H", None) is None:
-            self._H = self._factor.solve(self._L_IB.toarray())  # (nI, nB)
-        Zr = self._Zdiv.reshape(nI, 3 * R)  # rows: vertex; columns: (coordinate, coefficient)
-        K = self._factor.solve(Zr).reshape(nI, 3, R).reshape(3 * nI, R)
-        x0 = self._factor.solve(self._b_ident) if self.center == "rest" else None
-        self._dense = (self._Zdiv, (K, self._H, x0))
-        return self._dense[1]
-
     def _residual_norms(self, Y):
         """(T,) norms of mouth features ``Y`` (T, 9m) outside the global training span."""
         r = Y - (Y @ self._UY) @ self._UY.T
@@ -610,14 +587,15 @@ class LipRegressor(_StreamingPrediction):
         iv = self.interior_vertices
         xi_all = np.empty((T, len(iv), 3))  # checked before anything is written (out may be the captured frames)
         bad = False
-        for s in range(0, T, chunk):  # the used vertices are gathered once per chunk
-            U = A[s : s + chunk][:, self._used]
-            if not np.isfinite(U).all():
-                bad = True
-                break
-            xi, xc = self._interior(U, used_only=True)
-            _check_prediction(xi, xc, s, self.mouth_size)
-            xi_all[s : s + chunk] = xi
+        with _blas_threads():
+            for s in range(0, T, chunk):  # the used vertices are gathered once per chunk
+                U = A[s : s + chunk][:, self._used]
+                if not np.isfinite(U).all():
+                    bad = True
+                    break
+                xi, xc = self._interior(U, used_only=True)
+                _check_prediction(xi, xc, s, self.mouth_size)
+                xi_all[s : s + chunk] = xi
         if bad:  # raises MeshError naming the frames with NaNs (the whole shot is scanned for them)
             _as_frames(captured, self.n_vertices, "captured frames", self._used)
         if out is None:
