@@ -434,7 +434,7 @@ def _note(out):
             f"{min(loads):.0f}-{max(loads):.0f} during the runs (other jobs)") if loads else ""
 
 
-def plot(results, png, note="", perframe=()):
+def plot(results, png, note="", perframe=(), pc2_policy=()):
     import matplotlib
 
     matplotlib.use("Agg")
@@ -447,9 +447,14 @@ def plot(results, png, note="", perframe=()):
         if not rows:
             continue
         f = [r["frames"] for r in rows]
-        lab = f"{size} vertices, {'shape keys' if source == 'keys' else 'PC2 cache'}"
+        lab = f"{size} vertices, {'shape keys' if source == 'keys' else 'PC2 input, correction as keys'}"
         ax[0].plot(f, [r["wall_s"] for r in rows], mk, color=col, label=lab)
         ax[1].plot(f, [r["peak_rss_mb"] / 1024 for r in rows], mk, color=col, label=lab)
+    for r in pc2_policy:
+        col = "C0" if r["size"] == "26k" else "C2"
+        lab = f"{r['size']} vertices, PC2 input, correction to a point cache"
+        ax[0].plot([r["frames"]], [r["wall_s"]], "s", mfc="none", color=col, label=lab)
+        ax[1].plot([r["frames"]], [r["peak_rss_mb"] / 1024], "s", mfc="none", color=col, label=lab)
     for r, mk in zip([r for r in perframe if "failed" not in r], ["^", "v"]):
         lab = f"{'Reconstruct from Bundles' if r['kind'] == 'recon' else 'Solve Performance'}, 26.7k ({r['stored_as']})"
         ax[0].plot([r["frames"]], [r["wall_s"]], mk, color="C3" if r["kind"] == "recon" else "C4", label=lab)
@@ -494,7 +499,8 @@ def main(argv=None):
     a = ap.parse_args(argv)
     if a.replot:
         d = json.loads(Path(a.replot).read_text())
-        plot([r for r in d["cases"] if "failed" not in r], a.png, _note(d), d.get("perframe", ()))
+        plot([r for r in d["cases"] if "failed" not in r], a.png, _note(d), d.get("perframe", ()),
+             d.get("cases_pc2_after_policy", ()))
         return
     if a._build:
         size, n, source, path = a._build
