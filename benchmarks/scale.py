@@ -274,6 +274,151 @@ def refine_time(size, runs=4):
                 seconds_all=[round(t, 3) for t in ts], load=_uptime(), target_s=0.1 if size == "26k" else 0.3)
 
 
+# --------------------------------------------------------------------------- Reconstruct and Solve, 1,000 frames
+EXTRA = "cheekPuff_L"  # outside the rig / dataset: its part of the truth is what the per-frame correctives carry
+CLIP_SIZE = (540, 960)
+
+
+def _perframe_truth(ict, n_frames, idx):
+    """Truth at vertices ``idx`` (T,len(idx),3) m: the rig expressions (speech weights) plus EXTRA; frame 0 neutral."""
+    from propagate_blender import EXPR
+
+    from facelab_addon.testing.weights import speech_weights
+
+    W = speech_weights(n_frames, channels=EXPR)
+    W[0] = 0.0
+    t = np.arange(n_frames)
+    w_extra = 0.35 * (1 - np.cos(2 * np.pi * t / 97.0))  # smooth, 0 on frame 0
+    N = ict.neutral[idx] * SCALE
+    D = np.stack([(ict.expressions[e][idx] - ict.neutral[idx]) * SCALE for e in EXPR])
+    E = (ict.expressions[EXTRA][idx] - ict.neutral[idx]) * SCALE
+    return N[None] + np.einsum("ts,svd->tvd", W, D) + w_extra[:, None, None] * E[None]
+
+
+def build_perframe(kind, n_frames, path):
+    """Subprocess: the 26.7k ICT face (metres) with the 8 mouth expressions as shape keys, and either 100
+    keyed bundle empties on the front of the face (``recon``) or a helmet stereo pair of Movie Clips with
+    50 tracks each (``solve``, bound on the neutral frame 0), following ``n_frames`` of speech plus
+    ``EXTRA``; saved to ``path``."""
+    import bpy
+    from PIL import Image
+    from propagate_blender import EXPR
+
+    import facelab_addon
+    from facelab_addon.blender.camera import apply_camera_to_blender
+    from facelab_addon.blender.mesh import mesh_triangles
+    from facelab_addon.core.capture.ict import load_ict
+    from facelab_addon.testing.capture_sim import helmet_cameras, sample_markers
+    from facelab_addon.testing.scenes import build_ict_face_scene, keyed_empties
+    from facelab_addon.testing.synthetic import ICT_MOUTH_LOOP
+
+    facelab_addon.register()
+    t0 = time.perf_counter()
+    ict = load_ict()
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    fs = build_ict_face_scene(ict, EXPR, frame_range=(0, n_frames - 1), scale=SCALE, fixed_group=True,
+                              select=False, reset=False)
+    scene, obj = bpy.context.scene, fs.obj
+    scene.frame_start, scene.frame_end = 0, n_frames - 1
+    neutral = ict.neutral * SCALE
+    info = dict(kind=kind, frames=n_frames, vertices=len(neutral))
+    if kind == "recon":
+        tris = mesh_triangles(obj.data)
+        rng = np.random.default_rng(0)
+        front = np.flatnonzero(ict.part_face_mask("M_Face")[: len(tris)] & (neutral[tris].mean(1)[:, 2] > 0.07))
+        pick, bary = rng.choice(front, 100, replace=False), rng.dirichlet([4, 4, 4], 100)
+        idx = tris[pick]  # (100,3)
+        Tr = _perframe_truth(ict, n_frames, idx.ravel()).reshape(n_frames, 100, 3, 3)
+        keyed_empties(scene, np.einsum("bk,tbkd->tbd", bary, Tr), collection="Bundles")
+        info["bundles"] = 100
+    else:
+        from facelab_addon.blender.tracking import View
+        from facelab_addon.pipeline.solve import BindSettings, bind_tracks
+
+        cams = helmet_cameras(center=np.array([0.0, -1.0, 8.0]) * SCALE, cm=SCALE, focal_px=600.0,
+                              width=CLIP_SIZE[0], height=CLIP_SIZE[1])
+        skin = ict.part_face_mask("M_Face")
+        excl = np.concatenate([neutral[ICT_MOUTH_LOOP], neutral[ict.part_vertex_mask("M_ScleraLeft", "M_ScleraRight")]])
+        mk = sample_markers(neutral, ict.faces, cams, skin, n=50, seed=3, exclude=excl, exclude_radius=0.009)
+        Tr = _perframe_truth(ict, n_frames, mk.vertices.ravel()).reshape(n_frames, len(mk.vertices), 3, 3)
+        X = np.einsum("mk,tmkd->tmd", mk.bary, Tr)
+        views = []
+        img = Image.fromarray(np.zeros((CLIP_SIZE[1], CLIP_SIZE[0], 3), np.uint8))
+        for c, cam in enumerate(cams):
+            cam_obj = bpy.data.objects.new(f"Cam{c}", bpy.data.cameras.new(f"Cam{c}"))
+            scene.collection.objects.link(cam_obj)
+            apply_camera_to_blender(cam, cam_obj, scene)
+            d = Path(path).parent / f"clip{c}"
+            d.mkdir(exist_ok=True)
+            for i in range(1, n_frames + 1):
+                img.save(d / f"cam{c}_{i:05d}.png")
+            clip = bpy.data.movieclips.load(str(d / f"cam{c}_00001.png"))
+            clip.frame_start = 0
+            tc = clip.tracking.camera
+            tc.sensor_width, tc.focal_length = 36.0, cam.K[0, 0] * 36.0 / CLIP_SIZE[0]
+            tc.principal_point_pixels = (cam.K[0, 2], CLIP_SIZE[1] - cam.K[1, 2])
+            for j in range(len(mk.vertices)):
+                tr = clip.tracking.tracks.new(name=f"M{j:02d}", frame=1)
+                for f in range(2, n_frames + 1):
+                    tr.markers.insert_frame(f)
+                px = cam.project(X[:, j])
+                tr.markers.foreach_set("co", np.c_[px[:, 0] / CLIP_SIZE[0], 1 - px[:, 1] / CLIP_SIZE[1]]
+                                       .astype(np.float32).ravel())
+            v = scene.facelab_solve.views.add()
+            v.camera, v.clip = cam_obj, clip
+            views.append(View(cam_obj, clip))
+        scene.camera = views[0].camera
+        b = bind_tracks(scene, obj, 0, BindSettings(views=views))
+        info.update(tracks=len(b.bound), views=len(views))
+    bpy.ops.wm.save_as_mainfile(filepath=str(path), compress=False)
+    info.update(build_s=round(time.perf_counter() - t0, 1), blend_mb=round(Path(path).stat().st_size / 2**20, 2))
+    return info
+
+
+def run_perframe(kind, path):
+    """Subprocess: open the case, run Reconstruct from Bundles (Fit + Residual) or Solve Performance (markers +
+    corrective, no contours) once through the pipeline; wall, CPU, peak RSS, .blend growth, keys vs cache."""
+    import bpy
+
+    import facelab_addon
+    from facelab_addon.blender.tracking import View
+
+    facelab_addon.register()
+    bpy.ops.wm.open_mainfile(filepath=str(path))
+    scene = bpy.context.scene
+    obj = bpy.data.objects["Face"]
+    before = Path(path).stat().st_size / 2**20
+    rss0 = _rss_mb()
+    load = _uptime()
+    ru0 = resource.getrusage(resource.RUSAGE_SELF)
+    t0 = time.perf_counter()
+    if kind == "recon":
+        from facelab_addon.pipeline.reconstruct import ReconstructSettings, reconstruct_from_bundles
+
+        empties = list(bpy.data.collections["Bundles"].objects)
+        r = reconstruct_from_bundles(scene, obj, ReconstructSettings(bind_frame=0, selected=tuple(empties)))
+    else:
+        from facelab_addon.pipeline.solve import SolveSettings, solve_performance
+
+        views = [View(v.camera, v.clip) for v in scene.facelab_solve.views]
+        r = solve_performance(scene, obj, SolveSettings(views=views, use_contours=False, use_corrective=True))
+    wall = time.perf_counter() - t0
+    ru1 = resource.getrusage(resource.RUSAGE_SELF)
+    cpu = (ru1.ru_utime - ru0.ru_utime) + (ru1.ru_stime - ru0.ru_stime)
+    peak = _peak_mb()
+    out = Path(path).with_name(Path(path).stem + "_after.blend")
+    bpy.ops.wm.save_as_mainfile(filepath=str(out), compress=False, copy=True)
+    growth = out.stat().st_size / 2**20 - before
+    out.unlink()
+    st = getattr(r.keys, "storage", None)
+    cache_mb = round(Path(st.cache_path).stat().st_size / 2**20, 1) if st is not None and st.cache_path else 0.0
+    return dict(kind=kind, wall_s=round(wall, 2), cpu_s=round(cpu, 2), rss_before_mb=round(rss0, 1),
+                peak_rss_mb=round(peak, 1), blend_growth_mb=round(growth, 2), keys=len(r.keys),
+                stored_as=st.mode if st is not None else "", storage_note=st.note if st is not None else "",
+                storage_max_error_mm=None if st is None else round(float(st.max_error_mm), 5),
+                cache_file_mb=cache_mb, load_during=load, frames=len(r.frames))
+
+
 # --------------------------------------------------------------------------- driver
 def _sub(args, timeout=3600):
     env = dict(os.environ, PYTHONPATH=str(ROOT))
@@ -284,12 +429,12 @@ def _sub(args, timeout=3600):
 
 
 def _note(out):
-    loads = [float(x) for r in out["cases"] for x in r.get("load_during", [])[:1]]
-    return (f"Propagate operator, 10 training frames; shared {out['machine']['cpus']}-core machine, 1-min load "
+    loads = [float(x) for r in out["cases"] + out.get("perframe", []) for x in r.get("load_during", [])[:1]]
+    return (f"Propagate operator (10 training frames), Reconstruct and Solve at 1,000 frames; shared {out['machine']['cpus']}-core machine, 1-min load "
             f"{min(loads):.0f}-{max(loads):.0f} during the runs (other jobs)") if loads else ""
 
 
-def plot(results, png, note=""):
+def plot(results, png, note="", perframe=(), pc2_policy=()):
     import matplotlib
 
     matplotlib.use("Agg")
@@ -302,19 +447,29 @@ def plot(results, png, note=""):
         if not rows:
             continue
         f = [r["frames"] for r in rows]
-        lab = f"{size} vertices, {'shape keys' if source == 'keys' else 'PC2 cache'}"
+        lab = f"{size} vertices, {'shape keys' if source == 'keys' else 'PC2 input, correction as keys'}"
         ax[0].plot(f, [r["wall_s"] for r in rows], mk, color=col, label=lab)
         ax[1].plot(f, [r["peak_rss_mb"] / 1024 for r in rows], mk, color=col, label=lab)
+    for r in pc2_policy:
+        col = "C0" if r["size"] == "26k" else "C2"
+        lab = f"{r['size']} vertices, PC2 input, correction to a point cache"
+        ax[0].plot([r["frames"]], [r["wall_s"]], "s", mfc="none", color=col, label=lab)
+        ax[1].plot([r["frames"]], [r["peak_rss_mb"] / 1024], "s", mfc="none", color=col, label=lab)
+    for r, mk in zip([r for r in perframe if "failed" not in r], ["^", "v"]):
+        lab = f"{'Reconstruct from Bundles' if r['kind'] == 'recon' else 'Solve Performance'}, 26.7k ({r['stored_as']})"
+        ax[0].plot([r["frames"]], [r["wall_s"]], mk, color="C3" if r["kind"] == "recon" else "C4", label=lab)
+        ax[1].plot([r["frames"]], [r["peak_rss_mb"] / 1024], mk, color="C3" if r["kind"] == "recon" else "C4",
+                   label=lab)
     fmax = max(r["frames"] for r in results)
     ax[0].axhline(TARGET["wall_s"], color="r", lw=0.8, ls=":", label="target at 10k frames, 105k vertices")
-    ax[0].text(0.98, 0.45, f"paper (Dinev et al. 2018): {PAPER_S_PER_FRAME} s a frame\n= {PAPER_S_PER_FRAME * fmax / 3600:.0f} h "
+    ax[0].text(0.98, 0.3, f"paper (Dinev et al. 2018): {PAPER_S_PER_FRAME} s a frame\n= {PAPER_S_PER_FRAME * fmax / 3600:.0f} h "
                f"for {fmax:,} frames", transform=ax[0].transAxes, va="bottom", ha="right", fontsize=8)
     ax[1].axhline(TARGET["peak_mb"] / 1024, color="r", lw=0.8, ls=":", label="target peak 2 GB")
-    ax[0].set(xlabel="frames", ylabel="Propagate operator wall time (s)", title="Time")
+    ax[0].set(xlabel="frames", ylabel="wall time (s)", title="Time")
     ax[1].set(xlabel="frames", ylabel="process peak RSS (GB)", title="Peak memory", ylim=(0, None))
-    for a in ax:
+    for a, loc in zip(ax, ["upper right", "center right"]):
         a.grid(alpha=0.3)
-        a.legend(fontsize=7, loc="upper left")
+        a.legend(fontsize=7, loc=loc)
     if note:
         fig.suptitle(note, fontsize=9)
     fig.tight_layout()
@@ -337,10 +492,15 @@ def main(argv=None):
     ap.add_argument("--_core", nargs=1, help=argparse.SUPPRESS)
     ap.add_argument("--_refine", nargs=1, help=argparse.SUPPRESS)
     ap.add_argument("--core-only", action="store_true", help="only core predict and Refine at both sizes (JSON)")
+    ap.add_argument("--perframe", metavar="FRAMES", type=int,
+                    help="only Reconstruct from Bundles and Solve Performance on FRAMES frames of the 26.7k face (JSON)")
+    ap.add_argument("--_build_pf", nargs=3, help=argparse.SUPPRESS)
+    ap.add_argument("--_run_pf", nargs=2, help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
     if a.replot:
         d = json.loads(Path(a.replot).read_text())
-        plot([r for r in d["cases"] if "failed" not in r], a.png, _note(d))
+        plot([r for r in d["cases"] if "failed" not in r], a.png, _note(d), d.get("perframe", ()),
+             d.get("cases_pc2_after_policy", ()))
         return
     if a._build:
         size, n, source, path = a._build
@@ -351,6 +511,31 @@ def main(argv=None):
         return
     if a._core:
         print(json.dumps(core_predict(a._core[0])))
+        return
+    if a._build_pf:
+        kind, n, path = a._build_pf
+        print(json.dumps(build_perframe(kind, int(n), path)))
+        return
+    if a._run_pf:
+        print(json.dumps(run_perframe(*a._run_pf)))
+        return
+    if a.perframe:
+        out = dict(machine=dict(cpus=os.cpu_count(), load_before=_uptime()), perframe=[])
+        for kind in ("recon", "solve"):
+            with tempfile.TemporaryDirectory(prefix="facelab_scale_pf_") as tmp:
+                path = Path(tmp) / f"{kind}.blend"
+                try:
+                    b = _sub(["--_build_pf", kind, str(a.perframe), str(path)])
+                    r = _sub(["--_run_pf", kind, str(path)])
+                except RuntimeError as e:
+                    out["perframe"].append(dict(kind=kind, frames=a.perframe, failed=str(e)[-800:]))
+                    continue
+                r.update(build=b, ms_per_frame=round(1e3 * r["wall_s"] / a.perframe, 2))
+                out["perframe"].append(r)
+                print(json.dumps({k: r[k] for k in ("kind", "wall_s", "cpu_s", "peak_rss_mb", "blend_growth_mb",
+                                                    "keys", "stored_as")}), file=sys.stderr)
+        out["machine"]["load_after"] = _uptime()
+        print(json.dumps(out, indent=1))
         return
     if a._refine:
         print(json.dumps(refine_time(a._refine[0])))

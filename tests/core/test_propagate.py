@@ -319,3 +319,25 @@ def test_mouth_features_are_shared_by_extrapolation_and_suggest_frames():
         reg.extrapolation(features=Y[:, :-9])
     with pytest.raises(FaceLabError, match="mouth triangles"):
         suggest_frames(features=Y, count=1, mouth_faces=mouth[:-1])
+
+
+def test_dense_poisson_maps_agree_with_the_sparse_solve(monkeypatch):
+    """Small lip regions are predicted through dense maps K, H (LipRegressor._dense_solution); large ones through
+    the sparse back-substitution. Both give the same positions, and a refit rebuilds the dense maps."""
+    import facelab_addon.core.lips.features as prop
+
+    V, F, mouth, lips = grid(bumpy=True)
+    train = np.stack([smooth_random_deformation(V, s) for s in range(3)])
+    cap = np.stack([smooth_random_deformation(V, s) + lip_bump(V) for s in range(5, 10)])
+    reg = LipRegressor(V, F, mouth, lips).fit(train)
+    dense = reg.predict(cap)
+    assert reg._dense_solution() is not None
+    monkeypatch.setattr(prop, "_DENSE_MAX", 0)
+    assert reg._dense_solution() is None
+    sparse = reg.predict(cap)
+    assert np.abs(sparse - cap).max() > 1e-3  # a real correction
+    np.testing.assert_allclose(dense, sparse, rtol=0, atol=1e-11)
+    monkeypatch.setattr(prop, "_DENSE_MAX", 10**9)
+    reg.add(cap[:1] + 0.01 * lip_bump(V))  # refit: new maps
+    ref = LipRegressor(V, F, mouth, lips).fit(np.concatenate([train, cap[:1] + 0.01 * lip_bump(V)]))
+    np.testing.assert_allclose(reg.predict(cap), ref.predict(cap), rtol=0, atol=1e-10)

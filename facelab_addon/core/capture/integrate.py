@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..geometry.gradients import _inv3
+
 __all__ = ["integrate_matrices", "integrate_offsets_to_key"]
 
 
@@ -79,7 +81,7 @@ def integrate_matrices(rest, deformed, face_offsets, corner_verts) -> np.ndarray
     ok = As > 0
     L = np.zeros((len(cv), 3, 3))
     if ok.any():
-        L[ok] = Bo[ok] @ np.linalg.inv(Bs[ok])
+        L[ok] = Bo[ok] @ _inv3(Bs[ok])  # closed form: no LAPACK call per corner
     Vn = len(S)
     M = np.zeros((Vn, 3, 3))
     np.add.at(M, cur, L)

@@ -7,7 +7,9 @@ gradients of the trusted mouth triangles. This module holds the helpers that
 suggestion) share for it: validating a (T,V,3) sequence without copying it,
 the shape-matrix columns of a block of frames (vertex-major), the dense coefficient operators of a fit, and the whole-mouth feature
 rows ``vec(F_t - I)``, all computed a block of ``_BLOCK`` frames at a time so
-a long float32 sequence is never converted whole. Positions are scene units;
+a long float32 sequence is never converted whole; the per-triangle columns
+are computed coordinate-major in cache-sized blocks of frames, and the
+Poisson solve of a prediction is folded into dense maps while they are small. Positions are scene units;
 gradients and features are unitless, float64.
 
 Package-internal: the public API is :class:`.propagate.LipRegressor` and
@@ -20,20 +22,31 @@ import numpy as np
 
 from ..errors import FaceLabError, MeshError
 from ..geometry.gradients import rest_inverse, shape_matrices
+from ..geometry.linsolve import idle_core, one_blas_thread
 from .guards import _check_prediction
 
 __all__: list[str] = []
 
+def _blas_threads():
+    """One BLAS thread on a busy machine (its threads would only spin: at 105k vertices, load 12, predict
+    took 1.1-1.5 ms CPU a frame with two, 1.1 with one), all of them when a core is idle."""
+    import contextlib
+
+    return contextlib.nullcontext() if idle_core() else one_blas_thread()
+
+
+_DENSE_MAX = 20_000_000  # numbers in the dense Poisson maps of _StreamingPrediction._dense_solution (160 MB)
 _BLOCK = 64  # frames per block of the per-frame loops (working memory ~ block x region size)
 
 
-def _as_frames(a, n_vertices, what, used=None):
+def _as_frames(a, n_vertices, what, used=None, check_finite=True):
     """Validate frames as a (T,V,3) float32 or float64 array, without copying them.
 
     float32 and float64 arrays are returned as they are (a (V,3) frame as a
     (1,V,3) view); other dtypes are converted to float64. Callers convert
     only the vertices they read to float64. NaNs are looked for in ``used``
-    vertices only, a block of frames at a time.
+    vertices only, a block of frames at a time (not at all without ``check_finite``: the caller
+    checks what it reads and calls again with the check to report).
     """
     A = np.asarray(a)
     if A.dtype != np.float32 and A.dtype != np.float64:
@@ -49,7 +62,7 @@ def _as_frames(a, n_vertices, what, used=None):
     if A.shape[0] == 0:
         raise FaceLabError(f"No {what} given (0 frames); pass at least one frame.")
     bad = []
-    for s in range(0, len(A), _BLOCK):
+    for s in range(0, len(A) if check_finite else 0, _BLOCK):
         blk = A[s : s + _BLOCK] if used is None else A[s : s + _BLOCK, used]
         fin = np.isfinite(blk).reshape(len(blk), -1).all(axis=1)
         bad.extend((s + np.flatnonzero(~fin)).tolist())
@@ -157,22 +170,65 @@ def _fold_coefficients(local, n_verts, sels, Ws, m):
 
 
 _CACHE_BLOCK = 32  # frames per pass over the mouth triangles: the (m,3,t) temporaries stay in cache
+_SUB_BLOCK = 8  # frames per coordinate-major column pass: its (3,m,t) buffers stay in a 2 MB L2 at m ~ 6k
 
 
-def _mouth_coefficients(frames, verts, local, Mx, Mc):
+def _coordinate_major(M, n):
+    """``Mᵀ`` (R, 3n) contiguous, its columns reordered from (n,3) (vertex-major) to (3,n) (coordinate-major)."""
+    return np.ascontiguousarray(M.reshape(n, 3, -1).transpose(2, 1, 0).reshape(M.shape[1], 3 * n))
+
+
+def _columns_cm(Xc, l0, l1, l2, edges=False):
+    """Shape-matrix columns of triangles (l0, l1, l2) from coordinate-major positions Xc (3,nv,t), float64.
+
+    Returns the phantom column ``c = n / sqrt(|n|)`` (3,m,t) (zero for a zero-area triangle), and
+    with ``edges`` also ``(e1, e2, c)``. Every array operation runs over contiguous (m·t) runs,
+    component by component (no ``np.cross`` temporaries).
+    """
+    p0 = np.take(Xc, l0, axis=1)
+    e1 = np.take(Xc, l1, axis=1)
+    e1 -= p0
+    e2 = np.take(Xc, l2, axis=1)
+    e2 -= p0
+    c = p0  # p0 is no longer needed
+    tmp = np.empty_like(e1[0])
+    for i, (a, b) in enumerate(((1, 2), (2, 0), (0, 1))):
+        np.multiply(e1[a], e2[b], out=c[i])
+        np.multiply(e1[b], e2[a], out=tmp)
+        c[i] -= tmp
+    s = np.multiply(c[0], c[0])
+    for i in (1, 2):
+        np.multiply(c[i], c[i], out=tmp)
+        s += tmp
+    np.sqrt(s, out=s)
+    np.sqrt(s, out=s)
+    np.divide(1.0, s, out=s, where=s > 0)
+    c *= s
+    return (e1, e2, c) if edges else c
+
+
+def _mouth_coefficients(frames, verts, local, MxT, McT):
     """(T, R) reduced mouth coefficients (without the identity's) of frames (T,*,3), float64.
 
-    ``verts`` are the mouth vertices' indices in ``frames``; ``local`` the triangles over them.
+    ``verts`` are the mouth vertices' indices in ``frames``; ``local`` the triangles over them;
+    ``MxT``, ``McT`` the folded maps of :func:`_fold_coefficients` in :func:`_coordinate_major`
+    order. ``z = Mxᵀ X + Mcᵀ c``: the phantom columns ``c`` are computed :data:`_SUB_BLOCK`
+    frames at a time (cache-resident), the products :data:`_CACHE_BLOCK` frames at a time.
     """
-    if len(frames) > _CACHE_BLOCK:
-        return np.concatenate([_mouth_coefficients(frames[s : s + _CACHE_BLOCK], verts, local, Mx, Mc)
-                               for s in range(0, len(frames), _CACHE_BLOCK)])
-    T = len(frames)
-    Xr = np.ascontiguousarray(frames[:, verts, :].transpose(1, 2, 0), dtype=np.float64)  # (nv, 3, T)
-    z = Mx.T @ Xr.reshape(-1, T)
-    _, _, c = _columns(Xr, local)
-    z += Mc.T @ c.reshape(-1, T)
-    return z.T
+    T, m = len(frames), len(local)
+    l0, l1, l2 = (np.ascontiguousarray(local[:, k]) for k in range(3))
+    z = np.empty((T, MxT.shape[0]))
+    for s in range(0, T, _CACHE_BLOCK):
+        G = frames[s : s + _CACHE_BLOCK][:, verts, :]  # (t, nv, 3), the frames' dtype
+        t = len(G)
+        Xc = np.ascontiguousarray(G.transpose(2, 1, 0), dtype=np.float64)  # (3, nv, t)
+        zb = MxT @ Xc.reshape(-1, t)  # (R, t)
+        C = np.empty((3, m, t))
+        for b in range(0, t, _SUB_BLOCK):
+            C[:, :, b : b + _SUB_BLOCK] = _columns_cm(np.ascontiguousarray(Xc[:, :, b : b + _SUB_BLOCK]), l0, l1, l2)
+        zb += McT @ C.reshape(3 * m, t)
+        z[s : s + t] = zb.T
+    return z
 
 
 def _gradient_features(frames, verts, local, rinv, center):
@@ -227,28 +283,35 @@ def _fold_directions(A, rinv, local, n_verts):
     return _fold_coefficients(local, n_verts, [np.arange(m)], [W], m)
 
 
-def _mouth_terms(frames, verts, local, Mx, Mc, P):
+def _mouth_terms(frames, verts, local, MxT, McT, P):
     """Folded projections and squared norms of the mouth gradients of frames (T,*,3), without forming them.
 
+    ``MxT``, ``McT``: folded maps (:func:`_fold_coefficients`) in :func:`_coordinate_major` order.
     Returns ``(Z, sq)``: ``Z`` (T, c) the products ``Mxᵀ X + Mcᵀ c`` (projections of
     ``vec(D D_r^-1)`` on the folded directions), ``sq`` (T,) ``Σ_f ||D_f D_r,f^-1||²`` computed
     as ``Σ_f <D_fᵀ D_f, P_f>`` with ``P = D_r^-1 D_r^-T`` (m,3,3): six dot products per triangle.
+    The columns are computed coordinate-major, :data:`_SUB_BLOCK` frames at a time (:func:`_columns_cm`).
     """
-    if len(frames) > _CACHE_BLOCK:
-        parts = [_mouth_terms(frames[s : s + _CACHE_BLOCK], verts, local, Mx, Mc, P)
-                 for s in range(0, len(frames), _CACHE_BLOCK)]
-        return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
-    T = len(frames)
-    Xr = np.ascontiguousarray(frames[:, verts, :].transpose(1, 2, 0), dtype=np.float64)  # (nv, 3, T)
-    e = _columns(Xr, local)
-    Z = Mx.T @ Xr.reshape(-1, T)
-    Z += Mc.T @ e[2].reshape(-1, T)
+    T, m = len(frames), len(local)
+    l0, l1, l2 = (np.ascontiguousarray(local[:, k]) for k in range(3))
+    Pw = [(k, j, (2.0 if j > k else 1.0) * np.ascontiguousarray(P[:, k, j])) for k in range(3) for j in range(k, 3)]
+    Z = np.empty((T, MxT.shape[0]))
     sq = np.zeros(T)
-    for k in range(3):
-        for j in range(k, 3):
-            g = np.einsum("fit,fit->ft", e[k], e[j])  # (m, T) column products
-            sq += (2.0 if j > k else 1.0) * (P[:, k, j] @ g)
-    return Z.T, sq
+    for s in range(0, T, _CACHE_BLOCK):
+        G = frames[s : s + _CACHE_BLOCK][:, verts, :]
+        t = len(G)
+        Xc = np.ascontiguousarray(G.transpose(2, 1, 0), dtype=np.float64)  # (3, nv, t)
+        zb = MxT @ Xc.reshape(-1, t)
+        C = np.empty((3, m, t))
+        for b in range(0, t, _SUB_BLOCK):
+            e = _columns_cm(np.ascontiguousarray(Xc[:, :, b : b + _SUB_BLOCK]), l0, l1, l2, edges=True)
+            C[:, :, b : b + _SUB_BLOCK] = e[2]
+            for k, j, w in Pw:
+                g = np.einsum("imt,imt->mt", e[k], e[j])  # (m, t') column products
+                sq[s + b : s + b + g.shape[1]] += w @ g
+        zb += McT @ C.reshape(3 * m, t)
+        Z[s : s + t] = zb.T
+    return Z, sq
 
 
 class _StreamingPrediction:
@@ -306,9 +369,13 @@ class _StreamingPrediction:
         self._require_fit()
         A = self._frames(captured, "captured frames", used_only)
         verts = self._mouth_u if used_only else self._mouth_verts
-        Z, sq = _mouth_terms(A, verts, self._mouth_local, self._Mx_all, self._Mc_all, self._mouth_P)
-        R = self._Mx.shape[1]
-        xi, xc = self._interior(A, used_only, z=Z[:, :R] - self._z_ident)
+        if getattr(self, "_cm_all", (None,))[0] is not self._Mx_all:
+            nv, m = len(self._mouth_verts), len(self.mouth_faces)
+            self._cm_all = (self._Mx_all, _coordinate_major(self._Mx_all, nv), _coordinate_major(self._Mc_all, m))
+        with _blas_threads():
+            Z, sq = _mouth_terms(A, verts, self._mouth_local, *self._cm_all[1:], self._mouth_P)
+            R = self._Mx.shape[1]
+            xi, xc = self._interior(A, used_only, z=Z[:, :R] - self._z_ident)
         _check_prediction(xi, xc, first, self.mouth_size)
         zU, sq = self._norms(Z[:, R:], sq)
         res = np.sqrt(np.clip(sq - np.sum(zU * zU, axis=1), 0.0, None))
@@ -322,7 +389,9 @@ class _StreamingPrediction:
         if self._dir_fold[0] is not D:
             ident = np.tile(np.eye(3).ravel(), len(self.mouth_faces))[:, None]
             ext = np.hstack([D, ident])
-            self._dir_fold = (D, _fold_directions(ext, self._mouth_rinv, self._mouth_local, len(self._mouth_verts)),
+            nv, m = len(self._mouth_verts), len(self.mouth_faces)
+            Mx, Mc = _fold_directions(ext, self._mouth_rinv, self._mouth_local, nv)
+            self._dir_fold = (D, (_coordinate_major(Mx, nv), _coordinate_major(Mc, m)),
                               (ident.T @ D).ravel() if self.center == "rest" else np.zeros(D.shape[1]))
         _, (Mx, Mc), d_ident = self._dir_fold
         verts = self._mouth_u if used_only else self._mouth_verts
@@ -330,3 +399,25 @@ class _StreamingPrediction:
         c = 1.0 if self.center == "rest" else 0.0
         return Z[:, :-1] - d_ident, sq - 2 * c * Z[:, -1] + 3 * c * len(self.mouth_faces)
 
+    def _dense_solution(self):
+        """``(K, H, x0)`` of the Poisson solve as dense maps, or None when they would be large.
+
+        The interior positions are linear in the coefficients ``z`` and the border positions:
+        ``x_I = L_II⁻¹ (Zdiv z + b_ident - L_IB x_B) = K z + x0 - H x_B`` with ``K = L_II⁻¹ Zdiv``
+        (nI*3, R) (per coordinate), ``H = L_II⁻¹ L_IB`` (nI, nB) and ``x0 = L_II⁻¹ b_ident``.
+        Built once per fit from the factor (``H`` once per regressor); two dense products per
+        chunk replace the chunk's sparse back-substitution. Used while ``K`` and ``H`` together
+        stay below :data:`_DENSE_MAX` numbers.
+        """
+        nI, nB, R = len(self.interior_vertices), len(self.border_vertices), self._Zdiv.shape[1]
+        if nI * (nB + 3 * R) > _DENSE_MAX:
+            return None
+        if getattr(self, "_dense", None) is not None and self._dense[0] is self._Zdiv:
+            return self._dense[1]
+        if getattr(self, "_H", None) is None:
+            self._H = self._factor.solve(self._L_IB.toarray())  # (nI, nB)
+        Zr = self._Zdiv.reshape(nI, 3 * R)  # rows: vertex; columns: (coordinate, coefficient)
+        K = self._factor.solve(Zr).reshape(nI, 3, R).reshape(3 * nI, R)
+        x0 = self._factor.solve(self._b_ident) if self.center == "rest" else None
+        self._dense = (self._Zdiv, (K, self._H, x0))
+        return self._dense[1]

@@ -19,8 +19,8 @@ Implementation notes (deviations are marked):
   i.e. a cotangent Laplacian. Its interior block is factored once, in
   ``__init__`` (cholespy, else SuperLU). Because the border moves every
   frame, prediction is linear in (mouth coefficients, border positions): a
-  frame costs its mouth gradients, a few small dense products and one
-  back-substitution; all frames of a chunk share one multi-column solve.
+  frame costs its mouth gradients and a few dense products (the solve folded
+  into dense maps while they are small, else one shared back-substitution).
   The paper reports 5.15 s a frame; this layout needs about a millisecond.
 * ``center="rest"`` (default, an addition to the paper): the regression runs
   on gradients minus the identity, ``x - I = θ (y - I)``, so the rest pose
@@ -73,6 +73,8 @@ from ..geometry.linsolve import SPDFactor
 from .features import (
     _BLOCK,
     _as_frames,
+    _blas_threads,
+    _coordinate_major,
     _fold_coefficients,
     _fold_directions,
     _gradient_features,
@@ -86,6 +88,7 @@ from .reduced import choose_ridge, solve_theta, thin_svd
 from .regions import region_border, validate_regions
 
 __all__ = ["LipRegressor"]
+
 
 
 class LipRegressor(_StreamingPrediction):
@@ -464,17 +467,29 @@ class LipRegressor(_StreamingPrediction):
         (:func:`.features._fold_coefficients`).
         """
         verts = self._mouth_u if used_only else self._mouth_verts
-        return _mouth_coefficients(frames, verts, self._mouth_local, self._Mx, self._Mc) - self._z_ident
+        if getattr(self, "_cm", (None,))[0] is not self._Mx:
+            nv, m = len(self._mouth_verts), len(self.mouth_faces)
+            self._cm = (self._Mx, _coordinate_major(self._Mx, nv), _coordinate_major(self._Mc, m))
+        return _mouth_coefficients(frames, verts, self._mouth_local, *self._cm[1:]) - self._z_ident
 
     def _interior(self, A, used_only=False, z=None):
         """``(xi, xc)``: predicted and captured interior lip positions (t, nI, 3) float64 of validated frames."""
         iv, bv = (self._iv_u, self._bv_u) if used_only else (self.interior_vertices, self.border_vertices)
         nI, t = len(iv), len(A)
         z = self._coefficients(A, used_only) if z is None else z
+        xb = np.asarray(A[:, bv, :], dtype=np.float64).transpose(1, 0, 2).reshape(len(bv), 3 * t)
+        dense = self._dense_solution()
+        if dense is not None:  # x_I = K z + x_0 - H x_B: two dense products instead of a sparse solve
+            K, H, x0 = dense
+            xi = (K @ z.T).reshape(nI, 3, t).transpose(0, 2, 1).reshape(nI, 3 * t)
+            xi -= H @ xb
+            xi = xi.reshape(nI, t, 3).transpose(1, 0, 2)
+            if x0 is not None:
+                xi += x0[None]
+            return xi, np.asarray(A[:, iv, :], dtype=np.float64)
         rhs = (self._Zdiv @ z.T).reshape(nI, 3, t).transpose(0, 2, 1)  # (nI, t, 3)
         if self.center == "rest":
             rhs = rhs + self._b_ident[:, None, :]
-        xb = np.asarray(A[:, bv, :], dtype=np.float64).transpose(1, 0, 2).reshape(len(bv), 3 * t)
         rhs = rhs.reshape(nI, 3 * t) - self._L_IB @ xb
         xi = self._factor.solve(rhs).reshape(nI, t, 3).transpose(1, 0, 2)
         return xi, np.asarray(A[:, iv, :], dtype=np.float64)
@@ -563,7 +578,7 @@ class LipRegressor(_StreamingPrediction):
             the frame indices and ``out`` is left unchanged.
         """
         self._require_fit()
-        A = _as_frames(captured, self.n_vertices, "captured frames", self._used)
+        A = _as_frames(captured, self.n_vertices, "captured frames", self._used, check_finite=False)
         T = len(A)
         chunk = int(chunk)
         if chunk < 1:
@@ -571,10 +586,18 @@ class LipRegressor(_StreamingPrediction):
         out3 = None if out is None else _checked_out(out, A)
         iv = self.interior_vertices
         xi_all = np.empty((T, len(iv), 3))  # checked before anything is written (out may be the captured frames)
-        for s in range(0, T, chunk):
-            xi, xc = self._interior(A[s : s + chunk])
-            _check_prediction(xi, xc, s, self.mouth_size)
-            xi_all[s : s + chunk] = xi
+        bad = False
+        with _blas_threads():
+            for s in range(0, T, chunk):  # the used vertices are gathered once per chunk
+                U = A[s : s + chunk][:, self._used]
+                if not np.isfinite(U).all():
+                    bad = True
+                    break
+                xi, xc = self._interior(U, used_only=True)
+                _check_prediction(xi, xc, s, self.mouth_size)
+                xi_all[s : s + chunk] = xi
+        if bad:  # raises MeshError naming the frames with NaNs (the whole shot is scanned for them)
+            _as_frames(captured, self.n_vertices, "captured frames", self._used)
         if out is None:
             out3 = A.astype(np.float64)  # always a copy
         elif not _same_array(out3, A):
