@@ -142,8 +142,8 @@ def memory_probe(n_frames):
                 rss = int(ln.split()[1]) * 1024
     except OSError:
         pass
-    print(json.dumps({"frames": n_frames, "peak_rss_mb": rss / 2**20, "predict_tracemalloc_peak_mb": peak / 2**20,
-                      "input_mb": cap.nbytes / 2**20, "predict_s": dt}))
+    print(json.dumps({"frames": n_frames, "peak_rss_mb": rss / 1e6, "predict_tracemalloc_peak_mb": peak / 1e6,
+                      "input_mb": cap.nbytes / 1e6, "predict_s": dt}))
 
 
 def main(argv=None):
@@ -305,7 +305,7 @@ def main(argv=None):
         "k10_rms_le_25pct_of_uncorrected": result["k10"]["rms_ratio_to_uncorrected"] <= 0.25,
         "fit_k20_le_0.1s": t_fit <= 0.1,
         "predict_ge_200fps": fps_new >= 200,
-        "memory_1000_frames_le_1GB": bool(mem and mem["peak_rss_mb"] <= 1024),
+        "memory_1000_frames_le_1GB": bool(mem and mem["peak_rss_mb"] <= 1000),
     }
     result["targets"] = targets
     result["all_targets_met"] = all(targets.values())

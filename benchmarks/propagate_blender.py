@@ -54,7 +54,7 @@ EXPR = ["jawOpen", "mouthClose", "mouthFunnel", "mouthPucker", "mouthSmile_L", "
 N_TRAIN = 10
 ERR_CM = 0.1  # CaptureError amplitude at weight 1 (per lip), cm
 TARGET_GROWTH_MB = 30.0
-TARGET_CORE_RSS_MB = 1024.0
+TARGET_CORE_RSS_MB = 1000.0
 COMPRESS_TOL_MM = 0.01
 
 
@@ -62,7 +62,7 @@ COMPRESS_TOL_MM = 0.01
 def _status(field):
     for ln in Path("/proc/self/status").read_text().splitlines():
         if ln.startswith(field + ":"):
-            return int(ln.split()[1]) / 1024.0  # MB
+            return int(ln.split()[1]) * 1024 / 1e6  # kB (KiB) -> MB
     return float("nan")
 
 
@@ -248,7 +248,7 @@ def blend_sizes(bpy, directory, tag):
         p = Path(directory) / f"{tag}_{'zstd' if comp else 'raw'}.blend"
         t0 = time.perf_counter()
         bpy.ops.wm.save_as_mainfile(filepath=str(p), compress=comp, copy=True)
-        out["zstd_mb" if comp else "raw_mb"] = p.stat().st_size / 2**20
+        out["zstd_mb" if comp else "raw_mb"] = p.stat().st_size / 1e6
         out["zstd_save_s" if comp else "raw_save_s"] = time.perf_counter() - t0
         p.unlink()
     return out

@@ -43,7 +43,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 SCALE = 0.01
 N_TRAIN = 10
 PAPER_S_PER_FRAME = 5.15  # Dinev et al. 2018: prediction, a frame
-TARGET = dict(wall_s=60.0, peak_mb=2048.0, frames=10000, vertices=105_000)
+TARGET = dict(wall_s=60.0, peak_mb=2000.0, frames=10000, vertices=105_000)
 
 
 def _uptime():
@@ -53,12 +53,12 @@ def _uptime():
 def _rss_mb():
     for ln in Path("/proc/self/status").read_text().splitlines():
         if ln.startswith("VmRSS:"):
-            return int(ln.split()[1]) / 1024.0
+            return int(ln.split()[1]) * 1024 / 1e6
     return float("nan")
 
 
 def _peak_mb():
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / 1e6
 
 
 # --------------------------------------------------------------------------- the face at both sizes
@@ -161,9 +161,9 @@ def build(size, n_frames, source, path):
             add_corrected_frame(scene, obj, int(frames[i]), truth)
     bpy.ops.wm.save_as_mainfile(filepath=str(path), compress=False)
     np.savez(Path(path).with_suffix(".npz"), W=W, cap_w=cap_w, err=err, train=np.asarray(train))
-    return dict(build_s=round(time.perf_counter() - t0, 1), blend_mb=round(Path(path).stat().st_size / 2**20, 2),
+    return dict(build_s=round(time.perf_counter() - t0, 1), blend_mb=round(Path(path).stat().st_size / 1e6, 2),
                 vertices=len(V), training_frames=[int(frames[i]) for i in train],
-                pc2_mb=round(Path(path).with_suffix(".pc2").stat().st_size / 2**20, 1) if source == "pc2" else 0.0)
+                pc2_mb=round(Path(path).with_suffix(".pc2").stat().st_size / 1e6, 1) if source == "pc2" else 0.0)
 
 
 def run(path, size, source):
@@ -177,7 +177,7 @@ def run(path, size, source):
     scene = bpy.context.scene
     obj = bpy.data.objects["Face"]
     bpy.context.view_layer.objects.active = obj
-    before_mb = Path(path).stat().st_size / 2**20
+    before_mb = Path(path).stat().st_size / 1e6
     rss0, peak0 = _rss_mb(), _peak_mb()
     load = _uptime()
     ru0 = resource.getrusage(resource.RUSAGE_SELF)
@@ -189,7 +189,7 @@ def run(path, size, source):
     peak = _peak_mb()
     out = Path(path).with_name(Path(path).stem + "_after.blend")
     bpy.ops.wm.save_as_mainfile(filepath=str(out), compress=False, copy=True)
-    growth = out.stat().st_size / 2**20 - before_mb
+    growth = out.stat().st_size / 1e6 - before_mb
     out.unlink()
     keys = [kb.name for kb in obj.data.shape_keys.key_blocks if kb.name.startswith("FL_Prop_")]
     acc = _accuracy(obj, path, source)
@@ -371,7 +371,7 @@ def build_perframe(kind, n_frames, path):
         b = bind_tracks(scene, obj, 0, BindSettings(views=views))
         info.update(tracks=len(b.bound), views=len(views))
     bpy.ops.wm.save_as_mainfile(filepath=str(path), compress=False)
-    info.update(build_s=round(time.perf_counter() - t0, 1), blend_mb=round(Path(path).stat().st_size / 2**20, 2))
+    info.update(build_s=round(time.perf_counter() - t0, 1), blend_mb=round(Path(path).stat().st_size / 1e6, 2))
     return info
 
 
@@ -387,7 +387,7 @@ def run_perframe(kind, path):
     bpy.ops.wm.open_mainfile(filepath=str(path))
     scene = bpy.context.scene
     obj = bpy.data.objects["Face"]
-    before = Path(path).stat().st_size / 2**20
+    before = Path(path).stat().st_size / 1e6
     rss0 = _rss_mb()
     load = _uptime()
     ru0 = resource.getrusage(resource.RUSAGE_SELF)
@@ -408,10 +408,10 @@ def run_perframe(kind, path):
     peak = _peak_mb()
     out = Path(path).with_name(Path(path).stem + "_after.blend")
     bpy.ops.wm.save_as_mainfile(filepath=str(out), compress=False, copy=True)
-    growth = out.stat().st_size / 2**20 - before
+    growth = out.stat().st_size / 1e6 - before
     out.unlink()
     st = getattr(r.keys, "storage", None)
-    cache_mb = round(Path(st.cache_path).stat().st_size / 2**20, 1) if st is not None and st.cache_path else 0.0
+    cache_mb = round(Path(st.cache_path).stat().st_size / 1e6, 1) if st is not None and st.cache_path else 0.0
     return dict(kind=kind, wall_s=round(wall, 2), cpu_s=round(cpu, 2), rss_before_mb=round(rss0, 1),
                 peak_rss_mb=round(peak, 1), blend_growth_mb=round(growth, 2), keys=len(r.keys),
                 stored_as=st.mode if st is not None else "", storage_note=st.note if st is not None else "",
@@ -449,22 +449,22 @@ def plot(results, png, note="", perframe=(), pc2_policy=()):
         f = [r["frames"] for r in rows]
         lab = f"{size} vertices, {'shape keys' if source == 'keys' else 'PC2 input, correction as keys'}"
         ax[0].plot(f, [r["wall_s"] for r in rows], mk, color=col, label=lab)
-        ax[1].plot(f, [r["peak_rss_mb"] / 1024 for r in rows], mk, color=col, label=lab)
+        ax[1].plot(f, [r["peak_rss_mb"] / 1000 for r in rows], mk, color=col, label=lab)
     for r in pc2_policy:
         col = "C0" if r["size"] == "26k" else "C2"
         lab = f"{r['size']} vertices, PC2 input, correction to a point cache"
         ax[0].plot([r["frames"]], [r["wall_s"]], "s", mfc="none", color=col, label=lab)
-        ax[1].plot([r["frames"]], [r["peak_rss_mb"] / 1024], "s", mfc="none", color=col, label=lab)
+        ax[1].plot([r["frames"]], [r["peak_rss_mb"] / 1000], "s", mfc="none", color=col, label=lab)
     for r, mk in zip([r for r in perframe if "failed" not in r], ["^", "v"]):
         lab = f"{'Reconstruct from Bundles' if r['kind'] == 'recon' else 'Solve Performance'}, 26.7k ({r['stored_as']})"
         ax[0].plot([r["frames"]], [r["wall_s"]], mk, color="C3" if r["kind"] == "recon" else "C4", label=lab)
-        ax[1].plot([r["frames"]], [r["peak_rss_mb"] / 1024], mk, color="C3" if r["kind"] == "recon" else "C4",
+        ax[1].plot([r["frames"]], [r["peak_rss_mb"] / 1000], mk, color="C3" if r["kind"] == "recon" else "C4",
                    label=lab)
     fmax = max(r["frames"] for r in results)
     ax[0].axhline(TARGET["wall_s"], color="r", lw=0.8, ls=":", label="target at 10k frames, 105k vertices")
     ax[0].text(0.98, 0.3, f"paper (Dinev et al. 2018): {PAPER_S_PER_FRAME} s a frame\n= {PAPER_S_PER_FRAME * fmax / 3600:.0f} h "
                f"for {fmax:,} frames", transform=ax[0].transAxes, va="bottom", ha="right", fontsize=8)
-    ax[1].axhline(TARGET["peak_mb"] / 1024, color="r", lw=0.8, ls=":", label="target peak 2 GB")
+    ax[1].axhline(TARGET["peak_mb"] / 1000, color="r", lw=0.8, ls=":", label="target peak 2 GB")
     ax[0].set(xlabel="frames", ylabel="wall time (s)", title="Time")
     ax[1].set(xlabel="frames", ylabel="process peak RSS (GB)", title="Peak memory", ylim=(0, None))
     for a, loc in zip(ax, ["upper right", "center right"]):
