@@ -75,7 +75,7 @@ def run_case(bpy, name, frames, chunk_fn, lowrank=None):
                 w.add(frames[i:i + 64], chunk_fn(co, i, min(len(frames), i + 64)))
         res = w.finish()
     wall = time.perf_counter() - t0
-    peak = tracemalloc.get_traced_memory()[1] / 2**20
+    peak = tracemalloc.get_traced_memory()[1] / 1e6
     tracemalloc.stop()
     bpy.ops.wm.save_as_mainfile(filepath=blend)
     sample = frames[np.linspace(0, len(frames) - 1, 8).astype(int)]
@@ -85,8 +85,8 @@ def run_case(bpy, name, frames, chunk_fn, lowrank=None):
         np.einsum("tr,rvc->tvc", lowrank(co)[1][idx], lowrank(co)[0])
     err_mm = float(np.linalg.norm(got - want, axis=2).max() * 1e3)
     return dict(case=name, frames=len(frames), vertices=len(co), mode=res.mode, keys=len(res.keys),
-                cache_mb=round(os.path.getsize(res.cache_path) / 2**20, 1) if res.cache_path else 0.0,
-                blend_mb_before=round(size0 / 2**20, 2), blend_mb_after=round(os.path.getsize(blend) / 2**20, 2),
+                cache_mb=round(os.path.getsize(res.cache_path) / 1e6, 1) if res.cache_path else 0.0,
+                blend_mb_before=round(size0 / 1e6, 2), blend_mb_after=round(os.path.getsize(blend) / 1e6, 2),
                 seconds=round(wall, 2), peak_python_mb=round(peak, 1), process_peak_rss_mb=round(rss_mb()),
                 max_error_mm=round(err_mm, 5), tolerance_mm=res.tolerance_mm, note=res.note)
 

@@ -58,7 +58,7 @@ def main(argv=None) -> int:
         return 0 if ok else 1
     LIPS_OBJ.parent.mkdir(parents=True, exist_ok=True)
     LIPS_OBJ.write_text(text)
-    print(f"wrote {LIPS_OBJ.relative_to(ROOT)} ({LIPS_OBJ.stat().st_size / 1024:.0f} KB)")
+    print(f"wrote {LIPS_OBJ.relative_to(ROOT)} ({LIPS_OBJ.stat().st_size / 1e3:.0f} kB)")
     return 0
 
 
