@@ -465,7 +465,7 @@ def plot(results, png, note="", perframe=(), pc2_policy=()):
     ax[0].text(0.98, 0.3, f"paper (Dinev et al. 2018): {PAPER_S_PER_FRAME} s a frame\n= {PAPER_S_PER_FRAME * fmax / 3600:.0f} h "
                f"for {fmax:,} frames", transform=ax[0].transAxes, va="bottom", ha="right", fontsize=8)
     ax[1].axhline(TARGET["peak_mb"] / 1024, color="r", lw=0.8, ls=":", label="target peak 2 GB")
-    ax[0].set(xlabel="frames", ylabel="wall time (s)", title="Time")
+    ax[0].set(xlabel="frames", ylabel="wall time (s, log scale)", title="Time", yscale="log")
     ax[1].set(xlabel="frames", ylabel="process peak RSS (GB)", title="Peak memory", ylim=(0, None))
     for a, loc in zip(ax, ["upper right", "center right"]):
         a.grid(alpha=0.3)
