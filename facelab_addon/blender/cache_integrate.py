@@ -276,13 +276,8 @@ class IntegrateMap:
         """
         out = np.empty(np.shape(deltas))
         for s in range(0, len(out), block):
-            P = np.asarray(captured[s : s + block], dtype=np.float64)
-            t = len(P)
-            e1, e2, nrm, area = self._frames(P)
-            k = np.sqrt(area / np.where(self._area > 0, self._area, 1.0))
-            Bo = np.stack([e1, e2, nrm * k[..., None]], axis=3)  # (t, C, 3, 3) columns
-            L = Bo @ self._inv  # zero where the rest corner is degenerate
-            M = (self._avg @ L.transpose(1, 0, 2, 3).reshape(L.shape[1], -1)).reshape(-1, t, 3, 3).transpose(1, 0, 2, 3)
+            M = self._maps(captured[s : s + block])
+            t = len(M)
             d = np.asarray(deltas[s : s + block], dtype=np.float64)
             good = np.abs(np.sum(M[..., 0, :] * np.cross(M[..., 1, :], M[..., 2, :]), axis=-1)) > 1e-12  # det
             res = np.zeros_like(d)
@@ -291,3 +286,25 @@ class IntegrateMap:
                 res[i, v] = np.linalg.lstsq(M[i, v], d[i, v], rcond=None)[0]
             out[s : s + t] = res
         return out
+
+    def to_shown(self, captured, key_offsets, block: int = 32) -> np.ndarray:
+        """What key offsets (t, n, 3) of ``verts`` show over the cache: the inverse of :meth:`to_key`.
+
+        ``captured`` (t, k, 3): positions of :attr:`vertices` on those frames, object local. Equal to
+        ``integrate_matrices(...)[verts] @ offset`` frame by frame, at the cost of the corrected vertices only.
+        """
+        out = np.empty(np.shape(key_offsets))
+        for s in range(0, len(out), block):
+            M = self._maps(captured[s : s + block])
+            out[s : s + len(M)] = np.einsum("tnij,tnj->tni", M, np.asarray(key_offsets[s : s + block], np.float64))
+        return out
+
+    def _maps(self, captured) -> np.ndarray:
+        """(t, n, 3, 3) Integrate map of each corrected vertex on frames whose cache output is ``captured`` (t, k, 3)."""
+        P = np.asarray(captured, dtype=np.float64)
+        t = len(P)
+        e1, e2, nrm, area = self._frames(P)
+        k = np.sqrt(area / np.where(self._area > 0, self._area, 1.0))
+        Bo = np.stack([e1, e2, nrm * k[..., None]], axis=3)  # (t, C, 3, 3) columns
+        L = Bo @ self._inv  # zero where the rest corner is degenerate
+        return (self._avg @ L.transpose(1, 0, 2, 3).reshape(L.shape[1], -1)).reshape(-1, t, 3, 3).transpose(1, 0, 2, 3)

@@ -321,6 +321,8 @@ class CorrectionWriter:
         key = obj.data.shape_keys
         (key.reference_key.data if key else obj.data.vertices).foreach_get("co", rest)
         rest = rest.reshape(self.V, 3).astype(np.float32)
+        imap = cache_integrate.IntegrateMap(corners, self.vertices, rest) if integrate and self.vertices is not None \
+            else None
         fps = float(self.scene.render.fps) / float(self.scene.render.fps_base)
         header = dict(start_frame=float(span[0]), sample_rate=1.0) if fmt == "PC2" else dict(times=span / fps)
         static = True
@@ -336,8 +338,11 @@ class CorrectionWriter:
                     if t is not None:
                         d = np.asarray(read(t, t + 1)[0], dtype=np.float64)
                         if integrate:
-                            M = integrate_matrices(rest, raw[k], *corners)
-                            d = np.einsum("vij,vj->vi", M if self.vertices is None else M[self.vertices], d)
+                            if imap is not None:  # the corrected vertices' own maps, rest side inverted once
+                                d = imap.to_shown(raw[k : k + 1, imap.vertices], d[None])[0]
+                            else:
+                                M = integrate_matrices(rest, raw[k], *corners)
+                                d = np.einsum("vij,vj->vi", M, d)
                         d = d.astype(np.float32)
                         if self.vertices is None:
                             base[k] += d

@@ -296,7 +296,8 @@ def test_reconstruct_solver_result_as_keys_then_as_a_cache(tmp_path, ict, addon,
 
 
 @pytest.mark.parametrize("budget", [24, 2])
-def test_over_a_captured_point_cache_keys_and_cache_show_the_same(tmp_path, budget, addon):
+@pytest.mark.parametrize("subset", [False, True])
+def test_over_a_captured_point_cache_keys_and_cache_show_the_same(tmp_path, budget, subset, addon):
     """Over a PC2 capture (Mesh Cache, Integrate) the deltas are key offsets in the cache's local frames
     (``cache_integrate``); stored as keys or as a correction cache they show the same correction."""
     from facelab_addon.blender.cache_integrate import polygon_corners
@@ -317,11 +318,14 @@ def test_over_a_captured_point_cache_keys_and_cache_show_the_same(tmp_path, budg
     captured = shown(obj, frames)
     np.testing.assert_allclose(captured, cap, atol=1e-6)
     D = (full_rank(obj) if budget == 2 else low_rank(obj))[: len(frames)]  # wanted on the evaluated mesh
+    sub = np.arange(0, len(rest), 3) if subset else None  # a correction of some vertices only (as Propagate's)
+    if subset:
+        D[:, np.setdiff1d(np.arange(len(rest)), sub)] = 0.0
     corners = polygon_corners(obj.data)
     K = np.stack([integrate_offsets_to_key(integrate_matrices(rest, cap[t], *corners), D[t])
                   for t in range(len(frames))])
-    res = write_corrective_keys(obj, PROPAGATE_PREFIX, K, frames, scene=scene,
-                                settings=StorageSettings(key_budget=budget)).storage
+    res = write_corrective_keys(obj, PROPAGATE_PREFIX, K if sub is None else K[:, sub], frames, scene=scene,
+                                vertices=sub, settings=StorageSettings(key_budget=budget)).storage
     assert res.mode == ("cache" if budget == 2 else "keys")
     if budget == 2:
         assert [m.name for m in obj.modifiers] == ["Capture", res.modifier]  # after the capture
