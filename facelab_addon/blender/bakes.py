@@ -414,13 +414,7 @@ def add_correction_cache(obj, prefix: str, path, fmt: str, first_frame: float, l
     name = unique_name(CORRECTION_CACHE_MODIFIER.format(prefix=prefix), (m.name for m in obj.modifiers))
     mc = obj.modifiers.new(name, "MESH_CACHE")
     mc.cache_format = fmt
-    fp = str(path)
-    if bpy.data.filepath:
-        try:
-            fp = bpy.path.relpath(fp)
-        except ValueError:  # another drive on Windows
-            pass
-    mc.filepath = fp
+    mc.filepath = blend_relative(path)
     mc.play_mode = "SCENE"
     if fmt == "MDD":
         mc.time_mode = "TIME"
@@ -461,3 +455,15 @@ def muted_correction_caches(obj, prefixes):
     finally:
         for m in mods:
             m.show_viewport = True
+
+
+def blend_relative(path) -> str:
+    """``path`` relative to the saved .blend (``//...``), so the scene travels with its caches; absolute when
+    the .blend is unsaved or on another drive."""
+    fp = str(path)
+    if bpy.data.filepath:
+        try:
+            fp = bpy.path.relpath(fp)
+        except ValueError:  # another drive on Windows
+            pass
+    return fp

@@ -19,7 +19,7 @@ import numpy as np
 from ..core.capture import pointcache, pointcache_writer
 from ..core.errors import FaceLabError, MeshError
 from ..core.geometry.gradients import _inv3
-from .bakes import _bake_steps, _run, _uniform_step
+from .bakes import _bake_steps, _run, _uniform_step, blend_relative
 from .caches import (
     _alembic_still_error,
     _disabled_modifiers,
@@ -151,13 +151,7 @@ def cache_to_shape_key_ready(obj, *, directory=None, scene_frames=None, progress
     msc.show_render = False
     mc = obj.modifiers.new(_unique_modifier_name(obj, "FL Capture (PC2)"), "MESH_CACHE")
     mc.cache_format = "PC2"
-    fp = str(path)
-    if bpy.data.filepath:
-        try:
-            fp = bpy.path.relpath(fp)
-        except ValueError:  # another drive on Windows
-            pass
-    mc.filepath = fp
+    mc.filepath = blend_relative(path)
     mc.play_mode = "SCENE"
     mc.time_mode = "FRAME"
     mc.frame_scale = 1.0 / step
