@@ -62,7 +62,7 @@ from scipy.spatial import cKDTree
 from ..errors import BundleError, DatasetError
 from ..geometry.linsolve import one_blas_thread
 from .binding import _labels
-from .inputs import check_reconstruction_inputs
+from .inputs import check_bundle_frame, check_reconstruction_inputs
 from .natural_neighbor import natural_neighbor_weights, surface_points
 
 __all__ = ["FitResidual", "estimate_noise"]
@@ -331,16 +331,7 @@ class FitResidual:
         return sysm
 
     def _check_bundles(self, q):
-        q = np.asarray(q, dtype=np.float64)
-        if q.shape != (self.B, 3):
-            raise BundleError(f"Expected bundles as a ({self.B},3) array (one row per bound bundle), got {q.shape}.")
-        bad = ~np.isfinite(q).all(axis=1)
-        if bad.any():
-            raise BundleError(
-                f"{int(bad.sum())} bundles have NaN positions ({_labels(self.bundle_names, np.flatnonzero(bad))}); "
-                "skip the frame or fill the track gaps."
-            )
-        return q
+        return check_bundle_frame(q, self.B, self.bundle_names)
 
     def fit_weights(self, bundles, noise: float = 0.0):
         """(S,) bounded blendshape weights in [0, 1] for one frame of bundles (B,3); ``noise`` in scene units."""

@@ -42,9 +42,8 @@ import scipy.linalg as sla
 
 from ..errors import BundleError, DatasetError, FaceLabError
 from ..geometry.linsolve import one_blas_thread
-from .binding import _labels
 from .clouds import IndexerClouds
-from .inputs import check_reconstruction_inputs
+from .inputs import check_bundle_frame, check_reconstruction_inputs
 from .locate import IndexerLocate
 from .natural_neighbor import natural_neighbor_weights
 from .stitch import IndexerStitch
@@ -317,16 +316,7 @@ class GeometricIndexer(IndexerClouds, IndexerLocate, IndexerStitch):
     # ------------------------------------------------------------------ per-frame
 
     def _check_bundles(self, q, what="bundles"):
-        q = np.asarray(q, dtype=np.float64)
-        if q.shape != (self.B, 3):
-            raise BundleError(f"Expected {what} as a ({self.B},3) array (one row per bound bundle), got {q.shape}.")
-        bad = ~np.isfinite(q).all(axis=1)
-        if bad.any():
-            raise BundleError(
-                f"{int(bad.sum())} bundles have NaN positions ({_labels(self.bundle_names, np.flatnonzero(bad))}); "
-                "skip the frame or fill the track gaps."
-            )
-        return q
+        return check_bundle_frame(q, self.B, self.bundle_names, what)
 
     def unskinned_bundles(self, q, jaw=None):
         """Bundle positions with the jaw motion removed (Eq. 2), scene units, (B,3)."""

@@ -11,8 +11,9 @@ import numpy as np
 
 from ..errors import BundleError, DatasetError
 from ..geometry.mesh import validate_mesh
+from .binding import _labels
 
-__all__ = ["check_reconstruction_inputs"]
+__all__ = ["check_reconstruction_inputs", "check_bundle_frame"]
 
 
 def check_reconstruction_inputs(neutral, faces, shapes, names, bundle_faces, bundle_bary, *,
@@ -86,3 +87,38 @@ def check_reconstruction_inputs(neutral, faces, shapes, names, bundle_faces, bun
     if (bb < -1e-6).any() or np.abs(bb.sum(1) - 1).max() > 1e-6:
         raise BundleError("Bundle barycentric coordinates must be non-negative and sum to 1; re-bind the bundles.")
     return x0, F, X, names, bf, bb
+
+
+def check_bundle_frame(q, count: int, bundle_names=None, what: str = "bundles"):
+    """One frame of bundle positions as a finite (B,3) float64 array, or a message naming the bad bundles.
+
+    Parameters
+    ----------
+    q : (B,3) array_like
+        Bundle positions, scene units.
+    count : int
+        B, the number of bound bundles.
+    bundle_names : sequence of str, optional
+        Names used in the message (indices otherwise).
+    what : str
+        What ``q`` is, for the shape message.
+
+    Returns
+    -------
+    (B,3) float64 ndarray
+
+    Raises
+    ------
+    BundleError
+        Wrong shape, or NaN / infinite positions (skip the frame or fill the track gaps).
+    """
+    q = np.asarray(q, dtype=np.float64)
+    if q.shape != (count, 3):
+        raise BundleError(f"Expected {what} as a ({count},3) array (one row per bound bundle), got {q.shape}.")
+    bad = ~np.isfinite(q).all(axis=1)
+    if bad.any():
+        raise BundleError(
+            f"{int(bad.sum())} bundles have NaN positions ({_labels(bundle_names, np.flatnonzero(bad))}); "
+            "skip the frame or fill the track gaps."
+        )
+    return q
