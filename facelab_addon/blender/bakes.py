@@ -36,8 +36,8 @@ from .caches import (
 )
 
 __all__ = ["bake_point_cache_steps", "bake_pc2", "bake_mdd", "bake_alembic", "bake_destination",
-           "correction_cache_path", "correction_cache", "is_correction_cache", "add_correction_cache",
-           "remove_correction_cache", "muted_correction_caches"]
+           "correction_cache_path", "correction_cache", "is_correction_cache", "correction_cache_prefix",
+           "add_correction_cache", "add_correction_patch", "remove_correction_cache", "muted_correction_caches"]
 
 
 def bake_destination(path) -> Path:
@@ -300,6 +300,7 @@ def bake_alembic(obj, scene_frames, path, *, evaluation_mode="VIEWPORT") -> Path
 
 # --------------------------------------------------------------------------- correction caches
 _KEEP_FILES = 2  # FaceLab's files kept per prefix: the current one and the one an undo step may show
+_CORRECTION_TYPES = ("MESH_CACHE", "NODES")  # a Mesh Cache, or the Geometry Nodes modifier of a patch cache
 
 
 def _record(obj) -> dict:
@@ -315,14 +316,21 @@ def correction_cache(obj, prefix: str):
     """
     entry = _record(obj).get(prefix, {})
     md = obj.modifiers.get(entry.get("modifier", "")) if entry.get("modifier") else None
-    if md is not None and md.type != "MESH_CACHE":
+    if md is not None and md.type not in _CORRECTION_TYPES:
         md = None
     return md, [str(f) for f in entry.get("files", [])]
 
 
 def is_correction_cache(obj, md) -> bool:
     """Whether the modifier ``md`` of ``obj`` is a correction cache FaceLab added (not a capture)."""
-    return md.type == "MESH_CACHE" and any(e.get("modifier") == md.name for e in _record(obj).values())
+    return correction_cache_prefix(obj, md) is not None
+
+
+def correction_cache_prefix(obj, md):
+    """The key prefix whose correction cache the modifier ``md`` of ``obj`` plays, or None (not FaceLab's)."""
+    if md.type not in _CORRECTION_TYPES:
+        return None
+    return next((p for p, e in _record(obj).items() if e.get("modifier") == md.name), None)
 
 
 def correction_cache_path(obj, prefix: str, fmt: str, directory=None) -> Path:
@@ -370,11 +378,26 @@ def remove_correction_cache(obj, prefix: str) -> list:
 
     done = []
     md, files = correction_cache(obj, prefix)
+    entry = _record(obj).get(prefix, {})
     if md is not None:
         name = md.name
-        remove_fcurve(obj, f'modifiers["{bpy.utils.escape_identifier(name)}"].factor')
+        if md.type == "MESH_CACHE":
+            remove_fcurve(obj, f'modifiers["{bpy.utils.escape_identifier(name)}"].factor')
+        ng = md.node_group if md.type == "NODES" else None
         obj.modifiers.remove(md)
         done.append(f"removed modifier '{name}'")
+        if ng is not None and ng.name == entry.get("node_group") and ng.users == 0:
+            bpy.data.node_groups.remove(ng)
+    patch = bpy.data.objects.get(entry.get("patch", "")) if entry.get("patch") else None
+    if patch is not None and patch.get(CORRECTION_CACHES_PROP) == f"{obj.name}:{prefix}":  # FaceLab's patch only
+        me = patch.data
+        bpy.data.objects.remove(patch)
+        if me is not None and me.users == 0:
+            bpy.data.meshes.remove(me)
+        done.append(f"removed patch object '{entry['patch']}'")
+    attr = obj.data.attributes.get(entry.get("attribute", "")) if entry.get("attribute") else None
+    if attr is not None:
+        obj.data.attributes.remove(attr)
     rec = _record(obj)
     if prefix in rec:
         keep = files[-1:]
@@ -435,6 +458,96 @@ def add_correction_cache(obj, prefix: str, path, fmt: str, first_frame: float, l
     rec[prefix] = {"modifier": name, "files": files[-_KEEP_FILES:]}
     obj[CORRECTION_CACHES_PROP] = rec
     return name
+
+
+def add_correction_patch(obj, prefix: str, path, fmt: str, vertices, first_frame: float, last_frame: float, *,
+                         index: int) -> str:
+    """Add the point cache ``path`` of offsets of a few ``vertices`` to ``obj``'s evaluated mesh; the modifier's name.
+
+    A hidden mesh object (the *patch*: one vertex per corrected vertex, at the origin) plays the file with a
+    Mesh Cache; a Geometry Nodes modifier on ``obj`` at ``index`` of its stack adds each patch vertex's
+    position to its vertex (``Set Position`` offset, sampled by an integer attribute holding the patch index,
+    -1 elsewhere). So the file holds only the correction (n x 3 floats a frame, not the whole mesh) and the
+    offsets add to whatever the stack below gives (the capture, shape keys included). Everything is recorded
+    for :func:`remove_correction_cache`.
+
+    Parameters
+    ----------
+    obj : bpy.types.Object
+    prefix : str
+    path : pathlib.Path
+        The written PC2 or MDD file with ``len(vertices)`` points: offsets, object-local scene units.
+    fmt : {"PC2", "MDD"}
+    vertices : (n,) int array_like
+    first_frame, last_frame : float
+        Sample 0 shows on ``first_frame``; the offsets are 0 outside.
+    index : int
+        Position of the modifier in the stack (right after the capture cache).
+    """
+    from .shapekeys import key_property_bulk, unique_name
+
+    v = np.asarray(vertices, dtype=np.int64)
+    name = unique_name(CORRECTION_CACHE_MODIFIER.format(prefix=prefix),
+                       set(m.name for m in obj.modifiers) | set(obj.data.attributes.keys()))
+    me = bpy.data.meshes.new(f"{obj.name} {name}")
+    me.vertices.add(len(v))
+    patch = bpy.data.objects.new(f"{obj.name} {name}", me)
+    patch[CORRECTION_CACHES_PROP] = f"{obj.name}:{prefix}"
+    (obj.users_collection[0] if obj.users_collection else bpy.context.scene.collection).objects.link(patch)
+    patch.hide_render = True
+    patch.hide_select = True
+    with contextlib.suppress(RuntimeError):  # not in the view layer: nothing to hide
+        patch.hide_set(True)
+    mc = patch.modifiers.new(name, "MESH_CACHE")
+    mc.cache_format, mc.filepath, mc.play_mode = fmt, blend_relative(path), "SCENE"
+    mc.time_mode, mc.frame_start = ("TIME", 0.0) if fmt == "MDD" else ("FRAME", float(first_frame))
+    mc.frame_scale, mc.interpolation, mc.deform_mode = 1.0, "LINEAR", "OVERWRITE"
+    mc.forward_axis, mc.up_axis = "POS_Y", "POS_Z"
+    f0, f1 = float(first_frame), float(last_frame)
+    key_property_bulk(patch, f'modifiers["{bpy.utils.escape_identifier(name)}"].factor',
+                      [f0 - 1, f0, f1, f1 + 1], [0.0, 1.0, 1.0, 0.0])
+    attr = obj.data.attributes.new(name, "INT", "POINT")
+    at = np.full(len(obj.data.vertices), -1, np.int32)
+    at[v] = np.arange(len(v), dtype=np.int32)
+    attr.data.foreach_set("value", at)
+    ng = _patch_nodes(name, patch, attr.name)
+    md = obj.modifiers.new(name, "NODES")
+    md.node_group = ng
+    obj.modifiers.move(len(obj.modifiers) - 1, int(index))
+    rec = _record(obj)
+    files = [f for f in rec.get(prefix, {}).get("files", []) if f != str(path)] + [str(path)]
+    rec[prefix] = {"modifier": md.name, "files": files[-_KEEP_FILES:], "patch": patch.name,
+                   "attribute": attr.name, "node_group": ng.name}
+    obj[CORRECTION_CACHES_PROP] = rec
+    return md.name
+
+
+def _patch_nodes(name, patch, attribute):
+    """The node group adding the positions of ``patch``'s vertices to the vertices the int ``attribute`` names."""
+    ng = bpy.data.node_groups.new(name, "GeometryNodeTree")
+    ng.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
+    ng.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
+    N, L = ng.nodes, ng.links
+    gi, go = N.new("NodeGroupInput"), N.new("NodeGroupOutput")
+    info = N.new("GeometryNodeObjectInfo")
+    info.transform_space = "ORIGINAL"
+    info.inputs["Object"].default_value = patch
+    sample = N.new("GeometryNodeSampleIndex")
+    sample.data_type, sample.domain = "FLOAT_VECTOR", "POINT"  # an index out of range (-1) samples 0
+    pos = N.new("GeometryNodeInputPosition")
+    idx = N.new("GeometryNodeInputNamedAttribute")
+    idx.data_type = "INT"
+    idx.inputs["Name"].default_value = attribute
+    setpos = N.new("GeometryNodeSetPosition")
+    L.new(info.outputs["Geometry"], sample.inputs["Geometry"])
+    L.new(pos.outputs["Position"], sample.inputs["Value"])
+    L.new(idx.outputs["Attribute"], sample.inputs["Index"])
+    L.new(gi.outputs[0], setpos.inputs["Geometry"])
+    L.new(sample.outputs["Value"], setpos.inputs["Offset"])
+    L.new(setpos.outputs["Geometry"], go.inputs[0])
+    for i, n in enumerate((gi, info, pos, idx, sample, setpos, go)):
+        n.location = (200 * i, 0)
+    return ng
 
 
 @contextlib.contextmanager

@@ -32,7 +32,8 @@ from .caches import (
     sequence_source,
 )
 
-__all__ = ["cache_to_shape_key_ready", "polygon_corners", "correction_to_key_offsets", "IntegrateMap"]
+__all__ = ["cache_to_shape_key_ready", "polygon_corners", "polygon_neighbourhood", "keys_move_frames",
+           "correction_to_key_offsets", "IntegrateMap"]
 
 
 def _unique_file(path: Path) -> Path:
@@ -174,6 +175,86 @@ def polygon_corners(mesh):
     cv = np.empty(len(mesh.loops), np.int32)
     mesh.loops.foreach_get("vertex_index", cv)
     return np.r_[offs, len(cv)].astype(np.int64), cv.astype(np.int64)
+
+
+def polygon_neighbourhood(corners, verts) -> np.ndarray:
+    """Sorted vertices sharing a polygon edge with ``verts`` (``verts`` included): where an Integrate map
+    whose cache moves only ``verts`` differs from the identity.
+
+    Parameters
+    ----------
+    corners : tuple
+        ``polygon_corners(mesh)``.
+    verts : (n,) int array_like
+
+    Returns
+    -------
+    (k,) int64 ndarray
+    """
+    offs, cv = corners
+    sizes = np.diff(offs)
+    face_of = np.repeat(np.arange(len(sizes)), sizes)
+    local = np.arange(len(cv)) - offs[face_of]
+    sel = np.isin(cv, np.asarray(verts, dtype=np.int64))
+    f, loc, n = face_of[sel], local[sel], sizes[face_of[sel]]
+    return np.unique(np.r_[cv[sel], cv[offs[f] + (loc - 1) % n], cv[offs[f] + (loc + 1) % n]]).astype(np.int64)
+
+
+def keys_move_frames(obj, verts, frames, *, skip_prefixes=()) -> np.ndarray:
+    """(T,) bool: the frames on which the shape-key mix may move any of ``verts`` away from the Basis.
+
+    Keys muted, the Basis, and the keys ``skip_prefixes`` select (``shapekeys.key_matches``) are left
+    out; so is a key whose offsets are zero on ``verts``. A key keyed (or set) to 0 on a frame does
+    not move it. Conservative: when the key values cannot be read without evaluating the scene
+    (drivers, NLA, a blended action, absolute keys) every frame counts as moved.
+
+    Parameters
+    ----------
+    obj : bpy.types.Object
+    verts : (n,) int array_like
+    frames : (T,) array_like of float
+        Scene frames.
+    skip_prefixes : tuple of str
+
+    Returns
+    -------
+    (T,) bool ndarray
+    """
+    from .shapekeys import _fcurve_for_key, _registry, key_matches
+
+    frames = np.asarray(frames, dtype=np.float64).ravel()
+    key = obj.data.shape_keys
+    out = np.zeros(len(frames), bool)
+    if key is None or len(key.key_blocks) < 2:
+        return out
+    if not key.use_relative:
+        return ~out
+    v = np.asarray(verts, dtype=np.int64)
+    n = len(obj.data.vertices)
+    owned = set(_registry(key, create=False))
+    ad = key.animation_data
+    blended = ad is not None and (len(ad.drivers) or len(ad.nla_tracks) or ad.action_influence != 1.0
+                                  or ad.action_blend_type != "REPLACE")
+
+    def coords(data):
+        c = np.empty(n * 3, np.float32)
+        data.foreach_get("co", c)
+        return c.reshape(n, 3)[v]
+
+    for kb in key.key_blocks:
+        if kb == key.reference_key or kb.mute or key_matches(key, kb.name, tuple(skip_prefixes), owned):
+            continue
+        if not np.any(coords(kb.data) != coords(kb.relative_key.data)):
+            continue  # does not touch these vertices
+        if blended:
+            return ~out
+        fc = _fcurve_for_key(key, kb)
+        if fc is not None and not fc.mute:
+            w = np.array([fc.evaluate(f) for f in frames])
+        else:
+            w = np.full(len(frames), kb.value)
+        out |= np.clip(w, kb.slider_min, kb.slider_max) != 0.0
+    return out
 
 
 def correction_to_key_offsets(obj, cache_positions, deltas, corners=None):

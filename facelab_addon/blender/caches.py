@@ -446,7 +446,14 @@ def mesh_cache_direct_read_problem(obj, md=None, *, mute_prefixes=FACELAB_PREFIX
         return "no enabled Mesh Cache modifier with a file"
     mods = list(obj.modifiers)
     k = mods.index(md)
-    after = [m.name for m in mods[k + 1 :] if _enabled(m)]
+    pref = _prefixes(mute_prefixes)
+    from .bakes import correction_cache_prefix
+
+    def counts(m):  # FaceLab's correction caches of muted prefixes are off while the capture is read
+        p = correction_cache_prefix(obj, m)
+        return _enabled(m) and not (p is not None and pref and p.startswith(pref))
+
+    after = [m.name for m in mods[k + 1 :] if counts(m)]
     if after:
         return f"enabled modifiers after it ({', '.join(after)})"
     if md.factor != 1.0:
@@ -454,14 +461,13 @@ def mesh_cache_direct_read_problem(obj, md=None, *, mute_prefixes=FACELAB_PREFIX
     if md.vertex_group:
         return f"vertex group '{md.vertex_group}'"
     if md.deform_mode == "INTEGRATE":
-        before = [m.name for m in mods[:k] if _enabled(m)]
+        before = [m.name for m in mods[:k] if counts(m)]
         if before:
             return f"Integrate mode with enabled modifiers before it ({', '.join(before)})"
         keys = obj.data.shape_keys
         if keys is not None:
             if not keys.use_relative:
                 return "Integrate mode with absolute shape keys"
-            pref = _prefixes(mute_prefixes)
             live = [
                 kb.name
                 for kb in keys.key_blocks

@@ -41,6 +41,9 @@ class CaptureReader:
         Vertex indices to read (default: all).
     mute_shape_keys_prefix : tuple of str
         Keys left out (FaceLab's recorded ``FL_*`` keys by default).
+    cache_samples : bool
+        With a Mesh Cache: its file's positions on those frames (what an Integrate cache carries
+        keys by, ``cache_integrate``), whatever the shape keys and modifiers around it do.
 
     Attributes
     ----------
@@ -53,7 +56,7 @@ class CaptureReader:
         A cache file is missing or broken (``caches.check_capture_files``).
     """
 
-    def __init__(self, obj, vertices=None, *, mute_shape_keys_prefix=caches.FACELAB_PREFIXES):
+    def __init__(self, obj, vertices=None, *, mute_shape_keys_prefix=caches.FACELAB_PREFIXES, cache_samples=False):
         caches.require_mesh_object(obj)
         self.obj, self.mute = obj, tuple(mute_shape_keys_prefix)
         n = len(obj.data.vertices)
@@ -63,7 +66,7 @@ class CaptureReader:
         self.path = "evaluate"
         if source == "mesh_cache":
             md = caches.mesh_cache_modifier(obj)
-            if caches.mesh_cache_direct_read_problem(obj, md, mute_prefixes=self.mute) is None:
+            if cache_samples or caches.mesh_cache_direct_read_problem(obj, md, mute_prefixes=self.mute) is None:
                 self._prepare_cache(md)
         elif source in ("shape_keys", "static") and self._prepare_keys():
             self.path = "shape_keys"

@@ -35,9 +35,11 @@ def deforming_modifiers(obj) -> list:
     """The enabled (viewport) modifiers of ``obj`` a correction must be mapped back through.
 
     Every enabled modifier except capture caches and FaceLab's correction caches (Mesh Cache,
-    Mesh Sequence Cache), whose mapping is :mod:`.cache_integrate`'s.
+    Mesh Sequence Cache, a correction patch), whose mapping is :mod:`.cache_integrate`'s.
     """
-    return [m for m in obj.modifiers if m.show_viewport and m.type not in _CACHE_TYPES]
+    from .bakes import is_correction_cache  # FaceLab's own output (a correction patch's Geometry Nodes) too
+
+    return [m for m in obj.modifiers if m.show_viewport and m.type not in _CACHE_TYPES and not is_correction_cache(obj, m)]
 
 
 def _evaluated(obj, dg, n):

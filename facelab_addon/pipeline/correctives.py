@@ -30,7 +30,8 @@ from dataclasses import dataclass, field
 import bpy
 import numpy as np
 
-from ..blender import bakes, cache_integrate, caches, rest_space
+from ..blender import bakes, cache_integrate, rest_space
+from ..blender.capture_stream import CaptureReader
 from ..blender.objects import local_length
 from ..blender.shapekeys import add_keys_from_deltas, input_positions, key_values_bulk, remove_keys
 from ..core.capture.integrate import integrate_matrices
@@ -142,6 +143,12 @@ class CorrectionWriter:
         ``"evaluated"``: the deltas are wanted displacements of the evaluated mesh (after the
         modifiers) and are mapped to rest space per chunk (``blender.rest_space.to_rest_space``);
         ``"rest"``: they are shape-key offsets already.
+    after_capture : bool
+        The deltas are displacements of the captured mesh as the capture cache gives it (a dense
+        correction over a Mesh Cache, which as keys would ride on the cache surface and not
+        compress): :meth:`finish` writes them, never as keys, to a point cache of the ``vertices``
+        only, added right after the capture by a Geometry Nodes modifier
+        (``blender.bakes.add_correction_patch``). ``measured_on`` is then ignored.
 
     Raises
     ------
@@ -157,7 +164,7 @@ class CorrectionWriter:
     """
 
     def __init__(self, scene, obj, prefix: str, *, vertices=None, settings: StorageSettings | None = None,
-                 measured_on: str = "evaluated"):
+                 measured_on: str = "evaluated", after_capture: bool = False):
         self.scene, self.obj, self.prefix = scene, obj, prefix
         self.settings = settings or stored(scene, STORE_SETTINGS_ATTR, StorageSettings)
         if int(self.settings.key_budget) < 1:
@@ -172,7 +179,9 @@ class CorrectionWriter:
         self.V = len(obj.data.vertices)
         self.vertices = None if vertices is None else np.asarray(vertices, dtype=np.int64)
         self.n = self.V if self.vertices is None else len(self.vertices)
-        self.map_to_rest = measured_on == "evaluated" and bool(rest_space.deforming_modifiers(obj))
+        self.after_capture = bool(after_capture)
+        self.map_to_rest = measured_on == "evaluated" and not self.after_capture \
+            and bool(rest_space.deforming_modifiers(obj))
         if self.map_to_rest:
             rest_space.require_same_vertex_count(obj)
         self.tol = local_length(scene, obj, self.settings.tolerance_mm * 1e-3)  # object-local units
@@ -250,6 +259,9 @@ class CorrectionWriter:
         frames = np.asarray(self._frames, dtype=np.float64)
         read = self._reader()
         budget = int(s.key_budget)
+        if self.after_capture:
+            path = bakes.correction_cache_path(obj, prefix, s.cache_format.upper(), s.cache_directory or None)
+            return self._write_patch(path, read, frames)
         fit = compress_streamed(read, T, self.n, self.tol, budget, low_rank=self._low)
         tol_mm = float(s.tolerance_mm)
         if fit.fits:
@@ -303,43 +315,139 @@ class CorrectionWriter:
     def _write_cache(self, path, read, frames, budget) -> CorrectionResult:
         obj, s = self.obj, self.settings
         fmt = s.cache_format.upper()
-        if np.allclose(frames, np.round(frames)):
-            f0, f1 = int(round(frames.min())), int(round(frames.max()))
-            span = np.arange(f0, f1 + 1, dtype=np.float64)
-        elif _uniform(np.sort(frames)):
-            span = np.sort(frames)
-        else:
-            raise FaceLabError("A correction cache needs whole or evenly spaced frames; store it on whole frames.")
+        span = self._span(frames)
         row = {float(round(f, 6)): i for i, f in enumerate(frames)}
         mods, index = self._capture_index()
         caps = index > 0
-        # over a capture cache in Integrate mode the deltas are key offsets (``cache_integrate``): what
-        # they show is their Integrate map on that frame, which the Overwrite cache below must hold
+        # over a capture cache in Integrate mode the deltas are key offsets (``cache_integrate``)
         integrate = caps and mods[index - 1].type == "MESH_CACHE" and mods[index - 1].deform_mode == "INTEGRATE"
-        corners = cache_integrate.polygon_corners(obj.data) if integrate else None
         rest = np.empty(self.V * 3, np.float64)
         key = obj.data.shape_keys
         (key.reference_key.data if key else obj.data.vertices).foreach_get("co", rest)
         rest = rest.reshape(self.V, 3).astype(np.float32)
-        imap = cache_integrate.IntegrateMap(corners, self.vertices, rest) if integrate and self.vertices is not None \
-            else None
         fps = float(self.scene.render.fps) / float(self.scene.render.fps_base)
         header = dict(start_frame=float(span[0]), sample_rate=1.0) if fmt == "PC2" else dict(times=span / fps)
+        if integrate and self._under_capture_exact(mods, index, read, frames):
+            self._write_blocks(path, fmt, header, read, span, row, rest, self.vertices)
+            static, index = True, 0  # rest + key offsets, under the capture: shape keys of its own
+            mode = ("Integrate, under the capture cache: it holds only the correction as offsets from the mesh, "
+                    "and shape keys still add on top")
+        else:
+            static = self._write_whole(path, fmt, header, read, span, row, rest, integrate)
+            index = None
+            mode = "Integrate: shape keys still add on top" if static else \
+                "Overwrite: it holds the whole corrected input; later shape-key edits show once the modifier is off"
+        self._remove_previous()  # the file is complete: now FaceLab's previous keys and cache go
+        name = bakes.add_correction_cache(obj, self.prefix, path, fmt, span[0], span[-1], integrate=static,
+                                          index=self._capture_index()[1] if index is None else index)
+        obj.data.update()
+        return CorrectionResult("cache", cache_path=str(path), modifier=name, rank=budget, frames=len(frames),
+                                max_error_mm=0.0, tolerance_mm=float(s.tolerance_mm),
+                                note=f"The correction does not fit in {budget} keys within {s.tolerance_mm:g} mm, so "
+                                     f"it was written as a {fmt} point cache '{path}' played by the Mesh Cache "
+                                     f"modifier '{name}' ({mode}).")
+
+    def _span(self, frames):
+        if np.allclose(frames, np.round(frames)):
+            return np.arange(int(round(frames.min())), int(round(frames.max())) + 1, dtype=np.float64)
+        if _uniform(np.sort(frames)):
+            return np.sort(frames)
+        raise FaceLabError("A correction cache needs whole or evenly spaced frames; store it on whole frames.")
+
+    def _write_patch(self, path, read, frames) -> CorrectionResult:
+        """The correction as a point cache of its own vertices, added after the capture (``after_capture``)."""
+        obj, s = self.obj, self.settings
+        fmt = s.cache_format.upper()
+        span = self._span(frames)
+        row = {float(round(f, 6)): i for i, f in enumerate(frames)}
+        fps = float(self.scene.render.fps) / float(self.scene.render.fps_base)
+        header = dict(start_frame=float(span[0]), sample_rate=1.0) if fmt == "PC2" else dict(times=span / fps)
+        self._write_blocks(path, fmt, header, read, span, row, np.zeros((self.n, 3), np.float32), None)
+        self._remove_previous()
+        name = bakes.add_correction_patch(obj, self.prefix, path, fmt, np.arange(self.V) if self.vertices is None
+                                          else self.vertices, span[0], span[-1], index=self._capture_index()[1])
+        obj.data.update()
+        return CorrectionResult("cache", cache_path=str(path), modifier=name, rank=0, frames=len(frames),
+                                max_error_mm=0.0, tolerance_mm=float(s.tolerance_mm),
+                                note=f"The correction of {self.n} vertices changes with every frame of the capture "
+                                     f"cache, so it was written as a {fmt} point cache of those vertices only "
+                                     f"'{path}', added after the capture by the Geometry Nodes modifier '{name}'.")
+
+    def _under_capture_exact(self, mods, index, read, frames) -> bool:
+        """Whether key offsets played by an Integrate cache at the top of the stack, under the captured Integrate
+        Mesh Cache ``mods[index - 1]``, show exactly what keys would.
+
+        That cache outputs ``rest + offsets + M_C s`` (``s``: the shape-key mix, ``M_C`` its own Integrate map,
+        the identity wherever it holds no correction), which the capture then carries like keys. So it is
+        exact when nothing else is enabled before the capture and, on every frame with a correction, no shape
+        key moves a vertex of the correction's polygon neighbourhood (FaceLab's spike keys of corrected frames
+        are 0 elsewhere; their own frame keeps a zero correction).
+        """
+        obj = self.obj
+        own = bakes.correction_cache(obj, self.prefix)[0]
+        if any(m.show_viewport and m != own for m in mods[: index - 1]):
+            return False
+        verts = np.arange(self.V) if self.vertices is None else self.vertices
+        ring = cache_integrate.polygon_neighbourhood(cache_integrate.polygon_corners(obj.data), verts)
+        moved = cache_integrate.keys_move_frames(obj, ring, frames, skip_prefixes=(self.prefix,))
+        tiny = 1e-3 * self.tol  # a correction this small changes no Integrate map measurably
+        return not any(np.abs(read(t, t + 1)).max() > tiny for t in np.flatnonzero(moved))
+
+    def _write_blocks(self, path, fmt, header, read, span, row, base, verts) -> None:
+        """Write ``base`` (m,3) plus the correction on ``verts`` (all m points when None) for every frame of
+        ``span``, a block of frames at a time (no scene evaluation, no capture read)."""
+        m = len(base)
+        block = max(1, min(256, (48 << 20) // (12 * m)))  # ~48 MB of positions at a time
+        buf = np.empty((block, m, 3), np.float32)
+        writer = PointCacheWriter(path, fmt, m, len(span), **header)
+        try:
+            for i in range(0, len(span), block):
+                fr = span[i:i + block]
+                b = buf[: len(fr)]
+                b[:] = base
+                rows = [row.get(float(round(f, 6))) for f in fr]
+                t0 = rows[0]
+                if t0 is not None and rows == list(range(t0, t0 + len(fr))):
+                    runs = [(0, t0, t0 + len(fr))]
+                else:
+                    runs = [(k, t, t + 1) for k, t in enumerate(rows) if t is not None]
+                for k, a, z in runs:
+                    d = np.asarray(read(a, z), dtype=np.float32)
+                    if verts is None:
+                        b[k : k + z - a] += d
+                    else:
+                        b[k : k + z - a, verts] += d
+                writer.write(b)
+            writer.close()
+        except BaseException:
+            writer.abort()
+            raise
+
+    def _write_whole(self, path, fmt, header, read, span, row, rest, integrate) -> bool:
+        """The file of a cache over the whole input (what the stack below it gives, plus the correction, mapped
+        through the capture's surface over an Integrate capture); whether that input is the static mesh."""
+        obj = self.obj
+        index = self._capture_index()[1]
+        corners = cache_integrate.polygon_corners(obj.data) if integrate else None
+        imap = cache_integrate.IntegrateMap(corners, self.vertices, rest) if integrate and self.vertices is not None \
+            else None
         static = True
+        # the capture's own samples (what it carries keys by), not the evaluated mesh: other keys may be live
+        cap = CaptureReader(obj, None if imap is None else imap.vertices, cache_samples=True) if integrate else None
         writer = PointCacheWriter(path, fmt, self.V, len(span), **header)
         try:
             for i in range(0, len(span), 32):
                 fr = span[i:i + 32]
                 base = input_positions(obj, fr, upto=index, skip_prefixes=(self.prefix,))  # without our old output
                 static = static and bool(np.all(base == rest[None]))
-                raw = caches.read_captured_frames(obj, fr) if integrate else None
+                raw = cap.read(fr) if integrate else None
                 for k, f in enumerate(fr):
                     t = row.get(float(round(f, 6)))
                     if t is not None:
                         d = np.asarray(read(t, t + 1)[0], dtype=np.float64)
                         if integrate:
                             if imap is not None:  # the corrected vertices' own maps, rest side inverted once
-                                d = imap.to_shown(raw[k : k + 1, imap.vertices], d[None])[0]
+                                d = imap.to_shown(raw[k : k + 1], d[None])[0]
                             else:
                                 M = integrate_matrices(rest, raw[k], *corners)
                                 d = np.einsum("vij,vj->vi", M, d)
@@ -353,17 +461,7 @@ class CorrectionWriter:
         except BaseException:
             writer.abort()
             raise
-        self._remove_previous()  # the file is complete: now FaceLab's previous keys and cache go
-        name = bakes.add_correction_cache(obj, self.prefix, path, fmt, span[0], span[-1], integrate=static,
-                                          index=self._capture_index()[1])
-        obj.data.update()
-        mode = "Integrate: shape keys still add on top" if static else \
-            "Overwrite: it holds the whole corrected input; later shape-key edits show once the modifier is off"
-        return CorrectionResult("cache", cache_path=str(path), modifier=name, rank=budget, frames=len(frames),
-                                max_error_mm=0.0, tolerance_mm=float(s.tolerance_mm),
-                                note=f"The correction does not fit in {budget} keys within {s.tolerance_mm:g} mm, so "
-                                     f"it was written as a {fmt} point cache '{path}' played by the Mesh Cache "
-                                     f"modifier '{name}' ({mode}).")
+        return static
 
     # ------------------------------------------------------------------ lifetime
     def close(self) -> None:

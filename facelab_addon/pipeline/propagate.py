@@ -318,6 +318,11 @@ def propagate_steps(scene, obj, frames, settings: PropagateSettings | None = Non
     return _propagate_steps(scene, obj, frames, settings, t0, tris, mouth_faces, lip_faces, train, int(chunk))
 
 
+def _key_shapes_over_cache(budget) -> int:
+    """Most greedy shapes the key offsets over a cache may take before they count as a patch cache."""
+    return max(64, 4 * int(budget))
+
+
 def _chunks(n, size):
     return [(i, min(n, i + size)) for i in range(0, n, size)]
 
@@ -374,29 +379,49 @@ def _propagate_work(scene, obj, frames, settings, t0, tris, mouth_faces, lip_fac
     at_used = np.searchsorted(read_v, reg.used_vertices)
     at_ring = None if ring is None else np.searchsorted(read_v, ring.vertices)
     # half the storage tolerance here, half for the writer's own compression (the shot's setting, world mm)
-    tol = local_length(scene, obj, 0.5e-3 * stored(scene, STORE_SETTINGS_ATTR, StorageSettings).tolerance_mm)
-    store = StreamingBasis(len(iv), tol)
-    is_train = np.isin(frames, train)
-    screen = SuggestScreen(reg, T, exclude=np.flatnonzero(is_train)) if settings.suggestions else None
-    score = np.empty(T)
-    for i, j in _chunks(T, chunk):
-        yield "correcting the frames", 1 + i, total
-        X = reader.read(frames[i:j])  # FaceLab keys muted
-        _require_finite(X, frames[i:j], "captured")
-        Xu = X[:, at_used]
-        try:  # (t, nI, 3) correction, object local; where the model guesses: the extrapolation score
-            corr, score[i:j], feature_sq = reg.correct_chunk(Xu, used_only=True, first=i)
-        except FrameError as e:  # positions in the shot -> scene frames
-            raise e.for_frames([int(f) for f in frames]) from None
-        if screen is not None:
-            screen.add_scores(i, feature_sq, score[i:j])
-        corr[is_train[i:j]] = 0.0  # training frames keep the artist's own correction
-        if ring is not None:  # keys ride on the cache surface (INTEGRATE): map the offsets through it
-            corr = ring.to_key(X[:, at_ring], corr)
-        store.add(corr)
-    yield "writing the corrective keys", total - 1, total
-    basis, weights = store.finish()
-    names = _store_corrections(scene, obj, frames, basis, weights, iv)
+    storage = stored(scene, STORE_SETTINGS_ATTR, StorageSettings)
+    tol = local_length(scene, obj, 0.5e-3 * storage.tolerance_mm)
+    # Over a cache the keys ride on its surface, so a correction that is a few shapes on the mesh is, as key
+    # offsets, a new shape on every frame. The shown correction is spooled as it comes (the patch cache after the
+    # capture, blender.bakes.add_correction_patch); the key offsets are compressed only until they clearly need
+    # more shapes than the key budget (4x: the greedy basis overshoots the final one), then no longer mapped.
+    store = StreamingBasis(len(iv), tol, max_rank=_key_shapes_over_cache(storage.key_budget) if on_cache else 1024)
+    spool = CorrectionWriter(scene, obj, PROPAGATE_PREFIX, vertices=iv, after_capture=True) if on_cache else None
+    try:
+        is_train = np.isin(frames, train)
+        screen = SuggestScreen(reg, T, exclude=np.flatnonzero(is_train)) if settings.suggestions else None
+        score = np.empty(T)
+        for i, j in _chunks(T, chunk):
+            yield "correcting the frames", 1 + i, total
+            X = reader.read(frames[i:j])  # FaceLab keys muted
+            _require_finite(X, frames[i:j], "captured")
+            Xu = X[:, at_used]
+            try:  # (t, nI, 3) correction, object local; where the model guesses: the extrapolation score
+                corr, score[i:j], feature_sq = reg.correct_chunk(Xu, used_only=True, first=i)
+            except FrameError as e:  # positions in the shot -> scene frames
+                raise e.for_frames([int(f) for f in frames]) from None
+            if screen is not None:
+                screen.add_scores(i, feature_sq, score[i:j])
+            corr[is_train[i:j]] = 0.0  # training frames keep the artist's own correction
+            if spool is not None:
+                spool.add(frames[i:j], corr)
+            if ring is not None and store is not None:  # keys ride on the cache surface: map the offsets through it
+                corr = ring.to_key(X[:, at_ring], corr)
+            if store is not None:
+                try:
+                    store.add(corr)
+                except FaceLabError:  # more shapes than keys could ever hold: the patch cache it is
+                    store = None
+        yield "writing the corrective keys", total - 1, total
+        if store is None:
+            names = StoredKeys([])
+            names.storage = spool.finish()
+        else:
+            basis, weights = store.finish()
+            names = _store_corrections(scene, obj, frames, basis, weights, iv)
+    finally:
+        if spool is not None:
+            spool.close()
     if names.storage.mode == "cache" or "more than the budget" in names.storage.note:  # say where it went
         note = f"{note} {names.storage.note}".strip()
     score[is_train] = 0.0

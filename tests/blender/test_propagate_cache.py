@@ -24,7 +24,14 @@ T = 16
 TRAIN = [3, 9, 14]
 
 
-def test_refine_and_propagate_on_a_mesh_cache(tmp_path, ict, addon):
+@pytest.mark.parametrize("patch", [False, True])
+def test_refine_and_propagate_on_a_mesh_cache(tmp_path, ict, addon, patch, monkeypatch):
+    """``patch``: the key offsets count as needing more shapes than keys hold (as on a long shot), so the
+    correction goes to a point cache of the corrected vertices after the capture (Geometry Nodes)."""
+    from facelab_addon.pipeline import propagate as prop
+
+    if patch:
+        monkeypatch.setattr(prop, "_key_shapes_over_cache", lambda budget: 1)
     F = ict.faces
     neutral = ict.neutral * SCALE
     t = np.linspace(0, 1, T)
@@ -66,7 +73,21 @@ def test_refine_and_propagate_on_a_mesh_cache(tmp_path, ict, addon):
 
     bpy.context.view_layer.objects.active = obj
     assert bpy.ops.facelab.auto_regions() == {"FINISHED"}
+    scene.facelab_store.cache_directory = str(tmp_path)
     assert bpy.ops.facelab.propagate(suggestions=0) == {"FINISHED"}
+    names = [(m.name, m.type) for m in obj.modifiers]
+    if patch:
+        from facelab_addon.blender.bakes import correction_cache
+        from facelab_addon.core.capture.pointcache import cache_info
+
+        assert names == [("Capture", "MESH_CACHE"), ("FL_Prop_Cache", "NODES")] and not [
+            k for k in obj.data.shape_keys.key_blocks.keys() if k.startswith("FL_Prop_")]
+        files = correction_cache(obj, "FL_Prop_")[1]
+        info = cache_info(files[-1], "PC2")
+        assert 0 < info.num_points <= vertex_group_mask(obj, "FL_lips").sum() < len(neutral) / 10  # only the lips
+        assert caches.mesh_cache_direct_read_problem(obj) is None  # the capture is still read from its file
+    else:
+        assert names == [("Capture", "MESH_CACHE")]
 
     tris = mesh_triangles(obj.data)
     frames = np.arange(1, T + 1)
@@ -75,6 +96,8 @@ def test_refine_and_propagate_on_a_mesh_cache(tmp_path, ict, addon):
     reg = LipRegressor(neutral, tris, faces_in_region(tris, vertex_group_mask(obj, "FL_mouth")),
                        faces_in_region(tris, vertex_group_mask(obj, "FL_lips")))
     reg.fit(training_input(cap[np.array(TRAIN) - 1], corrected, reg.interior_vertices))  # mouth from the capture
+    if patch:
+        assert info.num_points == len(reg.interior_vertices)
     held = [1, 6, 12, 16]
     expect = reg.predict(cap[np.array(held) - 1].astype(np.float64))
     got = caches.evaluate_frames(obj, held, mute_shape_keys_prefix=())

@@ -263,7 +263,6 @@ def test_reconstruct_solver_result_as_keys_then_as_a_cache(tmp_path, ict, addon,
     reconstruction within 0.01 mm."""
     from facelab_addon.core.lgi.indexer import GeometricIndexer
     from facelab_addon.names import RECONSTRUCT_PREFIX
-    from facelab_addon.pipeline import correctives
     from facelab_addon.pipeline.reconstruct import ReconstructSettings, reconstruct_from_bundles
 
     from ..pipeline.test_reconstruct import EXPR, _shot
@@ -327,10 +326,134 @@ def test_over_a_captured_point_cache_keys_and_cache_show_the_same(tmp_path, budg
     res = write_corrective_keys(obj, PROPAGATE_PREFIX, K if sub is None else K[:, sub], frames, scene=scene,
                                 vertices=sub, settings=StorageSettings(key_budget=budget)).storage
     assert res.mode == ("cache" if budget == 2 else "keys")
-    if budget == 2:
-        assert [m.name for m in obj.modifiers] == ["Capture", res.modifier]  # after the capture
-        assert obj.modifiers[res.modifier].deform_mode == "OVERWRITE"
+    if budget == 2:  # under the capture, playing the key offsets: the file holds only the correction
+        assert [m.name for m in obj.modifiers] == [res.modifier, "Capture"] and "under the capture" in res.note
+        assert obj.modifiers[res.modifier].deform_mode == "INTEGRATE"
+        from facelab_addon.core.capture.pointcache import read_pc2
+
+        held = read_pc2(res.cache_path)[0]
+        np.testing.assert_allclose(held - rest[None].astype(np.float32), K if sub is None else _on(K, sub), atol=1e-7)
+        # the capture is still read straight from its file (the correction cache is FaceLab's output)
+        assert caches.mesh_cache_direct_read_problem(obj) is None
     assert caches.sequence_source(obj) == "mesh_cache"  # the capture is still the capture
     np.testing.assert_allclose(shown(obj, frames, muted=("FL_",)), captured, atol=1e-6)
+    np.testing.assert_allclose(caches.read_captured_frames(obj, frames), captured, atol=1e-6)
     err = np.linalg.norm(shown(obj, frames, muted=()) - captured - D, axis=2)
     assert err.max() <= 2 * TOL, err.max()  # the tolerance on the keys, carried by the cache's frames
+
+
+def _on(K, sub):
+    out = np.zeros_like(K)
+    out[:, sub] = K[:, sub]
+    return out
+
+
+def test_under_a_capture_a_key_moving_the_corrected_vertices_keeps_the_cache_exact(tmp_path, addon):
+    """Where the artist's own shape key moves corrected vertices on a corrected frame, a correction cache under
+    the capture would carry that key through its own surface; the cache then goes after the capture holding the
+    whole corrected input (Overwrite), and still shows capture + key + correction."""
+    from facelab_addon.blender.cache_integrate import polygon_corners
+    from facelab_addon.core.capture.integrate import integrate_matrices, integrate_offsets_to_key
+    from facelab_addon.core.capture.pointcache_writer import write_pc2
+
+    scene, obj = head(False)
+    saved(tmp_path)
+    rest = np.array([v.co[:] for v in obj.data.vertices])
+    frames = FRAMES[:8]
+    a = np.radians(4.0) * np.arange(len(frames))
+    R = np.stack([[[np.cos(x), -np.sin(x), 0], [np.sin(x), np.cos(x), 0], [0, 0, 1]] for x in a])
+    cap = np.einsum("tij,vj->tvi", R, rest)
+    write_pc2(tmp_path / "capture.pc2", cap, start=float(frames[0]))
+    mc = obj.modifiers.new("Capture", "MESH_CACHE")
+    mc.cache_format, mc.filepath, mc.deform_mode = "PC2", str(tmp_path / "capture.pc2"), "INTEGRATE"
+    mc.frame_start, mc.forward_axis, mc.up_axis = float(frames[0]), "POS_Y", "POS_Z"
+    sub = np.arange(0, len(rest), 2)
+    fix = np.zeros_like(rest)
+    fix[sub[:40]] = 2e-3  # the artist's key moves some corrected vertices
+    add_corrective_key(obj, "ArtistFix", fix)
+    obj.data.shape_keys[OWNED_KEYS_PROP] = []
+    key_values_bulk(obj, ["ArtistFix"], [frames[2], frames[3], frames[4]], [0.0, 1.0, 0.0])
+    before = shown(obj, frames, muted=("FL_",))
+    D = full_rank(obj)[: len(frames)]
+    D[:, np.setdiff1d(np.arange(len(rest)), sub)] = 0.0
+    corners = polygon_corners(obj.data)
+    K = np.stack([integrate_offsets_to_key(integrate_matrices(rest, cap[t], *corners), D[t])
+                  for t in range(len(frames))])
+    res = write_corrective_keys(obj, PROPAGATE_PREFIX, K[:, sub], frames, scene=scene, vertices=sub,
+                                settings=StorageSettings(key_budget=2)).storage
+    assert res.mode == "cache" and [m.name for m in obj.modifiers] == ["Capture", res.modifier]
+    assert obj.modifiers[res.modifier].deform_mode == "OVERWRITE"
+    err = np.linalg.norm(shown(obj, frames, muted=()) - before - D, axis=2)
+    assert err.max() <= 2 * TOL, err.max()
+    # without the key on corrected frames the same correction goes under the capture
+    key_values_bulk(obj, ["ArtistFix"], [frames[2], frames[3], frames[4]], [0.0, 0.0, 0.0])
+    res = write_corrective_keys(obj, PROPAGATE_PREFIX, K[:, sub], frames, scene=scene, vertices=sub,
+                                settings=StorageSettings(key_budget=2)).storage
+    assert [m.name for m in obj.modifiers] == [res.modifier, "Capture"]
+    err = np.linalg.norm(shown(obj, frames, muted=()) - shown(obj, frames, muted=("FL_",)) - D, axis=2)
+    assert err.max() <= 2 * TOL, err.max()
+
+
+def test_after_capture_the_correction_is_a_patch_of_its_vertices_rerun_and_undo_replace_it(tmp_path, addon):
+    """``after_capture``: displacements of the captured mesh go to a point cache of the corrected vertices only,
+    added after the capture by a Geometry Nodes modifier; they add to the capture and to the artist's keys
+    exactly; a re-run and undo replace only FaceLab's patch (modifier, node group, patch object, attribute)."""
+    from facelab_addon.blender.bakes import correction_cache
+    from facelab_addon.core.capture.pointcache import read_pc2
+    from facelab_addon.core.capture.pointcache_writer import write_pc2
+
+    scene, obj = head(False)
+    saved(tmp_path)
+    rest = np.array([v.co[:] for v in obj.data.vertices])
+    frames = FRAMES[:8]
+    a = np.radians(4.0) * np.arange(len(frames))
+    R = np.stack([[[np.cos(x), -np.sin(x), 0], [np.sin(x), np.cos(x), 0], [0, 0, 1]] for x in a])
+    write_pc2(tmp_path / "capture.pc2", np.einsum("tij,vj->tvi", R, rest), start=float(frames[0]))
+    mc = obj.modifiers.new("Capture", "MESH_CACHE")
+    mc.cache_format, mc.filepath, mc.deform_mode = "PC2", str(tmp_path / "capture.pc2"), "INTEGRATE"
+    mc.frame_start, mc.forward_axis, mc.up_axis = float(frames[0]), "POS_Y", "POS_Z"
+    sub = np.arange(0, len(rest), 4)
+    add_corrective_key(obj, "ArtistFix", np.full_like(rest, 1e-3))  # the artist's key, on the corrected vertices
+    obj.data.shape_keys[OWNED_KEYS_PROP] = []
+    key_values_bulk(obj, ["ArtistFix"], frames[:3], [0.0, 1.0, 0.0])
+    art = obj.modifiers.new("FL_Prop_Cache", "NODES")  # the artist's own, named like FaceLab's
+    art.show_viewport = False
+    before = shown(obj, frames, muted=("FL_",))
+
+    def store(D):
+        with CorrectionWriter(scene, obj, PROPAGATE_PREFIX, vertices=sub, after_capture=True) as w:
+            w.add(frames[:5], D[:5])
+            w.add(frames[5:], D[5:])
+            return w.finish()
+
+    D1 = full_rank(obj)[: len(frames)][:, sub]
+    r1 = store(D1)
+    assert r1.mode == "cache" and r1.keys == [] and "Geometry Nodes" in r1.note
+    assert [m.name for m in obj.modifiers] == ["Capture", r1.modifier, "FL_Prop_Cache"]
+    md = obj.modifiers[r1.modifier]
+    assert md.type == "NODES" and list(obj.modifiers).index(md) == 1  # right after the capture
+    held, _, _ = read_pc2(r1.cache_path)
+    assert held.shape == (len(frames), len(sub), 3)  # the corrected vertices only
+    want = before.copy()
+    want[:, sub] += D1
+    np.testing.assert_allclose(shown(obj, frames), want, atol=1e-7)
+    np.testing.assert_allclose(shown(obj, frames, muted=("FL_",)), before, atol=1e-7)  # the capture stays readable
+    np.testing.assert_allclose(shown(obj, [0, 9]), shown(obj, [0, 9], muted=("FL_",)), atol=1e-7)  # off outside
+    bpy.ops.ed.undo_push(message="first")
+
+    D2 = 0.5 * D1[::-1]
+    r2 = store(D2)
+    bpy.ops.ed.undo_push(message="second")
+    assert r2.cache_path != r1.cache_path and r2.modifier == r1.modifier
+    assert [m.name for m in obj.modifiers] == ["Capture", r2.modifier, "FL_Prop_Cache"]
+    patches = [o for o in bpy.data.objects if o != obj]
+    assert len(patches) == 1 and len(bpy.data.node_groups) == 1  # the first patch went with its modifier
+    want2 = before.copy()
+    want2[:, sub] += D2
+    np.testing.assert_allclose(shown(obj, frames), want2, atol=1e-7)
+
+    bpy.ops.ed.undo()
+    obj = bpy.data.objects["Head"]
+    np.testing.assert_allclose(shown(obj, frames), want, atol=1e-7)  # the first run, still playing its file
+    assert correction_cache(obj, PROPAGATE_PREFIX)[1][-1] == r1.cache_path
+    assert "FL_Prop_Cache" in obj.modifiers and not obj.modifiers["FL_Prop_Cache"].show_viewport  # theirs
