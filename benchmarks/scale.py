@@ -192,11 +192,19 @@ def run(path, size, source):
     growth = out.stat().st_size / 1e6 - before_mb
     out.unlink()
     keys = [kb.name for kb in obj.data.shape_keys.key_blocks if kb.name.startswith("FL_Prop_")]
+    from facelab_addon.blender.bakes import correction_cache
+
+    md, files = correction_cache(obj, "FL_Prop_")  # the correction cache, when the correction went to one
+    cache = dict(cache_modifier=f"{md.name} ({md.type})" if md is not None else "",
+                 cache_file_mb=round(Path(files[-1]).stat().st_size / 1e6, 1) if md is not None else 0.0,
+                 modifiers=[m.name for m in obj.modifiers])
     acc = _accuracy(obj, path, source)
+    for f in files:  # the temp folder is removed after the case, this frees the disk sooner
+        Path(f).unlink(missing_ok=True)
     return dict(result=sorted(res), wall_s=round(wall, 2), cpu_s=round(cpu, 2), rss_before_mb=round(rss0, 1),
                 peak_rss_mb=round(peak, 1), peak_before_operator_mb=round(peak0, 1),
                 peak_growth_mb=round(peak - rss0, 1), blend_growth_mb=round(growth, 2), keys=len(keys),
-                load_during=load, **acc)
+                load_during=load, **cache, **acc)
 
 
 def _accuracy(obj, path, source, n=20):
