@@ -389,7 +389,7 @@ def remove_correction_cache(obj, prefix: str) -> list:
         if ng is not None and ng.name == entry.get("node_group") and ng.users == 0:
             bpy.data.node_groups.remove(ng)
     patch = bpy.data.objects.get(entry.get("patch", "")) if entry.get("patch") else None
-    if patch is not None and patch.get(CORRECTION_CACHES_PROP) == f"{obj.name}:{prefix}":  # FaceLab's patch only
+    if patch is not None and str(patch.get(CORRECTION_CACHES_PROP, "")).endswith(f":{prefix}"):  # FaceLab's only
         me = patch.data
         bpy.data.objects.remove(patch)
         if me is not None and me.users == 0:
@@ -494,8 +494,7 @@ def add_correction_patch(obj, prefix: str, path, fmt: str, vertices, first_frame
     patch = bpy.data.objects.new(f"{obj.name} {name}", me)
     patch[CORRECTION_CACHES_PROP] = f"{obj.name}:{prefix}"
     (obj.users_collection[0] if obj.users_collection else bpy.context.scene.collection).objects.link(patch)
-    patch.hide_render = True
-    patch.hide_select = True
+    patch.hide_select = True  # (rendered too: loose vertices show nothing, and a renderer evaluates it for sure)
     with contextlib.suppress(RuntimeError):  # not in the view layer: nothing to hide
         patch.hide_set(True)
     mc = patch.modifiers.new(name, "MESH_CACHE")

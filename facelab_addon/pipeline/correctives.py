@@ -237,8 +237,14 @@ class CorrectionWriter:
         if self._low is not None:
             return low_rank_reader(*self._low)
         self._f.flush()
-        mm = np.memmap(self._path, dtype="<f4", mode="r", shape=(T, self.n, 3)) if T else np.zeros((0, self.n, 3))
-        return lambda i, j: mm[i:j]
+        row, path = 3 * self.n, self._path
+
+        def read(i, j):  # plain reads, not a memory map: a long spool read once does not stay in the process
+            with open(path, "rb") as f:
+                f.seek(4 * row * i)
+                return np.fromfile(f, dtype="<f4", count=row * (j - i)).reshape(j - i, self.n, 3)
+
+        return read
 
     def finish(self) -> CorrectionResult:
         """Replace FaceLab's previous output of this prefix with the correction; what was written.

@@ -8,7 +8,10 @@ reads the captured sequence, fits a :class:`~facelab_addon.core.lips.propagate.L
 on the training frames, predicts the inner lips of every frame and writes the per-frame
 correction as a few compressed corrective keys ``FL_Prop_NN``
 (:data:`~facelab_addon.names.PROPAGATE_PREFIX`), plus the extrapolation score keyed on the
-object and suggested frames as timeline markers.
+object and suggested frames as timeline markers. Over a capture cache, where the key offsets
+(carried by the cache surface) need more shapes than keys can hold, the correction is instead
+written as a point cache of the corrected vertices, added after the capture
+(:class:`~facelab_addon.pipeline.correctives.CorrectionWriter` ``after_capture``).
 
 The regressor is fitted afresh on every run: on the ICT face (26,719 vertices, 10 training
 frames) the fit costs 0.07 s, 2 % of a 1,000-frame Propagate (3.5 s), so no fitted model is
