@@ -151,6 +151,9 @@ class CaptureReader:
         """(k, n, 3) float32 positions of the vertices in the file's samples ``need`` (memory-mapped)."""
         mm = pointcache.read_cache(self._file, fmt=self._md.cache_format, mmap=True)
         v = self.vertices
+        need = np.asarray(need, dtype=np.int64)
+        if len(need) and need[-1] - need[0] + 1 == len(need):  # consecutive samples (sorted, unique): one gather
+            return np.take(mm[int(need[0]) : int(need[-1]) + 1], v, axis=1).astype(np.float32, copy=False)
         return np.stack([np.asarray(mm[int(s)][v], np.float32) for s in need])
 
     def _read_cache(self, frames):
