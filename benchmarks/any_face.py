@@ -6,7 +6,9 @@ barycentrically, so the truth stays known; teeth, gums and eyes as separate part
 Z-up scene (``testing.route.build_route_scene``) under a head + jaw armature, performing five mouth
 expressions over 40 frames, with a keyed ``CaptureError`` key that pulls the inner lips apart (up to
 1.25 mm per lip, more as the jaw closes, crossing when it opens): the capture. A frontal camera looks
-at the mouth from 40 cm (a second one 35° to the side is there for two-view refinement).
+at the mouth from 40 cm; for two-view refinement the scene also has the lower camera of a helmet rig (35° below
+the mouth, looking up at it: it sees how far the lips sit forward) and a witness camera 35° to the side
+(``testing.route.CAMERAS``).
 
 The route, as an artist runs it, through the operators: ``facelab.auto_regions`` (automatic: no
 selection, no painting), on k = 10 training frames a Grease Pencil sketch of the truth's inner-lip
@@ -14,12 +16,12 @@ silhouettes (``testing.route.sketch_truth``) and ``facelab.refine_lips``, then `
 over the 40 frames and ``facelab.bake`` to a PC2 file.
 
 Reported per face and case (metres at rest; centimetres; millimetres; metres with the armature
-posed: head turned 20°, jaw 5°; metres at rest with two views):
+posed: head turned 20°, jaw 5°; metres at rest and posed with two views, the main camera and the lower one,
+and at rest with the main and the side camera):
 
 * Refine on the training frames: image-space contour error (px, before -> after) and the 3D
-  inner-lip RMS cut (target >= 50 % with one view, >= 70 % with two views: one more run per face, in
-  metres, unposed, with the side camera sketched too; Refine Lips solves every camera sketched on the
-  frame at once);
+  inner-lip RMS cut (target >= 50 % with one view, >= 70 % with two views; every camera sketched on the
+  frame is a view of the one Refine Lips solve);
 * how much of the Refine correction Propagate's regression reproduces on its own training frames;
 * Propagate on the 30 held-out frames: inner-lip RMS as a share of the capture's (target <= 50 %);
 * Auto Regions: how much of the capture error lies in ``FL_lips`` (and in the trusted ``FL_mouth``);
@@ -27,9 +29,11 @@ posed: head turned 20°, jaw 5°; metres at rest with two views):
   training frames (Refine) (target <= 0.01 mm);
 * seconds per step.
 
-Usage: ``PYTHONPATH=. python benchmarks/any_face.py [--quick] [--png docs/images/any_face.png]``.
-Prints one JSON object on stdout (save it as ``benchmarks/results/any_face.json``); Blender's own
-output goes to stderr. About 3-5 minutes on 2 shared cores (``--quick``: metres, unposed, one and two views, about 2).
+Usage: ``PYTHONPATH=. python benchmarks/any_face.py [--quick | --views] [--png docs/images/any_face.png]``.
+Prints one JSON object on stdout (save it as ``benchmarks/results/any_face.json``; the ``--views`` comparison,
+metres, at rest and posed, one view / + lower camera / + side camera, as ``benchmarks/results/any_face_views.json``);
+Blender's own output goes to stderr. About 8-12 minutes on 2 shared cores (``--quick``: metres, unposed, one view and
+two with the lower camera, about 3).
 """
 
 from __future__ import annotations
@@ -49,14 +53,21 @@ sys.path.insert(0, str(ROOT))
 
 FRAMES = np.arange(1, 41)
 TRAIN = list(range(2, 41, 4))  # k = 10
-CASES = [("m", False, 1), ("cm", False, 1), ("mm", False, 1), ("m", True, 1), ("m", False, 2)]
+#: (units, armature posed, the cameras sketched besides the main one). Two views: the main camera and the lower
+#: camera of a helmet rig (``Camera.below``, 35 degrees below the mouth looking up: depth), or a witness camera 35
+#: degrees to the side (``Camera.side``: little depth); see ``testing.route.CAMERAS``.
+CASES = [("m", False, ()), ("cm", False, ()), ("mm", False, ()), ("m", True, ()),
+         ("m", False, ("Camera.below",)), ("m", True, ("Camera.below",)), ("m", False, ("Camera.side",))]
+QUICK = [("m", False, ()), ("m", False, ("Camera.below",))]
+VIEWS = [("m", False, ()), ("m", True, ()), ("m", False, ("Camera.below",)), ("m", True, ("Camera.below",)),
+         ("m", False, ("Camera.side",)), ("m", True, ("Camera.side",))]
 
 
 def _rms(a):
     return float(np.sqrt(np.mean(np.asarray(a, dtype=np.float64) ** 2)))
 
 
-def run_route(face, units, posed, tmp, log, views=1):
+def run_route(face, units, posed, tmp, log, extra=()):
     import bpy
 
     from facelab_addon.blender import caches
@@ -69,7 +80,8 @@ def run_route(face, units, posed, tmp, log, views=1):
     from facelab_addon.pipeline.propagate import training_input
     from facelab_addon.testing.route import build_route_scene, sketch_truth
 
-    out = dict(units=units, armature_posed=posed, views=views)
+    views = 1 + len(extra)
+    out = dict(units=units, armature_posed=posed, views=views, cameras=["Camera", *extra])
     t = {}
     t0 = time.perf_counter()
     rs = build_route_scene(face, units=units, armature=True, pose=posed, frames=FRAMES)
@@ -103,8 +115,8 @@ def run_route(face, units, posed, tmp, log, views=1):
     px_before, px_after, sk = [], [], {}
     t0 = time.perf_counter()
     for f in TRAIN:
-        if views == 2:
-            sketch_truth(rs, f, rs.cameras[1])
+        for name in extra:  # every camera sketched on the frame is a view of the same Refine Lips solve
+            sketch_truth(rs, f, next(c for c in rs.cameras if c.name == name))
         gp, up, lo = sketch_truth(rs, f, cam0)
         sk[f] = (up, lo)
         scene.facelab.sketch = gp
@@ -178,7 +190,7 @@ def run_route(face, units, posed, tmp, log, views=1):
     per_frame = dict(capture=np.sqrt(np.mean((np.linalg.norm(captured - truth, axis=2)[:, il] * mm) ** 2, axis=1)),
                      after=np.sqrt(np.mean((np.linalg.norm(final - truth, axis=2)[:, il] * mm) ** 2, axis=1)))
     pic = dict(per_frame=per_frame, V=rs.neutral, F=tris, mouth=mouth, lips=lips, loop=rs.loop, skin=rs.face_mask)
-    log(f"{units} posed={posed} views={views}: refine cut {out[rkey]['rms_cut_pct']} %, held-out "
+    log(f"{units} posed={posed} cameras={out['cameras']}: refine cut {out[rkey]['rms_cut_pct']} %, held-out "
         f"{out['propagate_held_out']['after_pct_of_capture']} %, outside {out['max_move_outside_mouth_area_mm']}")
     return out, pic
 
@@ -231,7 +243,9 @@ def picture(path, pics):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="metres, unposed only (one and two views)")
+    ap.add_argument("--quick", action="store_true", help="metres, unposed only (one view; two with Camera.below)")
+    ap.add_argument("--views", action="store_true",
+                    help="only the view comparison: metres, at rest and posed, one view, + Camera.below, + Camera.side")
     ap.add_argument("--png", default=None, help="write the picture here (e.g. docs/images/any_face.png)")
     args = ap.parse_args(argv)
     sys.stdout.flush()
@@ -254,10 +268,10 @@ def main(argv=None):
     pics = {}
     for name, face in faces.items():
         runs = []
-        for units, posed, views in ([c for c in CASES if c[0] == "m" and not c[1]] if args.quick else CASES):
-            r, pic = run_route(face, units, posed, tmp, log, views)
+        for units, posed, extra in (QUICK if args.quick else VIEWS if args.views else CASES):
+            r, pic = run_route(face, units, posed, tmp, log, extra)
             runs.append(r)
-            if pic is not None and units == "m" and not posed and views == 1:
+            if pic is not None and units == "m" and not posed and not extra:
                 pics[name] = pic
         ok = [r for r in runs if "error" not in r and r["views"] == 1]
         agree = None
