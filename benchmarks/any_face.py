@@ -25,6 +25,8 @@ and at rest with the main and the side camera):
 * how much of the Refine correction Propagate's regression reproduces on its own training frames;
 * Propagate on the 30 held-out frames: inner-lip RMS as a share of the capture's (target <= 50 %);
 * Auto Regions: how much of the capture error lies in ``FL_lips`` (and in the trusted ``FL_mouth``);
+* the most a Refine that moves only the inside of ``FL_lips`` could cut (its border and everything outside keep
+  the capture's error: ``best_possible_cut_pct``);
 * the largest movement outside ``FL_mouth`` and ``FL_lips``, on held-out frames (Propagate) and on
   training frames (Refine) (target <= 0.01 mm);
 * seconds per step.
@@ -149,6 +151,14 @@ def run_route(face, units, posed, tmp, log, extra=()):
                      target_cut_pct=50 if views == 1 else 70)
     moved = np.linalg.norm(refined - captured[it], axis=2) * mm
     out[rkey]["max_move_outside_lips_mm"] = round(float(moved[:, ~lips].max()), 4)
+    # the most any Refine that moves only the inside of FL_lips could cut: its held border and everything
+    # outside keep the capture's error
+    inside = lips[tris].all(axis=1)
+    free = np.zeros(len(lips), bool)
+    free[tris[inside].ravel()] = True
+    free[tris[~inside].ravel()] = False
+    held = np.sum(e_cap[:, ~free[il]] ** 2) / np.sum(e_cap**2)
+    out[rkey]["best_possible_cut_pct"] = round(100 * (1 - float(np.sqrt(held))), 1)
 
     # how much of the Refine correction the regression reproduces on its own training frames
     mf, lf = faces_in_region(tris, mouth), faces_in_region(tris, lips)
@@ -201,13 +211,55 @@ def _rest(obj):
     return rest_vertices(obj)
 
 
-def picture(path, pics):
+def views_panel(ax, faces):
+    """Bar chart: Refine's 3D inner-lip RMS cut per face, camera set, at rest and posed (metres runs)."""
+    sets = [("Camera",), ("Camera", "Camera.below"), ("Camera", "Camera.side")]
+    labels = ["main camera", "+ lower camera (35° below)", "+ side camera (35°)"]
+    colours = ["tab:gray", "tab:blue", "tab:orange"]
+    groups = [(f, posed) for f in faces for posed in (False, True)]
+    width = 0.8 / len(sets)
+    for k, (cams, lab, col) in enumerate(zip(sets, labels, colours)):
+        xs, ys = [], []
+        for g, (face, posed) in enumerate(groups):
+            for r in faces[face]["runs"]:
+                if r.get("units") == "m" and r.get("armature_posed") == posed and tuple(r.get("cameras", ())) == cams:
+                    res = r.get("refine_one_view" if len(cams) == 1 else "refine_two_views")
+                    if res:
+                        xs.append(g + (k - 1) * width)
+                        ys.append(res["rms_cut_pct"])
+        ax.bar(xs, ys, width, color=col, label=lab)
+        if k == 0:  # what a perfect solve of the inside of FL_lips would cut (its border held)
+            for g, (face, posed) in enumerate(groups):
+                best = [r["refine_one_view"].get("best_possible_cut_pct") for r in faces[face]["runs"]
+                        if r.get("refine_one_view") and r.get("armature_posed") == posed and r.get("units") == "m"]
+                if best and best[0] is not None:
+                    ax.plot([g - 0.45, g + 0.45], [best[0]] * 2, "k-", lw=1.2,
+                            label="best possible (FL_lips border held)" if g == 0 else None)
+        for x, y in zip(xs, ys):
+            ax.text(x, y + 0.8, f"{y:.0f}", ha="center", fontsize=7)
+    ax.set_xticks(range(len(groups)))
+    ax.set_xticklabels([f"{f.split(' (')[0]}\n{'head nodded 20°' if p else 'at rest'}" for f, p in groups], fontsize=8)
+    ax.axhline(70, color="k", ls=":", lw=0.8)
+    ax.text(len(groups) - 0.5, 71, "two-view target", ha="right", fontsize=7)
+    ax.set_ylabel("Refine: 3D inner-lip RMS cut, %")
+    ax.set_ylim(0, 80)
+    ax.legend(fontsize=7, loc="upper left")
+    ax.set_title("Refine from one and two cameras (10 sketched frames)", fontsize=10)
+
+
+def picture(path, pics, faces=None):
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(2, 2, figsize=(12, 8))
+    three = bool(faces) and any(len(r.get("cameras", ())) > 1 for f in faces.values() for r in f["runs"])
+    fig, ax = plt.subplots(2, 3 if three else 2, figsize=(18 if three else 12, 8), squeeze=False)
+    if three:
+        gs = ax[0, 2].get_gridspec()
+        ax[0, 2].remove()
+        ax[1, 2].remove()
+        views_panel(fig.add_subplot(gs[:, 2]), faces)
     for col, (name, p) in enumerate(pics.items()):
         a = ax[0, col]
         a.plot(FRAMES, p["per_frame"]["capture"], "-", color="0.5", label="capture")
@@ -273,7 +325,7 @@ def main(argv=None):
             runs.append(r)
             if pic is not None and units == "m" and not posed and not extra:
                 pics[name] = pic
-        ok = [r for r in runs if "error" not in r and r["views"] == 1]
+        ok = [r for r in runs if "error" not in r and r["views"] == 1 and not r["armature_posed"]]  # units only
         agree = None
         if len(ok) > 1:
             keys = [("refine_one_view", "rms_cut_pct"), ("propagate_held_out", "after_pct_of_capture")]
@@ -281,7 +333,7 @@ def main(argv=None):
         out["faces"][name] = dict(runs=runs, units_agree=agree)
     out["total_s"] = round(time.perf_counter() - t_all, 1)
     if args.png and pics:
-        picture(args.png, pics)
+        picture(args.png, pics, out["faces"])
         out["picture"] = args.png
     facelab_addon.unregister()
     sys.stdout.flush()
