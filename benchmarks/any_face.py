@@ -25,6 +25,8 @@ and at rest with the main and the side camera):
 * how much of the Refine correction Propagate's regression reproduces on its own training frames;
 * Propagate on the 30 held-out frames: inner-lip RMS as a share of the capture's (target <= 50 %);
 * Auto Regions: how much of the capture error lies in ``FL_lips`` (and in the trusted ``FL_mouth``);
+* the inner-lip RMS error along the main camera's rays (``depth_rms_mm_before`` / ``_after``: what one view
+  cannot see);
 * the most a Refine that moves only the inside of ``FL_lips`` could cut (its border and everything outside keep
   the capture's error: ``best_possible_cut_pct``);
 * the largest movement outside ``FL_mouth`` and ``FL_lips``, on held-out frames (Propagate) and on
@@ -159,6 +161,14 @@ def run_route(face, units, posed, tmp, log, extra=()):
     free[tris[~inside].ravel()] = False
     held = np.sum(e_cap[:, ~free[il]] ** 2) / np.sum(e_cap**2)
     out[rkey]["best_possible_cut_pct"] = round(100 * (1 - float(np.sqrt(held))), 1)
+    # the error along the main camera's rays (the depth one view cannot see), before and after
+    Tw = truth[it][:, il] @ M[:3, :3].T + M[:3, 3]
+    ray = Tw - cam.center
+    ray /= np.linalg.norm(ray, axis=2, keepdims=True)
+    for key, X in (("before", captured[it]), ("after", refined)):
+        dz = np.einsum("tvc,tvc->tv", (X[:, il] - truth[it][:, il]) @ M[:3, :3].T, ray) * mm / float(np.cbrt(
+            abs(np.linalg.det(M[:3, :3]))))
+        out[rkey][f"depth_rms_mm_{key}"] = round(_rms(dz), 4)
 
     # how much of the Refine correction the regression reproduces on its own training frames
     mf, lf = faces_in_region(tris, mouth), faces_in_region(tris, lips)
