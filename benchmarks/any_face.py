@@ -6,7 +6,9 @@ barycentrically, so the truth stays known; teeth, gums and eyes as separate part
 Z-up scene (``testing.route.build_route_scene``) under a head + jaw armature, performing five mouth
 expressions over 40 frames, with a keyed ``CaptureError`` key that pulls the inner lips apart (up to
 1.25 mm per lip, more as the jaw closes, crossing when it opens): the capture. A frontal camera looks
-at the mouth from 40 cm (a second one 35° to the side is there for two-view refinement).
+at the mouth from 40 cm; for two-view refinement the scene also has the lower camera of a helmet rig (35° below
+the mouth, looking up at it: it sees how far the lips sit forward) and a witness camera 35° to the side
+(``testing.route.CAMERAS``).
 
 The route, as an artist runs it, through the operators: ``facelab.auto_regions`` (automatic: no
 selection, no painting), on k = 10 training frames a Grease Pencil sketch of the truth's inner-lip
@@ -14,22 +16,28 @@ silhouettes (``testing.route.sketch_truth``) and ``facelab.refine_lips``, then `
 over the 40 frames and ``facelab.bake`` to a PC2 file.
 
 Reported per face and case (metres at rest; centimetres; millimetres; metres with the armature
-posed: head turned 20°, jaw 5°; metres at rest with two views):
+posed: head turned 20°, jaw 5°; metres at rest and posed with two views, the main camera and the lower one,
+and at rest with the main and the side camera):
 
 * Refine on the training frames: image-space contour error (px, before -> after) and the 3D
-  inner-lip RMS cut (target >= 50 % with one view, >= 70 % with two views: one more run per face, in
-  metres, unposed, with the side camera sketched too; Refine Lips solves every camera sketched on the
-  frame at once);
+  inner-lip RMS cut (target >= 50 % with one view, >= 70 % with two views; every camera sketched on the
+  frame is a view of the one Refine Lips solve);
 * how much of the Refine correction Propagate's regression reproduces on its own training frames;
 * Propagate on the 30 held-out frames: inner-lip RMS as a share of the capture's (target <= 50 %);
 * Auto Regions: how much of the capture error lies in ``FL_lips`` (and in the trusted ``FL_mouth``);
+* the inner-lip RMS error along the main camera's rays (``depth_rms_mm_before`` / ``_after``: what one view
+  cannot see);
+* the most a Refine that moves only the inside of ``FL_lips`` could cut (its border and everything outside keep
+  the capture's error: ``best_possible_cut_pct``);
 * the largest movement outside ``FL_mouth`` and ``FL_lips``, on held-out frames (Propagate) and on
   training frames (Refine) (target <= 0.01 mm);
 * seconds per step.
 
-Usage: ``PYTHONPATH=. python benchmarks/any_face.py [--quick] [--png docs/images/any_face.png]``.
-Prints one JSON object on stdout (save it as ``benchmarks/results/any_face.json``); Blender's own
-output goes to stderr. About 3-5 minutes on 2 shared cores (``--quick``: metres, unposed, one and two views, about 2).
+Usage: ``PYTHONPATH=. python benchmarks/any_face.py [--quick | --views] [--png docs/images/any_face.png]``.
+Prints one JSON object on stdout (save it as ``benchmarks/results/any_face.json``; the ``--views`` comparison,
+metres, at rest and posed, one view / + lower camera / + side camera, as ``benchmarks/results/any_face_views.json``);
+Blender's own output goes to stderr. About 8-12 minutes on 2 shared cores (``--quick``: metres, unposed, one view and
+two with the lower camera, about 3).
 """
 
 from __future__ import annotations
@@ -49,14 +57,21 @@ sys.path.insert(0, str(ROOT))
 
 FRAMES = np.arange(1, 41)
 TRAIN = list(range(2, 41, 4))  # k = 10
-CASES = [("m", False, 1), ("cm", False, 1), ("mm", False, 1), ("m", True, 1), ("m", False, 2)]
+#: (units, armature posed, the cameras sketched besides the main one). Two views: the main camera and the lower
+#: camera of a helmet rig (``Camera.below``, 35 degrees below the mouth looking up: depth), or a witness camera 35
+#: degrees to the side (``Camera.side``: little depth); see ``testing.route.CAMERAS``.
+CASES = [("m", False, ()), ("cm", False, ()), ("mm", False, ()), ("m", True, ()),
+         ("m", False, ("Camera.below",)), ("m", True, ("Camera.below",)), ("m", False, ("Camera.side",))]
+QUICK = [("m", False, ()), ("m", False, ("Camera.below",))]
+VIEWS = [("m", False, ()), ("m", True, ()), ("m", False, ("Camera.below",)), ("m", True, ("Camera.below",)),
+         ("m", False, ("Camera.side",)), ("m", True, ("Camera.side",))]
 
 
 def _rms(a):
     return float(np.sqrt(np.mean(np.asarray(a, dtype=np.float64) ** 2)))
 
 
-def run_route(face, units, posed, tmp, log, views=1):
+def run_route(face, units, posed, tmp, log, extra=()):
     import bpy
 
     from facelab_addon.blender import caches
@@ -69,7 +84,8 @@ def run_route(face, units, posed, tmp, log, views=1):
     from facelab_addon.pipeline.propagate import training_input
     from facelab_addon.testing.route import build_route_scene, sketch_truth
 
-    out = dict(units=units, armature_posed=posed, views=views)
+    views = 1 + len(extra)
+    out = dict(units=units, armature_posed=posed, views=views, cameras=["Camera", *extra])
     t = {}
     t0 = time.perf_counter()
     rs = build_route_scene(face, units=units, armature=True, pose=posed, frames=FRAMES)
@@ -103,8 +119,8 @@ def run_route(face, units, posed, tmp, log, views=1):
     px_before, px_after, sk = [], [], {}
     t0 = time.perf_counter()
     for f in TRAIN:
-        if views == 2:
-            sketch_truth(rs, f, rs.cameras[1])
+        for name in extra:  # every camera sketched on the frame is a view of the same Refine Lips solve
+            sketch_truth(rs, f, next(c for c in rs.cameras if c.name == name))
         gp, up, lo = sketch_truth(rs, f, cam0)
         sk[f] = (up, lo)
         scene.facelab.sketch = gp
@@ -137,6 +153,22 @@ def run_route(face, units, posed, tmp, log, views=1):
                      target_cut_pct=50 if views == 1 else 70)
     moved = np.linalg.norm(refined - captured[it], axis=2) * mm
     out[rkey]["max_move_outside_lips_mm"] = round(float(moved[:, ~lips].max()), 4)
+    # the most any Refine that moves only the inside of FL_lips could cut: its held border and everything
+    # outside keep the capture's error
+    inside = lips[tris].all(axis=1)
+    free = np.zeros(len(lips), bool)
+    free[tris[inside].ravel()] = True
+    free[tris[~inside].ravel()] = False
+    held = np.sum(e_cap[:, ~free[il]] ** 2) / np.sum(e_cap**2)
+    out[rkey]["best_possible_cut_pct"] = round(100 * (1 - float(np.sqrt(held))), 1)
+    # the error along the main camera's rays (the depth one view cannot see), before and after
+    Tw = truth[it][:, il] @ M[:3, :3].T + M[:3, 3]
+    ray = Tw - cam.center
+    ray /= np.linalg.norm(ray, axis=2, keepdims=True)
+    for key, X in (("before", captured[it]), ("after", refined)):
+        dz = np.einsum("tvc,tvc->tv", (X[:, il] - truth[it][:, il]) @ M[:3, :3].T, ray) * mm / float(np.cbrt(
+            abs(np.linalg.det(M[:3, :3]))))
+        out[rkey][f"depth_rms_mm_{key}"] = round(_rms(dz), 4)
 
     # how much of the Refine correction the regression reproduces on its own training frames
     mf, lf = faces_in_region(tris, mouth), faces_in_region(tris, lips)
@@ -178,7 +210,7 @@ def run_route(face, units, posed, tmp, log, views=1):
     per_frame = dict(capture=np.sqrt(np.mean((np.linalg.norm(captured - truth, axis=2)[:, il] * mm) ** 2, axis=1)),
                      after=np.sqrt(np.mean((np.linalg.norm(final - truth, axis=2)[:, il] * mm) ** 2, axis=1)))
     pic = dict(per_frame=per_frame, V=rs.neutral, F=tris, mouth=mouth, lips=lips, loop=rs.loop, skin=rs.face_mask)
-    log(f"{units} posed={posed} views={views}: refine cut {out[rkey]['rms_cut_pct']} %, held-out "
+    log(f"{units} posed={posed} cameras={out['cameras']}: refine cut {out[rkey]['rms_cut_pct']} %, held-out "
         f"{out['propagate_held_out']['after_pct_of_capture']} %, outside {out['max_move_outside_mouth_area_mm']}")
     return out, pic
 
@@ -189,13 +221,55 @@ def _rest(obj):
     return rest_vertices(obj)
 
 
-def picture(path, pics):
+def views_panel(ax, faces):
+    """Bar chart: Refine's 3D inner-lip RMS cut per face, camera set, at rest and posed (metres runs)."""
+    sets = [("Camera",), ("Camera", "Camera.below"), ("Camera", "Camera.side")]
+    labels = ["main camera", "+ lower camera (35° below)", "+ side camera (35°)"]
+    colours = ["tab:gray", "tab:blue", "tab:orange"]
+    groups = [(f, posed) for f in faces for posed in (False, True)]
+    width = 0.8 / len(sets)
+    for k, (cams, lab, col) in enumerate(zip(sets, labels, colours)):
+        xs, ys = [], []
+        for g, (face, posed) in enumerate(groups):
+            for r in faces[face]["runs"]:
+                if r.get("units") == "m" and r.get("armature_posed") == posed and tuple(r.get("cameras", ())) == cams:
+                    res = r.get("refine_one_view" if len(cams) == 1 else "refine_two_views")
+                    if res:
+                        xs.append(g + (k - 1) * width)
+                        ys.append(res["rms_cut_pct"])
+        ax.bar(xs, ys, width, color=col, label=lab)
+        if k == 0:  # what a perfect solve of the inside of FL_lips would cut (its border held)
+            for g, (face, posed) in enumerate(groups):
+                best = [r["refine_one_view"].get("best_possible_cut_pct") for r in faces[face]["runs"]
+                        if r.get("refine_one_view") and r.get("armature_posed") == posed and r.get("units") == "m"]
+                if best and best[0] is not None:
+                    ax.plot([g - 0.45, g + 0.45], [best[0]] * 2, "k-", lw=1.2,
+                            label="best possible (FL_lips border held)" if g == 0 else None)
+        for x, y in zip(xs, ys):
+            ax.text(x, y + 0.8, f"{y:.0f}", ha="center", fontsize=7)
+    ax.set_xticks(range(len(groups)))
+    ax.set_xticklabels([f"{f.split(' (')[0]}\n{'head nodded 20°' if p else 'at rest'}" for f, p in groups], fontsize=8)
+    ax.axhline(70, color="k", ls=":", lw=0.8)
+    ax.text(len(groups) - 0.5, 71, "two-view target", ha="right", fontsize=7)
+    ax.set_ylabel("Refine: 3D inner-lip RMS cut, %")
+    ax.set_ylim(0, 80)
+    ax.legend(fontsize=7, loc="upper left")
+    ax.set_title("Refine from one and two cameras (10 sketched frames)", fontsize=10)
+
+
+def picture(path, pics, faces=None):
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(2, 2, figsize=(12, 8))
+    three = bool(faces) and any(len(r.get("cameras", ())) > 1 for f in faces.values() for r in f["runs"])
+    fig, ax = plt.subplots(2, 3 if three else 2, figsize=(18 if three else 12, 8), squeeze=False)
+    if three:
+        gs = ax[0, 2].get_gridspec()
+        ax[0, 2].remove()
+        ax[1, 2].remove()
+        views_panel(fig.add_subplot(gs[:, 2]), faces)
     for col, (name, p) in enumerate(pics.items()):
         a = ax[0, col]
         a.plot(FRAMES, p["per_frame"]["capture"], "-", color="0.5", label="capture")
@@ -231,7 +305,9 @@ def picture(path, pics):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="metres, unposed only (one and two views)")
+    ap.add_argument("--quick", action="store_true", help="metres, unposed only (one view; two with Camera.below)")
+    ap.add_argument("--views", action="store_true",
+                    help="only the view comparison: metres, at rest and posed, one view, + Camera.below, + Camera.side")
     ap.add_argument("--png", default=None, help="write the picture here (e.g. docs/images/any_face.png)")
     args = ap.parse_args(argv)
     sys.stdout.flush()
@@ -254,12 +330,12 @@ def main(argv=None):
     pics = {}
     for name, face in faces.items():
         runs = []
-        for units, posed, views in ([c for c in CASES if c[0] == "m" and not c[1]] if args.quick else CASES):
-            r, pic = run_route(face, units, posed, tmp, log, views)
+        for units, posed, extra in (QUICK if args.quick else VIEWS if args.views else CASES):
+            r, pic = run_route(face, units, posed, tmp, log, extra)
             runs.append(r)
-            if pic is not None and units == "m" and not posed and views == 1:
+            if pic is not None and units == "m" and not posed and not extra:
                 pics[name] = pic
-        ok = [r for r in runs if "error" not in r and r["views"] == 1]
+        ok = [r for r in runs if "error" not in r and r["views"] == 1 and not r["armature_posed"]]  # units only
         agree = None
         if len(ok) > 1:
             keys = [("refine_one_view", "rms_cut_pct"), ("propagate_held_out", "after_pct_of_capture")]
@@ -267,7 +343,7 @@ def main(argv=None):
         out["faces"][name] = dict(runs=runs, units_agree=agree)
     out["total_s"] = round(time.perf_counter() - t_all, 1)
     if args.png and pics:
-        picture(args.png, pics)
+        picture(args.png, pics, out["faces"])
         out["picture"] = args.png
     facelab_addon.unregister()
     sys.stdout.flush()

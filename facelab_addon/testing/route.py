@@ -5,7 +5,8 @@
 axes turned to Blender's z-up, -y forward), in any scene unit and object scale, optionally under a
 head + jaw armature: a performance of mouth expressions keyed on every frame (the truth) plus a
 keyed ``CaptureError`` key (the inner lips pulled apart, more as the jaw closes: the error the artist
-fixes), a frontal camera 40 cm from the mouth and a second one 35° to the side.
+fixes), a frontal camera 40 cm from the mouth, a helmet-style lower camera 35° below the mouth looking
+up at it, and a witness camera 35° to the side (:data:`CAMERAS`).
 :func:`sketch_truth` draws the truth's inner-lip silhouettes on a frame as the artist would (one
 Grease Pencil sketch per camera), and :func:`lip_errors` measures a result against the truth.
 
@@ -21,8 +22,16 @@ import numpy as np
 
 from .weights import CYCLIC_MOUTH_CHANNELS, cyclic_mouth_weights
 
-__all__ = ["RouteScene", "build_route_scene", "sketch_truth", "lip_errors", "ERROR_KEY", "UNITS"]
+__all__ = ["CAMERAS", "RouteScene", "build_route_scene", "sketch_truth", "lip_errors", "ERROR_KEY", "UNITS"]
 
+#: The cameras, ``name: (azimuth, elevation)`` in degrees around the mouth (azimuth 0: in front of the face,
+#: positive toward the face's left; elevation positive above the mouth), all 40 cm from the mouth and looking at it.
+#: ``Camera`` is the main (scene) camera. ``Camera.below`` is the lower camera of a helmet rig, 35 degrees below the
+#: mouth looking up at it: its image direction across the lips mixes up-down with forward-back (sin 35 = 0.57), so
+#: together with the frontal view it sees the lips' depth. ``Camera.side`` is a witness 35 degrees to the side at
+#: mouth height: its image vertical is still the face's up, so it sees a vertical lip gap almost as the frontal
+#: camera does and adds little depth.
+CAMERAS = {"Camera": (0.0, 0.0), "Camera.below": (0.0, -35.0), "Camera.side": (35.0, 0.0)}
 #: The shape key holding the capture error.
 ERROR_KEY = "CaptureError"
 #: Named unit set-ups: (scene units per centimetre of the face, scene unit scale, object scale).
@@ -76,7 +85,7 @@ class _Turned:
 
 def build_route_scene(face, *, units: str = "m", frames=None, armature: bool = False, pose: bool = False,
                       error_mm: float = 1.25, expressions=CYCLIC_MOUTH_CHANNELS, name: str = "Face") -> RouteScene:
-    """A factory-fresh scene with ``face`` performing, a capture error on its inner lips, two cameras.
+    """A factory-fresh scene with ``face`` performing, a capture error on its inner lips, three cameras.
 
     Parameters
     ----------
@@ -144,17 +153,19 @@ def build_route_scene(face, *, units: str = "m", frames=None, armature: bool = F
     key_values_bulk(obj, [ERROR_KEY], frames, cap_w[:, None])
     inner = (d < 0.6 * cm) & face_mask
     arm = _add_armature(scene, obj, V0, loop, cm, pose) if armature else None
-    # cameras: frontal, 40 cm from the mouth, and 35 degrees to the side
+    # cameras (all 40 cm from the mouth, looking at it; see CAMERAS): the frontal main camera, the lower camera of a
+    # helmet rig (below the chin, looking up at the mouth: it sees how far the lips sit forward), and a witness camera
+    # to the side
     bpy.context.view_layer.update()
     M = np.array(obj.matrix_world)
     mc = (M[:3, :3] @ V0[loop].mean(axis=0)) + M[:3, 3]
     dist = 40.0 * per_cm
     cams = []
-    for k, ang in enumerate((0.0, 35.0)):
-        a = np.radians(ang)
-        eye = mc + dist * np.array([np.sin(a), -np.cos(a), 0.0])
+    for cname, (azim, elev) in CAMERAS.items():
+        a, e = np.radians(azim), np.radians(elev)
+        eye = mc + dist * np.array([np.sin(a) * np.cos(e), -np.cos(a) * np.cos(e), np.sin(e)])
         cam = Camera.look_at(eye, mc, [0, 0, 1], 50, 36, 1920, 1080)
-        cams.append(new_camera_object(scene, cam, name=f"Camera{'' if k == 0 else '.side'}", make_active=k == 0))
+        cams.append(new_camera_object(scene, cam, name=cname, make_active=cname == "Camera"))
     scene.camera = cams[0]
     bpy.context.view_layer.objects.active = obj
     obj.select_set(True)
