@@ -25,8 +25,9 @@ Configurations:
 7. (extra) ``markers+contours+corrective_unanchored``: 3 with the previous
    defaults (fit not tied to the markers-only fit, uniform corrective
    damping 0.01, contour weight 0.5);
-8. (extra) ``markers+contours+corrective_lip_line_pass``: 3 with the
-   lip-line pass (``solve_performance(lip_line_pass=True)``, off by default).
+8. (extra) ``markers+contours+corrective_one_pass``: 3 with one corrective
+   pass only (``solve_performance(lip_passes=0)``, the default before the lip
+   passes).
 
 ``--matrix`` runs markers only against 3 (and 7) side by side on the tuning
 and held-out faces and camera rigs of ``testing.solve_cases``, clean and with
@@ -88,13 +89,13 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from facelab_addon.core.capture.ict import load_ict  # noqa: E402
 from facelab_addon.core.lips.mouth import find_mouth  # noqa: E402
 from facelab_addon.core.solve.blendshape_solve import BlendshapeSolver, contour_region  # noqa: E402
-from facelab_addon.core.solve.corrective import OutOfSubspaceCorrective  # noqa: E402
+from facelab_addon.core.solve.corrective import OutOfSubspaceCorrective, lip_band  # noqa: E402
 from facelab_addon.core.solve.matching import (  # noqa: E402
     contour_curve_distance,
     contour_residuals,
     match_contours,
 )
-from facelab_addon.core.solve.performance import solve_performance  # noqa: E402
+from facelab_addon.core.solve.performance import LIP_PASSES, solve_performance  # noqa: E402
 from facelab_addon.testing.capture_sim import make_capture  # noqa: E402
 from facelab_addon.testing.contour_truth import ict_contour_loops  # noqa: E402
 from facelab_addon.testing.solve_cases import (  # noqa: E402
@@ -110,7 +111,7 @@ TARGET_MS_NO_CORRECTIVE = 50.0
 TARGET_MS_CORRECTIVE = 200.0
 HERE = os.path.dirname(os.path.abspath(__file__))
 LABELS = ["1 markers", "2 +contours", "3 +corrective", "4 fixed contours", "5 = 3 w/o eyelid 3D",
-          "6 = 3, paper energy", "7 = 3, unanchored", "8 = 3 + lip-line pass"]
+          "6 = 3, paper energy", "7 = 3, unanchored", "8 = 3, one pass"]
 ROOT = os.path.dirname(HERE)
 
 
@@ -196,6 +197,7 @@ def main(argv=None):
     region = contour_region(model.neutral, model.faces, loops)
     corrective = OutOfSubspaceCorrective(model.neutral, model.faces, cap.cameras, cap.markers, None,
                                          boundary=~face, warm_vertices=warm, region=region,
+                                         lip_band=lip_band(model.faces, loops, len(model.neutral)),
                                          pixel_units=args.corrective_units == "pixels")
     t_corr = time.perf_counter() - t0
 
@@ -210,9 +212,8 @@ def main(argv=None):
         "markers+contours+corrective_paper_energy": dict(curves=True, corrective=True, sliding=True, paper=True),
         # extra: 3 with the previous defaults (fit not tied to the markers-only fit, uniform corrective damping)
         "markers+contours+corrective_unanchored": dict(curves=True, corrective=True, sliding=True, unanchored=True),
-        # extra: 3 with the lip-line pass (solve_performance(lip_line_pass=True); an option, off by default)
-        "markers+contours+corrective_lip_line_pass": dict(curves=True, corrective=True, sliding=True,
-                                                          lip_line_pass=True),
+        # extra: 3 with one corrective pass (no lip passes: the default before them)
+        "markers+contours+corrective_one_pass": dict(curves=True, corrective=True, sliding=True, lip_passes=0),
     }
     paper_corrective = None
     out, results = {}, {}
@@ -233,7 +234,7 @@ def main(argv=None):
         corr.eyelid_weight = cfg.get("eyelid_weight", 0.5)
         res = solve_performance(slv, corr if cfg["corrective"] else None, cap.markers_px, None,
                                 cap.curves if cfg["curves"] else None, sliding=cfg["sliding"],
-                                lip_line_pass=cfg.get("lip_line_pass", False))
+                                lip_passes=cfg.get("lip_passes", LIP_PASSES))
         results[name] = res
         m = evaluate(model, cap, loops, names, res, face, lip)
         fr = [f for f in res.info["frames"] if f is not None][1:]
@@ -291,9 +292,8 @@ MATRIX_CONFIGS = {
     "full": dict(curves=True, corrective=True),
     # the same with the previous defaults (no anchor, uniform damping 0.01, contour weight 0.5): issue 15's numbers
     "full_unanchored": dict(curves=True, corrective=True, anchor_weight=0.0, region=False),
-    # "full" plus the lip-line pass (solve_performance(lip_line_pass=True)): a second corrective pass on the contour
-    # points still > 0.5 px off their curve after the first pass
-    "full_lip_line_pass": dict(curves=True, corrective=True, lip_line_pass=True),
+    # "full" with one corrective pass (solve_performance(lip_passes=0)): the default before the lip passes
+    "full_one_pass": dict(curves=True, corrective=True, lip_passes=0),
 }
 MATRIX_KEYS = ("vertex_mm_face", "vertex_mm_lips", "vertex_mm_lip_silhouette", "contour_rms_px", "marker_rms_px",
                "weight_mae", "ms_per_frame", "cpu_ms_per_frame")
@@ -317,19 +317,18 @@ def run_case(base, identity, amount, layout, noise_px, frames, lip_error_mm, con
     warm = np.concatenate(list(loops.mouth) + [x for v in loops.eyes.values() for x in v])
     region = contour_region(model.neutral, model.faces, loops)
     out = {}
+    band = lip_band(model.faces, loops, len(model.neutral))
     for name, cfg in (configs or MATRIX_CONFIGS).items():
         kw = {} if "anchor_weight" not in cfg else dict(anchor_weight=cfg["anchor_weight"])
         solver = BlendshapeSolver(model.neutral, D, model.faces, cap.cameras, cap.markers, None, loops=loops, **kw)
         corr = None
         if cfg["corrective"]:
-            ckw = dict(region=region) if cfg.get("region") is not False else dict(region=None, damping=0.01,
-                                                                                  contour_weight=0.5)
+            ckw = dict(region=region, lip_band=band) if cfg.get("region") is not False else dict(
+                region=None, damping=0.01, contour_weight=0.5)
             corr = OutOfSubspaceCorrective(model.neutral, model.faces, cap.cameras, cap.markers, None,
                                            boundary=~face, warm_vertices=warm, **ckw)
         res = solve_performance(solver, corr, cap.markers_px, None, cap.curves if cfg["curves"] else None,
-                                lip_line_pass=cfg.get("lip_line_pass", False),
-                                lip_line_threshold_px=cfg.get("lip_line_threshold_px", 0.5),
-                                lip_line_curve_px=cfg.get("lip_line_curve_px", 0.0))
+                                lip_passes=cfg.get("lip_passes", LIP_PASSES))
         m = evaluate(model, cap, loops, names, res, face, lip)
         fr = [f for f in res.info["frames"] if f is not None][1:]
         m["ms_per_frame"] = 1000 * float(np.median([f["time_s"] + f.get("corrective_time_s", 0.0) for f in fr]))
@@ -362,13 +361,13 @@ def matrix(args):
                   f" lip line {r['full']['contour_rms_px']:.2f} px, {r['full']['ms_per_frame']:.0f} ms"
                   f" [unanchored: face {r['ratios']['full_unanchored']['face']:.2f}x, lips "
                   f"{r['ratios']['full_unanchored']['inner_lips']:.2f}x]"
-                  f" [lip-line pass: face {r['ratios']['full_lip_line_pass']['face']:.2f}x, lips "
-                  f"{r['ratios']['full_lip_line_pass']['inner_lips']:.2f}x, "
-                  f"{r['full_lip_line_pass']['contour_rms_px']:.2f} px]", file=sys.stderr, flush=True)
+                  f" [one pass: face {r['ratios']['full_one_pass']['face']:.2f}x, lips "
+                  f"{r['ratios']['full_one_pass']['inner_lips']:.2f}x, "
+                  f"{r['full_one_pass']['contour_rms_px']:.2f} px]", file=sys.stderr, flush=True)
     summary = {}
     for split in ("tuning", "held_out"):
         sel = [r for r in rows if r["split"] == split]
-        for cfg in ("full", "full_unanchored", "full_lip_line_pass"):
+        for cfg in ("full", "full_unanchored", "full_one_pass"):
             summary[f"{split}/{cfg}"] = dict(
                 face_ratio_max=max(r["ratios"][cfg]["face"] for r in sel),
                 face_ratio_mean=float(np.mean([r["ratios"][cfg]["face"] for r in sel])),

@@ -137,6 +137,16 @@ class SolveSettings:
         0.03, label="Corrective Damping at Contours", min=0.0, soft_max=1.0,
         description="How strongly the corrective stays near the contours around the mouth and eyes (0.01 "
                     "elsewhere); lower lets lip and lid corrections spread further")
+    lip_passes: int = setting(
+        2, label="Lip Passes", min=0, max=10, soft_max=4,
+        description="Times the contours are matched again on the corrected mesh and the lips alone solved again "
+                    "(0: one corrective pass, the paper)")
+    lip_line_weight: float = setting(
+        8.0, label="Lip Line Weight", min=0.0, soft_max=50.0,
+        description="Weight of the tracked lip lines in the lip passes, relative to the markers (1)")
+    lip_damping: float = setting(
+        0.3, label="Lip Pass Damping", min=0.0, soft_max=3.0,
+        description="How strongly the lip passes keep the lip correction on the lip rim")
 
 
 @dataclass
@@ -448,7 +458,7 @@ def solve_performance(scene, obj, settings: SolveSettings, progress=None) -> Sol
         the face...) or no frame could be solved; nothing is written then.
     """
     from ..core.solve.blendshape_solve import BlendshapeSolver, contour_region
-    from ..core.solve.corrective import OutOfSubspaceCorrective
+    from ..core.solve.corrective import OutOfSubspaceCorrective, lip_band
     from ..core.solve.performance import solve_performance as core_solve
 
     t0 = time.perf_counter()
@@ -462,9 +472,11 @@ def solve_performance(scene, obj, settings: SolveSettings, progress=None) -> Sol
     if settings.use_corrective:
         boundary = OutOfSubspaceCorrective.default_boundary(g.neutral, g.tris, g.marker_points, g.bundle_points)
         region = None if g.loops is None else contour_region(g.neutral, g.tris, g.loops)
+        band = lip_band(g.tris, g.loops, len(g.neutral)) if g.loops is not None and g.loops.mouth else None
         corr = OutOfSubspaceCorrective(g.neutral, g.tris, g.cameras, g.marker_points, g.bundle_points,
                                        boundary=boundary | g.fixed, region=region,
-                                       region_damping=settings.contour_damping)
+                                       region_damping=settings.contour_damping, lip_band=band,
+                                       lip_contour_weight=settings.lip_line_weight, lip_damping=settings.lip_damping)
     frames = g.frames
     markers = g.markers
     if markers is None:
@@ -472,6 +484,7 @@ def solve_performance(scene, obj, settings: SolveSettings, progress=None) -> Sol
     t1 = time.perf_counter()
     # the core reports the index of the frame just solved; report frames done
     res = core_solve(solver, corr, markers, g.bundles, g.curves, sliding=settings.sliding,
+                     lip_passes=settings.lip_passes,
                      progress=(lambda i, n: progress(i + 1, n)) if progress is not None else None)
     t_fit = time.perf_counter() - t1
     solved = np.array([i for i in range(len(frames)) if i not in res.skipped], dtype=np.int64)

@@ -10,7 +10,7 @@ import pytest
 
 from facelab_addon.core.lips.mouth import find_mouth
 from facelab_addon.core.solve.blendshape_solve import BlendshapeSolver, contour_region
-from facelab_addon.core.solve.corrective import OutOfSubspaceCorrective
+from facelab_addon.core.solve.corrective import OutOfSubspaceCorrective, lip_band
 from facelab_addon.core.solve.matching import contour_curve_distance
 from facelab_addon.core.solve.performance import solve_performance
 from facelab_addon.testing.capture_sim import make_capture
@@ -133,26 +133,61 @@ def test_region_damping_applies_inside_the_contour_region_only(ict):
     assert inside[0.01, 0.3] < inside[0.01, 0.01], inside  # inside: the region's own damping
 
 
-def test_the_lip_line_pass_tightens_the_visible_lip_line_of_a_held_out_low_rig(held_out):
-    """The low rig (both cameras under the chin, held out): the first corrective pass stops short of the lip
-    curves (about 1.3 px RMS on these frames); the lip-line pass re-matches on the corrected mesh and pulls the
-    points still off the line closer (about 1.1 px), keeping the face no worse than markers alone and the inner
-    lips under 0.8x markers alone (it costs them some against the first pass: the option is off by default)."""
+def _solve_lip_line(model, cap, loops, face, lip, **kw):
+    """(lip line px RMS, face mm, inner-lip mm, result) of the default contour solve with ``kw`` for solve_performance."""
+    D = model.deltas(cap.names)
+    solver = BlendshapeSolver(model.neutral, D, model.faces, cap.cameras, cap.markers, None, loops=loops)
+    corr = OutOfSubspaceCorrective(model.neutral, model.faces, cap.cameras, cap.markers, None, boundary=~face,
+                                   region=contour_region(model.neutral, model.faces, loops),
+                                   lip_band=lip_band(model.faces, loops, len(model.neutral)))
+    res = solve_performance(solver, corr, cap.markers_px, None, cap.curves, **kw)
+    X = [model.neutral + np.einsum("s,svd->vd", res.weights[t], D) + res.correctives[t]
+         for t in range(len(cap.truth))]
+    px = np.concatenate([contour_curve_distance(X[t], cap.cameras, res.correspondences[t], cap.curves[t])
+                         for t in range(len(cap.truth))])
+    return (float(np.sqrt(np.mean(px ** 2))),) + _errors(model, res, cap, face, lip) + (res,)
+
+
+def test_the_lip_passes_put_the_visible_lip_line_under_a_pixel_on_a_held_out_low_rig(held_out):
+    """The low rig (both cameras under the chin, held out): one corrective pass stops short of the lip curves
+    (about 1.3 px RMS on these frames: the contour the rig mesh shows a steep camera can sit several edge rings
+    from the truth's, and a damped least-squares pass removes only ~75 % of what the fit leaves). The default
+    lip passes (match again on the corrected mesh, solve the lip band again with a heavier line weight) take it
+    under 1 px while the face stays no worse than markers alone and the inner lips under 0.8x."""
     model, cap, loops, face, lip = held_out
     D = model.deltas(cap.names)
     markers = BlendshapeSolver(model.neutral, D, model.faces, cap.cameras, cap.markers, None, loops=loops)
     face_m, lip_m = _errors(model, solve_performance(markers, None, cap.markers_px, None, None), cap, face, lip)
-    out = {}
-    for on in (False, True):
-        solver = BlendshapeSolver(model.neutral, D, model.faces, cap.cameras, cap.markers, None, loops=loops)
-        corr = OutOfSubspaceCorrective(model.neutral, model.faces, cap.cameras, cap.markers, None, boundary=~face,
-                                       region=contour_region(model.neutral, model.faces, loops))
-        res = solve_performance(solver, corr, cap.markers_px, None, cap.curves, lip_line_pass=on)
-        X = [model.neutral + np.einsum("s,svd->vd", res.weights[t], D) + res.correctives[t]
-             for t in range(len(cap.truth))]
-        px = np.concatenate([contour_curve_distance(X[t], cap.cameras, res.correspondences[t], cap.curves[t])
-                             for t in range(len(cap.truth))])
-        out[on] = (float(np.sqrt(np.mean(px ** 2))),) + _errors(model, res, cap, face, lip)
-    assert out[False][0] > 1.0, out  # what issue 15's follow-up reported: the line stops short on this rig
-    assert out[True][0] < 0.9 * out[False][0], out
-    assert out[True][1] <= face_m and out[True][2] < 0.8 * lip_m, (out, face_m, lip_m)
+    one = _solve_lip_line(model, cap, loops, face, lip, lip_passes=0)
+    new = _solve_lip_line(model, cap, loops, face, lip)
+    assert one[0] > 1.0, one[:3]  # what issue 15's follow-up reported: the line stops short on this rig
+    assert new[0] < 1.0, (new[:3], one[:3])
+    assert new[1] <= face_m and new[2] < 0.8 * lip_m, (new[:3], face_m, lip_m)
+    assert new[2] <= one[2], (new[:3], one[:3])  # the lips in 3D are no worse than after one pass
+
+
+def test_the_lip_band_solve_moves_only_the_lips(held_out):
+    """``lip_band_solve`` re-solves the band with the rest of the face held: outside the band ``ΔV`` is exactly
+    the first pass's, inside it moves towards the tracked lip line."""
+    model, cap, loops, face, lip = held_out
+    D = model.deltas(cap.names)
+    t = int(np.argmax(cap.lip_error))
+    solver = BlendshapeSolver(model.neutral, D, model.faces, cap.cameras, cap.markers, None, loops=loops)
+    band = lip_band(model.faces, loops, len(model.neutral))
+    corr = OutOfSubspaceCorrective(model.neutral, model.faces, cap.cameras, cap.markers, None, boundary=~face,
+                                   region=contour_region(model.neutral, model.faces, loops), lip_band=band)
+    res = solver.solve_frame(cap.markers_px[t], None, cap.curves[t])
+    Vb = solver.vertices(res.weights)
+    cc = solver.match(res.weights, cap.curves[t], previous=res.correspondences)
+    d1 = corr.solve(Vb, cap.markers_px[t], None, cc)
+    cc2 = solver.match(res.weights, cap.curves[t], previous=cc, vertices=Vb + d1)
+    d2 = corr.lip_band_solve(Vb, d1, cap.markers_px[t], None, cc2)
+    assert np.array_equal(d2[~band], d1[~band])
+    assert np.abs(d2[band] - d1[band]).max() > 1e-3 * float(model.scale)  # the lips did move (scene units)
+    mouth = [c for c in cc2 if c.name.startswith("mouth")]
+    rms = lambda d: float(np.sqrt(np.mean(contour_curve_distance(Vb + d, cap.cameras, mouth, cap.curves[t]) ** 2)))  # noqa: E731
+    assert rms(d2) < 0.7 * rms(d1), (rms(d1), rms(d2))
+    assert 200 < band.sum() < 0.2 * face.sum()  # the lips, not the face
+    # the optional lip-line pass acts on the band too
+    d3 = corr.lip_line_pass(Vb, d2, cap.markers_px[t], None, cc2, cap.curves[t])
+    assert np.array_equal(d3[~band], d1[~band]) and not np.array_equal(d3[band], d2[band])

@@ -33,10 +33,36 @@ from ..errors import FaceLabError
 from ..geometry.deform import LaplacianDeformer, PointConstraints
 from ..geometry.laplacian import cotangent_laplacian
 from ..geometry.linsolve import small_dense_threads
-from ..geometry.mesh import edge_faces, validate_mesh, vertex_adjacency
+from ..geometry.mesh import edge_faces, grow_region, validate_mesh, vertex_adjacency
 from .blendshape_solve import _check_cameras
 
-__all__ = ["OutOfSubspaceCorrective"]
+__all__ = ["OutOfSubspaceCorrective", "lip_band", "LIP_BAND_RINGS"]
+
+#: Edge rings around the mouth loops (lip weld to lip fronts) that :func:`lip_band` adds.
+LIP_BAND_RINGS = 2
+
+
+def lip_band(faces, loops, n_vertices: int, rings: int = LIP_BAND_RINGS) -> np.ndarray:
+    """(V,) bool: the lips, where the lip passes of the corrective may act.
+
+    The mouth's candidate contour loops (``loops.mouth``: from the lip weld
+    to the lip fronts) grown by ``rings`` edge rings. Topological, so it does
+    not depend on the scene's units or the face's size.
+
+    Parameters
+    ----------
+    faces : (F,3) int
+    loops : ContourLoops
+    n_vertices : int
+    rings : int
+    """
+    m = np.zeros(int(n_vertices), bool)
+    for v in getattr(loops, "mouth", None) or []:
+        m[np.asarray(v, np.int64).ravel()] = True
+    if not m.any():
+        raise FaceLabError("The contour loops have no mouth loops; a lip band needs them (build the loops with "
+                           "contour_loops on a mesh with an open mouth, or give no lip band).")
+    return grow_region(m, vertex_adjacency(np.asarray(faces, np.int64), int(n_vertices)), int(rings))
 
 
 class OutOfSubspaceCorrective:
@@ -109,13 +135,27 @@ class OutOfSubspaceCorrective:
         True: the distances are converted to pixels (times ``f / depth``),
         which weights the 2D terms ~(f/depth)^2 more: tighter contours, but
         the corrective then also fits the marker noise.
+    lip_band : (V,) bool, optional
+        Where :meth:`lip_band_solve` and :meth:`lip_line_pass` may act
+        (:func:`lip_band`): a second, small factor (the band's vertices
+        only, the rest held), so these passes cannot move the face outside
+        the lips and cost a fraction of a full solve. None: they act on the
+        whole free surface (the full factor).
+    lip_contour_weight, lip_damping : float
+        The 2D contour weight and the damping of :meth:`lip_band_solve` (not
+        in the paper; the first pass keeps ``contour_weight`` and
+        ``region_damping``). A heavier contour term with a stiffer damping
+        takes the lip rim onto the tracked line while keeping the correction
+        on the rim's few rings (chosen on the tuning captures, see
+        docs/solve.md: 8 and 0.3).
     """
 
     def __init__(self, neutral, faces, cameras, markers: SurfacePoints | None, bundles: SurfacePoints | None, *,
                  boundary=None, marker_weight: float = 1.0, bundle_weight: float = 1.0,
                  contour_weight: float = 0.5, eyelid_weight: float = 0.5, laplacian_weight: float = 1.0,
                  warm_vertices=None, pixel_units: bool = False, damping: float = 0.01,
-                 contour_metric: str = "plane", region=None, region_damping: float = 0.03):
+                 contour_metric: str = "plane", region=None, region_damping: float = 0.03, lip_band=None,
+                 lip_contour_weight: float = 8.0, lip_damping: float = 0.3):
         V0, F = validate_mesh(neutral, faces, name="neutral mesh")
         self.neutral, self.faces = V0, F
         self.cameras = _check_cameras(cameras)
@@ -150,6 +190,19 @@ class OutOfSubspaceCorrective:
         self.region = region
         self.deformer = LaplacianDeformer(L, lambda_reg=float(laplacian_weight), pos_weights=pos,
                                           pinned=boundary)
+        self.lip_band, self.band_deformer = None, None
+        self.lip_contour_weight, self.lip_damping = float(lip_contour_weight), float(lip_damping)
+        for nm, val in (("lip_contour_weight", self.lip_contour_weight), ("lip_damping", self.lip_damping)):
+            if not (np.isfinite(val) and val >= 0):
+                raise FaceLabError(f"{nm} must be a non-negative number, got {val!r}.")
+        if lip_band is not None:
+            lip_band = np.asarray(lip_band, bool)
+            if lip_band.shape != (n,):
+                raise FaceLabError(f"The lip band mask must have one entry per vertex ({n}), got {lip_band.shape}.")
+            self.lip_band = lip_band & ~boundary
+            if self.lip_band.any():
+                self.band_deformer = LaplacianDeformer(L, lambda_reg=float(laplacian_weight),
+                                                       pos_weights=self.lip_damping, pinned=~self.lip_band)
         self.factor_time_s = time.perf_counter() - t0
         if warm_vertices is not None:
             wv = np.unique(np.asarray(warm_vertices, np.int64))
@@ -182,9 +235,14 @@ class OutOfSubspaceCorrective:
         f = 0.5 * (cam.K[0, 0] + cam.K[1, 1])
         return (f / z) ** 2
 
-    def constraints(self, vertices_blend, markers_px, bundles, correspondences) -> PointConstraints | None:
-        """The frame's point constraints (marker rays, bundles, contour rays, eyelid points)."""
+    def constraints(self, vertices_blend, markers_px, bundles, correspondences,
+                    contour_weight: float | None = None) -> PointConstraints | None:
+        """The frame's point constraints (marker rays, bundles, contour rays, eyelid points).
+
+        ``contour_weight`` overrides the 2D contour weight (default: the constructor's).
+        """
         Vb = np.asarray(vertices_blend, float)
+        cw = self.contour_weight if contour_weight is None else float(contour_weight)
         items = []
         if self.markers is not None and markers_px is not None:
             mp = np.asarray(markers_px, float)
@@ -210,7 +268,7 @@ class OutOfSubspaceCorrective:
             if getattr(cc, "pixels", None) is not None and cc.camera >= 0:
                 cam = self.cameras[cc.camera]
                 o, d = cam.rays(np.asarray(cc.pixels, float))
-                s = self.contour_weight * self._px_scale(cam, np.einsum("ck,ckd->cd", bb, Vb[v]))
+                s = cw * self._px_scale(cam, np.einsum("ck,ckd->cd", bb, Vb[v]))
                 if self.contour_metric == "plane" and len(v) >= 2:
                     items.append(PointConstraints(v, bb, o, _contour_planes(d), s))
                 else:
@@ -229,6 +287,45 @@ class OutOfSubspaceCorrective:
             return np.zeros_like(Vb)
         with small_dense_threads(1):
             X = self.deformer.solve(Vb, Vb, C)
+        return X - Vb
+
+    def lip_band_solve(self, vertices_blend, delta, markers_px, bundles=None, correspondences=None) -> np.ndarray:
+        """Solve the corrective again inside the lip band, the rest held at ``delta``; returns the new ``ΔV``.
+
+        The energy of :meth:`solve` (Laplacian and damping of ``ΔV``, all
+        data terms) with the 2D contour weight ``lip_contour_weight`` and the
+        damping ``lip_damping``, minimised over the :attr:`lip_band` vertices
+        only, with every other vertex held at ``V_blend + delta``. Used after
+        matching the contours again on ``V_blend + delta`` (the first
+        correspondence was built on the rig mesh, where a steep view's
+        occluding contour can sit several edge rings from the truth's): §4.2's
+        alternation of correspondence and solve, applied to the lips alone.
+        Without a lip band this is :meth:`solve` (the whole surface).
+
+        Parameters
+        ----------
+        vertices_blend : (V,3) float
+            The rig's fitted mesh, scene units.
+        delta : (V,3) float
+            The current ``ΔV``, scene units.
+        markers_px, bundles, correspondences
+            As for :meth:`solve` (correspondences matched on ``V_blend + delta``).
+
+        Returns
+        -------
+        (V,3) float64
+            ``ΔV``, equal to ``delta`` outside the band.
+        """
+        if self.band_deformer is None:
+            return self.solve(vertices_blend, markers_px, bundles, correspondences)
+        Vb = np.asarray(vertices_blend, dtype=np.float64)
+        dV = np.asarray(delta, dtype=np.float64)
+        C = self.constraints(Vb, markers_px, bundles, correspondences, contour_weight=self.lip_contour_weight)
+        if C is None:
+            return dV.copy()
+        anchor = Vb + np.where(self.lip_band[:, None], 0.0, dV)  # damping towards V_blend; the rest held
+        with small_dense_threads(1):
+            X = self.band_deformer.solve(anchor, Vb, _no_zero_bary(C))
         return X - Vb
 
     def off_the_line(self, vertices, correspondences, curves, curve_px: float) -> bool:
@@ -264,7 +361,8 @@ class OutOfSubspaceCorrective:
         markers and bundles, and adds the contour terms of the points whose
         pixel distance to their tracked curve on ``X1`` is above
         ``threshold_px`` (points already on the line are left out, so they are
-        not pulled twice). Not in the paper.
+        not pulled twice). With a :attr:`lip_band` only the band's vertices
+        move (the face outside the lips cannot change). Not in the paper.
 
         Parameters
         ----------
@@ -306,9 +404,27 @@ class OutOfSubspaceCorrective:
         C = PointConstraints.concat(items)
         if C is None:
             return X1 - Vb
+        deformer = self.deformer if self.band_deformer is None else self.band_deformer
         with small_dense_threads(1):
-            X = self.deformer.solve(X1, X1, C)
+            X = deformer.solve(X1, X1, _no_zero_bary(C))
         return X - Vb
+
+
+def _no_zero_bary(C: PointConstraints) -> PointConstraints:
+    """``C`` with every zero-weight member vertex replaced by its row's heaviest member (the same energy).
+
+    A contour point at an edge's end has a zero barycentric weight on the other
+    end vertex; when that vertex is free but appears in no other row,
+    ``LaplacianDeformer``'s Woodbury update indexes past its used-vertex list
+    (seen with the lip band's small free set).
+    """
+    b = np.asarray(C.bary)
+    zero = b == 0
+    if not zero.any():
+        return C
+    v = np.array(C.vertices, copy=True)
+    v[zero] = np.broadcast_to(v[np.arange(len(v)), np.argmax(b, axis=1)][:, None], v.shape)[zero]
+    return PointConstraints(v, C.bary, C.targets, C.metrics, C.strength)
 
 
 def _contour_planes(d):
