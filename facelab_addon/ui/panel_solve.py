@@ -74,6 +74,10 @@ def draw_solve_section(layout, context):
     row = col.row(align=True)
     row.prop(s, "anchor_weight")
     row.prop(s, "contour_damping")
+    row = col.row(align=True)
+    row.prop(s, "lip_passes")
+    row.prop(s, "lip_line_weight")
+    row.prop(s, "lip_damping")
     col.prop(s, "existing_animation")
     col.operator("facelab.solve_performance", icon="SHAPEKEY_DATA")
 

@@ -133,6 +133,16 @@ class FACELAB_PG_solve_scene(bpy.types.PropertyGroup):
         name="Corrective Damping at Contours", default=0.03, min=0.0, soft_max=1.0,
         description="How strongly the corrective stays near the contours around the mouth and eyes (0.01 "
                     "elsewhere); lower lets lip and lid corrections spread further")
+    lip_passes: IntProperty(
+        name="Lip Passes", default=2, min=0, max=10, soft_max=4,
+        description="Times the contours are matched again on the corrected mesh and the lips alone solved again "
+                    "(0: one corrective pass, the paper)")
+    lip_line_weight: FloatProperty(
+        name="Lip Line Weight", default=8.0, min=0.0, soft_max=50.0,
+        description="Weight of the tracked lip lines in the lip passes, relative to the markers (1)")
+    lip_damping: FloatProperty(
+        name="Lip Pass Damping", default=0.3, min=0.0, soft_max=3.0,
+        description="How strongly the lip passes keep the lip correction on the lip rim")
     existing_animation: EnumProperty(
         name="Existing Animation",
         items=[("NEW_ACTION", "New Action", "Keep the artist's shape-key action (fake user) and write the solve to a "
@@ -226,7 +236,8 @@ def solve_settings(scene) -> SolveSettings:
         annotation_view=s.annotation_view, use_corrective=s.use_corrective, sliding=s.sliding,
         weight_min=s.weight_min, weight_max=s.weight_max, marker_weight=s.marker_weight,
         contour_weight=s.contour_weight, existing_animation=s.existing_animation, anchor_weight=s.anchor_weight,
-        contour_damping=s.contour_damping)
+        contour_damping=s.contour_damping, lip_passes=s.lip_passes, lip_line_weight=s.lip_line_weight,
+        lip_damping=s.lip_damping)
 
 
 def retarget_settings(scene) -> RetargetSettings:

@@ -260,3 +260,22 @@ def test_modifier_state_puts_back_modes_and_removes_what_was_added(addon, tmp_pa
     assert md.deform_mode == "OVERWRITE" and other.show_viewport and other.show_render
     assert not baked.exists() and len(undone) == 4
     assert state.restore() == []  # nothing left to undo
+
+
+def test_solve_panel_settings_default_to_the_pipeline_defaults(addon):
+    """Every Solve setting declared with ``pipeline.settings.setting`` reaches the pipeline from the panel with
+    its declared default (a field missing from the panel would silently run at a different value)."""
+    from dataclasses import fields
+
+    from facelab_addon.pipeline.solve import SolveSettings
+    from facelab_addon.ui.props_solve import solve_settings
+
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    scene = bpy.context.scene
+    got, want = solve_settings(scene), SolveSettings()
+    declared = [f.name for f in fields(SolveSettings) if f.metadata.get("facelab")]
+    assert {"anchor_weight", "lip_passes", "lip_line_weight", "lip_damping"} <= set(declared)
+    for name in declared:
+        assert getattr(got, name) == pytest.approx(getattr(want, name)), name
+    scene.facelab_solve.lip_passes = 0
+    assert solve_settings(scene).lip_passes == 0
