@@ -82,3 +82,22 @@ def test_everything_pinned_is_an_error():
     V, F, _ = grid(4)
     with pytest.raises(FaceLabError, match="fixed"):
         LaplacianDeformer(uniform_laplacian(F, len(V)), pinned=np.ones(len(V), bool))
+
+
+def test_zero_weight_member_that_is_the_largest_free_vertex_is_ignored():
+    """A contour point at an edge's end has a zero weight on the other end; when that vertex is free, in no
+    other row, and above every used vertex, it used to index past the used-vertex list."""
+    rng = np.random.default_rng(1)
+    V, F, _ = grid(6)
+    L = uniform_laplacian(F, len(V))
+    w = rng.uniform(0.1, 1, len(V))
+    pinned = np.zeros(len(V), bool)
+    pinned[:3] = True
+    targets, bary = [[1.0, 2.0, 0.5], [2.0, 1.0, 0.2]], [[1.0, 0.0], [0.4, 0.6]]
+    C = PointConstraints.points([[14, 35], [15, 16]], targets, 5.0, bary=bary)
+    D = LaplacianDeformer(L, lambda_reg=2.0, pos_weights=w, pinned=pinned)
+    X = D.solve(V, V, C)
+    np.testing.assert_allclose(X, dense_reference(L, 2.0, w, pinned, V, V, C), atol=1e-10)
+    same = PointConstraints.points([[14, 14], [15, 16]], targets, 5.0, bary=bary)
+    np.testing.assert_allclose(X, D.solve(V, V, same), atol=1e-12)  # vertex 35 carries no weight
+    assert np.linalg.norm(X[14] - V[14]) > 0.1

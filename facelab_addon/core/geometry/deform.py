@@ -244,11 +244,13 @@ class LaplacianDeformer:
         pinned_part = np.einsum("ck,ckd->cd", np.where(fv < 0, C.bary, 0.0), a[C.vertices])
         q = C.targets - pinned_part
         H = C.strength[:, None, None] * np.einsum("cji,cjk->cik", C.metrics, C.metrics)  # s PᵀP
-        used = np.unique(fv[(fv >= 0) & (b != 0)])
+        member = (fv >= 0) & (b != 0)
+        used = np.unique(fv[member])
         u = len(used)
         if u == 0:
             return X0
-        pos = np.searchsorted(used, np.where(fv >= 0, fv, used[0]))
+        # a free vertex with a zero weight is not in ``used``: point it at slot 0 (its b is 0, it adds nothing)
+        pos = np.searchsorted(used, np.where(member, fv, used[0]))
         # Quadratic form in x_U (u*3): Q = sum_c kron(b_c b_cᵀ, H_c), r = sum_c b_c ⊗ H_c q_c
         Q = np.zeros((u, 3, u, 3))
         r = np.zeros((u, 3))

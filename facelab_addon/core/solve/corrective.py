@@ -325,7 +325,7 @@ class OutOfSubspaceCorrective:
             return dV.copy()
         anchor = Vb + np.where(self.lip_band[:, None], 0.0, dV)  # damping towards V_blend; the rest held
         with small_dense_threads(1):
-            X = self.band_deformer.solve(anchor, Vb, _no_zero_bary(C))
+            X = self.band_deformer.solve(anchor, Vb, C)
         return X - Vb
 
     def off_the_line(self, vertices, correspondences, curves, curve_px: float) -> bool:
@@ -406,25 +406,8 @@ class OutOfSubspaceCorrective:
             return X1 - Vb
         deformer = self.deformer if self.band_deformer is None else self.band_deformer
         with small_dense_threads(1):
-            X = deformer.solve(X1, X1, _no_zero_bary(C))
+            X = deformer.solve(X1, X1, C)
         return X - Vb
-
-
-def _no_zero_bary(C: PointConstraints) -> PointConstraints:
-    """``C`` with every zero-weight member vertex replaced by its row's heaviest member (the same energy).
-
-    A contour point at an edge's end has a zero barycentric weight on the other
-    end vertex; when that vertex is free but appears in no other row,
-    ``LaplacianDeformer``'s Woodbury update indexes past its used-vertex list
-    (seen with the lip band's small free set).
-    """
-    b = np.asarray(C.bary)
-    zero = b == 0
-    if not zero.any():
-        return C
-    v = np.array(C.vertices, copy=True)
-    v[zero] = np.broadcast_to(v[np.arange(len(v)), np.argmax(b, axis=1)][:, None], v.shape)[zero]
-    return PointConstraints(v, C.bary, C.targets, C.metrics, C.strength)
 
 
 def _contour_planes(d):
