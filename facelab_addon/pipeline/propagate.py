@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..blender import cache_integrate, caches
+from ..blender import bakes, cache_integrate, caches
 from ..blender.capture_stream import CaptureReader
 from ..blender.mesh import mesh_triangles, require_mesh
 from ..blender.objects import ModifierState, local_length, require_editable
@@ -357,6 +357,12 @@ def _propagate_work(scene, obj, frames, settings, t0, tris, mouth_faces, lip_fac
     T = len(frames)
     total = T + 2  # progress units: fit, T frames corrected, write
     on_cache = caches.sequence_source(obj) in _CACHE_SOURCES
+    storage = stored(scene, STORE_SETTINGS_ATTR, StorageSettings)
+    if on_cache and T > _key_shapes_over_cache(storage.key_budget):
+        # over a captured cache a long shot's correction goes to a point cache: refuse an unsaved .blend without a
+        # cache folder now, before the scene changes, not after every frame was corrected
+        bakes.correction_cache_path(obj, PROPAGATE_PREFIX, str(storage.cache_format).upper(),
+                                    storage.cache_directory or None)
     note = cache_integrate.cache_to_shape_key_ready(obj, scene_frames=frames) if on_cache else ""
     yield "fitting", 0, total
     rest = rest_vertices(obj)
@@ -382,7 +388,6 @@ def _propagate_work(scene, obj, frames, settings, t0, tris, mouth_faces, lip_fac
     at_used = np.searchsorted(read_v, reg.used_vertices)
     at_ring = None if ring is None else np.searchsorted(read_v, ring.vertices)
     # half the storage tolerance here, half for the writer's own compression (the shot's setting, world mm)
-    storage = stored(scene, STORE_SETTINGS_ATTR, StorageSettings)
     tol = local_length(scene, obj, 0.5e-3 * storage.tolerance_mm)
     # Over a cache the keys ride on its surface, so a correction that is a few shapes on the mesh is, as key
     # offsets, a new shape on every frame. The shown correction is spooled as it comes (the patch cache after the

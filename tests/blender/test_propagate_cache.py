@@ -73,6 +73,13 @@ def test_refine_and_propagate_on_a_mesh_cache(tmp_path, ict, addon, patch, monke
 
     bpy.context.view_layer.objects.active = obj
     assert bpy.ops.facelab.auto_regions() == {"FINISHED"}
+    if patch:  # an unsaved .blend without a cache folder is refused before the shot is corrected, scene untouched
+        assert not bpy.data.filepath
+        before = [(m.name, m.type, getattr(m, "deform_mode", None)) for m in obj.modifiers]
+        with monkeypatch.context() as m, pytest.raises(RuntimeError, match="not saved"):
+            m.setattr(prop, "CaptureReader", None)  # refused before a frame is read
+            bpy.ops.facelab.propagate(suggestions=0)
+        assert [(m.name, m.type, getattr(m, "deform_mode", None)) for m in obj.modifiers] == before
     scene.facelab_store.cache_directory = str(tmp_path)
     assert bpy.ops.facelab.propagate(suggestions=0) == {"FINISHED"}
     names = [(m.name, m.type) for m in obj.modifiers]
