@@ -108,7 +108,7 @@ def test_patch_whose_mouth_does_not_move_reads_the_whole_mouth():
     with pytest.raises(PredictionError):
         LipRegressor(V, F, mouth, lips, patches=10, atol=0.0).fit(train[None]).predict(seq)
     reg = LipRegressor(V, F, mouth, lips, patches=10).fit(train[None])
-    np.testing.assert_allclose(reg.predict(train)[0], train, atol=1e-9)
+    np.testing.assert_allclose(reg.predict(train)[0], train, atol=1e-7 * reg.mouth_size)  # float32 arithmetic
     move = np.linalg.norm(reg.predict(seq) - seq, axis=2).max(axis=1)
     assert move[0] < 1e-9 and np.all(move < 0.8 * MM)  # the rest pose predicts itself; nothing above the fix
 
