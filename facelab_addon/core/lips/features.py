@@ -599,7 +599,7 @@ class _Float32Prediction:
         if not (np.isfinite(G).all() and np.isfinite(GB).all() and np.isfinite(xc).all()):
             return None
         rm, rb = self.ref  # float64: float32 and float64 frames of the same positions give the same displacements
-        D = np.subtract(G, rm, out=np.empty(G.shape, np.float32), casting="unsafe")  # (t, nv, 3), rounded once
+        D = np.subtract(G, rm).astype(np.float32)  # (t, nv, 3)
         z = D.reshape(t, -1) @ self.Mx  # (t, R)
         Xc = D.transpose(2, 0, 1) + self.rest_local  # (3, t, nv) positions about the mouth's centre
         C = np.empty((3, t, self.Mc.shape[1]), np.float32)
@@ -607,7 +607,7 @@ class _Float32Prediction:
             self._phantom(Xc[:, b : b + _F32_SUB], C[:, b : b + _F32_SUB])
         for i in range(3):
             z += C[i] @ self.Mc[i]
-        dB = np.subtract(GB, rb, out=np.empty(GB.shape, np.float32), casting="unsafe").transpose(0, 2, 1)
+        dB = np.subtract(GB, rb).astype(np.float32).transpose(0, 2, 1)  # (t, 3, nB)
         P = np.matmul(np.ascontiguousarray(dB).reshape(3 * t, -1), self.Ht).reshape(t, 3, -1)
         P += (z @ self.K).reshape(t, 3, -1)  # (t, 3, nI) interior displacements from x_I(X_rest)
         xi = np.empty((t, len(iv), 3), dtype)

@@ -561,7 +561,8 @@ class LipRegressor(_StreamingPrediction):
             working memory is otherwise a few tens of MB (the float32 maps
             and one block of 128 frames).
         chunk : int
-            Frames per batch (working memory ~ chunk × lip size).
+            Frames per batch (working memory ~ chunk × lip size); at most
+            128 on the float32 path.
 
         Returns
         -------
