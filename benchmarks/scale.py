@@ -13,7 +13,9 @@ the wall time is inflated by the load, the CPU time much less), the .blend growt
 the held-out inner-lip error against the truth on 20 frames of the evaluated mesh.
 
 Also: core ``LipRegressor.predict`` frames/s at both sizes (in place, float32, after a warm-up) and
-core ``refine_lips`` seconds at both sizes (``--core-only`` runs just these two),
+core ``refine_lips`` seconds at both sizes (``--core-only`` runs just these two; its JSON is saved to
+``benchmarks/results/scale_core.json``: CPU a frame also with one BLAS thread, the ratio to the CPU time before
+the float32 maps, and the float32 result's largest deviation from the float64 maps in mm),
 medians of repeated runs where cheap, the machine's load (``uptime``) before and after, and a plot
 of time and peak memory against frames for both sizes with the paper's timing for scale (Dinev et
 al. 2018 report 5.15 s a frame for the prediction).

@@ -59,7 +59,7 @@ def f32_tol(reg):
 
     ``predict`` evaluates the fitted linear maps in float32 on changes from the rest pose and adds the rest's
     prediction in float64, so its rounding is relative to the mouth, not to the coordinates: measured up to
-    1.1e-8 of the mouth's size here and 2.7e-5 mm on the 105k-vertex ICT face (``benchmarks/scale.py``).
+    1e-8 of the mouth's size here and 2.2e-5 mm on the 105k-vertex ICT face (``benchmarks/scale.py``).
     The bound, 5 nm on a 5 cm mouth, is 2,000x below the 0.01 mm storage tolerance yet far below any
     modelling error these tests look for (>= 1e-3 of the mouth). Float64 paths are still compared exactly.
     """

@@ -65,11 +65,13 @@ class _Float32Prediction:
     ``x_I = K z + x0 - H x_B`` (:meth:`.features._StreamingPrediction._dense_solution`) with the coefficients
     ``z = Mxᵀ X + Mcᵀ c - z_ident`` (:func:`.features._fold_coefficients`) is evaluated in float32 on the
     displacements ``d = X - X_rest`` (formed in float64, so float32 and float64 frames of the same
-    positions give the same result) and on the phantom columns' changes ``c - c_rest``: every float32
-    number is a change from the rest pose, and the constant ``x_I(X_rest)`` is added in float64 (the
-    rest pose predicts exactly what the float64 maps do). The interior positions are then one batched
-    product per coordinate, ``[z_d, d_B,c] @ [K_c; -Hᵀ]``. Float32 rounding moves a predicted vertex by
-    about 1e-8 of the mouth's size (measured: 0.1 µm on ICT-FaceKit in metres, ``benchmarks/scale.py``),
+    positions give the same result) and on the phantom columns' changes ``c - c_rest`` (``c`` from
+    positions about the mouth's centre): every float32 number is a change from the rest pose, and the
+    constant ``x_I(X_rest)`` is added in float64 (the rest pose itself predicts exactly what the float64
+    maps do). A block of t frames costs two products for the coefficients (``d @ Mx``, ``c @ Mc``) and
+    two for the positions: the border displacements of all three coordinates as 3t rows times ``-Hᵀ``,
+    and ``z @ K``. Float32 rounding moves a predicted vertex by
+    about 1e-8 of the mouth's size (measured: at most 3e-5 mm on ICT-FaceKit, ``benchmarks/scale.py``),
     far below the 0.01 mm storage tolerance.
     """
 

@@ -22,7 +22,7 @@ Implementation notes (deviations are marked):
   frame costs its mouth gradients and a few dense products (the solve folded
   into dense maps while they are small, else one shared back-substitution).
   The paper reports 5.15 s a frame; :meth:`LipRegressor.predict` evaluates the folded maps in
-  float32, a block of frames per matrix product (about 0.5 ms a frame at 105k vertices).
+  float32, a block of frames per matrix product (0.55 ms CPU a frame at 105k vertices, load 9).
 * ``center="rest"`` (default, an addition to the paper): the regression runs
   on gradients minus the identity, ``x - I = θ (y - I)``, so the rest pose
   maps to itself and a single training frame already gives a pose-scaled
@@ -544,7 +544,7 @@ class LipRegressor(_StreamingPrediction):
             The fitted maps run in float32 on the changes from the rest pose
             (formed in float64, so float32 and float64 frames of the same
             positions give the same result): rounding moves a vertex by about
-            1e-8 of the mouth's size (2.7e-5 mm on ICT-FaceKit), far below
+            1e-8 of the mouth's size (at most 3e-5 mm on ICT-FaceKit), far below
             the 0.01 mm storage tolerance. Large lip regions, whose dense maps
             would not fit, are solved in float64 (sparse back-substitution).
         out : (T,V,3) ndarray, optional
