@@ -13,7 +13,9 @@ the wall time is inflated by the load, the CPU time much less), the .blend growt
 the held-out inner-lip error against the truth on 20 frames of the evaluated mesh.
 
 Also: core ``LipRegressor.predict`` frames/s at both sizes (in place, float32, after a warm-up) and
-core ``refine_lips`` seconds at both sizes (``--core-only`` runs just these two),
+core ``refine_lips`` seconds at both sizes (``--core-only`` runs just these two; its JSON is saved to
+``benchmarks/results/scale_core.json``: CPU a frame also with one BLAS thread, the ratio to the CPU time before
+the float32 maps, and the float32 result's largest deviation from the float64 maps in mm),
 medians of repeated runs where cheap, the machine's load (``uptime``) before and after, and a plot
 of time and peak memory against frames for both sizes with the paper's timing for scale (Dinev et
 al. 2018 report 5.15 s a frame for the prediction).
@@ -226,9 +228,18 @@ def _accuracy(obj, path, source, n=20):
                 held_out_lip_rms_mm_after=round(float(np.sqrt(np.mean(ea**2))), 4))
 
 
-def core_predict(size, n=512, repeats=3):
-    """Subprocess: LipRegressor.predict frames/s, in place on float32 frames (median of ``repeats``)."""
+BASELINE_CPU_MS = {"26k": 0.198, "105k": 0.982}  # core predict before float32 maps (scale.json, load 3)
+
+
+def core_predict(size, n=512, repeats=5):
+    """Subprocess: LipRegressor.predict frames/s, in place on float32 frames (median of ``repeats``).
+
+    Wall and CPU time (``time.process_time``: all threads of this process) per run with the BLAS threads
+    ``predict`` picks itself (two when a core is idle), then CPU time with BLAS limited to one thread; the
+    largest deviation of the float32 prediction from the float64 maps (``lip_corrections``), in mm.
+    """
     from propagate_blender import EXPR
+    from threadpoolctl import threadpool_limits
 
     from facelab_addon.core.lips import regions
     from facelab_addon.core.lips.propagate import LipRegressor
@@ -240,17 +251,30 @@ def core_predict(size, n=512, repeats=3):
     mouth, lip = regions.auto_regions(V, F)
     reg = LipRegressor(V, F, regions.faces_in_region(F, mouth), regions.faces_in_region(F, lip))
     reg.fit(X[:: n // N_TRAIN][:N_TRAIN] + 1e-4 * np.sin(np.arange(len(V)))[None, :, None])
+    iv = reg.interior_vertices
+    f64 = X[:64, iv] + reg.lip_corrections(X[:64])  # float64 maps
+    dev_mm = 1e3 * float(np.abs(reg.predict(X[:64])[:, iv] - f64).max())  # the scene is in metres
     X32 = X.astype(np.float32)
     reg.predict(X32[:32], out=X32[:32])
-    times, cpus = [], []
+    times, cpus, cpus1 = [], [], []
     for _ in range(repeats):
         t0, c0 = time.perf_counter(), time.process_time()
         reg.predict(X32, out=X32)
         times.append(time.perf_counter() - t0)
         cpus.append(time.process_time() - c0)
+    with threadpool_limits(1):
+        for _ in range(repeats):
+            c0 = time.process_time()
+            reg.predict(X32, out=X32)
+            cpus1.append(time.process_time() - c0)
     fps = [n / t for t in times]
+    cpu_ms = 1e3 * float(np.median(cpus)) / n
     return dict(vertices=len(V), frames=n, fps_median=round(float(np.median(fps)), 1),
-                fps_all=[round(f, 1) for f in fps], cpu_ms_per_frame=round(1e3 * float(np.median(cpus)) / n, 3),
+                fps_all=[round(f, 1) for f in fps], cpu_ms_per_frame=round(cpu_ms, 3),
+                cpu_ms_per_frame_min=round(1e3 * min(cpus) / n, 3),
+                cpu_ms_per_frame_one_blas_thread=round(1e3 * float(np.median(cpus1)) / n, 3),
+                cpu_ms_baseline=BASELINE_CPU_MS[size], cpu_ratio_to_baseline=round(cpu_ms / BASELINE_CPU_MS[size], 3),
+                max_deviation_from_float64_mm=float(f"{dev_mm:.3g}"),
                 load=_uptime(), paper_s_per_frame=PAPER_S_PER_FRAME,
                 speedup_vs_paper=round(float(np.median(fps)) * PAPER_S_PER_FRAME))
 

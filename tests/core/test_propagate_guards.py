@@ -7,7 +7,7 @@ from facelab_addon.core.errors import FaceLabError, FrameError, PredictionError
 from facelab_addon.core.lips.propagate import LipRegressor
 from facelab_addon.core.lips.reduced import thin_svd
 
-from .test_propagate import fA, fB, grid, lip_bump, row_shift
+from .test_propagate import fA, fB, grid, lip_bump, row_shift, smooth_random_deformation
 
 MM = 0.1  # the grid is in centimetres: 1 mm
 
@@ -67,6 +67,48 @@ def test_without_the_absolute_cut_the_neutral_case_explodes_and_predict_refuses_
     assert "frames 31 and 32" in str(ei.value.for_frames([30, 31, 32]))
 
 
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_in_place_blocks_already_written_are_restored_on_a_refusal(dtype):
+    """In place, predict writes each block of frames once it passes its checks; a later block's refusal (an
+    exploding frame, NaN coordinates) or an interruption puts every written block back, bit for bit."""
+    from facelab_addon.core.errors import MeshError
+
+    V, F, mouth, lips = grid(bumpy=True)
+    reg = LipRegressor(V, F, mouth, lips, atol=0.0).fit((V + neutral_fix(V))[None])
+    seq = sequence(V)  # frame 0 is the rest pose (predicted exactly, float64), 1 and 2 explode
+    keep = seq.copy()
+    with pytest.raises(PredictionError) as ei:
+        reg.predict(seq, out=seq, chunk=1)  # frame 0 is written before frame 1 is refused
+    assert ei.value.frame_indices == (1,)
+    np.testing.assert_array_equal(seq, keep)
+    seq = seq.astype(dtype)
+    good = LipRegressor(V, F, mouth, lips).fit(np.stack([smooth_random_deformation(V, s) for s in range(3)]))
+    seq[2, F[lips[0], 0], 1] = np.nan
+    keep = seq.copy()
+    with pytest.raises(MeshError, match="NaN.*frames \\[2\\]"):
+        good.predict(seq, out=seq, chunk=1)
+    np.testing.assert_array_equal(seq, keep)
+    assert np.abs(good.predict(seq[:2]) - seq[:2]).max() > 1e-3 * MM  # frames 0 and 1 would change
+    import facelab_addon.core.lips.features as feat
+
+    calls = []
+
+    def interrupted(*a, **k):  # the second block is interrupted (Esc, out of memory...)
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return _check(*a, **k)
+
+    _check = feat._check_moves
+    feat._check_moves = interrupted
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            good.predict(seq[:2], out=seq[:2], chunk=1)
+    finally:
+        feat._check_moves = _check
+    np.testing.assert_array_equal(seq, keep)
+
 def test_round_off_singular_values_are_cut_absolutely():
     rng = np.random.default_rng(0)
     M = np.zeros((9 * 50, 2))
@@ -108,7 +150,7 @@ def test_patch_whose_mouth_does_not_move_reads_the_whole_mouth():
     with pytest.raises(PredictionError):
         LipRegressor(V, F, mouth, lips, patches=10, atol=0.0).fit(train[None]).predict(seq)
     reg = LipRegressor(V, F, mouth, lips, patches=10).fit(train[None])
-    np.testing.assert_allclose(reg.predict(train)[0], train, atol=1e-9)
+    np.testing.assert_allclose(reg.predict(train)[0], train, atol=1e-7 * reg.mouth_size)  # float32 arithmetic
     move = np.linalg.norm(reg.predict(seq) - seq, axis=2).max(axis=1)
     assert move[0] < 1e-9 and np.all(move < 0.8 * MM)  # the rest pose predicts itself; nothing above the fix
 

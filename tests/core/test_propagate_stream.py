@@ -28,7 +28,8 @@ def test_lip_corrections_of_used_vertices_equal_predict():
     iv = reg.interior_vertices
     want = pred[:, iv] - cap[:, iv]
     assert np.abs(want).max() > 1e-2  # a real correction
-    np.testing.assert_allclose(reg.lip_corrections(cap), want, rtol=0, atol=1e-12)
+    # lip_corrections runs in float64, predict in float32 (test_propagate.f32_tol)
+    np.testing.assert_allclose(reg.lip_corrections(cap), want, rtol=0, atol=1e-7 * reg.mouth_size)
     used = cap[:, reg.used_vertices].astype(np.float32)  # only the vertices a reader needs, float32
     got = np.concatenate([reg.lip_corrections(used[s : s + 4], used_only=True, first=s) for s in (0, 4, 8)])
     np.testing.assert_allclose(got, reg.predict(cap.astype(np.float32))[:, iv] - cap.astype(np.float32)[:, iv],

@@ -23,7 +23,8 @@ import numpy as np
 from ..errors import FaceLabError, MeshError
 from ..geometry.gradients import rest_inverse, shape_matrices
 from ..geometry.linsolve import idle_core, one_blas_thread
-from .guards import _check_prediction
+from .guards import _check_prediction, _checked_out, _same_array
+from .predict32 import _F32_BLOCK, _check_moves, _Float32Prediction, _put_rows, _Work
 
 __all__: list[str] = []
 
@@ -421,3 +422,78 @@ class _StreamingPrediction:
         x0 = self._factor.solve(self._b_ident) if self.center == "rest" else None
         self._dense = (self._Zdiv, (K, self._H, x0))
         return self._dense[1]
+
+
+    def _float32_maps(self):
+        """The :class:`_Float32Prediction` of the current fit, or None when the dense maps would be large."""
+        dense = self._dense_solution()
+        if dense is None:
+            return None
+        if getattr(self, "_f32", (None,))[0] is not dense:
+            self._f32 = (dense, _Float32Prediction(self, dense))
+        return self._f32[1]
+
+    def _predict_frames(self, captured, out, chunk):
+        """:meth:`.propagate.LipRegressor.predict`: check every frame's result, then write (see its docstring).
+
+        In place, each block of frames is written while its rows are still in cache and the captured
+        interior positions are kept (frames' dtype): a refusal or any error restores them, so ``out``
+        ends as it was.
+        """
+        self._require_fit()
+        A = _as_frames(captured, self.n_vertices, "captured frames", self._used, check_finite=False)
+        T, chunk = len(A), int(chunk)
+        if chunk < 1:
+            raise FaceLabError(f"chunk must be at least 1 frame, got {chunk}; use the default 256.")
+        out3 = None if out is None else _checked_out(out, A)
+        iv = self.interior_vertices
+        in_place = out3 is not None and _same_array(out3, A)
+        # in place: the captured interior (to restore); else the checked results, written at the end
+        keep = np.empty((T, len(iv), 3), A.dtype if in_place else np.float64 if out3 is None else out3.dtype)
+        maps, done, bad = self._float32_maps(), 0, False
+        step = min(chunk, _F32_BLOCK, T) if maps is not None else min(chunk, T)
+        xbuf = np.empty((step, len(iv), 3), A.dtype) if in_place else None  # one block's result
+        work = np.empty((step, len(iv), 3), np.result_type(keep.dtype, A.dtype))  # its changes (checks)
+        ws = _Work()  # the float32 maps' work buffers
+        try:
+            with _blas_threads():
+                for s in range(0, T, step):
+                    Ab = A[s : s + step]
+                    t = len(Ab)
+                    if maps is None:
+                        r = self._interior_checked(Ab)
+                    else:  # in place: the captured rows go straight to keep; else the result does
+                        r = maps.interior(Ab, xbuf[:t], keep[s : s + t], ws) if in_place else maps.interior(
+                            Ab, keep[s : s + t], None, ws)
+                    if r is None:
+                        bad = True
+                        break
+                    _check_moves(*r, s, self.mouth_size, work)
+                    if in_place:
+                        if maps is None:
+                            keep[s : s + t] = r[1]
+                        _put_rows(Ab, iv, r[0])
+                        done = s + t
+                    elif maps is None:
+                        keep[s : s + t] = r[0]
+        except BaseException:
+            if done:
+                _put_rows(A[:done], iv, keep[:done])
+            raise
+        if bad:  # raises MeshError naming the frames with NaNs (the whole shot is scanned for them)
+            if done:
+                _put_rows(A[:done], iv, keep[:done])
+            _as_frames(captured, self.n_vertices, "captured frames", self._used)
+        if in_place:
+            return out
+        if out is None:
+            out3 = A.astype(np.float64)  # always a copy
+        elif not _same_array(out3, A):
+            out3[...] = A
+        _put_rows(out3, iv, keep)
+        return out3 if out is None else out
+
+    def _interior_checked(self, Ab):
+        """``(xi, xc)`` of frames Ab (t,V,3) through the sparse solve (float64), None when a used row is not finite."""
+        U = Ab[:, self._used]
+        return self._interior(U, used_only=True) if np.isfinite(U).all() else None
