@@ -99,7 +99,7 @@ def test_region_preset_is_the_core_default():
 
     p = load_preset("regions", REGION_SCHEMA)
     assert p == {"lip_width": regions.DEFAULT_LIP_WIDTH, "mouth_width": regions.DEFAULT_MOUTH_WIDTH}
-    assert p == {"lip_width": 0.2, "mouth_width": 0.45}
+    assert p == {"lip_width": 0.12, "mouth_width": 0.45}
 
 
 def test_sketch_material_preset():
@@ -231,8 +231,8 @@ def test_auto_regions_operator_uses_the_region_preset(addon, ict):
     core_mouth, core_lips = auto_regions(V, ict.faces)  # the core defaults
     assert np.array_equal(mouth, core_mouth) and np.array_equal(lips, core_lips)
 
-    assert prefs.REGION_DEFAULTS["lip_width"] < 0.3
-    _, lips2 = run(lip_width=0.3)  # a wider lip band saved with the shot
+    assert prefs.REGION_DEFAULTS["lip_width"] < 0.2
+    _, lips2 = run(lip_width=0.2)  # a wider lip band saved with the shot
     assert lips2.sum() > lips.sum() and not (lips & ~lips2).any()
 
 

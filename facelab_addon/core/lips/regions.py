@@ -40,11 +40,11 @@ __all__ = [
     "MIN_LIP_RINGS",
 ]
 
-#: Default inner-lip band half-width, as a fraction of the mouth width (corner to
-#: corner distance of the contact loop): about the height of each lip's red, 9 mm on
-#: ICT-FaceKit, so the band covers the lip area a capture error at the inner lips spreads
-#: over (a narrower band holds its border where the error is still large).
-DEFAULT_LIP_WIDTH = 0.2
+#: Default inner-lip band half-width, as a fraction of the mouth width (corner
+#: to corner distance of the contact loop). About 5.5 mm on ICT-FaceKit. (0.2, each
+#: lip's height, lets Refine remove more of an error spread 8 mm across the lips, but
+#: Propagate then needs more training frames: see docs/sketch-refine.md.)
+DEFAULT_LIP_WIDTH = 0.12
 #: The lip band is at least this many edge lengths (median at the contact loop) wide, so
 #: on a coarse mesh its interior, which Refine moves, is still two edge rings deep.
 MIN_LIP_RINGS = 3.0
