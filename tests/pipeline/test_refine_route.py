@@ -1,5 +1,5 @@
 """Refine on the artist route (``testing.route``): the ICT face under a head + jaw armature with its
-capture error (the lips shifted up by up to 1.25 mm), Auto Regions, a sketch of the truth's inner-lip
+capture error (the lips pulled apart, up to 1.25 mm each), Auto Regions, a sketch of the truth's inner-lip
 silhouettes, ``pipeline.refine.refine``. On frame 30 the jaw is closed and the lips overlap in the frontal
 view (the lower lip's silhouette above the upper lip's): the sketch crosses as the capture does, and
 Refine must follow it as drawn rather than press both lips to a mid-line."""
