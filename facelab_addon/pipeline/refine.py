@@ -79,6 +79,8 @@ class RefineSettings:
         How far from the sketched lips the mesh may move, in mouth widths.
     use_regions : bool
         When ``FL_lips`` / ``FL_mouth`` exist, move only the interior of ``FL_lips``.
+    crossings : str
+        ``"follow"`` a crossing drawing as an overlap, or ``"press"`` the lips together there.
     all_views : bool
         Use every camera with a lip sketch keyed on the frame (one solve), not only one.
     """
@@ -111,6 +113,12 @@ class RefineSettings:
                                 description=f"When the face has {LIPS_GROUP} / {MOUTH_GROUP} (Auto Regions), move "
                                             f"only the inside of {LIPS_GROUP}; its border and {MOUTH_GROUP} are "
                                             "held, as Propagate holds them")
+    crossings: str = setting("follow", label="Crossing Contours", choices=(
+        ("follow", "Follow", "A lower contour drawn above the upper one is an overlap: one lip in front of the "
+                             "other, as drawn"),
+        ("press", "Press", "A lower contour drawn above the upper one presses the lips together (to their "
+                           "mid-line)")),
+        description="How a crossing drawing (lower lip above the upper lip) is read")
     all_views: bool = setting(True, label="All Camera Sketches",
                               description="Use the lip sketches of every camera keyed on this frame in one solve "
                                           "(a stereo pair or witness camera fixes the depth of the lips)")
@@ -119,7 +127,7 @@ class RefineSettings:
         """The keyword arguments of :func:`~facelab_addon.core.lips.sketch.refine_lips`."""
         return dict(iterations=self.iterations, lambda_pos=self.lambda_pos, lambda_reg=self.lambda_reg,
                     lambda_silh=self.lambda_silh, prior=self.prior, smooth_reach=self.smooth_reach,
-                    free_radius=self.free_radius)
+                    free_radius=self.free_radius, crossings=self.crossings)
 
 
 @dataclass

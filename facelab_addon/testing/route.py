@@ -4,9 +4,10 @@
 :class:`~facelab_addon.testing.remeshed.RemeshedFace`) in a Z-up scene (ICT's y-up, z-forward
 axes turned to Blender's z-up, -y forward), in any scene unit and object scale, optionally under a
 head + jaw armature: a performance of mouth expressions keyed on every frame (the truth) plus a
-keyed ``CaptureError`` key (the inner lips pulled apart, more as the jaw closes: the error the artist
-fixes), a frontal camera 40 cm from the mouth, a helmet-style lower camera 35° below the mouth looking
-up at it, and a witness camera 35° to the side (:data:`CAMERAS`).
+keyed ``CaptureError`` key (the inner lips pulled apart: the upper lip up, the lower lip down, more as
+the jaw closes: the error the artist fixes; :func:`lip_sides` tells the lips apart), a frontal camera
+40 cm from the mouth, a helmet-style lower camera 35° below the mouth looking up at it, and a witness
+camera 35° to the side (:data:`CAMERAS`).
 :func:`sketch_truth` draws the truth's inner-lip silhouettes on a frame as the artist would (one
 Grease Pencil sketch per camera), and :func:`lip_errors` measures a result against the truth.
 
@@ -22,7 +23,8 @@ import numpy as np
 
 from .weights import CYCLIC_MOUTH_CHANNELS, cyclic_mouth_weights
 
-__all__ = ["CAMERAS", "RouteScene", "build_route_scene", "sketch_truth", "lip_errors", "ERROR_KEY", "UNITS"]
+__all__ = ["CAMERAS", "RouteScene", "build_route_scene", "sketch_truth", "lip_errors", "lip_sides", "ERROR_KEY",
+           "UNITS"]
 
 #: The cameras, ``name: (azimuth, elevation)`` in degrees around the mouth (azimuth 0: in front of the face,
 #: positive toward the face's left; elevation positive above the mouth), all 40 cm from the mouth and looking at it.
@@ -137,12 +139,10 @@ def build_route_scene(face, *, units: str = "m", frames=None, armature: bool = F
     up = np.array([0.0, 0.0, 1.0])
     lat = V0[loop, 0]
     cl, cr = loop[np.argmin(lat)], loop[np.argmax(lat)]
-    line = V0[cl] + np.outer((V0[:, 0] - V0[cl, 0]) / (V0[cr, 0] - V0[cl, 0]), V0[cr] - V0[cl])
     from scipy.spatial import cKDTree
 
-    d, j = cKDTree(V0[loop]).query(V0)
-    side = np.sign((V0[loop[j]] - line[loop[j]]) @ up)
-    side[side == 0] = 1
+    d, _ = cKDTree(V0[loop]).query(V0)
+    side = lip_sides(V0, F, loop, up)
     cm = per_cm / obj_scale
     half = 0.5 * (V0[cr, 0] - V0[cl, 0])
     mid = 0.5 * (V0[cr, 0] + V0[cl, 0])
@@ -183,6 +183,41 @@ def _units(units):
         f = float(units[1:])
         return 0.01 * f, 1.0 / f, 1.0
     raise ValueError(f"units must be one of {list(UNITS)} or 'x<factor>', not {units!r}")
+
+
+def lip_sides(V, F, loop, up) -> np.ndarray:
+    """(V,) +1 on the upper lip, -1 on the lower lip, 0 off the loop's mesh piece: the side of the mouth.
+
+    The contact ``loop`` (ordered, as :func:`~facelab_addon.core.lips.lip_loop.inner_lip_loop` returns it)
+    is split at its two corners (its extremes across ``up``, i.e. along the mouth's width) into two halves;
+    the half with the higher mean along ``up`` is the upper lip. Every vertex takes the side of the half
+    nearest to it along the mesh (edge-length Dijkstra), so a vertex of the lower lip 0.1 mm below the
+    upper one is still lower lip: the two lips meet on the mesh only at the corners.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import dijkstra
+
+    V = np.asarray(V, dtype=np.float64)
+    loop = np.asarray(loop)
+    up = np.asarray(up, dtype=np.float64)
+    P = V[loop] - V[loop].mean(axis=0)
+    P -= np.outer(P @ up, up)
+    width = np.linalg.svd(P, full_matrices=False)[2][0]  # the mouth's long axis, across up
+    s = P @ width
+    a, b = sorted((int(np.argmin(s)), int(np.argmax(s))))
+    arc1, arc2 = loop[a + 1:b], np.r_[loop[b + 1:], loop[:a]]
+    if (V[arc1] @ up).mean() < (V[arc2] @ up).mean():
+        arc1, arc2 = arc2, arc1
+    E = np.unique(np.sort(np.r_[F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]], axis=1), axis=0)
+    L = np.linalg.norm(V[E[:, 0]] - V[E[:, 1]], axis=1)
+    G = coo_matrix((L, (E[:, 0], E[:, 1])), shape=(len(V), len(V))).tocsr()
+    src = np.r_[arc1, arc2]
+    _, _, sources = dijkstra(G, directed=False, indices=src, min_only=True, return_predecessors=True)
+    side = np.zeros(len(V))
+    reach = sources >= 0
+    side[reach] = np.where(np.isin(sources[reach], arc1), 1.0, -1.0)
+    side[loop[[a, b]]] = 0.0
+    return side
 
 
 def _add_armature(scene, obj, V, loop, cm, pose):

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from facelab_addon.core.capture.camera import Camera
-from facelab_addon.core.errors import CameraError, MeshError, SketchError
+from facelab_addon.core.errors import CameraError, MeshError, SketchError, UsageError
 from facelab_addon.core.geometry.polyline import resample_polyline
 from facelab_addon.core.geometry.silhouette import (
     contour_distance,
@@ -79,13 +79,26 @@ def test_lower_drawn_above_upper_presses_lips_together():
     V, F, upper = two_lips(gap=0.4)
     cam = front_camera()
     # crossed sketch: upper drawn at y=-0.05, lower at y=+0.05 -> both go to y=0
-    X, info = refine_lips(V, F, cam, line_px(cam, -0.05), line_px(cam, 0.05), iterations=10, return_info=True, fixed=free(V), prior="paper")
+    X, info = refine_lips(V, F, cam, line_px(cam, -0.05), line_px(cam, 0.05), iterations=10, return_info=True,
+                          fixed=free(V), prior="paper", crossings="press")
     mid = cam.project(np.array([[0.0, 0, 0]]))[0, 1]
     np.testing.assert_allclose(info["upper_samples"][:, 1], mid, atol=0.5)
     np.testing.assert_allclose(info["lower_samples"][:, 1], mid, atol=0.5)
     i_u = np.flatnonzero((np.abs(V[:, 0]) < 1e-9) & upper & (np.abs(V[:, 1] - 0.2) < 1e-9))
     i_l = np.flatnonzero((np.abs(V[:, 0]) < 1e-9) & ~upper & (np.abs(V[:, 1] + 0.2) < 1e-9))
     assert abs(X[i_u, 1] - X[i_l, 1]).max() < 0.015  # lips meet (they started 0.4 apart)
+
+
+def test_crossing_drawing_is_followed_as_drawn_by_default():
+    """The default reads a crossing as an overlap (one lip in front of the other): the contours are kept as drawn."""
+    V, F, upper = two_lips(gap=0.4)
+    cam = front_camera()
+    up, lo = line_px(cam, -0.05), line_px(cam, 0.05)
+    _, info = refine_lips(V, F, cam, up, lo, iterations=2, return_info=True, fixed=free(V), prior="paper")
+    np.testing.assert_allclose(info["upper_samples"][:, 1], up[0, 1], atol=0.5)
+    np.testing.assert_allclose(info["lower_samples"][:, 1], lo[0, 1], atol=0.5)
+    with pytest.raises(UsageError, match="crossings"):
+        refine_lips(V, F, cam, up, lo, crossings="squash")
 
 
 def test_fixed_vertices_are_not_lip_candidates_and_barely_move():

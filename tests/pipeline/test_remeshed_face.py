@@ -54,13 +54,21 @@ def test_auto_regions_finds_the_mouth_of_the_remeshed_face(ict, face):
     assert d.min(axis=1).max() < 0.3  # every loop vertex within 3 mm of ICT's contact line
     W, Wi = lip_loop.loop_width(V, loop), lip_loop.loop_width(ict.neutral, ref)
     assert abs(W - Wi) < 0.05 * Wi  # corner to corner
-    mouth, lips = regions.auto_regions(V, F)
+    mouth, lips, d, _ = regions.auto_regions(V, F, return_distance=True)
     assert lips[loop].all() and not (mouth | lips)[face.part_vertex_mask("M_Teeth", "M_GumsTongue")].any()
-    # the lip band is the same physical band as on ICT (widths are relative to the mouth)
+    # without the edge-ring floor the lip band is the same physical band as on ICT (widths are relative to
+    # the mouth)
     area = lambda X, Fa, m: 0.5 * np.linalg.norm(np.cross(X[Fa[:, 1]] - X[Fa[:, 0]], X[Fa[:, 2]] - X[Fa[:, 0]]),
                                                  axis=1)[regions.faces_in_region(Fa, m)].sum()  # noqa: E731
     _, li = regions.auto_regions(ict.neutral, ict.faces)
-    assert 0.7 < area(V, F, lips) / area(ict.neutral, ict.faces, li) < 1.3
+    _, lips0 = regions.auto_regions(V, F, min_rings=0)
+    assert 0.7 < area(V, F, lips0) / area(ict.neutral, ict.faces, li) < 1.3
+    # this face's edges at the lips are about 4 mm: the band is 3 of them wide (0.12 mouth widths is 5 mm), so
+    # Refine, which holds the band's border, has two rings inside it to move
+    h = regions._loop_edge_length(V, F, loop)
+    assert 3 * h > 2 * regions.DEFAULT_LIP_WIDTH * W
+    assert 0.8 * 3 * h < d[lips].max() <= 3 * h * 1.001
+    assert area(V, F, lips) > 1.5 * area(ict.neutral, ict.faces, li)
 
 
 @pytest.mark.parametrize("units", ["cm", "mm", "mm-object"])

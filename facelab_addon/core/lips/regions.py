@@ -37,11 +37,17 @@ __all__ = [
     "inner_lip_vertices",
     "DEFAULT_LIP_WIDTH",
     "DEFAULT_MOUTH_WIDTH",
+    "MIN_LIP_RINGS",
 ]
 
 #: Default inner-lip band half-width, as a fraction of the mouth width (corner
-#: to corner distance of the contact loop). About 5.5 mm on ICT-FaceKit.
+#: to corner distance of the contact loop). About 5.5 mm on ICT-FaceKit. (0.2, each
+#: lip's height, lets Refine remove more of an error spread 8 mm across the lips, but
+#: Propagate then needs more training frames: see docs/sketch-refine.md.)
 DEFAULT_LIP_WIDTH = 0.12
+#: The lip band is at least this many edge lengths (median at the contact loop) wide, so
+#: on a coarse mesh its interior, which Refine moves, is still two edge rings deep.
+MIN_LIP_RINGS = 3.0
 #: Default width of the mouth band outside the lip band, as a fraction of the
 #: mouth width. About 2 cm on ICT-FaceKit.
 DEFAULT_MOUTH_WIDTH = 0.45
@@ -199,8 +205,8 @@ def validate_regions(faces, mouth_faces, lip_faces, n_vertices: int):
 # --------------------------------------------------------------------------
 
 
-def auto_regions(vertices, faces, loop=None, lip_width=None, mouth_width=None, *, return_distance: bool = False,
-                 **find):
+def auto_regions(vertices, faces, loop=None, lip_width=None, mouth_width=None, *, min_rings: float = MIN_LIP_RINGS,
+                 return_distance: bool = False, **find):
     """Propose the mouth (trusted) and inner-lip (predicted) regions.
 
     Both are geodesic bands around the inner-lip contact loop (Dinev et al.
@@ -226,6 +232,10 @@ def auto_regions(vertices, faces, loop=None, lip_width=None, mouth_width=None, *
     mouth_width : float, optional
         Geodesic width of the mouth band, scene units. Default
         ``DEFAULT_MOUTH_WIDTH`` times the mouth width.
+    min_rings : float
+        The lip band is at least this many edge lengths wide (the median
+        length of the edges at the loop), whatever ``lip_width`` says, so a
+        coarse mesh keeps a lip band with an interior.
     return_distance : bool
         Also return the (V,) geodesic distance to the loop and the loop.
     **find
@@ -256,6 +266,7 @@ def auto_regions(vertices, faces, loop=None, lip_width=None, mouth_width=None, *
         raise RegionError(
             f"Region widths must be positive scene distances, got lip {lw} and mouth {mw}; fix the widths."
         )
+    lw = max(lw, float(min_rings) * _loop_edge_length(V, F, loop))
     d = geodesic_distance(V, F, loop, limit=lw + mw)
     lip = d <= lw
     band = (d > lw) & np.isfinite(d)
@@ -287,6 +298,17 @@ def auto_regions(vertices, faces, loop=None, lip_width=None, mouth_width=None, *
     if return_distance:
         return mouth, lip, d, loop
     return mouth, lip
+
+
+def _loop_edge_length(V, F, loop) -> float:
+    """Median length (scene units) of the mesh edges with an end on the ``loop`` vertices."""
+    E = np.r_[F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]
+    on = np.zeros(len(V), bool)
+    on[np.asarray(loop, dtype=np.int64)] = True
+    E = E[on[E].any(axis=1)]
+    if len(E) == 0:
+        return 0.0
+    return float(np.median(np.linalg.norm(V[E[:, 0]] - V[E[:, 1]], axis=1)))
 
 
 def _width(w, what):

@@ -19,8 +19,10 @@ We minimise, in the least-squares sense and over 5 iterations,
 Silhouettes and correspondences are recomputed at every iteration on the
 current result, while ``E_pos`` and ``E_reg`` keep referring to the captured
 mesh as Eq. 1 is written. Where the lower contour is drawn above the upper
-one, both are constrained to the same 2D position (their mid-line), so the
-lips press together.
+one, the lips are made to cross as drawn (``crossings="follow"``: one lip in
+front of the other, as overlapping lips look on the plate; the truth's
+silhouettes of lips that roll over each other cross so); ``crossings="press"``
+reads a crossing as a request to press the lips together (both to their mid-line).
 
 Two priors (``prior``):
 
@@ -60,7 +62,10 @@ from ..geometry.polyline import resample_polyline  # noqa: F401  (re-exported fo
 from .sketch_prior import PRIORS, anchor_weights, free_region, local_faces, separate_parts, sketch_scale
 from .views import SketchView, ViewMatcher, prepare_sketch, press_lips
 
-__all__ = ["refine_lips", "refine_lips_views", "press_lips", "prepare_sketch", "SketchView"]
+__all__ = ["refine_lips", "refine_lips_views", "press_lips", "prepare_sketch", "SketchView", "CROSSINGS"]
+
+#: How a crossing drawing (lower contour above the upper one) is read: as drawn, or as a request to press.
+CROSSINGS = ("follow", "press")
 
 
 def refine_lips(
@@ -82,6 +87,7 @@ def refine_lips(
     laplacian: str = "uniform",
     reach_px: float | None = None,
     silhouette_rays: str = "nearest",
+    crossings: str = "follow",
     return_info: bool = False,
 ):
     """Deform a face mesh so its inner-lip silhouettes match sketched contours (one camera).
@@ -132,6 +138,14 @@ def refine_lips(
         picked a vertex, the ray through the sketch sample nearest to the
         vertex's projection (the same number of terms), which removes that
         sideways pull.
+    crossings : {"follow", "press"}
+        Where the lower contour is drawn above the upper one. ``"follow"``
+        (default): as drawn, one lip in front of the other, as the truth's
+        silhouettes of overlapping lips are; draw both contours on one line
+        to close the lips. ``"press"``: the older convention, the crossing asks
+        to press the lips together: both go to their mid-line by what the
+        crossing adds to the overlap the capture already has
+        (:func:`~facelab_addon.core.lips.views.press_lips`).
     return_info : bool
         Also return a dict of diagnostics.
 
@@ -156,7 +170,7 @@ def refine_lips(
         vertices, faces, [SketchView(camera, upper, lower)], fixed=fixed, lips=lips, prior=prior,
         iterations=iterations, lambda_pos=lambda_pos, lambda_reg=lambda_reg, lambda_silh=lambda_silh,
         smooth_reach=smooth_reach, free_radius=free_radius, laplacian=laplacian, reach_px=reach_px,
-        silhouette_rays=silhouette_rays, return_info=return_info)
+        silhouette_rays=silhouette_rays, crossings=crossings, return_info=return_info)
 
 
 def refine_lips_views(
@@ -176,6 +190,7 @@ def refine_lips_views(
     laplacian: str = "uniform",
     reach_px: float | None = None,
     silhouette_rays: str = "nearest",
+    crossings: str = "follow",
     return_info: bool = False,
 ):
     """Refine the lips to sketches drawn through one or several cameras, in one solve.
@@ -188,7 +203,7 @@ def refine_lips_views(
     views : sequence of SketchView
         One camera and its upper/lower strokes each (pixels of that camera).
     fixed, lips, prior, iterations, lambda_pos, lambda_reg, lambda_silh, smooth_reach, free_radius,
-    laplacian, reach_px, silhouette_rays, return_info
+    laplacian, reach_px, silhouette_rays, crossings, return_info
         As in :func:`refine_lips`; ``silhouette_px`` in the info is over all views, and
         ``views`` lists per view its ``name``, ``silhouette_px`` (mean, last) and matched vertices.
 
@@ -211,6 +226,8 @@ def refine_lips_views(
         raise FaceLabError("iterations must be at least 1.")
     if silhouette_rays not in ("nearest", "pixel", "normal"):
         raise UsageError(f"silhouette_rays must be 'nearest', 'normal' or 'pixel', got {silhouette_rays!r}")
+    if crossings not in CROSSINGS:
+        raise UsageError(f"crossings must be one of {CROSSINGS}, got {crossings!r}")
     if prior not in PRIORS:
         raise UsageError(f"prior must be one of {PRIORS}, got {prior!r}")
     for nm, val in (("smooth_reach", smooth_reach), ("free_radius", free_radius)):
@@ -228,7 +245,7 @@ def refine_lips_views(
     matchers = []
     for k, v in enumerate(views):
         where = f" in view '{v.name or k + 1}'" if multi else ""
-        matchers.append(ViewMatcher(v, V0, F, fixed, reach_px=reach_px, where=where))
+        matchers.append(ViewMatcher(v, V0, F, fixed, reach_px=reach_px, where=where, press=crossings == "press"))
     near = np.zeros(n, bool)
     for m in matchers:
         near |= m.near

@@ -292,6 +292,9 @@ class ViewMatcher:
         ``max(20, 0.15 * sketch width)``.
     where : str
         Names the view in messages.
+    press : bool
+        Press crossing contours (:func:`press_lips`, by what they add to the captured overlap); False:
+        follow them as drawn (a crossing is one lip in front of the other).
 
     Attributes
     ----------
@@ -302,7 +305,7 @@ class ViewMatcher:
     """
 
     def __init__(self, view: SketchView, vertices, faces, fixed, reach_px=None, where: str = "",
-                 envelope: bool = True):
+                 envelope: bool = True, press: bool = True):
         self.envelope = bool(envelope)
         cam = view.camera
         if not isinstance(cam, Camera):
@@ -355,7 +358,10 @@ class ViewMatcher:
             o = _lip_overlap_px(cam, V0, F, near, x)
             return o * np.clip(o / tol - 1.0, 0.0, 1.0)
 
-        self.upper, self.lower, _, _ = press_lips(up_raw, lo_raw, overlap(up_raw[:, 0]), overlap(lo_raw[:, 0]))
+        if press:
+            self.upper, self.lower, _, _ = press_lips(up_raw, lo_raw, overlap(up_raw[:, 0]), overlap(lo_raw[:, 0]))
+        else:
+            self.upper, self.lower = up_raw, lo_raw
         self.sketch = np.concatenate([self.upper, self.lower])
         self.o_u, self.d_u = cam.rays(self.upper)
         self.o_l, self.d_l = cam.rays(self.lower)
