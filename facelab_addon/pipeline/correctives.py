@@ -228,8 +228,16 @@ class CorrectionWriter:
         if self._low is not None:
             return low_rank_reader(*self._low)
         self._f.flush()
-        mm = np.memmap(self._path, dtype="<f4", mode="r", shape=(T, self.n, 3)) if T else np.zeros((0, self.n, 3))
-        return lambda i, j: mm[i:j]
+        size = 3 * self.n  # read, not memory-mapped: mapped pages would count in the process' memory (RSS)
+
+        def read(i, j):
+            j = min(j, T)
+            if j <= i:
+                return np.zeros((0, self.n, 3), dtype="<f4")
+            a = np.fromfile(self._path, dtype="<f4", count=(j - i) * size, offset=4 * i * size)
+            return a.reshape(j - i, self.n, 3)
+
+        return read
 
     def finish(self) -> CorrectionResult:
         """Replace FaceLab's previous output of this prefix with the correction; what was written.
