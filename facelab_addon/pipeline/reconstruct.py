@@ -11,6 +11,11 @@ combinations of a template rig's shapes (Fig. 7) to the rig, driven by the
 product of their components. :func:`bundles_from_clip` turns a Movie Clip's
 solved tracks into bundle empties.
 
+Streaming: the core hands each frame's face to the storage writer's disk
+spool a chunk at a time (:class:`~facelab_addon.pipeline.streaming.FrameChunks`),
+so memory does not grow with the shot; only the per-frame fit (a few numbers
+a frame) is kept.
+
 Progress: the per-frame indexing runs inside the core, which reports through
 a ``progress(done, total)`` callback; the job is one uninterruptible call, so
 there is no step generator.

@@ -3,12 +3,17 @@
 The actor's rig is transferred to the creature by deformation transfer (new
 creature keys with the rig's names, created only where missing), the keyed
 weights are copied, the actor's per-frame correctives are transferred and
-written as compressed ``FL_Retarget_*`` keys, and the lip-sync heuristic
+written as compressed ``FL_Retarget_*`` keys (or a point cache, see
+:mod:`facelab_addon.pipeline.correctives`), and the lip-sync heuristic
 seals the creature's lip corners so its talking portion matches the actor's.
 
-Progress: the per-frame transfer runs inside the core, which reports through
-a ``progress(done, total)`` callback; the job is one uninterruptible call, so
-there is no step generator.
+Streaming: the actor's correctives are mixed from their keys a chunk of
+frames at a time and each frame's creature corrective goes straight to the
+storage writer's disk spool, so memory does not grow with the shot.
+
+Progress: the per-frame transfer (the core's ``Retargeter.frame``) reports
+through a ``progress(done, total)`` callback; the job is one uninterruptible
+call, so there is no step generator.
 """
 
 from __future__ import annotations
@@ -89,7 +94,7 @@ class RetargetResult:
     correspondence: str    # "same topology" or "<n> markers"
     action_note: str       # what happened to an existing action ('' when nothing needed saying)
     time_s: float
-    core: object = None    # the core's RetargetResult (deltas, correctives, end points, info)
+    core: object = None    # the core's RetargetResult (deltas, end points, info; correctives None: streamed)
 
 
 def _marker_correspondence(actor, creature, coll, a_rest, ta, c_rest, tc):

@@ -5,7 +5,9 @@ face surface on a reference frame and stores the bindings on the face.
 :func:`solve_performance` reads the views' markers, the bound bundles and the
 views' lip / eyelid contours, solves the rig's weights frame by frame (plus the
 out-of-subspace corrective) and writes the weights as ordinary F-curves and
-the correctives as compressed ``FL_Solve_*`` keys.
+the correctives as compressed ``FL_Solve_*`` keys (or a point cache). Each
+frame's corrective goes from the core straight to the storage writer's disk
+spool a chunk at a time, so memory does not grow with the shot.
 
 Spaces: the solve runs in world space at the pose frame (cameras are world
 objects). The rig (Basis and shape-key deltas, object-local) is mapped there
@@ -159,7 +161,7 @@ class SolveResult:
     gather_s: float        # reading the scene
     fit_s: float           # the core solve
     time_s: float          # everything
-    core: object = None    # the core's PerformanceResult (per-frame info in ``core.info``)
+    core: object = None    # the core's PerformanceResult (per-frame info in ``core.info``; correctives None: streamed)
 
 
 # --------------------------------------------------------------------------- shared helpers
