@@ -407,9 +407,40 @@ def build_perframe(kind, n_frames, path):
     return info
 
 
+class _RssSampler:
+    """RSS of this process every ``every`` seconds on a thread: the peak and a coarse timeline (MB)."""
+
+    def __init__(self, every=0.5):
+        import threading
+
+        self.every, self.samples, self._stop = every, [], threading.Event()
+        self._t0 = time.perf_counter()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self):
+        while not self._stop.wait(self.every):
+            self.samples.append((time.perf_counter() - self._t0, _rss_mb()))
+
+    def stop(self, n=12):
+        """``n`` (seconds, MB) points: the largest RSS in each of ``n`` equal stretches of the run."""
+        self._stop.set()
+        self._thread.join()
+        if not self.samples:
+            return []
+        t_end = self.samples[-1][0] or 1.0
+        bins = {}
+        for t, mb in self.samples:
+            b = min(int(n * t / t_end), n - 1)
+            bins[b] = max(bins.get(b, (t, 0.0)), (t, mb), key=lambda x: x[1])
+        return [[round(t, 1), round(mb, 1)] for t, mb in (bins[b] for b in sorted(bins))]
+
+
 def run_perframe(kind, path):
     """Subprocess: open the case, run Reconstruct from Bundles (Fit + Residual) or Solve Performance (markers +
-    corrective, no contours) once through the pipeline; wall, CPU, peak RSS, .blend growth, keys vs cache."""
+    corrective, no contours) once through the pipeline; wall, CPU, peak RSS (and an RSS timeline), .blend
+    growth, keys vs cache. ``recon_cache``: Reconstruct with a key budget of 2, so the correction (which needs
+    15 keys) is written as a PC2 cache beside the .blend."""
     import bpy
 
     import facelab_addon
@@ -420,11 +451,14 @@ def run_perframe(kind, path):
     scene = bpy.context.scene
     obj = bpy.data.objects["Face"]
     before = Path(path).stat().st_size / 1e6
+    if kind == "recon_cache":
+        scene.facelab_store.key_budget = 2
     rss0 = _rss_mb()
     load = _uptime()
     ru0 = resource.getrusage(resource.RUSAGE_SELF)
+    sampler = _RssSampler()
     t0 = time.perf_counter()
-    if kind == "recon":
+    if kind in ("recon", "recon_cache"):
         from facelab_addon.pipeline.reconstruct import ReconstructSettings, reconstruct_from_bundles
 
         empties = list(bpy.data.collections["Bundles"].objects)
@@ -436,6 +470,7 @@ def run_perframe(kind, path):
         r = solve_performance(scene, obj, SolveSettings(views=views, use_contours=False, use_corrective=True))
     wall = time.perf_counter() - t0
     ru1 = resource.getrusage(resource.RUSAGE_SELF)
+    timeline = sampler.stop()
     cpu = (ru1.ru_utime - ru0.ru_utime) + (ru1.ru_stime - ru0.ru_stime)
     peak = _peak_mb()
     out = Path(path).with_name(Path(path).stem + "_after.blend")
@@ -445,7 +480,8 @@ def run_perframe(kind, path):
     st = getattr(r.keys, "storage", None)
     cache_mb = round(Path(st.cache_path).stat().st_size / 1e6, 1) if st is not None and st.cache_path else 0.0
     return dict(kind=kind, wall_s=round(wall, 2), cpu_s=round(cpu, 2), rss_before_mb=round(rss0, 1),
-                peak_rss_mb=round(peak, 1), blend_growth_mb=round(growth, 2), keys=len(r.keys),
+                peak_rss_mb=round(peak, 1), peak_growth_mb=round(peak - rss0, 1), rss_timeline_s_mb=timeline,
+                blend_growth_mb=round(growth, 2), keys=len(r.keys),
                 stored_as=st.mode if st is not None else "", storage_note=st.note if st is not None else "",
                 storage_max_error_mm=None if st is None else round(float(st.max_error_mm), 5),
                 cache_file_mb=cache_mb, load_during=load, frames=len(r.frames))
@@ -524,8 +560,11 @@ def main(argv=None):
     ap.add_argument("--_core", nargs=1, help=argparse.SUPPRESS)
     ap.add_argument("--_refine", nargs=1, help=argparse.SUPPRESS)
     ap.add_argument("--core-only", action="store_true", help="only core predict and Refine at both sizes (JSON)")
-    ap.add_argument("--perframe", metavar="FRAMES", type=int,
-                    help="only Reconstruct from Bundles and Solve Performance on FRAMES frames of the 26.7k face (JSON)")
+    ap.add_argument("--perframe", metavar="FRAMES",
+                    help="only Reconstruct from Bundles and Solve Performance on FRAMES (a comma list) frames of the "
+                         "26.7k face (JSON)")
+    ap.add_argument("--perframe-kinds", default="recon,solve",
+                    help="with --perframe: comma list of recon, solve, recon_cache (Reconstruct into a PC2 cache)")
     ap.add_argument("--_build_pf", nargs=3, help=argparse.SUPPRESS)
     ap.add_argument("--_run_pf", nargs=2, help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
@@ -553,19 +592,21 @@ def main(argv=None):
         return
     if a.perframe:
         out = dict(machine=dict(cpus=os.cpu_count(), load_before=_uptime()), perframe=[])
-        for kind in ("recon", "solve"):
-            with tempfile.TemporaryDirectory(prefix="facelab_scale_pf_") as tmp:
-                path = Path(tmp) / f"{kind}.blend"
-                try:
-                    b = _sub(["--_build_pf", kind, str(a.perframe), str(path)])
-                    r = _sub(["--_run_pf", kind, str(path)])
-                except RuntimeError as e:
-                    out["perframe"].append(dict(kind=kind, frames=a.perframe, failed=str(e)[-800:]))
-                    continue
-                r.update(build=b, ms_per_frame=round(1e3 * r["wall_s"] / a.perframe, 2))
-                out["perframe"].append(r)
-                print(json.dumps({k: r[k] for k in ("kind", "wall_s", "cpu_s", "peak_rss_mb", "blend_growth_mb",
-                                                    "keys", "stored_as")}), file=sys.stderr)
+        for n in [int(x) for x in str(a.perframe).split(",")]:
+            for kind in a.perframe_kinds.split(","):
+                with tempfile.TemporaryDirectory(prefix="facelab_scale_pf_") as tmp:
+                    path = Path(tmp) / f"{kind}.blend"
+                    try:
+                        b = _sub(["--_build_pf", "recon" if kind == "recon_cache" else kind, str(n), str(path)])
+                        r = _sub(["--_run_pf", kind, str(path)])
+                    except RuntimeError as e:
+                        out["perframe"].append(dict(kind=kind, frames=n, failed=str(e)[-800:]))
+                        continue
+                    r.update(build=b, ms_per_frame=round(1e3 * r["wall_s"] / n, 2))
+                    out["perframe"].append(r)
+                    print(json.dumps({k: r[k] for k in ("kind", "frames", "wall_s", "cpu_s", "peak_rss_mb",
+                                                        "peak_growth_mb", "blend_growth_mb", "keys", "stored_as",
+                                                        "cache_file_mb")}), file=sys.stderr)
         out["machine"]["load_after"] = _uptime()
         print(json.dumps(out, indent=1))
         return

@@ -84,7 +84,7 @@ def prefixed_key_deltas(obj, prefix: str, neutral):
     return [kb.name for kb in kbs], out
 
 
-def rig_animation(obj, frames, corrective_prefix: str = fl.SOLVE_PREFIX):
+def rig_animation(obj, frames, corrective_prefix: str = fl.SOLVE_PREFIX, *, factored: bool = False):
     """A solved performance as arrays: the rig, its keyed weights and its keyed correctives.
 
     Parameters
@@ -103,7 +103,9 @@ def rig_animation(obj, frames, corrective_prefix: str = fl.SOLVE_PREFIX):
     weights : (T,S) float64 ndarray
         Key values on ``frames`` from their F-curves.
     correctives : (T,V,3) float64 ndarray or None
-        The corrective keys mixed by their keyed values (None without such keys).
+        The corrective keys mixed by their keyed values (None without such keys); with
+        ``factored``, the pair ``(keys' deltas (R,V,3), keyed values (T,R))`` instead (no
+        (T,V,3) array is built).
     """
     names, neutral, deltas = rig_shapes(obj)
     key = obj.data.shape_keys
@@ -112,7 +114,7 @@ def rig_animation(obj, frames, corrective_prefix: str = fl.SOLVE_PREFIX):
     C = None
     if c_names:
         cw = curve_values(key, c_names, frames)
-        C = np.einsum("tr,rvd->tvd", cw, basis)
+        C = (basis, cw) if factored else np.einsum("tr,rvd->tvd", cw, basis)
     return names, neutral, deltas, W, C
 
 

@@ -237,12 +237,14 @@ class CorrectionWriter:
         if self._low is not None:
             return low_rank_reader(*self._low)
         self._f.flush()
-        row, path = 3 * self.n, self._path
+        size = 3 * self.n  # read, not memory-mapped: mapped pages would count in the process' memory (RSS)
 
-        def read(i, j):  # plain reads, not a memory map: a long spool read once does not stay in the process
-            with open(path, "rb") as f:
-                f.seek(4 * row * i)
-                return np.fromfile(f, dtype="<f4", count=row * (j - i)).reshape(j - i, self.n, 3)
+        def read(i, j):
+            j = min(j, T)
+            if j <= i:
+                return np.zeros((0, self.n, 3), dtype="<f4")
+            a = np.fromfile(self._path, dtype="<f4", count=(j - i) * size, offset=4 * i * size)
+            return a.reshape(j - i, self.n, 3)
 
         return read
 

@@ -11,6 +11,11 @@ combinations of a template rig's shapes (Fig. 7) to the rig, driven by the
 product of their components. :func:`bundles_from_clip` turns a Movie Clip's
 solved tracks into bundle empties.
 
+Streaming: the core hands each frame's face to the storage writer's disk
+spool a chunk at a time (:class:`~facelab_addon.pipeline.streaming.FrameChunks`),
+so memory does not grow with the shot; only the per-frame fit (a few numbers
+a frame) is kept.
+
 Progress: the per-frame indexing runs inside the core, which reports through
 a ``progress(done, total)`` callback; the job is one uninterruptible call, so
 there is no step generator.
@@ -37,9 +42,10 @@ from ..blender.objects import points_to_local, require_editable, triangle_uvs
 from ..blender.rig import add_product_driver, dataset_shapes, template_shapes
 from ..blender.shapekeys import add_corrective_key, rest_vertices
 from ..core.errors import FaceLabError
-from .correctives import write_corrective_keys
+from .correctives import CorrectionWriter, StoredKeys
 from .frames import frame_range
 from .settings import setting
+from .streaming import FrameChunks
 
 __all__ = [
     "ReconstructSettings",
@@ -223,28 +229,34 @@ def reconstruct_from_bundles(scene, obj, settings: ReconstructSettings, progress
         raise FaceLabError(f"Unknown reconstruction method {settings.method!r}; use 'FIT_RESIDUAL' or 'INDEXING'.")
     noise_mm = 0.0
     jaw, shape_jaw, J = _jaw_setup(scene, obj, settings, neutral, shapes, frames, bind)  # checked for both methods
-    if settings.method == "INDEXING":
-        rec = GeometricIndexer(neutral, tris, shapes, bf, bb, names=names, uvs=triangle_uvs(obj.data),
-                               jaw=jaw, shape_jaw=shape_jaw, bundle_names=labels)
-        try:
-            X, skipped = rec.reconstruct_sequence(Q, J, smooth=smooth, progress=progress)
-        finally:
-            rec.close()
-    else:
-        jaw = None  # the fit takes the jaw from the dataset's jaw shapes
-        mm = _mm_per_local_unit(scene, obj)
-        rec = FitResidual(neutral, tris, shapes, bf, bb, names=names, uvs=triangle_uvs(obj.data), bundle_names=labels)
-        noise = None if settings.noise < 0 else settings.noise / mm
-        X, skipped = rec.reconstruct_sequence(Q, noise=noise, smooth=smooth, progress=progress)
-        noise_mm = float(rec.noise * mm)
-    if len(skipped) == len(frames):
-        raise FaceLabError(
-            f"Every frame has missing bundles (e.g. {missing_bundles(Q, labels, skipped[:1])}); check the "
-            "bundles' animation over the frame range."
-        )
-    D = X - neutral[None]
-    D[np.isnan(D)] = 0.0  # skipped frames show the neutral
-    keys = write_corrective_keys(obj, fl.RECONSTRUCT_PREFIX, D, frames, scene=scene)  # keys, or a cache
+    uvs = triangle_uvs(obj.data)
+    # each frame's displacement from the Basis goes to the writer's disk spool a chunk at a time (skipped
+    # frames: zero, the neutral); the writer changes nothing in the scene before finish()
+    with CorrectionWriter(scene, obj, fl.RECONSTRUCT_PREFIX, measured_on="rest") as writer:
+        sink = FrameChunks(writer, frames, len(neutral), base=neutral, fill=True)
+        if settings.method == "INDEXING":
+            rec = GeometricIndexer(neutral, tris, shapes, bf, bb, names=names, uvs=uvs, jaw=jaw,
+                                   shape_jaw=shape_jaw, bundle_names=labels)
+            try:
+                skipped = rec.reconstruct_stream(Q, J, sink, smooth=smooth, progress=progress)
+            finally:
+                rec.close()
+        else:
+            jaw = None  # the fit takes the jaw from the dataset's jaw shapes
+            mm = _mm_per_local_unit(scene, obj)
+            rec = FitResidual(neutral, tris, shapes, bf, bb, names=names, uvs=uvs, bundle_names=labels)
+            noise = None if settings.noise < 0 else settings.noise / mm
+            skipped = rec.reconstruct_stream(Q, sink, noise=noise, smooth=smooth, progress=progress)
+            noise_mm = float(rec.noise * mm)
+        if len(skipped) == len(frames):
+            raise FaceLabError(
+                f"Every frame has missing bundles (e.g. {missing_bundles(Q, labels, skipped[:1])}); check the "
+                "bundles' animation over the frame range."
+            )
+        sink.close()
+        stored = writer.finish()  # keys, or a cache
+    keys = StoredKeys(stored.keys)
+    keys.storage = stored
     live = [kb.name for kb in obj.data.shape_keys.key_blocks[1:] if not kb.name.startswith(fl.PREFIX) and kb.value]
     jaw_name = None
     if jaw is not None:

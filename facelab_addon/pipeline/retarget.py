@@ -3,12 +3,17 @@
 The actor's rig is transferred to the creature by deformation transfer (new
 creature keys with the rig's names, created only where missing), the keyed
 weights are copied, the actor's per-frame correctives are transferred and
-written as compressed ``FL_Retarget_*`` keys, and the lip-sync heuristic
+written as compressed ``FL_Retarget_*`` keys (or a point cache, see
+:mod:`facelab_addon.pipeline.correctives`), and the lip-sync heuristic
 seals the creature's lip corners so its talking portion matches the actor's.
 
-Progress: the per-frame transfer runs inside the core, which reports through
-a ``progress(done, total)`` callback; the job is one uninterruptible call, so
-there is no step generator.
+Streaming: the actor's correctives are mixed from their keys a chunk of
+frames at a time and each frame's creature corrective goes straight to the
+storage writer's disk spool, so memory does not grow with the shot.
+
+Progress: the per-frame transfer (the core's ``Retargeter.frame``) reports
+through a ``progress(done, total)`` callback; the job is one uninterruptible
+call, so there is no step generator.
 """
 
 from __future__ import annotations
@@ -32,9 +37,10 @@ from ..blender.shapekeys import (
     rest_vertices,
 )
 from ..core.errors import FaceLabError
-from .correctives import write_corrective_keys
+from .correctives import CorrectionWriter, StoredKeys
 from .frames import frame_range
 from .solve import face_axes
+from .streaming import FrameChunks
 
 __all__ = ["RetargetSettings", "RetargetResult", "retarget"]
 
@@ -88,7 +94,7 @@ class RetargetResult:
     correspondence: str    # "same topology" or "<n> markers"
     action_note: str       # what happened to an existing action ('' when nothing needed saying)
     time_s: float
-    core: object = None    # the core's RetargetResult (deltas, correctives, end points, info)
+    core: object = None    # the core's RetargetResult (deltas, end points, info; correctives None: streamed)
 
 
 def _marker_correspondence(actor, creature, coll, a_rest, ta, c_rest, tc):
@@ -129,6 +135,35 @@ def _end_points(settings, T):
     return {t: EndPoints(up_[t], lo_[t]) for t in range(T)}
 
 
+def _retarget_frames(rt, W, C, end_points, sink, progress):
+    """Retarget every frame with ``rt`` (a core ``Retargeter``), handing each creature corrective to ``sink``.
+
+    ``C`` is None or the actor's correctives factored as ``(keys' deltas (R,V,3), keyed values (T,R))``;
+    they are mixed a chunk of frames at a time, so no (T,V,3) array is built. Returns the core's
+    ``RetargetResult`` without ``correctives`` (None); ``info["nonzero"]``: some corrective is not zero.
+    """
+    from ..core.solve.retarget import RetargetResult as CoreResult
+
+    T = len(W)
+    eps, nonzero = [], False
+    overrides = end_points or {}
+    t0 = time.perf_counter()
+    for i in range(0, T, sink.chunk):
+        j = min(T, i + sink.chunk)
+        Cc = None if C is None else np.einsum("tr,rvd->tvd", C[1][i:j], C[0])
+        for t in range(i, j):
+            corr, info = rt.frame(W[t], None if Cc is None else Cc[t - i], end_points=overrides.get(t))
+            corr = np.asarray(corr, dtype=np.float32)  # what the core's (T,W,3) float32 result held
+            nonzero = nonzero or bool(np.any(corr))
+            sink(t, corr)
+            eps.append(info["end_points"])
+            if progress is not None:
+                progress(t + 1, T)
+    sink.close()
+    info = dict(rt.info, frames_s=time.perf_counter() - t0, nonzero=nonzero)
+    return CoreResult(deltas=rt.creature_deltas, weights=W.copy(), correctives=None, end_points=eps, info=info)
+
+
 def retarget(scene, actor, creature, settings: RetargetSettings, progress=None) -> RetargetResult:
     """Retarget the actor's solved animation to ``creature`` and write it there.
 
@@ -156,7 +191,7 @@ def retarget(scene, actor, creature, settings: RetargetSettings, progress=None) 
         No creature, the face itself, no correspondence, no rig; nothing is
         written then.
     """
-    from ..core.solve.retarget import retarget_performance
+    from ..core.solve.retarget import Retargeter
 
     t0 = time.perf_counter()
     require_mesh(actor)
@@ -167,7 +202,7 @@ def retarget(scene, actor, creature, settings: RetargetSettings, progress=None) 
         raise FaceLabError("The creature is the face itself; pick another mesh to retarget to.")
     require_editable(creature, "Retarget")
     frames = frame_range(scene, settings.frame_start, settings.frame_end, "Retarget")
-    names, a_rest, a_deltas, W, C = rig_animation(actor, frames, fl.SOLVE_PREFIX)
+    names, a_rest, a_deltas, W, C = rig_animation(actor, frames, fl.SOLVE_PREFIX, factored=True)
     ta = mesh_triangles(actor.data)
     c_rest = rest_vertices(creature)
     same = same_polygons(actor.data, creature.data)
@@ -196,26 +231,29 @@ def retarget(scene, actor, creature, settings: RetargetSettings, progress=None) 
         up, fwd = face_axes(cams)
         Ai = np.linalg.inv(np.array(actor.matrix_world, dtype=np.float64)[:3, :3])
         kw = dict(up=Ai @ up, forward=Ai @ fwd)
-    res = retarget_performance(a_rest, ta, a_deltas, W, c_rest, tc, correctives=C, correspondence=corr,
-                               lip_sync=settings.lip_sync, threshold=settings.lip_threshold, end_points=ep,
-                               progress=progress, **kw)
-    # write: the creature's parallel rig (missing keys only), weights, correctives
-    created, kept = [], []
-    if creature.data.shape_keys is None:
-        creature.shape_key_add(name="Basis", from_mix=False)
-    existing = set(creature.data.shape_keys.key_blocks.keys())
-    for k, n in enumerate(names):
-        if n in existing:
-            kept.append(n)
-        else:
-            add_corrective_key(creature, n, res.deltas[k])
-            created.append(n)
-    note = prepare_action(creature.data.shape_keys, names, settings.existing_animation, fl.RETARGET_ACTION)
-    remove_keys(creature, fl.RETARGET_PREFIX)
-    key_values_bulk(creature, names, frames, W)
-    keys = []
-    if np.any(res.correctives):
-        keys = write_corrective_keys(creature, fl.RETARGET_PREFIX, res.correctives, frames, scene=scene)
+    rt = Retargeter(a_rest, ta, a_deltas, c_rest, tc, correspondence=corr, lip_sync=settings.lip_sync,
+                    threshold=settings.lip_threshold, **kw)
+    with CorrectionWriter(scene, creature, fl.RETARGET_PREFIX, measured_on="rest") as writer:
+        res = _retarget_frames(rt, W, C, ep, FrameChunks(writer, frames, len(c_rest), fill=True), progress)
+        # write: the creature's parallel rig (missing keys only), weights, correctives
+        created, kept = [], []
+        if creature.data.shape_keys is None:
+            creature.shape_key_add(name="Basis", from_mix=False)
+        existing = set(creature.data.shape_keys.key_blocks.keys())
+        for k, n in enumerate(names):
+            if n in existing:
+                kept.append(n)
+            else:
+                add_corrective_key(creature, n, res.deltas[k])
+                created.append(n)
+        note = prepare_action(creature.data.shape_keys, names, settings.existing_animation, fl.RETARGET_ACTION)
+        remove_keys(creature, fl.RETARGET_PREFIX)
+        key_values_bulk(creature, names, frames, W)
+        keys = []
+        if res.info["nonzero"]:
+            stored = writer.finish()  # keys, or a cache
+            keys = StoredKeys(stored.keys)
+            keys.storage = stored
     creature.data.update()
     return RetargetResult(frames=frames, created=created, kept=kept, keys=keys, correspondence=how,
                           action_note=note, time_s=time.perf_counter() - t0, core=res)

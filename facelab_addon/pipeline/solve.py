@@ -5,7 +5,9 @@ face surface on a reference frame and stores the bindings on the face.
 :func:`solve_performance` reads the views' markers, the bound bundles and the
 views' lip / eyelid contours, solves the rig's weights frame by frame (plus the
 out-of-subspace corrective) and writes the weights as ordinary F-curves and
-the correctives as compressed ``FL_Solve_*`` keys.
+the correctives as compressed ``FL_Solve_*`` keys (or a point cache). Each
+frame's corrective goes from the core straight to the storage writer's disk
+spool a chunk at a time, so memory does not grow with the shot.
 
 Spaces: the solve runs in world space at the pose frame (cameras are world
 objects). The rig (Basis and shape-key deltas, object-local) is mapped there
@@ -19,6 +21,7 @@ one uninterruptible call, so there is no step generator.
 
 from __future__ import annotations
 
+import contextlib
 import time
 from dataclasses import dataclass, field
 
@@ -42,9 +45,10 @@ from ..blender.objects import require_editable, world_affine, world_matrices
 from ..blender.rig import rig_shapes
 from ..blender.shapekeys import key_values_bulk, remove_keys
 from ..core.errors import BundleError, CameraError, FaceLabError
-from .correctives import write_corrective_keys
+from .correctives import CorrectionWriter, StoredKeys
 from .frames import frame_range  # noqa: F401  (re-exported: the CLI's and scripts' range)
 from .settings import setting
+from .streaming import FrameChunks
 
 __all__ = [
     "DISAGREE_PX",
@@ -167,7 +171,7 @@ class SolveResult:
     gather_s: float        # reading the scene
     fit_s: float           # the core solve
     time_s: float          # everything
-    core: object = None    # the core's PerformanceResult (per-frame info in ``core.info``)
+    core: object = None    # the core's PerformanceResult (per-frame info in ``core.info``; correctives None: streamed)
 
 
 # --------------------------------------------------------------------------- shared helpers
@@ -482,24 +486,34 @@ def solve_performance(scene, obj, settings: SolveSettings, progress=None) -> Sol
     if markers is None:
         markers = np.full((len(frames), len(g.cameras), 0, 2), np.nan)
     t1 = time.perf_counter()
-    # the core reports the index of the frame just solved; report frames done
-    res = core_solve(solver, corr, markers, g.bundles, g.curves, sliding=settings.sliding,
-                     lip_passes=settings.lip_passes,
-                     progress=(lambda i, n: progress(i + 1, n)) if progress is not None else None)
-    t_fit = time.perf_counter() - t1
-    solved = np.array([i for i in range(len(frames)) if i not in res.skipped], dtype=np.int64)
-    if len(solved) == 0:
-        reasons = sorted(set(res.skipped.values()))
-        raise FaceLabError(f"No frame could be solved ({'; '.join(reasons)}); check the tracks cover the range "
-                           f"{frames[0]}-{frames[-1]} and are bound (Bind Tracks).")
-    # write: weights as ordinary F-curves, correctives as compressed keys
-    note = prepare_action(obj.data.shape_keys, g.names, settings.existing_animation, fl.SOLVE_ACTION)
-    remove_keys(obj, fl.SOLVE_PREFIX)
-    key_values_bulk(obj, g.names, frames[solved], res.weights[solved])
-    keys = []
-    if res.correctives is not None:
-        D = res.correctives[solved] @ np.linalg.inv(g.A).T
-        keys = write_corrective_keys(obj, fl.SOLVE_PREFIX, D, frames[solved], scene=scene)  # keys, or a cache
+    # each solved frame's corrective (world, at the pose frame) goes to the writer's disk spool a chunk at a
+    # time as an object-local delta; the writer changes nothing in the scene before finish()
+    with contextlib.ExitStack() as stack:
+        sink, writer = None, None
+        if corr is not None:
+            writer = stack.enter_context(CorrectionWriter(scene, obj, fl.SOLVE_PREFIX, measured_on="rest"))
+            sink = FrameChunks(writer, frames, len(g.neutral), matrix=np.linalg.inv(g.A), fill=False)
+        # the core reports the index of the frame just solved; report frames done
+        res = core_solve(solver, corr, markers, g.bundles, g.curves, sliding=settings.sliding,
+                         lip_passes=settings.lip_passes,
+                         progress=(lambda i, n: progress(i + 1, n)) if progress is not None else None,
+                         corrective_sink=sink)
+        t_fit = time.perf_counter() - t1
+        solved = np.array([i for i in range(len(frames)) if i not in res.skipped], dtype=np.int64)
+        if len(solved) == 0:
+            reasons = sorted(set(res.skipped.values()))
+            raise FaceLabError(f"No frame could be solved ({'; '.join(reasons)}); check the tracks cover the range "
+                               f"{frames[0]}-{frames[-1]} and are bound (Bind Tracks).")
+        # write: weights as ordinary F-curves, correctives as compressed keys (or a cache)
+        note = prepare_action(obj.data.shape_keys, g.names, settings.existing_animation, fl.SOLVE_ACTION)
+        remove_keys(obj, fl.SOLVE_PREFIX)
+        key_values_bulk(obj, g.names, frames[solved], res.weights[solved])
+        keys = []
+        if writer is not None:
+            sink.close()
+            stored = writer.finish()
+            keys = StoredKeys(stored.keys)
+            keys.storage = stored
     obj.data.update()
     return SolveResult(frames=frames, solved=frames[solved],
                        skipped={int(frames[i]): r for i, r in res.skipped.items()}, rig_keys=list(g.names),

@@ -272,14 +272,18 @@ def test_reconstruct_solver_result_as_keys_then_as_a_cache(tmp_path, ict, addon,
     scene, obj, empties, truth, pts = _shot(ict, keys, poses)
     saved(tmp_path)
     solved = {}
-    real = GeometricIndexer.reconstruct_sequence
+    real = GeometricIndexer.reconstruct_stream
 
-    def spy(self, *a, **k):
-        X, skipped = real(self, *a, **k)
-        solved["X"] = np.array(X)
-        return X, skipped
+    def spy(self, bundles, jaw, sink, **k):  # the pipeline streams the solver's frames: collect them too
+        X = solved["X"] = np.full((len(bundles), self.V, 3), np.nan)
 
-    monkeypatch.setattr(GeometricIndexer, "reconstruct_sequence", spy)
+        def both(t, x):
+            X[t] = x
+            sink(t, x)
+
+        return real(self, bundles, jaw, both, **k)
+
+    monkeypatch.setattr(GeometricIndexer, "reconstruct_stream", spy)
     frames = range(len(poses))
     r = reconstruct_from_bundles(scene, obj, ReconstructSettings(bind_frame=0, selected=empties, method="INDEXING"))
     assert r.keys and r.keys.storage.mode == "keys" and len(r.keys) <= 5

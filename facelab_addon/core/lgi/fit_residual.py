@@ -417,6 +417,35 @@ class FitResidual:
         Q = np.asarray(bundles, dtype=np.float64)
         if Q.ndim != 3 or Q.shape[1:] != (self.B, 3):
             raise BundleError(f"Expected bundles as a (T,{self.B},3) array, got {Q.shape}.")
+        out = np.full((len(Q), self.V, 3), np.nan)
+        skipped = self.reconstruct_stream(Q, out.__setitem__, noise=noise, smooth=smooth, progress=progress)
+        return out, skipped
+
+    def reconstruct_stream(self, bundles, sink, *, noise=None, smooth: int = 1, progress=None):
+        """:meth:`reconstruct_sequence` without the (T,V,3) result: each frame is handed to ``sink``.
+
+        The per-frame fit (weights and residual coefficients, ``S + 3B``
+        numbers a frame) is kept for the whole sequence; each frame's face is
+        blended from them and passed on at once, so memory does not grow with
+        the frames times the vertices.
+
+        Parameters
+        ----------
+        bundles, noise, smooth, progress
+            As in :meth:`reconstruct_sequence`.
+        sink : callable(t, X)
+            Called with the frame index ``t`` and its face ``X`` (V,3) float64
+            (scene units, a new array) for every frame that is not skipped, in
+            increasing ``t``.
+
+        Returns
+        -------
+        skipped : list of int
+            Frames skipped because of NaN bundle positions (never passed to ``sink``).
+        """
+        Q = np.asarray(bundles, dtype=np.float64)
+        if Q.ndim != 3 or Q.shape[1:] != (self.B, 3):
+            raise BundleError(f"Expected bundles as a (T,{self.B},3) array, got {Q.shape}.")
         sigma = estimate_noise(Q) if noise is None else float(noise)
         if not np.isfinite(sigma) or sigma < 0:
             raise BundleError(f"The bundle noise must be a finite length >= 0, got {noise}.")
@@ -426,7 +455,6 @@ class FitResidual:
         skipped = [int(t) for t in np.flatnonzero(~ok)]
         Wt = np.zeros((T, self.S))
         Ct = np.zeros((T, self.B, 3))
-        out = np.full((T, self.V, 3), np.nan)
         with one_blas_thread():
             for n, t in enumerate(np.flatnonzero(ok)):
                 Wt[t], Ct[t] = self._coefficients(Q[t], sigma)
@@ -435,6 +463,6 @@ class FitResidual:
             half = max(int(smooth), 1) // 2
             for t in np.flatnonzero(ok):
                 win = [s for s in range(t - half, t + half + 1) if 0 <= s < T and ok[s]]
-                out[t] = self._blend(Wt[win].mean(axis=0), Ct[win].mean(axis=0))
+                sink(int(t), self._blend(Wt[win].mean(axis=0), Ct[win].mean(axis=0)))
         self.last_sequence = {"weights": Wt, "coefficients": Ct, "noise": sigma, "skipped": skipped}
-        return out, skipped
+        return skipped

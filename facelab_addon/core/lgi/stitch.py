@@ -219,10 +219,40 @@ class IndexerStitch:
         skipped : list of int
             Frames skipped because of NaN bundle positions.
         """
-        with one_blas_thread():  # BLAS threads would spin against the pipeline's own threads
-            return self._reconstruct_sequence(bundles, jaw, smooth, exact, progress, pipeline)
+        Q = np.asarray(bundles, dtype=np.float64)
+        if Q.ndim != 3 or Q.shape[1:] != (self.B, 3):
+            raise BundleError(f"Expected bundles as a (T,{self.B},3) array, got {Q.shape}.")
+        out = np.full((len(Q), self.V, 3), np.nan)
+        skipped = self.reconstruct_stream(Q, jaw, out.__setitem__, smooth=smooth, exact=exact, progress=progress,
+                                          pipeline=pipeline)
+        return out, skipped
 
-    def _reconstruct_sequence(self, bundles, jaw, smooth, exact, progress, pipeline):
+    def reconstruct_stream(self, bundles, jaw, sink, *, smooth: int = 1, exact=None, progress=None,
+                           pipeline="auto"):
+        """:meth:`reconstruct_sequence` without the (T,V,3) result: each frame is handed to ``sink``.
+
+        Only the frames of the current smoothing window are held, so memory
+        does not grow with the frames times the vertices.
+
+        Parameters
+        ----------
+        bundles, jaw, smooth, exact, progress, pipeline
+            As in :meth:`reconstruct_sequence`.
+        sink : callable(t, X)
+            Called with the frame index ``t`` and its face ``X`` (V,3) float64
+            (scene units, a new array) for every frame that is not skipped, in
+            increasing ``t``, from one thread at a time (the pipeline's worker
+            when it runs).
+
+        Returns
+        -------
+        skipped : list of int
+            Frames skipped (NaN bundles or jaw); never passed to ``sink``.
+        """
+        with one_blas_thread():  # BLAS threads would spin against the pipeline's own threads
+            return self._reconstruct_sequence(bundles, jaw, smooth, exact, progress, pipeline, sink)
+
+    def _reconstruct_sequence(self, bundles, jaw, smooth, exact, progress, pipeline, sink):
         Q = np.asarray(bundles, dtype=np.float64)
         if Q.ndim != 3 or Q.shape[1:] != (self.B, 3):
             raise BundleError(f"Expected bundles as a (T,{self.B},3) array, got {Q.shape}.")
@@ -242,7 +272,6 @@ class IndexerStitch:
         ex = self.exact if exact is None else bool(exact)
         ids_t = np.zeros((T, self.B, 4), dtype=np.int64)
         bary_t = np.zeros((T, self.B, 4))
-        out = np.full((T, self.V, 3), np.nan)
         half = max(int(smooth), 1) // 2
         valid = np.flatnonzero(ok)
         deltas, q_unskinned = {}, {}
@@ -273,7 +302,7 @@ class IndexerStitch:
                     target = self.jaw.skin(target, J[t], self.bundle_jaw_weights)
             Xu = self.neutral.copy()
             Xu[self._active] += d
-            out[t] = self._finish(Xu, target, J[t], ex)
+            sink(int(t), self._finish(Xu, target, J[t], ex))
             for s in [s for s in deltas if s <= t - half and s not in in_sum]:
                 del deltas[s]
                 q_unskinned.pop(s, None)
@@ -310,4 +339,4 @@ class IndexerStitch:
             if worker is not None:
                 worker.shutdown(wait=True)
         self.last_sequence = {"shape_ids": ids_t, "bary": bary_t, "skipped": skipped}
-        return out, skipped
+        return skipped

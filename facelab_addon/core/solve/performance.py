@@ -65,7 +65,7 @@ def solve_performance(solver: BlendshapeSolver, corrective: OutOfSubspaceCorrect
                       iterations: int = 1, rematch: bool = True,
                       corrective_iterations: int = 1, lip_passes: int = LIP_PASSES, lip_line_pass: bool = False,
                       lip_line_threshold_px: float = 0.5,
-                      lip_line_curve_px: float = 0.0) -> PerformanceResult:
+                      lip_line_curve_px: float = 0.0, corrective_sink=None) -> PerformanceResult:
     """Solve a whole sequence, warm-starting every frame from the previous one.
 
     Parameters
@@ -111,6 +111,10 @@ def solve_performance(solver: BlendshapeSolver, corrective: OutOfSubspaceCorrect
         corrective solve and contour match per frame.
     lip_line_threshold_px, lip_line_curve_px : float
         Pixels; see ``lip_line_pass``.
+    corrective_sink : callable(frame_index, dV), optional
+        Each solved frame's corrective ``dV`` (V,3) is handed to it (in frame
+        order) instead of being kept: ``correctives`` is then None and memory
+        does not grow with frames times vertices.
 
     Returns
     -------
@@ -127,7 +131,9 @@ def solve_performance(solver: BlendshapeSolver, corrective: OutOfSubspaceCorrect
     T = lengths[0]
     V = len(solver.neutral)
     W = np.full((T, solver.S), np.nan)
-    D = np.zeros((T, V, 3)) if corrective is not None else None
+    keep = corrective is not None and corrective_sink is None
+    D = np.zeros((T, V, 3)) if keep else None
+    d = None
     skipped, frames, offs, corrs = {}, [], {}, []
     prev = None
     t0 = time.perf_counter()
@@ -151,21 +157,25 @@ def solve_performance(solver: BlendshapeSolver, corrective: OutOfSubspaceCorrect
                 cc = res.correspondences
                 if rematch and cv:
                     cc = solver.match(res.weights, cv, sliding=sliding, previous=cc)
-                D[i] = corrective.solve(Vb, mp, bd, cc)
+                d = corrective.solve(Vb, mp, bd, cc)
                 for _ in range(max(1, int(corrective_iterations)) - 1):
                     if not cv:
                         break
-                    cc = solver.match(res.weights, cv, sliding=sliding, previous=cc, vertices=Vb + D[i])
-                    D[i] = corrective.solve(Vb, mp, bd, cc)
+                    cc = solver.match(res.weights, cv, sliding=sliding, previous=cc, vertices=Vb + d)
+                    d = corrective.solve(Vb, mp, bd, cc)
                 for _ in range(max(0, int(lip_passes))):
                     if not cv or corrective.band_deformer is None:
                         break
-                    cc = solver.match(res.weights, cv, sliding=sliding, previous=cc, vertices=Vb + D[i])
-                    D[i] = corrective.lip_band_solve(Vb, D[i], mp, bd, cc)
-                if lip_line_pass and cv and corrective.off_the_line(Vb + D[i], cc, cv, lip_line_curve_px):
-                    cc = solver.match(res.weights, cv, sliding=sliding, previous=cc, vertices=Vb + D[i])
-                    D[i] = corrective.lip_line_pass(Vb, D[i], mp, bd, cc, cv, threshold_px=lip_line_threshold_px,
-                                                          curve_threshold_px=lip_line_curve_px)
+                    cc = solver.match(res.weights, cv, sliding=sliding, previous=cc, vertices=Vb + d)
+                    d = corrective.lip_band_solve(Vb, d, mp, bd, cc)
+                if lip_line_pass and cv and corrective.off_the_line(Vb + d, cc, cv, lip_line_curve_px):
+                    cc = solver.match(res.weights, cv, sliding=sliding, previous=cc, vertices=Vb + d)
+                    d = corrective.lip_line_pass(Vb, d, mp, bd, cc, cv, threshold_px=lip_line_threshold_px,
+                                                 curve_threshold_px=lip_line_curve_px)
+                if keep:
+                    D[i] = d
+                else:
+                    corrective_sink(i, d)
                 res.info["corrective_contour_points"] = int(sum(len(c.vertices) for c in cc))
                 res.info["corrective_time_s"] = time.perf_counter() - t1
                 res.info["corrective_cpu_s"] = time.process_time() - c1
