@@ -497,9 +497,15 @@ def _sub(args, timeout=3600):
 
 
 def _note(out):
-    loads = [float(x) for r in out["cases"] + out.get("perframe", []) for x in r.get("load_during", [])[:1]]
-    return (f"Propagate operator (10 training frames), Reconstruct and Solve at 1,000 frames; shared {out['machine']['cpus']}-core machine, 1-min load "
-            f"{min(loads):.0f}-{max(loads):.0f} during the runs (other jobs)") if loads else ""
+    def span(rows):
+        loads = [float(x) for r in rows for x in r.get("load_during", [])[:1]]
+        return f"{min(loads):.0f}-{max(loads):.0f}" if loads else "?"
+
+    note = f"Propagate operator (10 training frames), shared {out['machine']['cpus']}-core machine, 1-min load " \
+           f"{span(out['cases'])}"
+    if out.get("perframe"):
+        note += f"; Reconstruct and Solve: load {span(out['perframe'])}"
+    return note
 
 
 def plot(results, png, note="", perframe=(), pc2_policy=()):
@@ -508,14 +514,14 @@ def plot(results, png, note="", perframe=(), pc2_policy=()):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(1, 2, figsize=(11, 4))
+    fig, ax = plt.subplots(1, 2, figsize=(11, 5))
     for (size, source), mk, col in zip([("26k", "keys"), ("26k", "pc2"), ("105k", "keys"), ("105k", "pc2")],
                                        ["o-", "s--", "o-", "s--"], ["C0", "C0", "C2", "C2"]):
         rows = [r for r in results if r["size"] == size and r["source"] == source]
         if not rows:
             continue
         f = [r["frames"] for r in rows]
-        lab = f"{size} vertices, {'shape keys' if source == 'keys' else 'PC2 input, correction as keys'}"
+        lab = f"{size} vertices, {'shape keys' if source == 'keys' else 'PC2 input, correction to a point cache'}"
         ax[0].plot(f, [r["wall_s"] for r in rows], mk, color=col, label=lab)
         ax[1].plot(f, [r["peak_rss_mb"] / 1000 for r in rows], mk, color=col, label=lab)
     for r in pc2_policy:
@@ -523,11 +529,14 @@ def plot(results, png, note="", perframe=(), pc2_policy=()):
         lab = f"{r['size']} vertices, PC2 input, correction to a point cache"
         ax[0].plot([r["frames"]], [r["wall_s"]], "s", mfc="none", color=col, label=lab)
         ax[1].plot([r["frames"]], [r["peak_rss_mb"] / 1000], "s", mfc="none", color=col, label=lab)
-    for r, mk in zip([r for r in perframe if "failed" not in r], ["^", "v"]):
-        lab = f"{'Reconstruct from Bundles' if r['kind'] == 'recon' else 'Solve Performance'}, 26.7k ({r['stored_as']})"
-        ax[0].plot([r["frames"]], [r["wall_s"]], mk, color="C3" if r["kind"] == "recon" else "C4", label=lab)
-        ax[1].plot([r["frames"]], [r["peak_rss_mb"] / 1000], mk, color="C3" if r["kind"] == "recon" else "C4",
-                   label=lab)
+    names = {"recon": "Reconstruct from Bundles, 26.7k (keys)", "solve": "Solve Performance, 26.7k (keys)",
+             "recon_cache": "Reconstruct from Bundles, 26.7k (point cache)"}
+    for kind, mk, col in (("recon", "^-", "C3"), ("recon_cache", "^--", "C3"), ("solve", "v-", "C4")):
+        rows = sorted([r for r in perframe if "failed" not in r and r["kind"] == kind], key=lambda r: r["frames"])
+        if rows:
+            f = [r["frames"] for r in rows]
+            ax[0].plot(f, [r["wall_s"] for r in rows], mk, color=col, label=names[kind])
+            ax[1].plot(f, [r["peak_rss_mb"] / 1000 for r in rows], mk, color=col, label=names[kind])
     fmax = max(r["frames"] for r in results)
     ax[0].axhline(TARGET["wall_s"], color="r", lw=0.8, ls=":", label="target at 10k frames, 105k vertices")
     ax[0].text(0.98, 0.05, f"paper (Dinev et al. 2018): {PAPER_S_PER_FRAME} s a frame\n= {PAPER_S_PER_FRAME * fmax / 3600:.0f} h "
@@ -535,12 +544,15 @@ def plot(results, png, note="", perframe=(), pc2_policy=()):
     ax[1].axhline(TARGET["peak_mb"] / 1000, color="r", lw=0.8, ls=":", label="target peak 2 GB")
     ax[0].set(xlabel="frames", ylabel="wall time (s, log scale)", title="Time", yscale="log")
     ax[1].set(xlabel="frames", ylabel="process peak RSS (GB)", title="Peak memory", ylim=(0, None))
-    for a, loc in zip(ax, ["upper center", "center right"]):
+    for a in ax:
         a.grid(alpha=0.3)
-        a.legend(fontsize=7, loc=loc)
+    h, lab = ax[0].get_legend_handles_labels()
+    h1, lab1 = ax[1].get_legend_handles_labels()
+    h, lab = h + [x for x, y in zip(h1, lab1) if y not in lab], lab + [y for y in lab1 if y not in lab]
+    fig.legend(h, lab, fontsize=7, loc="lower center", ncol=3)
     if note:
         fig.suptitle(note, fontsize=9)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0.17, 1, 1))
     fig.savefig(png, dpi=110)
 
 
