@@ -352,18 +352,13 @@ def _on(K, sub):
     return out
 
 
-def test_under_a_capture_a_key_moving_the_corrected_vertices_keeps_the_cache_exact(tmp_path, addon):
-    """Where the artist's own shape key moves corrected vertices on a corrected frame, a correction cache under
-    the capture would carry that key through its own surface; the cache then goes after the capture holding the
-    whole corrected input (Overwrite), and still shows capture + key + correction."""
-    from facelab_addon.blender.cache_integrate import polygon_corners
-    from facelab_addon.core.capture.integrate import integrate_matrices, integrate_offsets_to_key
+def _turning_capture(tmp_path, obj, frames):
+    """Save the .blend in ``tmp_path`` and give ``obj`` a PC2 capture (Integrate Mesh Cache) of its rest mesh
+    turning 4 degrees a frame about z; returns ``(rest (V,3), capture (T,V,3))``."""
     from facelab_addon.core.capture.pointcache_writer import write_pc2
 
-    scene, obj = head(False)
     saved(tmp_path)
     rest = np.array([v.co[:] for v in obj.data.vertices])
-    frames = FRAMES[:8]
     a = np.radians(4.0) * np.arange(len(frames))
     R = np.stack([[[np.cos(x), -np.sin(x), 0], [np.sin(x), np.cos(x), 0], [0, 0, 1]] for x in a])
     cap = np.einsum("tij,vj->tvi", R, rest)
@@ -371,6 +366,19 @@ def test_under_a_capture_a_key_moving_the_corrected_vertices_keeps_the_cache_exa
     mc = obj.modifiers.new("Capture", "MESH_CACHE")
     mc.cache_format, mc.filepath, mc.deform_mode = "PC2", str(tmp_path / "capture.pc2"), "INTEGRATE"
     mc.frame_start, mc.forward_axis, mc.up_axis = float(frames[0]), "POS_Y", "POS_Z"
+    return rest, cap
+
+
+def test_under_a_capture_a_key_moving_the_corrected_vertices_keeps_the_cache_exact(tmp_path, addon):
+    """Where the artist's own shape key moves corrected vertices on a corrected frame, a correction cache under
+    the capture would carry that key through its own surface; the cache then goes after the capture holding the
+    whole corrected input (Overwrite), and still shows capture + key + correction."""
+    from facelab_addon.blender.cache_integrate import polygon_corners
+    from facelab_addon.core.capture.integrate import integrate_matrices, integrate_offsets_to_key
+
+    scene, obj = head(False)
+    frames = FRAMES[:8]
+    rest, cap = _turning_capture(tmp_path, obj, frames)
     sub = np.arange(0, len(rest), 2)
     fix = np.zeros_like(rest)
     fix[sub[:40]] = 2e-3  # the artist's key moves some corrected vertices
@@ -404,18 +412,10 @@ def test_after_capture_the_correction_is_a_patch_of_its_vertices_rerun_and_undo_
     exactly; a re-run and undo replace only FaceLab's patch (modifier, node group, patch object, attribute)."""
     from facelab_addon.blender.bakes import correction_cache
     from facelab_addon.core.capture.pointcache import read_pc2
-    from facelab_addon.core.capture.pointcache_writer import write_pc2
 
     scene, obj = head(False)
-    saved(tmp_path)
-    rest = np.array([v.co[:] for v in obj.data.vertices])
     frames = FRAMES[:8]
-    a = np.radians(4.0) * np.arange(len(frames))
-    R = np.stack([[[np.cos(x), -np.sin(x), 0], [np.sin(x), np.cos(x), 0], [0, 0, 1]] for x in a])
-    write_pc2(tmp_path / "capture.pc2", np.einsum("tij,vj->tvi", R, rest), start=float(frames[0]))
-    mc = obj.modifiers.new("Capture", "MESH_CACHE")
-    mc.cache_format, mc.filepath, mc.deform_mode = "PC2", str(tmp_path / "capture.pc2"), "INTEGRATE"
-    mc.frame_start, mc.forward_axis, mc.up_axis = float(frames[0]), "POS_Y", "POS_Z"
+    rest, _ = _turning_capture(tmp_path, obj, frames)
     sub = np.arange(0, len(rest), 4)
     add_corrective_key(obj, "ArtistFix", np.full_like(rest, 1e-3))  # the artist's key, on the corrected vertices
     obj.data.shape_keys[OWNED_KEYS_PROP] = []
