@@ -192,3 +192,22 @@ def test_ict_auto_regions(ict_regions):
     np.testing.assert_array_equal(regions.inner_lip_vertices(V, F, loop=loop), lip)
     with pytest.raises(RegionError, match="positive"):
         regions.auto_regions(V, F, loop=loop, lip_width=-1.0)
+
+
+def test_ict_wider_lip_band_pushes_the_mouth_band_outward(ict_regions):
+    """A wider FL_lips (0.2 mouth widths) keeps FL_mouth a full-width band right outside it (issue 11).
+
+    So the trusted input of Propagate is as wide as with the default band; the few-frame Propagate
+    difference between the two widths (benchmarks/lip_band.py) comes from the lip band itself.
+    """
+    m, loop, mouth0, _ = ict_regions
+    V, F = m.neutral, m.faces
+    W = lip_loop.loop_width(V, loop)
+    lw, mw = 0.2 * W, regions.DEFAULT_MOUTH_WIDTH * W
+    mouth, lip, d, _ = regions.auto_regions(V, F, loop=loop, lip_width=lw, mouth_width=mw, return_distance=True)
+    band = mouth & ~lip
+    assert d[lip].max() <= lw and 0.9 * lw < d[lip].max()
+    assert (d[band] > lw).all() and (d[band] <= lw + mw).all() and d[band].max() > 0.9 * (lw + mw)
+    assert d[band].min() < lw + 0.1 * W  # starts at the lip border, no gap of ignored skin
+    assert band.sum() > 0.8 * (mouth0 & ~regions.auto_regions(V, F, loop=loop)[1]).sum()
+    regions.validate_regions(F, regions.faces_in_region(F, mouth), regions.faces_in_region(F, lip), len(V))

@@ -43,7 +43,8 @@ __all__ = [
 #: Default inner-lip band half-width, as a fraction of the mouth width (corner
 #: to corner distance of the contact loop). About 5.5 mm on ICT-FaceKit. (0.2, each
 #: lip's height, lets Refine remove more of an error spread 8 mm across the lips, but
-#: Propagate then needs more training frames: see docs/sketch-refine.md.)
+#: Propagate, which regresses the whole deformation of the band and holds only its border,
+#: then needs more training frames: see docs/sketch-refine.md and benchmarks/lip_band.py.)
 DEFAULT_LIP_WIDTH = 0.12
 #: The lip band is at least this many edge lengths (median at the contact loop) wide, so
 #: on a coarse mesh its interior, which Refine moves, is still two edge rings deep.

@@ -1,0 +1,153 @@
+"""Benchmark: why few-frame Propagate degrades with a wider lip band (issue 11).
+
+The scene of ``tests/pipeline/test_propagate.py`` without Blender: ICT-FaceKit (metres) animated with
+``cyclic_mouth_weights`` on frames 1-40, a systematic inner-lip error (the test's
+``lip_capture_error``, faded before the border of a 0.2 mouth-width lip band) keyed ``1 - 1.5 jawOpen``,
+corrected on k frames, held-out inner-lip error of Propagate as a percentage of the capture's.
+
+For lip bands of 0.12 and 0.2 mouth widths it reports:
+
+* ``default``: Propagate as shipped (``LipRegressor``, the lip gradients regressed from the mouth);
+* ``mouth_band``: the 0.2 band with mouth bands of 0.2-0.8 mouth widths (the trusted input);
+* ``no_error_mm``: the same regression trained and evaluated on the truth (no capture error at all):
+  the error it makes predicting the expression itself across the band;
+* ``correction_only``: a regression of the correction alone (a regressor fitted on the corrected
+  frames minus one fitted on the same frames as captured, added to the capture), rest-centred and
+  uncentred (``center=None``): a candidate fix for Propagate, measured here, not shipped.
+
+``propagate_benchmark`` repeats the default and the correction-only regression on the scene of
+``benchmarks/propagate.py`` (speech, 200 frames, its non-linear error for today's 0.12 band, training
+frames from ``suggest_frames``) with the regions of either band: held-out inner-lip RMS, % of the capture's.
+
+    python benchmarks/lip_band.py
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from facelab_addon.core.capture.ict import load_ict  # noqa: E402
+from facelab_addon.core.geometry.geodesic import geodesic_distance  # noqa: E402
+from facelab_addon.core.lips import regions as R  # noqa: E402
+from facelab_addon.core.lips.lip_loop import inner_lip_loop, loop_width  # noqa: E402
+from facelab_addon.core.lips.propagate import LipRegressor  # noqa: E402
+from facelab_addon.core.lips.suggest import suggest_frames  # noqa: E402
+from facelab_addon.testing import synthetic as syn  # noqa: E402
+from facelab_addon.testing.weights import CYCLIC_MOUTH_CHANNELS, cyclic_mouth_weights, speech_weights  # noqa: E402
+
+SCALE = 0.01  # metres, as the test
+FRAMES = np.arange(1, 41)
+TRAIN = {3: [5, 18, 31], 6: [5, 12, 18, 25, 31, 38]}
+
+
+class Scene:
+    def __init__(self):
+        ict = load_ict()
+        self.V, self.F = ict.neutral, ict.faces
+        W = cyclic_mouth_weights(FRAMES)
+        D = ict.deltas(list(CYCLIC_MOUTH_CHANNELS)).reshape(len(CYCLIC_MOUTH_CHANNELS), -1)
+        self.truth = (self.V.ravel() + W @ D).reshape(len(FRAMES), -1, 3) * SCALE
+        self.cap_w = 1.0 - 1.5 * W[:, 0]
+        fixed = ~ict.part_vertex_mask("M_Face")
+        mouth = syn.find_mouth(self.V, self.F, fixed, loop=syn.ICT_MOUTH_LOOP)
+        self.w, self.side = syn.lip_error_weights(self.V, self.F, fixed, mouth=mouth)
+        self.width = loop_width(self.V, inner_lip_loop(self.V, self.F))
+
+    def regions(self, lip, mouth=R.DEFAULT_MOUTH_WIDTH):
+        return R.auto_regions(self.V, self.F, lip_width=lip * self.width, mouth_width=mouth * self.width)
+
+    def error(self, lip_mask):
+        """The test's lip_capture_error for a lip band (metres)."""
+        F = self.F
+        d = geodesic_distance(self.V, F, R.region_border(F, R.faces_in_region(F, lip_mask)))
+        fade = np.clip(d / (0.35 * np.nanmax(np.where(lip_mask, d, np.nan))), 0, 1) * lip_mask
+        err = np.zeros_like(self.V)
+        err[:, 1] = self.side * self.w * fade * 0.08 * SCALE
+        return err
+
+    def regressor(self, regs, **kw):
+        F = self.F
+        return LipRegressor(self.V * SCALE, F, R.faces_in_region(F, regs[0]), R.faces_in_region(F, regs[1]), **kw)
+
+    def run(self, regs, err, k, mode="default", **kw):
+        """Held-out mean inner-lip error, % of the capture's (or mm for mode 'no_error')."""
+        train = np.searchsorted(FRAMES, TRAIN[k])
+        held = np.setdiff1d(np.arange(len(FRAMES)), train)
+        cap = self.truth + (0.0 if mode == "no_error" else self.cap_w[:, None, None] * err)
+        reg = self.regressor(regs, **kw)
+        fixed = cap[train].copy()
+        fixed[:, reg.interior_vertices] = self.truth[train][:, reg.interior_vertices]
+        reg.fit(fixed)
+        got = reg.predict(cap[held])
+        if mode == "correction_only":
+            as_captured = self.regressor(regs, **kw)
+            as_captured.fit(cap[train])
+            got = cap[held] + got - as_captured.predict(cap[held])
+        e = lambda X: np.linalg.norm(X - self.truth[held], axis=2)[:, regs[1]].mean()  # noqa: E731
+        if mode == "no_error":
+            return round(1e3 * e(got), 4)  # mm
+        return round(100 * e(got) / e(cap[held]), 1)
+
+
+def main():
+    sc = Scene()
+    bands = {lw: sc.regions(lw) for lw in (0.12, 0.2)}
+    err = sc.error(bands[0.2][1])
+    out = {"scene": "tests/pipeline/test_propagate.py without Blender; error faded before the 0.2 band's border",
+           "unit": "held-out inner-lip error, % of the capture's (no_error_mm: mm)"}
+    for lw, regs in bands.items():
+        r = out[f"lip_band_{lw}"] = {"lip_vertices": int(regs[1].sum()), "mouth_vertices": int(regs[0].sum())}
+        for k in TRAIN:
+            r[f"k{k}"] = {
+                "default": sc.run(regs, err, k),
+                "no_error_mm": sc.run(regs, err, k, "no_error"),
+                "correction_only": sc.run(regs, err, k, "correction_only"),
+                "correction_only_uncentred": sc.run(regs, err, k, "correction_only", center=None),
+            }
+    out["mouth_band_k3"] = {f"{mw}": sc.run(sc.regions(0.2, mw), err, 3) for mw in (0.2, 0.45, 0.8)}
+    out["propagate_benchmark"] = propagate_benchmark(sc)
+    print(json.dumps(out, indent=1))
+
+
+def propagate_benchmark(sc, n_frames=200):
+    """benchmarks/propagate.py's scene and error (0.12 band), regions of 0.12 and 0.2 mouth widths."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import propagate as bp
+
+    ps = bp.Scene()
+    V, F = ps.m.neutral, ps.m.faces
+    W = speech_weights(n_frames)
+    truth = ps.poses(W)
+    cap = ps.capture(W, truth)
+    res = {}
+    for lw in (0.12, 0.2):
+        mouth, lip = R.auto_regions(V, F, lip_width=lw * loop_width(V, ps.loop))
+        mf, lf = R.faces_in_region(F, mouth), R.faces_in_region(F, lip)
+        picks = suggest_frames(cap, 10, rest_vertices=V, faces=F, mouth_faces=mf)
+        held = np.setdiff1d(np.arange(n_frames), picks)
+        base = bp.lip_rms_max(cap[held], truth[held], lip)[0]
+        r = res[f"lip_band_{lw}"] = {}
+        for k in (3, 6, 10):
+            tr = picks[:k]
+            B = LipRegressor(V, F, mf, lf)
+            fixed = cap[tr].copy()
+            fixed[:, B.interior_vertices] = truth[tr][:, B.interior_vertices]
+            B.fit(fixed)
+            pb = B.predict(cap[held])
+            A = LipRegressor(V, F, mf, lf)
+            A.fit(cap[tr])
+            co = cap[held] + pb - A.predict(cap[held])
+            r[f"k{k}"] = {"default": round(100 * bp.lip_rms_max(pb, truth[held], lip)[0] / base, 1),
+                          "correction_only": round(100 * bp.lip_rms_max(co, truth[held], lip)[0] / base, 1)}
+    return res
+
+
+if __name__ == "__main__":
+    main()
