@@ -16,7 +16,7 @@ We minimise, in the least-squares sense and over 5 iterations,
   camera each) every view adds its own terms to the one solve, which fixes the
   depth of the lips that a single view cannot see. The first view is the main
   one: it is solved alone first, and the other views are matched on its result
-  (``views_staged``), their worst-matched samples left out (``views_keep``).
+  (``main_view_iterations``), their worst-matched samples left out (``views_keep``).
 
 Silhouettes and correspondences are recomputed at every iteration on the
 current result, while ``E_pos`` and ``E_reg`` keep referring to the captured
@@ -193,7 +193,7 @@ def refine_lips_views(
     reach_px: float | None = None,
     silhouette_rays: str = "nearest",
     crossings: str = "follow",
-    views_staged: bool = True,
+    main_view_iterations: int = 1,
     views_keep: float = 1.5,
     return_info: bool = False,
 ):
@@ -210,14 +210,14 @@ def refine_lips_views(
     laplacian, reach_px, silhouette_rays, crossings, return_info
         As in :func:`refine_lips`; ``silhouette_px`` in the info is over all views, and
         ``views`` lists per view its ``name``, ``silhouette_px`` (mean, last) and matched vertices.
-    views_staged : bool
-        With several views, first solve the first (main) view alone for ``iterations``, then all
-        views for ``iterations`` more, matching the other views' silhouettes on the main view's
-        result (default). False: all views from the capture on. Each view pulls its own silhouette
-        vertices across its own image only; matched on the capture, a camera below the mouth moves
-        the upper lip's underside along its image's up-down, which mixes in the main camera's depth
-        (false depth where there is none to find). Matched on the main view's result, the other
-        views start where the main view's correction put the lips. One view: no effect.
+    main_view_iterations : int
+        With several views, how many iterations the first (main) view is solved alone before
+        the other views join for ``iterations`` more (default 1; 0: all views from the capture
+        on). Each view pulls its own silhouette vertices across its own image only; matched on
+        the capture, a camera below the mouth moves the upper lip's underside along its image's
+        up-down, which mixes in the main camera's depth (false depth where there is none to
+        find). Matched on the main view's result, the other views start where the main view's
+        correction put the lips. One view: no effect.
     views_keep : float
         With several views, the other views' sketch samples matched farther (pixels) than
         ``views_keep`` times their median distance are left out of each iteration (their worst
@@ -304,9 +304,9 @@ def refine_lips_views(
     hist = []
     with small_dense_threads(1):
         base = solver.unconstrained(V0, V0)  # E_pos and E_reg refer to the capture: the same every iteration
-        if multi and views_staged:
-            # stage 1: the main (first) view alone; its result is where the other views are matched from
-            for _ in range(int(iterations)):
+        if multi:
+            # the main (first) view alone first; its result is where the other views are matched from
+            for _ in range(int(main_view_iterations)):
                 cons, dists, matched = correspondences(X, upto=1)
                 hist.append(float(np.mean(np.concatenate(dists))))
                 X = solver.constrain(base, V0, cons)
