@@ -314,8 +314,8 @@ def refine_lips_views(
             g = None
             if multi and np.isfinite(views_keep):
                 # the added views' sketch samples matched farther than views_keep x their median are left out
-                _, d0, _ = correspondences(X)
-                g = [None] + [(d <= views_keep * np.median(d)).astype(np.float64) for d in d0[1:]]
+                d0 = [m.correspondences(X, lambda_silh, silhouette_rays)[1] for m in matchers[1:]]
+                g = [None] + [(d <= views_keep * np.median(d)).astype(np.float64) for d in d0]
             cons, dists, matched = correspondences(X, g)
             hist.append(float(np.mean(np.concatenate(dists))))
             X = solver.constrain(base, V0, cons)
