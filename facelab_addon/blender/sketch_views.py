@@ -49,7 +49,9 @@ def sketch_views(scene, frame: int) -> list:
     """``[(sketch, camera_object), ...]``: the Grease Pencil lip sketches keyed on ``frame`` and their cameras.
 
     A sketch counts when both lip layers have a keyframe on ``frame`` and its camera is known
-    (:func:`sketch_camera`); one sketch per camera (the first by name). Sorted by sketch name.
+    (:func:`sketch_camera`); one sketch per camera (the first by name). The scene camera's sketch
+    comes first (the main view: the others are matched from its result, see
+    :func:`~facelab_addon.core.lips.sketch.refine_lips_views`), the others sorted by sketch name.
     """
     out, seen = [], set()
     for o in sorted(scene.objects, key=lambda o: o.name):
@@ -64,4 +66,5 @@ def sketch_views(scene, frame: int) -> list:
         if keyed:
             seen.add(cam.name)
             out.append((o, cam))
-    return out
+    main = scene.camera
+    return sorted(out, key=lambda p: p[1] != main)  # stable: the scene camera's first, the rest by name

@@ -14,8 +14,7 @@ from facelab_addon.core.lips.sketch import SketchView, refine_lips_views
 from facelab_addon.testing import synthetic as S
 
 
-@pytest.fixture(scope="module")
-def nodded(ict):
+def _case(ict, nod_deg):
     F = ict.faces
     fixed = ~ict.part_vertex_mask("M_Face")
     mm = 0.1 * ict.scale
@@ -29,11 +28,29 @@ def nodded(ict):
         d = np.cos(e) * mouth.forward + np.sin(e) * mouth.up
         return Camera.look_at(mouth.center + 40.0 * ict.scale * d, mouth.center, mouth.up, 50, 36, 1920, 1080)
 
-    # the face nodded 20 degrees away from the main camera = the main camera 20 degrees above the face's front
-    main, lower = camera(20.0), camera(20.0 - 35.0)
+    # the face nodded away from the main camera = the main camera that far above the face's front
+    main, lower = camera(nod_deg), camera(nod_deg - 35.0)
     views = [SketchView(c, *S.lip_contours(T, F, c, mouth=mouth, margin_mm=3.0), name=n)
              for c, n in ((main, "main"), (lower, "lower"))]
     return dict(F=F, fixed=fixed, mm=mm, T=T, C=C, lip=w > 1e-3, views=views, ray=main.R[2])
+
+
+@pytest.fixture(scope="module")
+def nodded(ict):
+    return _case(ict, 20.0)
+
+
+@pytest.fixture(scope="module")
+def at_rest(ict):
+    return _case(ict, 0.0)
+
+
+def _rms(c, X):
+    return np.sqrt((np.linalg.norm(X - c["T"], axis=1)[c["lip"]] ** 2).mean()) / c["mm"]
+
+
+def _along_ray(c, X):  # the error component along the main camera's rays (its depth), mm
+    return np.sqrt(((((X - c["T"])[c["lip"]]) @ c["ray"]) ** 2).mean()) / c["mm"]
 
 
 def test_a_lower_camera_recovers_the_depth_the_main_camera_cannot_see(nodded):
@@ -51,7 +68,34 @@ def test_a_lower_camera_recovers_the_depth_the_main_camera_cannot_see(nodded):
     e0, e1, e2 = rms(c["C"]), rms(X1), rms(X2)
     assert along_ray(c["C"]) > 0.3 * e0  # the capture error has a depth component (measured 0.176 of 0.513 mm)
     assert along_ray(X1) > 0.95 * along_ray(c["C"])  # one view leaves it (measured 1.01)
-    assert along_ray(X2) < 0.8 * along_ray(c["C"])  # the lower camera removes part of it (measured 0.71)
-    assert e2 < e1 - 0.15 * e0, (e0, e1, e2)  # measured cuts: one view 19.6 %, two views 44.9 %
+    assert along_ray(X2) < 0.6 * along_ray(c["C"])  # the lower camera removes half of it (measured 0.48; joint 0.57)
+    assert e2 < e1 - 0.25 * e0, (e0, e1, e2)  # measured cuts: one view 34.9 %, two views 66.7 % (joint 60.7 %)
     assert [v["name"] for v in info["views"]] == ["main", "lower"]
     assert all(v["silhouette_px"] < 3.0 for v in info["views"])  # both views end on their sketches
+
+
+def test_a_second_view_adds_no_false_depth_at_rest(at_rest):
+    """Facing the main camera the error is all across its image: the lower camera must not cost 3D accuracy.
+
+    Matched jointly from the capture, the lower camera's silhouettes (other vertices than the main camera's)
+    were pulled across its own image, which mixes in the main camera's depth: 0.15 mm of false depth and a
+    73 % cut down to 47 %. Staged (the main view first, the lower one matched from its result, its worst-matched
+    samples left out) the two views keep the one-view result.
+    """
+    c = at_rest
+    X1 = refine_lips_views(c["C"], c["F"], c["views"][:1], fixed=c["fixed"])
+    X2 = refine_lips_views(c["C"], c["F"], c["views"], fixed=c["fixed"])
+    Xj = refine_lips_views(c["C"], c["F"], c["views"], fixed=c["fixed"], main_view_iterations=0, views_keep=np.inf)
+    e0, e1, e2, ej = _rms(c, c["C"]), _rms(c, X1), _rms(c, X2), _rms(c, Xj)
+    assert _along_ray(c, c["C"]) < 0.01 * e0  # no depth error to find
+    assert e1 < 0.35 * e0, (e0, e1)  # one view: measured cut 73.3 %
+    assert e2 < e1 + 0.03 * e0, (e0, e1, e2)  # two views: measured 72.2 %
+    assert _along_ray(c, X2) < 0.1 * e0  # measured 0.046 mm of 0.51 mm
+    assert ej > e1 + 0.15 * e0, (e0, e1, ej)  # the joint match from the capture loses (measured 46.8 %)
+
+
+def test_one_view_is_unaffected_by_the_multi_view_options(at_rest):
+    c = at_rest
+    X1 = refine_lips_views(c["C"], c["F"], c["views"][:1], fixed=c["fixed"])
+    Xo = refine_lips_views(c["C"], c["F"], c["views"][:1], fixed=c["fixed"], main_view_iterations=0, views_keep=np.inf)
+    np.testing.assert_array_equal(X1, Xo)

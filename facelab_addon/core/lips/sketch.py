@@ -14,7 +14,9 @@ We minimise, in the least-squares sense and over 5 iterations,
   and lower lip by the sign of the y component of their projected normals.
   With several views (:class:`~facelab_addon.core.lips.views.SketchView`, one
   camera each) every view adds its own terms to the one solve, which fixes the
-  depth of the lips that a single view cannot see.
+  depth of the lips that a single view cannot see. The first view is the main
+  one: it is solved alone first, and the other views are matched on its result
+  (``main_view_iterations``), their worst-matched samples left out (``views_keep``).
 
 Silhouettes and correspondences are recomputed at every iteration on the
 current result, while ``E_pos`` and ``E_reg`` keep referring to the captured
@@ -191,6 +193,8 @@ def refine_lips_views(
     reach_px: float | None = None,
     silhouette_rays: str = "nearest",
     crossings: str = "follow",
+    main_view_iterations: int = 1,
+    views_keep: float = 1.5,
     return_info: bool = False,
 ):
     """Refine the lips to sketches drawn through one or several cameras, in one solve.
@@ -206,6 +210,19 @@ def refine_lips_views(
     laplacian, reach_px, silhouette_rays, crossings, return_info
         As in :func:`refine_lips`; ``silhouette_px`` in the info is over all views, and
         ``views`` lists per view its ``name``, ``silhouette_px`` (mean, last) and matched vertices.
+    main_view_iterations : int
+        With several views, how many iterations the first (main) view is solved alone before
+        the other views join for ``iterations`` more (default 1; 0: all views from the capture
+        on). Each view pulls its own silhouette vertices across its own image only; matched on
+        the capture, a camera below the mouth moves the upper lip's underside along its image's
+        up-down, which mixes in the main camera's depth (false depth where there is none to
+        find). Matched on the main view's result, the other views start where the main view's
+        correction put the lips. One view: no effect.
+    views_keep : float
+        With several views, the other views' sketch samples matched farther (pixels) than
+        ``views_keep`` times their median distance are left out of each iteration (their worst
+        matches: silhouettes the main view's correction has not yet brought near, or another
+        silhouette); ``inf`` keeps all. The main view keeps every sample. One view: no effect.
 
     Returns
     -------
@@ -273,10 +290,11 @@ def refine_lips_views(
     for m in matchers:
         m.restrict(Fl, around & ~fixed)
 
-    def correspondences(X):
+    def correspondences(X, gates=None, upto=None):  # gates: per view, (N+M,) sample weights or None
         cons, dists, matched = [], [], []
-        for m in matchers:
-            c, d, mt = m.correspondences(X, lambda_silh, silhouette_rays)
+        for k, m in enumerate(matchers[:upto]):
+            c, d, mt = m.correspondences(X, lambda_silh, silhouette_rays,
+                                         sample_weights=None if gates is None else gates[k])
             cons += c
             dists.append(d)
             matched.append(mt)
@@ -286,8 +304,19 @@ def refine_lips_views(
     hist = []
     with small_dense_threads(1):
         base = solver.unconstrained(V0, V0)  # E_pos and E_reg refer to the capture: the same every iteration
+        if multi:
+            # the main (first) view alone first; its result is where the other views are matched from
+            for _ in range(int(main_view_iterations)):
+                cons, dists, matched = correspondences(X, upto=1)
+                hist.append(float(np.mean(np.concatenate(dists))))
+                X = solver.constrain(base, V0, cons)
         for _ in range(int(iterations)):
-            cons, dists, matched = correspondences(X)
+            g = None
+            if multi and np.isfinite(views_keep):
+                # the added views' sketch samples matched farther than views_keep x their median are left out
+                d0 = [m.correspondences(X, lambda_silh, silhouette_rays)[1] for m in matchers[1:]]
+                g = [None] + [(d <= views_keep * np.median(d)).astype(np.float64) for d in d0]
+            cons, dists, matched = correspondences(X, g)
             hist.append(float(np.mean(np.concatenate(dists))))
             X = solver.constrain(base, V0, cons)
     if not np.isfinite(X).all():

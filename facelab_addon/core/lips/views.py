@@ -379,8 +379,11 @@ class ViewMatcher:
         keep = self.near[edges].all(axis=1)
         self.edges, self.ef = edges[keep], ef[keep]
 
-    def correspondences(self, X, lambda_silh: float, silhouette_rays: str = "nearest"):
+    def correspondences(self, X, lambda_silh: float, silhouette_rays: str = "nearest", sample_weights=None):
         """Silhouette vertices of ``X`` matched to the sketch rays.
+
+        ``sample_weights`` (N+M,) float, optional: a weight per sketch sample (upper samples first),
+        multiplying ``lambda_silh`` for the pixels of that sample (0: the sample adds no term).
 
         Returns
         -------
@@ -404,8 +407,11 @@ class ViewMatcher:
         sil_uv = cam.project(X[sil]) if self.envelope else None
         side = projected_normals(X[sil], normals, cam)[:, 1] > 0  # True: upper lip (image y down)
         cons, dist_px, matched = [], [], {}
+        nu = len(self.upper)
+        sw = None if sample_weights is None else np.asarray(sample_weights, dtype=np.float64)
         for name, lipmask, samples, o, d, pn in (("upper", side, self.upper, self.o_u, self.d_u, self.n_u),
                                                  ("lower", ~side, self.lower, self.o_l, self.d_l, self.n_l)):
+            ws = None if sw is None else (sw[:nu] if name == "upper" else sw[nu:])
             ids = sil[lipmask]
             if self.envelope and len(ids):
                 ids = _on_envelope(sil, sil_uv, sil_edges, ids, upper=(name == "upper"))
@@ -418,8 +424,15 @@ class ViewMatcher:
             j, dist = _closest_to_rays(X, ids, o, d)
             vid = ids[j]
             matched[name] = np.unique(vid)
+            dist_px.append(dist * cam.K[0, 0] / np.maximum(cam.depth(X[vid]), 1e-12))
+            if ws is not None:
+                keep = ws > 0
+                if not keep.any():
+                    continue
+                vid, o, d, ws = vid[keep], o[keep], d[keep], ws[keep]
             if silhouette_rays in ("nearest", "normal"):
-                uv, cnt = np.unique(vid, return_counts=True)
+                uv, inv = np.unique(vid, return_inverse=True)
+                cnt = np.bincount(inv.ravel(), weights=None if ws is None else ws, minlength=len(uv))
                 pv = cam.project(X[uv])
                 k = np.argmin(((pv[:, None, :] - samples[None]) ** 2).sum(-1), axis=1)
                 if silhouette_rays == "normal":
@@ -430,6 +443,5 @@ class ViewMatcher:
                     oo, dd = cam.rays(samples[k])
                     cons.append(PointConstraints.rays(uv, oo, dd, strength=lambda_silh * cnt))
             else:
-                cons.append(PointConstraints.rays(vid, o, d, strength=lambda_silh))
-            dist_px.append(dist * cam.K[0, 0] / np.maximum(cam.depth(X[vid]), 1e-12))
+                cons.append(PointConstraints.rays(vid, o, d, strength=lambda_silh * (1.0 if ws is None else ws)))
         return cons, np.concatenate(dist_px), matched
