@@ -101,3 +101,33 @@ def test_zero_weight_member_that_is_the_largest_free_vertex_is_ignored():
     same = PointConstraints.points([[14, 14], [15, 16]], targets, 5.0, bary=bary)
     np.testing.assert_allclose(X, D.solve(V, V, same), atol=1e-12)  # vertex 35 carries no weight
     assert np.linalg.norm(X[14] - V[14]) > 0.1
+
+
+def test_constraint_rows_and_vertex_systems_give_the_same_minimiser(monkeypatch):
+    """Few rank-2 constraints on many vertices take the (m x m) system on the constraint rows; many
+    constraints on few vertices the (3u x 3u) one. Both are the same minimiser (and the dense one)."""
+    import facelab_addon.core.geometry.deform as deform
+
+    rng = np.random.default_rng(3)
+    V, F, _ = grid(9, jitter=0.2)
+    V[:, 2] = 0.1 * np.cos(V[:, 1])
+    L = cotangent_laplacian(V, F)
+    w = rng.uniform(0.05, 1, len(V))
+    pinned = np.zeros(len(V), bool)
+    pinned[:4] = True
+    tri = rng.integers(0, len(V), (12, 3))
+    d = rng.standard_normal((12, 3))
+    C = PointConstraints.concat([
+        PointConstraints.rays(tri[:, 0], V[tri[:, 0]] + rng.standard_normal((12, 3)), d, rng.uniform(1, 5, 12)),
+        PointConstraints.points(tri, V[tri[:, 0]] + 0.1, 2.0, bary=rng.dirichlet([1, 1, 1], 12)),
+    ])
+    D = LaplacianDeformer(L, lambda_reg=2.0, pos_weights=w, pinned=pinned)
+    calls = []
+    real = deform._low_rank_rows
+    monkeypatch.setattr(deform, "_low_rank_rows", lambda *a: calls.append(real(*a)) or calls[-1])
+    X_rows = D.solve(V, V, C)
+    assert calls[-1] is not None  # 12*2 + 12*3 rows < 3 * (about 48) unknowns
+    monkeypatch.setattr(deform, "_low_rank_rows", lambda *a: None)
+    X_vertices = D.solve(V, V, C)
+    np.testing.assert_allclose(X_rows, X_vertices, atol=1e-10)
+    np.testing.assert_allclose(X_rows, dense_reference(L, 2.0, w, pinned, V, V, C), atol=1e-10)

@@ -251,6 +251,11 @@ class LaplacianDeformer:
             return X0
         # a free vertex with a zero weight is not in ``used``: point it at slot 0 (its b is 0, it adds nothing)
         pos = np.searchsorted(used, np.where(member, fv, used[0]))
+        Zt = self._columns(used)  # (u, n_f)
+        Zuu = Zt[:, used]  # (u, u) = principal block of M^-1, SPD
+        low = _low_rank_rows(H, b, pos, q, 3 * u)
+        if low is not None:
+            return X0 + Zt.T @ _low_rank_step(low, X0[used], Zuu)
         # Quadratic form in x_U (u*3): Q = sum_c kron(b_c b_cᵀ, H_c), r = sum_c b_c ⊗ H_c q_c
         Q = np.zeros((u, 3, u, 3))
         r = np.zeros((u, 3))
@@ -260,8 +265,6 @@ class LaplacianDeformer:
             np.add.at(r, pos[:, i], b[:, i, None] * Hq)
             for j in range(k):
                 np.add.at(Q, (pos[:, i], slice(None), pos[:, j]), (b[:, i] * b[:, j])[:, None, None] * H)
-        Zt = self._columns(used)  # (u, n_f)
-        Zuu = Zt[:, used]  # (u, u) = principal block of M^-1, SPD
         Q2 = Q.reshape(3 * u, 3 * u)
         # Optimality: x_U = x0_U - (Zuu ⊗ I3)(Q x_U - r). Multiplying by (Zuu ⊗ I3)^-1 gives the
         # SPD system ((Zuu^-1 ⊗ I3) + Q) x_U = (Zuu^-1 ⊗ I3) x0_U + r, solved by Cholesky.
@@ -277,3 +280,47 @@ class LaplacianDeformer:
         )
         G = (Q2 @ xU - r.reshape(-1)).reshape(u, 3)
         return X0 - Zt.T @ G
+
+
+def _low_rank_rows(H, b, pos, q, n_unknowns: int):
+    """The constraint terms as rows ``A x = g`` (``Q = AᵀA``, ``r = Aᵀg``), or None when there are not fewer
+    rows than ``n_unknowns``.
+
+    Each ``H_c`` (3x3, PSD) is factored as ``G_cᵀ G_c`` keeping only its non-zero eigenvalues (a ray or a
+    pixel constraint has rank 2, a plane rank 1), so the rows are ``m = sum rank(H_c)``. Returns
+    ``(rows (m*k,), cols (m*k,), coef (m*k,3), g (m,), m)``: row ``rows[i]`` has ``coef[i]`` on used vertex
+    ``cols[i]``.
+    """
+    lam, U = np.linalg.eigh(H)  # ascending; (c,3), (c,3,3) eigenvectors in columns
+    keep = lam > 1e-12 * np.maximum(lam[:, -1:], 1e-300)
+    ci, ji = np.nonzero(keep)
+    m = len(ci)
+    if m >= n_unknowns or m == 0:
+        return None
+    G = np.sqrt(lam[ci, ji])[:, None] * U[ci, :, ji]  # (m,3)
+    g = np.einsum("md,md->m", G, q[ci])
+    k = b.shape[1]
+    rows = np.repeat(np.arange(m), k)
+    cols = pos[ci].reshape(-1)
+    coef = b[ci].reshape(-1)[:, None] * np.repeat(G, k, axis=0)  # (m*k,3)
+    return rows, cols, coef, g, m
+
+
+def _low_rank_step(low, x0, Zuu) -> np.ndarray:
+    """``Aᵀ y`` (u,3) with ``y = K⁻¹ (g - A x0)``, ``K = I + A (Zuu ⊗ I3) Aᵀ`` (m x m, SPD).
+
+    The Woodbury identity on the constraint rows instead of the used vertices: with
+    ``Q = AᵀA`` and ``r = Aᵀg`` the constrained free vertices are ``X0 + Zᵀ Aᵀ y``, the same minimiser as the
+    (3u x 3u) system in ``_apply_constraints`` at the cost of an (m x m) one.
+    """
+    rows, cols, coef, g, m = low
+    u = len(Zuu)
+    K = np.eye(m)
+    Ax0 = np.zeros(m)
+    A = [sp.csr_matrix((coef[:, d], (rows, cols)), shape=(m, u)) for d in range(3)]
+    for d in range(3):
+        Ax0 += A[d] @ x0[:, d]
+        K += A[d] @ np.asarray(A[d] @ Zuu).T  # A_d Zuu A_dᵀ (Zuu symmetric)
+    y = scipy.linalg.cho_solve(scipy.linalg.cho_factor(K, lower=True, overwrite_a=True, check_finite=False),
+                               g - Ax0, check_finite=False)
+    return np.stack([A[d].T @ y for d in range(3)], axis=1)
