@@ -35,7 +35,7 @@ and at rest with the main and the side camera):
 
 Usage: ``PYTHONPATH=. python benchmarks/any_face.py [--quick | --views] [--png docs/images/any_face.png]``.
 Prints one JSON object on stdout (save it as ``benchmarks/results/any_face.json``; the ``--views`` comparison,
-metres, at rest and posed, one view / + lower camera / + side camera, as ``benchmarks/results/any_face_views.json``);
+metres, at rest and posed, one view / + lower camera / + side camera, printed as JSON);
 Blender's own output goes to stderr. About 8-12 minutes on 2 shared cores (``--quick``: metres, unposed, one view and
 two with the lower camera, about 3).
 """
