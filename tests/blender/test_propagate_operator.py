@@ -27,8 +27,8 @@ def lip_capture_error(ict):
     The realistic error shape of ``testing.synthetic.lip_error_weights``, faded to zero before the border
     of the lip region Auto Regions proposes (that border is held by the Poisson solve).
     """
-    from facelab_addon.core.lips.regions import auto_regions, region_border
     from facelab_addon.core.geometry.geodesic import geodesic_distance
+    from facelab_addon.core.lips.regions import auto_regions, region_border
     from facelab_addon.testing import synthetic as syn
 
     fixed = ~ict.part_vertex_mask("M_Face")

@@ -11,15 +11,14 @@ import bpy
 import numpy as np
 import pytest
 
+from facelab_addon.blender.bakes import bake_destination
 from facelab_addon.blender.objects import ModifierState, NotEditableError, require_editable
 from facelab_addon.blender.shapekeys import add_corrective_key, add_keys_from_deltas, owned_keys, remove_keys
-from facelab_addon.core.errors import FaceLabError
+from facelab_addon.core.errors import FaceLabError, OutputError
 from facelab_addon.names import OWNED_KEYS_PROP, PROPAGATE_PREFIX, SOLVE_PREFIX
 from facelab_addon.pipeline.bake import BakeSettings, bake
 from facelab_addon.pipeline.correctives import write_corrective_keys
 from facelab_addon.pipeline.frames import MAX_FRAME, check_frames, frame_range
-from facelab_addon.blender.bakes import bake_destination
-from facelab_addon.core.errors import OutputError
 
 pytestmark = pytest.mark.blender
 
