@@ -62,7 +62,7 @@ from scipy.spatial import cKDTree
 from ..errors import BundleError, DatasetError
 from ..geometry.linsolve import one_blas_thread
 from .binding import _labels
-from .inputs import check_bundle_frame, check_reconstruction_inputs
+from .inputs import check_bundle_frame, check_bundle_sequence, check_reconstruction_inputs
 from .natural_neighbor import natural_neighbor_weights, surface_points
 
 __all__ = ["FitResidual", "estimate_noise"]
@@ -414,9 +414,7 @@ class FitResidual:
         skipped : list of int
             Frames skipped because of NaN bundle positions.
         """
-        Q = np.asarray(bundles, dtype=np.float64)
-        if Q.ndim != 3 or Q.shape[1:] != (self.B, 3):
-            raise BundleError(f"Expected bundles as a (T,{self.B},3) array, got {Q.shape}.")
+        Q = check_bundle_sequence(bundles, self.B)
         out = np.full((len(Q), self.V, 3), np.nan)
         skipped = self.reconstruct_stream(Q, out.__setitem__, noise=noise, smooth=smooth, progress=progress)
         return out, skipped
@@ -443,9 +441,7 @@ class FitResidual:
         skipped : list of int
             Frames skipped because of NaN bundle positions (never passed to ``sink``).
         """
-        Q = np.asarray(bundles, dtype=np.float64)
-        if Q.ndim != 3 or Q.shape[1:] != (self.B, 3):
-            raise BundleError(f"Expected bundles as a (T,{self.B},3) array, got {Q.shape}.")
+        Q = check_bundle_sequence(bundles, self.B)
         sigma = estimate_noise(Q) if noise is None else float(noise)
         if not np.isfinite(sigma) or sigma < 0:
             raise BundleError(f"The bundle noise must be a finite length >= 0, got {noise}.")

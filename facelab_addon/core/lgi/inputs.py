@@ -13,7 +13,7 @@ from ..errors import BundleError, DatasetError
 from ..geometry.mesh import validate_mesh
 from .binding import _labels
 
-__all__ = ["check_reconstruction_inputs", "check_bundle_frame"]
+__all__ = ["check_reconstruction_inputs", "check_bundle_frame", "check_bundle_sequence"]
 
 
 def check_reconstruction_inputs(neutral, faces, shapes, names, bundle_faces, bundle_bary, *,
@@ -122,3 +122,29 @@ def check_bundle_frame(q, count: int, bundle_names=None, what: str = "bundles"):
             "skip the frame or fill the track gaps."
         )
     return q
+
+
+def check_bundle_sequence(bundles, count: int):
+    """Bundle positions of a shot as a (T,B,3) float64 array (NaN rows allowed: those frames are skipped).
+
+    Parameters
+    ----------
+    bundles : (T,B,3) array_like
+        Bundle positions per frame, scene units.
+    count : int
+        B, the number of bound bundles.
+
+    Returns
+    -------
+    (T,B,3) float64 ndarray
+        ``bundles`` itself when it is already a float64 array.
+
+    Raises
+    ------
+    BundleError
+        Not a (T,B,3) array.
+    """
+    Q = np.asarray(bundles, dtype=np.float64)
+    if Q.ndim != 3 or Q.shape[1:] != (count, 3):
+        raise BundleError(f"Expected bundles as a (T,{count},3) array, got {Q.shape}.")
+    return Q

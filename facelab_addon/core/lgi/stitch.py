@@ -43,6 +43,7 @@ import scipy.sparse as sp
 
 from ..errors import BundleError, MeshError
 from ..geometry.linsolve import idle_core, one_blas_thread
+from .inputs import check_bundle_sequence
 from .natural_neighbor import gaussian_rbf_weights, surface_points
 
 __all__ = ["IndexerStitch"]
@@ -219,9 +220,7 @@ class IndexerStitch:
         skipped : list of int
             Frames skipped because of NaN bundle positions.
         """
-        Q = np.asarray(bundles, dtype=np.float64)
-        if Q.ndim != 3 or Q.shape[1:] != (self.B, 3):
-            raise BundleError(f"Expected bundles as a (T,{self.B},3) array, got {Q.shape}.")
+        Q = check_bundle_sequence(bundles, self.B)
         out = np.full((len(Q), self.V, 3), np.nan)
         skipped = self.reconstruct_stream(Q, jaw, out.__setitem__, smooth=smooth, exact=exact, progress=progress,
                                           pipeline=pipeline)
@@ -253,9 +252,7 @@ class IndexerStitch:
             return self._reconstruct_sequence(bundles, jaw, smooth, exact, progress, pipeline, sink)
 
     def _reconstruct_sequence(self, bundles, jaw, smooth, exact, progress, pipeline, sink):
-        Q = np.asarray(bundles, dtype=np.float64)
-        if Q.ndim != 3 or Q.shape[1:] != (self.B, 3):
-            raise BundleError(f"Expected bundles as a (T,{self.B},3) array, got {Q.shape}.")
+        Q = check_bundle_sequence(bundles, self.B)
         T = len(Q)
         if self.jaw is not None:
             if jaw is None:
