@@ -133,7 +133,6 @@ def solve_performance(solver: BlendshapeSolver, corrective: OutOfSubspaceCorrect
     W = np.full((T, solver.S), np.nan)
     keep = corrective is not None and corrective_sink is None
     D = np.zeros((T, V, 3)) if keep else None
-    d = None
     skipped, frames, offs, corrs = {}, [], {}, []
     prev = None
     t0 = time.perf_counter()
