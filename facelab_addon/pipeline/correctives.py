@@ -117,6 +117,13 @@ class StoredKeys(list):
 
     storage: CorrectionResult
 
+    @classmethod
+    def of(cls, result: CorrectionResult) -> StoredKeys:
+        """The key names of ``result`` (a :meth:`CorrectionWriter.finish`), with ``result`` as ``.storage``."""
+        out = cls(result.keys)
+        out.storage = result
+        return out
+
 
 def _uniform(frames) -> bool:
     if len(frames) < 2:
@@ -531,7 +538,4 @@ def write_corrective_keys(obj, prefix: str, deltas, frames, *, vertices=None, me
     with CorrectionWriter(scene, obj, prefix, vertices=vertices, settings=settings, measured_on=measured_on) as w:
         for i in range(0, len(D), 256):
             w.add(np.asarray(frames)[i:i + 256], D[i:i + 256])
-        res = w.finish()
-    out = StoredKeys(res.keys)
-    out.storage = res
-    return out
+        return StoredKeys.of(w.finish())

@@ -422,8 +422,7 @@ def _propagate_work(scene, obj, frames, settings, t0, tris, mouth_faces, lip_fac
                     store = None
         yield "writing the corrective keys", total - 1, total
         if store is None:
-            names = StoredKeys([])
-            names.storage = spool.finish()
+            names = StoredKeys.of(spool.finish())  # the patch cache: no keys
         else:
             basis, weights = store.finish()
             names = _store_corrections(scene, obj, frames, basis, weights, iv)
@@ -487,10 +486,7 @@ def _store_corrections(scene, obj, frames, basis, weights, vertices) -> StoredKe
     """
     with CorrectionWriter(scene, obj, PROPAGATE_PREFIX, vertices=vertices, measured_on="evaluated") as w:
         w.add_low_rank(frames, basis, weights)
-        res = w.finish()
-    out = StoredKeys(res.keys)
-    out.storage = res
-    return out
+        return StoredKeys.of(w.finish())
 
 
 def _suggest(reg, reader, frames, at_used, screen, count):

@@ -254,9 +254,7 @@ def reconstruct_from_bundles(scene, obj, settings: ReconstructSettings, progress
                 "bundles' animation over the frame range."
             )
         sink.close()
-        stored = writer.finish()  # keys, or a cache
-    keys = StoredKeys(stored.keys)
-    keys.storage = stored
+        keys = StoredKeys.of(writer.finish())  # keys, or a cache
     live = [kb.name for kb in obj.data.shape_keys.key_blocks[1:] if not kb.name.startswith(fl.PREFIX) and kb.value]
     jaw_name = None
     if jaw is not None:

@@ -251,9 +251,7 @@ def retarget(scene, actor, creature, settings: RetargetSettings, progress=None) 
         key_values_bulk(creature, names, frames, W)
         keys = []
         if res.info["nonzero"]:
-            stored = writer.finish()  # keys, or a cache
-            keys = StoredKeys(stored.keys)
-            keys.storage = stored
+            keys = StoredKeys.of(writer.finish())  # keys, or a cache
     creature.data.update()
     return RetargetResult(frames=frames, created=created, kept=kept, keys=keys, correspondence=how,
                           action_note=note, time_s=time.perf_counter() - t0, core=res)

@@ -511,9 +511,7 @@ def solve_performance(scene, obj, settings: SolveSettings, progress=None) -> Sol
         keys = []
         if writer is not None:
             sink.close()
-            stored = writer.finish()
-            keys = StoredKeys(stored.keys)
-            keys.storage = stored
+            keys = StoredKeys.of(writer.finish())
     obj.data.update()
     return SolveResult(frames=frames, solved=frames[solved],
                        skipped={int(frames[i]): r for i, r in res.skipped.items()}, rig_keys=list(g.names),
