@@ -329,9 +329,7 @@ class CorrectionWriter:
 
     def _write_cache(self, path, read, frames, budget) -> CorrectionResult:
         obj, s = self.obj, self.settings
-        fmt = s.cache_format.upper()
-        span = self._span(frames)
-        row = {float(round(f, 6)): i for i, f in enumerate(frames)}
+        fmt, span, row, header = self._layout(frames)
         mods, index = self._capture_index()
         caps = index > 0
         # over a capture cache in Integrate mode the deltas are key offsets (``cache_integrate``)
@@ -340,8 +338,6 @@ class CorrectionWriter:
         key = obj.data.shape_keys
         (key.reference_key.data if key else obj.data.vertices).foreach_get("co", rest)
         rest = rest.reshape(self.V, 3).astype(np.float32)
-        fps = float(self.scene.render.fps) / float(self.scene.render.fps_base)
-        header = dict(start_frame=float(span[0]), sample_rate=1.0) if fmt == "PC2" else dict(times=span / fps)
         if integrate and self._under_capture_exact(mods, index, read, frames):
             self._write_blocks(path, fmt, header, read, span, row, rest, self.vertices)
             static, index = True, 0  # rest + key offsets, under the capture: shape keys of its own
@@ -362,21 +358,29 @@ class CorrectionWriter:
                                      f"it was written as a {fmt} point cache '{path}' played by the Mesh Cache "
                                      f"modifier '{name}' ({mode}).")
 
-    def _span(self, frames):
+    def _layout(self, frames):
+        """A correction cache's file layout for the stored ``frames`` (T,): ``(fmt, span, row, header)``.
+
+        ``span`` (S,) the scene frames the file holds (whole frames from the first to the last, or the evenly
+        spaced ``frames``), ``row`` maps a span frame to its stored frame index, ``header`` the file writer's
+        timing (PC2: start frame and rate; MDD: seconds).
+        """
+        fmt = self.settings.cache_format.upper()
         if np.allclose(frames, np.round(frames)):
-            return np.arange(int(round(frames.min())), int(round(frames.max())) + 1, dtype=np.float64)
-        if _uniform(np.sort(frames)):
-            return np.sort(frames)
-        raise FaceLabError("A correction cache needs whole or evenly spaced frames; store it on whole frames.")
+            span = np.arange(int(round(frames.min())), int(round(frames.max())) + 1, dtype=np.float64)
+        elif _uniform(np.sort(frames)):
+            span = np.sort(frames)
+        else:
+            raise FaceLabError("A correction cache needs whole or evenly spaced frames; store it on whole frames.")
+        row = {float(round(f, 6)): i for i, f in enumerate(frames)}
+        fps = float(self.scene.render.fps) / float(self.scene.render.fps_base)
+        header = dict(start_frame=float(span[0]), sample_rate=1.0) if fmt == "PC2" else dict(times=span / fps)
+        return fmt, span, row, header
 
     def _write_patch(self, path, read, frames) -> CorrectionResult:
         """The correction as a point cache of its own vertices, added after the capture (``after_capture``)."""
         obj, s = self.obj, self.settings
-        fmt = s.cache_format.upper()
-        span = self._span(frames)
-        row = {float(round(f, 6)): i for i, f in enumerate(frames)}
-        fps = float(self.scene.render.fps) / float(self.scene.render.fps_base)
-        header = dict(start_frame=float(span[0]), sample_rate=1.0) if fmt == "PC2" else dict(times=span / fps)
+        fmt, span, row, header = self._layout(frames)
         self._write_blocks(path, fmt, header, read, span, row, np.zeros((self.n, 3), np.float32), None)
         self._remove_previous()
         name = bakes.add_correction_patch(obj, self.prefix, path, fmt, np.arange(self.V) if self.vertices is None
