@@ -423,7 +423,6 @@ class _StreamingPrediction:
         self._dense = (self._Zdiv, (K, self._H, x0))
         return self._dense[1]
 
-
     def _float32_maps(self):
         """The :class:`_Float32Prediction` of the current fit, or None when the dense maps would be large."""
         dense = self._dense_solution()
