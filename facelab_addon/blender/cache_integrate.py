@@ -220,7 +220,7 @@ def keys_move_frames(obj, verts, frames, *, skip_prefixes=()) -> np.ndarray:
     -------
     (T,) bool ndarray
     """
-    from .shapekeys import _fcurve_for_key, _registry, key_matches
+    from .shapekeys import _registry, key_matches, key_values, values_from_action_only
 
     frames = np.asarray(frames, dtype=np.float64).ravel()
     key = obj.data.shape_keys
@@ -232,9 +232,7 @@ def keys_move_frames(obj, verts, frames, *, skip_prefixes=()) -> np.ndarray:
     v = np.asarray(verts, dtype=np.int64)
     n = len(obj.data.vertices)
     owned = set(_registry(key, create=False))
-    ad = key.animation_data
-    blended = ad is not None and (len(ad.drivers) or len(ad.nla_tracks) or ad.action_influence != 1.0
-                                  or ad.action_blend_type != "REPLACE")
+    blended = not values_from_action_only(key)
 
     def coords(data):
         c = np.empty(n * 3, np.float32)
@@ -248,12 +246,7 @@ def keys_move_frames(obj, verts, frames, *, skip_prefixes=()) -> np.ndarray:
             continue  # does not touch these vertices
         if blended:
             return ~out
-        fc = _fcurve_for_key(key, kb)
-        if fc is not None and not fc.mute:
-            w = np.array([fc.evaluate(f) for f in frames])
-        else:
-            w = np.full(len(frames), kb.value)
-        out |= np.clip(w, kb.slider_min, kb.slider_max) != 0.0
+        out |= key_values(key, kb, frames) != 0.0
     return out
 
 

@@ -25,7 +25,7 @@ import numpy as np
 
 from ..core.capture import meshcache, pointcache
 from . import caches
-from .shapekeys import _fcurve_for_key, _registry, key_matches
+from .shapekeys import _fcurve_for_key, _registry, key_matches, values_from_action_only
 
 __all__ = ["CaptureReader"]
 
@@ -90,9 +90,7 @@ class CaptureReader:
         if key is not None:
             if not key.use_relative:
                 return False
-            ad = key.animation_data
-            if ad is not None and (len(ad.drivers) or len(ad.nla_tracks) or ad.action_influence != 1.0
-                                   or ad.action_blend_type != "REPLACE"):
+            if not values_from_action_only(key):
                 return False
 
         def coords(data):

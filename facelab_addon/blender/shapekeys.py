@@ -17,6 +17,8 @@ __all__ = [
     "own_key",
     "key_spike",
     "find_fcurve",
+    "values_from_action_only",
+    "key_values",
     "shape_key_sequence",
     "remove_keys",
     "key_values_bulk",
@@ -191,6 +193,26 @@ def _fcurve_for_key(key, kb):
     return _find_fcurve(ad, f'key_blocks["{bpy.utils.escape_identifier(kb.name)}"].value')
 
 
+def values_from_action_only(key) -> bool:
+    """Whether ``key``'s values on any frame are those of its action's F-curves (or the current values): no
+    drivers, NLA, partial influence or layered blending, which only a scene evaluation gives."""
+    ad = key.animation_data
+    return ad is None or not (len(ad.drivers) or len(ad.nla_tracks) or ad.action_influence != 1.0
+                              or ad.action_blend_type != "REPLACE")
+
+
+def key_values(key, kb, frames) -> np.ndarray:
+    """(T,) float64 value of the key block ``kb`` on scene ``frames``: its (unmuted) F-curve, else its current
+    value, clipped to its slider range (what the mix uses when :func:`values_from_action_only`)."""
+    frames = np.asarray(frames, dtype=np.float64).ravel()
+    fc = _fcurve_for_key(key, kb)
+    if fc is not None and not fc.mute:
+        w = np.array([fc.evaluate(f) for f in frames])
+    else:
+        w = np.full(len(frames), kb.value)
+    return np.clip(w, kb.slider_min, kb.slider_max)
+
+
 def shape_key_sequence(obj, frames, *, skip_prefixes=(PREFIX,), ignore_modifiers: bool = False):
     """(T,V,3) float32 object-local positions of a shape-key-animated mesh, without frame_set.
 
@@ -215,9 +237,7 @@ def shape_key_sequence(obj, frames, *, skip_prefixes=(PREFIX,), ignore_modifiers
         return np.broadcast_to(co.reshape(1, n, 3), (len(frames), n, 3)).copy()
     if not key.use_relative:
         return None
-    ad = key.animation_data
-    if ad is not None and (len(ad.drivers) or len(ad.nla_tracks) or ad.action_influence != 1.0
-                           or ad.action_blend_type != "REPLACE"):
+    if not values_from_action_only(key):
         return None  # drivers / NLA / layered blending: evaluate frame by frame instead
     basis = key.reference_key
 
@@ -233,12 +253,7 @@ def shape_key_sequence(obj, frames, *, skip_prefixes=(PREFIX,), ignore_modifiers
             continue
         if kb.vertex_group:
             return None
-        fc = _fcurve_for_key(key, kb)
-        if fc is not None and not fc.mute:
-            w = np.array([fc.evaluate(f) for f in frames])
-        else:
-            w = np.full(len(frames), kb.value)
-        w = np.clip(w, kb.slider_min, kb.slider_max)
+        w = key_values(key, kb, frames)
         if not np.any(w):
             continue
         deltas.append(coords(kb) - coords(kb.relative_key))
