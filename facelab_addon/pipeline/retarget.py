@@ -7,13 +7,14 @@ written as compressed ``FL_Retarget_*`` keys (or a point cache, see
 :mod:`facelab_addon.pipeline.correctives`), and the lip-sync heuristic
 seals the creature's lip corners so its talking portion matches the actor's.
 
-Streaming: the actor's correctives are mixed from their keys a chunk of
-frames at a time and each frame's creature corrective goes straight to the
-storage writer's disk spool, so memory does not grow with the shot.
+Streaming: the core's :func:`~facelab_addon.core.solve.retarget.retarget_performance`
+mixes the actor's correctives from their keys one frame at a time and hands
+each frame's creature corrective to a ``corrective_sink`` that spools it to
+the storage writer a chunk of frames at a time, so memory does not grow with
+the shot.
 
-Progress: the per-frame transfer (the core's ``Retargeter.frame``) reports
-through a ``progress(done, total)`` callback; the job is one uninterruptible
-call, so there is no step generator.
+Progress: the core reports each frame done through a ``progress(done, total)``
+callback; the job is one uninterruptible call, so there is no step generator.
 """
 
 from __future__ import annotations
@@ -135,35 +136,6 @@ def _end_points(settings, T):
     return {t: EndPoints(up_[t], lo_[t]) for t in range(T)}
 
 
-def _retarget_frames(rt, W, C, end_points, sink, progress):
-    """Retarget every frame with ``rt`` (a core ``Retargeter``), handing each creature corrective to ``sink``.
-
-    ``C`` is None or the actor's correctives factored as ``(keys' deltas (R,V,3), keyed values (T,R))``;
-    they are mixed a chunk of frames at a time, so no (T,V,3) array is built. Returns the core's
-    ``RetargetResult`` without ``correctives`` (None); ``info["nonzero"]``: some corrective is not zero.
-    """
-    from ..core.solve.retarget import RetargetResult as CoreResult
-
-    T = len(W)
-    eps, nonzero = [], False
-    overrides = end_points or {}
-    t0 = time.perf_counter()
-    for i in range(0, T, sink.chunk):
-        j = min(T, i + sink.chunk)
-        Cc = None if C is None else np.einsum("tr,rvd->tvd", C[1][i:j], C[0])
-        for t in range(i, j):
-            corr, info = rt.frame(W[t], None if Cc is None else Cc[t - i], end_points=overrides.get(t))
-            corr = np.asarray(corr, dtype=np.float32)  # what the core's (T,W,3) float32 result held
-            nonzero = nonzero or bool(np.any(corr))
-            sink(t, corr)
-            eps.append(info["end_points"])
-            if progress is not None:
-                progress(t + 1, T)
-    sink.close()
-    info = dict(rt.info, frames_s=time.perf_counter() - t0, nonzero=nonzero)
-    return CoreResult(deltas=rt.creature_deltas, weights=W.copy(), correctives=None, end_points=eps, info=info)
-
-
 def retarget(scene, actor, creature, settings: RetargetSettings, progress=None) -> RetargetResult:
     """Retarget the actor's solved animation to ``creature`` and write it there.
 
@@ -191,7 +163,7 @@ def retarget(scene, actor, creature, settings: RetargetSettings, progress=None) 
         No creature, the face itself, no correspondence, no rig; nothing is
         written then.
     """
-    from ..core.solve.retarget import Retargeter
+    from ..core.solve.retarget import retarget_performance
 
     t0 = time.perf_counter()
     require_mesh(actor)
@@ -231,10 +203,14 @@ def retarget(scene, actor, creature, settings: RetargetSettings, progress=None) 
         up, fwd = face_axes(cams)
         Ai = np.linalg.inv(np.array(actor.matrix_world, dtype=np.float64)[:3, :3])
         kw = dict(up=Ai @ up, forward=Ai @ fwd)
-    rt = Retargeter(a_rest, ta, a_deltas, c_rest, tc, correspondence=corr, lip_sync=settings.lip_sync,
-                    threshold=settings.lip_threshold, **kw)
+    # each frame's creature corrective goes to the writer's disk spool a chunk at a time (the writer changes
+    # nothing in the scene before finish()); the actor's correctives stay factored as keys and values
     with CorrectionWriter(scene, creature, fl.RETARGET_PREFIX, measured_on="rest") as writer:
-        res = _retarget_frames(rt, W, C, ep, FrameChunks(writer, frames, len(c_rest), fill=True), progress)
+        sink = FrameChunks(writer, frames, len(c_rest), fill=True)
+        res = retarget_performance(a_rest, ta, a_deltas, W, c_rest, tc, correctives=C, correspondence=corr,
+                                   lip_sync=settings.lip_sync, threshold=settings.lip_threshold, end_points=ep,
+                                   progress=progress, corrective_sink=sink, **kw)
+        sink.close()
         # write: the creature's parallel rig (missing keys only), weights, correctives
         created, kept = [], []
         if creature.data.shape_keys is None:

@@ -54,7 +54,7 @@ class FrameChunks:
         self.fill = bool(fill)
         size = chunk if chunk is not None else CHUNK_BYTES // max(24 * self.n, 1)
         self.chunk = max(1, int(size))
-        self._buf = np.empty((self.chunk, self.n, 3))
+        self._buf = None  # allocated on the first frame, not during the solver's set-up before it
         self._idx = np.empty(self.chunk, dtype=np.int64)
         self._k = 0
         self._next = 0
@@ -71,6 +71,8 @@ class FrameChunks:
         self._next = t + 1
 
     def _push(self, t, X) -> None:
+        if self._buf is None:
+            self._buf = np.empty((self.chunk, self.n, 3))
         row = self._buf[self._k]
         if X is None:
             row[:] = 0.0

@@ -237,3 +237,57 @@ def test_lip_sync_on_the_zigzag_ict_loop_keeps_the_creature_lips_smooth():
     # and the lip sync still does its job: talking-portion distances near the actor's, sides sealed
     assert ad_new < 0.5 * ad0
     assert se_new < 0.5 * se0
+
+
+@pytest.mark.parametrize("lip_sync", [False, True])
+def test_corrective_sink_gets_the_whole_shot_rows_bit_for_bit(lip_sync):
+    """Correctives given as keys and values and streamed to a sink: every frame once, in order, float32, equal to
+    the whole-shot result computed from the (T,V,3) correctives of the same keys; nothing kept in the result."""
+    Va, F = mouth_mesh(1.0)
+    Vc = widen_mouth(Va, [0, 0, 0], factor=1.8, sigma=(1.5, 1.0, 1.0))
+    deltas = np.stack([open_mouth(Va, 0.4) - Va, np.c_[np.zeros(len(Va)), np.zeros(len(Va)), 0.1 * Va[:, 0]]])
+    rng = np.random.default_rng(3)
+    T, R = 7, 3
+    W = rng.uniform(0, 1, (T, 2))
+    basis = 0.01 * rng.normal(size=(R,) + Va.shape)  # corrective keys' deltas
+    values = rng.uniform(-1, 1, (T, R))
+    values[2] = 0.0  # a frame without corrective
+    dense = np.einsum("tr,rvd->tvd", values, basis)
+    kw = dict(actor_loop=loop_ids(), lip_sync=lip_sync, end_points={4: (0.2, 0.8)} if lip_sync else None)
+    whole = retarget_performance(Va, F, deltas, W, Vc, F, correctives=dense, **kw)
+    assert whole.correctives.shape == (T,) + Vc.shape and whole.correctives.dtype == np.float32
+    assert np.abs(whole.correctives).max() > 1e-3 and whole.info["nonzero"]
+    got, done = [], []
+    streamed = retarget_performance(Va, F, deltas, W, Vc, F, correctives=(basis, values),
+                                    corrective_sink=lambda t, c: got.append((t, c.copy())),
+                                    progress=lambda d, n: done.append((d, n)), **kw)
+    assert streamed.correctives is None and streamed.info["nonzero"]
+    assert [t for t, _ in got] == list(range(T)) and done == [(t + 1, T) for t in range(T)]
+    assert all(c.dtype == np.float32 and c.shape == Vc.shape for _, c in got)
+    np.testing.assert_array_equal(np.stack([c for _, c in got]), whole.correctives)
+    np.testing.assert_array_equal(streamed.deltas, whole.deltas)
+    np.testing.assert_array_equal(streamed.weights, whole.weights)
+    assert [e is None for e in streamed.end_points] == [not lip_sync] * T
+    if lip_sync:
+        for a, b in zip(streamed.end_points, whole.end_points):
+            np.testing.assert_array_equal(a.upper, b.upper)
+            np.testing.assert_array_equal(a.lower, b.lower)
+        np.testing.assert_allclose(streamed.end_points[4].upper, [0.2, 0.8])
+    else:
+        assert np.abs(whole.correctives[2]).max() < 1e-12  # no actor corrective, no lip sync: (round-off) zero
+
+
+def test_retarget_without_correctives_reports_all_zero_and_bad_corrective_shapes_are_refused():
+    Va, F = mouth_mesh(1.0)
+    Vc = widen_mouth(Va, [0, 0, 0], factor=1.8, sigma=(1.5, 1.0, 1.0))
+    deltas = (open_mouth(Va, 0.4) - Va)[None]
+    W = np.array([[0.5], [1.0]])
+    got = []
+    res = retarget_performance(Va, F, deltas, W, Vc, F, lip_sync=False, corrective_sink=lambda t, c: got.append(c))
+    assert len(got) == 2 and not res.info["nonzero"] and not any(np.any(c) for c in got)
+    basis = np.zeros((2,) + Va.shape)
+    for bad, match in [((basis, np.zeros((3, 2))), "one row of key values per frame"),
+                       ((basis[:, :-1], np.zeros((2, 2))), "Corrective keys have shape"),
+                       ((basis,), "must be"), (np.zeros((3,) + Va.shape), "one per frame")]:
+        with pytest.raises(FaceLabError, match=match):
+            retarget_performance(Va, F, deltas, W, Vc, F, lip_sync=False, correctives=bad)

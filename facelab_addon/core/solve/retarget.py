@@ -12,7 +12,8 @@
 
 :class:`Retargeter` builds the parallel rig and the lip-sync deformer once
 and retargets single frames; :func:`retarget_performance` runs it over a
-whole performance (:class:`RetargetResult`).
+whole performance (:class:`RetargetResult`), keeping the creature's
+correctives or streaming them frame by frame to a sink.
 
 Units: positions in scene units; end points are fractions of arc length;
 times in seconds.
@@ -44,9 +45,10 @@ class RetargetResult:
         Creature blendshape deltas (the transferred actor shapes), scene units.
     weights : (T,S) float64
         Weights copied from the actor's solve.
-    correctives : (T,W,3) float32
+    correctives : (T,W,3) float32 or None
         Per-frame creature correctives on top of ``rest + weights @ deltas``:
-        the transferred actor corrective plus the lip-sync offset, scene units.
+        the transferred actor corrective plus the lip-sync offset, scene units;
+        None when they were handed to a ``corrective_sink`` instead.
     end_points : list of EndPoints or None
         Talking portion used on each frame (``None`` without lip sync).
     info : dict
@@ -184,10 +186,38 @@ class Retargeter:
         return corr_c, info
 
 
+def _actor_correctives(correctives, T: int, shape: tuple):
+    """One frame's actor corrective at a time from ``correctives`` (see :func:`retarget_performance`).
+
+    Returns a function ``t -> (V,3) ndarray or None``; the keys-and-values form is mixed frame by frame
+    (``einsum("r,rvd->vd")``, the same values as mixing the whole shot with ``einsum("tr,rvd->tvd")``).
+    """
+    if correctives is None:
+        return lambda t: None
+    if isinstance(correctives, tuple):
+        if len(correctives) != 2:
+            raise FaceLabError(
+                f"Correctives given as a tuple must be (keys' deltas (R, {shape[0]}, 3), values ({T}, R)), "
+                f"got {len(correctives)} items; pass a (T, V, 3) array or that pair."
+            )
+        basis, values = (np.asarray(x, dtype=np.float64) for x in correctives)
+        R = len(basis) if basis.ndim == 3 else -1
+        if basis.shape[1:] != shape or values.shape != (T, R):
+            raise FaceLabError(
+                f"Corrective keys have shape {basis.shape} and values {values.shape}, expected (R, {shape[0]}, 3) "
+                f"and ({T}, R): one row of key values per frame."
+            )
+        return lambda t: np.einsum("r,rvd->vd", values[t], basis)
+    C = np.asarray(correctives)
+    if C.shape != (T,) + shape:
+        raise FaceLabError(f"Correctives have shape {C.shape}, expected ({T}, {shape[0]}, 3): one per frame.")
+    return lambda t: C[t]
+
+
 def retarget_performance(actor_rest, actor_faces, actor_deltas, weights, creature_rest, creature_faces, *,
                          correctives=None, correspondence=None, lip_sync: bool = True, threshold: float = 0.0,
                          end_points: dict | None = None, actor_loop=None, creature_loop=None, progress=None,
-                         **kwargs) -> RetargetResult:
+                         corrective_sink=None, **kwargs) -> RetargetResult:
     """Retarget a solved performance to a creature (Bhat §5.1).
 
     Parameters
@@ -201,8 +231,10 @@ def retarget_performance(actor_rest, actor_faces, actor_deltas, weights, creatur
         Solved weights per frame.
     creature_rest : (W,3) array_like
     creature_faces : (F_t,3) int array_like
-    correctives : (T,V,3) array_like, optional
-        Actor correctives per frame, scene units.
+    correctives : (T,V,3) array_like or tuple, optional
+        Actor correctives per frame, scene units; or the pair ``(basis (R,V,3), values (T,R))``
+        (corrective keys' deltas and their value on each frame), mixed one frame at a time so that
+        no (T,V,3) array is built (bit for bit the frames of ``einsum("tr,rvd->tvd", values, basis)``).
     correspondence : (F_t,) int array_like, optional
         Default: shared topology.
     lip_sync : bool
@@ -214,6 +246,12 @@ def retarget_performance(actor_rest, actor_faces, actor_deltas, weights, creatur
     actor_loop, creature_loop : (L,) int array_like, optional
         Inner-lip edge loops (default detected).
     progress : callable(done, total), optional
+        Called after each frame with the number of frames done.
+    corrective_sink : callable(frame_index, corrective), optional
+        Each frame's creature corrective, a (W,3) float32 array in scene units (the row the
+        whole-shot ``correctives`` would hold), is handed to it in frame order, every frame once,
+        instead of being kept: ``correctives`` of the result is then None and memory does not
+        grow with frames times vertices.
     **kwargs
         Passed to :class:`Retargeter` (``radius``, ``strength``, ``up``,
         ``forward``, ``actor_contours``, ``creature_contours``).
@@ -221,6 +259,8 @@ def retarget_performance(actor_rest, actor_faces, actor_deltas, weights, creatur
     Returns
     -------
     RetargetResult
+        ``info`` has the :class:`Retargeter` set-up timings, ``frames_s`` (seconds for the
+        frames) and ``nonzero`` (some frame's corrective is not zero).
     """
     W = np.asarray(weights, dtype=np.float64)
     if W.ndim != 2:
@@ -229,21 +269,21 @@ def retarget_performance(actor_rest, actor_faces, actor_deltas, weights, creatur
                     correspondence=correspondence, lip_sync=lip_sync, actor_loop=actor_loop,
                     creature_loop=creature_loop, threshold=threshold, **kwargs)
     T = len(W)
-    C = None if correctives is None else np.asarray(correctives)
-    if C is not None and C.shape != (T,) + rt.transfer.source_rest.shape:
-        raise FaceLabError(
-            f"Correctives have shape {C.shape}, expected ({T}, {len(rt.transfer.source_rest)}, 3): one per frame."
-        )
-    out = np.zeros((T,) + rt.creature_rest.shape, dtype=np.float32)
-    eps = []
+    actor_corrective = _actor_correctives(correctives, T, rt.transfer.source_rest.shape)
+    out = np.zeros((T,) + rt.creature_rest.shape, dtype=np.float32) if corrective_sink is None else None
+    eps, nonzero = [], False
     overrides = end_points or {}
     t0 = time.perf_counter()
     for t in range(T):
-        corr, info = rt.frame(W[t], None if C is None else C[t], end_points=overrides.get(t))
-        out[t] = corr
+        corr, info = rt.frame(W[t], actor_corrective(t), end_points=overrides.get(t))
+        row = np.asarray(corr, dtype=np.float32)  # what the whole-shot (T,W,3) float32 result holds
+        nonzero = nonzero or bool(row.any())
+        if out is not None:
+            out[t] = row
+        else:
+            corrective_sink(t, row)
         eps.append(info["end_points"])
         if progress is not None:
             progress(t + 1, T)
-    info = dict(rt.info)
-    info["frames_s"] = time.perf_counter() - t0
+    info = dict(rt.info, frames_s=time.perf_counter() - t0, nonzero=nonzero)
     return RetargetResult(deltas=rt.creature_deltas, weights=W.copy(), correctives=out, end_points=eps, info=info)
