@@ -207,7 +207,7 @@ def retarget(scene, actor, creature, settings: RetargetSettings, progress=None) 
     # nothing in the scene before finish()); the actor's correctives stay factored as keys and values
     with CorrectionWriter(scene, creature, fl.RETARGET_PREFIX, measured_on="rest") as writer:
         sink = FrameChunks(writer, frames, len(c_rest), fill=True)
-        res = retarget_performance(a_rest, ta, a_deltas, W, c_rest, tc, correctives=C, correspondence=corr,
+        res = retarget_performance(a_rest, ta, a_deltas, W, c_rest, tc, corrective_keys=C, correspondence=corr,
                                    lip_sync=settings.lip_sync, threshold=settings.lip_threshold, end_points=ep,
                                    progress=progress, corrective_sink=sink, **kw)
         sink.close()

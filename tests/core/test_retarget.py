@@ -258,7 +258,7 @@ def test_corrective_sink_gets_the_whole_shot_rows_bit_for_bit(lip_sync):
     assert whole.correctives.shape == (T,) + Vc.shape and whole.correctives.dtype == np.float32
     assert np.abs(whole.correctives).max() > 1e-3 and whole.info["nonzero"]
     got, done = [], []
-    streamed = retarget_performance(Va, F, deltas, W, Vc, F, correctives=(basis, values),
+    streamed = retarget_performance(Va, F, deltas, W, Vc, F, corrective_keys=(basis, values),
                                     corrective_sink=lambda t, c: got.append((t, c.copy())),
                                     progress=lambda d, n: done.append((d, n)), **kw)
     assert streamed.correctives is None and streamed.info["nonzero"]
@@ -288,6 +288,11 @@ def test_retarget_without_correctives_reports_all_zero_and_bad_corrective_shapes
     basis = np.zeros((2,) + Va.shape)
     for bad, match in [((basis, np.zeros((3, 2))), "one row of key values per frame"),
                        ((basis[:, :-1], np.zeros((2, 2))), "Corrective keys have shape"),
-                       ((basis,), "must be"), (np.zeros((3,) + Va.shape), "one per frame")]:
+                       ((basis,), "must be the pair")]:
         with pytest.raises(FaceLabError, match=match):
-            retarget_performance(Va, F, deltas, W, Vc, F, lip_sync=False, correctives=bad)
+            retarget_performance(Va, F, deltas, W, Vc, F, lip_sync=False, corrective_keys=bad)
+    with pytest.raises(FaceLabError, match="one per frame"):
+        retarget_performance(Va, F, deltas, W, Vc, F, lip_sync=False, correctives=np.zeros((3,) + Va.shape))
+    with pytest.raises(FaceLabError, match="not both"):
+        retarget_performance(Va, F, deltas, W, Vc, F, lip_sync=False, correctives=np.zeros((2,) + Va.shape),
+                             corrective_keys=(basis, np.zeros((2, 2))))

@@ -186,19 +186,21 @@ class Retargeter:
         return corr_c, info
 
 
-def _actor_correctives(correctives, T: int, shape: tuple):
-    """One frame's actor corrective at a time from ``correctives`` (see :func:`retarget_performance`).
+def _actor_correctives(correctives, corrective_keys, T: int, shape: tuple):
+    """One frame's actor corrective at a time (see :func:`retarget_performance`).
 
-    Returns a function ``t -> (V,3) ndarray or None``; the keys-and-values form is mixed frame by frame
+    Returns a function ``t -> (V,3) ndarray or None``; ``corrective_keys`` is mixed frame by frame
     (``einsum("r,rvd->vd")``, the same values as mixing the whole shot with ``einsum("tr,rvd->tvd")``).
     """
-    if correctives is None:
-        return lambda t: None
-    if isinstance(correctives, tuple):
+    if correctives is not None and corrective_keys is not None:
+        raise FaceLabError("Give the actor's correctives either per frame (correctives) or as keys and values "
+                           "(corrective_keys), not both.")
+    if corrective_keys is not None:
+        correctives = tuple(corrective_keys)
         if len(correctives) != 2:
             raise FaceLabError(
-                f"Correctives given as a tuple must be (keys' deltas (R, {shape[0]}, 3), values ({T}, R)), "
-                f"got {len(correctives)} items; pass a (T, V, 3) array or that pair."
+                f"corrective_keys must be the pair (keys' deltas (R, {shape[0]}, 3), values ({T}, R)), "
+                f"got {len(correctives)} items."
             )
         basis, values = (np.asarray(x, dtype=np.float64) for x in correctives)
         R = len(basis) if basis.ndim == 3 else -1
@@ -208,6 +210,8 @@ def _actor_correctives(correctives, T: int, shape: tuple):
                 f"and ({T}, R): one row of key values per frame."
             )
         return lambda t: np.einsum("r,rvd->vd", values[t], basis)
+    if correctives is None:
+        return lambda t: None
     C = np.asarray(correctives)
     if C.shape != (T,) + shape:
         raise FaceLabError(f"Correctives have shape {C.shape}, expected ({T}, {shape[0]}, 3): one per frame.")
@@ -217,7 +221,7 @@ def _actor_correctives(correctives, T: int, shape: tuple):
 def retarget_performance(actor_rest, actor_faces, actor_deltas, weights, creature_rest, creature_faces, *,
                          correctives=None, correspondence=None, lip_sync: bool = True, threshold: float = 0.0,
                          end_points: dict | None = None, actor_loop=None, creature_loop=None, progress=None,
-                         corrective_sink=None, **kwargs) -> RetargetResult:
+                         corrective_sink=None, corrective_keys=None, **kwargs) -> RetargetResult:
     """Retarget a solved performance to a creature (Bhat §5.1).
 
     Parameters
@@ -231,10 +235,8 @@ def retarget_performance(actor_rest, actor_faces, actor_deltas, weights, creatur
         Solved weights per frame.
     creature_rest : (W,3) array_like
     creature_faces : (F_t,3) int array_like
-    correctives : (T,V,3) array_like or tuple, optional
-        Actor correctives per frame, scene units; or the pair ``(basis (R,V,3), values (T,R))``
-        (corrective keys' deltas and their value on each frame), mixed one frame at a time so that
-        no (T,V,3) array is built (bit for bit the frames of ``einsum("tr,rvd->tvd", values, basis)``).
+    correctives : (T,V,3) array_like, optional
+        Actor correctives per frame, scene units.
     correspondence : (F_t,) int array_like, optional
         Default: shared topology.
     lip_sync : bool
@@ -252,6 +254,10 @@ def retarget_performance(actor_rest, actor_faces, actor_deltas, weights, creatur
         whole-shot ``correctives`` would hold), is handed to it in frame order, every frame once,
         instead of being kept: ``correctives`` of the result is then None and memory does not
         grow with frames times vertices.
+    corrective_keys : tuple of ((R,V,3) array_like, (T,R) array_like), optional
+        Instead of ``correctives``: the actor's corrective keys' deltas (scene units) and their value on
+        each frame, mixed one frame at a time so that no (T,V,3) array is built (bit for bit the frames
+        of ``einsum("tr,rvd->tvd", values, basis)``).
     **kwargs
         Passed to :class:`Retargeter` (``radius``, ``strength``, ``up``,
         ``forward``, ``actor_contours``, ``creature_contours``).
@@ -269,7 +275,7 @@ def retarget_performance(actor_rest, actor_faces, actor_deltas, weights, creatur
                     correspondence=correspondence, lip_sync=lip_sync, actor_loop=actor_loop,
                     creature_loop=creature_loop, threshold=threshold, **kwargs)
     T = len(W)
-    actor_corrective = _actor_correctives(correctives, T, rt.transfer.source_rest.shape)
+    actor_corrective = _actor_correctives(correctives, corrective_keys, T, rt.transfer.source_rest.shape)
     out = np.zeros((T,) + rt.creature_rest.shape, dtype=np.float32) if corrective_sink is None else None
     eps, nonzero = [], False
     overrides = end_points or {}
