@@ -258,6 +258,39 @@ def _vertex_normals_subset(X, F, idx):
     return vn / np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-300)
 
 
+#: How much more a distance along the mouth's width counts than one across it when a silhouette vertex picks the
+#: sketch sample it is pulled to (``silhouette_rays="nearest"``): a lip's capture error is mostly a wrong aperture,
+#: so a vertex is matched to the sketch across the mouth from it rather than obliquely where the contour slants
+#: toward the corners (1: the plain nearest sample).
+ACROSS_MOUTH = 3.0
+#: A silhouette vertex projecting more than this (pixels) beyond a stroke's end is held to the contour's tangent
+#: plane there instead of the end sample's ray.
+END_TOL_PX = 0.5
+
+
+def _stroke_ends(samples, gap: float = 1.5):
+    """(N,2) unit outward directions at the stroke ends among resampled ``samples`` (N,2), zero elsewhere.
+
+    Strokes are told apart by a jump of more than ``gap`` pixels between consecutive samples (the samples of
+    one stroke are at most 1 px apart).
+    """
+    P = np.asarray(samples, dtype=np.float64)
+    out = np.zeros_like(P)
+    if len(P) < 2:
+        return out
+    jump = np.linalg.norm(np.diff(P, axis=0), axis=1) > gap
+    first = np.r_[True, jump]
+    last = np.r_[jump, True]
+    for i in np.flatnonzero(first):
+        j = min(i + 3, len(P) - 1)
+        out[i] = P[i] - P[j]
+    for i in np.flatnonzero(last):
+        j = max(i - 3, 0)
+        out[i] = P[i] - P[j]
+    nrm = np.linalg.norm(out, axis=1, keepdims=True)
+    return np.divide(out, nrm, out=np.zeros_like(out), where=nrm > 1e-12)
+
+
 def _contour_planes(camera, samples):
     """(N,3) unit normals of the planes through the camera centre and the sketch's tangent lines.
 
@@ -295,6 +328,14 @@ class ViewMatcher:
     press : bool
         Press crossing contours (:func:`press_lips`, by what they add to the captured overlap); False:
         follow them as drawn (a crossing is one lip in front of the other).
+    across_mouth : float
+        With ``silhouette_rays="nearest"``, each matched silhouette vertex is pulled to the ray of the sketch
+        sample nearest to its projection, distances along the mouth's width (the sketch's principal axis)
+        counted ``sqrt(across_mouth)`` times: a capture error of the lips is mostly a wrong aperture, so a
+        vertex goes across the mouth to the sketch, not obliquely (toward the corners the contour slants, and
+        the plain nearest sample, ``across_mouth=1``, slides the lips sideways there). A vertex projecting
+        beyond a stroke's end is held to the contour's tangent plane at the end instead of being pulled onto
+        the end sample's ray: the stroke ends where the lips meet, it does not say where the corner is.
 
     Attributes
     ----------
@@ -305,7 +346,7 @@ class ViewMatcher:
     """
 
     def __init__(self, view: SketchView, vertices, faces, fixed, reach_px=None, where: str = "",
-                 envelope: bool = True, press: bool = True):
+                 envelope: bool = True, press: bool = True, across_mouth: float = ACROSS_MOUTH):
         self.envelope = bool(envelope)
         cam = view.camera
         if not isinstance(cam, Camera):
@@ -367,6 +408,11 @@ class ViewMatcher:
         self.o_l, self.d_l = cam.rays(self.lower)
         self.n_u = _contour_planes(cam, self.upper)
         self.n_l = _contour_planes(cam, self.lower)
+        # the mouth's width direction in the image: the sketch's principal axis
+        self.axis = np.linalg.svd(self.sketch - self.sketch.mean(0), full_matrices=False)[2][0]
+        self.across_mouth = float(across_mouth)
+        self.out_u = _stroke_ends(self.upper)
+        self.out_l = _stroke_ends(self.lower)
 
     def restrict(self, faces, region_vertices):
         """Limit the silhouette search to triangles of ``region_vertices`` (V,) bool near the sketch."""
@@ -409,8 +455,9 @@ class ViewMatcher:
         cons, dist_px, matched = [], [], {}
         nu = len(self.upper)
         sw = None if sample_weights is None else np.asarray(sample_weights, dtype=np.float64)
-        for name, lipmask, samples, o, d, pn in (("upper", side, self.upper, self.o_u, self.d_u, self.n_u),
-                                                 ("lower", ~side, self.lower, self.o_l, self.d_l, self.n_l)):
+        for name, lipmask, samples, o, d, pn, out in (
+                ("upper", side, self.upper, self.o_u, self.d_u, self.n_u, self.out_u),
+                ("lower", ~side, self.lower, self.o_l, self.d_l, self.n_l, self.out_l)):
             ws = None if sw is None else (sw[:nu] if name == "upper" else sw[nu:])
             ids = sil[lipmask]
             if self.envelope and len(ids):
@@ -434,14 +481,26 @@ class ViewMatcher:
                 uv, inv = np.unique(vid, return_inverse=True)
                 cnt = np.bincount(inv.ravel(), weights=None if ws is None else ws, minlength=len(uv))
                 pv = cam.project(X[uv])
-                k = np.argmin(((pv[:, None, :] - samples[None]) ** 2).sum(-1), axis=1)
+                off = pv[:, None, :] - samples[None]
+                k = np.argmin((off**2).sum(-1) + (self.across_mouth - 1.0) * (off @ self.axis) ** 2, axis=1)
                 if silhouette_rays == "normal":
                     m = pn[k]
                     cons.append(PointConstraints(uv, np.ones((len(uv), 1)), np.broadcast_to(cam.center, (len(uv), 3)),
                                                  m[:, :, None] * m[:, None, :], lambda_silh * cnt))
                 else:
-                    oo, dd = cam.rays(samples[k])
-                    cons.append(PointConstraints.rays(uv, oo, dd, strength=lambda_silh * cnt))
+                    # a vertex projecting beyond the end of a stroke (outward along the stroke's end direction)
+                    # is held to the contour's tangent plane there, not pulled onto the end sample's ray: the
+                    # sketch ends where the lips meet, it does not say where the mouth corner is
+                    beyond = np.einsum("ij,ij->i", pv - samples[k], out[k]) > END_TOL_PX
+                    keep = ~beyond
+                    if keep.any():
+                        oo, dd = cam.rays(samples[k[keep]])
+                        cons.append(PointConstraints.rays(uv[keep], oo, dd, strength=lambda_silh * cnt[keep]))
+                    if beyond.any():
+                        m = pn[k[beyond]]
+                        nb = int(beyond.sum())
+                        cons.append(PointConstraints(uv[beyond], np.ones((nb, 1)), np.broadcast_to(cam.center, (nb, 3)),
+                                                     m[:, :, None] * m[:, None, :], lambda_silh * cnt[beyond]))
             else:
                 cons.append(PointConstraints.rays(vid, o, d, strength=lambda_silh * (1.0 if ws is None else ws)))
         return cons, np.concatenate(dist_px), matched
