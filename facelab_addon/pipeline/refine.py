@@ -71,8 +71,8 @@ class RefineSettings:
         Vertex group of hidden vertices that must not move; without it, the
         parts separate from the largest piece of the mesh are fixed.
     prior : str
-        ``"band"`` (default: as ``"smooth"``, and inside ``FL_lips`` the correction carries across the
-        whole band up to its held border), ``"smooth"`` (the correction carries about *Smooth Reach*
+        ``"band"`` (default: as ``"smooth"``, and inside ``FL_lips`` a reach of at least 4 edge lengths,
+        so the correction carries across the band on a coarse mesh too), ``"smooth"`` (the correction carries about *Smooth Reach*
         across the lips) or ``"paper"`` (Eq. 1 as written); see :mod:`facelab_addon.core.lips.sketch`.
     smooth_reach : float
         How far the correction of a silhouette carries across the lips, in mouth widths.
@@ -100,9 +100,8 @@ class RefineSettings:
                                            "teeth, back of the head); without it, separate mesh parts are fixed")
 
     prior: str = setting("band", label="Prior", choices=(
-        ("band", "Band", "Inside FL_lips the correction of the silhouettes carries across the whole lip band up "
-                         "to its held border (a capture error is smooth over the lips); elsewhere as Smooth "
-                         "(FaceLab's default)"),
+        ("band", "Band", "As Smooth, and inside FL_lips (its border held) the correction carries at least 4 edge "
+                         "lengths, so it crosses the lip band on a coarse mesh too (FaceLab's default)"),
         ("smooth", "Smooth", "The correction of the silhouettes carries smoothly across the lip band "
                              "(about Smooth Reach from the silhouettes)"),
         ("paper", "Paper", "Dinev et al. 2018 Eq. 1 as written: every vertex anchored with the position weight")),

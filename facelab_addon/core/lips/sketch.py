@@ -38,14 +38,13 @@ Three priors (``prior``):
   (``fixed``) vertices are held exactly. On the sketch benchmark it removes more of the
   3D lip error (``benchmarks/sketch_refine.py``).
 * ``"band"`` (default): the smooth prior, except inside a painted lip region ``lips``
-  (``FL_lips``, whose border is held): there the anchor decays over a whole mouth width, so it
-  is all but gone and only the held border bounds the correction. A capture error of the lips is
-  smooth over the lip band (mostly a wrong aperture); with the smooth prior's anchor the
-  silhouettes' displacement fades within ``smooth_reach`` and the rest of the band keeps most of
-  its error, with the band prior it carries across the band to its border (on the artist route
-  benchmark, one view: 50.7 % -> 55.6 % of the 3D error removed on ICT, 50.7 % -> 67.1 % on a
-  remeshed quad face). Without ``lips`` it is the smooth prior (the free region's held edge is too
-  far from the lips to bound the correction).
+  (``FL_lips``, whose border is held and so bounds the correction): there the reach is at least
+  4 edge lengths (:data:`~facelab_addon.core.lips.sketch_prior.BAND_RINGS`). The bi-Laplacian
+  carries a displacement about ``(lambda_reg / w)^(1/4)`` edge rings, so on a coarse mesh (edges
+  of 4 mm, a reach of 0.12 mouth widths is about one edge) the smooth prior leaves the correction
+  on the silhouettes' own ring and the rest of the band keeps its error; on the artist route
+  benchmark (one view, a quad remesh of ICT) the band prior removes 67.7 % of the 3D error where
+  the smooth one removes 52.6 %. Without ``lips`` it is the smooth prior.
 
 Only the vertices within ``free_radius`` mouth widths (geodesic) of the lip area near
 the sketch are solved for (or, given a painted lip region ``lips`` such as ``FL_lips``,
@@ -286,7 +285,7 @@ def refine_lips_views(
     Fl = F[local_faces(F, region, rings=2)]
     adj = vertex_adjacency(Fl, n)
     w = anchor_weights(V0, Fl, region, prior=prior, lambda_pos=lambda_pos, lambda_reg=lambda_reg,
-                       reach=smooth_reach * W, fixed=fixed, lips=lips, band_reach=W)
+                       reach=smooth_reach * W, fixed=fixed, lips=lips)
     L = make_laplacian(V0, Fl, laplacian, adjacency=adj)
     if lips is not None:
         # the held border of the lip region keeps its position, not its Laplacian coordinates: the
