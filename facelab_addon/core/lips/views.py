@@ -258,11 +258,6 @@ def _vertex_normals_subset(X, F, idx):
     return vn / np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-300)
 
 
-#: How much more a distance along the mouth's width counts than one across it when a silhouette vertex picks the
-#: sketch sample it is pulled to (``silhouette_rays="nearest"``): a lip's capture error is mostly a wrong aperture,
-#: so a vertex is matched to the sketch across the mouth from it rather than obliquely where the contour slants
-#: toward the corners (1: the plain nearest sample).
-ACROSS_MOUTH = 3.0
 #: A silhouette vertex projecting more than this (pixels) beyond a stroke's end is held to the contour's tangent
 #: plane there instead of the end sample's ray.
 END_TOL_PX = 0.5
@@ -328,14 +323,12 @@ class ViewMatcher:
     press : bool
         Press crossing contours (:func:`press_lips`, by what they add to the captured overlap); False:
         follow them as drawn (a crossing is one lip in front of the other).
-    across_mouth : float
-        With ``silhouette_rays="nearest"``, each matched silhouette vertex is pulled to the ray of the sketch
-        sample nearest to its projection, distances along the mouth's width (the sketch's principal axis)
-        counted ``sqrt(across_mouth)`` times: a capture error of the lips is mostly a wrong aperture, so a
-        vertex goes across the mouth to the sketch, not obliquely (toward the corners the contour slants, and
-        the plain nearest sample, ``across_mouth=1``, slides the lips sideways there). A vertex projecting
-        beyond a stroke's end is held to the contour's tangent plane at the end instead of being pulled onto
-        the end sample's ray: the stroke ends where the lips meet, it does not say where the corner is.
+    Notes
+    -----
+    With ``silhouette_rays="nearest"`` a matched silhouette vertex is pulled onto the ray of the sketch
+    sample nearest to its projection; a vertex projecting beyond a stroke's end is held to the contour's
+    tangent plane at the end instead (:data:`END_TOL_PX`): the stroke ends where the lips meet, it does
+    not say where the mouth corner is, and the end sample's ray would slide the lips sideways.
 
     Attributes
     ----------
@@ -346,7 +339,7 @@ class ViewMatcher:
     """
 
     def __init__(self, view: SketchView, vertices, faces, fixed, reach_px=None, where: str = "",
-                 envelope: bool = True, press: bool = True, across_mouth: float = ACROSS_MOUTH):
+                 envelope: bool = True, press: bool = True):
         self.envelope = bool(envelope)
         cam = view.camera
         if not isinstance(cam, Camera):
@@ -408,9 +401,6 @@ class ViewMatcher:
         self.o_l, self.d_l = cam.rays(self.lower)
         self.n_u = _contour_planes(cam, self.upper)
         self.n_l = _contour_planes(cam, self.lower)
-        # the mouth's width direction in the image: the sketch's principal axis
-        self.axis = np.linalg.svd(self.sketch - self.sketch.mean(0), full_matrices=False)[2][0]
-        self.across_mouth = float(across_mouth)
         self.out_u = _stroke_ends(self.upper)
         self.out_l = _stroke_ends(self.lower)
 
@@ -481,8 +471,7 @@ class ViewMatcher:
                 uv, inv = np.unique(vid, return_inverse=True)
                 cnt = np.bincount(inv.ravel(), weights=None if ws is None else ws, minlength=len(uv))
                 pv = cam.project(X[uv])
-                off = pv[:, None, :] - samples[None]
-                k = np.argmin((off**2).sum(-1) + (self.across_mouth - 1.0) * (off @ self.axis) ** 2, axis=1)
+                k = np.argmin(((pv[:, None, :] - samples[None]) ** 2).sum(-1), axis=1)
                 if silhouette_rays == "normal":
                     m = pn[k]
                     cons.append(PointConstraints(uv, np.ones((len(uv), 1)), np.broadcast_to(cam.center, (len(uv), 3)),
