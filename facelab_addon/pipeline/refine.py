@@ -71,8 +71,9 @@ class RefineSettings:
         Vertex group of hidden vertices that must not move; without it, the
         parts separate from the largest piece of the mesh are fixed.
     prior : str
-        ``"smooth"`` (the correction carries across the lip band) or ``"paper"`` (Eq. 1 as
-        written); see :mod:`facelab_addon.core.lips.sketch`.
+        ``"band"`` (default: as ``"smooth"``, and inside ``FL_lips`` a reach of at least 4 edge lengths,
+        so the correction carries across the band on a coarse mesh too), ``"smooth"`` (the correction carries about *Smooth Reach*
+        across the lips) or ``"paper"`` (Eq. 1 as written); see :mod:`facelab_addon.core.lips.sketch`.
     smooth_reach : float
         How far the correction of a silhouette carries across the lips, in mouth widths.
     free_radius : float
@@ -98,9 +99,11 @@ class RefineSettings:
                                description="Vertex group of hidden vertices that must not move (inner mouth, "
                                            "teeth, back of the head); without it, separate mesh parts are fixed")
 
-    prior: str = setting("smooth", label="Prior", choices=(
+    prior: str = setting("band", label="Prior", choices=(
+        ("band", "Band", "As Smooth, and inside FL_lips (its border held) the correction carries at least 4 edge "
+                         "lengths, so it crosses the lip band on a coarse mesh too (FaceLab's default)"),
         ("smooth", "Smooth", "The correction of the silhouettes carries smoothly across the lip band "
-                             "(FaceLab's default: removes more of the 3D lip error)"),
+                             "(about Smooth Reach from the silhouettes)"),
         ("paper", "Paper", "Dinev et al. 2018 Eq. 1 as written: every vertex anchored with the position weight")),
         description="How the vertices away from the sketched silhouettes follow them")
     smooth_reach: float = setting(0.12, label="Smooth Reach", min=0.01, soft_max=1.0, unit="mouth",

@@ -11,7 +11,7 @@ from facelab_addon.core.geometry.silhouette import (
 )
 from facelab_addon.core.lips.sketch import press_lips, refine_lips
 
-from .lipmesh import front_camera, line_px, two_lips
+from .lipmesh import front_camera, line_px, tube, two_lips
 
 
 def free(V):
@@ -194,3 +194,22 @@ def test_crossing_sketch_over_lips_that_already_overlap_is_taken_as_drawn():
     # one down twice as far)
     np.testing.assert_allclose((X - C)[i_u, 1], -0.05, atol=0.005)
     np.testing.assert_allclose((X - C)[i_l, 1], -0.05, atol=0.015)
+
+
+def test_strokes_shorter_than_the_mouth_do_not_slide_the_lips_sideways():
+    """A coarse mouth (silhouette vertices 0.5 apart along the lips) with strokes ending at x = +-1.3, between
+    the vertices at 1.0 and 1.5: the end pixels pick the vertices at +-1.5, beyond the strokes' ends. They are
+    held to the strokes' tangent lines there, not pulled onto the end samples' rays, so nothing moves along the
+    mouth (the end samples' rays pulled them 0.19 sideways, twice the 0.1 the lips close by)."""
+    step = np.pi / 24
+    Vu, Fu = tube(0.2 + 0.5, -np.pi / 2 - 4 * step, np.pi / 2, 0.5, nt=29, nx=9)
+    Vl, Fl = tube(-0.2 - 0.5, -np.pi / 2, np.pi / 2 + 4 * step, 0.5, nt=29, nx=9)
+    V, F = np.vstack([Vu, Vl]), np.vstack([Fu, Fl + len(Vu)])
+    cam = front_camera()
+    up, lo = line_px(cam, 0.1, -1.3, 1.3), line_px(cam, -0.1, -1.3, 1.3)
+    X, info = refine_lips(V, F, cam, up, lo, fixed=free(V), prior="paper", reach_px=40, free_radius=0.2,
+                          return_info=True)
+    assert np.abs(V[info["matched_upper"], 0]).max() == 1.5  # the vertices beyond the ends are matched
+    d = X - V
+    assert np.abs(d[:, 1]).max() > 0.09  # the lips close to the strokes (0.1 each)
+    assert np.abs(d[:, 0]).max() < 0.01, np.abs(d[:, 0]).max()  # measured 0.0036 (end rays: 0.1855)

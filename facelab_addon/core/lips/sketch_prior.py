@@ -17,7 +17,10 @@ topology:
   the lip area, or the interior of a painted lip region (``FL_lips``) with its border held;
 * :func:`anchor_weights`: the per-vertex ``w_i`` of ``E_pos``: the paper's constant, or the
   ``"smooth"`` prior where ``w_i = lambda_reg * (h_i / reach)^4`` (``h_i`` the local edge length)
-  so the displacement decays over ``reach`` scene units whatever the mesh density.
+  so the displacement decays over ``reach`` scene units whatever the mesh density; or the ``"band"``
+  prior: the same outside a painted lip region, and inside it (whose border is held, so the border
+  bounds the correction) a reach of at least :data:`BAND_RINGS` edge lengths, so the silhouettes'
+  displacement carries across the lip band on a coarse mesh as on a dense one.
 
 Shapes: vertices (V,3) float64 scene units, triangles (F,3) int64, masks (V,) bool.
 """
@@ -30,11 +33,13 @@ from scipy.sparse.csgraph import dijkstra
 from ..errors import UsageError
 from ..geometry.mesh import connected_components, edge_length_graph
 
-__all__ = ["PRIORS", "separate_parts", "sketch_scale", "crop_faces", "local_faces", "free_region", "anchor_weights",
+__all__ = ["PRIORS", "BAND_RINGS", "separate_parts", "sketch_scale", "crop_faces", "local_faces", "free_region", "anchor_weights",
            "mean_edge_length"]
 
-#: The energies :func:`anchor_weights` offers: Dinev et al.'s Eq. 1 as written, or the smooth prior.
-PRIORS = ("paper", "smooth")
+#: The energies :func:`anchor_weights` offers: Dinev et al.'s Eq. 1 as written, the smooth prior, or the band prior.
+PRIORS = ("paper", "smooth", "band")
+#: The band prior's least reach inside the painted lip region, in edge lengths (see :func:`anchor_weights`).
+BAND_RINGS = 4.0
 
 
 def separate_parts(faces, n_vertices: int) -> np.ndarray:
@@ -169,7 +174,8 @@ def free_region(vertices, faces, seeds, radius: float, *, fixed=None, lips=None)
 
 
 def anchor_weights(vertices, faces, region, *, prior: str, lambda_pos: float, lambda_reg: float,
-                   reach: float | None = None, fixed=None, edge_length=None) -> np.ndarray:
+                   reach: float | None = None, fixed=None, edge_length=None, lips=None,
+                   band_rings: float = BAND_RINGS) -> np.ndarray:
     """(V,) weights ``w_i`` of ``E_pos = sum_i w_i ||x_i - x̄_i||^2``.
 
     Parameters
@@ -179,11 +185,15 @@ def anchor_weights(vertices, faces, region, *, prior: str, lambda_pos: float, la
     faces : (F,3) int
     region : (V,) bool
         Free vertices (others are held exactly; their weight does not matter).
-    prior : {"paper", "smooth"}
+    prior : {"paper", "smooth", "band"}
         ``"paper"``: ``lambda_pos`` everywhere and 1 on ``fixed`` (Eq. 1). ``"smooth"``:
         ``lambda_reg * (h_i / reach)^4`` with ``h_i`` the mean edge length at the vertex, so the
         bi-Laplacian ``E_reg`` carries a silhouette's displacement about ``reach`` scene units
-        across the lips on any mesh density; never more than ``lambda_pos``.
+        across the lips on any mesh density; never more than ``lambda_pos``. ``"band"``: as
+        ``"smooth"``, but on the vertices of ``lips`` the reach is at least ``band_rings`` edge
+        lengths: inside a lip region whose border is held the border bounds the correction, and on a
+        coarse mesh (edges of a few mm) a reach of about one edge would leave the correction on the
+        silhouettes' own ring.
     lambda_pos, lambda_reg : float
         Weights of Eq. 1.
     reach : float, optional
@@ -191,16 +201,24 @@ def anchor_weights(vertices, faces, region, *, prior: str, lambda_pos: float, la
     fixed : (V,) bool, optional
     edge_length : (V,) float, optional
         Precomputed :func:`mean_edge_length`.
+    lips : (V,) bool, optional
+        ``"band"``: the painted lip region (without it, ``"band"`` is ``"smooth"``).
+    band_rings : float
+        ``"band"``: inside ``lips`` the reach is at least this many of the vertex's edge lengths.
     """
     n = len(vertices)
     fixed = np.zeros(n, bool) if fixed is None else np.asarray(fixed, bool)
     if prior == "paper":
         return np.where(fixed, 1.0, float(lambda_pos))
-    if prior != "smooth":
+    if prior not in ("smooth", "band"):
         raise UsageError(f"prior must be one of {PRIORS}, got {prior!r}")
     if reach is None or not reach > 0:
-        raise UsageError(f"the smooth prior needs a positive reach (scene units), got {reach!r}")
+        raise UsageError(f"the {prior} prior needs a positive reach (scene units), got {reach!r}")
     h = mean_edge_length(vertices, faces, n) if edge_length is None else np.asarray(edge_length, float)
-    w = float(lambda_reg) * (h / float(reach)) ** 4
+    r = np.full(n, float(reach))
+    if prior == "band" and lips is not None:
+        lm = np.asarray(lips, bool)
+        r[lm] = np.maximum(r[lm], float(band_rings) * h[lm])
+    w = float(lambda_reg) * (h / r) ** 4
     w = np.minimum(w, float(lambda_pos))
     return np.where(fixed, 1.0, np.maximum(w, 1e-12))

@@ -258,6 +258,34 @@ def _vertex_normals_subset(X, F, idx):
     return vn / np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-300)
 
 
+#: A silhouette vertex projecting more than this (pixels) beyond a stroke's end is held to the contour's tangent
+#: plane there instead of the end sample's ray.
+END_TOL_PX = 0.5
+
+
+def _stroke_ends(samples, gap: float = 1.5):
+    """(N,2) unit outward directions at the stroke ends among resampled ``samples`` (N,2), zero elsewhere.
+
+    Strokes are told apart by a jump of more than ``gap`` pixels between consecutive samples (the samples of
+    one stroke are at most 1 px apart).
+    """
+    P = np.asarray(samples, dtype=np.float64)
+    out = np.zeros_like(P)
+    if len(P) < 2:
+        return out
+    jump = np.linalg.norm(np.diff(P, axis=0), axis=1) > gap
+    first = np.r_[True, jump]
+    last = np.r_[jump, True]
+    for i in np.flatnonzero(first):
+        j = min(i + 3, len(P) - 1)
+        out[i] = P[i] - P[j]
+    for i in np.flatnonzero(last):
+        j = max(i - 3, 0)
+        out[i] = P[i] - P[j]
+    nrm = np.linalg.norm(out, axis=1, keepdims=True)
+    return np.divide(out, nrm, out=np.zeros_like(out), where=nrm > 1e-12)
+
+
 def _contour_planes(camera, samples):
     """(N,3) unit normals of the planes through the camera centre and the sketch's tangent lines.
 
@@ -295,6 +323,12 @@ class ViewMatcher:
     press : bool
         Press crossing contours (:func:`press_lips`, by what they add to the captured overlap); False:
         follow them as drawn (a crossing is one lip in front of the other).
+    Notes
+    -----
+    With ``silhouette_rays="nearest"`` a matched silhouette vertex is pulled onto the ray of the sketch
+    sample nearest to its projection; a vertex projecting beyond a stroke's end is held to the contour's
+    tangent plane at the end instead (:data:`END_TOL_PX`): the stroke ends where the lips meet, it does
+    not say where the mouth corner is, and the end sample's ray would slide the lips sideways.
 
     Attributes
     ----------
@@ -367,6 +401,8 @@ class ViewMatcher:
         self.o_l, self.d_l = cam.rays(self.lower)
         self.n_u = _contour_planes(cam, self.upper)
         self.n_l = _contour_planes(cam, self.lower)
+        self.out_u = _stroke_ends(self.upper)
+        self.out_l = _stroke_ends(self.lower)
 
     def restrict(self, faces, region_vertices):
         """Limit the silhouette search to triangles of ``region_vertices`` (V,) bool near the sketch."""
@@ -409,8 +445,9 @@ class ViewMatcher:
         cons, dist_px, matched = [], [], {}
         nu = len(self.upper)
         sw = None if sample_weights is None else np.asarray(sample_weights, dtype=np.float64)
-        for name, lipmask, samples, o, d, pn in (("upper", side, self.upper, self.o_u, self.d_u, self.n_u),
-                                                 ("lower", ~side, self.lower, self.o_l, self.d_l, self.n_l)):
+        for name, lipmask, samples, o, d, pn, out in (
+                ("upper", side, self.upper, self.o_u, self.d_u, self.n_u, self.out_u),
+                ("lower", ~side, self.lower, self.o_l, self.d_l, self.n_l, self.out_l)):
             ws = None if sw is None else (sw[:nu] if name == "upper" else sw[nu:])
             ids = sil[lipmask]
             if self.envelope and len(ids):
@@ -440,8 +477,19 @@ class ViewMatcher:
                     cons.append(PointConstraints(uv, np.ones((len(uv), 1)), np.broadcast_to(cam.center, (len(uv), 3)),
                                                  m[:, :, None] * m[:, None, :], lambda_silh * cnt))
                 else:
-                    oo, dd = cam.rays(samples[k])
-                    cons.append(PointConstraints.rays(uv, oo, dd, strength=lambda_silh * cnt))
+                    # a vertex projecting beyond the end of a stroke (outward along the stroke's end direction)
+                    # is held to the contour's tangent plane there, not pulled onto the end sample's ray: the
+                    # sketch ends where the lips meet, it does not say where the mouth corner is
+                    beyond = np.einsum("ij,ij->i", pv - samples[k], out[k]) > END_TOL_PX
+                    keep = ~beyond
+                    if keep.any():
+                        oo, dd = cam.rays(samples[k[keep]])
+                        cons.append(PointConstraints.rays(uv[keep], oo, dd, strength=lambda_silh * cnt[keep]))
+                    if beyond.any():
+                        m = pn[k[beyond]]
+                        nb = int(beyond.sum())
+                        cons.append(PointConstraints(uv[beyond], np.ones((nb, 1)), np.broadcast_to(cam.center, (nb, 3)),
+                                                     m[:, :, None] * m[:, None, :], lambda_silh * cnt[beyond]))
             else:
                 cons.append(PointConstraints.rays(vid, o, d, strength=lambda_silh * (1.0 if ws is None else ws)))
         return cons, np.concatenate(dist_px), matched
