@@ -206,7 +206,9 @@ def main(argv=None):
                 reg.add(truth[picks[k - 1]])
             xp = reg.predict_lip_gradients(cap_h)
             eps = float(np.mean(np.linalg.norm((xp - x_true).reshape(len(held), -1), axis=1)))
-            pred = reg.predict(buf, out=buf)
+            # in place into buf, whose interior lips the whole-motion model never reads; the correction model
+            # (auto_model) reads the captured interior lips, so it predicts from the capture itself
+            pred = reg.predict(cap_h) if name == "auto_model" else reg.predict(buf, out=buf)
             rms, mx = lip_rms_max(pred, tru_h, lip)
             c = curves[name]
             c["k"].append(k)

@@ -443,8 +443,8 @@ class LipRegressor(_Training, _StreamingPrediction):
             Where to write the result, float32 or float64 (the shape of the
             frames; a (V,3) array for a single (V,3) frame). It may be
             ``captured`` itself, for in-place correction of long sequences:
-            then only the interior lip vertices are written (and they are
-            never read). Another array first receives a copy of
+            then only the interior lip vertices are written (each block's
+            captured interior is read first: the correction model adds to it). Another array first receives a copy of
             ``captured``. Default: a new float64 array. In place, each block
             is written as soon as it passes the checks, and the captured
             interior lip positions it replaced are kept (the frames' dtype:
