@@ -7,7 +7,10 @@ corrected on k frames, held-out inner-lip error of Propagate as a percentage of 
 
 For lip bands of 0.12 and 0.2 mouth widths it reports:
 
-* ``default``: Propagate as shipped (``LipRegressor``, the lip gradients regressed from the mouth);
+* ``default``: the paper's whole-motion regression (``LipRegressor`` fitted without the captured frames: the
+  lip gradients regressed from the mouth);
+* ``auto``: Propagate's default, ``LipRegressor`` given the captured training frames and the shot: the blend of
+  the whole-motion and correction models of :mod:`facelab_addon.core.lips.model_choice`;
 * ``mouth_band``: the 0.2 band with mouth bands of 0.2-0.8 mouth widths (the trusted input);
 * ``no_error_mm``: the same regression trained and evaluated on the truth (no capture error at all):
   the error it makes predicting the expression itself across the band;
@@ -19,7 +22,7 @@ For lip bands of 0.12 and 0.2 mouth widths it reports:
 ``benchmarks/propagate.py`` (speech, 200 frames, its non-linear error for today's 0.12 band, training
 frames from ``suggest_frames``) with the regions of either band: held-out inner-lip RMS, % of the capture's.
 
-    python benchmarks/lip_band.py
+    python benchmarks/lip_band.py [--png docs/images/lip_band.png]
 """
 
 from __future__ import annotations
@@ -81,10 +84,13 @@ class Scene:
         train = np.searchsorted(FRAMES, TRAIN[k])
         held = np.setdiff1d(np.arange(len(FRAMES)), train)
         cap = self.truth + (0.0 if mode == "no_error" else self.cap_w[:, None, None] * err)
-        reg = self.regressor(regs, **kw)
+        reg = self.regressor(regs, **kw, **({"model": mode} if mode in ("auto", "correction") else {}))
         fixed = cap[train].copy()
         fixed[:, reg.interior_vertices] = self.truth[train][:, reg.interior_vertices]
-        reg.fit(fixed)
+        if mode in ("auto", "correction"):  # LipRegressor's models, given the captured frames (and the shot)
+            reg.fit(fixed, captured=cap[train], shot=cap)
+        else:
+            reg.fit(fixed)
         got = reg.predict(cap[held])
         if mode == "correction_only":
             as_captured = self.regressor(regs, **kw)
@@ -96,7 +102,12 @@ class Scene:
         return round(100 * e(got) / e(cap[held]), 1)
 
 
-def main():
+def main(argv=None):
+    import argparse
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--png", default=None, help="write the models' picture here (e.g. docs/images/lip_band.png)")
+    args = ap.parse_args(argv)
     sc = Scene()
     bands = {lw: sc.regions(lw) for lw in (0.12, 0.2)}
     err = sc.error(bands[0.2][1])
@@ -107,6 +118,8 @@ def main():
         for k in TRAIN:
             r[f"k{k}"] = {
                 "default": sc.run(regs, err, k),
+                "auto": sc.run(regs, err, k, "auto"),
+                "correction": sc.run(regs, err, k, "correction"),
                 "no_error_mm": sc.run(regs, err, k, "no_error"),
                 "correction_only": sc.run(regs, err, k, "correction_only"),
                 "correction_only_uncentred": sc.run(regs, err, k, "correction_only", center=None),
@@ -114,6 +127,39 @@ def main():
     out["mouth_band_k3"] = {f"{mw}": sc.run(sc.regions(0.2, mw), err, 3) for mw in (0.2, 0.45, 0.8)}
     out["propagate_benchmark"] = propagate_benchmark(sc)
     print(json.dumps(out, indent=1))
+    if args.png:
+        picture(out, args.png)
+
+
+def picture(out, path):
+    """Grouped bars: held-out error of the whole-motion, correction and auto models in each scene and band."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = []
+    for lw in (0.12, 0.2):
+        for k in TRAIN:
+            r = out[f"lip_band_{lw}"][f"k{k}"]
+            rows.append((f"3-frame scene\nband {lw}, k={k}", r["default"], r["correction"], r["auto"]))
+        for k in (3, 6, 10):
+            r = out["propagate_benchmark"][f"lip_band_{lw}"][f"k{k}"]
+            rows.append((f"speech scene\nband {lw}, k={k}", r["default"], r["correction"], r["auto"]))
+    fig, ax = plt.subplots(figsize=(13, 4.2))
+    x = np.arange(len(rows))
+    for j, (name, color) in enumerate((("whole motion (paper)", "#888888"), ("correction", "#4c72b0"),
+                                       ("auto (Propagate's default)", "#dd8452"))):
+        v = [r[1 + j] for r in rows]
+        ax.bar(x + (j - 1) * 0.27, v, 0.27, label=name, color=color)
+    ax.set_xticks(x, [r[0] for r in rows], fontsize=7)
+    ax.set_ylabel("held-out inner-lip error, % of the capture's")
+    ax.set_ylim(0, max(120.0, 1.05 * max(max(r[1:]) for r in rows)))
+    ax.axhline(100, color="k", lw=0.5)
+    ax.legend(fontsize=8)
+    ax.set_title("Propagate's models (benchmarks/lip_band.py): lower is better")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
 
 
 def propagate_benchmark(sc, n_frames=200):
@@ -144,8 +190,14 @@ def propagate_benchmark(sc, n_frames=200):
             A = LipRegressor(V, F, mf, lf)
             A.fit(cap[tr])
             co = cap[held] + pb - A.predict(cap[held])
+            auto = LipRegressor(V, F, mf, lf).fit(fixed, captured=cap[tr], shot=cap)
+            corr = LipRegressor(V, F, mf, lf, model="correction").fit(fixed, captured=cap[tr])
             r[f"k{k}"] = {"default": round(100 * bp.lip_rms_max(pb, truth[held], lip)[0] / base, 1),
-                          "correction_only": round(100 * bp.lip_rms_max(co, truth[held], lip)[0] / base, 1)}
+                          "correction_only": round(100 * bp.lip_rms_max(co, truth[held], lip)[0] / base, 1),
+                          "auto": round(100 * bp.lip_rms_max(auto.predict(cap[held]), truth[held], lip)[0] / base, 1),
+                          "auto_whole_weight": round(auto.whole_weight, 3),
+                          "correction": round(100 * bp.lip_rms_max(corr.predict(cap[held]), truth[held], lip)[0] / base,
+                                              1)}
     return res
 
 

@@ -183,6 +183,7 @@ def main(argv=None):
         "global_rest": dict(patches=1),  # one global map, rest-centred
         "paper": dict(patches=1, center=None),  # the paper verbatim
         "default_loo_ridge": dict(ridge="loo"),
+        "auto_model": dict(),  # Propagate's default: also given the captured frames and a 64-frame shot sample
     }
     regs = {k: LipRegressor(V, F, sc.mouth_faces, sc.lip_faces, **kw) for k, kw in variants.items()}
     probe = regs["default"]
@@ -194,12 +195,20 @@ def main(argv=None):
 
     buf = cap_h.copy()  # predict() writes only interior lip vertices, which it never reads
     curves = {k: {"k": [], "eps": [], "rms_mm": [], "max_mm": [], "extrapolation_mean": []} for k in variants}
+    shot = capture[np.unique(np.linspace(0, args.frames - 1, 64).round().astype(int))]
     for k in range(1, args.kmax + 1):
         for name, reg in regs.items():
-            reg.add(truth[picks[k - 1]])
+            if name == "auto_model":  # the blend of the whole-motion and correction models (model_choice)
+                reg.add(truth[picks[k - 1]], captured=capture[picks[k - 1]], shot=shot)
+                c = curves[name]
+                c.setdefault("whole_weight", []).append(reg.whole_weight)
+            else:
+                reg.add(truth[picks[k - 1]])
             xp = reg.predict_lip_gradients(cap_h)
             eps = float(np.mean(np.linalg.norm((xp - x_true).reshape(len(held), -1), axis=1)))
-            pred = reg.predict(buf, out=buf)
+            # in place into buf, whose interior lips the whole-motion model never reads; the correction model
+            # (auto_model) reads the captured interior lips, so it predicts from the capture itself
+            pred = reg.predict(cap_h) if name == "auto_model" else reg.predict(buf, out=buf)
             rms, mx = lip_rms_max(pred, tru_h, lip)
             c = curves[name]
             c["k"].append(k)

@@ -140,6 +140,7 @@ def run(args, session) -> dict:
         "regions": regions,
         "corrective_keys": r.keys,
         "suggested_frames": suggested,
+        "model": r.model,
         "propagate_seconds": round(dt, 3),
         "extrapolation": {"max": round(float(np.max(score)), 4), "mean": round(float(np.mean(score)), 4),
                           "frames_over_0.5": [int(f) for f, s in zip(frames, score) if s > 0.5][:100]},

@@ -14,8 +14,9 @@ written as a point cache of the corrected vertices, added after the capture
 (:class:`~facelab_addon.pipeline.correctives.CorrectionWriter` ``after_capture``).
 
 The regressor is fitted afresh on every run: on the ICT face (26,719 vertices, 10 training
-frames) the fit costs 0.07 s, 2 % of a 1,000-frame Propagate (3.5 s), so no fitted model is
-kept between runs and a changed mesh, region or training set can never be served stale.
+frames) the fit costs 0.07 s (0.17 s CPU with the "auto" model choice over a 64-frame sample of
+the shot), a few % of a 1,000-frame Propagate (3.5 s), so no fitted model is kept between runs
+and a changed mesh, region or training set can never be served stale.
 """
 
 from __future__ import annotations
@@ -31,8 +32,10 @@ from ..blender.mesh import mesh_triangles, require_mesh
 from ..blender.objects import ModifierState, local_length, require_editable
 from ..blender.shapekeys import (
     add_corrective_key,
+    key_matches,
     key_property_bulk,
     key_spike,
+    owned_keys,
     rest_vertices,
 )
 from ..core.errors import FaceLabError, FrameError, MeshError
@@ -65,10 +68,13 @@ __all__ = [
     "propagate_steps",
     "propagate",
     "training_input",
+    "model_summary",
+    "captured_unknown",
 ]
 
 _CACHE_SOURCES = ("mesh_cache", "mesh_sequence_cache")
 _CHUNK = 256  # frames per streamed chunk: working memory ~ chunk x (mouth + lip vertices), not the shot
+_SHOT_SAMPLE = 64  # frames of the shot read before the fit for the "auto" model choice
 
 
 @dataclass
@@ -79,10 +85,24 @@ class PropagateSettings:
     ----------
     suggestions : int
         How many frames to suggest correcting next (timeline markers).
+    model : {"auto", "whole", "correction"}
+        What the regression learns (``LipRegressor`` ``model``): the lips' whole motion (the paper), only
+        the correction of the captured lips, or ("auto") the blend of the two with the smallest error
+        expected on the shot, estimated from the training frames and the shot itself
+        (:mod:`~facelab_addon.core.lips.model_choice`).
     """
 
     suggestions: int = setting(3, label="Suggestions", min=0, max=50,
                                description="How many frames to suggest correcting next (timeline markers)")
+    model: str = setting("auto", label="Model", choices=(
+        ("auto", "Auto", "Blend the two models by the error each is expected to make on this shot "
+                         "(from the training frames and the shot)"),
+        ("whole", "Whole Motion", "Learn the lips' whole motion from the mouth (the paper); needs training "
+                                  "frames that span the shot's expressions"),
+        ("correction", "Correction", "Learn only the correction and add it to the captured lips; works from "
+                                     "few frames, keeps capture errors that do not follow the mouth")),
+        description="What Propagate learns from the training frames: the lips' whole motion, only the "
+                    "correction, or an automatic blend")
 
 
 @dataclass
@@ -105,6 +125,10 @@ class PropagateResult:
         How far each frame's mouth lies outside the training poses (also keyed on the object).
     note : str
         What was changed so the keys show over a cache (empty for shape-key animation).
+    model : str
+        The model used, e.g. ``"auto: 9% whole motion + 91% correction"`` (see :class:`PropagateSettings`).
+    whole_weight : float
+        Weight of the whole-motion model in the blend (1: whole motion, 0: correction).
     seconds : float
         From the call to the last step.
     """
@@ -116,6 +140,8 @@ class PropagateResult:
     suggested: list = field(default_factory=list)
     extrapolation: np.ndarray = None
     note: str = ""
+    model: str = ""
+    whole_weight: float = 1.0
     seconds: float = 0.0
 
     @property
@@ -315,6 +341,12 @@ def propagate_steps(scene, obj, frames, settings: PropagateSettings | None = Non
     outside = [f for f in train if f < frames[0] or f > frames[-1]]
     if outside:
         raise FaceLabError(f"Training frames {outside} lie outside the range {frames[0]}-{frames[-1]}; widen the range.")
+    unknown = captured_unknown(obj, train) if settings.model == "correction" else []
+    if unknown:
+        raise FaceLabError(
+            f"Model 'Correction' learns corrected minus captured lips, but training frame(s) {unknown[:5]} were "
+            "sculpted in place (Mark Training Frame), so their capture is unknown. Use Model 'Auto' or 'Whole "
+            "Motion', or correct those frames with Refine Lips or Add Corrected Frame.")
     chunk = min(_CHUNK, max(4, len(frames) // 40)) if chunk is None else chunk
     if int(chunk) < 1:
         raise FaceLabError(f"Propagate: chunk must be at least 1 frame, got {chunk}; use the default {_CHUNK}.")
@@ -368,16 +400,12 @@ def _propagate_work(scene, obj, frames, settings, t0, tris, mouth_faces, lip_fac
     rest = rest_vertices(obj)
     corrected = caches.evaluate_frames(obj, train, mute_shape_keys_prefix=(PROPAGATE_PREFIX,))
     _require_finite(corrected, train, "corrected (training)")
-    reg = LipRegressor(rest, tris, mouth_faces, lip_faces)
+    unknown = captured_unknown(obj, train)
+    model = "whole" if unknown and settings.model == "auto" else settings.model
+    reg = LipRegressor(rest, tris, mouth_faces, lip_faces, model=model)
     captured_train = caches.read_captured_frames(obj, list(train)).astype(np.float64)  # FaceLab keys muted
     _require_finite(captured_train, train, "captured (training)")
     corrected = training_input(captured_train, corrected, reg.interior_vertices)
-    del captured_train
-    try:
-        reg.fit(corrected)
-    except FrameError as e:  # the core names positions in the training list; the artist reads scene frames
-        raise e.for_frames(list(train)) from None
-    del corrected
     # Only the mouth and lip vertices are read (plus, over a cache, the polygons around the interior lips).
     iv = reg.interior_vertices
     read_v, ring = reg.used_vertices, None
@@ -387,6 +415,16 @@ def _propagate_work(scene, obj, frames, settings, t0, tris, mouth_faces, lip_fac
     reader = CaptureReader(obj, read_v)
     at_used = np.searchsorted(read_v, reg.used_vertices)
     at_ring = None if ring is None else np.searchsorted(read_v, ring.vertices)
+    shot = None
+    if model == "auto":  # an even sample of the shot: where the model will be used (model_choice)
+        pick = frames[np.unique(np.linspace(0, T - 1, min(T, _SHOT_SAMPLE)).round().astype(int))]
+        shot = reader.read(pick)[:, at_used]
+        _require_finite(shot, pick, "captured")
+    try:
+        reg.fit(corrected, captured=None if unknown else captured_train, shot=shot, used_only=True)
+    except FrameError as e:  # the core names positions in the training list; the artist reads scene frames
+        raise e.for_frames(list(train)) from None
+    del corrected, captured_train, shot
     # half the storage tolerance here, half for the writer's own compression (the shot's setting, world mm)
     tol = local_length(scene, obj, 0.5e-3 * storage.tolerance_mm)
     # Over a cache the keys ride on its surface, so a correction that is a few shapes on the mesh is, as key
@@ -444,7 +482,41 @@ def _propagate_work(scene, obj, frames, settings, t0, tris, mouth_faces, lip_fac
             scene.timeline_markers.new(f"{SUGGEST_MARKER} {f}", frame=f)
     obj.data.update()
     return PropagateResult(object=obj.name, frames=frames, keys=names, training=list(train), suggested=suggested,
-                           extrapolation=score, note=note, seconds=time.perf_counter() - t0)
+                           extrapolation=score, note=note, model=model_summary(reg, unknown),
+                           whole_weight=reg.whole_weight, seconds=time.perf_counter() - t0)
+
+
+def model_summary(reg, unknown=()) -> str:
+    """What a fitted ``LipRegressor`` learnt, for reports: its model and, for "auto", the blend chosen
+    (``unknown``: training frames without a captured version, which leave "auto" the whole motion)."""
+    a = reg.whole_weight
+    if unknown:
+        return (f"whole motion: training frame{'s' if len(unknown) > 1 else ''} {', '.join(map(str, unknown[:5]))} "
+                "sculpted in place, so the correction alone is unknown")
+    if reg.model != "auto":
+        return {"whole": "whole motion", "correction": "correction"}[reg.model]
+    return f"auto: {100 * a:.0f}% whole motion + {100 * (1 - a):.0f}% correction"
+
+
+def captured_unknown(obj, train) -> list:
+    """Training frames whose capture Propagate cannot read apart from the correction.
+
+    The correction model learns corrected minus captured lips, so it needs each training frame as
+    captured: the frame with its correction's key muted. Refine Lips and Add Corrected Frame record
+    FaceLab's own keys, which the capture reads leave out; a frame sculpted in place and marked with
+    Mark Training Frame records no key, so its capture is unknown.
+
+    Returns
+    -------
+    list of int
+        Those frames of ``train`` (sorted); empty when every training frame's capture is known.
+    """
+    key = obj.data.shape_keys
+    owned = set(owned_keys(obj)) if key else set()
+    known = {t.frame for t in obj.facelab.training_frames
+             if t.shape_key and key is not None and t.shape_key in key.key_blocks
+             and key_matches(key, t.shape_key, caches.FACELAB_PREFIXES, owned)}
+    return [int(f) for f in train if f not in known]
 
 
 def training_input(captured, corrected, interior) -> np.ndarray:

@@ -269,6 +269,7 @@ class FACELAB_OT_propagate(_ModalJob, bpy.types.Operator):
             {"INFO"},
             f"Propagated to {len(r.frames):,} frames in {seconds:.1f} s, {r.rank} corrective "
             f"shapes from {len(r.training)} training frames"
+            + (f" ({r.model})" if r.model else "")
             + (f"; {r.note}" if r.note else "")
             + (f"; suggested next: {', '.join(map(str, r.suggested))}" if r.suggested else ""),
         )

@@ -38,7 +38,7 @@ from facelab_addon.pipeline.propagate import (
     training_frames,
     training_input,
 )
-from facelab_addon.pipeline.regions import auto_regions
+from facelab_addon.pipeline.regions import RegionSettings, auto_regions
 
 from ..blender.test_propagate_operator import FRAMES, SCALE, TRAIN, build
 
@@ -47,27 +47,34 @@ pytestmark = pytest.mark.blender
 HELD = [2, 11, 24, 37]
 
 
-def corrected_scene(ict, train=TRAIN):
-    """The capture, Auto Regions, and the artist's sculpted corrections on ``train`` (recorded)."""
+def corrected_scene(ict, train=TRAIN, keyed=False, lip_width=None):
+    """The capture, Auto Regions, and the artist's sculpted corrections on ``train`` (recorded): sculpted in
+    place (the capture of those frames unknown), or with ``keyed`` as FaceLab corrective keys recorded with the
+    frame, as Refine Lips and Add Corrected Frame write them (the capture known)."""
     scene, obj, err, cap_w = build(ict)
-    auto_regions(obj)
+    auto_regions(obj, RegionSettings(lip_width=lip_width) if lip_width else None)
     for f in train:
         scene.frame_set(f)
-        key_spike(add_corrective_key(obj, f"Sculpt_{f}", -cap_w[np.searchsorted(FRAMES, f)] * err), f)
-        record_training_frame(scene, obj, f, "", "sculpt")
+        kb = add_corrective_key(obj, f"FL_Refine_{f:04d}" if keyed else f"Sculpt_{f}",
+                                -cap_w[np.searchsorted(FRAMES, f)] * err)
+        key_spike(kb, f)
+        record_training_frame(scene, obj, f, kb.name if keyed else "", "sketch" if keyed else "sculpt")
     return scene, obj, err, cap_w
 
 
-def independent_prediction(obj, train, frames):
-    """LipRegressor fitted here on ``train`` (corrected frames read with the propagated keys muted)."""
+def independent_prediction(obj, train, frames, model="auto"):
+    """LipRegressor fitted here on ``train`` (corrected frames read with the propagated keys muted); for
+    "auto" the shot (all of FRAMES: fewer than Propagate's 64-frame sample) sets the blend."""
     tris = mesh_triangles(obj.data)
     reg = LipRegressor(rest_vertices(obj), tris, faces_in_region(tris, vertex_group_mask(obj, MOUTH_GROUP)),
-                       faces_in_region(tris, vertex_group_mask(obj, LIPS_GROUP)))
+                       faces_in_region(tris, vertex_group_mask(obj, LIPS_GROUP)), model=model)
     corrected = caches.evaluate_frames(obj, train, mute_shape_keys_prefix=(PROPAGATE_PREFIX,))
-    reg.fit(training_input(caches.evaluate_frames(obj, train, mute_shape_keys_prefix=("FL_",)),
-                           corrected, reg.interior_vertices))  # the mouth input comes from the capture
+    captured_train = caches.evaluate_frames(obj, train, mute_shape_keys_prefix=("FL_",)).astype(np.float64)
+    shot = caches.evaluate_frames(obj, FRAMES, mute_shape_keys_prefix=("FL_",))
+    reg.fit(training_input(captured_train, corrected, reg.interior_vertices),  # the mouth input: the capture
+            captured=captured_train, shot=shot)
     captured = caches.evaluate_frames(obj, frames, mute_shape_keys_prefix=("FL_",))
-    return reg.predict(captured.astype(np.float64))
+    return reg.predict(captured.astype(np.float64)), reg
 
 
 def prop_keys(obj):
@@ -85,7 +92,9 @@ def test_propagate_reproduces_the_training_corrections_and_predicts(ict, addon):
     np.testing.assert_allclose(caches.evaluate_frames(obj, TRAIN, mute_shape_keys_prefix=()), corrected, atol=1e-7)
     # held-out frames: the regressor's prediction, within the 0.01 mm compression tolerance (+ float32)
     got = caches.evaluate_frames(obj, HELD, mute_shape_keys_prefix=())
-    assert np.abs(got - independent_prediction(obj, TRAIN, HELD)).max() < 1e-5 + 1e-6
+    assert np.abs(got - independent_prediction(obj, TRAIN, HELD, "whole")[0]).max() < 1e-5 + 1e-6
+    # sculpted in place, the training frames' capture is unknown: "auto" is the whole-motion model, and says so
+    assert r.whole_weight == 1.0 and "sculpted in place" in r.model
     # and closer to the truth (the capture minus the injected error) than the capture
     i = np.searchsorted(FRAMES, HELD)
     captured = caches.evaluate_frames(obj, HELD, mute_shape_keys_prefix=("FL_",))
@@ -103,6 +112,40 @@ def test_propagate_reproduces_the_training_corrections_and_predicts(ict, addon):
     assert len(r.suggested) == 2 and sorted(markers) == sorted(r.suggested) and not set(r.suggested) & set(TRAIN)
 
 
+def test_auto_model_from_three_frames_on_a_wide_lip_band(ict, addon):
+    """Three corrected frames recorded with their keys (as Refine Lips writes them) on a 0.2 mouth-width lip
+    band: the whole-motion model cannot learn the band's expression motion from 3 frames (92 % of the capture's
+    error left), the correction model can (5 %); "auto" picks it from the training frames and the shot (6 %),
+    keeps every training correction exactly (extrapolation 0 there), matches the core regressor, and reports
+    the blend. Model "Correction" is refused, with the way out, when a frame was sculpted in place."""
+    scene, obj, err, cap_w = corrected_scene(ict, keyed=True, lip_width=0.2)
+    corrected = caches.evaluate_frames(obj, TRAIN, mute_shape_keys_prefix=(PROPAGATE_PREFIX,))
+    held = [f for f in FRAMES if f not in TRAIN]
+    i = np.searchsorted(FRAMES, held)
+    captured = caches.evaluate_frames(obj, held, mute_shape_keys_prefix=("FL_",))
+    truth = captured - cap_w[i, None, None] * err
+    lips = vertex_group_mask(obj, LIPS_GROUP)
+    e0 = np.linalg.norm(captured - truth, axis=2)[:, lips].mean()
+    e = lambda X: np.linalg.norm(X - truth, axis=2)[:, lips].mean() / e0  # noqa: E731
+    got = {}
+    for model in ("whole", "auto"):
+        r = propagate(scene, obj, FRAMES, PropagateSettings(suggestions=0, model=model))
+        got[model] = caches.evaluate_frames(obj, held, mute_shape_keys_prefix=())
+        np.testing.assert_allclose(caches.evaluate_frames(obj, TRAIN, mute_shape_keys_prefix=()), corrected, atol=1e-7)
+        assert np.abs(r.extrapolation[np.searchsorted(FRAMES, TRAIN)]).max() < 1e-3
+    assert e(got["whole"]) > 0.8, e(got["whole"])
+    assert e(got["auto"]) < 0.1, e(got["auto"])
+    assert r.model.startswith("auto: ") and r.whole_weight < 0.1, (r.model, r.whole_weight)
+    expect, reg = independent_prediction(obj, TRAIN, held, "auto")
+    assert reg.whole_weight == pytest.approx(r.whole_weight, abs=1e-5)  # the shot read as float32 there
+    assert np.abs(got["auto"] - expect).max() < 1e-5 + 1e-6
+    # a frame sculpted in place has no known capture: "Correction" is refused before anything changes
+    key_spike(add_corrective_key(obj, "Sculpt_24", -cap_w[np.searchsorted(FRAMES, 24)] * err), 24)
+    record_training_frame(scene, obj, 24, "", "sculpt")
+    with pytest.raises(FaceLabError, match=r"sculpted in place.*\[24\].*Whole Motion|\[24\].*sculpted in place"):
+        propagate_steps(scene, obj, FRAMES, PropagateSettings(model="correction"))
+
+
 def test_propagate_refits_from_the_scene_every_run(ict, addon):
     """Adding or removing a training frame gives the model fitted on exactly the frames now recorded."""
     scene, obj, err, cap_w = corrected_scene(ict)
@@ -115,7 +158,7 @@ def test_propagate_refits_from_the_scene_every_run(ict, addon):
     assert r.training == sorted(TRAIN + [f]) and r.keys == prop_keys(obj)
     held = [2, 11, 37]
     got = caches.evaluate_frames(obj, held, mute_shape_keys_prefix=())
-    assert np.abs(got - independent_prediction(obj, r.training, held)).max() < 1e-5 + 1e-6
+    assert np.abs(got - independent_prediction(obj, r.training, held, "whole")[0]).max() < 1e-5 + 1e-6
 
     # remove frame 5 from the list: its marker goes, and the model no longer learns from it
     i = [t.frame for t in obj.facelab.training_frames].index(5)
@@ -125,7 +168,7 @@ def test_propagate_refits_from_the_scene_every_run(ict, addon):
     r = propagate(scene, obj, FRAMES, PropagateSettings(suggestions=0))
     assert r.training == [18, 24, 31]
     got = caches.evaluate_frames(obj, held, mute_shape_keys_prefix=())
-    assert np.abs(got - independent_prediction(obj, r.training, held)).max() < 1e-5 + 1e-6
+    assert np.abs(got - independent_prediction(obj, r.training, held, "whole")[0]).max() < 1e-5 + 1e-6
     assert not any("." in k for k in prop_keys(obj))  # replaced, never duplicated
 
 

@@ -55,7 +55,8 @@ def test_training_features_come_from_the_captured_frame(ict, addon):
     np.testing.assert_allclose(caches.evaluate_frames(obj, TRAIN, mute_shape_keys_prefix=()), corrected, atol=1e-7)
     # held-out frames: what a regressor learns from the inner-lip fix alone (the spill never enters)
     reg = LipRegressor(rest, tris, faces_in_region(tris, mouth), faces_in_region(tris, lips))
-    reg.fit(captured_train.astype(np.float64) - cap_w[i, None, None] * err)
+    cap64 = captured_train.astype(np.float64)
+    reg.fit(cap64 - cap_w[i, None, None] * err, captured=cap64, shot=caches.evaluate_frames(obj, FRAMES))  # "auto"
     captured = caches.evaluate_frames(obj, HELD)
     want = reg.predict(captured.astype(np.float64))
     got = caches.evaluate_frames(obj, HELD, mute_shape_keys_prefix=())

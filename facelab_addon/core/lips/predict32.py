@@ -69,8 +69,9 @@ class _Float32Prediction:
     positions about the mouth's centre): every float32 number is a change from the rest pose, and the
     constant ``x_I(X_rest)`` is added in float64 (the rest pose itself predicts exactly what the float64
     maps do). A block of t frames costs two products for the coefficients (``d @ Mx``, ``c @ Mc``) and
-    two for the positions: the border displacements of all three coordinates as 3t rows times ``-Hᵀ``,
-    and ``z @ K``. Float32 rounding moves a predicted vertex by
+    two for the positions: the border displacements of all three coordinates as 3t rows times ``-α Hᵀ``,
+    and ``z @ K``; with the correction model (``α < 1``) the captured interior's change from rest, times
+    ``1 - α``, is added in float64. Float32 rounding moves a predicted vertex by
     about 1e-8 of the mouth's size (measured: at most 3e-5 mm on ICT-FaceKit, ``benchmarks/scale.py``),
     far below the 0.01 mm storage tolerance.
     """
@@ -100,8 +101,12 @@ class _Float32Prediction:
         z_ref = reg._Mx.T @ Rm.ravel() + reg._Mc.T @ c.ravel() - reg._z_ident  # (R,) coefficients of X_rest
         K3 = K.reshape(nI, 3, R)
         self.K = np.ascontiguousarray(K3.transpose(2, 1, 0).reshape(R, 3 * nI), dtype=f32)  # columns (coordinate, vertex)
-        self.Ht = np.ascontiguousarray(-H.T, dtype=f32)  # (nB, nI)
-        self.base = K3 @ z_ref - H @ ref[bv] + (0.0 if x0 is None else x0)  # (nI, 3) x_I(X_rest), float64
+        # the blend of the whole-motion and correction models (LipRegressor.whole_weight α):
+        # x_I = K z + α (x0 - H x_B) + (1 - α) x_captured,I
+        a = self.alpha = float(reg.whole_weight)
+        self.Ht = np.ascontiguousarray(-a * H.T, dtype=f32)  # (nB, nI)
+        self.ref_i = ref[iv]
+        self.base = K3 @ z_ref + a * (-H @ ref[bv] + (0.0 if x0 is None else x0)) + (1 - a) * (self.ref_i + reg._x_b)
 
     def _phantom(self, Xc, out, w):
         """``c - c_rest`` (3, t, m) float32 into ``out`` from coordinate-major mouth positions Xc (3, t, nv)
@@ -162,6 +167,8 @@ class _Float32Prediction:
         P = P.reshape(t, 3, -1)  # (t, 3, nI) interior displacements from x_I(X_rest)
         for i in range(3):
             np.add(P[:, i], self.base[:, i], out=xi[:, :, i])
+        if self.alpha != 1.0:  # the correction model's captured interior, as a change from the rest pose
+            xi += (1.0 - self.alpha) * np.subtract(xc, self.ref_i, dtype=np.float64)
         return xi, xc
 
 

@@ -75,23 +75,21 @@ from .features import (
     _BLOCK,
     _as_frames,
     _coordinate_major,
-    _fold_coefficients,
-    _fold_directions,
     _gradient_features,
     _mouth_coefficients,
-    _patch_operators,
     _StreamingPrediction,
 )
 from .guards import _check_settings, _checked_mesh
 from .patches import _lip_patches
-from .reduced import choose_ridge, solve_theta, thin_svd
+from .reduced import MODELS
 from .regions import region_border, validate_regions
+from .training import _Training
 
 __all__ = ["LipRegressor"]
 
 
 
-class LipRegressor(_StreamingPrediction):
+class LipRegressor(_Training, _StreamingPrediction):
     """Learn inner-lip deformation gradients from the mouth region (Dinev et al. 2018, §4).
 
     Parameters
@@ -130,6 +128,13 @@ class LipRegressor(_StreamingPrediction):
         Default 1e-4 (0.01 % strain), far above round-off and float32 noise.
     backend : {"auto", "cholespy", "splu"}
         Sparse factorisation of the Poisson system.
+    model : {"auto", "whole", "correction"}
+        What is regressed. ``"whole"`` (the paper): the lip gradients themselves, the band's whole
+        motion, expression included. ``"correction"``: corrected minus captured lip gradients, added
+        to the frame's captured gradients (needs ``captured=`` in :meth:`fit`). ``"auto"`` (default):
+        the blend ``α · whole + (1 - α) · correction`` whose leave-one-out error over the training
+        frames, measured on the Poisson-solved interior lip positions, is smallest
+        (:mod:`.model_choice`); without ``captured=`` it is the whole model.
 
     Attributes
     ----------
@@ -142,7 +147,13 @@ class LipRegressor(_StreamingPrediction):
     k : int
         Number of training frames.
     theta_bars : list of (rX, rY) ndarrays
-        The reduced maps θ̄ of the patches (one for ``patches=1``).
+        The reduced maps θ̄ of the whole-motion model's patches (one for ``patches=1``).
+    whole_weight : float
+        ``α`` of the fitted blend: 1 is the whole-motion model, 0 the correction model.
+    model_errors : dict
+        With ``model="auto"``: the predicted RMS error of the interior lip vertices over the shot
+        (scene units) of ``"whole"``, ``"correction"``, ``"blend"`` and the correction model's
+        ``"floor"`` (:mod:`.model_choice`); empty otherwise.
 
     Raises
     ------
@@ -154,8 +165,11 @@ class LipRegressor(_StreamingPrediction):
     """
 
     def __init__(self, rest_vertices, faces, mouth_faces, lip_faces, *, patches: int = 10, input_radius=None,
-                 center="rest", ridge=0.0, rtol=1e-4, atol=1e-4, backend="auto"):
+                 center="rest", ridge=0.0, rtol=1e-4, atol=1e-4, backend="auto", model="auto"):
         R, F = _checked_mesh(rest_vertices, faces)
+        if model not in MODELS:
+            raise UsageError(f"model must be one of {MODELS}, got {model!r}; use 'auto' (the default)")
+        self.model = model
         if center not in ("rest", None):
             raise UsageError(f"center must be 'rest' or None, got {center!r}; use 'rest' (the default)")
         _check_settings(ridge, rtol, atol, patches, input_radius)
@@ -171,7 +185,10 @@ class LipRegressor(_StreamingPrediction):
         self._setup_patches(patches, input_radius)
         self._Y = None  # (9m, k) training mouth features
         self._X = None  # (9n, k) training lip features
+        self._Xc = None  # (9n, k) corrected minus captured lip features (None: captured not given)
         self.k = 0
+        self.whole_weight = 1.0  # α: weight of the whole-motion model in the fitted blend
+        self.model_errors = {}  # predicted RMS interior lip error of each model (scene units)
 
     def _setup_regions(self, mouth_faces, lip_faces):
         """Validated regions, their rest-pose inverse shape matrices and local vertex indexing."""
@@ -318,140 +335,6 @@ class LipRegressor(_StreamingPrediction):
                              "mouth_features() from frames without NaN coordinates.", bad[:20])
         return Y
 
-    # ------------------------------------------------------------------ training
-    def fit(self, corrected):
-        """Fit the reduced regression(s) on corrected frames, replacing any earlier training.
-
-        Parameters
-        ----------
-        corrected : (k,V,3) array_like
-            Corrected (ground-truth) frames, scene units. For each, the mouth
-            gradients give ``y`` (the mouth is trusted, so corrected = captured
-            there) and the lip gradients give ``x``.
-
-        Returns
-        -------
-        self
-
-        Raises
-        ------
-        FaceLabError
-            With fewer than one training frame, a topology that differs from
-            the rest mesh, or NaN coordinates.
-        FrameError
-            With ``center="rest"``, when no training frame moves the mouth
-            (all in the rest pose to within ``atol``); the earlier fit is kept.
-        """
-        y, x = self._training_features(corrected)
-        self._refit(y.copy(), x.copy())
-        return self
-
-    def add(self, corrected):
-        """Add corrected frame(s) to the training set and update the fit.
-
-        Re-runs the thin SVDs on the stacked ``k+1`` columns (cost
-        ``O(9m k²)`` per patch, milliseconds); the result equals :meth:`fit`
-        on all frames.
-
-        Parameters
-        ----------
-        corrected : (V,3) or (j,V,3) array_like
-            New corrected frame(s), scene units.
-
-        Returns
-        -------
-        self
-        """
-        y, x = self._training_features(corrected)
-        if self._Y is None:
-            self._refit(y.copy(), x.copy())
-        else:
-            self._refit(np.hstack([self._Y, y]), np.hstack([self._X, x]))
-        return self
-
-    def _training_frames(self, corrected):
-        c = np.asarray(corrected)
-        if c.size == 0 or (c.ndim == 3 and c.shape[0] == 0):
-            raise FaceLabError(
-                "No corrected frames were given; correct at least one frame (sketch or sculpt it) before training."
-            )
-        return _as_frames(c, self.n_vertices, "corrected frames", self._used)
-
-    def _training_features(self, corrected):
-        """``(y, x)``: (9m, j) mouth and (9n, j) lip features of corrected frames, one column per frame."""
-        C = self._training_frames(corrected)
-        y = self._feat(self._grad(C, self._mouth_rinv, self._mouth_verts, self._mouth_local)).T
-        x = self._feat(self._grad(C, self._lip_rinv, self._lip_verts_all, self._lip_local)).T
-        return y, x
-
-    def _refit(self, Y, X):
-        """Refit on training features ``Y`` (9m, k), ``X`` (9n, k): global span, then each patch's map and operators.
-
-        Refuses (:class:`FrameError`, nothing changed) a rest-centred training set without mouth motion.
-        """
-        m, n = len(self.mouth_faces), len(self.lip_faces)
-        k = Y.shape[1]
-        UYg, _ = thin_svd(Y, self.center, self.rtol, self.atol)
-        if UYg.shape[1] == 0:
-            raise FrameError(
-                "The training frames do not move the mouth (in {frames} the mouth is in its rest pose to "
-                f"within an RMS strain of {self.atol:g}), so the regression cannot learn how the lips follow the mouth "
-                "and would extrapolate without bound. Add corrected frames where the mouth moves (open, smile, "
-                "pucker); a fix of the neutral pose itself belongs in the rest mesh.",
-                range(k),
-            )
-        self._Y, self._X, self.k = Y, X, k
-        Y3 = Y.reshape(m, 9, self.k)
-        X3 = X.reshape(n, 9, self.k)
-        self._fit_span(Y, UYg)
-        self.theta_bars, self.ridges_used = [], []
-        self._pfit, self._fit_mouth_sel = [], []
-        Zs, Ws, zid = [], [], []
-        for (mouth_sel, lip_sel, w), Dp in zip(self._patches, self._D_patch):
-            UY, UX, th, lam = self._fit_patch(Y3[mouth_sel], X3[lip_sel])
-            if UY.shape[1] == 0:  # this patch's mouth input does not move in training: read the whole mouth
-                mouth_sel = np.arange(m)
-                UY, UX, th, lam = self._fit_patch(Y3, X3[lip_sel])
-            self._fit_mouth_sel.append(mouth_sel)
-            self.theta_bars.append(th)
-            self.ridges_used.append(lam)
-            self._pfit.append((UX, th, UY))
-            Z, W, z0 = _patch_operators(len(self.interior_vertices), self._mouth_rinv[mouth_sel], lip_sel, w, Dp, UY, UX,
-                                        th, self.center == "rest")
-            Zs.append(Z)
-            Ws.append(W)
-            zid.append(z0)
-        self._Zdiv = np.concatenate(Zs, axis=1)  # (nI*3, Σ rY)
-        self._Mx, self._Mc = _fold_coefficients(self._mouth_local, len(self._mouth_verts), self._fit_mouth_sel, Ws, m)
-        self._z_ident = np.concatenate(zid)
-        # the global span and the identity, folded beside the coefficients: one pass gives both (correct_chunk)
-        ident = np.tile(np.eye(3).ravel(), m)[:, None]
-        Ms = _fold_directions(np.hstack([self._UY, ident]), self._mouth_rinv, self._mouth_local, len(self._mouth_verts))
-        self._Mx_all, self._Mc_all = np.hstack([self._Mx, Ms[0]]), np.hstack([self._Mc, Ms[1]])
-        self._span_ident = (ident.T @ self._UY).ravel() if self.center == "rest" else np.zeros(self._UY.shape[1])
-        self._dir_fold = (None, None)
-
-    def _fit_span(self, Y, UY):
-        """Global span ``U_Y`` and RMS deformation of the mouth features: extrapolation score and suggest_frames.
-
-        The RMS deformation is floored at the absolute rank cut, so the score stays bounded.
-        """
-        m = len(self.mouth_faces)
-        self._UY = UY
-        Yd = Y if self.center == "rest" else Y - np.tile(np.eye(3).ravel(), m)[:, None]
-        self._sigma = max(float(np.sqrt(np.mean(np.sum(Yd * Yd, axis=0)))), self.atol * np.sqrt(m), 1e-12)
-
-    def _fit_patch(self, Yp, Xp):
-        """One patch's reduced regression from its (m_p,9,k) mouth and (n_p,9,k) lip features.
-
-        Returns ``(U_Y, U_X, θ̄, λ)``: the thin-SVD bases, the (rX, rY) reduced map and the ridge used.
-        """
-        UY, CY = thin_svd(Yp.reshape(-1, self.k), self.center, self.rtol, self.atol)
-        UX, CX = thin_svd(Xp.reshape(-1, self.k), self.center, self.rtol, self.atol)
-        lam = choose_ridge(CY, CX, self.ridge)
-        th = solve_theta(CY, CX, lam)  # (rX, rY)
-        return UY, UX, th, lam
-
     def _require_fit(self):
         if self._Y is None:
             raise FaceLabError("The lip regressor has no training frames; call fit() with corrected frames first.")
@@ -478,21 +361,26 @@ class LipRegressor(_StreamingPrediction):
         nI, t = len(iv), len(A)
         z = self._coefficients(A, used_only) if z is None else z
         xb = np.asarray(A[:, bv, :], dtype=np.float64).transpose(1, 0, 2).reshape(len(bv), 3 * t)
+        # the blend α·whole + (1-α)·correction: x_I = K z + α (x_0 - H x_B) + (1 - α) x_captured,I
+        a = self.whole_weight
+        xc = np.asarray(A[:, iv, :], dtype=np.float64)
         dense = self._dense_solution()
-        if dense is not None:  # x_I = K z + x_0 - H x_B: two dense products instead of a sparse solve
+        if dense is not None:  # two dense products instead of a sparse solve
             K, H, x0 = dense
             xi = (K @ z.T).reshape(nI, 3, t).transpose(0, 2, 1).reshape(nI, 3 * t)
-            xi -= H @ xb
+            xi -= (a * H) @ xb if a != 1.0 else H @ xb
             xi = xi.reshape(nI, t, 3).transpose(1, 0, 2)
             if x0 is not None:
-                xi += x0[None]
-            return xi, np.asarray(A[:, iv, :], dtype=np.float64)
-        rhs = (self._Zdiv @ z.T).reshape(nI, 3, t).transpose(0, 2, 1)  # (nI, t, 3)
-        if self.center == "rest":
-            rhs = rhs + self._b_ident[:, None, :]
-        rhs = rhs.reshape(nI, 3 * t) - self._L_IB @ xb
-        xi = self._factor.solve(rhs).reshape(nI, t, 3).transpose(1, 0, 2)
-        return xi, np.asarray(A[:, iv, :], dtype=np.float64)
+                xi += a * x0[None]
+        else:
+            rhs = (self._Zdiv @ z.T).reshape(nI, 3, t).transpose(0, 2, 1)  # (nI, t, 3)
+            if self.center == "rest":
+                rhs = rhs + a * self._b_ident[:, None, :]
+            rhs = rhs.reshape(nI, 3 * t) - a * (self._L_IB @ xb)
+            xi = self._factor.solve(rhs).reshape(nI, t, 3).transpose(1, 0, 2)
+        if a != 1.0:
+            xi += (1.0 - a) * (xc + self._x_b[None])
+        return xi, xc
 
     def _residual_norms(self, Y):
         """(T,) norms of mouth features ``Y`` (T, 9m) outside the global training span."""
@@ -500,7 +388,7 @@ class LipRegressor(_StreamingPrediction):
         return np.sqrt(np.sum(r * r, axis=1))
 
     def predict_lip_gradients(self, captured) -> np.ndarray:
-        """Predicted inner-lip deformation gradients ``x = θ y`` (blended over patches).
+        """Predicted inner-lip deformation gradients ``x = θ y`` (blended over patches and models).
 
         Parameters
         ----------
@@ -524,8 +412,12 @@ class LipRegressor(_StreamingPrediction):
             x[:, lip_sel] += xp.reshape(T, len(lip_sel), 9) * w[None, :, None]
             o += r
         x = x.reshape(T, -1, 3, 3)
+        a = self.whole_weight
         if self.center == "rest":
-            x = x + np.eye(3)
+            x = x + a * np.eye(3)
+        if a != 1.0:  # the correction model adds the captured gradients
+            x = x + (1.0 - a) * (self._grad(A, self._lip_rinv, self._lip_verts_all, self._lip_local)
+                                 + self._B.reshape(-1, 3, 3))
         bad = np.flatnonzero(~np.isfinite(x).reshape(T, -1).all(axis=1))
         if bad.size:
             raise PredictionError("The predicted lip gradients of {frames} are not finite; check those frames "
@@ -551,8 +443,8 @@ class LipRegressor(_StreamingPrediction):
             Where to write the result, float32 or float64 (the shape of the
             frames; a (V,3) array for a single (V,3) frame). It may be
             ``captured`` itself, for in-place correction of long sequences:
-            then only the interior lip vertices are written (and they are
-            never read). Another array first receives a copy of
+            then only the interior lip vertices are written (each block's
+            captured interior is read first: the correction model adds to it). Another array first receives a copy of
             ``captured``. Default: a new float64 array. In place, each block
             is written as soon as it passes the checks, and the captured
             interior lip positions it replaced are kept (the frames' dtype:

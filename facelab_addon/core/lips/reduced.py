@@ -15,7 +15,10 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["thin_svd", "solve_theta", "choose_ridge", "StreamingBasis"]
+__all__ = ["thin_svd", "solve_theta", "choose_ridge", "loo_residuals", "loo_span_residuals", "MODELS",
+           "StreamingBasis"]
+
+MODELS = ("auto", "whole", "correction")  # what the lip regression predicts (LipRegressor ``model``)
 
 
 def thin_svd(M, center, rtol, atol=0.0):
@@ -127,6 +130,61 @@ def choose_ridge(CY, CX, ridge):
         if err < best_err * (1 - 1e-9):
             best, best_err = lam, err
     return best
+
+
+def loo_residuals(CY, CX, lam):
+    """Leave-one-out residuals of a reduced map: frame ``i`` predicted by the map fitted on the others.
+
+    Exact for the reduced model (the k-1 frame map applied to frame ``i``'s mouth coefficients is the
+    k-1 frame regression on the full features: ``C_Y`` holds every frame's exact coordinates). With
+    one training frame the map fitted on no frames is 0, so the residual is minus the frame itself.
+
+    Parameters
+    ----------
+    CY, CX : (rY, k), (rX, k) ndarray
+        Mouth and output coefficients of the k training frames (:func:`thin_svd`).
+    lam : float
+        Ridge weight (as :func:`solve_theta`).
+
+    Returns
+    -------
+    (rX, k) float64 ndarray
+        ``θ̄₋ᵢ C_Y[:, i] - C_X[:, i]`` per column (unitless, in the ``U_X`` basis).
+    """
+    k = CY.shape[1]
+    out = -np.array(CX, dtype=np.float64)
+    if k < 2:
+        return out
+    for i in range(k):
+        keep = np.arange(k) != i
+        out[:, i] += solve_theta(CY[:, keep], CX[:, keep], lam) @ CY[:, i]
+    return out
+
+
+def loo_span_residuals(C):
+    """Squared distance of each training frame from the span of the others.
+
+    Parameters
+    ----------
+    C : (r, k) ndarray
+        Coefficients of the k frames in an orthonormal basis (:func:`thin_svd`), so distances are exact.
+
+    Returns
+    -------
+    (k,) float64 ndarray
+        ``||c_i - P₋ᵢ c_i||²`` with ``P₋ᵢ`` the projection on the other columns (``||c_i||²`` for k = 1).
+    """
+    C = np.asarray(C, dtype=np.float64)
+    k = C.shape[1]
+    out = np.empty(k)
+    for i in range(k):
+        c = C[:, i]
+        if k > 1:
+            Q, s, _ = np.linalg.svd(np.delete(C, i, axis=1), full_matrices=False)
+            Q = Q[:, s > 1e-12 * max(s[0], 1e-300)] if s.size else Q[:, :0]
+            c = c - Q @ (Q.T @ c)
+        out[i] = float(c @ c)
+    return out
 
 
 class StreamingBasis:

@@ -1,0 +1,135 @@
+"""Which lip regression to trust: the whole-motion model, the correction model, or a blend of the two.
+
+Dinev et al. 2018 (§4) regress the inner-lip deformation gradients themselves from the mouth's: the
+*whole-motion* model, which must learn the lips' expression motion as well as the correction. With
+few training frames on a wide lip band it cannot (3 frames do not span the band's expression
+motion). The *correction* model regresses only corrected minus captured lip gradients (plus a
+constant: a correction present in the rest pose) and adds them to the frame's captured gradients; it
+needs no expression motion, but keeps whatever part of the capture error is not a linear function of
+the mouth. :class:`.propagate.LipRegressor` (``model="auto"``) predicts
+``α · whole + (1 - α) · correction`` with ``α`` from this module. Both models and so the blend are
+exact on the training frames.
+
+The choice (an addition to the paper) estimates each model's expected error on the frames it will
+correct (the *shot*), per interior lip vertex, from a simple error model:
+
+* whole-motion model: ``a_w r²``, where ``r`` is the distance of a frame's mouth features from the
+  span of the training frames (the model is exact on that span, so its error grows with ``r``);
+* correction model: ``b + a_c r²``, a floor ``b`` (the capture error that is no linear function of
+  the mouth, which no number of frames removes) plus the same growth.
+
+The slopes come from leave-one-out over the k training frames (each frame predicted by the maps
+fitted on the others, its Poisson-solved interior lip error against its own distance from the
+others' span). The floor comes from the shot itself: on every shot frame the two models differ by
+``D = (Θ - Γ) r - e`` with ``e`` the correction model's non-linear miss, so a least-squares fit of
+``||D||² = c r² + b`` over the shot frames (non-negative) gives ``b = E||e||²``. Leave-one-out alone
+overrates the whole model's error when the training frames are extreme poses (``suggest_frames``
+picks them) and the shot lies between them; the shot's own ``r`` corrects that. The expected errors
+``S_w = a_w mean(r²)`` and ``S_c = b + a_c mean(r²)`` over the shot are combined as independent
+estimates: ``α = S_c / (S_w + S_c)``. Without shot frames the floor is taken as 0 and ``mean(r²)``
+is that of the training frames' leave-one-out (a blend by inverse leave-one-out error).
+
+Measured (``benchmarks/lip_band.py``, held-out inner-lip error, % of the capture's): the 3-frame
+scene of ``tests/pipeline/test_propagate.py`` with a 0.2 mouth-width band: whole 85.9, correction
+5.2, auto 6.3; ``benchmarks/propagate.py``'s non-linear error at k = 10, 0.12 band: whole 15.5,
+correction 63.7, auto 16.2.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .features import _gradient_features
+from .reduced import loo_span_residuals
+
+__all__: list[str] = []
+
+
+def _poisson_per_frame(reg, G, k):
+    """(k,) squared interior position norms of per-frame lip gradient changes G (n, 9, k), border held at 0."""
+    n, nI = len(reg.lip_faces), len(reg.interior_vertices)
+    rhs = reg._D_I @ G.reshape(n, 3, 3, k).transpose(0, 2, 1, 3).reshape(3 * n, 3 * k)  # columns (i, frame)
+    P = reg._factor.solve(rhs).reshape(nI, 3, k)
+    return np.sum(P * P, axis=(0, 1))
+
+
+def _blend_patches(reg, parts, k):
+    """(n, 9, k) lip gradient features blended over the patches from per-patch (9 n_p, k) arrays."""
+    G = np.zeros((len(reg.lip_faces), 9, k))
+    for (_, lip_sel, w), E in zip(reg._patches, parts):
+        G[lip_sel] += E.reshape(len(lip_sel), 9, k) * w[:, None, None]
+    return G
+
+
+def shot_features(reg, frames, used_only):
+    """``(Ys, Xs)``: (T, 9m) mouth and (T, 9n) captured lip features of shot frames (validated, float)."""
+    mouth = reg._mouth_u if used_only else reg._mouth_verts
+    lips = np.searchsorted(reg._used, reg._lip_verts_all) if used_only else reg._lip_verts_all
+    center = reg.center == "rest"
+    Ys = _gradient_features(frames, mouth, reg._mouth_local, reg._mouth_rinv, center)
+    Xs = _gradient_features(frames, lips, reg._lip_local, reg._lip_rinv, center)
+    return Ys, Xs
+
+
+def _shot_floor(reg, fits, shot, r2_shot):
+    """Floor ``b`` of the correction model's error: intercept of ``||D||² = c r² + b`` over the shot frames."""
+    Ys, Xs = shot
+    T = len(Ys)
+    m9 = Ys.reshape(T, -1, 9)
+    diff = []
+    for (mouth_sel, lip_sel, _), f in zip(reg._patches, fits):
+        sel, UY, UX, th, corr = f[0], f[1], f[2], f[3], f[6]
+        z = m9[:, sel].reshape(T, -1) @ UY  # (T, rY) the patch's mouth coefficients
+        UXc, thc, _, b = corr
+        Xp = Xs.reshape(T, -1, 9)[:, lip_sel].reshape(T, -1)
+        diff.append((UX @ (th @ z.T)) - (UXc @ (thc @ z.T)) - b[:, None] - Xp.T)  # whole - correction
+    d2 = _poisson_per_frame(reg, _blend_patches(reg, diff, T), T)
+    A = np.stack([r2_shot, np.ones(T)], axis=1)
+    if T < 2 or np.ptp(r2_shot) <= 1e-12 * max(float(np.max(r2_shot)), 1e-300):
+        return float(min(np.mean(d2), np.min(d2)))
+    from scipy.optimize import nnls
+
+    (_, b), _ = nnls(A, d2)
+    return float(b)
+
+
+def choose_blend(reg, fits, shot=None):
+    """``(α, report)``: the whole-motion model's weight in the blend and the estimates behind it.
+
+    Parameters
+    ----------
+    reg : LipRegressor
+        Fitted regions, global span (``_Y``, ``_UY``) and Poisson factor.
+    fits : list
+        Per patch ``(mouth_sel, U_Y, U_X, θ̄, λ, E_w, (U_Xc, θ̄_c, E_c, b))``: the two models' maps and
+        leave-one-out residuals ``E`` (9 n_p, k) of the lip features.
+    shot : tuple of (T, 9m), (T, 9n) ndarrays, optional
+        Mouth and captured lip features of the frames to be corrected (:func:`shot_features`).
+
+    Returns
+    -------
+    alpha : float
+        In [0, 1]; 1 is the whole-motion model.
+    report : dict
+        Predicted RMS interior lip error of each model and of the blend over the shot (scene units),
+        ``"whole"``, ``"correction"``, ``"blend"``, and the correction floor ``"floor"``.
+    """
+    k, nI = reg.k, len(reg.interior_vertices)
+    ew = _poisson_per_frame(reg, _blend_patches(reg, [f[5] for f in fits], k), k)
+    ec = _poisson_per_frame(reg, _blend_patches(reg, [f[6][2] for f in fits], k), k)
+    r2 = loo_span_residuals(reg._UY.T @ reg._Y)  # each training mouth's distance from the others' span
+    if shot is None:
+        r2_shot, floor = r2, 0.0
+    else:
+        res = shot[0] - (shot[0] @ reg._UY) @ reg._UY.T
+        r2_shot = np.sum(res * res, axis=1)
+        floor = _shot_floor(reg, fits, shot, r2_shot)
+    denom = max(float(np.sum(r2)), 1e-30)
+    a_w = float(np.sum(ew)) / denom
+    a_c = max(float(np.sum(ec)) - k * floor, 0.0) / denom
+    S_w = a_w * float(np.mean(r2_shot))
+    S_c = floor + a_c * float(np.mean(r2_shot))
+    alpha = 1.0 if S_w + S_c <= 0 else S_c / (S_w + S_c)
+    S_b = alpha * alpha * S_w + (1 - alpha) ** 2 * S_c
+    rms = lambda S: float(np.sqrt(max(S, 0.0) / nI))  # noqa: E731
+    return float(alpha), {"whole": rms(S_w), "correction": rms(S_c), "blend": rms(S_b), "floor": rms(floor)}
