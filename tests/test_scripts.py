@@ -50,3 +50,28 @@ def test_the_demo_table_has_one_row_per_step(capsys):
     assert len(lines) == 4 and all(ln.startswith("[table] ") for ln in lines)
     assert "0.51 mm" in lines[2] and "0.20 mm" in lines[2] and "12 s" in lines[2]
     assert "0.310 mm" in lines[3] and "0.050 mm" in lines[3] and "3 sketched frames" in lines[3]
+
+
+def test_every_facelab_name_the_scripts_and_benchmarks_import_exists():
+    """The demo, the benchmarks and the helper scripts import from the add-on inside functions, where only a
+    full run would find a name that moved (the demo's propagation step once imported ``_y_at`` from a module
+    it had left). Every ``from facelab_addon... import name`` in them must resolve."""
+    import ast
+    import importlib
+
+    missing = []
+    for path in sorted([*(ROOT / "scripts").glob("*.py"), *(ROOT / "benchmarks").glob("*.py")]):
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.ImportFrom) and node.level == 0 and (node.module or "").startswith("facelab_addon"):
+                try:
+                    mod = importlib.import_module(node.module)
+                except ImportError as e:
+                    missing.append(f"{path.name}:{node.lineno}: {node.module} ({e})")
+                    continue
+                for alias in node.names:
+                    if not hasattr(mod, alias.name):
+                        try:  # a submodule imported by name
+                            importlib.import_module(f"{node.module}.{alias.name}")
+                        except ImportError:
+                            missing.append(f"{path.name}:{node.lineno}: {node.module}.{alias.name}")
+    assert not missing, "names the scripts import that do not exist:\n" + "\n".join(missing)
