@@ -16,7 +16,10 @@ We minimise, in the least-squares sense and over 5 iterations,
   camera each) every view adds its own terms to the one solve, which fixes the
   depth of the lips that a single view cannot see. The first view is the main
   one: it is solved alone first, and the other views are matched on its result
-  (``main_view_iterations``), their worst-matched samples left out (``views_keep``).
+  (``main_view_iterations``), their worst-matched samples left out (``views_keep``);
+  while they take part, the depth along the main camera's rays bends stiffer
+  (``depth_reg``), so they correct what the main view left with motion it sees,
+  not with false depth.
 
 Silhouettes and correspondences are recomputed at every iteration on the
 current result, while ``E_pos`` and ``E_reg`` keep referring to the captured
