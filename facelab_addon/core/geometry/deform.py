@@ -19,6 +19,13 @@ vertices does not depend on the constraints, so it is factored once in
 Woodbury identity: only the columns ``M^-1 e_v`` of constrained vertices are
 needed, and they are cached between calls (constraints that move from vertex
 to vertex, like silhouettes, reuse most of them).
+
+Constraint terms that stay the same over many solves but couple the three
+coordinates (a metric ``P`` that is not a multiple of the identity on every free
+vertex, such as an anisotropic stiffness) are folded into the factor instead:
+:meth:`LaplacianDeformer.with_terms` returns a :class:`CoupledDeformer`, whose
+``(3 n_free)`` system is factored once and which adds the moving constraints
+the same way.
 """
 
 from __future__ import annotations
@@ -32,7 +39,7 @@ import scipy.sparse as sp
 from ..errors import FaceLabError, UsageError
 from .linsolve import SPDFactor
 
-__all__ = ["PointConstraints", "LaplacianDeformer"]
+__all__ = ["PointConstraints", "LaplacianDeformer", "CoupledDeformer"]
 
 
 @dataclass
@@ -171,7 +178,9 @@ class LaplacianDeformer:
         self._Lp = Lc[:, self.pinned_idx].tocsr()[rows]
         self._w_f = w[self.free]
         M = self.lambda_reg * (self._Lf.T @ self._Lf) + sp.diags(self._w_f)
-        self.factor = SPDFactor(M.tocsr(), backend=backend)
+        self._M = M.tocsr()
+        self.backend = backend
+        self.factor = SPDFactor(self._M, backend=backend)
         # cached columns M^-1 e_v, stored as rows of one growing array: slot[v] is v's row or -1
         self._slot = -np.ones(len(self.free), np.int64)
         self._rows_cache = np.zeros((0, len(self.free)))
@@ -189,6 +198,21 @@ class LaplacianDeformer:
             self._rows_cache = np.concatenate([self._rows_cache, Z.T])
             self._slot[missing] = start + np.arange(len(missing))
         return self._rows_cache[self._slot[ids]]
+
+    def with_terms(self, terms, anchor) -> "CoupledDeformer":
+        """This energy plus the fixed point-constraint ``terms`` (PointConstraints or a list), factored once.
+
+        ``anchor`` (V,3) gives the positions of pinned members of the terms (moved to their targets' side).
+        """
+        return CoupledDeformer(self, terms, anchor)
+
+    def _terms(self, C: "PointConstraints", a):
+        """Shared set-up of constraints: ``(H (c,3,3), b (c,k), fv (c,k) free ids or -1, q (c,3))``."""
+        fv = self.free_of[C.vertices]  # (c,k), -1 for pinned
+        b = np.where(fv >= 0, C.bary, 0.0)
+        pinned_part = np.einsum("ck,ckd->cd", np.where(fv < 0, C.bary, 0.0), a[C.vertices])
+        H = C.strength[:, None, None] * np.einsum("cji,cjk->cik", C.metrics, C.metrics)  # s PᵀP
+        return H, b, fv, C.targets - pinned_part
 
     # ------------------------------------------------------------------ solve
     def solve(self, anchor, reference=None, constraints=None) -> np.ndarray:
@@ -238,12 +262,7 @@ class LaplacianDeformer:
         return out
 
     def _apply_constraints(self, X0, a, C: PointConstraints):
-        fv = self.free_of[C.vertices]  # (c,k), -1 for pinned
-        b = np.where(fv >= 0, C.bary, 0.0)
-        # pinned members move to the target side
-        pinned_part = np.einsum("ck,ckd->cd", np.where(fv < 0, C.bary, 0.0), a[C.vertices])
-        q = C.targets - pinned_part
-        H = C.strength[:, None, None] * np.einsum("cji,cjk->cik", C.metrics, C.metrics)  # s PᵀP
+        H, b, fv, q = self._terms(C, a)  # pinned members moved to the target side
         member = (fv >= 0) & (b != 0)
         used = np.unique(fv[member])
         u = len(used)
@@ -280,6 +299,99 @@ class LaplacianDeformer:
         )
         G = (Q2 @ xU - r.reshape(-1)).reshape(u, 3)
         return X0 - Zt.T @ G
+
+
+class CoupledDeformer:
+    """A :class:`LaplacianDeformer`'s energy plus fixed point-constraint terms, factored once.
+
+    The terms (``PointConstraints``; any metrics, e.g. a stiffness along a camera's rays) couple the three
+    coordinates, so the system is ``(3 n_free)`` square, unknowns ordered ``3 i + d``: ``M ⊗ I3 + AᵀA`` with
+    ``A`` the terms' rows. Moving constraints are added by Woodbury as in the base deformer, with columns
+    ``M^-1 e_(v,d)`` per used vertex and coordinate (cached). Made by :meth:`LaplacianDeformer.with_terms`.
+
+    Parameters
+    ----------
+    base : LaplacianDeformer
+    terms : PointConstraints or list of them
+    anchor : (V,3) float
+        Positions of the pinned vertices, scene units.
+    """
+
+    def __init__(self, base: LaplacianDeformer, terms, anchor):
+        if isinstance(terms, (list, tuple)):
+            terms = PointConstraints.concat(terms)
+        a = np.asarray(anchor, dtype=np.float64)
+        self.base = base
+        nf = len(base.free)
+        M3 = sp.kron(base._M, sp.identity(3), format="csr")
+        self._g3 = np.zeros(3 * nf)
+        if terms is not None and len(terms):
+            H, b, fv, q = base._terms(terms, a)
+            member = (fv >= 0) & (b != 0)
+            low = _low_rank_rows(H, b, np.where(member, fv, 0), q, np.inf)
+            if low is not None:
+                rows, cols, coef, g, m = low
+                A = _rows_matrix(rows, cols, coef, m, nf)
+                M3 = M3 + (A.T @ A).tocsr()
+                self._g3 = A.T @ g
+        self.factor = SPDFactor(M3, backend=base.backend)
+        self._slot = -np.ones(3 * nf, np.int64)
+        self._rows_cache = np.zeros((0, 3 * nf))
+
+    def _columns(self, ids3):
+        ids = np.asarray(ids3, dtype=np.int64)
+        missing = np.unique(ids[self._slot[ids] < 0])
+        if len(missing):
+            E = np.zeros((len(self._slot), len(missing)))
+            E[missing, np.arange(len(missing))] = 1.0
+            Z = self.factor.solve(E)
+            start = len(self._rows_cache)
+            self._rows_cache = np.concatenate([self._rows_cache, Z.T])
+            self._slot[missing] = start + np.arange(len(missing))
+        return self._rows_cache[self._slot[ids]]
+
+    def unconstrained(self, anchor, reference=None) -> np.ndarray:
+        """(n_free,3) minimiser with the fixed terms and no moving constraints."""
+        b = self.base
+        a = np.asarray(anchor, dtype=np.float64)
+        ref = a if reference is None else np.asarray(reference, dtype=np.float64)
+        delta = b._L_rows @ ref
+        B = b.lambda_reg * (b._Lf.T @ (delta - b._Lp @ a[b.pinned_idx])) + b._w_f[:, None] * a[b.free]
+        return self.factor.solve(B.reshape(-1) + self._g3).reshape(-1, 3)
+
+    def constrain(self, X0, anchor, constraints=None) -> np.ndarray:
+        """(V,3): ``X0`` (:meth:`unconstrained`) with ``constraints`` added exactly; pinned vertices at ``anchor``."""
+        a = np.asarray(anchor, dtype=np.float64)
+        if isinstance(constraints, (list, tuple)):
+            constraints = PointConstraints.concat(constraints)
+        X = X0
+        if constraints is not None and len(constraints):
+            H, b, fv, q = self.base._terms(constraints, a)
+            member = (fv >= 0) & (b != 0)
+            used = np.unique(fv[member])
+            if len(used):
+                pos = np.searchsorted(used, np.where(member, fv, used[0]))
+                low = _low_rank_rows(H, b, pos, q, np.inf)
+                if low is not None:
+                    rows, cols, coef, g, m = low
+                    u3 = (3 * used[:, None] + np.arange(3)).reshape(-1)
+                    Zt = self._columns(u3)  # (3u, 3 n_f)
+                    Zuu = Zt[:, u3]
+                    A = _rows_matrix(rows, cols, coef, m, len(used))
+                    K = np.eye(m) + A @ np.asarray(A @ Zuu).T
+                    y = scipy.linalg.cho_solve(scipy.linalg.cho_factor(K, lower=True, overwrite_a=True,
+                                                                       check_finite=False),
+                                               g - A @ X0.reshape(-1)[u3], check_finite=False)
+                    X = X0 + (Zt.T @ (A.T @ y)).reshape(-1, 3)
+        out = a.copy()
+        out[self.base.free] = X
+        return out
+
+
+def _rows_matrix(rows, cols, coef, m: int, n_vertices: int):
+    """(m, 3 n_vertices) sparse matrix of constraint rows (:func:`_low_rank_rows`), unknowns ordered ``3 i + d``."""
+    c3 = (3 * np.asarray(cols)[:, None] + np.arange(3)).reshape(-1)
+    return sp.csr_matrix((coef.reshape(-1), (np.repeat(rows, 3), c3)), shape=(m, 3 * n_vertices))
 
 
 def _low_rank_rows(H, b, pos, q, n_unknowns: int):

@@ -16,7 +16,10 @@ We minimise, in the least-squares sense and over 5 iterations,
   camera each) every view adds its own terms to the one solve, which fixes the
   depth of the lips that a single view cannot see. The first view is the main
   one: it is solved alone first, and the other views are matched on its result
-  (``main_view_iterations``), their worst-matched samples left out (``views_keep``).
+  (``main_view_iterations``), their worst-matched samples left out (``views_keep``);
+  while they take part, the depth along the main camera's rays bends stiffer
+  (``depth_reg``), so they correct what the main view left with motion it sees,
+  not with false depth.
 
 Silhouettes and correspondences are recomputed at every iteration on the
 current result, while ``E_pos`` and ``E_reg`` keep referring to the captured
@@ -69,7 +72,7 @@ from ..geometry.laplacian import laplacian as make_laplacian
 from ..geometry.linsolve import small_dense_threads
 from ..geometry.mesh import validate_mesh, vertex_adjacency
 from ..geometry.polyline import resample_polyline  # noqa: F401  (re-exported for the benchmark)
-from .sketch_prior import PRIORS, anchor_weights, free_region, local_faces, separate_parts, sketch_scale
+from .sketch_prior import PRIORS, anchor_weights, depth_terms, free_region, local_faces, separate_parts, sketch_scale
 from .views import SketchView, ViewMatcher, prepare_sketch, press_lips
 
 __all__ = ["refine_lips", "refine_lips_views", "press_lips", "prepare_sketch", "SketchView", "CROSSINGS"]
@@ -203,6 +206,7 @@ def refine_lips_views(
     crossings: str = "follow",
     main_view_iterations: int = 1,
     views_keep: float = 1.5,
+    depth_reg: float = 3.0,
     return_info: bool = False,
 ):
     """Refine the lips to sketches drawn through one or several cameras, in one solve.
@@ -231,6 +235,13 @@ def refine_lips_views(
         ``views_keep`` times their median distance are left out of each iteration (their worst
         matches: silhouettes the main view's correction has not yet brought near, or another
         silhouette); ``inf`` keeps all. The main view keeps every sample. One view: no effect.
+    depth_reg : float
+        With several views, while the other views take part, the Laplacian coordinates' component along
+        the main camera's rays (its depth) is held ``1 + depth_reg`` times as stiffly as ``E_reg`` holds
+        them (:func:`~facelab_addon.core.lips.sketch_prior.depth_terms`): a lower camera's correction of
+        the in-image error the main view left then comes out as in-image motion, not as false depth at its
+        own silhouette vertices, while a depth error smooth over the lips (a nodded head) is still found.
+        0: isotropic. One view: no effect.
 
     Returns
     -------
@@ -253,6 +264,8 @@ def refine_lips_views(
         raise UsageError(f"silhouette_rays must be 'nearest', 'normal' or 'pixel', got {silhouette_rays!r}")
     if crossings not in CROSSINGS:
         raise UsageError(f"crossings must be one of {CROSSINGS}, got {crossings!r}")
+    if not (np.isfinite(depth_reg) and depth_reg >= 0):
+        raise FaceLabError(f"depth_reg must be a non-negative number, got {depth_reg!r}; use the default 3.")
     if prior not in PRIORS:
         raise UsageError(f"prior must be one of {PRIORS}, got {prior!r}")
     for nm, val in (("smooth_reach", smooth_reach), ("free_radius", free_radius)):
@@ -318,6 +331,11 @@ def refine_lips_views(
                 cons, dists, matched = correspondences(X, upto=1)
                 hist.append(float(np.mean(np.concatenate(dists))))
                 X = solver.constrain(base, V0, cons)
+        if multi and depth_reg > 0:
+            # the depth along the main camera's rays bends stiffer (a fixed, coordinate-coupling term:
+            # factored once into the solver the other views join)
+            solver = solver.with_terms(depth_terms(L, V0, matchers[0].camera, region, depth_reg * lambda_reg), V0)
+            base = solver.unconstrained(V0, V0)
         for _ in range(int(iterations)):
             g = None
             if multi and np.isfinite(views_keep):

@@ -20,7 +20,10 @@ topology:
   so the displacement decays over ``reach`` scene units whatever the mesh density; or the ``"band"``
   prior: the same outside a painted lip region, and inside it (whose border is held, so the border
   bounds the correction) a reach of at least :data:`BAND_RINGS` edge lengths, so the silhouettes'
-  displacement carries across the lip band on a coarse mesh as on a dense one.
+  displacement carries across the lip band on a coarse mesh as on a dense one;
+* :func:`depth_terms`: with several views, ``E_reg`` once more on the component of the Laplacian
+  coordinates along the main camera's rays (the depth it cannot see), so a second view's correction
+  comes out smooth in depth.
 
 Shapes: vertices (V,3) float64 scene units, triangles (F,3) int64, masks (V,) bool.
 """
@@ -28,13 +31,15 @@ Shapes: vertices (V,3) float64 scene units, triangles (F,3) int64, masks (V,) bo
 from __future__ import annotations
 
 import numpy as np
+import scipy.sparse as sp
 from scipy.sparse.csgraph import dijkstra
 
 from ..errors import UsageError
+from ..geometry.deform import PointConstraints
 from ..geometry.mesh import connected_components, edge_length_graph
 
 __all__ = ["PRIORS", "BAND_RINGS", "separate_parts", "sketch_scale", "crop_faces", "local_faces", "free_region", "anchor_weights",
-           "mean_edge_length"]
+           "mean_edge_length", "depth_terms"]
 
 #: The energies :func:`anchor_weights` offers: Dinev et al.'s Eq. 1 as written, the smooth prior, or the band prior.
 PRIORS = ("paper", "smooth", "band")
@@ -222,3 +227,49 @@ def anchor_weights(vertices, faces, region, *, prior: str, lambda_pos: float, la
     w = float(lambda_reg) * (h / r) ** 4
     w = np.minimum(w, float(lambda_pos))
     return np.where(fixed, 1.0, np.maximum(w, 1e-12))
+
+
+def depth_terms(L, vertices, camera, rows, weight: float) -> PointConstraints:
+    """``weight * sum_i (r_i · (L X - L X̄)_i)^2`` over ``rows``, as point constraints of the deformer.
+
+    ``r_i`` is the unit ray of ``camera`` through vertex ``i`` of ``vertices`` (X̄). Added to ``E_reg``
+    (``lambda_reg ||L X - L X̄||^2``) it makes the Laplacian coordinates stiffer along the camera's rays than
+    across them: the depth of a correction, which this camera cannot see, has to be smooth (a depth the
+    lips need, as a nodded head's, is a smooth field over the lip band and still comes through), while what
+    the camera sees bends as before. Each term is one Laplacian row, a point constraint on the row's vertices
+    with the rank-1 metric ``r_i r_iᵀ`` (``deform.PointConstraints``); ``LaplacianDeformer`` adds them by
+    Woodbury.
+
+    Parameters
+    ----------
+    L : (V,V) sparse matrix
+        The Laplacian of ``E_reg``.
+    vertices : (V,3) float
+        X̄, the captured mesh, scene units (its Laplacian coordinates are kept).
+    camera : Camera
+        The main view's camera.
+    rows : (V,) bool
+        Vertices whose Laplacian row gets a term (the free region).
+    weight : float
+        ``s`` of every term (``depth_reg * lambda_reg``).
+
+    Returns
+    -------
+    PointConstraints
+        ``rows.sum()`` constraints.
+    """
+    V = np.asarray(vertices, dtype=np.float64)
+    idx = np.flatnonzero(rows)
+    Lr = sp.csr_matrix(L)[idx]
+    nnz = np.diff(Lr.indptr)
+    k = max(int(nnz.max()) if len(nnz) else 1, 1)
+    row = np.repeat(np.arange(len(idx)), nnz)
+    col = np.arange(Lr.nnz) - Lr.indptr[row]
+    vv = np.zeros((len(idx), k), np.int64)
+    bb = np.zeros((len(idx), k))
+    vv[row, col] = Lr.indices
+    bb[row, col] = Lr.data
+    vv[bb == 0] = idx[np.nonzero(bb == 0)[0]]  # padding: the row's own vertex, weight 0
+    r = V[idx] - camera.center
+    r /= np.maximum(np.linalg.norm(r, axis=1, keepdims=True), 1e-300)
+    return PointConstraints(vv, bb, Lr @ V, r[:, :, None] * r[:, None, :], float(weight))
