@@ -71,7 +71,7 @@ class RefineSettings:
         Vertex group of hidden vertices that must not move; without it, the
         parts separate from the largest piece of the mesh are fixed.
     prior : str
-        ``"band"`` (default: as ``"smooth"``, and inside ``FL_lips`` a reach of at least 4 edge lengths,
+        ``"band"`` (default: as ``"smooth"``, and inside ``FL_lips`` a reach of at least 3 edge lengths,
         so the correction carries across the band on a coarse mesh too), ``"smooth"`` (the correction carries about *Smooth Reach*
         across the lips) or ``"paper"`` (Eq. 1 as written); see :mod:`facelab_addon.core.lips.sketch`.
     smooth_reach : float
@@ -84,6 +84,9 @@ class RefineSettings:
         ``"follow"`` a crossing drawing as an overlap, or ``"press"`` the lips together there.
     all_views : bool
         Use every camera with a lip sketch keyed on the frame (one solve), not only one.
+    depth_reg : float
+        With several views, the extra stiffness of the correction along the main camera's rays
+        (``refine_lips_views``' ``depth_reg``); no effect with one view.
     """
 
     iterations: int = setting(REFINE_DEFAULTS["iterations"], label="Iterations", min=1, max=100,
@@ -100,7 +103,7 @@ class RefineSettings:
                                            "teeth, back of the head); without it, separate mesh parts are fixed")
 
     prior: str = setting("band", label="Prior", choices=(
-        ("band", "Band", "As Smooth, and inside FL_lips (its border held) the correction carries at least 4 edge "
+        ("band", "Band", "As Smooth, and inside FL_lips (its border held) the correction carries at least 3 edge "
                          "lengths, so it crosses the lip band on a coarse mesh too (FaceLab's default)"),
         ("smooth", "Smooth", "The correction of the silhouettes carries smoothly across the lip band "
                              "(about Smooth Reach from the silhouettes)"),
@@ -125,12 +128,17 @@ class RefineSettings:
     all_views: bool = setting(True, label="All Camera Sketches",
                               description="Use the lip sketches of every camera keyed on this frame in one solve "
                                           "(a stereo pair or witness camera fixes the depth of the lips)")
+    depth_reg: float = setting(3.0, label="Depth Stiffness", min=0.0, soft_max=20.0,
+                               description="With more than one camera: how much more stiffly the correction "
+                                           "bends along the main camera's rays (the depth it cannot see) than "
+                                           "across them, so a second view adds depth without dents (0: as "
+                                           "stiff as across)")
 
     def solver_weights(self) -> dict:
         """The keyword arguments of :func:`~facelab_addon.core.lips.sketch.refine_lips`."""
         return dict(iterations=self.iterations, lambda_pos=self.lambda_pos, lambda_reg=self.lambda_reg,
                     lambda_silh=self.lambda_silh, prior=self.prior, smooth_reach=self.smooth_reach,
-                    free_radius=self.free_radius, crossings=self.crossings)
+                    free_radius=self.free_radius, crossings=self.crossings, depth_reg=self.depth_reg)
 
 
 @dataclass

@@ -42,7 +42,7 @@ Three priors (``prior``):
   3D lip error (``benchmarks/sketch_refine.py``).
 * ``"band"`` (default): the smooth prior, except inside a painted lip region ``lips``
   (``FL_lips``, whose border is held and so bounds the correction): there the reach is at least
-  4 edge lengths (:data:`~facelab_addon.core.lips.sketch_prior.BAND_RINGS`). The bi-Laplacian
+  3 edge lengths (:data:`~facelab_addon.core.lips.sketch_prior.BAND_RINGS`). The bi-Laplacian
   carries a displacement about ``(lambda_reg / w)^(1/4)`` edge rings, so on a coarse mesh (edges
   of 4 mm, a reach of 0.12 mouth widths is about one edge) the smooth prior leaves the correction
   on the silhouettes' own ring and the rest of the band keeps its error; on the artist route

@@ -44,7 +44,7 @@ __all__ = ["PRIORS", "BAND_RINGS", "separate_parts", "sketch_scale", "crop_faces
 #: The energies :func:`anchor_weights` offers: Dinev et al.'s Eq. 1 as written, the smooth prior, or the band prior.
 PRIORS = ("paper", "smooth", "band")
 #: The band prior's least reach inside the painted lip region, in edge lengths (see :func:`anchor_weights`).
-BAND_RINGS = 4.0
+BAND_RINGS = 3.0
 
 
 def separate_parts(faces, n_vertices: int) -> np.ndarray:
