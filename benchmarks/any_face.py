@@ -33,7 +33,14 @@ and at rest with the main and the side camera):
   training frames (Refine) (target <= 0.01 mm);
 * seconds per step.
 
-Usage: ``PYTHONPATH=. python benchmarks/any_face.py [--quick | --views] [--png docs/images/any_face.png]``.
+``--errors``: so Refine's defaults are not fitted to one capture error, metres at rest, one view and + the lower
+camera, for each capture error model of ``testing.route.ERRORS`` (wide: today's 8 mm lip gap; narrow: 3 mm, at the
+lip contact; corners: the mouth corners pulled in; roll: the lips' red part rolled in, mostly depth) and the wide one
+with a hand's 1.5 px sketch jitter (``testing.route.jitter_stroke``), Refine Lips with each prior (band, smooth,
+paper; set in the shot's Refine settings, which the operator reads) and the held-out Propagate; JSON with the
+runs, a ``table`` (face x error x views x prior) and ``mean_by_prior``. No bake, no picture. About 5-6 minutes.
+
+Usage: ``PYTHONPATH=. python benchmarks/any_face.py [--quick | --views | --errors] [--png docs/images/any_face.png]``.
 Prints one JSON object on stdout (save it as ``benchmarks/results/any_face.json``; the ``--views`` comparison,
 metres, at rest and posed, one view / + lower camera / + side camera, printed as JSON);
 Blender's own output goes to stderr. About 8-12 minutes on 2 shared cores (``--quick``: metres, unposed, one view and
@@ -65,13 +72,18 @@ CASES = [("m", False, ()), ("cm", False, ()), ("mm", False, ()), ("m", True, ())
 QUICK = [("m", False, ()), ("m", False, ("Camera.below",))]
 VIEWS = [("m", False, ()), ("m", True, ()), ("m", False, ("Camera.below",)), ("m", True, ("Camera.below",)),
          ("m", False, ("Camera.side",)), ("m", True, ("Camera.side",))]
+#: The --errors mode: (capture error model of ``testing.route.ERRORS``, sketch noise in px), each in metres at rest,
+#: one view and + the lower camera, with each of Refine's priors.
+ERROR_CASES = [("wide", 0.0), ("narrow", 0.0), ("corners", 0.0), ("roll", 0.0), ("wide", 1.5)]
+ERROR_VIEWS = [(), ("Camera.below",)]
+PRIORS = ["band", "smooth", "paper"]
 
 
 def _rms(a):
     return float(np.sqrt(np.mean(np.asarray(a, dtype=np.float64) ** 2)))
 
 
-def run_route(face, units, posed, tmp, log, extra=()):
+def run_route(face, units, posed, tmp, log, extra=(), *, error="wide", noise_px=0.0, prior=None, bake=True):
     import bpy
 
     from facelab_addon.blender import caches
@@ -86,12 +98,21 @@ def run_route(face, units, posed, tmp, log, extra=()):
 
     views = 1 + len(extra)
     out = dict(units=units, armature_posed=posed, views=views, cameras=["Camera", *extra])
+    if prior is not None:  # the --errors mode: the capture error's model, the sketch noise, Refine's prior
+        out.update(error_model=error, sketch_noise_px=noise_px, prior=prior)
     t = {}
     t0 = time.perf_counter()
-    rs = build_route_scene(face, units=units, armature=True, pose=posed, frames=FRAMES)
+    rs = build_route_scene(face, units=units, armature=True, pose=posed, frames=FRAMES, error=error)
     t["build_scene"] = time.perf_counter() - t0
     scene, obj = rs.scene, rs.obj
     scene.facelab.face = obj
+    if prior is not None:  # through the shot's Refine settings, which the operator reads
+        from facelab_addon.pipeline.refine import RefineSettings
+        from facelab_addon.ui.scene_settings import ensure_initialized, entry_for, scene_settings
+
+        ensure_initialized(scene, entry_for(RefineSettings))
+        scene.facelab_refine.prior = prior
+        assert scene_settings(scene, RefineSettings).prior == prior
     mm = rs.mm_per_unit
     out["vertices"] = len(obj.data.vertices)
     out["quads"] = int(sum(len(p.vertices) == 4 for p in obj.data.polygons))
@@ -120,8 +141,8 @@ def run_route(face, units, posed, tmp, log, extra=()):
     t0 = time.perf_counter()
     for f in TRAIN:
         for name in extra:  # every camera sketched on the frame is a view of the same Refine Lips solve
-            sketch_truth(rs, f, next(c for c in rs.cameras if c.name == name))
-        gp, up, lo = sketch_truth(rs, f, cam0)
+            sketch_truth(rs, f, next(c for c in rs.cameras if c.name == name), noise_px=noise_px)
+        gp, up, lo = sketch_truth(rs, f, cam0, noise_px=noise_px)
         sk[f] = (up, lo)
         scene.facelab.sketch = gp
         scene.frame_set(f)
@@ -200,17 +221,19 @@ def run_route(face, units, posed, tmp, log, extra=()):
     out["max_move_outside_mouth_area_mm"] = dict(
         held_out_frames=round(float(mv[held].max()), 5), training_frames=round(float(mv[~held].max()), 5),
         target=0.01, ok=bool(mv.max() <= 0.01))
-    t0 = time.perf_counter()
-    path = str(Path(tmp) / f"{obj.name}_{units}_{int(posed)}.pc2")
-    res = bpy.ops.facelab.bake(filepath=path, format="PC2", overwrite=True)
-    t["bake"] = time.perf_counter() - t0
-    out["bake"] = dict(ok=res == {"FINISHED"} and os.path.exists(path),
-                       mb=round(os.path.getsize(path) / 1e6, 2) if os.path.exists(path) else None)
+    if bake:
+        t0 = time.perf_counter()
+        path = str(Path(tmp) / f"{obj.name}_{units}_{int(posed)}.pc2")
+        res = bpy.ops.facelab.bake(filepath=path, format="PC2", overwrite=True)
+        t["bake"] = time.perf_counter() - t0
+        out["bake"] = dict(ok=res == {"FINISHED"} and os.path.exists(path),
+                           mb=round(os.path.getsize(path) / 1e6, 2) if os.path.exists(path) else None)
     out["seconds"] = {k: round(v, 2) for k, v in t.items()}
     per_frame = dict(capture=np.sqrt(np.mean((np.linalg.norm(captured - truth, axis=2)[:, il] * mm) ** 2, axis=1)),
                      after=np.sqrt(np.mean((np.linalg.norm(final - truth, axis=2)[:, il] * mm) ** 2, axis=1)))
     pic = dict(per_frame=per_frame, V=rs.neutral, F=tris, mouth=mouth, lips=lips, loop=rs.loop, skin=rs.face_mask)
-    log(f"{units} posed={posed} cameras={out['cameras']}: refine cut {out[rkey]['rms_cut_pct']} %, held-out "
+    tag = f" error={error} noise={noise_px} prior={prior}" if prior is not None else ""
+    log(f"{units} posed={posed} cameras={out['cameras']}{tag}: refine cut {out[rkey]['rms_cut_pct']} %, held-out "
         f"{out['propagate_held_out']['after_pct_of_capture']} %, outside {out['max_move_outside_mouth_area_mm']}")
     return out, pic
 
@@ -303,11 +326,49 @@ def picture(path, pics, faces=None):
     fig.savefig(path, dpi=110)
 
 
+def errors_mode(faces, tmp, log):
+    """Every (face, capture error model and sketch noise, views, prior) of :data:`ERROR_CASES`, :data:`ERROR_VIEWS`,
+    :data:`PRIORS`: ``{"faces": {face: {"runs": [...]}}, "table": [...], "mean_by_prior": {...}}``."""
+    res, table = {}, []
+    for name, face in faces.items():
+        runs = []
+        for error, noise in ERROR_CASES:
+            for extra in ERROR_VIEWS:
+                for prior in PRIORS:
+                    r, _ = run_route(face, "m", False, tmp, log, extra, error=error, noise_px=noise, prior=prior,
+                                     bake=False)
+                    runs.append(r)
+                    rk = "refine_one_view" if not extra else "refine_two_views"
+                    row = dict(face=name, error=error, noise_px=noise, views=1 + len(extra), prior=prior)
+                    if "error" in r:
+                        row["failed"] = r["error"]
+                    else:
+                        row.update(refine_cut_pct=r[rk]["rms_cut_pct"],
+                                   contour_px_after=r[rk]["contour_px_after"],
+                                   best_possible_cut_pct=r[rk]["best_possible_cut_pct"],
+                                   held_out_pct_of_capture=r["propagate_held_out"]["after_pct_of_capture"])
+                    table.append(row)
+        res[name] = dict(runs=runs)
+    mean = {}
+    for views in (1, 2):
+        for prior in PRIORS:
+            rows = [t for t in table if t["views"] == views and t["prior"] == prior and "failed" not in t]
+            if rows:
+                mean[f"{views}view_{prior}"] = dict(
+                    refine_cut_pct=round(float(np.mean([t["refine_cut_pct"] for t in rows])), 1),
+                    held_out_pct_of_capture=round(float(np.mean([t["held_out_pct_of_capture"] for t in rows])), 1),
+                    worst_refine_cut_pct=min(t["refine_cut_pct"] for t in rows), runs=len(rows))
+    return dict(faces=res, table=table, mean_by_prior=mean)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="metres, unposed only (one view; two with Camera.below)")
     ap.add_argument("--views", action="store_true",
                     help="only the view comparison: metres, at rest and posed, one view, + Camera.below, + Camera.side")
+    ap.add_argument("--errors", action="store_true",
+                    help="only the error-model comparison: metres at rest, one view and + Camera.below, every capture "
+                         "error model (and the wide one with 1.5 px sketch noise), Refine with each prior")
     ap.add_argument("--png", default=None, help="write the picture here (e.g. docs/images/any_face.png)")
     args = ap.parse_args(argv)
     sys.stdout.flush()
@@ -328,6 +389,13 @@ def main(argv=None):
     faces = {"ICT-FaceKit": ict, "ICT remeshed (quads)": remeshed_ict(ict)}
     out = dict(bpy_version=bpy.app.version_string, frames=len(FRAMES), training_frames=TRAIN, faces={})
     pics = {}
+    if args.errors:
+        out.update(errors_mode(faces, tmp, log))
+        out["total_s"] = round(time.perf_counter() - t_all, 1)
+        facelab_addon.unregister()
+        sys.stdout.flush()
+        os.write(json_fd, (json.dumps(out, indent=1) + "\n").encode())
+        return 0
     for name, face in faces.items():
         runs = []
         for units, posed, extra in (QUICK if args.quick else VIEWS if args.views else CASES):
