@@ -326,39 +326,110 @@ def picture(path, pics, faces=None):
     fig.savefig(path, dpi=110)
 
 
-def errors_mode(faces, tmp, log):
+def errors_case(face, error, noise_px, log):
+    """The route on ``face`` with one capture error model (``testing.route.ERRORS``) and sketch noise: metres, at
+    rest, under the armature; one scene, Auto Regions once, the sketches drawn once; for each view set of
+    :data:`ERROR_VIEWS` and each prior of :data:`PRIORS` (set in the shot's Refine settings, which the operator
+    reads), FaceLab's keys removed, Refine Lips on the training frames and Propagate, through the operators.
+    Returns the table rows."""
+    import bpy
+
+    from facelab_addon.blender import caches
+    from facelab_addon.blender.camera import camera_from_blender
+    from facelab_addon.blender.mesh import mesh_triangles, vertex_group_mask
+    from facelab_addon.blender.shapekeys import remove_keys
+    from facelab_addon.core.geometry.silhouette import contour_distance
+    from facelab_addon.names import LIPS_GROUP, MOUTH_GROUP, PREFIX
+    from facelab_addon.pipeline.refine import RefineSettings
+    from facelab_addon.testing.route import build_route_scene, sketch_truth
+    from facelab_addon.ui.scene_settings import ensure_initialized, entry_for, scene_settings
+
+    rs = build_route_scene(face, units="m", armature=True, frames=FRAMES, error=error)
+    scene, obj = rs.scene, rs.obj
+    scene.facelab.face = obj
+    ensure_initialized(scene, entry_for(RefineSettings))
+    mm, il = rs.mm_per_unit, rs.inner_lips
+    tris = mesh_triangles(obj.data)
+    captured = caches.evaluate_frames(obj, list(FRAMES)).astype(np.float64)
+    truth = rs.evaluated_truth(FRAMES)
+    base = dict(error=error, noise_px=noise_px)
+    if bpy.ops.facelab.auto_regions() != {"FINISHED"}:
+        return [dict(base, failed="Auto Regions failed")]
+    lips, mouth = vertex_group_mask(obj, LIPS_GROUP), vertex_group_mask(obj, MOUTH_GROUP)
+    it = np.searchsorted(FRAMES, TRAIN)
+    held = ~np.isin(FRAMES, TRAIN)
+    err = lambda X, i: np.linalg.norm(X - truth[i], axis=2)[:, il] * mm  # noqa: E731
+    cap_train, cap_held = _rms(err(captured[it], it)), _rms(err(captured[held], held))
+    M = np.array(obj.matrix_world)
+    cam0 = rs.cameras[0]
+    cam = camera_from_blender(scene, cam0)
+    rows, sk = [], {}
+    for extra in ERROR_VIEWS:
+        for f in TRAIN:  # the main camera's sketches once; a second camera's added for the two-view runs
+            for name in extra:
+                sketch_truth(rs, f, next(c for c in rs.cameras if c.name == name), noise_px=noise_px)
+            if f not in sk:
+                sk[f] = sketch_truth(rs, f, cam0, noise_px=noise_px)
+        for prior in PRIORS:
+            remove_keys(obj, PREFIX)  # back to the capture
+            obj.facelab.training_frames.clear()
+            scene.facelab_refine.prior = prior
+            assert scene_settings(scene, RefineSettings).prior == prior
+            row = dict(base, views=1 + len(extra), prior=prior)
+            t0 = time.perf_counter()
+            for f in TRAIN:
+                scene.facelab.sketch = sk[f][0]
+                scene.frame_set(f)
+                bpy.context.view_layer.objects.active = obj
+                if bpy.ops.facelab.refine_lips() != {"FINISHED"}:
+                    row["failed"] = f"Refine Lips failed on frame {f}"
+                    break
+            if "failed" in row:
+                rows.append(row)
+                continue
+            refined = caches.evaluate_frames(obj, TRAIN, mute_shape_keys_prefix=()).astype(np.float64)
+            px = []
+            for k, f in enumerate(TRAIN):
+                Xw = refined[k] @ M[:3, :3].T + M[:3, 3]
+                d = np.r_[contour_distance(Xw, tris, cam, sk[f][1], +1, candidates=il),
+                          contour_distance(Xw, tris, cam, sk[f][2], -1, candidates=il)]
+                px.append(float(np.mean(d[np.isfinite(d)])))
+            res = bpy.ops.facelab.propagate(frame_start=int(FRAMES[0]), frame_end=int(FRAMES[-1]), suggestions=0)
+            if res != {"FINISHED"}:
+                rows.append(dict(row, failed="Propagate failed"))
+                continue
+            final = caches.evaluate_frames(obj, list(FRAMES), mute_shape_keys_prefix=()).astype(np.float64)
+            moved = np.linalg.norm(final - captured, axis=2)[:, ~(mouth | lips)].max() * mm
+            row.update(inner_lip_rms_mm_capture=round(cap_train, 4),
+                       refine_cut_pct=round(100 * (1 - _rms(err(refined, it)) / cap_train), 1),
+                       contour_px_after=round(float(np.mean(px)), 2),
+                       held_out_pct_of_capture=round(100 * _rms(err(final[held], held)) / cap_held, 1),
+                       max_move_outside_mouth_area_mm=round(float(moved), 5),
+                       seconds=round(time.perf_counter() - t0, 2))
+            log(f"errors: {error} noise={noise_px} views={row['views']} prior={prior}: refine cut "
+                f"{row['refine_cut_pct']} %, held-out {row['held_out_pct_of_capture']} %")
+            rows.append(row)
+    return rows
+
+
+def errors_mode(faces, log):
     """Every (face, capture error model and sketch noise, views, prior) of :data:`ERROR_CASES`, :data:`ERROR_VIEWS`,
-    :data:`PRIORS`: ``{"faces": {face: {"runs": [...]}}, "table": [...], "mean_by_prior": {...}}``."""
-    res, table = {}, []
+    :data:`PRIORS`: ``{"table": [...], "mean_by_prior": {...}}``."""
+    table = []
     for name, face in faces.items():
-        runs = []
         for error, noise in ERROR_CASES:
-            for extra in ERROR_VIEWS:
-                for prior in PRIORS:
-                    r, _ = run_route(face, "m", False, tmp, log, extra, error=error, noise_px=noise, prior=prior,
-                                     bake=False)
-                    runs.append(r)
-                    rk = "refine_one_view" if not extra else "refine_two_views"
-                    row = dict(face=name, error=error, noise_px=noise, views=1 + len(extra), prior=prior)
-                    if "error" in r:
-                        row["failed"] = r["error"]
-                    else:
-                        row.update(refine_cut_pct=r[rk]["rms_cut_pct"],
-                                   contour_px_after=r[rk]["contour_px_after"],
-                                   best_possible_cut_pct=r[rk]["best_possible_cut_pct"],
-                                   held_out_pct_of_capture=r["propagate_held_out"]["after_pct_of_capture"])
-                    table.append(row)
-        res[name] = dict(runs=runs)
+            table += [dict(face=name, **r) for r in errors_case(face, error, noise, log)]
     mean = {}
     for views in (1, 2):
         for prior in PRIORS:
-            rows = [t for t in table if t["views"] == views and t["prior"] == prior and "failed" not in t]
+            rows = [t for t in table if t.get("views") == views and t.get("prior") == prior and "failed" not in t]
             if rows:
                 mean[f"{views}view_{prior}"] = dict(
                     refine_cut_pct=round(float(np.mean([t["refine_cut_pct"] for t in rows])), 1),
                     held_out_pct_of_capture=round(float(np.mean([t["held_out_pct_of_capture"] for t in rows])), 1),
-                    worst_refine_cut_pct=min(t["refine_cut_pct"] for t in rows), runs=len(rows))
-    return dict(faces=res, table=table, mean_by_prior=mean)
+                    worst_refine_cut_pct=min(t["refine_cut_pct"] for t in rows),
+                    worst_held_out_pct=max(t["held_out_pct_of_capture"] for t in rows), runs=len(rows))
+    return dict(table=table, mean_by_prior=mean)
 
 
 def main(argv=None):
@@ -390,7 +461,7 @@ def main(argv=None):
     out = dict(bpy_version=bpy.app.version_string, frames=len(FRAMES), training_frames=TRAIN, faces={})
     pics = {}
     if args.errors:
-        out.update(errors_mode(faces, tmp, log))
+        out.update(errors_mode(faces, log))
         out["total_s"] = round(time.perf_counter() - t_all, 1)
         facelab_addon.unregister()
         sys.stdout.flush()
