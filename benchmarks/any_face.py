@@ -432,6 +432,70 @@ def errors_mode(faces, log):
     return dict(table=table, mean_by_prior=mean)
 
 
+def errors_picture(path, table, faces):
+    """Top: each capture error model on each face (front view of the mouth, colour: error size in mm; roll's is
+    mostly depth). Bottom: Refine's 3D inner-lip RMS cut per face, error model, views and prior."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from facelab_addon.core.lips.lip_loop import inner_lip_loop
+    from facelab_addon.testing.route import _ZUP, ERRORS, capture_error
+
+    kinds = list(ERRORS)
+    fig = plt.figure(figsize=(4 * len(kinds), 11))
+    gs = fig.add_gridspec(1 + len(faces), len(kinds), height_ratios=[1] * len(faces) + [1.6])
+    for row, (name, face) in enumerate(faces.items()):
+        V = face.neutral @ _ZUP.T * 10.0  # millimetres, Z-up
+        F = np.asarray(face.faces)
+        skin = np.asarray(face.part_vertex_mask("M_Face"))
+        loop = inner_lip_loop(face.neutral, F)
+        tri = F[:, :3] if F.shape[1] >= 3 else F
+        for col, kind in enumerate(kinds):
+            e, _ = capture_error(V, F, loop, skin, 10.0, 1.25, kind)  # mm (10 units per cm)
+            n = np.linalg.norm(e, axis=1)
+            a = fig.add_subplot(gs[row, col])
+            c = V[loop].mean(axis=0)
+            w = np.ptp(V[loop, 0])
+            nrm = np.cross(V[tri[:, 1]] - V[tri[:, 0]], V[tri[:, 2]] - V[tri[:, 0]])
+            sel = (np.abs(V[tri, 0] - c[0]) < 0.8 * w).all(1) & (np.abs(V[tri, 2] - c[2]) < 0.5 * w).all(1)
+            sel &= (nrm[:, 1] < 0) & skin[tri].all(1)
+            tc = a.tripcolor(V[:, 0], V[:, 2], tri[sel], n, cmap="magma", vmin=0, vmax=1.25, shading="gouraud")
+            big = np.flatnonzero(n > 0.3)[::7]
+            a.quiver(V[big, 0], V[big, 2], e[big, 0], e[big, 2], color="cyan", angles="xy", scale_units="xy",
+                     scale=0.25, width=0.004)  # in-plane part, 4x
+            a.set_xlim(c[0] - 0.8 * w, c[0] + 0.8 * w)
+            a.set_ylim(c[2] - 0.5 * w, c[2] + 0.5 * w)
+            a.set_aspect("equal")
+            a.set_axis_off()
+            a.set_title(f"{name.split(' (')[0]}: {kind}", fontsize=9)
+        fig.colorbar(tc, ax=a, fraction=0.04, label="error, mm")
+    b = fig.add_subplot(gs[len(faces), :])
+    cases = []
+    for t in table:
+        c = (t["face"], t["error"], t["noise_px"], t["views"])
+        if c not in cases:
+            cases.append(c)
+    colours = {"band": "tab:blue", "smooth": "tab:orange", "paper": "tab:gray"}
+    for k, prior in enumerate(PRIORS):
+        ys = [next((t.get("refine_cut_pct", np.nan) for t in table if (t["face"], t["error"], t["noise_px"],
+                                                                       t["views"]) == c and t["prior"] == prior),
+                   np.nan) for c in cases]
+        b.bar(np.arange(len(cases)) + (k - 1) * 0.27, ys, 0.27, color=colours[prior], label=f"prior {prior}")
+    b.set_xticks(range(len(cases)))
+    b.set_xticklabels([f"{f.split(' (')[0].replace('ICT-FaceKit', 'ICT').replace('ICT remeshed', 'remeshed')}\n{e}"
+                       f"{' +%.1fpx' % n if n else ''}\n{v} view{'s' if v > 1 else ''}" for f, e, n, v in cases],
+                      fontsize=7)
+    b.set_ylabel("Refine: 3D inner-lip RMS cut, %")
+    b.axhline(0, color="k", lw=0.5)
+    b.legend(fontsize=8)
+    b.set_title("Refine on 10 sketched frames, metres at rest, per capture error model (testing.route.ERRORS)",
+                fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="metres, unposed only (one view; two with Camera.below)")
@@ -462,6 +526,9 @@ def main(argv=None):
     pics = {}
     if args.errors:
         out.update(errors_mode(faces, log))
+        if args.png:
+            errors_picture(args.png, out["table"], faces)
+            out["picture"] = args.png
         out["total_s"] = round(time.perf_counter() - t_all, 1)
         facelab_addon.unregister()
         sys.stdout.flush()
