@@ -33,7 +33,14 @@ and at rest with the main and the side camera):
   training frames (Refine) (target <= 0.01 mm);
 * seconds per step.
 
-Usage: ``PYTHONPATH=. python benchmarks/any_face.py [--quick | --views] [--png docs/images/any_face.png]``.
+``--errors``: so Refine's defaults are not fitted to one capture error, metres at rest, one view and + the lower
+camera, for each capture error model of ``testing.route.ERRORS`` (wide: today's 8 mm lip gap; narrow: 3 mm, at the
+lip contact; corners: the mouth corners pulled in; roll: the lips' red part rolled in, mostly depth) and the wide one
+with a hand's 1.5 px sketch jitter (``testing.route.jitter_stroke``), Refine Lips with each prior (band, smooth,
+paper; set in the shot's Refine settings, which the operator reads) and the held-out Propagate; JSON with the
+runs, a ``table`` (face x error x views x prior) and ``mean_by_prior``. No bake, no picture. About 5-6 minutes.
+
+Usage: ``PYTHONPATH=. python benchmarks/any_face.py [--quick | --views | --errors] [--png docs/images/any_face.png]``.
 Prints one JSON object on stdout (save it as ``benchmarks/results/any_face.json``; the ``--views`` comparison,
 metres, at rest and posed, one view / + lower camera / + side camera, printed as JSON);
 Blender's own output goes to stderr. About 8-12 minutes on 2 shared cores (``--quick``: metres, unposed, one view and
@@ -65,13 +72,18 @@ CASES = [("m", False, ()), ("cm", False, ()), ("mm", False, ()), ("m", True, ())
 QUICK = [("m", False, ()), ("m", False, ("Camera.below",))]
 VIEWS = [("m", False, ()), ("m", True, ()), ("m", False, ("Camera.below",)), ("m", True, ("Camera.below",)),
          ("m", False, ("Camera.side",)), ("m", True, ("Camera.side",))]
+#: The --errors mode: (capture error model of ``testing.route.ERRORS``, sketch noise in px), each in metres at rest,
+#: one view and + the lower camera, with each of Refine's priors.
+ERROR_CASES = [("wide", 0.0), ("narrow", 0.0), ("corners", 0.0), ("roll", 0.0), ("wide", 1.5)]
+ERROR_VIEWS = [(), ("Camera.below",)]
+PRIORS = ["band", "smooth", "paper"]
 
 
 def _rms(a):
     return float(np.sqrt(np.mean(np.asarray(a, dtype=np.float64) ** 2)))
 
 
-def run_route(face, units, posed, tmp, log, extra=()):
+def run_route(face, units, posed, tmp, log, extra=(), *, error="wide", noise_px=0.0, prior=None, bake=True):
     import bpy
 
     from facelab_addon.blender import caches
@@ -86,12 +98,21 @@ def run_route(face, units, posed, tmp, log, extra=()):
 
     views = 1 + len(extra)
     out = dict(units=units, armature_posed=posed, views=views, cameras=["Camera", *extra])
+    if prior is not None:  # the --errors mode: the capture error's model, the sketch noise, Refine's prior
+        out.update(error_model=error, sketch_noise_px=noise_px, prior=prior)
     t = {}
     t0 = time.perf_counter()
-    rs = build_route_scene(face, units=units, armature=True, pose=posed, frames=FRAMES)
+    rs = build_route_scene(face, units=units, armature=True, pose=posed, frames=FRAMES, error=error)
     t["build_scene"] = time.perf_counter() - t0
     scene, obj = rs.scene, rs.obj
     scene.facelab.face = obj
+    if prior is not None:  # through the shot's Refine settings, which the operator reads
+        from facelab_addon.pipeline.refine import RefineSettings
+        from facelab_addon.ui.scene_settings import ensure_initialized, entry_for, scene_settings
+
+        ensure_initialized(scene, entry_for(RefineSettings))
+        scene.facelab_refine.prior = prior
+        assert scene_settings(scene, RefineSettings).prior == prior
     mm = rs.mm_per_unit
     out["vertices"] = len(obj.data.vertices)
     out["quads"] = int(sum(len(p.vertices) == 4 for p in obj.data.polygons))
@@ -120,8 +141,8 @@ def run_route(face, units, posed, tmp, log, extra=()):
     t0 = time.perf_counter()
     for f in TRAIN:
         for name in extra:  # every camera sketched on the frame is a view of the same Refine Lips solve
-            sketch_truth(rs, f, next(c for c in rs.cameras if c.name == name))
-        gp, up, lo = sketch_truth(rs, f, cam0)
+            sketch_truth(rs, f, next(c for c in rs.cameras if c.name == name), noise_px=noise_px)
+        gp, up, lo = sketch_truth(rs, f, cam0, noise_px=noise_px)
         sk[f] = (up, lo)
         scene.facelab.sketch = gp
         scene.frame_set(f)
@@ -200,17 +221,19 @@ def run_route(face, units, posed, tmp, log, extra=()):
     out["max_move_outside_mouth_area_mm"] = dict(
         held_out_frames=round(float(mv[held].max()), 5), training_frames=round(float(mv[~held].max()), 5),
         target=0.01, ok=bool(mv.max() <= 0.01))
-    t0 = time.perf_counter()
-    path = str(Path(tmp) / f"{obj.name}_{units}_{int(posed)}.pc2")
-    res = bpy.ops.facelab.bake(filepath=path, format="PC2", overwrite=True)
-    t["bake"] = time.perf_counter() - t0
-    out["bake"] = dict(ok=res == {"FINISHED"} and os.path.exists(path),
-                       mb=round(os.path.getsize(path) / 1e6, 2) if os.path.exists(path) else None)
+    if bake:
+        t0 = time.perf_counter()
+        path = str(Path(tmp) / f"{obj.name}_{units}_{int(posed)}.pc2")
+        res = bpy.ops.facelab.bake(filepath=path, format="PC2", overwrite=True)
+        t["bake"] = time.perf_counter() - t0
+        out["bake"] = dict(ok=res == {"FINISHED"} and os.path.exists(path),
+                           mb=round(os.path.getsize(path) / 1e6, 2) if os.path.exists(path) else None)
     out["seconds"] = {k: round(v, 2) for k, v in t.items()}
     per_frame = dict(capture=np.sqrt(np.mean((np.linalg.norm(captured - truth, axis=2)[:, il] * mm) ** 2, axis=1)),
                      after=np.sqrt(np.mean((np.linalg.norm(final - truth, axis=2)[:, il] * mm) ** 2, axis=1)))
     pic = dict(per_frame=per_frame, V=rs.neutral, F=tris, mouth=mouth, lips=lips, loop=rs.loop, skin=rs.face_mask)
-    log(f"{units} posed={posed} cameras={out['cameras']}: refine cut {out[rkey]['rms_cut_pct']} %, held-out "
+    tag = f" error={error} noise={noise_px} prior={prior}" if prior is not None else ""
+    log(f"{units} posed={posed} cameras={out['cameras']}{tag}: refine cut {out[rkey]['rms_cut_pct']} %, held-out "
         f"{out['propagate_held_out']['after_pct_of_capture']} %, outside {out['max_move_outside_mouth_area_mm']}")
     return out, pic
 
@@ -303,11 +326,184 @@ def picture(path, pics, faces=None):
     fig.savefig(path, dpi=110)
 
 
+def errors_case(face, error, noise_px, log):
+    """The route on ``face`` with one capture error model (``testing.route.ERRORS``) and sketch noise: metres, at
+    rest, under the armature; one scene, Auto Regions once, the sketches drawn once; for each view set of
+    :data:`ERROR_VIEWS` and each prior of :data:`PRIORS` (set in the shot's Refine settings, which the operator
+    reads), FaceLab's keys removed, Refine Lips on the training frames and Propagate, through the operators.
+    Returns the table rows."""
+    import bpy
+
+    from facelab_addon.blender import caches
+    from facelab_addon.blender.camera import camera_from_blender
+    from facelab_addon.blender.mesh import mesh_triangles, vertex_group_mask
+    from facelab_addon.blender.shapekeys import remove_keys
+    from facelab_addon.core.geometry.silhouette import contour_distance
+    from facelab_addon.names import LIPS_GROUP, MOUTH_GROUP, PREFIX
+    from facelab_addon.pipeline.refine import RefineSettings
+    from facelab_addon.testing.route import build_route_scene, sketch_truth
+    from facelab_addon.ui.scene_settings import ensure_initialized, entry_for, scene_settings
+
+    rs = build_route_scene(face, units="m", armature=True, frames=FRAMES, error=error)
+    scene, obj = rs.scene, rs.obj
+    scene.facelab.face = obj
+    ensure_initialized(scene, entry_for(RefineSettings))
+    mm, il = rs.mm_per_unit, rs.inner_lips
+    tris = mesh_triangles(obj.data)
+    captured = caches.evaluate_frames(obj, list(FRAMES)).astype(np.float64)
+    truth = rs.evaluated_truth(FRAMES)
+    base = dict(error=error, noise_px=noise_px)
+    if bpy.ops.facelab.auto_regions() != {"FINISHED"}:
+        return [dict(base, failed="Auto Regions failed")]
+    lips, mouth = vertex_group_mask(obj, LIPS_GROUP), vertex_group_mask(obj, MOUTH_GROUP)
+    it = np.searchsorted(FRAMES, TRAIN)
+    held = ~np.isin(FRAMES, TRAIN)
+    err = lambda X, i: np.linalg.norm(X - truth[i], axis=2)[:, il] * mm  # noqa: E731
+    cap_train, cap_held = _rms(err(captured[it], it)), _rms(err(captured[held], held))
+    M = np.array(obj.matrix_world)
+    cam0 = rs.cameras[0]
+    cam = camera_from_blender(scene, cam0)
+    rows, sk = [], {}
+    for extra in ERROR_VIEWS:
+        for f in TRAIN:  # the main camera's sketches once; a second camera's added for the two-view runs
+            for name in extra:
+                sketch_truth(rs, f, next(c for c in rs.cameras if c.name == name), noise_px=noise_px)
+            if f not in sk:
+                sk[f] = sketch_truth(rs, f, cam0, noise_px=noise_px)
+        for prior in PRIORS:
+            remove_keys(obj, PREFIX)  # back to the capture
+            obj.facelab.training_frames.clear()
+            scene.facelab_refine.prior = prior
+            assert scene_settings(scene, RefineSettings).prior == prior
+            row = dict(base, views=1 + len(extra), prior=prior)
+            t0 = time.perf_counter()
+            for f in TRAIN:
+                scene.facelab.sketch = sk[f][0]
+                scene.frame_set(f)
+                bpy.context.view_layer.objects.active = obj
+                if bpy.ops.facelab.refine_lips() != {"FINISHED"}:
+                    row["failed"] = f"Refine Lips failed on frame {f}"
+                    break
+            if "failed" in row:
+                rows.append(row)
+                continue
+            refined = caches.evaluate_frames(obj, TRAIN, mute_shape_keys_prefix=()).astype(np.float64)
+            px = []
+            for k, f in enumerate(TRAIN):
+                Xw = refined[k] @ M[:3, :3].T + M[:3, 3]
+                d = np.r_[contour_distance(Xw, tris, cam, sk[f][1], +1, candidates=il),
+                          contour_distance(Xw, tris, cam, sk[f][2], -1, candidates=il)]
+                px.append(float(np.mean(d[np.isfinite(d)])))
+            res = bpy.ops.facelab.propagate(frame_start=int(FRAMES[0]), frame_end=int(FRAMES[-1]), suggestions=0)
+            if res != {"FINISHED"}:
+                rows.append(dict(row, failed="Propagate failed"))
+                continue
+            final = caches.evaluate_frames(obj, list(FRAMES), mute_shape_keys_prefix=()).astype(np.float64)
+            moved = np.linalg.norm(final - captured, axis=2)[:, ~(mouth | lips)].max() * mm
+            row.update(inner_lip_rms_mm_capture=round(cap_train, 4),
+                       refine_cut_pct=round(100 * (1 - _rms(err(refined, it)) / cap_train), 1),
+                       contour_px_after=round(float(np.mean(px)), 2),
+                       held_out_pct_of_capture=round(100 * _rms(err(final[held], held)) / cap_held, 1),
+                       max_move_outside_mouth_area_mm=round(float(moved), 5),
+                       seconds=round(time.perf_counter() - t0, 2))
+            log(f"errors: {error} noise={noise_px} views={row['views']} prior={prior}: refine cut "
+                f"{row['refine_cut_pct']} %, held-out {row['held_out_pct_of_capture']} %")
+            rows.append(row)
+    return rows
+
+
+def errors_mode(faces, log):
+    """Every (face, capture error model and sketch noise, views, prior) of :data:`ERROR_CASES`, :data:`ERROR_VIEWS`,
+    :data:`PRIORS`: ``{"table": [...], "mean_by_prior": {...}}``."""
+    table = []
+    for name, face in faces.items():
+        for error, noise in ERROR_CASES:
+            table += [dict(face=name, **r) for r in errors_case(face, error, noise, log)]
+    mean = {}
+    for views in (1, 2):
+        for prior in PRIORS:
+            rows = [t for t in table if t.get("views") == views and t.get("prior") == prior and "failed" not in t]
+            if rows:
+                mean[f"{views}view_{prior}"] = dict(
+                    refine_cut_pct=round(float(np.mean([t["refine_cut_pct"] for t in rows])), 1),
+                    held_out_pct_of_capture=round(float(np.mean([t["held_out_pct_of_capture"] for t in rows])), 1),
+                    worst_refine_cut_pct=min(t["refine_cut_pct"] for t in rows),
+                    worst_held_out_pct=max(t["held_out_pct_of_capture"] for t in rows), runs=len(rows))
+    return dict(table=table, mean_by_prior=mean)
+
+
+def errors_picture(path, table, faces):
+    """Top: each capture error model on each face (front view of the mouth, colour: error size in mm; roll's is
+    mostly depth). Bottom: Refine's 3D inner-lip RMS cut per face, error model, views and prior."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from facelab_addon.core.lips.lip_loop import inner_lip_loop
+    from facelab_addon.testing.route import _ZUP, ERRORS, capture_error
+
+    kinds = list(ERRORS)
+    fig = plt.figure(figsize=(4 * len(kinds), 11))
+    gs = fig.add_gridspec(1 + len(faces), len(kinds), height_ratios=[1] * len(faces) + [1.6])
+    for row, (name, face) in enumerate(faces.items()):
+        V = face.neutral @ _ZUP.T * 10.0  # millimetres, Z-up
+        F = np.asarray(face.faces)
+        skin = np.asarray(face.part_vertex_mask("M_Face"))
+        loop = inner_lip_loop(face.neutral, F)
+        tri = F[:, :3] if F.shape[1] >= 3 else F
+        for col, kind in enumerate(kinds):
+            e, _ = capture_error(V, F, loop, skin, 10.0, 1.25, kind)  # mm (10 units per cm)
+            n = np.linalg.norm(e, axis=1)
+            a = fig.add_subplot(gs[row, col])
+            c = V[loop].mean(axis=0)
+            w = np.ptp(V[loop, 0])
+            nrm = np.cross(V[tri[:, 1]] - V[tri[:, 0]], V[tri[:, 2]] - V[tri[:, 0]])
+            sel = (np.abs(V[tri, 0] - c[0]) < 0.8 * w).all(1) & (np.abs(V[tri, 2] - c[2]) < 0.5 * w).all(1)
+            sel &= (nrm[:, 1] < 0) & skin[tri].all(1)
+            tc = a.tripcolor(V[:, 0], V[:, 2], tri[sel], n, cmap="magma", vmin=0, vmax=1.25, shading="gouraud")
+            big = np.flatnonzero(n > 0.3)[::7]
+            a.quiver(V[big, 0], V[big, 2], e[big, 0], e[big, 2], color="cyan", angles="xy", scale_units="xy",
+                     scale=0.25, width=0.004)  # in-plane part, 4x
+            a.set_xlim(c[0] - 0.8 * w, c[0] + 0.8 * w)
+            a.set_ylim(c[2] - 0.5 * w, c[2] + 0.5 * w)
+            a.set_aspect("equal")
+            a.set_axis_off()
+            a.set_title(f"{name.split(' (')[0]}: {kind}", fontsize=9)
+        fig.colorbar(tc, ax=a, fraction=0.04, label="error, mm")
+    b = fig.add_subplot(gs[len(faces), :])
+    cases = []
+    for t in table:
+        c = (t["face"], t["error"], t["noise_px"], t["views"])
+        if c not in cases:
+            cases.append(c)
+    colours = {"band": "tab:blue", "smooth": "tab:orange", "paper": "tab:gray"}
+    for k, prior in enumerate(PRIORS):
+        ys = [next((t.get("refine_cut_pct", np.nan) for t in table if (t["face"], t["error"], t["noise_px"],
+                                                                       t["views"]) == c and t["prior"] == prior),
+                   np.nan) for c in cases]
+        b.bar(np.arange(len(cases)) + (k - 1) * 0.27, ys, 0.27, color=colours[prior], label=f"prior {prior}")
+    b.set_xticks(range(len(cases)))
+    b.set_xticklabels([f"{f.split(' (')[0].replace('ICT-FaceKit', 'ICT').replace('ICT remeshed', 'remeshed')}\n{e}"
+                       f"{' +%.1fpx' % n if n else ''}\n{v} view{'s' if v > 1 else ''}" for f, e, n, v in cases],
+                      fontsize=7)
+    b.set_ylabel("Refine: 3D inner-lip RMS cut, %")
+    b.axhline(0, color="k", lw=0.5)
+    b.legend(fontsize=8)
+    b.set_title("Refine on 10 sketched frames, metres at rest, per capture error model (testing.route.ERRORS)",
+                fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="metres, unposed only (one view; two with Camera.below)")
     ap.add_argument("--views", action="store_true",
                     help="only the view comparison: metres, at rest and posed, one view, + Camera.below, + Camera.side")
+    ap.add_argument("--errors", action="store_true",
+                    help="only the error-model comparison: metres at rest, one view and + Camera.below, every capture "
+                         "error model (and the wide one with 1.5 px sketch noise), Refine with each prior")
     ap.add_argument("--png", default=None, help="write the picture here (e.g. docs/images/any_face.png)")
     args = ap.parse_args(argv)
     sys.stdout.flush()
@@ -328,6 +524,16 @@ def main(argv=None):
     faces = {"ICT-FaceKit": ict, "ICT remeshed (quads)": remeshed_ict(ict)}
     out = dict(bpy_version=bpy.app.version_string, frames=len(FRAMES), training_frames=TRAIN, faces={})
     pics = {}
+    if args.errors:
+        out.update(errors_mode(faces, log))
+        if args.png:
+            errors_picture(args.png, out["table"], faces)
+            out["picture"] = args.png
+        out["total_s"] = round(time.perf_counter() - t_all, 1)
+        facelab_addon.unregister()
+        sys.stdout.flush()
+        os.write(json_fd, (json.dumps(out, indent=1) + "\n").encode())
+        return 0
     for name, face in faces.items():
         runs = []
         for units, posed, extra in (QUICK if args.quick else VIEWS if args.views else CASES):

@@ -4,12 +4,13 @@
 :class:`~facelab_addon.testing.remeshed.RemeshedFace`) in a Z-up scene (ICT's y-up, z-forward
 axes turned to Blender's z-up, -y forward), in any scene unit and object scale, optionally under a
 head + jaw armature: a performance of mouth expressions keyed on every frame (the truth) plus a
-keyed ``CaptureError`` key (the inner lips pulled apart: the upper lip up, the lower lip down, more as
-the jaw closes: the error the artist fixes; :func:`lip_sides` tells the lips apart), a frontal camera
+keyed ``CaptureError`` key (by default the inner lips pulled apart: the upper lip up, the lower lip down,
+more as the jaw closes: the error the artist fixes; :func:`lip_sides` tells the lips apart; other
+physically plausible capture errors in :data:`ERRORS`, :func:`capture_error`), a frontal camera
 40 cm from the mouth, a helmet-style lower camera 35° below the mouth looking up at it, and a witness
 camera 35° to the side (:data:`CAMERAS`).
 :func:`sketch_truth` draws the truth's inner-lip silhouettes on a frame as the artist would (one
-Grease Pencil sketch per camera), and :func:`lip_errors` measures a result against the truth.
+Grease Pencil sketch per camera; optionally with a hand's smooth jitter, :func:`jitter_stroke`), and :func:`lip_errors` measures a result against the truth.
 
 Positions the helpers return are object-local scene units unless named ``world``; millimetre
 figures use :attr:`RouteScene.mm_per_unit`. Needs ``bpy``.
@@ -23,8 +24,8 @@ import numpy as np
 
 from .weights import CYCLIC_MOUTH_CHANNELS, cyclic_mouth_weights
 
-__all__ = ["CAMERAS", "RouteScene", "build_route_scene", "sketch_truth", "lip_errors", "lip_sides", "ERROR_KEY",
-           "UNITS"]
+__all__ = ["CAMERAS", "ERRORS", "RouteScene", "build_route_scene", "capture_error", "sketch_truth", "jitter_stroke",
+           "lip_errors", "lip_sides", "ERROR_KEY", "UNITS"]
 
 #: The cameras, ``name: (azimuth, elevation)`` in degrees around the mouth (azimuth 0: in front of the face,
 #: positive toward the face's left; elevation positive above the mouth), all 40 cm from the mouth and looking at it.
@@ -34,6 +35,22 @@ __all__ = ["CAMERAS", "RouteScene", "build_route_scene", "sketch_truth", "lip_er
 #: mouth height: its image vertical is still the face's up, so it sees a vertical lip gap almost as the frontal
 #: camera does and adds little depth.
 CAMERAS = {"Camera": (0.0, 0.0), "Camera.below": (0.0, -35.0), "Camera.side": (35.0, 0.0)}
+#: The capture error models of :func:`capture_error`, ``name: what it is``. Sizes are millimetres of the face
+#: (any scene unit); each is smooth (C1), zero on the mouth's interior and the corner vertices, and scaled so its
+#: largest displacement is ``error_mm``.
+ERRORS = {
+    "wide": "the inner lips pulled apart along the face's up axis (upper lip up, lower lip down), weight "
+            "(1 - (d / 8 mm)^2)^2 of the distance d to the lip contact loop, fading toward the corners: a "
+            "performance-capture solve that does not close the lips",
+    "narrow": "as wide, but concentrated at the lip contact: weight (1 - (d / 3 mm)^2)^2, zero beyond 3 mm of the "
+              "contact loop: what multi-view stereo gets wrong where the lips touch",
+    "corners": "lost corner fleshiness: the skin within 8 mm of each mouth corner pulled in toward the middle of "
+               "the mouth, along its width (weight (1 - (c / 8 mm)^2)^2 of the distance c to the corner), zero at "
+               "the middle of the mouth",
+    "roll": "the lips' red part rolled in: within 6 mm of the contact loop (weight as wide, radius 6 mm) the lip "
+            "moves back into the mouth along the face's forward axis and 30 degrees toward its own side (upper "
+            "lip up, lower lip down): an error mostly in depth, which a frontal view hardly sees",
+}
 #: The shape key holding the capture error.
 ERROR_KEY = "CaptureError"
 #: Named unit set-ups: (scene units per centimetre of the face, scene unit scale, object scale).
@@ -61,6 +78,7 @@ class RouteScene:
     mm_per_unit: float  # millimetres of world space per object-local unit
     armature: object = None
     loop: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    error_model: str = "wide"  # a key of ERRORS
 
     def truth(self, frames=None) -> np.ndarray:
         """(T,V,3) object-local truth before any modifier (the shape-key mix without the error)."""
@@ -86,7 +104,8 @@ class _Turned:
 
 
 def build_route_scene(face, *, units: str = "m", frames=None, armature: bool = False, pose: bool = False,
-                      error_mm: float = 1.25, expressions=CYCLIC_MOUTH_CHANNELS, name: str = "Face") -> RouteScene:
+                      error_mm: float = 1.25, error: str = "wide", expressions=CYCLIC_MOUTH_CHANNELS,
+                      name: str = "Face") -> RouteScene:
     """A factory-fresh scene with ``face`` performing, a capture error on its inner lips, three cameras.
 
     Parameters
@@ -106,6 +125,9 @@ def build_route_scene(face, *, units: str = "m", frames=None, armature: bool = F
         Pose it: head turned 20° (nodding), jaw opened 5°.
     error_mm : float
         Largest displacement of each lip by the capture error (the gap grows by twice this).
+    error : str
+        The capture error's model, a key of :data:`ERRORS` (default ``"wide"``, the benchmark's original
+        error); see :func:`capture_error`.
     expressions : sequence of str
         The performed expressions (``cyclic_mouth_weights`` channels).
     name : str
@@ -134,20 +156,9 @@ def build_route_scene(face, *, units: str = "m", frames=None, armature: bool = F
     V0 = turned.neutral
     F = np.asarray(face.faces)
     face_mask = np.asarray(face.part_vertex_mask("M_Face"))
-    # the capture error: lips pulled apart along up (z), smooth, fading at the corners
     loop = inner_lip_loop(face.neutral, F)
-    up = np.array([0.0, 0.0, 1.0])
-    lat = V0[loop, 0]
-    cl, cr = loop[np.argmin(lat)], loop[np.argmax(lat)]
-    from scipy.spatial import cKDTree
-
-    d, _ = cKDTree(V0[loop]).query(V0)
-    side = lip_sides(V0, F, loop, up)
     cm = per_cm / obj_scale
-    half = 0.5 * (V0[cr, 0] - V0[cl, 0])
-    mid = 0.5 * (V0[cr, 0] + V0[cl, 0])
-    w = np.clip(1 - (d / (0.8 * cm)) ** 2, 0, 1) ** 2 * face_mask * np.clip(1 - ((V0[:, 0] - mid) / half) ** 4, 0, 1)
-    err = np.outer(side * w * error_mm * 0.1 * cm, up)
+    err, d = capture_error(V0, F, loop, face_mask, cm, error_mm, error)
     add_corrective_key(obj, ERROR_KEY, err)
     cap_w = 1.0 - 1.5 * W[:, 0]
     key_values_bulk(obj, [ERROR_KEY], frames, cap_w[:, None])
@@ -172,7 +183,63 @@ def build_route_scene(face, *, units: str = "m", frames=None, armature: bool = F
     mm = 10.0 / per_cm * obj_scale  # mm per object-local unit: data is per_cm/obj_scale units per cm
     return RouteScene(scene=scene, obj=obj, cameras=cams, frames=frames, neutral=V0, deltas=fs.deltas, weights=W,
                       error=err, error_weight=cap_w, inner_lips=inner, face_mask=face_mask, mm_per_unit=mm,
-                      armature=arm, loop=loop)
+                      armature=arm, loop=loop, error_model=error)
+
+
+def capture_error(V, F, loop, face_mask, cm: float, error_mm: float, kind: str = "wide"):
+    """The capture error of a :data:`ERRORS` model on a Z-up face (x across the face toward its left, -y forward).
+
+    Parameters
+    ----------
+    V : (V,3) float
+        Rest positions, Z-up (object-local units).
+    F : (F,3) int
+    loop : (L,) int
+        The inner-lip contact loop (ordered).
+    face_mask : (V,) bool
+        The skin that may carry the error (the model's ``M_Face``).
+    cm : float
+        Object-local units per centimetre.
+    error_mm : float
+        The largest displacement, millimetres.
+    kind : str
+        A key of :data:`ERRORS`.
+
+    Returns
+    -------
+    err : (V,3) float
+        The error at key weight 1, object-local units.
+    d : (V,) float
+        Each vertex's distance to the contact loop's vertices, object-local units.
+    """
+    from scipy.spatial import cKDTree
+
+    if kind not in ERRORS:
+        raise ValueError(f"error must be one of {list(ERRORS)}, not {kind!r}")
+    up, back = np.array([0.0, 0.0, 1.0]), np.array([0.0, 1.0, 0.0])
+    lat = V[loop, 0]
+    cl, cr = loop[np.argmin(lat)], loop[np.argmax(lat)]
+    d, _ = cKDTree(V[loop]).query(V)
+    side = lip_sides(V, F, loop, up)
+    half = 0.5 * (V[cr, 0] - V[cl, 0])
+    mid = 0.5 * (V[cr, 0] + V[cl, 0])
+    along = np.clip(1 - ((V[:, 0] - mid) / half) ** 4, 0, 1)  # fading toward the corners
+    size = error_mm * 0.1 * cm
+    if kind == "wide":
+        w = np.clip(1 - (d / (0.8 * cm)) ** 2, 0, 1) ** 2 * face_mask * along
+        return np.outer(side * w * error_mm * 0.1 * cm, up), d  # as it always was (bit for bit)
+    if kind == "narrow":
+        w = np.clip(1 - (d / (0.3 * cm)) ** 2, 0, 1) ** 2 * face_mask * along
+        return np.outer(side * w * size, up), d
+    if kind == "corners":
+        c = np.minimum(np.linalg.norm(V - V[cl], axis=1), np.linalg.norm(V - V[cr], axis=1))
+        w = np.clip(1 - (c / (0.8 * cm)) ** 2, 0, 1) ** 2 * face_mask
+        inward = -np.sign(V[:, 0] - mid)
+        return np.outer(inward * w * size, [1.0, 0.0, 0.0]), d
+    # roll
+    w = np.clip(1 - (d / (0.6 * cm)) ** 2, 0, 1) ** 2 * face_mask * along * np.abs(side)
+    a = np.radians(30.0)
+    return (w * size)[:, None] * (np.cos(a) * back + np.sin(a) * side[:, None] * up), d
 
 
 def _units(units):
@@ -260,12 +327,19 @@ def _add_armature(scene, obj, V, loop, cm, pose):
     return arm
 
 
-def sketch_truth(rs: RouteScene, frame: int, camera_obj=None, sketch_name: str | None = None):
+def sketch_truth(rs: RouteScene, frame: int, camera_obj=None, sketch_name: str | None = None, *,
+                 noise_px: float = 0.0, seed: int = 0):
     """Draw the truth's inner-lip silhouettes on ``frame`` through a camera, as the artist would.
 
-    Returns ``(gp_obj, upper_px, lower_px)``; the sketch is a Grease Pencil object attached to the camera
-    (one per camera: ``FL_LipSketch`` for the scene camera, ``FL_LipSketch.<camera>`` for another).
+    With ``noise_px`` > 0 each stroke gets a hand's smooth jitter (:func:`jitter_stroke`: RMS ``noise_px``
+    pixels, a few waves along the stroke, its own per ``seed``, frame, camera and lip).
+
+    Returns ``(gp_obj, upper_px, lower_px)`` (the pixels as drawn); the sketch is a Grease Pencil object
+    attached to the camera (one per camera: ``FL_LipSketch`` for the scene camera, ``FL_LipSketch.<camera>``
+    for another).
     """
+    import zlib
+
     from ..blender.camera import camera_from_blender
     from ..blender.strokes import new_lip_sketch, write_stroke_pixels
 
@@ -277,11 +351,35 @@ def sketch_truth(rs: RouteScene, frame: int, camera_obj=None, sketch_name: str |
     Tw = T @ M[:3, :3].T + M[:3, 3]
     cam = camera_from_blender(scene, cam_obj)
     up_px, lo_px = truth_contours(rs, Tw, cam)
+    if noise_px > 0:
+        rng = np.random.default_rng([int(seed), int(frame), zlib.crc32(cam_obj.name.encode())])
+        up_px, lo_px = jitter_stroke(up_px, noise_px, rng), jitter_stroke(lo_px, noise_px, rng)
     name = sketch_name or ("FL_LipSketch" if cam_obj == scene.camera else f"FL_LipSketch.{cam_obj.name}")
     gp = new_lip_sketch(scene, cam_obj, name=name)
     write_stroke_pixels(gp, "Upper lip", int(frame), [up_px], cam)
     write_stroke_pixels(gp, "Lower lip", int(frame), [lo_px], cam)
     return gp, up_px, lo_px
+
+
+def jitter_stroke(px, noise_px: float, rng, waves: int = 3) -> np.ndarray:
+    """A stroke ``px`` (N,2) as a hand draws it: plus a smooth, low-frequency offset of RMS ``noise_px`` pixels.
+
+    The offset (each image axis) is a constant (a hand's bias) plus ``waves`` cosines along the stroke's
+    arc length, wave ``k`` spanning ``k`` half periods over the stroke with amplitude ~ 1 / (1 + k) and a random
+    phase; the whole is scaled so the RMS length of the offsets is ``noise_px``. ``rng``: a NumPy Generator.
+    """
+    px = np.asarray(px, dtype=np.float64)
+    if len(px) < 2 or noise_px <= 0:
+        return px.copy()
+    s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(px, axis=0), axis=1))]
+    t = s / max(s[-1], 1e-12)
+    off = np.zeros_like(px)
+    for k in range(waves + 1):
+        amp = rng.normal(size=2) / (1.0 + k)
+        phase = rng.uniform(0.0, 2 * np.pi, size=2)
+        off += amp * np.cos(np.pi * k * t[:, None] + phase)
+    rms = float(np.sqrt(np.mean(np.sum(off * off, axis=1))))
+    return px + off * (noise_px / max(rms, 1e-12))
 
 
 def truth_contours(rs: RouteScene, Vw, cam):

@@ -85,3 +85,77 @@ def test_refine_on_the_remeshed_face_removes_most_of_the_lip_error(ict, addon):
     for frame in (2, 30):
         assert cut["band", frame] > 0.55, cut
         assert cut["band", frame] > cut["smooth", frame] + 0.06, cut
+
+
+@pytest.mark.parametrize("kind,units", [("wide", "m"), ("narrow", "m"), ("narrow", "mm"), ("corners", "m"),
+                                        ("roll", "cm")])
+def test_each_capture_error_model_is_where_it_says(ict, addon, kind, units):
+    """``testing.route.ERRORS``: each model's size, reach and direction, in millimetres of the face in any unit
+    (Z-up: x across the face, -y forward, z up)."""
+    from scipy.spatial import cKDTree
+
+    from facelab_addon.testing.route import lip_sides
+
+    rs = build_route_scene(ict, units=units, frames=np.arange(1, 3), error=kind)
+    assert rs.error_model == kind
+    mm = rs.mm_per_unit
+    V = rs.neutral
+    e = rs.error * mm  # (V,3) mm
+    n = np.linalg.norm(e, axis=1)
+    d = cKDTree(V[rs.loop]).query(V)[0] * mm  # mm to the contact loop
+    assert n.max() == pytest.approx(1.25, abs=1e-6)  # error_mm
+    assert (n[~rs.face_mask] == 0).all()
+    moved = n > 1e-9
+    assert moved.sum() > 300
+    side = lip_sides(V, np.asarray(ict.faces), rs.loop, [0.0, 0.0, 1.0])
+    lat = V[rs.loop, 0]
+    mid, half = 0.5 * (lat.max() + lat.min()), 0.5 * (lat.max() - lat.min())
+    if kind in ("wide", "narrow"):
+        reach = 8.0 if kind == "wide" else 3.0
+        assert d[moved].max() < reach and d[moved].max() > reach - 0.5
+        assert np.abs(e[:, :2]).max() == 0  # only along up
+        assert (np.sign(e[moved, 2]) == side[moved]).all()  # the lips pulled apart
+        near = (d < 0.5) & rs.face_mask & (np.abs(V[:, 0] - mid) < 0.3 * half)
+        assert near.sum() > 10 and n[near].min() > 0.8  # mm: largest at the contact, middle of the mouth
+    if kind == "narrow":
+        assert n[d > 4.0].max() == 0  # nothing beyond 4 mm of the loop (the wide error reaches 8 mm)
+    if kind == "corners":
+        assert np.abs(e[:, 1:]).max() == 0  # only across the face
+        x = V[moved, 0] - mid
+        assert (np.sign(e[moved, 0]) == -np.sign(x)).all()  # pulled in toward the middle of the mouth
+        assert n[np.abs(V[:, 0] - mid) < 0.5 * half].max() == 0  # nothing in the middle of the mouth
+        corner = rs.loop[[np.argmin(lat), np.argmax(lat)]]
+        assert n[corner].min() == pytest.approx(1.25, abs=1e-6)
+    if kind == "roll":
+        assert d[moved].max() < 6.0
+        assert (e[moved, 1] > 0).all()  # back into the mouth (forward is -y)
+        assert np.allclose(e[moved, 1], np.cos(np.radians(30)) * n[moved])  # mostly depth
+        assert np.abs(e[:, 0]).max() == 0
+        assert (np.sign(e[moved, 2]) == side[moved]).all()  # each lip's red part rolls in toward its own side
+
+
+def test_jitter_stroke_is_a_smooth_hand_offset():
+    """``jitter_stroke``: RMS offset as asked, low frequency (no pixel-to-pixel noise), reproducible per seed."""
+    from facelab_addon.testing.route import jitter_stroke
+
+    x = np.linspace(800.0, 1100.0, 240)
+    px = np.c_[x, 540.0 + 0.002 * (x - 950.0) ** 2]
+    a = jitter_stroke(px, 1.5, np.random.default_rng(7))
+    off = a - px
+    assert np.sqrt(np.mean(np.sum(off**2, axis=1))) == pytest.approx(1.5, rel=1e-9)
+    assert np.abs(np.diff(off, 2, axis=0)).max() < 0.01 * 1.5  # smooth: curvature of the offset ~0 per sample
+    assert np.ptp(off, axis=0).max() > 0.5  # but not a constant shift
+    assert np.array_equal(a, jitter_stroke(px, 1.5, np.random.default_rng(7)))
+    assert not np.allclose(a, jitter_stroke(px, 1.5, np.random.default_rng(8)))
+    assert np.array_equal(jitter_stroke(px, 0.0, np.random.default_rng(7)), px)
+
+
+def test_sketch_truth_with_noise_draws_the_truth_jittered(ict, addon):
+    rs = build_route_scene(ict, units="m", frames=np.arange(1, 4))
+    _, up0, lo0 = sketch_truth(rs, 2, rs.cameras[0])
+    _, up1, lo1 = sketch_truth(rs, 2, rs.cameras[0], sketch_name="Noisy", noise_px=1.5, seed=3)
+    for a, b in ((up0, up1), (lo0, lo1)):
+        assert a.shape == b.shape
+        assert np.sqrt(np.mean(np.sum((b - a) ** 2, axis=1))) == pytest.approx(1.5, rel=1e-6)
+    _, up2, _ = sketch_truth(rs, 2, rs.cameras[0], sketch_name="Noisy2", noise_px=1.5, seed=3)
+    assert np.array_equal(up1, up2)
