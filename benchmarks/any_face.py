@@ -40,7 +40,8 @@ with a hand's 1.5 px sketch jitter (``testing.route.jitter_stroke``), Refine Lip
 paper; set in the shot's Refine settings, which the operator reads) and the held-out Propagate; JSON with the
 runs, a ``table`` (face x error x views x prior) and ``mean_by_prior``. No bake, no picture. About 5-6 minutes.
 
-Usage: ``PYTHONPATH=. python benchmarks/any_face.py [--quick | --views | --errors] [--png docs/images/any_face.png]``.
+Usage: ``PYTHONPATH=. python benchmarks/any_face.py [--quick | --views | --errors [--error-models corners,wide] [--priors band]]
+[--png docs/images/any_face.png]``.
 Prints one JSON object on stdout (save it as ``benchmarks/results/any_face.json``; the ``--views`` comparison,
 metres, at rest and posed, one view / + lower camera / + side camera, printed as JSON);
 Blender's own output goes to stderr. About 8-12 minutes on 2 shared cores (``--quick``: metres, unposed, one view and
@@ -412,12 +413,15 @@ def errors_case(face, error, noise_px, log):
     return rows
 
 
-def errors_mode(faces, log):
+def errors_mode(faces, log, error_models=None):
     """Every (face, capture error model and sketch noise, views, prior) of :data:`ERROR_CASES`, :data:`ERROR_VIEWS`,
-    :data:`PRIORS`: ``{"table": [...], "mean_by_prior": {...}}``."""
+    :data:`PRIORS`: ``{"table": [...], "mean_by_prior": {...}}``. ``error_models``: only these (names of
+    ``testing.route.ERRORS``; default all)."""
     table = []
     for name, face in faces.items():
         for error, noise in ERROR_CASES:
+            if error_models is not None and error not in error_models:
+                continue
             table += [dict(face=name, **r) for r in errors_case(face, error, noise, log)]
     mean = {}
     for views in (1, 2):
@@ -504,8 +508,14 @@ def main(argv=None):
     ap.add_argument("--errors", action="store_true",
                     help="only the error-model comparison: metres at rest, one view and + Camera.below, every capture "
                          "error model (and the wide one with 1.5 px sketch noise), Refine with each prior")
+    ap.add_argument("--error-models", default=None,
+                    help="--errors: only these comma-separated error models (e.g. corners,wide,narrow)")
+    ap.add_argument("--priors", default=None, help="--errors: only these comma-separated priors (e.g. band)")
     ap.add_argument("--png", default=None, help="write the picture here (e.g. docs/images/any_face.png)")
     args = ap.parse_args(argv)
+    if args.priors:
+        global PRIORS
+        PRIORS = [p for p in PRIORS if p in args.priors.split(",")]
     sys.stdout.flush()
     json_fd = os.dup(1)
     os.dup2(2, 1)  # Blender prints to stdout; keep it for the JSON alone
@@ -525,7 +535,7 @@ def main(argv=None):
     out = dict(bpy_version=bpy.app.version_string, frames=len(FRAMES), training_frames=TRAIN, faces={})
     pics = {}
     if args.errors:
-        out.update(errors_mode(faces, log))
+        out.update(errors_mode(faces, log, args.error_models.split(",") if args.error_models else None))
         if args.png:
             errors_picture(args.png, out["table"], faces)
             out["picture"] = args.png

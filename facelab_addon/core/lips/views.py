@@ -286,6 +286,59 @@ def _stroke_ends(samples, gap: float = 1.5):
     return np.divide(out, nrm, out=np.zeros_like(out), where=nrm > 1e-12)
 
 
+#: The upper and lower strokes' ends meet at a mouth corner when they are at most this fraction of the sketch's
+#: width apart (scale-free: a few pixels at any resolution).
+CORNER_TOL = 0.04
+#: The weight of a mouth corner's plane, in sketch samples (each sample adds ``lambda_silh``). The corner is one
+#: vertex against the many samples matched along the contour: at 1 it hardly moves (any_face --errors, corners:
+#: +0.2 point); 20 recovers most of what the sketch shows without changing the wide / narrow errors' results.
+CORNER_WEIGHT = 20.0
+
+
+def _mouth_corners(upper, lower, out_u, out_l, tol_frac: float = CORNER_TOL):
+    """The mouth corners the sketch shows: where the upper and lower strokes' ends meet.
+
+    Parameters
+    ----------
+    upper, lower : (N,2), (M,2) float
+        Resampled strokes, pixels.
+    out_u, out_l : (N,2), (M,2) float
+        :func:`_stroke_ends` of each (non-zero at the stroke ends).
+    tol_frac : float
+        The ends meet when they are at most this fraction of the sketch's width apart.
+
+    Returns
+    -------
+    axis : (2,) float
+        Unit direction along the mouth's width in the image (the sketch's principal direction, x >= 0).
+    corners : list of (side, point, i_upper, i_lower)
+        ``side`` -1 / +1 (the end of the mouth toward -``axis`` / +``axis``), ``point`` (2,) the corner in pixels
+        (the two ends' midpoint), and the indices of the two end samples. A side whose ends do not meet (a mouth
+        drawn open there, or only partly) has no entry.
+    """
+    P = np.concatenate([upper, lower])
+    C = P - P.mean(0)
+    _, _, vt = np.linalg.svd(C, full_matrices=False)
+    axis = vt[0] if vt[0][0] >= 0 else -vt[0]
+    width = float(np.ptp(P @ axis))
+    eu = np.flatnonzero(np.linalg.norm(out_u, axis=1) > 0)
+    el = np.flatnonzero(np.linalg.norm(out_l, axis=1) > 0)
+    corners = []
+    if len(eu) == 0 or len(el) == 0 or width <= 0:
+        return axis, corners
+    for side in (-1.0, 1.0):
+        iu = eu[np.argmax(side * (upper[eu] @ axis))]
+        il = el[np.argmax(side * (lower[el] @ axis))]
+        # the ends must be the strokes' extremes on that side (not an inner end of a stroke drawn in pieces)
+        if side * upper[iu] @ axis < np.max(side * (upper @ axis)) - 1.0:
+            continue
+        if side * lower[il] @ axis < np.max(side * (lower @ axis)) - 1.0:
+            continue
+        if np.linalg.norm(upper[iu] - lower[il]) <= tol_frac * width:
+            corners.append((side, 0.5 * (upper[iu] + lower[il]), int(iu), int(il)))
+    return axis, corners
+
+
 def _contour_planes(camera, samples):
     """(N,3) unit normals of the planes through the camera centre and the sketch's tangent lines.
 
@@ -328,7 +381,10 @@ class ViewMatcher:
     With ``silhouette_rays="nearest"`` a matched silhouette vertex is pulled onto the ray of the sketch
     sample nearest to its projection; a vertex projecting beyond a stroke's end is held to the contour's
     tangent plane at the end instead (:data:`END_TOL_PX`): the stroke ends where the lips meet, it does
-    not say where the mouth corner is, and the end sample's ray would slide the lips sideways.
+    not say where the mouth corner is, and the end sample's ray would slide the lips sideways. Where the
+    upper and lower strokes' ends meet (:func:`_mouth_corners`, within :data:`CORNER_TOL` of the sketch's
+    width) they do say it: a capture corner lying inside the sketched one is pulled back out along the
+    mouth's width (:data:`CORNER_WEIGHT`).
 
     Attributes
     ----------
@@ -403,6 +459,14 @@ class ViewMatcher:
         self.n_l = _contour_planes(cam, self.lower)
         self.out_u = _stroke_ends(self.upper)
         self.out_l = _stroke_ends(self.lower)
+        self.axis, self.corners = _mouth_corners(self.upper, self.lower, self.out_u, self.out_l)
+        if self.corners:
+            # the plane through the camera centre and the image line through each corner across the mouth's width
+            pts = np.array([c[1] for c in self.corners])
+            _, d0 = cam.rays(pts)
+            _, d1 = cam.rays(pts + np.array([-self.axis[1], self.axis[0]]))
+            m = np.cross(d0, d1)
+            self.corner_planes = m / np.maximum(np.linalg.norm(m, axis=1, keepdims=True), 1e-300)
 
     def restrict(self, faces, region_vertices):
         """Limit the silhouette search to triangles of ``region_vertices`` (V,) bool near the sketch."""
@@ -492,4 +556,47 @@ class ViewMatcher:
                                                      m[:, :, None] * m[:, None, :], lambda_silh * cnt[beyond]))
             else:
                 cons.append(PointConstraints.rays(vid, o, d, strength=lambda_silh * (1.0 if ws is None else ws)))
+        if self.corners and silhouette_rays == "nearest" and len(matched) == 2:
+            cons += self._corner_constraints(X, matched, lambda_silh, sw, nu)
         return cons, np.concatenate(dist_px), matched
+
+    def _corner_constraints(self, X, matched, lambda_silh, sw, nu):
+        """Each mouth corner the sketch shows (:func:`_mouth_corners`) pulls the capture's corner back out to it.
+
+        The capture's corner on a side is the lateral extreme (along the sketch's width, in the image) of the
+        matched silhouette vertices of both lips: where the upper and lower silhouettes meet. The nearest-sample
+        matching pulls across the contour only, so a corner pulled in along the mouth is never pulled back out.
+        When the capture's corner projects more than :data:`END_TOL_PX` inside the sketched one, it is held to
+        the plane through the camera centre and the image line through the sketched corner across the mouth's
+        width (along the width only: the stroke ends' midpoint does not say where each lip's silhouette ends
+        across it). A corner already as far out as the sketch's gets nothing (the tangent plane at the stroke
+        end holds it, as before). Weight :data:`CORNER_WEIGHT` samples (times the smaller sample weight of the two
+        ends).
+
+        Returns
+        -------
+        list of PointConstraints
+            Empty, or one term of one row per corner pulled.
+        """
+        cand = np.union1d(matched["upper"], matched["lower"])
+        if len(cand) == 0:
+            return []
+        along = self.camera.project(X[cand]) @ self.axis
+        ids, ws, rows = [], [], []
+        for k, (side, pt, iu, il) in enumerate(self.corners):
+            j = np.argmax(side * along)
+            if side * (along[j] - pt @ self.axis) > -END_TOL_PX:
+                continue  # the capture's corner is already as far out as the sketch's: the contour holds it
+            w = CORNER_WEIGHT
+            if sw is not None:
+                w *= min(sw[iu], sw[nu + il])
+            if w > 0:
+                ids.append(cand[j])
+                ws.append(w)
+                rows.append(k)
+        if not ids:
+            return []
+        m = self.corner_planes[rows]
+        c = len(ids)
+        return [PointConstraints(np.asarray(ids), np.ones((c, 1)), np.broadcast_to(self.camera.center, (c, 3)),
+                                 m[:, :, None] * m[:, None, :], lambda_silh * np.asarray(ws))]
