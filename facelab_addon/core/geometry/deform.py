@@ -128,6 +128,24 @@ class PointConstraints:
         )
 
 
+def _cached_columns(solver, ids):
+    """Rows ``(M^-1 e_k)ᵀ`` of a factored system for unknowns ``ids``, solved once each and cached.
+
+    ``solver`` has ``factor`` (its SPD factor), ``_slot`` ((n,) int64: each unknown's row in the cache or -1)
+    and ``_rows_cache`` ((c, n) float64), as :class:`LaplacianDeformer` and :class:`CoupledDeformer` keep them.
+    """
+    ids = np.asarray(ids, dtype=np.int64)
+    missing = np.unique(ids[solver._slot[ids] < 0])
+    if len(missing):
+        E = np.zeros((len(solver._slot), len(missing)))
+        E[missing, np.arange(len(missing))] = 1.0
+        Z = solver.factor.solve(E)
+        start = len(solver._rows_cache)
+        solver._rows_cache = np.concatenate([solver._rows_cache, Z.T])
+        solver._slot[missing] = start + np.arange(len(missing))
+    return solver._rows_cache[solver._slot[ids]]
+
+
 class LaplacianDeformer:
     """Factor-once solver for the constrained Laplacian deformation energy.
 
@@ -188,16 +206,7 @@ class LaplacianDeformer:
     # ------------------------------------------------------------------ utils
     def _columns(self, free_ids):
         """(u, n_free) rows ``(M^-1 e_v)ᵀ`` for free indices ``free_ids`` (cached between calls)."""
-        ids = np.asarray(free_ids, dtype=np.int64)
-        missing = np.unique(ids[self._slot[ids] < 0])
-        if len(missing):
-            E = np.zeros((len(self.free), len(missing)))
-            E[missing, np.arange(len(missing))] = 1.0
-            Z = self.factor.solve(E)
-            start = len(self._rows_cache)
-            self._rows_cache = np.concatenate([self._rows_cache, Z.T])
-            self._slot[missing] = start + np.arange(len(missing))
-        return self._rows_cache[self._slot[ids]]
+        return _cached_columns(self, free_ids)
 
     def with_terms(self, terms, anchor) -> "CoupledDeformer":
         """This energy plus the fixed point-constraint ``terms`` (PointConstraints or a list), factored once.
@@ -339,16 +348,8 @@ class CoupledDeformer:
         self._rows_cache = np.zeros((0, 3 * nf))
 
     def _columns(self, ids3):
-        ids = np.asarray(ids3, dtype=np.int64)
-        missing = np.unique(ids[self._slot[ids] < 0])
-        if len(missing):
-            E = np.zeros((len(self._slot), len(missing)))
-            E[missing, np.arange(len(missing))] = 1.0
-            Z = self.factor.solve(E)
-            start = len(self._rows_cache)
-            self._rows_cache = np.concatenate([self._rows_cache, Z.T])
-            self._slot[missing] = start + np.arange(len(missing))
-        return self._rows_cache[self._slot[ids]]
+        """(u, 3 n_free) rows ``(M^-1 e_(v,d))ᵀ`` for unknowns ``ids3 = 3 i + d`` (cached between calls)."""
+        return _cached_columns(self, ids3)
 
     def unconstrained(self, anchor, reference=None) -> np.ndarray:
         """(n_free,3) minimiser with the fixed terms and no moving constraints."""
