@@ -46,7 +46,7 @@ Three priors (``prior``):
   carries a displacement about ``(lambda_reg / w)^(1/4)`` edge rings, so on a coarse mesh (edges
   of 4 mm, a reach of 0.12 mouth widths is about one edge) the smooth prior leaves the correction
   on the silhouettes' own ring and the rest of the band keeps its error; on the artist route
-  benchmark (one view, a quad remesh of ICT) the band prior removes 64.8 % of the 3D error where
+  benchmark (one view, a quad remesh of ICT) the band prior removes 60.2 % of the 3D error where
   the smooth one removes 51.1 %. Without ``lips`` it is the smooth prior.
 
 Only the vertices within ``free_radius`` mouth widths (geodesic) of the lip area near

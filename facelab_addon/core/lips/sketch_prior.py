@@ -38,8 +38,8 @@ from ..errors import UsageError
 from ..geometry.deform import PointConstraints
 from ..geometry.mesh import connected_components, edge_length_graph
 
-__all__ = ["PRIORS", "BAND_RINGS", "separate_parts", "sketch_scale", "crop_faces", "local_faces", "free_region", "anchor_weights",
-           "mean_edge_length", "depth_terms"]
+__all__ = ["PRIORS", "BAND_RINGS", "separate_parts", "sketch_scale", "crop_faces", "local_faces", "free_region",
+           "anchor_weights", "mean_edge_length", "depth_terms"]
 
 #: The energies :func:`anchor_weights` offers: Dinev et al.'s Eq. 1 as written, the smooth prior, or the band prior.
 PRIORS = ("paper", "smooth", "band")
@@ -237,8 +237,9 @@ def depth_terms(L, vertices, camera, rows, weight: float) -> PointConstraints:
     across them: the depth of a correction, which this camera cannot see, has to be smooth (a depth the
     lips need, as a nodded head's, is a smooth field over the lip band and still comes through), while what
     the camera sees bends as before. Each term is one Laplacian row, a point constraint on the row's vertices
-    with the rank-1 metric ``r_i r_iᵀ`` (``deform.PointConstraints``); ``LaplacianDeformer`` adds them by
-    Woodbury.
+    with the rank-1 metric ``r_i r_iᵀ`` (``deform.PointConstraints``). They stay the same over a Refine and
+    couple the coordinates, so ``LaplacianDeformer.with_terms`` folds them into one factor
+    (``deform.CoupledDeformer``) and the moving silhouette constraints are added to it by Woodbury.
 
     Parameters
     ----------

@@ -376,6 +376,14 @@ class ViewMatcher:
     press : bool
         Press crossing contours (:func:`press_lips`, by what they add to the captured overlap); False:
         follow them as drawn (a crossing is one lip in front of the other).
+
+    Attributes
+    ----------
+    near : (V,) bool
+        Free vertices in front of the camera projecting within ``reach_px`` of the sketch.
+    upper, lower : (N,2), (M,2) float
+        The resampled, pressed sketch.
+
     Notes
     -----
     With ``silhouette_rays="nearest"`` a matched silhouette vertex is pulled onto the ray of the sketch
@@ -385,13 +393,6 @@ class ViewMatcher:
     upper and lower strokes' ends meet (:func:`_mouth_corners`, within :data:`CORNER_TOL` of the sketch's
     width) they do say it: a capture corner lying inside the sketched one is pulled back out along the
     mouth's width (:data:`CORNER_WEIGHT`).
-
-    Attributes
-    ----------
-    near : (V,) bool
-        Free vertices in front of the camera projecting within ``reach_px`` of the sketch.
-    upper, lower : (N,2), (M,2) float
-        The resampled, pressed sketch.
     """
 
     def __init__(self, view: SketchView, vertices, faces, fixed, reach_px=None, where: str = "",
