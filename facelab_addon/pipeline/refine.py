@@ -34,7 +34,7 @@ from ..blender.mesh import (
 )
 from ..blender.objects import ModifierState, require_editable
 from ..blender.rest_space import to_rest_space
-from ..blender.shapekeys import add_corrective_key, key_spike
+from ..blender.shapekeys import add_corrective_key, key_spike, rest_vertices
 from ..blender.sketch_views import sketch_camera, sketch_views
 from ..blender.strokes import read_lip_strokes, require_sketch_keyed_on
 from ..core.errors import CameraError
@@ -87,6 +87,9 @@ class RefineSettings:
     depth_reg : float
         With several views, the extra stiffness of the correction along the main camera's rays
         (``refine_lips_views``' ``depth_reg``); no effect with one view.
+    rest_depth_reg : float
+        With one view, how strongly the depth it cannot see follows the face's rest pose (its Basis) turned
+        with the head (``refine_lips_views``' ``rest_depth_reg``); no effect with several views.
     """
 
     iterations: int = setting(REFINE_DEFAULTS["iterations"], label="Iterations", min=1, max=100,
@@ -133,12 +136,18 @@ class RefineSettings:
                                            "bends along the main camera's rays (the depth it cannot see) than "
                                            "across them, so a second view adds depth without dents (0: as "
                                            "stiff as across)")
+    rest_depth_reg: float = setting(10.0, label="Depth From Rest", min=0.0, soft_max=100.0,
+                                    description="With one camera: how strongly the depth it cannot see follows "
+                                                "the face's rest pose turned with the head, so a nodded head's "
+                                                "correction keeps its depth (0: the correction moves across the "
+                                                "camera's rays only)")
 
     def solver_weights(self) -> dict:
         """The keyword arguments of :func:`~facelab_addon.core.lips.sketch.refine_lips`."""
         return dict(iterations=self.iterations, lambda_pos=self.lambda_pos, lambda_reg=self.lambda_reg,
                     lambda_silh=self.lambda_silh, prior=self.prior, smooth_reach=self.smooth_reach,
-                    free_radius=self.free_radius, crossings=self.crossings, depth_reg=self.depth_reg)
+                    free_radius=self.free_radius, crossings=self.crossings, depth_reg=self.depth_reg,
+                    rest_depth_reg=self.rest_depth_reg)
 
 
 @dataclass
@@ -162,6 +171,10 @@ class RefineResult:
         Whether only the inside of ``FL_lips`` was free.
     note : str
         What was changed so the key shows over a cache (empty without one).
+    head_turn_deg : float or None
+        With one view: how far the head is turned from its rest pose (the Basis), degrees; the depth the
+        camera cannot see was taken from the rest pose turned so far. None with several views, or when the
+        rest pose does not fit the frame rigidly or ``rest_depth_reg`` is 0.
     seconds : float
     """
 
@@ -173,6 +186,7 @@ class RefineResult:
     cameras: list = field(default_factory=list)
     lips_region: bool = False
     note: str = ""
+    head_turn_deg: float | None = None
     seconds: float = 0.0
 
 
@@ -228,7 +242,10 @@ def refine(scene, obj, frame: int, settings: RefineSettings | None = None, *, ca
     tris = mesh_triangles(obj.data)
     fixed, fixed_src = default_fixed_mask(obj, tris, settings.fixed_group)
     lips = _lip_region(obj) if settings.use_regions else None
-    X, _ = refine_lips_views(V, tris, views, fixed=fixed, lips=lips, return_info=True, **settings.solver_weights())
+    M = np.array(obj.matrix_world, dtype=np.float64)
+    rest = rest_vertices(obj) @ M[:3, :3].T + M[:3, 3]  # the Basis, where the object is: the head unturned
+    X, info = refine_lips_views(V, tris, views, fixed=fixed, lips=lips, rest_vertices=rest, return_info=True,
+                                **settings.solver_weights())
     note = ""
     on_cache = caches.sequence_source(obj) in _CACHE_SOURCES
     state = ModifierState(obj)
@@ -250,7 +267,8 @@ def refine(scene, obj, frame: int, settings: RefineSettings | None = None, *, ca
     moved = np.linalg.norm(d_world, axis=1)
     return RefineResult(frame=frame, shape_key=kb.name, moved_vertices=int((moved > 1e-9).sum()),
                         max_move=float(moved.max()), fixed_source=fixed_src, cameras=[v.name for v in views],
-                        lips_region=lips is not None, note=note, seconds=time.perf_counter() - t0)
+                        lips_region=lips is not None, note=note, head_turn_deg=info["head_turn_deg"],
+                        seconds=time.perf_counter() - t0)
 
 
 def _view_sources(scene, frame, sketch, camera_obj, all_views) -> list:

@@ -46,6 +46,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..core.geometry.mesh import face_normals, triangulate, vertex_normals
+from ..core.geometry.rigid import rigid_fit
 from ..core.lgi.jaw import JawRig
 from ..core.lgi.natural_neighbor import surface_points
 
@@ -199,14 +200,7 @@ def fit_ict_jaw(ict):
     d = ict.expressions["jawOpen"] - X
     n = np.linalg.norm(d, axis=1)
     lower = teeth & (n > 0.5 * n[teeth].max())
-    A, Bp = X[lower], ict.expressions["jawOpen"][lower]
-    ca, cb = A.mean(0), Bp.mean(0)
-    U, _, Vt = np.linalg.svd((A - ca).T @ (Bp - cb))
-    R = (U @ Vt).T
-    if np.linalg.det(R) < 0:
-        U[:, -1] *= -1
-        R = (U @ Vt).T
-    t = cb - R @ ca
+    R, t = rigid_fit(X[lower], ict.expressions["jawOpen"][lower])
     angle = float(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1)))
     axis = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
     axis /= np.linalg.norm(axis)

@@ -131,7 +131,9 @@ class FACELAB_OT_refine_lips(bpy.types.Operator):
             {"INFO"},
             f"Refined lips on frame {r.frame} in {r.seconds:.2f} s: shape key '{r.shape_key}', "
             f"{r.moved_vertices} vertices moved (max {r.max_move:.4g} scene units), "
-            f"fixed: {r.fixed_source}" + (f"; {r.note}" if r.note else ""),
+            f"fixed: {r.fixed_source}" + (f"; {r.note}" if r.note else "")
+            + (f"; head turned {r.head_turn_deg:.0f}° from the Basis: its depth taken from there"
+               if r.head_turn_deg is not None and r.head_turn_deg >= 2 else ""),
         )
         return {"FINISHED"}
 

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import DatasetError
+from ..geometry.rigid import rigid_fit
 from .tets import _inv3
 
 __all__ = ["JawRig"]
@@ -168,14 +169,10 @@ class JawRig:
                 f"Only {int(m.sum())} vertices follow the jaw rigidly (weight >= {min_weight}); paint the jaw "
                 "vertex group to 1 on the lower teeth and chin."
             )
-        A, Bp = A[m], Bp[m]
-        ca, cb = A.mean(0), Bp.mean(0)
-        U, _, Vt = np.linalg.svd((A - ca).T @ (Bp - cb))
-        d = np.sign(np.linalg.det(U @ Vt))
-        R = (U @ np.diag([1.0, 1.0, d]) @ Vt).T
+        R, t = rigid_fit(A[m], Bp[m])
         M = np.eye(4)
         M[:3, :3] = R
-        M[:3, 3] = cb - R @ ca
+        M[:3, 3] = t
         return M
 
     def unskin_shape(self, shape, neutral, theta):

@@ -72,7 +72,16 @@ from ..geometry.laplacian import laplacian as make_laplacian
 from ..geometry.linsolve import small_dense_threads
 from ..geometry.mesh import validate_mesh, vertex_adjacency
 from ..geometry.polyline import resample_polyline  # noqa: F401  (re-exported for the benchmark)
-from .sketch_prior import PRIORS, anchor_weights, depth_terms, free_region, local_faces, separate_parts, sketch_scale
+from .sketch_prior import (
+    PRIORS,
+    anchor_weights,
+    depth_terms,
+    free_region,
+    local_faces,
+    rest_depth_terms,
+    separate_parts,
+    sketch_scale,
+)
 from .views import SketchView, ViewMatcher, prepare_sketch, press_lips
 
 __all__ = ["refine_lips", "refine_lips_views", "press_lips", "prepare_sketch", "SketchView", "CROSSINGS"]
@@ -207,6 +216,8 @@ def refine_lips_views(
     main_view_iterations: int = 1,
     views_keep: float = 1.5,
     depth_reg: float = 3.0,
+    rest_vertices=None,
+    rest_depth_reg: float = 10.0,
     return_info: bool = False,
 ):
     """Refine the lips to sketches drawn through one or several cameras, in one solve.
@@ -242,6 +253,15 @@ def refine_lips_views(
         the in-image error the main view left then comes out as in-image motion, not as false depth at its
         own silhouette vertices, while a depth error smooth over the lips (a nodded head) is still found.
         0: isotropic. One view: no effect.
+    rest_vertices : (V,3) float, optional
+        The face at rest (its Basis: no head turn, no expression), in the space and units of ``vertices``.
+        With one view, the depth the camera cannot see is then taken from it: the correction is held
+        (``rest_depth_reg``) off the main camera's rays as they cross the face at rest, turned with the
+        head (:func:`~facelab_addon.core.lips.sketch_prior.rest_depth_terms`). With the head as at rest
+        this changes nothing; nodded 20° under a rig, it keeps the nod's share of the correction, which lies
+        along the rays. Several views: no effect (they see the depth).
+    rest_depth_reg : float
+        The strength of that hold (``E_pos`` units; 0: off).
 
     Returns
     -------
@@ -266,6 +286,9 @@ def refine_lips_views(
         raise UsageError(f"crossings must be one of {CROSSINGS}, got {crossings!r}")
     if not (np.isfinite(depth_reg) and depth_reg >= 0):
         raise FaceLabError(f"depth_reg must be a non-negative number, got {depth_reg!r}; use the default 3.")
+    if not (np.isfinite(rest_depth_reg) and rest_depth_reg >= 0):
+        raise FaceLabError(f"rest_depth_reg must be a non-negative number, got {rest_depth_reg!r}; use the "
+                           "default 10.")
     if prior not in PRIORS:
         raise UsageError(f"prior must be one of {PRIORS}, got {prior!r}")
     for nm, val in (("smooth_reach", smooth_reach), ("free_radius", free_radius)):
@@ -306,6 +329,13 @@ def refine_lips_views(
         # reproduces it), instead of flattening out before it
         L = sp.diags((~(lips & ~region & ~fixed)).astype(np.float64)) @ L
     solver = LaplacianDeformer(L, lambda_reg=lambda_reg, pos_weights=w, pinned=~region)
+    turn = None
+    if not multi and rest_vertices is not None and rest_depth_reg > 0:
+        # one view: the depth it cannot see follows the face's rest pose, turned with the head
+        terms, turn = rest_depth_terms(V0, rest_vertices, matchers[0].camera, region, rest_depth_reg,
+                                       mouth_width=W)
+        if terms is not None:
+            solver = solver.with_terms(terms, V0)
     # silhouettes: on triangles of the region and its held ring (a border vertex may be on the silhouette)
     around = region | (adj @ region.astype(np.float64) > 0)
     for m in matchers:
@@ -359,6 +389,7 @@ def refine_lips_views(
         n_free=int(region.sum()),
         mouth_width=W,
         prior=prior,
+        head_turn_deg=turn,
         seconds=time.perf_counter() - t0,
         upper_samples=matchers[0].upper,
         lower_samples=matchers[0].lower,

@@ -23,7 +23,11 @@ topology:
   displacement carries across the lip band on a coarse mesh as on a dense one;
 * :func:`depth_terms`: with several views, ``E_reg`` once more on the component of the Laplacian
   coordinates along the main camera's rays (the depth it cannot see), so a second view's correction
-  comes out smooth in depth.
+  comes out smooth in depth;
+* :func:`rest_depth_terms`: with one view, the depth it cannot see taken from the face's rest pose:
+  the correction is kept off the main camera's rays as they cross the face at rest, turned with the
+  head (a trimmed rigid fit from the rest pose to the frame), so a nodded head's correction keeps
+  the nod's share of depth.
 
 Shapes: vertices (V,3) float64 scene units, triangles (F,3) int64, masks (V,) bool.
 """
@@ -37,14 +41,20 @@ from scipy.sparse.csgraph import dijkstra
 from ..errors import UsageError
 from ..geometry.deform import PointConstraints
 from ..geometry.mesh import connected_components, edge_length_graph
+from ..geometry.rigid import rigid_fit
 
 __all__ = ["PRIORS", "BAND_RINGS", "separate_parts", "sketch_scale", "crop_faces", "local_faces", "free_region",
-           "anchor_weights", "mean_edge_length", "depth_terms"]
+           "anchor_weights", "mean_edge_length", "depth_terms", "rest_depth_terms", "REST_KEEP", "HEAD_RADIUS"]
 
 #: The energies :func:`anchor_weights` offers: Dinev et al.'s Eq. 1 as written, the smooth prior, or the band prior.
 PRIORS = ("paper", "smooth", "band")
 #: The band prior's least reach inside the painted lip region, in edge lengths (see :func:`anchor_weights`).
 BAND_RINGS = 3.0
+#: :func:`rest_depth_terms`: the fraction of the head's vertices (those that moved most rigidly) the head's turn
+#: is fitted on; an opened jaw, a smile or a raised brow is left out.
+REST_KEEP = 0.5
+#: :func:`rest_depth_terms`: the head's vertices are those within this many mouth widths of the lips.
+HEAD_RADIUS = 1.5
 
 
 def separate_parts(faces, n_vertices: int) -> np.ndarray:
@@ -274,3 +284,70 @@ def depth_terms(L, vertices, camera, rows, weight: float) -> PointConstraints:
     r = V[idx] - camera.center
     r /= np.maximum(np.linalg.norm(r, axis=1, keepdims=True), 1e-300)
     return PointConstraints(vv, bb, Lr @ V, r[:, :, None] * r[:, None, :], float(weight))
+
+
+def rest_depth_terms(vertices, rest_vertices, camera, rows, weight: float, *, mouth_width: float,
+                     keep: float = REST_KEEP, radius: float = HEAD_RADIUS):
+    """``weight * sum_i (f_i · (x_i - x̄_i))^2`` over ``rows``: the depth one view cannot see, from the rest pose.
+
+    One camera constrains a silhouette vertex across its ray only; how far the correction goes along the ray
+    is the prior's choice. The isotropic prior chooses none, right when the face is posed as the capture's
+    error was made (at rest, or carried rigidly with the camera, as a helmet camera is). When the head has
+    turned (a rig's nod, or head motion baked into the capture), an error of the face's own shape (lips
+    apart along the face's up axis) has a share along the camera's rays, which the isotropic prior drops.
+    Here ``f_i = R u_i``: ``u_i`` the main camera's ray through the rest vertex, ``R`` the head's turn from
+    the rest pose to this frame (:func:`~facelab_addon.core.geometry.rigid.rigid_fit`, trimmed to the
+    ``keep`` most rigid of the vertices within ``radius`` mouth widths of the lips). Unturned, ``f_i`` is the
+    camera's own ray and the terms change nothing.
+
+    Parameters
+    ----------
+    vertices : (V,3) float
+        X̄, the captured mesh on this frame, scene units.
+    rest_vertices : (V,3) float
+        The same face at rest (without the head's turn), in the same space and units.
+    camera : Camera
+        The main view's camera.
+    rows : (V,) bool
+        Vertices that get a term (the free region).
+    weight : float
+        ``s`` of every term (scene units squared, as ``E_pos``).
+    mouth_width : float
+        Scene units (:func:`sketch_scale`).
+    keep, radius : float
+        See :data:`REST_KEEP`, :data:`HEAD_RADIUS`.
+
+    Returns
+    -------
+    terms : PointConstraints or None
+        ``rows.sum()`` constraints; None when the rest pose does not fit the frame rigidly (the median
+        residual of the kept vertices over 0.1 mouth widths: not the same face, turned).
+    turn_deg : float or None
+        The angle of ``R``, degrees.
+
+    Raises
+    ------
+    UsageError
+        ``rest_vertices`` not of the shape of ``vertices``, or not finite.
+    """
+    V = np.asarray(vertices, dtype=np.float64)
+    V0 = np.asarray(rest_vertices, dtype=np.float64)
+    if V0.shape != V.shape or not np.isfinite(V0).all():
+        raise UsageError(f"rest_vertices must be finite positions of the same {V.shape} shape as the mesh, "
+                         f"got {V0.shape}; pass the face's rest pose (its Basis) in the same space.")
+    idx = np.flatnonzero(rows)
+    c = V[idx].mean(axis=0)
+    near = np.linalg.norm(V - c, axis=1) <= radius * mouth_width
+    near[idx] = False
+    if near.sum() < 3:
+        near = ~np.asarray(rows, bool)
+    R, t = rigid_fit(V0[near], V[near], keep=keep)
+    res = np.linalg.norm(V0[near] @ R.T + t - V[near], axis=1)
+    if np.median(res) > 0.1 * mouth_width:
+        return None, None  # the rest pose is not this face turned (another shape, another place): no prior
+    u = V0[idx] - camera.center
+    u /= np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-300)
+    f = u @ R.T
+    turn = float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
+    return PointConstraints(idx[:, None], np.ones((len(idx), 1)), V[idx], f[:, :, None] * f[:, None, :],
+                            float(weight)), turn
