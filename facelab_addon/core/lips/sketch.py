@@ -110,6 +110,8 @@ def refine_lips(
     reach_px: float | None = None,
     silhouette_rays: str = "nearest",
     crossings: str = "follow",
+    rest_vertices=None,
+    rest_depth_reg: float = 10.0,
     return_info: bool = False,
 ):
     """Deform a face mesh so its inner-lip silhouettes match sketched contours (one camera).
@@ -168,6 +170,9 @@ def refine_lips(
         to press the lips together: both go to their mid-line by what the
         crossing adds to the overlap the capture already has
         (:func:`~facelab_addon.core.lips.views.press_lips`).
+    rest_vertices, rest_depth_reg
+        The face at rest and how strongly the depth the camera cannot see follows it, turned with the
+        head (see :func:`refine_lips_views`).
     return_info : bool
         Also return a dict of diagnostics.
 
@@ -192,7 +197,8 @@ def refine_lips(
         vertices, faces, [SketchView(camera, upper, lower)], fixed=fixed, lips=lips, prior=prior,
         iterations=iterations, lambda_pos=lambda_pos, lambda_reg=lambda_reg, lambda_silh=lambda_silh,
         smooth_reach=smooth_reach, free_radius=free_radius, laplacian=laplacian, reach_px=reach_px,
-        silhouette_rays=silhouette_rays, crossings=crossings, return_info=return_info)
+        silhouette_rays=silhouette_rays, crossings=crossings, rest_vertices=rest_vertices,
+        rest_depth_reg=rest_depth_reg, return_info=return_info)
 
 
 def refine_lips_views(
