@@ -76,10 +76,9 @@ def test_the_camera_options(face):
     assert np.degrees(np.arctan2(abs(up_img[0]), -up_img[1])) == pytest.approx(10.0, abs=0.05)
 
 
-@pytest.mark.xfail(strict=True, reason="known weakness (route_sweep): on the coarse remeshed face, the automatic lip "
-                                       "contact of ICT identity mix seed 0 keeps only the middle half of the mouth "
-                                       "(its corners lie 0.26 contact-widths behind the front, the front trim keeps "
-                                       "0.25), so Refine finds no lower-lip silhouette near the sketch")
+@pytest.mark.xfail(strict=True, reason="known weakness (route_sweep, docs/benchmarks.md 'Unseen cases'): on the coarse "
+                                       "remeshed face the automatic lip contact of ICT identity mix seed 0 keeps only "
+                                       "the middle half of the mouth, so Refine finds no lower-lip silhouette there")
 def test_the_lip_contact_of_another_actor_on_the_coarse_face(ict, face):
     w = np.random.default_rng(0).normal(size=len(ict.identities))  # route_sweep's "identity s0"
     off = ict.pose(identity=dict(zip(ict.identities, w))) - ict.neutral
