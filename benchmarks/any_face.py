@@ -84,7 +84,10 @@ def _rms(a):
     return float(np.sqrt(np.mean(np.asarray(a, dtype=np.float64) ** 2)))
 
 
-def run_route(face, units, posed, tmp, log, extra=(), *, error="wide", noise_px=0.0, prior=None, bake=True):
+def run_route(face, units, posed, tmp, log, extra=(), *, error="wide", noise_px=0.0, prior=None, bake=True, seed=0,
+              scene_kw=None):
+    """The route on ``face`` (see the module docstring); ``seed``: the sketch jitter's; ``scene_kw``: more keyword
+    arguments of ``testing.route.build_route_scene`` (cameras, an imported mesh: ``benchmarks/route_sweep.py``)."""
     import bpy
 
     from facelab_addon.blender import caches
@@ -103,7 +106,8 @@ def run_route(face, units, posed, tmp, log, extra=(), *, error="wide", noise_px=
         out.update(error_model=error, sketch_noise_px=noise_px, prior=prior)
     t = {}
     t0 = time.perf_counter()
-    rs = build_route_scene(face, units=units, armature=True, pose=posed, frames=FRAMES, error=error)
+    rs = build_route_scene(face, units=units, armature=True, pose=posed, frames=FRAMES, error=error,
+                           **(scene_kw or {}))
     t["build_scene"] = time.perf_counter() - t0
     scene, obj = rs.scene, rs.obj
     scene.facelab.face = obj
@@ -142,8 +146,8 @@ def run_route(face, units, posed, tmp, log, extra=(), *, error="wide", noise_px=
     t0 = time.perf_counter()
     for f in TRAIN:
         for name in extra:  # every camera sketched on the frame is a view of the same Refine Lips solve
-            sketch_truth(rs, f, next(c for c in rs.cameras if c.name == name), noise_px=noise_px)
-        gp, up, lo = sketch_truth(rs, f, cam0, noise_px=noise_px)
+            sketch_truth(rs, f, next(c for c in rs.cameras if c.name == name), noise_px=noise_px, seed=seed)
+        gp, up, lo = sketch_truth(rs, f, cam0, noise_px=noise_px, seed=seed)
         sk[f] = (up, lo)
         scene.facelab.sketch = gp
         scene.frame_set(f)

@@ -105,7 +105,9 @@ class _Turned:
 
 def build_route_scene(face, *, units: str = "m", frames=None, armature: bool = False, pose: bool = False,
                       error_mm: float = 1.25, error: str = "wide", expressions=CYCLIC_MOUTH_CHANNELS,
-                      name: str = "Face") -> RouteScene:
+                      name: str = "Face", lens_mm: float = 50.0, camera_cm: float = 40.0, camera_yaw: float = 0.0,
+                      camera_roll: float = 0.0, obj_import: bool = False,
+                      import_scale: float = 1.0) -> RouteScene:
     """A factory-fresh scene with ``face`` performing, a capture error on its inner lips, three cameras.
 
     Parameters
@@ -131,6 +133,22 @@ def build_route_scene(face, *, units: str = "m", frames=None, armature: bool = F
     expressions : sequence of str
         The performed expressions (``cyclic_mouth_weights`` channels).
     name : str
+    lens_mm : float
+        Focal length of every camera (36 mm sensor width).
+    camera_cm : float
+        Every camera's distance from the mouth, centimetres of the face.
+    camera_yaw : float
+        Degrees added to every camera's azimuth of :data:`CAMERAS` (turned around the face's up axis).
+    camera_roll : float
+        Degrees every camera is rolled about its viewing axis.
+    obj_import : bool
+        Make the mesh as an artist imports a head: ``face`` written to an OBJ as it is (Y up, centimetres) and read
+        back with ``bpy.ops.wm.obj_import`` and Blender's default axis settings into a metre scene (``units`` must
+        be ``"m"``); the object keeps the transform the importer gives it (rotated 90° about X, data in the
+        OBJ's numbers: a centimetre head read as metres is 100 times too big), and the shape keys, the capture
+        error, the armature and the cameras follow that transform (the truth is the same face). Default off.
+    import_scale : float
+        The importer's ``global_scale`` (``obj_import`` only; 0.01 is the artist's fix for a centimetre OBJ).
 
     Returns
     -------
@@ -147,41 +165,70 @@ def build_route_scene(face, *, units: str = "m", frames=None, armature: bool = F
     per_cm, unit_scale, obj_scale = _units(units)
     frames = np.arange(1, 41) if frames is None else np.asarray(frames)
     names = list(expressions)
-    turned = _Turned(face, per_cm / obj_scale, names)
     W = cyclic_mouth_weights(frames)[:, : len(names)]
-    fs = build_ict_face_scene(turned, names, weights=W, frames=frames, scale=1.0, name=name, fixed_group=True)
-    scene, obj = fs.scene, fs.obj
-    scene.unit_settings.scale_length = unit_scale
-    obj.scale = (obj_scale,) * 3
-    V0 = turned.neutral
     F = np.asarray(face.faces)
     face_mask = np.asarray(face.part_vertex_mask("M_Face"))
     loop = inner_lip_loop(face.neutral, F)
-    cm = per_cm / obj_scale
-    err, d = capture_error(V0, F, loop, face_mask, cm, error_mm, error)
+    if obj_import:
+        if units != "m":
+            raise ValueError("obj_import reads the OBJ into a metre scene: units must be 'm'")
+        scene, obj, deltas, A = _imported_face_scene(face, names, W, frames, name, import_scale)
+        V0 = face.neutral @ A.T  # object-local (the OBJ's axes)
+        M3 = np.array(obj.matrix_world)[:3, :3]
+        per_cm = float(np.cbrt(abs(np.linalg.det(M3 @ A))))  # world units per cm of the face
+        obj_scale = float(np.cbrt(abs(np.linalg.det(M3))))
+        Vz = V0 @ M3.T  # world axes (Z up), world units
+        err_w, d = capture_error(Vz, F, loop, face_mask, per_cm, error_mm, error)
+        err = err_w @ np.linalg.inv(M3).T
+        d = d / per_cm * float(np.cbrt(abs(np.linalg.det(A))))  # object-local units
+        cm = float(np.cbrt(abs(np.linalg.det(A))))  # object-local units per cm
+    else:
+        turned = _Turned(face, per_cm / obj_scale, names)
+        fs = build_ict_face_scene(turned, names, weights=W, frames=frames, scale=1.0, name=name, fixed_group=True)
+        scene, obj, deltas = fs.scene, fs.obj, fs.deltas
+        scene.unit_settings.scale_length = unit_scale
+        obj.scale = (obj_scale,) * 3
+        V0 = turned.neutral
+        cm = per_cm / obj_scale
+        err, d = capture_error(V0, F, loop, face_mask, cm, error_mm, error)
     add_corrective_key(obj, ERROR_KEY, err)
     cap_w = 1.0 - 1.5 * W[:, 0]
     key_values_bulk(obj, [ERROR_KEY], frames, cap_w[:, None])
     inner = (d < 0.6 * cm) & face_mask
-    arm = _add_armature(scene, obj, V0, loop, cm, pose) if armature else None
+    if not armature:
+        arm = None
+    elif obj_import:  # the rig in world axes (Z up), unscaled, at the object's location
+        bpy.context.view_layer.update()
+        arm = _add_armature(scene, obj, Vz, loop, per_cm, pose, matrix=np.array(obj.matrix_world))
+    else:
+        arm = _add_armature(scene, obj, V0, loop, cm, pose)
     # cameras (all 40 cm from the mouth, looking at it; see CAMERAS): the frontal main camera, the lower camera of a
     # helmet rig (below the chin, looking up at the mouth: it sees how far the lips sit forward), and a witness camera
     # to the side
     bpy.context.view_layer.update()
     M = np.array(obj.matrix_world)
     mc = (M[:3, :3] @ V0[loop].mean(axis=0)) + M[:3, 3]
-    dist = 40.0 * per_cm
+    dist = camera_cm * per_cm
     cams = []
     for cname, (azim, elev) in CAMERAS.items():
-        a, e = np.radians(azim), np.radians(elev)
+        a, e = np.radians(azim + camera_yaw), np.radians(elev)
         eye = mc + dist * np.array([np.sin(a) * np.cos(e), -np.cos(a) * np.cos(e), np.sin(e)])
-        cam = Camera.look_at(eye, mc, [0, 0, 1], 50, 36, 1920, 1080)
+        up = np.array([0.0, 0.0, 1.0])
+        if camera_roll:  # the up vector turned about the viewing axis
+            z = (mc - eye) / np.linalg.norm(mc - eye)
+            u = up - (up @ z) * z
+            u /= np.linalg.norm(u)
+            r = np.radians(camera_roll)
+            up = np.cos(r) * u + np.sin(r) * np.cross(z, u)
+        cam = Camera.look_at(eye, mc, up, lens_mm, 36, 1920, 1080)
         cams.append(new_camera_object(scene, cam, name=cname, make_active=cname == "Camera"))
     scene.camera = cams[0]
     bpy.context.view_layer.objects.active = obj
     obj.select_set(True)
     mm = 10.0 / per_cm * obj_scale  # mm per object-local unit: data is per_cm/obj_scale units per cm
-    return RouteScene(scene=scene, obj=obj, cameras=cams, frames=frames, neutral=V0, deltas=fs.deltas, weights=W,
+    if obj_import:  # world millimetres (a metre scene) per object-local unit
+        mm = 1000.0 * obj_scale
+    return RouteScene(scene=scene, obj=obj, cameras=cams, frames=frames, neutral=V0, deltas=deltas, weights=W,
                       error=err, error_weight=cap_w, inner_lips=inner, face_mask=face_mask, mm_per_unit=mm,
                       armature=arm, loop=loop, error_model=error)
 
@@ -242,6 +289,53 @@ def capture_error(V, F, loop, face_mask, cm: float, error_mm: float, kind: str =
     return (w * size)[:, None] * (np.cos(a) * back + np.sin(a) * side[:, None] * up), d
 
 
+def _imported_face_scene(face, names, W, frames, name, import_scale):
+    """A factory-fresh metre scene holding ``face`` as Blender's OBJ importer (default axes) reads it.
+
+    Returns ``(scene, obj, deltas, A)``: ``A`` (3,3) maps the face's coordinates to the object's local ones
+    (``local = A @ x``), measured on the neutral; ``deltas`` (S,V,3) the expression offsets, object-local; the keys, keyed with ``W`` on ``frames``, and the
+    ``FL_fixed`` group (all but ``M_Face``) as :func:`~facelab_addon.testing.scenes.build_ict_face_scene` adds.
+    """
+    import os
+    import tempfile
+
+    import bpy
+
+    from ..blender.shapekeys import add_corrective_key, key_values_bulk
+    from ..names import FIXED_GROUP
+
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    scene = bpy.context.scene
+    scene.frame_start, scene.frame_end = int(frames[0]), int(frames[-1])
+    V = np.asarray(face.neutral, dtype=np.float64)
+    path = os.path.join(tempfile.mkdtemp(prefix="facelab-obj-"), f"{name}.obj")
+    with open(path, "w") as fh:
+        fh.write(f"o {name}\n")
+        fh.write("".join(f"v {x:.6f} {y:.6f} {z:.6f}\n" for x, y, z in V))
+        off = np.asarray(face.poly_offsets)
+        pv = np.asarray(face.poly_verts) + 1
+        fh.write("".join("f " + " ".join(map(str, pv[off[p]:off[p + 1]])) + "\n" for p in range(len(off) - 1)))
+    bpy.ops.wm.obj_import(filepath=path, global_scale=float(import_scale))
+    obj = bpy.context.selected_objects[0]
+    Xl = np.zeros(3 * len(obj.data.vertices))
+    obj.data.vertices.foreach_get("co", Xl)
+    Xl = Xl.reshape(-1, 3)
+    if len(Xl) != len(V):
+        raise RuntimeError(f"the OBJ importer made {len(Xl)} vertices of {len(V)}")
+    c = V.mean(axis=0)
+    A = np.linalg.lstsq(V - c, Xl - Xl.mean(axis=0), rcond=None)[0].T
+    if np.abs((V - c) @ A.T - (Xl - Xl.mean(axis=0))).max() > 1e-4 * np.ptp(V):
+        raise RuntimeError("the OBJ importer changed the vertex order or shape")
+    obj.shape_key_add(name="Basis", from_mix=False)
+    keys = [add_corrective_key(obj, n, (face.expressions[n] - face.neutral) @ A.T).name for n in names]
+    key_values_bulk(obj, keys, frames, W)
+    fixed = ~np.asarray(face.part_vertex_mask("M_Face"))
+    obj.vertex_groups.new(name=FIXED_GROUP).add(np.flatnonzero(fixed).tolist(), 1.0, "REPLACE")
+    obj.name = name
+    deltas = np.stack([(face.expressions[n] - face.neutral) @ A.T for n in names])
+    return scene, obj, deltas, A
+
+
 def _units(units):
     """``(scene units per cm of data, unit scale, object scale)`` of a units name (see build_route_scene)."""
     if units in UNITS:
@@ -287,14 +381,22 @@ def lip_sides(V, F, loop, up) -> np.ndarray:
     return side
 
 
-def _add_armature(scene, obj, V, loop, cm, pose):
-    """A head bone (neck to crown) and a jaw bone (below the ears to the chin); skin weights; optional pose."""
+def _add_armature(scene, obj, V, loop, cm, pose, matrix=None):
+    """A head bone (neck to crown) and a jaw bone (below the ears to the chin); skin weights; optional pose.
+
+    ``V``: Z-up positions in the armature's space (the object's local space, the armature scaled as the object),
+    ``cm`` units per centimetre. With ``matrix`` (the object's world matrix), ``V`` is ``V_local @ matrix[:3, :3].T``
+    (world axes and units, Z up) and the armature is unscaled and unrotated at the object's location.
+    """
     import bpy
 
     arm_data = bpy.data.armatures.new("Rig")
     arm = bpy.data.objects.new("Rig", arm_data)
     scene.collection.objects.link(arm)
-    arm.scale = obj.scale
+    if matrix is None:
+        arm.scale = obj.scale
+    else:
+        arm.location = tuple(np.asarray(matrix)[:3, 3])
     bpy.context.view_layer.objects.active = arm
     bpy.ops.object.mode_set(mode="EDIT")
     mc = V[loop].mean(axis=0)
