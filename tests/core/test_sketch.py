@@ -107,6 +107,12 @@ def test_fixed_vertices_are_not_lip_candidates_and_barely_move():
     fixed = ~upper  # the lower lip is "hidden": only the upper may be matched
     with pytest.raises(SketchError, match="lower-lip silhouette"):
         refine_lips(V, F, cam, line_px(cam, 0.1), line_px(cam, -0.1), fixed=fixed)
+    # a lip region that leaves the lower lip out names itself in the refusal (and only then)
+    with pytest.raises(SketchError, match=r"lower-lip silhouette.*Only the inside of the lip region \(FL_lips\)"):
+        refine_lips(V, F, cam, line_px(cam, 0.1), line_px(cam, -0.1), fixed=free(V), lips=upper)
+    with pytest.raises(SketchError, match="lower-lip silhouette") as e:
+        refine_lips(V, F, cam, line_px(cam, 0.1), line_px(cam, -0.1), fixed=fixed)
+    assert "FL_lips" not in str(e.value)
     # the left part of the upper lip fixed: free, its silhouette is matched and moves the full 0.1
     fixed = upper & (V[:, 0] < -0.5)
     up, lo = line_px(cam, 0.1), line_px(cam, -0.1)

@@ -345,7 +345,7 @@ def refine_lips_views(
     # silhouettes: on triangles of the region and its held ring (a border vertex may be on the silhouette)
     around = region | (adj @ region.astype(np.float64) > 0)
     for m in matchers:
-        m.restrict(Fl, around & ~fixed)
+        m.restrict(Fl, around & ~fixed, in_lip_region=lips is not None)
 
     def correspondences(X, gates=None, upto=None):  # gates: per view, (N+M,) sample weights or None
         cons, dists, matched = [], [], []

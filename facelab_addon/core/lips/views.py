@@ -395,6 +395,8 @@ class ViewMatcher:
     mouth's width (:data:`CORNER_WEIGHT`).
     """
 
+    in_lip_region = False  # set by restrict(): the search is limited to a painted lip region's inside
+
     def __init__(self, view: SketchView, vertices, faces, fixed, reach_px=None, where: str = "",
                  envelope: bool = True, press: bool = True):
         self.envelope = bool(envelope)
@@ -469,8 +471,12 @@ class ViewMatcher:
             m = np.cross(d0, d1)
             self.corner_planes = m / np.maximum(np.linalg.norm(m, axis=1, keepdims=True), 1e-300)
 
-    def restrict(self, faces, region_vertices):
-        """Limit the silhouette search to triangles of ``region_vertices`` (V,) bool near the sketch."""
+    def restrict(self, faces, region_vertices, in_lip_region: bool = False):
+        """Limit the silhouette search to triangles of ``region_vertices`` (V,) bool near the sketch.
+
+        ``in_lip_region``: the region is a painted lip region's inside (a failed search then names it).
+        """
+        self.in_lip_region = bool(in_lip_region)
         F = np.asarray(faces)
         rf = np.flatnonzero(region_vertices[F].all(axis=1))
         self.Fr = F[rf]
@@ -522,6 +528,9 @@ class ViewMatcher:
                     f"No {name}-lip silhouette found near the {name}-lip stroke{where}; draw the contours over the "
                     "inner lips in camera view, upper above lower (a lip that is a separate mesh piece is held "
                     "unless it is the largest piece: pass the hidden parts as 'fixed' / the FL_fixed group)."
+                    + (" Only the inside of the lip region (FL_lips) is searched: check that it covers both lips "
+                       "under the strokes, from corner to corner (run Auto Regions again or paint FL_lips), or "
+                       "refine without it (turn off Only FL_lips)." if self.in_lip_region else "")
                 )
             j, dist = _closest_to_rays(X, ids, o, d)
             vid = ids[j]
