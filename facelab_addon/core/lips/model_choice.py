@@ -29,6 +29,10 @@ picks them) and the shot lies between them; the shot's own ``r`` corrects that. 
 estimates: ``α = S_c / (S_w + S_c)``. Without shot frames the floor is taken as 0 and ``mean(r²)``
 is that of the training frames' leave-one-out (a blend by inverse leave-one-out error).
 
+The same error model damps the prediction frame by frame when asked (``LipRegressor(damping=True)``, Propagate's
+Damp Uncertain Frames): :func:`expected_error` is its part that grows with a frame's distance from the training
+span, and :func:`damping_weights` the Wiener factor ``|c|² / (|c|² + S)`` of a predicted correction ``c``.
+
 Measured (``benchmarks/lip_band.py``, held-out inner-lip error, % of the capture's): the 3-frame
 scene of ``tests/pipeline/test_propagate.py`` with a 0.2 mouth-width band: whole 85.9, correction
 5.2, auto 6.3; ``benchmarks/propagate.py``'s non-linear error at k = 10, 0.12 band: whole 15.5,
