@@ -18,6 +18,10 @@ For lip bands of 0.12 and 0.2 mouth widths it reports:
   frames minus one fitted on the same frames as captured, added to the capture), rest-centred and
   uncentred (``center=None``): a candidate fix for Propagate, measured here, not shipped.
 
+``damping`` compares the auto and correction models without and with ``damping`` (Propagate's Damp Uncertain
+Frames) in both scenes: held-out error and the held-out frames made worse than captured (count, worst and
+summed increase of the per-frame inner-lip RMS, mm).
+
 ``propagate_benchmark`` repeats the default and the correction-only regression on the scene of
 ``benchmarks/propagate.py`` (speech, 200 frames, its non-linear error for today's 0.12 band, training
 frames from ``suggest_frames``) with the regions of either band: held-out inner-lip RMS, % of the capture's.
@@ -79,8 +83,9 @@ class Scene:
         F = self.F
         return LipRegressor(self.V * SCALE, F, R.faces_in_region(F, regs[0]), R.faces_in_region(F, regs[1]), **kw)
 
-    def run(self, regs, err, k, mode="default", **kw):
-        """Held-out mean inner-lip error, % of the capture's (or mm for mode 'no_error')."""
+    def run(self, regs, err, k, mode="default", damage=False, **kw):
+        """Held-out mean inner-lip error, % of the capture's (or mm for mode 'no_error'); with ``damage``
+        also the frames made worse than captured (:func:`damage`)."""
         train = np.searchsorted(FRAMES, TRAIN[k])
         held = np.setdiff1d(np.arange(len(FRAMES)), train)
         cap = self.truth + (0.0 if mode == "no_error" else self.cap_w[:, None, None] * err)
@@ -99,7 +104,8 @@ class Scene:
         e = lambda X: np.linalg.norm(X - self.truth[held], axis=2)[:, regs[1]].mean()  # noqa: E731
         if mode == "no_error":
             return round(1e3 * e(got), 4)  # mm
-        return round(100 * e(got) / e(cap[held]), 1)
+        pct = round(100 * e(got) / e(cap[held]), 1)
+        return dict(pct=pct, **damage_of(got, cap[held], self.truth[held], regs[1], 1e3)) if damage else pct
 
 
 def main(argv=None):
@@ -124,11 +130,34 @@ def main(argv=None):
                 "correction_only": sc.run(regs, err, k, "correction_only"),
                 "correction_only_uncentred": sc.run(regs, err, k, "correction_only", center=None),
             }
+    out["damping"] = damping_benchmark(sc, bands, err)
     out["mouth_band_k3"] = {f"{mw}": sc.run(sc.regions(0.2, mw), err, 3) for mw in (0.2, 0.45, 0.8)}
     out["propagate_benchmark"] = propagate_benchmark(sc)
     print(json.dumps(out, indent=1))
     if args.png:
         picture(out, args.png)
+
+
+def damage_of(pred, cap, truth, mask, to_mm):
+    """Held-out frames made worse than captured by ``pred`` (per-frame inner-lip RMS): count, worst and summed
+    increase (mm)."""
+    rms = lambda X: np.sqrt(np.mean(np.sum((X[:, mask] - truth[:, mask]) ** 2, axis=-1), axis=1)) * to_mm  # noqa: E731
+    d = rms(pred) - rms(cap)
+    return {"damaged_frames": int(np.sum(d > 0)), "worst_damage_mm": round(float(max(d.max(), 0.0)), 4),
+            "damage_sum_mm": round(float(np.clip(d, 0, None).sum()), 4)}
+
+
+def damping_benchmark(sc, bands, err):
+    """Each model without and with ``damping`` (Propagate's Damp Uncertain Frames): held-out error (% of the
+    capture's) and the frames made worse than captured, in both scenes and bands."""
+    out = {}
+    for lw, regs in bands.items():
+        for k in TRAIN:
+            out[f"lip_band_{lw}_k{k}"] = {
+                f"{m}{'_damped' if d else ''}": sc.run(regs, err, k, m, damage=True, damping=d)
+                for m in ("auto", "correction") for d in (False, True)}
+    out["propagate_benchmark"] = propagate_benchmark(sc, damped=True)
+    return out
 
 
 def picture(out, path):
@@ -162,8 +191,9 @@ def picture(out, path):
     fig.savefig(path, dpi=110)
 
 
-def propagate_benchmark(sc, n_frames=200):
-    """benchmarks/propagate.py's scene and error (0.12 band), regions of 0.12 and 0.2 mouth widths."""
+def propagate_benchmark(sc, n_frames=200, damped=False):
+    """benchmarks/propagate.py's scene and error (0.12 band), regions of 0.12 and 0.2 mouth widths; ``damped``:
+    instead the auto and correction models without and with ``damping``, and their damage (:func:`damage_of`)."""
     sys.path.insert(0, str(ROOT / "benchmarks"))
     import propagate as bp
 
@@ -182,6 +212,18 @@ def propagate_benchmark(sc, n_frames=200):
         r = res[f"lip_band_{lw}"] = {}
         for k in (3, 6, 10):
             tr = picks[:k]
+            if damped:
+                fixed = cap[tr].copy()
+                r[f"k{k}"] = row = {}
+                for m in ("auto", "correction"):
+                    for d in (False, True):
+                        reg = LipRegressor(V, F, mf, lf, model=m, damping=d)
+                        fixed[:, reg.interior_vertices] = truth[tr][:, reg.interior_vertices]
+                        got = reg.fit(fixed, captured=cap[tr], shot=cap).predict(cap[held])
+                        row[f"{m}{'_damped' if d else ''}"] = dict(
+                            pct=round(100 * bp.lip_rms_max(got, truth[held], lip)[0] / base, 1),
+                            **damage_of(got, cap[held], truth[held], lip, bp.CM_TO_MM))
+                continue
             B = LipRegressor(V, F, mf, lf)
             fixed = cap[tr].copy()
             fixed[:, B.interior_vertices] = truth[tr][:, B.interior_vertices]

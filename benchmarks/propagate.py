@@ -115,6 +115,16 @@ def lip_rms_max(pred, truth, mask):
     return float(np.sqrt(np.mean(d**2))), float(d.max())
 
 
+def damage(pred, cap, truth, mask):
+    """Frames the prediction makes worse than their capture (per-frame inner-lip RMS, mm): how many, the
+    largest increase, and the sum of the increases."""
+    e = np.sqrt(np.mean(np.sum((pred[:, mask] - truth[:, mask]) ** 2, axis=-1), axis=1)) * CM_TO_MM
+    e0 = np.sqrt(np.mean(np.sum((cap[:, mask] - truth[:, mask]) ** 2, axis=-1), axis=1)) * CM_TO_MM
+    d = e - e0
+    return {"damaged_frames": int(np.sum(d > 0)), "worst_damage_mm": float(max(d.max(), 0.0)),
+            "damage_sum_mm": float(np.clip(d, 0, None).sum())}
+
+
 def memory_probe(n_frames):
     """Run in a subprocess: predict n_frames in place; report peak RSS and tracemalloc peak of predict."""
     import tracemalloc
@@ -183,7 +193,8 @@ def main(argv=None):
         "global_rest": dict(patches=1),  # one global map, rest-centred
         "paper": dict(patches=1, center=None),  # the paper verbatim
         "default_loo_ridge": dict(ridge="loo"),
-        "auto_model": dict(),  # Propagate's default: also given the captured frames and a 64-frame shot sample
+        "auto_model": dict(),  # also given the captured frames and a 64-frame shot sample
+        "auto_damped": dict(damping=True),  # Propagate's default: auto_model, each frame damped by its expected error
     }
     regs = {k: LipRegressor(V, F, sc.mouth_faces, sc.lip_faces, **kw) for k, kw in variants.items()}
     probe = regs["default"]
@@ -198,7 +209,7 @@ def main(argv=None):
     shot = capture[np.unique(np.linspace(0, args.frames - 1, 64).round().astype(int))]
     for k in range(1, args.kmax + 1):
         for name, reg in regs.items():
-            if name == "auto_model":  # the blend of the whole-motion and correction models (model_choice)
+            if name in ("auto_model", "auto_damped"):  # the blend of the two models (model_choice)
                 reg.add(truth[picks[k - 1]], captured=capture[picks[k - 1]], shot=shot)
                 c = curves[name]
                 c.setdefault("whole_weight", []).append(reg.whole_weight)
@@ -208,9 +219,11 @@ def main(argv=None):
             eps = float(np.mean(np.linalg.norm((xp - x_true).reshape(len(held), -1), axis=1)))
             # in place into buf, whose interior lips the whole-motion model never reads; the correction model
             # (auto_model) reads the captured interior lips, so it predicts from the capture itself
-            pred = reg.predict(cap_h) if name == "auto_model" else reg.predict(buf, out=buf)
+            pred = reg.predict(cap_h) if name in ("auto_model", "auto_damped") else reg.predict(buf, out=buf)
             rms, mx = lip_rms_max(pred, tru_h, lip)
             c = curves[name]
+            for key, v in damage(pred, cap_h, tru_h, lip).items():
+                c.setdefault(key, []).append(v)
             c["k"].append(k)
             c["eps"].append(eps)
             c["rms_mm"].append(rms)

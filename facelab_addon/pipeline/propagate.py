@@ -90,6 +90,12 @@ class PropagateSettings:
         the correction of the captured lips, or ("auto") the blend of the two with the smallest error
         expected on the shot, estimated from the training frames and the shot itself
         (:mod:`~facelab_addon.core.lips.model_choice`).
+    damping : bool
+        Scale each frame's predicted correction by ``|c|² / (|c|² + S)``, ``S`` the error the fitted model is
+        expected to make on that frame by extrapolating beyond the training frames (``LipRegressor``
+        ``damping``): a frame where the prediction is no more certain than it is large keeps most of its
+        capture. Off (default): every frame gets the full prediction. On roughly halves the damage to frames
+        the prediction makes worse, at a held-out error that is not lower on every scene (docs/propagate.md).
     """
 
     suggestions: int = setting(3, label="Suggestions", min=0, max=50,
@@ -103,6 +109,11 @@ class PropagateSettings:
                                      "few frames, keeps capture errors that do not follow the mouth")),
         description="What Propagate learns from the training frames: the lips' whole motion, only the "
                     "correction, or an automatic blend")
+    damping: bool = setting(False, label="Damp Uncertain Frames",
+                            description="Shrink each frame's correction toward the capture by how uncertain the "
+                                        "model is there (its expected error, from the training frames and the "
+                                        "frame's distance from them): well-captured frames far from the training "
+                                        "poses are damaged less")
 
 
 @dataclass
@@ -402,7 +413,7 @@ def _propagate_work(scene, obj, frames, settings, t0, tris, mouth_faces, lip_fac
     _require_finite(corrected, train, "corrected (training)")
     unknown = captured_unknown(obj, train)
     model = "whole" if unknown and settings.model == "auto" else settings.model
-    reg = LipRegressor(rest, tris, mouth_faces, lip_faces, model=model)
+    reg = LipRegressor(rest, tris, mouth_faces, lip_faces, model=model, damping=bool(settings.damping))
     captured_train = caches.read_captured_frames(obj, list(train)).astype(np.float64)  # FaceLab keys muted
     _require_finite(captured_train, train, "captured (training)")
     corrected = training_input(captured_train, corrected, reg.interior_vertices)
@@ -416,7 +427,7 @@ def _propagate_work(scene, obj, frames, settings, t0, tris, mouth_faces, lip_fac
     at_used = np.searchsorted(read_v, reg.used_vertices)
     at_ring = None if ring is None else np.searchsorted(read_v, ring.vertices)
     shot = None
-    if model == "auto":  # an even sample of the shot: where the model will be used (model_choice)
+    if model == "auto" or (model == "correction" and settings.damping):  # an even sample of the shot (model_choice)
         pick = frames[np.unique(np.linspace(0, T - 1, min(T, _SHOT_SAMPLE)).round().astype(int))]
         shot = reader.read(pick)[:, at_used]
         _require_finite(shot, pick, "captured")

@@ -97,7 +97,7 @@ def test_any_blend_is_the_blend_of_the_two_models_on_every_path(blend_scene, mon
     V, F, mouth, lips, truth, cap = blend_scene
     train, held = [0, 1, 2, 3], np.arange(4, 10)
     regs = fit_all(V, F, mouth, lips, truth, cap, train, None, ("whole", "correction"))
-    monkeypatch.setattr(training, "choose_blend", lambda reg, fits, shot: (0.4, {}))
+    monkeypatch.setattr(training, "choose_blend", lambda reg, fits, shot: (0.4, {}, None))
     reg = fit_all(V, F, mouth, lips, truth, cap, train, None, ("auto",))["auto"]
     assert reg.whole_weight == 0.4
     X = cap[held]

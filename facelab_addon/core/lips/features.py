@@ -376,10 +376,11 @@ class _StreamingPrediction:
         with _blas_threads():
             Z, sq = _mouth_terms(A, verts, self._mouth_local, *self._cm_all[1:], self._mouth_P)
             R = self._Mx.shape[1]
-            xi, xc = self._interior(A, used_only, z=Z[:, :R] - self._z_ident)
+            zU, sq = self._norms(Z[:, R:], sq)
+            r2 = np.clip(sq - np.sum(zU * zU, axis=1), 0.0, None)
+            xi, xc = self._interior(A, used_only, z=Z[:, :R] - self._z_ident, r2=r2)
         _check_prediction(xi, xc, first, self.mouth_size)
-        zU, sq = self._norms(Z[:, R:], sq)
-        res = np.sqrt(np.clip(sq - np.sum(zU * zU, axis=1), 0.0, None))
+        res = np.sqrt(r2)
         return xi - xc, res / self._sigma, sq
 
     def mouth_projections(self, captured, directions, *, used_only: bool = False):
@@ -449,7 +450,8 @@ class _StreamingPrediction:
         in_place = out3 is not None and _same_array(out3, A)
         # in place: the captured interior (to restore); else the checked results, written at the end
         keep = np.empty((T, len(iv), 3), A.dtype if in_place else np.float64 if out3 is None else out3.dtype)
-        maps, done, bad = self._float32_maps(), 0, False
+        maps = None if self._error_model is not None else self._float32_maps()  # damping: the float64 path
+        done, bad = 0, False
         step = min(chunk, _F32_BLOCK, T) if maps is not None else min(chunk, T)
         xbuf = np.empty((step, len(iv), 3), A.dtype) if in_place else None  # one block's result
         work = np.empty((step, len(iv), 3), np.result_type(keep.dtype, A.dtype))  # its changes (checks)

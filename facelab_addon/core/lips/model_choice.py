@@ -29,6 +29,10 @@ picks them) and the shot lies between them; the shot's own ``r`` corrects that. 
 estimates: ``α = S_c / (S_w + S_c)``. Without shot frames the floor is taken as 0 and ``mean(r²)``
 is that of the training frames' leave-one-out (a blend by inverse leave-one-out error).
 
+The same error model damps the prediction frame by frame when asked (``LipRegressor(damping=True)``, Propagate's
+Damp Uncertain Frames): :func:`expected_error` is its part that grows with a frame's distance from the training
+span, and :func:`damping_weights` the Wiener factor ``|c|² / (|c|² + S)`` of a predicted correction ``c``.
+
 Measured (``benchmarks/lip_band.py``, held-out inner-lip error, % of the capture's): the 3-frame
 scene of ``tests/pipeline/test_propagate.py`` with a 0.2 mouth-width band: whole 85.9, correction
 5.2, auto 6.3; ``benchmarks/propagate.py``'s non-linear error at k = 10, 0.12 band: whole 15.5,
@@ -93,8 +97,71 @@ def _shot_floor(reg, fits, shot, r2_shot):
     return float(b)
 
 
+def error_model(reg, fits, shot=None):
+    """The expected-error model of both regressions: ``{"a_w", "a_c", "floor", "mean_r2"}``.
+
+    A frame at squared distance ``r²`` from the training span (mouth features, unitless) is expected to
+    miss the interior lip positions by ``a_w r²`` (whole-motion model) and ``floor + a_c r²`` (correction
+    model), squared and summed over the interior lip vertices (scene units²). ``mean_r2`` is the mean
+    ``r²`` over the shot (over the training frames' leave-one-out without one). Without the correction
+    model (``fits[i][6]`` None) ``a_c`` and ``floor`` are 0.
+
+    Parameters
+    ----------
+    reg, fits, shot
+        As :func:`choose_blend`.
+
+    Returns
+    -------
+    dict of float
+    """
+    k = reg.k
+    ew = _poisson_per_frame(reg, _blend_patches(reg, [f[5] for f in fits], k), k)
+    r2 = loo_span_residuals(reg._UY.T @ reg._Y)  # each training mouth's distance from the others' span
+    has_c = fits[0][6] is not None
+    if shot is None:
+        r2_shot, floor = r2, 0.0
+    else:
+        res = shot[0] - (shot[0] @ reg._UY) @ reg._UY.T
+        r2_shot = np.sum(res * res, axis=1)
+        floor = _shot_floor(reg, fits, shot, r2_shot) if has_c else 0.0
+    denom = max(float(np.sum(r2)), 1e-30)
+    a_c = 0.0
+    if has_c:
+        ec = _poisson_per_frame(reg, _blend_patches(reg, [f[6][2] for f in fits], k), k)
+        a_c = max(float(np.sum(ec)) - k * floor, 0.0) / denom
+    return {"a_w": float(np.sum(ew)) / denom, "a_c": a_c, "floor": floor, "mean_r2": float(np.mean(r2_shot))}
+
+
+def expected_error(model, alpha, r2):
+    """(T,) the part of the blend's expected squared interior lip error that grows with ``r2`` (T,).
+
+    ``(α² a_w + (1 - α)² a_c) r²`` (scene units², summed over the interior lip vertices; the two models'
+    errors taken as independent, :func:`error_model`): the error of extrapolating beyond the training
+    frames. The correction model's floor is left out: it is the same on every frame, training frames and
+    frames in their span included, where the prediction is as good as the training frames make it; so ``S``
+    is 0 there (``r2`` 0) and the damping (:func:`damping_weights`) leaves those frames' corrections whole.
+    """
+    r2 = np.asarray(r2, dtype=np.float64)
+    return (alpha * alpha * model["a_w"] + (1.0 - alpha) ** 2 * model["a_c"]) * r2
+
+
+def damping_weights(c2, S):
+    """(T,) weights ``s = |c|² / (|c|² + S)`` in [0, 1) of predicted corrections of squared size ``c2`` (T,).
+
+    The scalar that minimises the expected error ``E|s c - c*|²`` of a prediction ``c = c* + n`` of the
+    true correction ``c*`` with an independent error ``n`` of expected size ``S`` (T,), taking
+    ``|c|²`` for the correction's own size (Wiener). A correction well above its expected error is kept
+    (``s → 1``); one no larger than it is halved or less, toward the capture.
+    """
+    c2 = np.asarray(c2, dtype=np.float64)
+    S = np.asarray(S, dtype=np.float64)
+    den = c2 + S
+    return np.divide(c2, den, out=np.ones_like(den), where=den > 0)
+
+
 def choose_blend(reg, fits, shot=None):
-    """``(α, report)``: the whole-motion model's weight in the blend and the estimates behind it.
+    """``(α, report, model)``: the whole-motion model's weight in the blend, the estimates behind it, the error model.
 
     Parameters
     ----------
@@ -113,23 +180,15 @@ def choose_blend(reg, fits, shot=None):
     report : dict
         Predicted RMS interior lip error of each model and of the blend over the shot (scene units),
         ``"whole"``, ``"correction"``, ``"blend"``, and the correction floor ``"floor"``.
+    model : dict
+        :func:`error_model`.
     """
-    k, nI = reg.k, len(reg.interior_vertices)
-    ew = _poisson_per_frame(reg, _blend_patches(reg, [f[5] for f in fits], k), k)
-    ec = _poisson_per_frame(reg, _blend_patches(reg, [f[6][2] for f in fits], k), k)
-    r2 = loo_span_residuals(reg._UY.T @ reg._Y)  # each training mouth's distance from the others' span
-    if shot is None:
-        r2_shot, floor = r2, 0.0
-    else:
-        res = shot[0] - (shot[0] @ reg._UY) @ reg._UY.T
-        r2_shot = np.sum(res * res, axis=1)
-        floor = _shot_floor(reg, fits, shot, r2_shot)
-    denom = max(float(np.sum(r2)), 1e-30)
-    a_w = float(np.sum(ew)) / denom
-    a_c = max(float(np.sum(ec)) - k * floor, 0.0) / denom
-    S_w = a_w * float(np.mean(r2_shot))
-    S_c = floor + a_c * float(np.mean(r2_shot))
+    nI = len(reg.interior_vertices)
+    em = error_model(reg, fits, shot)
+    S_w = em["a_w"] * em["mean_r2"]
+    S_c = em["floor"] + em["a_c"] * em["mean_r2"]
     alpha = 1.0 if S_w + S_c <= 0 else S_c / (S_w + S_c)
     S_b = alpha * alpha * S_w + (1 - alpha) ** 2 * S_c
     rms = lambda S: float(np.sqrt(max(S, 0.0) / nI))  # noqa: E731
-    return float(alpha), {"whole": rms(S_w), "correction": rms(S_c), "blend": rms(S_b), "floor": rms(floor)}
+    report = {"whole": rms(S_w), "correction": rms(S_c), "blend": rms(S_b), "floor": rms(em["floor"])}
+    return float(alpha), report, em

@@ -135,6 +135,16 @@ class LipRegressor(_Training, _StreamingPrediction):
         the blend ``α · whole + (1 - α) · correction`` whose leave-one-out error over the training
         frames, measured on the Poisson-solved interior lip positions, is smallest
         (:mod:`.model_choice`); without ``captured=`` it is the whole model.
+    damping : bool
+        False (default, the paper): every frame gets the predicted correction ``c``. True: ``c`` is
+        scaled by ``s = |c|² / (|c|² + S)``, where ``S`` is the error the fitted model is expected to make
+        on that frame by extrapolating beyond the training frames (:func:`.model_choice.expected_error`:
+        the leave-one-out errors of the training frames against their distance from the others' span,
+        times the frame's own squared distance from the training span), so a frame whose predicted
+        correction is no larger than that stays near its capture (:func:`.model_choice.damping_weights`).
+        Training frames and frames in their span (distance 0) keep the whole correction. Applies to
+        positions (:meth:`predict`, :meth:`lip_corrections`, :meth:`correct_chunk`), not to
+        :meth:`predict_lip_gradients`; :meth:`predict` then runs the float64 maps.
 
     Attributes
     ----------
@@ -165,8 +175,12 @@ class LipRegressor(_Training, _StreamingPrediction):
     """
 
     def __init__(self, rest_vertices, faces, mouth_faces, lip_faces, *, patches: int = 10, input_radius=None,
-                 center="rest", ridge=0.0, rtol=1e-4, atol=1e-4, backend="auto", model="auto"):
+                 center="rest", ridge=0.0, rtol=1e-4, atol=1e-4, backend="auto", model="auto", damping=False):
         R, F = _checked_mesh(rest_vertices, faces)
+        if not isinstance(damping, (bool, np.bool_)):
+            raise UsageError(f"damping must be True or False, got {damping!r}; use False (the paper) or True")
+        self.damping = bool(damping)
+        self._error_model = None
         if model not in MODELS:
             raise UsageError(f"model must be one of {MODELS}, got {model!r}; use 'auto' (the default)")
         self.model = model
@@ -355,8 +369,60 @@ class LipRegressor(_Training, _StreamingPrediction):
             self._cm = (self._Mx, _coordinate_major(self._Mx, nv), _coordinate_major(self._Mc, m))
         return _mouth_coefficients(frames, verts, self._mouth_local, *self._cm[1:]) - self._z_ident
 
-    def _interior(self, A, used_only=False, z=None):
-        """``(xi, xc)``: predicted and captured interior lip positions (t, nI, 3) float64 of validated frames."""
+    def _interior(self, A, used_only=False, z=None, r2=None):
+        """``(xi, xc)``: predicted and captured interior lip positions (t, nI, 3) float64 of validated frames.
+
+        With ``damping`` the correction ``xi - xc`` is scaled per frame (``r2`` (t,): the frames' squared
+        distances from the training span, computed from ``A`` when not given).
+        """
+        xi, xc = self._undamped_interior(A, used_only, z)
+        if self._error_model is not None:
+            if r2 is None:
+                r2 = self._residual_norms(self._mouth_feat(A, used_only)) ** 2
+            xi = self._damp(xi, xc, r2)
+        return xi, xc
+
+    def damping_weights(self, captured=None, *, features=None) -> np.ndarray:
+        """(T,) the factor each frame's predicted correction is scaled by (1 everywhere without ``damping``).
+
+        Parameters
+        ----------
+        captured, features
+            As :meth:`extrapolation`.
+
+        Returns
+        -------
+        (T,) float64 ndarray
+            In (0, 1]; see ``damping`` in the class description.
+        """
+        self._require_fit()
+        if features is None:
+            A = _as_frames(captured, self.n_vertices, "captured frames", self._used)
+            Y = self.mouth_features(A)
+        else:
+            A = None
+            Y = self._check_features(features)
+        if self._error_model is None:
+            return np.ones(len(Y))
+        if A is None:
+            raise UsageError("damping_weights() needs the captured frames (the predicted correction's size); pass "
+                             "captured=")
+        xi, xc = self._undamped_interior(A, False)
+        return self._damp_weights(xi - xc, self._residual_norms(Y) ** 2)
+
+    def _damp_weights(self, c, r2):
+        from .model_choice import damping_weights, expected_error
+
+        S = expected_error(self._error_model, self.whole_weight, r2)
+        return damping_weights(np.einsum("tij,tij->t", c, c), S)
+
+    def _damp(self, xi, xc, r2):
+        """``xc + s (xi - xc)`` with the damping weights ``s`` of each frame (t,)."""
+        c = xi - xc
+        return xc + self._damp_weights(c, r2)[:, None, None] * c
+
+    def _undamped_interior(self, A, used_only=False, z=None):
+        """:meth:`_interior` without damping."""
         iv, bv = (self._iv_u, self._bv_u) if used_only else (self.interior_vertices, self.border_vertices)
         nI, t = len(iv), len(A)
         z = self._coefficients(A, used_only) if z is None else z

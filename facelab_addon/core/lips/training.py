@@ -17,7 +17,7 @@ import numpy as np
 
 from ..errors import FaceLabError, FrameError, UsageError
 from .features import _as_frames, _fold_coefficients, _fold_directions, _patch_operators
-from .model_choice import choose_blend, shot_features
+from .model_choice import choose_blend, error_model, shot_features
 from .reduced import choose_ridge, loo_residuals, solve_theta, thin_svd
 
 __all__: list[str] = []
@@ -68,7 +68,7 @@ class _Training:
 
     def _shot(self, shot, used_only, xc):
         """The shot's (mouth, captured lip) features when the "auto" choice will use them, else None."""
-        if shot is None or xc is None or self.model != "auto":
+        if shot is None or xc is None or self.model == "whole" or (self.model == "correction" and not self.damping):
             return None
         return shot_features(self, self._frames(shot, "shot frames", used_only), used_only)
 
@@ -212,7 +212,7 @@ class _Training:
         UX, CX = thin_svd(Xp.reshape(-1, self.k), self.center, self.rtol, self.atol)
         lam = choose_ridge(CY, CX, self.ridge)
         th = solve_theta(CY, CX, lam)  # (rX, rY)
-        E = UX @ loo_residuals(CY, CX, lam) if self.model == "auto" else None
+        E = UX @ loo_residuals(CY, CX, lam) if self.model == "auto" or self.damping else None
         return UY, CY, UX, th, lam, E
 
     def _fit_output(self, CY, Xp, lam):
@@ -223,16 +223,20 @@ class _Training:
         UX, CX = thin_svd(Xp.reshape(-1, self.k), "rest", 1e-7, 0.0)
         s = np.sqrt(3.0 * len(self.mouth_faces))  # the norm of the mouth's identity gradients (paper's uncentred y)
         CYa = np.vstack([CY, np.full((1, self.k), s)])
-        E = UX @ loo_residuals(CYa, CX, lam) if self.model == "auto" else None
+        E = UX @ loo_residuals(CYa, CX, lam) if self.model == "auto" or self.damping else None
         th = solve_theta(CYa, CX, lam)
         return UX, th[:, :-1], E, UX @ th[:, -1] * s
 
     def _choose_blend(self, fits, shot):
-        """``α`` of the model (1: whole, 0: correction; "auto": :func:`.model_choice.choose_blend`)."""
-        self.model_errors = {}
-        if self.model == "whole" or fits[0][6] is None:
-            return 1.0
-        if self.model == "correction":
-            return 0.0
-        a, self.model_errors = choose_blend(self, fits, shot)
+        """``α`` of the model (1: whole, 0: correction; "auto": :func:`.model_choice.choose_blend`), and with
+        ``damping`` the expected-error model of the prediction (:func:`.model_choice.error_model`)."""
+        self.model_errors, self._error_model = {}, None
+        if self.model == "auto" and fits[0][6] is not None:
+            a, self.model_errors, self._error_model = choose_blend(self, fits, shot)
+        else:
+            a = 0.0 if self.model == "correction" else 1.0
+            if self.damping:
+                self._error_model = error_model(self, fits, shot if a == 0.0 else None)
+        if not self.damping:
+            self._error_model = None
         return a
