@@ -178,7 +178,9 @@ def test_ict_auto_regions(ict_regions):
     border = regions.region_border(F, lf, len(V))
     A = vertex_adjacency(F, len(V))
     next_to_band = (A @ (mouth & ~lip).astype(float))[border] > 0
-    assert next_to_band.sum() > 50 and mouth[border[next_to_band]].mean() > 0.9
+    # (0.85: which border vertices a doubly assigned triangle gives up depends on geodesic ties at the band edge;
+    # on the same loop this share moves between 0.91 and 0.98 when the band widths change by 2 %)
+    assert next_to_band.sum() > 50 and mouth[border[next_to_band]].mean() > 0.85
     # so lip and mouth triangles are adjacent: no gap of ignored triangles between them
     touching = mouth[F[lf]].sum(axis=1) == 2
     assert touching.sum() > 50

@@ -14,14 +14,22 @@ each in front of the other) and are far apart on the mesh (a path ``detour``
 times their distance) are *contact pairs*. On a face in a rest pose they mark the lips,
 whose facing surfaces are a fraction of a millimetre to a few millimetres apart
 while the mesh path between them runs around the mouth corner. Contact
-vertices connected on the mesh form groups; on a body, eyelids, fingers and
-toes form bigger groups than the lips, so the mouth is the group nearest to
-the rays through the artist's sketch, else the largest group straddling the
-mesh's mirror plane (:func:`inner_lip_loop`, Notes). It splits into two sides
-(the two lips); the loop is the union of two cheapest edge paths between the
-mouth corners, one over each lip, along the front of the contact, with edge
-costs proportional to the local gap, so they follow the line where the lips
-are closest. On ICT-FaceKit the loop (about 80 vertices) runs along the
+vertices connected on the mesh (or through one vertex between them) form
+groups; on a body, eyelids, fingers and toes form bigger groups than the lips,
+so the mouth is the group nearest to the rays through the artist's sketch,
+else the largest group straddling the mesh's mirror plane
+(:func:`inner_lip_loop`, Notes). It splits into two sides (the two lips). The
+contact need not reach the mouth corners: near a corner the lips close like a
+wedge, and on a coarse mesh the vertex across it sits beside rather than in
+front, so the pairs stop an edge or two short (on lips parted in the middle the
+contact even falls apart). The corners are therefore where the slit between the
+lips ends: from the outermost upper and lower contact vertices in sight (not
+hidden behind the skin, as a mouth interior is), the shortest mesh path from
+one lip to the other, kept on that side of them, runs around the end of the
+slit, and its far point is the corner. The loop is the union of two cheapest
+edge paths between the corners, one over each lip, along the front of the
+contact, with edge costs proportional to the local gap, so they follow the
+line where the lips are closest. On ICT-FaceKit the loop (about 80 vertices) runs along the
 74-vertex lip rings where the neutral lips are about 1 mm apart; detection
 takes about 0.5 s and does not depend on the scene unit, orientation or
 vertex order.
@@ -263,8 +271,10 @@ def _group_shape(V, grp, partner):
     """``(contact_axis, width_axis, width)`` of a contact group: partner direction, corner-to-corner axis."""
     u = V[partner[grp]] - V[grp]
     u /= np.linalg.norm(u, axis=1, keepdims=True)
-    dvert = np.linalg.eigh(u.T @ u)[1][:, -1]
     P = V[grp] - V[grp].mean(axis=0)
+    w0 = np.linalg.svd(P, full_matrices=False)[2][0]
+    u -= np.outer(u @ w0, w0)
+    dvert = np.linalg.eigh(u.T @ u)[1][:, -1]
     P -= np.outer(P @ dvert, dvert)
     wax = np.linalg.svd(P, full_matrices=False)[2][0]
     s = P @ wax
@@ -338,7 +348,8 @@ def _contact_groups(V, F, comp, A, G, max_gap, detour, side_offset, rays, mirror
     pl = pos[partner[cv]]
     link = pl >= 0
     Plink = sp.coo_matrix((np.ones(link.sum()), (np.flatnonzero(link), pl[link])), shape=(len(cv), len(cv)))
-    ngrp, glab = _cc(A[cv][:, cv] + Plink + Plink.T, directed=False)
+    Acv = A[cv]
+    ngrp, glab = _cc(Acv[:, cv] + Acv @ Acv.T + Plink + Plink.T, directed=False)
     groups = [cv[glab == g] for g in range(ngrp) if (glab == g).sum() >= 6]
     if not groups:
         return None
@@ -403,8 +414,11 @@ def inner_lip_loop(vertices, faces, loop=None, *, max_gap=None, detour: float = 
     contact straddles it with its corners on either side. Pieces lying inside
     a larger piece's bounding box (teeth, tongue, eyeballs) are not searched.
     Only the contact within a quarter of the mouth width of its front (along
-    ``toward``) is used, so contact deeper in an attached mouth interior does
-    not pull the loop inside.
+    ``toward``) is used, and the corners are followed from the contact in
+    sight from there, so contact deeper in an attached mouth interior does
+    not pull the loop inside. The corners are the ends of the slit between
+    the lips, not of the contact (module docstring): the same on a fine and
+    on a coarse mesh of the same mouth.
     """
     V, F = _region_mesh(vertices, faces)
     nv = len(V)
@@ -447,11 +461,8 @@ def inner_lip_loop(vertices, faces, loop=None, *, max_gap=None, detour: float = 
     gml = _cc(A[grp][:, grp], directed=False)[1]  # the mesh pieces of the group
 
     # the two lips: split by the direction to the partner
-    u = V[partner[grp]] - V[grp]
-    u /= np.linalg.norm(u, axis=1, keepdims=True)
-    w, vecs = np.linalg.eigh(u.T @ u)
-    dvert = vecs[:, -1]
-    side_v = np.sign(u @ dvert)
+    dvert, wax, _ = _group_shape(V, grp, partner)
+    side_v = np.sign((V[partner[grp]] - V[grp]) @ dvert)
     side = np.zeros(nv)
     for c in np.unique(gml):  # each mesh piece of the group takes its majority side
         sel = gml == c
@@ -462,12 +473,18 @@ def inner_lip_loop(vertices, faces, loop=None, *, max_gap=None, detour: float = 
             f"Cannot find the inner-lip line: only one lip was found ({len(up)}/{len(lo)} vertices); {hint}"
         )
 
-    # mouth corners: extremes of the contact group along the mouth's width axis
-    P = V[grp] - V[grp].mean(axis=0)
-    P -= np.outer(P @ dvert, dvert)
-    _, _, vt = np.linalg.svd(P, full_matrices=False)
-    s = P @ vt[0]
-    cl, cr = int(grp[np.argmin(s)]), int(grp[np.argmax(s)])
+    # mouth corners: where the slit between the lips ends beyond each end of the contact (along the width axis)
+    s = (V - V[grp].mean(axis=0)) @ wax
+    if front is not None:  # from the contact that is in sight (not a mouth interior behind the cheeks)
+        tol = np.maximum(gap, _mean_edge_length(V, F))
+        seen = _in_sight(V, F[comp[F].all(axis=1)], grp, front, tol[grp])
+        if seen[side[grp] > 0].any() and seen[side[grp] < 0].any():
+            up, lo = up[seen[side[grp] > 0]], lo[seen[side[grp] < 0]]
+    a, b = int(up[np.argmin(s[up])]), int(lo[np.argmin(s[lo])])
+    cl = _slit_end(V, G, comp & (s <= max(s[a], s[b])), a, b)
+    a, b = int(up[np.argmax(s[up])]), int(lo[np.argmax(s[lo])])
+    cr = _slit_end(V, G, comp & (s >= min(s[a], s[b])), a, b)
+    up, lo = grp[side[grp] > 0], grp[side[grp] < 0]
 
     # edge costs proportional to the local gap (cheap where the lips are closest)
     gfield = np.where(np.isfinite(gap), np.minimum(gap, max_gap), max_gap) / max_gap
@@ -507,6 +524,48 @@ def inner_lip_loop(vertices, faces, loop=None, *, max_gap=None, detour: float = 
             "edge loop and use it instead."
         )
     return loop
+
+
+def _in_sight(V, F, idx, f, tol):
+    """(len(idx),) bool: vertices ``idx`` with no triangle of ``F`` more than ``tol`` in front of them along ``f``."""
+    e1 = np.cross(f, [1.0, 0.0, 0.0] if abs(f[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    B = np.c_[e1, np.cross(f, e1)]
+    Q, T = V[idx] @ B, V @ B  # (N,2), (V,2) projected along f
+    dq, dv = V[idx] @ f, V @ f
+    lo_, hi_ = T[F].min(axis=1), T[F].max(axis=1)
+    F = F[(hi_ >= Q.min(axis=0)).all(axis=1) & (lo_ <= Q.max(axis=0)).all(axis=1)]
+    seen = np.ones(len(idx), dtype=bool)
+    if len(F) == 0:
+        return seen
+    a, b, c = T[F[:, 0]], T[F[:, 1]], T[F[:, 2]]
+    det = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (c[:, 0] - a[:, 0]) * (b[:, 1] - a[:, 1])
+    F, a, b, c, det = F[det != 0], a[det != 0], b[det != 0], c[det != 0], det[det != 0]
+    for k in range(len(idx)):
+        q = Q[k]
+        l1 = ((b[:, 0] - q[0]) * (c[:, 1] - q[1]) - (c[:, 0] - q[0]) * (b[:, 1] - q[1])) / det
+        l2 = ((c[:, 0] - q[0]) * (a[:, 1] - q[1]) - (a[:, 0] - q[0]) * (c[:, 1] - q[1])) / det
+        l3 = 1.0 - l1 - l2
+        hit = (l1 >= 0) & (l2 >= 0) & (l3 >= 0) & (F != idx[k]).all(axis=1)
+        if hit.any():
+            d = l1[hit] * dv[F[hit, 0]] + l2[hit] * dv[F[hit, 1]] + l3[hit] * dv[F[hit, 2]]
+            seen[k] = not (d > dq[k] + tol[k]).any()
+    return seen
+
+
+def _slit_end(V, G, comp, a, b):
+    """The end of the slit between two lips: the far point of the shortest mesh path from ``a`` to ``b``."""
+    keep = sp.diags(comp.astype(np.float64))
+    Gc = (keep @ G @ keep).tocsr()
+    D, pred = _dijkstra(Gc, indices=a, return_predecessors=True)
+    if not np.isfinite(D[b]):
+        return a
+    p = [b]
+    while p[-1] != a:
+        p.append(int(pred[p[-1]]))
+    p = np.asarray(p)
+    m = 0.5 * (V[a] + V[b])
+    return int(p[np.argmax(np.linalg.norm(V[p] - m, axis=1))])
 
 
 def loop_width(vertices, loop) -> float:

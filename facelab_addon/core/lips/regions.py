@@ -235,7 +235,8 @@ def auto_regions(vertices, faces, loop=None, lip_width=None, mouth_width=None, *
         ``DEFAULT_MOUTH_WIDTH`` times the mouth width.
     min_rings : float
         The lip band is at least this many edge lengths wide (the median
-        length of the edges at the loop), whatever ``lip_width`` says, so a
+        length of the edges at the loop, each loop vertex's edges weighted by
+        the length of loop it stands for), whatever ``lip_width`` says, so a
         coarse mesh keeps a lip band with an interior.
     return_distance : bool
         Also return the (V,) geodesic distance to the loop and the loop.
@@ -302,14 +303,24 @@ def auto_regions(vertices, faces, loop=None, lip_width=None, mouth_width=None, *
 
 
 def _loop_edge_length(V, F, loop) -> float:
-    """Median length (scene units) of the mesh edges with an end on the ``loop`` vertices."""
-    E = np.r_[F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]
-    on = np.zeros(len(V), bool)
-    on[np.asarray(loop, dtype=np.int64)] = True
-    E = E[on[E].any(axis=1)]
+    """Edge length at the ``loop`` (scene units): the median length of the mesh edges with an end on it.
+
+    Each loop vertex's edges count in proportion to the length of loop it stands for (half of its two loop
+    edges), so a cluster of tiny edges where the loop turns round a mouth corner does not make a coarse mesh
+    look fine.
+    """
+    loop = np.asarray(loop, dtype=np.int64)
+    E = np.unique(np.sort(np.r_[F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]], axis=1), axis=0)
+    seg = np.linalg.norm(V[loop] - V[np.roll(loop, 1)], axis=1)
+    w = np.zeros(len(V))
+    w[loop] = 0.5 * (seg + np.roll(seg, -1))  # vertex k stands for half of edges (k-1, k) and (k, k+1)
+    E = E[w[E].max(axis=1) > 0]
     if len(E) == 0:
         return 0.0
-    return float(np.median(np.linalg.norm(V[E[:, 0]] - V[E[:, 1]], axis=1)))
+    L = np.linalg.norm(V[E[:, 0]] - V[E[:, 1]], axis=1)
+    o = np.argsort(L)
+    c = np.cumsum(w[E].sum(axis=1)[o])
+    return float(L[o][min(np.searchsorted(c, 0.5 * c[-1]), len(o) - 1)])
 
 
 def _width(w, what):
