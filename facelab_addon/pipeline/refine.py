@@ -32,7 +32,7 @@ from ..blender.mesh import (
     vertex_group_mask,
     world_to_local_deltas,
 )
-from ..blender.objects import ModifierState, require_editable
+from ..blender.objects import ModifierState, require_editable, world_affine
 from ..blender.rest_space import to_rest_space
 from ..blender.shapekeys import add_corrective_key, key_spike, rest_vertices
 from ..blender.sketch_views import sketch_camera, sketch_views
@@ -242,8 +242,8 @@ def refine(scene, obj, frame: int, settings: RefineSettings | None = None, *, ca
     tris = mesh_triangles(obj.data)
     fixed, fixed_src = default_fixed_mask(obj, tris, settings.fixed_group)
     lips = _lip_region(obj) if settings.use_regions else None
-    M = np.array(obj.matrix_world, dtype=np.float64)
-    rest = rest_vertices(obj) @ M[:3, :3].T + M[:3, 3]  # the Basis, where the object is: the head unturned
+    A, b = world_affine(obj, dg)
+    rest = rest_vertices(obj) @ A.T + b  # the Basis, where the object is: the head unturned
     X, info = refine_lips_views(V, tris, views, fixed=fixed, lips=lips, rest_vertices=rest, return_info=True,
                                 **settings.solver_weights())
     note = ""

@@ -12,7 +12,6 @@ import pytest
 from facelab_addon.core.errors import UsageError
 from facelab_addon.core.lips.sketch import refine_lips_views
 from facelab_addon.core.lips.sketch_prior import rest_depth_terms
-from facelab_addon.testing import synthetic as S
 
 from .test_sketch_views import _along_ray, _case, _rms
 
@@ -27,12 +26,12 @@ def _turn(a, b):
 
 def _with_rest(ict, nod_deg):
     c = _case(ict, nod_deg)
-    mouth = S.find_mouth(c["T"], c["F"], c["fixed"], units_per_mm=c["mm"])
+    mouth = c["mouth"]
     cam = c["views"][0].camera
     to_cam = (cam.center - mouth.center) / np.linalg.norm(cam.center - mouth.center)
-    c["turn"] = _turn(mouth.forward, to_cam) if nod_deg else np.eye(3)
-    c["rest"] = (ict.neutral - mouth.center) @ c["turn"].T + mouth.center  # the neutral, facing the camera
-    c["forward"], c["center"] = mouth.forward, mouth.center
+    turn = _turn(mouth.forward, to_cam) if nod_deg else np.eye(3)
+    c["rest"] = (ict.neutral - mouth.center) @ turn.T + mouth.center  # the neutral, facing the camera
+    c["forward"] = mouth.forward
     return c
 
 

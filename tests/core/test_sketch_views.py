@@ -37,7 +37,7 @@ def _case(ict, nod_deg):
     main, lower = camera(nod_deg), camera(nod_deg - 35.0)
     views = [SketchView(c, *S.lip_contours(T, F, c, mouth=mouth, margin_mm=3.0), name=n)
              for c, n in ((main, "main"), (lower, "lower"))]
-    return dict(F=F, fixed=fixed, mm=mm, T=T, C=C, lip=w > 1e-3, views=views, ray=main.R[2])
+    return dict(F=F, fixed=fixed, mm=mm, T=T, C=C, lip=w > 1e-3, views=views, ray=main.R[2], mouth=mouth)
 
 
 @pytest.fixture(scope="module")

@@ -49,17 +49,18 @@ def rigid_fit(source, target, *, keep: float = 1.0, iterations: int = 3):
         raise FaceLabError("rigid_fit got NaN or infinite positions; check the mesh.")
     if not 0 < keep <= 1:
         raise FaceLabError(f"keep must be in (0, 1], got {keep!r}.")
-    use = np.ones(len(A), bool)
-    for it in range(max(int(iterations), 1) if keep < 1 else 1):
-        a, b = A[use], B[use]
-        ca, cb = a.mean(axis=0), b.mean(axis=0)
-        U, _, Vt = np.linalg.svd((b - cb).T @ (a - ca))
-        D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0])
-        R = U @ D @ Vt
-        t = cb - R @ ca
-        if keep < 1:
-            r = np.linalg.norm(A @ R.T + t - B, axis=1)
-            n = max(3, int(np.ceil(keep * len(A))))
-            use = np.zeros(len(A), bool)
-            use[np.argpartition(r, n - 1)[:n]] = True
+    R, t = _kabsch(A, B)
+    if keep < 1:
+        n = max(3, int(np.ceil(keep * len(A))))
+        for _ in range(max(int(iterations), 1) - 1):
+            use = np.argpartition(np.linalg.norm(A @ R.T + t - B, axis=1), n - 1)[:n]  # the most rigid
+            R, t = _kabsch(A[use], B[use])
     return R, t
+
+
+def _kabsch(A, B):
+    """``(R, t)`` of the least-squares rigid fit ``R a + t ~ b`` of (N,3) points."""
+    ca, cb = A.mean(axis=0), B.mean(axis=0)
+    U, _, Vt = np.linalg.svd((B - cb).T @ (A - ca))
+    R = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0]) @ Vt
+    return R, cb - R @ ca

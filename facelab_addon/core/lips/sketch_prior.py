@@ -281,8 +281,7 @@ def depth_terms(L, vertices, camera, rows, weight: float) -> PointConstraints:
     vv[row, col] = Lr.indices
     bb[row, col] = Lr.data
     vv[bb == 0] = idx[np.nonzero(bb == 0)[0]]  # padding: the row's own vertex, weight 0
-    r = V[idx] - camera.center
-    r /= np.maximum(np.linalg.norm(r, axis=1, keepdims=True), 1e-300)
+    r = _unit_rays(camera, V[idx])
     return PointConstraints(vv, bb, Lr @ V, r[:, :, None] * r[:, None, :], float(weight))
 
 
@@ -345,9 +344,13 @@ def rest_depth_terms(vertices, rest_vertices, camera, rows, weight: float, *, mo
     res = np.linalg.norm(V0[near] @ R.T + t - V[near], axis=1)
     if np.median(res) > 0.1 * mouth_width:
         return None, None  # the rest pose is not this face turned (another shape, another place): no prior
-    u = V0[idx] - camera.center
-    u /= np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-300)
-    f = u @ R.T
+    f = _unit_rays(camera, V0[idx]) @ R.T
     turn = float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
     return PointConstraints(idx[:, None], np.ones((len(idx), 1)), V[idx], f[:, :, None] * f[:, None, :],
                             float(weight)), turn
+
+
+def _unit_rays(camera, points) -> np.ndarray:
+    """(N,3) unit directions from ``camera``'s centre through (N,3) ``points`` (scene units)."""
+    r = np.asarray(points, dtype=np.float64) - camera.center
+    return r / np.maximum(np.linalg.norm(r, axis=1, keepdims=True), 1e-300)
