@@ -497,13 +497,7 @@ def inner_lip_loop(vertices, faces, loop=None, *, max_gap=None, detour: float = 
         e = E[ok]
         c = cost[ok]
         Gs = sp.coo_matrix((np.r_[c, c], (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(nv, nv)).tocsr()
-        dist, pred = _dijkstra(Gs, indices=cl, return_predecessors=True)
-        if not np.isfinite(dist[cr]):
-            return None
-        p = [cr]
-        while p[-1] != cl:
-            p.append(int(pred[p[-1]]))
-        return np.asarray(p[::-1], dtype=np.int64)
+        return _shortest_path(Gs, cl, cr)
 
     forb = np.zeros(nv, dtype=bool)
     forb[lo] = True
@@ -553,17 +547,24 @@ def _in_sight(V, F, idx, f, tol):
     return seen
 
 
+def _shortest_path(G, a: int, b: int):
+    """(P,) int64 vertex ids of the shortest path from ``a`` to ``b`` in the sparse graph ``G``, or None."""
+    dist, pred = _dijkstra(G, indices=a, return_predecessors=True)
+    if not np.isfinite(dist[b]):
+        return None
+    p = [b]
+    while p[-1] != a:
+        p.append(int(pred[p[-1]]))
+    return np.asarray(p[::-1], dtype=np.int64)
+
+
 def _slit_end(V, G, comp, a, b):
     """The end of the slit between two lips: the far point of the shortest mesh path from ``a`` to ``b``."""
     keep = sp.diags(comp.astype(np.float64))
     Gc = (keep @ G @ keep).tocsr()
-    D, pred = _dijkstra(Gc, indices=a, return_predecessors=True)
-    if not np.isfinite(D[b]):
+    p = _shortest_path(Gc, a, b)
+    if p is None:
         return a
-    p = [b]
-    while p[-1] != a:
-        p.append(int(pred[p[-1]]))
-    p = np.asarray(p)
     m = 0.5 * (V[a] + V[b])
     return int(p[np.argmax(np.linalg.norm(V[p] - m, axis=1))])
 
