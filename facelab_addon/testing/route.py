@@ -327,12 +327,12 @@ def _imported_face_scene(face, names, W, frames, name, import_scale):
     if np.abs((V - c) @ A.T - (Xl - Xl.mean(axis=0))).max() > 1e-4 * np.ptp(V):
         raise RuntimeError("the OBJ importer changed the vertex order or shape")
     obj.shape_key_add(name="Basis", from_mix=False)
-    keys = [add_corrective_key(obj, n, (face.expressions[n] - face.neutral) @ A.T).name for n in names]
+    deltas = np.stack([(face.expressions[n] - face.neutral) @ A.T for n in names])
+    keys = [add_corrective_key(obj, n, d).name for n, d in zip(names, deltas)]
     key_values_bulk(obj, keys, frames, W)
     fixed = ~np.asarray(face.part_vertex_mask("M_Face"))
     obj.vertex_groups.new(name=FIXED_GROUP).add(np.flatnonzero(fixed).tolist(), 1.0, "REPLACE")
     obj.name = name
-    deltas = np.stack([(face.expressions[n] - face.neutral) @ A.T for n in names])
     return scene, obj, deltas, A
 
 
