@@ -51,7 +51,6 @@ two with the lower camera, about 3).
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import tempfile
@@ -62,6 +61,9 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from _harness import blender_session, json_stdout, log, since  # noqa: E402
 
 FRAMES = np.arange(1, 41)
 TRAIN = list(range(2, 41, 4))  # k = 10
@@ -520,54 +522,43 @@ def main(argv=None):
     if args.priors:
         global PRIORS
         PRIORS = [p for p in PRIORS if p in args.priors.split(",")]
-    sys.stdout.flush()
-    json_fd = os.dup(1)
-    os.dup2(2, 1)  # Blender prints to stdout; keep it for the JSON alone
-    os.environ.setdefault("BLENDER_USER_RESOURCES", tempfile.mkdtemp(prefix="facelab-bl-user-"))
+    out_json = json_stdout()  # Blender prints to stdout; keep it for the JSON alone
     tmp = tempfile.mkdtemp(prefix="facelab-anyface-")
     t_all = time.perf_counter()
-    import bpy
+    with blender_session() as bpy:
+        from facelab_addon.core.capture.ict import load_ict
+        from facelab_addon.testing.remeshed import remeshed_ict
 
-    import facelab_addon
-    from facelab_addon.core.capture.ict import load_ict
-    from facelab_addon.testing.remeshed import remeshed_ict
-
-    facelab_addon.register()
-    log = lambda s: print(s, file=sys.stderr, flush=True)  # noqa: E731
-    ict = load_ict()
-    faces = {"ICT-FaceKit": ict, "ICT remeshed (quads)": remeshed_ict(ict)}
-    out = dict(bpy_version=bpy.app.version_string, frames=len(FRAMES), training_frames=TRAIN, faces={})
-    pics = {}
-    if args.errors:
-        out.update(errors_mode(faces, log, args.error_models.split(",") if args.error_models else None))
-        if args.png:
-            errors_picture(args.png, out["table"], faces)
+        ict = load_ict()
+        faces = {"ICT-FaceKit": ict, "ICT remeshed (quads)": remeshed_ict(ict)}
+        out = dict(bpy_version=bpy.app.version_string, frames=len(FRAMES), training_frames=TRAIN, faces={})
+        pics = {}
+        if args.errors:
+            out.update(errors_mode(faces, log, args.error_models.split(",") if args.error_models else None))
+            if args.png:
+                errors_picture(args.png, out["table"], faces)
+                out["picture"] = args.png
+            out["total_s"] = since(t_all, 1)
+            out_json.emit(out)
+            return 0
+        for name, face in faces.items():
+            runs = []
+            for units, posed, extra in (QUICK if args.quick else VIEWS if args.views else CASES):
+                r, pic = run_route(face, units, posed, tmp, log, extra)
+                runs.append(r)
+                if pic is not None and units == "m" and not posed and not extra:
+                    pics[name] = pic
+            ok = [r for r in runs if "error" not in r and r["views"] == 1 and not r["armature_posed"]]  # units only
+            agree = None
+            if len(ok) > 1:
+                keys = [("refine_one_view", "rms_cut_pct"), ("propagate_held_out", "after_pct_of_capture")]
+                agree = {f"{a}.{b}": [r[a][b] for r in ok] for a, b in keys}
+            out["faces"][name] = dict(runs=runs, units_agree=agree)
+        out["total_s"] = since(t_all, 1)
+        if args.png and pics:
+            picture(args.png, pics, out["faces"])
             out["picture"] = args.png
-        out["total_s"] = round(time.perf_counter() - t_all, 1)
-        facelab_addon.unregister()
-        sys.stdout.flush()
-        os.write(json_fd, (json.dumps(out, indent=1) + "\n").encode())
-        return 0
-    for name, face in faces.items():
-        runs = []
-        for units, posed, extra in (QUICK if args.quick else VIEWS if args.views else CASES):
-            r, pic = run_route(face, units, posed, tmp, log, extra)
-            runs.append(r)
-            if pic is not None and units == "m" and not posed and not extra:
-                pics[name] = pic
-        ok = [r for r in runs if "error" not in r and r["views"] == 1 and not r["armature_posed"]]  # units only
-        agree = None
-        if len(ok) > 1:
-            keys = [("refine_one_view", "rms_cut_pct"), ("propagate_held_out", "after_pct_of_capture")]
-            agree = {f"{a}.{b}": [r[a][b] for r in ok] for a, b in keys}
-        out["faces"][name] = dict(runs=runs, units_agree=agree)
-    out["total_s"] = round(time.perf_counter() - t_all, 1)
-    if args.png and pics:
-        picture(args.png, pics, out["faces"])
-        out["picture"] = args.png
-    facelab_addon.unregister()
-    sys.stdout.flush()
-    os.write(json_fd, (json.dumps(out, indent=1) + "\n").encode())
+        out_json.emit(out)
     return 0
 
 

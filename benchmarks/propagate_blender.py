@@ -33,7 +33,6 @@ Prints one JSON object on stdout; Blender's own output goes to stderr.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import sys
@@ -46,6 +45,9 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from _harness import blender_session, json_stdout, since, user_resources  # noqa: E402
 
 SCALE = 0.01  # ICT centimetres -> metres
 M_TO_MM = 1000.0
@@ -340,18 +342,15 @@ def main(argv=None):
     args = ap.parse_args(argv)
     T = 200 if args.quick else args.frames
 
-    sys.stdout.flush()
-    json_fd = os.dup(1)
-    os.dup2(2, 1)  # Blender and libraries print to stdout; keep it for the JSON alone
+    out_json = json_stdout()  # Blender and libraries print to stdout; keep it for the JSON alone
     tmp = tempfile.mkdtemp(prefix="facelab-propbench-")
-    os.environ.setdefault("BLENDER_USER_RESOURCES", tempfile.mkdtemp(prefix="facelab-bl-user-"))
+    user_resources()  # before bpy starts
     out = dict(frames=T, training_frames_n=N_TRAIN, platform=platform.platform(), cpus=os.cpu_count())
     t_all = time.perf_counter()
 
     t0 = time.perf_counter()
     import bpy
 
-    import facelab_addon
     from facelab_addon.blender import caches
     from facelab_addon.blender.mesh import mesh_triangles
     from facelab_addon.blender.shapekeys import (
@@ -365,106 +364,103 @@ def main(argv=None):
     from facelab_addon.testing.weights import speech_weights
 
     out["bpy_version"] = bpy.app.version_string
-    out["bpy_import_s"] = round(time.perf_counter() - t0, 2)
+    out["bpy_import_s"] = since(t0)
     out["rss_after_bpy_import_mb"] = round(MEM.rss(), 1)
-    facelab_addon.register()
-    ict = load_ict()
-    frames = np.arange(1, T + 1)
-    W = speech_weights(T, channels=EXPR)
+    with blender_session():
+        ict = load_ict()
+        frames = np.arange(1, T + 1)
+        W = speech_weights(T, channels=EXPR)
 
-    t0 = time.perf_counter()
-    scene, obj, err, cap_w, info = build(bpy, ict, frames, W)
-    out["build_scene_s"] = round(time.perf_counter() - t0, 2)
-    out["vertices"] = len(obj.data.vertices)
-    out["capture_error"] = dict(amplitude_mm_per_lip=ERR_CM * 10, key_value_min=round(float(cap_w.min()), 3),
-                                key_value_max=round(float(cap_w.max()), 3), **info)
+        t0 = time.perf_counter()
+        scene, obj, err, cap_w, info = build(bpy, ict, frames, W)
+        out["build_scene_s"] = round(time.perf_counter() - t0, 2)
+        out["vertices"] = len(obj.data.vertices)
+        out["capture_error"] = dict(amplitude_mm_per_lip=ERR_CM * 10, key_value_min=round(float(cap_w.min()), 3),
+                                    key_value_max=round(float(cap_w.max()), 3), **info)
 
-    # ----- training frames: suggest_frames on the captured sequence (shape-key fast path, checked vs frame_set)
-    tris = mesh_triangles(obj.data)
-    mouth_faces, lip_faces = op.region_faces(obj, tris)
-    rest = op.rest_vertices(obj)
-    t0 = time.perf_counter()
-    captured = shape_key_sequence(obj, frames)
-    t_fast = time.perf_counter() - t0
-    probe = frames[:: max(1, T // 20)]
-    t0 = time.perf_counter()
-    slow = caches.evaluate_frames(obj, probe)
-    t_slow = (time.perf_counter() - t0) / len(probe)
-    fast_dev = float(np.abs(slow - captured[probe - 1]).max())
-    t0 = time.perf_counter()
-    picks = suggest_frames(captured, N_TRAIN, rest_vertices=rest, faces=tris, mouth_faces=mouth_faces)
-    t_suggest = time.perf_counter() - t0
-    train = sorted(int(frames[i]) for i in picks)
-    del captured, slow
-    out["training_frames"] = dict(method="suggest_frames(captured, 10) without a regressor (extreme poses first)",
-                                  frames=train, suggest_s=round(t_suggest, 2))
-    out["read_capture"] = dict(
-        frame_set_per_frame_ms=round(1e3 * t_slow, 2),
-        frame_set_extrapolated_s=round(t_slow * T, 2),
-        shape_key_sequence_s=round(t_fast, 3),
-        max_abs_diff_mm=fast_dev * M_TO_MM,
-    )
+        # ----- training frames: suggest_frames on the captured sequence (shape-key fast path, checked vs frame_set)
+        tris = mesh_triangles(obj.data)
+        mouth_faces, lip_faces = op.region_faces(obj, tris)
+        rest = op.rest_vertices(obj)
+        t0 = time.perf_counter()
+        captured = shape_key_sequence(obj, frames)
+        t_fast = time.perf_counter() - t0
+        probe = frames[:: max(1, T // 20)]
+        t0 = time.perf_counter()
+        slow = caches.evaluate_frames(obj, probe)
+        t_slow = (time.perf_counter() - t0) / len(probe)
+        fast_dev = float(np.abs(slow - captured[probe - 1]).max())
+        t0 = time.perf_counter()
+        picks = suggest_frames(captured, N_TRAIN, rest_vertices=rest, faces=tris, mouth_faces=mouth_faces)
+        t_suggest = time.perf_counter() - t0
+        train = sorted(int(frames[i]) for i in picks)
+        del captured, slow
+        out["training_frames"] = dict(method="suggest_frames(captured, 10) without a regressor (extreme poses first)",
+                                      frames=train, suggest_s=round(t_suggest, 2))
+        out["read_capture"] = dict(
+            frame_set_per_frame_ms=round(1e3 * t_slow, 2),
+            frame_set_extrapolated_s=round(t_slow * T, 2),
+            shape_key_sequence_s=round(t_fast, 3),
+            max_abs_diff_mm=fast_dev * M_TO_MM,
+        )
 
-    for f in train:
-        scene.frame_set(f)
-        kb = add_corrective_key(obj, f"Sculpt_{f}", -cap_w[f - 1] * err)
-        key_spike(kb, f)
+        for f in train:
+            scene.frame_set(f)
+            kb = add_corrective_key(obj, f"Sculpt_{f}", -cap_w[f - 1] * err)
+            key_spike(kb, f)
+            assert bpy.ops.facelab.mark_training_frame() == {"FINISHED"}
+        scene.frame_set(1)
+
+        sizes = {"before": blend_sizes(bpy, tmp, "before")}
+        out["rss_before_propagate_mb"] = round(MEM.rss(), 1)
+
+        # ----- Propagate, one run
+        run1 = run_operator(bpy, "first", suggestions=3)
+        names, kf_keys, kf_extra = count_prop(obj)
+        run1["fl_prop_keys"] = len(names)
+        run1["keyframes"] = dict(fl_prop_values=kf_keys, fl_extrapolation=kf_extra, total=kf_keys + kf_extra)
+        run1["suggested"] = sorted(int(m.frame) for m in scene.timeline_markers if m.name.startswith("FL suggest"))
+        out["propagate"] = run1
+        sizes["after"] = blend_sizes(bpy, tmp, "after")
+
+        t0 = time.perf_counter()
+        out["accuracy"] = accuracy(bpy, obj, frames, train, err, cap_w)
+        out["accuracy"]["seconds"] = round(time.perf_counter() - t0, 1)
+
+        # ----- incremental: correct the first suggested frame, propagate again
+        f_new = [int(m.name.split()[-1]) for m in scene.timeline_markers if m.name.startswith("FL suggest")][0]
+        scene.frame_set(f_new)
+        kb = add_corrective_key(obj, f"Sculpt_{f_new}", -cap_w[f_new - 1] * err)
+        key_spike(kb, f_new)
         assert bpy.ops.facelab.mark_training_frame() == {"FINISHED"}
-    scene.frame_set(1)
+        scene.frame_set(1)
+        run2 = run_operator(bpy, "incremental", suggestions=3)
+        names2, kf2, kfe2 = count_prop(obj)
+        run2.update(added_frame=f_new, fl_prop_keys=len(names2), keyframes=kf2 + kfe2,
+                    incremental_path_used="regressor: add (incremental)" in run2["split"]
+                    and "regressor: LipRegressor.__init__ (Poisson factor, patches)" not in run2["split"])
+        out["propagate_incremental"] = run2
+        sizes["after_incremental"] = blend_sizes(bpy, tmp, "after_incremental")
+        train2 = sorted(train + [f_new])
+        t0 = time.perf_counter()
+        acc2 = accuracy(bpy, obj, frames, train2, err, cap_w)
+        out["accuracy_incremental"] = dict(after=acc2["after"], before=acc2["before"],
+                                           max_dev_evaluated_vs_predict_mm=acc2["max_dev_evaluated_vs_predict_mm"],
+                                           seconds=round(time.perf_counter() - t0, 1))
 
-    sizes = {"before": blend_sizes(bpy, tmp, "before")}
-    out["rss_before_propagate_mb"] = round(MEM.rss(), 1)
-
-    # ----- Propagate, one run
-    run1 = run_operator(bpy, "first", suggestions=3)
-    names, kf_keys, kf_extra = count_prop(obj)
-    run1["fl_prop_keys"] = len(names)
-    run1["keyframes"] = dict(fl_prop_values=kf_keys, fl_extrapolation=kf_extra, total=kf_keys + kf_extra)
-    run1["suggested"] = sorted(int(m.frame) for m in scene.timeline_markers if m.name.startswith("FL suggest"))
-    out["propagate"] = run1
-    sizes["after"] = blend_sizes(bpy, tmp, "after")
-
-    t0 = time.perf_counter()
-    out["accuracy"] = accuracy(bpy, obj, frames, train, err, cap_w)
-    out["accuracy"]["seconds"] = round(time.perf_counter() - t0, 1)
-
-    # ----- incremental: correct the first suggested frame, propagate again
-    f_new = [int(m.name.split()[-1]) for m in scene.timeline_markers if m.name.startswith("FL suggest")][0]
-    scene.frame_set(f_new)
-    kb = add_corrective_key(obj, f"Sculpt_{f_new}", -cap_w[f_new - 1] * err)
-    key_spike(kb, f_new)
-    assert bpy.ops.facelab.mark_training_frame() == {"FINISHED"}
-    scene.frame_set(1)
-    run2 = run_operator(bpy, "incremental", suggestions=3)
-    names2, kf2, kfe2 = count_prop(obj)
-    run2.update(added_frame=f_new, fl_prop_keys=len(names2), keyframes=kf2 + kfe2,
-                incremental_path_used="regressor: add (incremental)" in run2["split"]
-                and "regressor: LipRegressor.__init__ (Poisson factor, patches)" not in run2["split"])
-    out["propagate_incremental"] = run2
-    sizes["after_incremental"] = blend_sizes(bpy, tmp, "after_incremental")
-    train2 = sorted(train + [f_new])
-    t0 = time.perf_counter()
-    acc2 = accuracy(bpy, obj, frames, train2, err, cap_w)
-    out["accuracy_incremental"] = dict(after=acc2["after"], before=acc2["before"],
-                                       max_dev_evaluated_vs_predict_mm=acc2["max_dev_evaluated_vs_predict_mm"],
-                                       seconds=round(time.perf_counter() - t0, 1))
-
-    b, a = sizes["before"], sizes["after"]
-    sizes = {k: {kk: round(vv, 2) for kk, vv in v.items()} for k, v in sizes.items()}
-    sizes["growth_raw_mb"] = round(a["raw_mb"] - b["raw_mb"], 2)
-    sizes["growth_zstd_mb"] = round(a["zstd_mb"] - b["zstd_mb"], 2)
-    sizes["target_growth_mb"] = TARGET_GROWTH_MB if T >= 1000 else round(TARGET_GROWTH_MB * T / 1000, 1)
-    sizes["growth_ok"] = sizes["growth_raw_mb"] <= sizes["target_growth_mb"]
-    out["blend"] = sizes
-    MEM.peak()
-    out["process_peak_rss_mb"] = round(MEM.process_peak, 1)
-    out["peak_rss_reset_supported"] = MEM.can_reset
-    out["target_core_rss_mb"] = TARGET_CORE_RSS_MB
-    out["total_s"] = round(time.perf_counter() - t_all, 1)
-
-    facelab_addon.unregister()
-    sys.stdout.flush()
-    os.write(json_fd, (json.dumps(out, indent=1) + "\n").encode())
+        b, a = sizes["before"], sizes["after"]
+        sizes = {k: {kk: round(vv, 2) for kk, vv in v.items()} for k, v in sizes.items()}
+        sizes["growth_raw_mb"] = round(a["raw_mb"] - b["raw_mb"], 2)
+        sizes["growth_zstd_mb"] = round(a["zstd_mb"] - b["zstd_mb"], 2)
+        sizes["target_growth_mb"] = TARGET_GROWTH_MB if T >= 1000 else round(TARGET_GROWTH_MB * T / 1000, 1)
+        sizes["growth_ok"] = sizes["growth_raw_mb"] <= sizes["target_growth_mb"]
+        out["blend"] = sizes
+        MEM.peak()
+        out["process_peak_rss_mb"] = round(MEM.process_peak, 1)
+        out["peak_rss_reset_supported"] = MEM.can_reset
+        out["target_core_rss_mb"] = TARGET_CORE_RSS_MB
+        out["total_s"] = since(t_all, 1)
+        out_json.emit(out)
     return 0
 
 

@@ -38,6 +38,9 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from _harness import user_resources  # noqa: E402
 
 from facelab_addon.core.capture.ict import load_ict  # noqa: E402
 from facelab_addon.core.geometry.laplacian import uniform_laplacian  # noqa: E402
@@ -340,9 +343,7 @@ def contour_figure(frames_out, pick, rows, ac, cc, end_points, png):
 
 def build_blend(npz_path, blend_path):
     """Run in a subprocess: a .blend with actor / creature / creature + lip sync in a grid, ortho camera."""
-    import os
-
-    os.environ.setdefault("BLENDER_USER_RESOURCES", tempfile.mkdtemp(prefix="facelab-bl-"))
+    user_resources("facelab-bl-")
     import bpy
 
     from facelab_addon.blender import compat

@@ -39,8 +39,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
-import os
 import sys
 import tempfile
 import time
@@ -54,6 +52,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import any_face  # noqa: E402  (the route: run_route)
+from _harness import blender_session, json_stdout, log, since  # noqa: E402
 
 #: ``(name, group, options)``; options: ``identity`` (seed of the identity mix), ``scene`` (keyword arguments of
 #: ``build_route_scene``), ``noise_px`` and ``seed`` (the sketch jitter).
@@ -169,47 +168,38 @@ def main(argv=None):
     ap.add_argument("--cases", default=None, help="only cases whose name contains one of these (comma-separated)")
     ap.add_argument("--png", default=None, help="write the bar chart here (e.g. docs/images/route_sweep.png)")
     args = ap.parse_args(argv)
-    sys.stdout.flush()
-    json_fd = os.dup(1)
-    os.dup2(2, 1)  # Blender prints to stdout; keep it for the JSON alone
-    os.environ.setdefault("BLENDER_USER_RESOURCES", tempfile.mkdtemp(prefix="facelab-bl-user-"))
+    out_json = json_stdout()  # Blender prints to stdout; keep it for the JSON alone
     tmp = tempfile.mkdtemp(prefix="facelab-sweep-")
     t_all = time.perf_counter()
-    import bpy
+    with blender_session() as bpy:
+        from facelab_addon.core.capture.ict import load_ict
 
-    import facelab_addon
-    from facelab_addon.core.capture.ict import load_ict
+        ict = load_ict()
+        want = args.cases.split(",") if args.cases else None
+        out = dict(bpy_version=bpy.app.version_string, units="m", armature_posed=False, views=1,
+                   training_frames=any_face.TRAIN, frames=len(any_face.FRAMES), faces={})
+        for key in args.faces.split(","):
+            if key == "ict":
+                face, label = ict, "ICT-FaceKit"
+            else:
+                from facelab_addon.testing.remeshed import remeshed_ict
 
-    facelab_addon.register()
-    log = lambda s: print(s, file=sys.stderr, flush=True)  # noqa: E731
-    ict = load_ict()
-    want = args.cases.split(",") if args.cases else None
-    out = dict(bpy_version=bpy.app.version_string, units="m", armature_posed=False, views=1,
-               training_frames=any_face.TRAIN, frames=len(any_face.FRAMES), faces={})
-    for key in args.faces.split(","):
-        if key == "ict":
-            face, label = ict, "ICT-FaceKit"
-        else:
-            from facelab_addon.testing.remeshed import remeshed_ict
-
-            face, label = remeshed_ict(ict), "ICT remeshed (quads)"
-        rows = [run_case(face, ict, n, g, o, tmp, log) for n, g, o in CASES
-                if want is None or n == "reference" or any(w in n for w in want)]
-        ref = next(r for r in rows if r["case"] == "reference")
-        for r in rows:  # against the reference case
-            if r is not ref and "refine_cut_pct" in r and "refine_cut_pct" in ref:
-                r["cut_minus_reference"] = round(r["refine_cut_pct"] - ref["refine_cut_pct"], 1)
-            if r is not ref and "held_out_pct_of_capture" in r and "held_out_pct_of_capture" in ref:
-                r["held_out_minus_reference"] = round(r["held_out_pct_of_capture"] - ref["held_out_pct_of_capture"],
-                                                      1)
-        out["faces"][label] = rows
-    if args.png:
-        picture(args.png, out["faces"])
-        out["picture"] = args.png
-    out["total_s"] = round(time.perf_counter() - t_all, 1)
-    facelab_addon.unregister()
-    sys.stdout.flush()
-    os.write(json_fd, (json.dumps(out, indent=1, ensure_ascii=False) + "\n").encode())
+                face, label = remeshed_ict(ict), "ICT remeshed (quads)"
+            rows = [run_case(face, ict, n, g, o, tmp, log) for n, g, o in CASES
+                    if want is None or n == "reference" or any(w in n for w in want)]
+            ref = next(r for r in rows if r["case"] == "reference")
+            for r in rows:  # against the reference case
+                if r is not ref and "refine_cut_pct" in r and "refine_cut_pct" in ref:
+                    r["cut_minus_reference"] = round(r["refine_cut_pct"] - ref["refine_cut_pct"], 1)
+                if r is not ref and "held_out_pct_of_capture" in r and "held_out_pct_of_capture" in ref:
+                    r["held_out_minus_reference"] = round(r["held_out_pct_of_capture"]
+                                                          - ref["held_out_pct_of_capture"], 1)
+            out["faces"][label] = rows
+        if args.png:
+            picture(args.png, out["faces"])
+            out["picture"] = args.png
+        out["total_s"] = since(t_all, 1)
+        out_json.emit(out, ensure_ascii=False)
     return 0
 
 

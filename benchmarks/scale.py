@@ -42,6 +42,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
+from _harness import blender_session  # noqa: E402
+
 SCALE = 0.01
 N_TRAIN = 10
 PAPER_S_PER_FRAME = 5.15  # Dinev et al. 2018: prediction, a frame
@@ -106,14 +108,12 @@ def build(size, n_frames, source, path):
     import bpy
     from propagate_blender import capture_error_weight
 
-    import facelab_addon
     from facelab_addon.blender.scene import new_mesh_object
     from facelab_addon.blender.shapekeys import add_corrective_key, key_spike, key_values_bulk
     from facelab_addon.core.capture.pointcache_writer import PointCacheWriter
     from facelab_addon.pipeline.propagate import add_corrected_frame, record_training_frame
     from facelab_addon.testing.weights import speech_weights
 
-    facelab_addon.register()
     t0 = time.perf_counter()
     ict, V, F, D, S = face_model(size)
     frames = np.arange(1, n_frames + 1)
@@ -172,9 +172,6 @@ def run(path, size, source):
     """Subprocess: open the case, run the Propagate operator once, measure."""
     import bpy
 
-    import facelab_addon
-
-    facelab_addon.register()
     bpy.ops.wm.open_mainfile(filepath=str(path))
     scene = bpy.context.scene
     obj = bpy.data.objects["Face"]
@@ -336,7 +333,6 @@ def build_perframe(kind, n_frames, path):
     from PIL import Image
     from propagate_blender import EXPR
 
-    import facelab_addon
     from facelab_addon.blender.camera import apply_camera_to_blender
     from facelab_addon.blender.mesh import mesh_triangles
     from facelab_addon.core.capture.ict import load_ict
@@ -344,7 +340,6 @@ def build_perframe(kind, n_frames, path):
     from facelab_addon.testing.scenes import build_ict_face_scene, keyed_empties
     from facelab_addon.testing.synthetic import ICT_MOUTH_LOOP
 
-    facelab_addon.register()
     t0 = time.perf_counter()
     ict = load_ict()
     bpy.ops.wm.read_factory_settings(use_empty=True)
@@ -443,10 +438,8 @@ def run_perframe(kind, path):
     15 keys) is written as a PC2 cache beside the .blend."""
     import bpy
 
-    import facelab_addon
     from facelab_addon.blender.tracking import View
 
-    facelab_addon.register()
     bpy.ops.wm.open_mainfile(filepath=str(path))
     scene = bpy.context.scene
     obj = bpy.data.objects["Face"]
@@ -585,22 +578,31 @@ def main(argv=None):
         plot([r for r in d["cases"] if "failed" not in r], a.png, _note(d), d.get("perframe", ()),
              d.get("cases_pc2_after_policy", ()))
         return
+    # subprocess modes; those that use Blender run with the add-on registered (``_harness.blender_session``)
     if a._build:
         size, n, source, path = a._build
-        print(json.dumps(build(size, int(n), source, path)))
+        with blender_session():
+            r = build(size, int(n), source, path)
+        print(json.dumps(r))
         return
     if a._run:
-        print(json.dumps(run(*a._run)))
+        with blender_session():
+            r = run(*a._run)
+        print(json.dumps(r))
         return
     if a._core:
         print(json.dumps(core_predict(a._core[0])))
         return
     if a._build_pf:
         kind, n, path = a._build_pf
-        print(json.dumps(build_perframe(kind, int(n), path)))
+        with blender_session():
+            r = build_perframe(kind, int(n), path)
+        print(json.dumps(r))
         return
     if a._run_pf:
-        print(json.dumps(run_perframe(*a._run_pf)))
+        with blender_session():
+            r = run_perframe(*a._run_pf)
+        print(json.dumps(r))
         return
     if a.perframe:
         out = dict(machine=dict(cpus=os.cpu_count(), load_before=_uptime()), perframe=[])

@@ -54,17 +54,18 @@ Prints one JSON object on stdout.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import statistics
 import sys
-import tempfile
 import time
 
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
+from _harness import json_stdout, user_resources  # noqa: E402
 
 from facelab_addon.core.capture.camera import Camera  # noqa: E402
 from facelab_addon.core.capture.ict import load_ict  # noqa: E402
@@ -146,7 +147,7 @@ class BlenderLD:
     """Blender's Laplacian Deform modifier on the ICT mesh (headless bpy)."""
 
     def __init__(self, model):
-        os.environ.setdefault("BLENDER_USER_RESOURCES", tempfile.mkdtemp(prefix="facelab-bpy-"))
+        user_resources("facelab-bpy-")
         t = time.perf_counter()
         import bpy  # noqa: F401
 
@@ -470,10 +471,7 @@ def main(argv=None):
     ap.add_argument("--png", help="also write error maps (smooth vs paper prior, one vs two views) to this file")
     args = ap.parse_args(argv)
     runs = 3 if args.quick else 9
-    # Blender and the libraries may print to stdout; keep it for the JSON alone.
-    sys.stdout.flush()
-    json_fd = os.dup(1)
-    os.dup2(2, 1)
+    out_json = json_stdout()  # Blender and the libraries may print to stdout; keep it for the JSON alone
     t0 = time.perf_counter()
     model = load_ict()
     load_s = time.perf_counter() - t0
@@ -540,10 +538,7 @@ def main(argv=None):
     report["summary"]["depth_reduction_pct"] = {d["name"]: dict(one_view=d["one_view"]["reduction_pct"],
                                                                 two_views=d["two_views"]["reduction_pct"])
                                                 for d in depth}
-    sys.stdout.flush()
-    with os.fdopen(json_fd, "w") as fh:
-        json.dump(report, fh, indent=1)
-        fh.write("\n")
+    out_json.emit(report)
 
 
 if __name__ == "__main__":
