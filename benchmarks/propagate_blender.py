@@ -168,6 +168,7 @@ def instrument(timers):
     from facelab_addon.blender import cache_integrate, caches, capture_stream
     from facelab_addon.core.lips import propagate as cprop
     from facelab_addon.core.lips import reduced, suggest
+    from facelab_addon.pipeline import correctives as corr
     from facelab_addon.pipeline import propagate as op
 
     timers.patch(capture_stream.CaptureReader, "read", "read captured chunk (mouth + lip vertices)")
@@ -184,9 +185,9 @@ def instrument(timers):
     timers.patch(reduced.StreamingBasis, "finish", "compress: StreamingBasis.finish (SVD, 0.01 mm)")
     timers.patch(suggest.SuggestScreen, "select", "suggest: select (re-read candidates)")
     timers.patch(op, "_suggest", "suggest (3 markers, all passes)")
-    timers.patch(op, "remove_keys", "write: remove old FL_Prop keys")
-    timers.patch(op, "add_keys_from_deltas", "write: add FL_Prop keys")
-    timers.patch(op, "key_values_bulk", "write: key FL_Prop values")
+    timers.patch(corr, "remove_keys", "write: remove old FL_Prop keys")  # the keys go through pipeline.correctives
+    timers.patch(corr, "add_keys_from_deltas", "write: add FL_Prop keys")
+    timers.patch(corr, "key_values_bulk", "write: key FL_Prop values")
     timers.patch(op, "key_property_bulk", "write: key FL_extrapolation")
 
 
