@@ -8,16 +8,16 @@ saves exactly the result; Blender, its add-ons and the libraries print to stdout
   :class:`JsonOut` writes the one JSON object at the end.
 * :func:`user_resources`: point ``BLENDER_USER_RESOURCES`` at a fresh temporary folder (unless it is set
   already), so a benchmark neither reads nor writes the user's Blender configuration.
-* :func:`blender_session`: the two above for Blender, then ``import bpy`` and register the FaceLab add-on;
-  the add-on is unregistered on the way out, also after an error (bpy 4.5 hangs at exit while a
-  ``PointerProperty(poll=...)`` is registered).
+* :func:`blender_session`: :func:`user_resources`, ``import bpy`` and register the FaceLab add-on; the
+  add-on is unregistered on the way out, also after an error (bpy 4.5 hangs at exit while a
+  ``PointerProperty(poll=...)`` is registered). It leaves stdout alone: call :func:`json_stdout` first.
 * :func:`log` (progress to stderr) and :func:`since` (rounded wall seconds since a ``perf_counter``).
 
 Typical use (``benchmarks/route_sweep.py``)::
 
     out_json = json_stdout()
+    t_all = time.perf_counter()
     with blender_session() as bpy:
-        t_all = time.perf_counter()
         out = dict(bpy_version=bpy.app.version_string, ...)
         ...
         out["total_s"] = since(t_all, 1)
