@@ -20,9 +20,10 @@ model's own data with a different, simple rule (nothing here imports ``core.lips
   its ends' largest separation ratios: it follows the row where the lips are closest for how far they part.
 * :func:`transferred_truth_line` (a :class:`~facelab_addon.testing.remeshed.RemeshedFace`, also with identity
   offsets added): the dense line of its source model carried through the remesh's known correspondence (each
-  vertex's source triangle and barycentric weights): on each lip, the remeshed vertices of that lip nearest to
-  the dense line's vertices, ordered along it; the corners are the remeshed skin vertices nearest to the dense
-  corners. The correspondence does not depend on the actor, so the line's vertices are the same for every
+  vertex's source triangle and barycentric weights, which place it on the source's rest surface and on one lip):
+  the corners are the remeshed skin vertices nearest to the dense corners; on each lip the line is the mesh path
+  between them over that lip's vertices that stays closest to the dense line (an edge costing its length times
+  its ends' mean distance to the dense polyline). The correspondence does not depend on the actor, so the line's vertices are the same for every
   identity mix.
 * :func:`truth_line` picks one of the two for a face.
 
@@ -266,15 +267,27 @@ def transferred_truth_line(face, source_line: TruthLine | None = None) -> TruthL
     side = np.einsum("vk,vk->v", lab[np.asarray(face.source_vertices)], np.asarray(face.barycentric))
     ids = np.flatnonzero(skin)
     corners = ids[cKDTree(Q[ids]).query(Vs[dense.corners])[1]]
+    E = _welded_edges(face.faces, rep)
+    length = np.linalg.norm(Q[E[:, 0]] - Q[E[:, 1]], axis=1)
+    tiny = 1e-3 * float(np.median(length))
     chains = []
     for chain, sgn in ((dense.upper, 1.0), (dense.lower, -1.0)):
-        cand = np.setdiff1d(ids[side[ids] * sgn > 0], corners)
-        near = cand[cKDTree(Q[cand]).query(Vs[chain[1:-1]])[1]]
-        # order along the dense chain: each remeshed vertex at the mean position of the dense vertices it is nearest to
-        order = np.arange(len(near), dtype=np.float64)
-        uniq, inv = np.unique(near, return_inverse=True)
-        at = np.bincount(inv, weights=order) / np.bincount(inv)
-        chains.append(np.r_[corners[0], uniq[np.argsort(at)], corners[1]].astype(np.int64))
+        # each vertex's distance to the dense chain's polyline (sampled at a tenth of its segments)
+        t = np.linspace(0.0, 1.0, 10, endpoint=False)
+        P = (Vs[chain[:-1], None] * (1 - t)[:, None] + Vs[chain[1:], None] * t[:, None]).reshape(-1, 3)
+        d = cKDTree(np.r_[P, Vs[chain[-1:]]]).query(Q)[0]
+        on = skin & (side * sgn >= 0)  # never over the other lip
+        on[corners] = True
+        sel = on[E].all(axis=1)
+        cost = length * (0.5 * (d[E[:, 0]] + d[E[:, 1]]) + tiny)
+        G = _graph(Q, E[sel], len(Q), cost[sel])
+        dist, pred = dijkstra(G, directed=False, indices=int(corners[0]), return_predecessors=True)
+        if not np.isfinite(dist[corners[1]]):
+            raise ValueError("the remeshed face's lip does not join its mouth corners")
+        path = [int(corners[1])]
+        while path[-1] != corners[0]:
+            path.append(int(pred[path[-1]]))
+        chains.append(np.asarray(path[::-1], dtype=np.int64))
     return TruthLine(corners=corners.astype(np.int64), upper=chains[0], lower=chains[1])
 
 

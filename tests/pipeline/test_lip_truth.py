@@ -98,11 +98,14 @@ def test_the_truth_agrees_with_the_detector_on_ict(ict, dense):
 
 
 def test_the_line_carried_to_the_remeshed_face_and_other_actors(ict, face, dense):
-    """On the remeshed face (about 2.5 mm between the line's vertices) and on the 8 actors of
+    """On the remeshed face (about 4 mm edges at the lips) and on the 8 actors of
     tests/pipeline/test_route_sweep_scenes.py (ICT's neutral plus N(0, 1) identity offsets, the same offsets
-    transferred to the remeshed face as benchmarks/route_sweep.py does), the transferred line's width is within
-    2.5 % of the actor's own dense truth line and its corners within 1.5 of its edges (the remeshed face's line is
-    the base actor's carried over: the correspondence does not depend on the actor)."""
+    transferred to the remeshed face as benchmarks/route_sweep.py does), the transferred line's corners are within
+    1.5 of its edges of the dense line's, its width within 2 % of the dense line's (the dense ICT line on the same
+    actor: what the transfer carries; measured 0.1-1.7 %) and within 2.5 % of the line the rule finds on the dense
+    actor itself (measured 0.1-2.1 %: on another actor the rule's corner can move by one vertex of ICT's fan of
+    0.3 mm triangles at the commissure, which the remeshed face's line, the same vertices for every actor, does not
+    follow)."""
     skin = ict.part_vertex_mask("M_Face")
     line = lip_truth.truth_line(face)
     V = face.neutral
@@ -121,7 +124,8 @@ def test_the_line_carried_to_the_remeshed_face_and_other_actors(ict, face, dense
         got = lip_truth.truth_line(actor)
         np.testing.assert_array_equal(got.loop, line.loop)
         Vr = actor.neutral
-        W, Wd = lip_truth.line_width(Vr, got), lip_truth.line_width(Vd, own)
+        W, Wd, Wb = lip_truth.line_width(Vr, got), lip_truth.line_width(Vd, own), lip_truth.line_width(Vd, dense)
+        assert abs(W - Wb) < 0.02 * Wb, (seed, W, Wb)
         assert abs(W - Wd) < 0.025 * Wd, (seed, W, Wd)
         h = _edge(Vr, got.loop)
         assert (np.linalg.norm(_sorted_corners(Vr, got) - _sorted_corners(Vd, own), axis=1) < 1.5 * h).all()
