@@ -12,7 +12,8 @@ The result quacks like :class:`facelab_addon.core.capture.ict.ICTModel` where th
 the benchmarks read it (``neutral``, ``faces``, ``poly_verts``, ``poly_offsets``, ``expressions``,
 ``expression_names``, ``parts``, ``part_vertex_mask``, ``pose``, ``scale``), so
 :func:`facelab_addon.testing.scenes.build_ict_face_scene` builds a scene from it unchanged. Units are
-the ICT model's (centimetres times ``ict.scale``). Building takes a few seconds; the arrays are cached
+the ICT model's (centimetres times ``ict.scale``). ``source`` is the model it samples (the benchmark's truth
+lip line is carried from it: :func:`facelab_addon.testing.lip_truth.transferred_truth_line`). Building takes a few seconds; the arrays are cached
 under ``FACELAB_CACHE_DIR`` (default ``~/.cache/facelab``). Needs ``bpy``.
 """
 
@@ -47,6 +48,7 @@ class RemeshedFace:
     source_vertices: np.ndarray  # (V,3) ICT vertex ids of those triangles
     scale: float = 1.0
     faces: np.ndarray = field(default=None)  # (F,3) fan triangulation of the polygons
+    source: object = field(default=None, repr=False, compare=False)  # the model it samples (ICTModel), if known
 
     def __post_init__(self):
         if self.faces is None:
@@ -188,7 +190,7 @@ def remeshed_ict(ict, ratio: float = 0.45, *, use_cache: bool = True) -> Remeshe
                             poly_part=d["poly_part"], parts=parts,
                             expressions={n: d["expressions"][i] for i, n in enumerate(names)},
                             source_triangle=d["source_triangle"], barycentric=d["barycentric"],
-                            source_vertices=d["source_vertices"], scale=float(ict.scale))
+                            source_vertices=d["source_vertices"], scale=float(ict.scale), source=ict)
     # the kept ICT polygons, with their part as the material
     sizes = np.diff(ict.poly_offsets)
     ppart = np.asarray(ict.poly_part)
@@ -221,7 +223,7 @@ def remeshed_ict(ict, ratio: float = 0.45, *, use_cache: bool = True) -> Remeshe
     src_v = ict.faces[src_tri]
     out = RemeshedFace(neutral=np.zeros_like(Vn), poly_verts=pvn, poly_offsets=offn, poly_part=matn, parts=parts,
                        expressions={}, source_triangle=src_tri, barycentric=bary, source_vertices=src_v,
-                       scale=float(ict.scale), faces=tmp.faces)
+                       scale=float(ict.scale), faces=tmp.faces, source=ict)
     out.neutral = out.transfer(ict.neutral)
     out.expressions = {n: out.transfer(ict.expressions[n]) for n in names}
     if use_cache:

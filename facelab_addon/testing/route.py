@@ -5,7 +5,9 @@
 axes turned to Blender's z-up, -y forward), in any scene unit and object scale, optionally under a
 head + jaw armature: a performance of mouth expressions keyed on every frame (the truth) plus a
 keyed ``CaptureError`` key (by default the inner lips pulled apart: the upper lip up, the lower lip down,
-more as the jaw closes: the error the artist fixes; :func:`lip_sides` tells the lips apart; other
+more as the jaw closes: the error the artist fixes; placed around the truth's lip contact line,
+:func:`facelab_addon.testing.lip_truth.truth_line`, found from the model's own ``jawOpen`` and never by the
+Auto Regions detector the benchmark grades, which also gives the measured vertices, the rig and the cameras' aim; :func:`lip_sides` tells the lips apart; other
 physically plausible capture errors in :data:`ERRORS`, :func:`capture_error`), a frontal camera
 40 cm from the mouth, a helmet-style lower camera 35° below the mouth looking up at it, and a witness
 camera 35° to the side (:data:`CAMERAS`).
@@ -159,7 +161,7 @@ def build_route_scene(face, *, units: str = "m", frames=None, armature: bool = F
     from ..blender.camera import new_camera_object
     from ..blender.shapekeys import add_corrective_key, key_values_bulk
     from ..core.capture.camera import Camera
-    from ..core.lips.lip_loop import inner_lip_loop
+    from .lip_truth import truth_line
     from .scenes import build_ict_face_scene
 
     per_cm, unit_scale, obj_scale = _units(units)
@@ -168,7 +170,7 @@ def build_route_scene(face, *, units: str = "m", frames=None, armature: bool = F
     W = cyclic_mouth_weights(frames)[:, : len(names)]
     F = np.asarray(face.faces)
     face_mask = np.asarray(face.part_vertex_mask("M_Face"))
-    loop = inner_lip_loop(face.neutral, F)
+    loop = truth_line(face).loop  # the truth's own contact line, not Auto Regions' detector (testing.lip_truth)
     if obj_import:
         if units != "m":
             raise ValueError("obj_import reads the OBJ into a metre scene: units must be 'm'")
@@ -349,8 +351,9 @@ def _units(units):
 def lip_sides(V, F, loop, up) -> np.ndarray:
     """(V,) +1 on the upper lip, -1 on the lower lip, 0 off the loop's mesh piece: the side of the mouth.
 
-    The contact ``loop`` (ordered, as :func:`~facelab_addon.core.lips.lip_loop.inner_lip_loop` returns it)
-    is split at its two corners (its extremes across ``up``, i.e. along the mouth's width) into two halves;
+    The contact ``loop`` (ordered: corner, one lip, corner, the other lip, as
+    :attr:`facelab_addon.testing.lip_truth.TruthLine.loop` and ``inner_lip_loop`` return it) is split at its
+    two corners (its extremes across ``up``, i.e. along the mouth's width) into two halves;
     the half with the higher mean along ``up`` is the upper lip. Every vertex takes the side of the half
     nearest to it along the mesh (edge-length Dijkstra), so a vertex of the lower lip 0.1 mm below the
     upper one is still lower lip: the two lips meet on the mesh only at the corners.
