@@ -450,7 +450,7 @@ def errors_picture(path, table, faces):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from facelab_addon.core.lips.lip_loop import inner_lip_loop
+    from facelab_addon.testing.lip_truth import truth_line
     from facelab_addon.testing.route import _ZUP, ERRORS, capture_error
 
     kinds = list(ERRORS)
@@ -460,7 +460,7 @@ def errors_picture(path, table, faces):
         V = face.neutral @ _ZUP.T * 10.0  # millimetres, Z-up
         F = np.asarray(face.faces)
         skin = np.asarray(face.part_vertex_mask("M_Face"))
-        loop = inner_lip_loop(face.neutral, F)
+        loop = truth_line(face).loop  # the route scene's own truth line (not the detector under test)
         tri = F[:, :3] if F.shape[1] >= 3 else F
         for col, kind in enumerate(kinds):
             e, _ = capture_error(V, F, loop, skin, 10.0, 1.25, kind)  # mm (10 units per cm)
