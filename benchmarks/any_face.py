@@ -328,7 +328,7 @@ def picture(path, pics, faces=None):
         b.set_ylim(c[2] - 0.8 * w, c[2] + 0.8 * w)
         b.set_aspect("equal")
         b.set_axis_off()
-        b.set_title(f"{name}: Auto Regions\n(blue FL_mouth, red FL_lips, yellow: lip contact loop)", fontsize=10)
+        b.set_title(f"{name}: Auto Regions\n(blue FL_mouth, red FL_lips, yellow: the truth's lip contact line)", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
 
