@@ -57,7 +57,7 @@ class GeometricIndexer(IndexerClouds, IndexerLocate, IndexerStitch):
     Build once per (mesh, dataset, bundle binding; about 3 s for 110 shapes
     and 100 bundles on the 26,719-vertex ICT face); :meth:`reconstruct` and
     :meth:`reconstruct_sequence` are then cheap (about 20 ms a frame on one
-    core, 13.5-15 ms in a sequence on two; see ``benchmarks/geometric_indexing.py``).
+    core, about 11 ms in a sequence on two; see ``benchmarks/geometric_indexing.py``).
 
     Parameters
     ----------

@@ -35,8 +35,8 @@ span, and :func:`damping_weights` the Wiener factor ``|c|² / (|c|² + S)`` of a
 
 Measured (``benchmarks/lip_band.py``, held-out inner-lip error, % of the capture's): the 3-frame
 scene of ``tests/pipeline/test_propagate.py`` with a 0.2 mouth-width band: whole 85.9, correction
-5.2, auto 6.3; ``benchmarks/propagate.py``'s non-linear error at k = 10, 0.12 band: whole 15.5,
-correction 63.7, auto 16.2.
+5.7, auto 6.7; ``benchmarks/propagate.py``'s non-linear error at k = 10, 0.12 band: whole 15.3,
+correction 63.4, auto 16.0.
 """
 
 from __future__ import annotations

@@ -37,8 +37,8 @@ Implementation notes (deviations are marked):
   motions. Still exact on the span of the training frames. ``patches=1``
   is the paper's single map. The patches are built in :mod:`.patches`. On the ICT benchmark
   (``benchmarks/propagate.py``, k = 10) the held-out inner-lip RMS error is
-  22% of the uncorrected capture's with the defaults, 31% with one
-  rest-centred map and 39% with the paper's uncentred map.
+  21% of the uncorrected capture's with the defaults, 32% with one
+  rest-centred map and 40% with the paper's uncentred map.
 * Memory: frames are read in their own dtype (a float32 sequence is not
   upcast as a whole); only the mouth and lip vertices are gathered, a block of
   frames at a time. ``predict(captured, out=captured)``
