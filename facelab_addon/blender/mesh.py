@@ -26,6 +26,7 @@ __all__ = [
     "mesh_triangles",
     "FaceTopology",
     "face_topology",
+    "spread_key_offsets",
     "evaluated_vertices",
     "world_to_local_deltas",
     "vertex_group_mask",
@@ -116,6 +117,29 @@ def face_topology(obj, poses=()) -> FaceTopology:
 
     w = weld(tris, rest.reshape(n, 3), chain(keys(), poses))
     return FaceTopology(tris=w.faces, weld=w)
+
+
+def spread_key_offsets(obj, names, topology: FaceTopology) -> None:
+    """Give every duplicate of ``topology`` its representative's offset in the shape keys ``names`` of ``obj``.
+
+    The offset of a key is its positions minus its relative key's; a duplicate's new position is its own
+    relative-key position plus its representative's offset (written with ``foreach_set``). Nothing happens
+    when ``topology`` welded nothing.
+    """
+    if topology.n_duplicates == 0:
+        return
+    blocks = obj.data.shape_keys.key_blocks
+    n = len(obj.data.vertices)
+    co = np.empty(n * 3, dtype=np.float64)
+    base = np.empty(n * 3, dtype=np.float64)
+    for name in names:
+        kb = blocks[name]
+        kb.data.foreach_get("co", co)
+        kb.relative_key.data.foreach_get("co", base)
+        B = base.reshape(n, 3)
+        out = B + topology.spread(co.reshape(n, 3) - B)
+        kb.data.foreach_set("co", out.astype(np.float32).ravel())
+    obj.data.update()
 
 
 def evaluated_vertices(obj, depsgraph, *, world: bool = True) -> np.ndarray:

@@ -28,7 +28,7 @@ import numpy as np
 
 from ..blender import bakes, cache_integrate, caches
 from ..blender.capture_stream import CaptureReader
-from ..blender.mesh import face_topology, require_mesh
+from ..blender.mesh import face_topology, require_mesh, spread_key_offsets
 from ..blender.objects import ModifierState, local_length, require_editable
 from ..blender.shapekeys import (
     add_corrective_key,
@@ -410,7 +410,6 @@ def _require_finite(X, frames, what):
 
 def _propagate_work(scene, obj, frames, settings, t0, topo, mouth_faces, lip_faces, train, chunk):
     T = len(frames)
-    tris = topo.tris
     total = T + 2  # progress units: fit, T frames corrected, write
     on_cache = caches.sequence_source(obj) in _CACHE_SOURCES
     storage = stored(scene, STORE_SETTINGS_ATTR, StorageSettings)
@@ -422,24 +421,31 @@ def _propagate_work(scene, obj, frames, settings, t0, topo, mouth_faces, lip_fac
     note = cache_integrate.cache_to_shape_key_ready(obj, scene_frames=frames) if on_cache else ""
     yield "fitting", 0, total
     rest = rest_vertices(obj)
+    # a mesh split along seams: the regression sees the welded surface alone (no duplicates), ``kept`` its vertices
+    kept = topo.weld.kept if topo.n_duplicates else None
+    rest_w, tris_w = (rest, topo.tris) if kept is None else topo.weld.compact(rest)
     corrected = caches.evaluate_frames(obj, train, mute_shape_keys_prefix=(PROPAGATE_PREFIX,))
     _require_finite(corrected, train, "corrected (training)")
     unknown = captured_unknown(obj, train)
     model = "whole" if unknown and settings.model == "auto" else settings.model
-    reg = LipRegressor(rest, tris, mouth_faces, lip_faces, model=model, damping=bool(settings.damping))
+    reg = LipRegressor(rest_w, tris_w, mouth_faces, lip_faces, model=model, damping=bool(settings.damping))
     captured_train = caches.read_captured_frames(obj, list(train)).astype(np.float64)  # FaceLab keys muted
     _require_finite(captured_train, train, "captured (training)")
+    if kept is not None:
+        corrected, captured_train = corrected[:, kept], captured_train[:, kept]
     corrected = training_input(captured_train, corrected, reg.interior_vertices)
     # Only the mouth and lip vertices are read (plus, over a cache, the polygons around the interior lips).
-    iv = reg.interior_vertices
+    iv, used = reg.interior_vertices, reg.used_vertices
+    if kept is not None:  # the mesh's own vertex ids
+        iv, used = kept[iv], kept[used]
     # the vertices written: the interior lips and their split-seam twins (each takes its representative's correction)
     out_v, take = topo.weld.expand(iv)
-    read_v, ring = reg.used_vertices, None
+    read_v, ring = used, None
     if on_cache:
         ring = cache_integrate.IntegrateMap(cache_integrate.polygon_corners(obj.data), out_v, rest)
         read_v = np.union1d(read_v, ring.vertices)
     reader = CaptureReader(obj, read_v)
-    at_used = np.searchsorted(read_v, reg.used_vertices)
+    at_used = np.searchsorted(read_v, used)
     at_ring = None if ring is None else np.searchsorted(read_v, ring.vertices)
     shot = None
     if model == "auto" or (model == "correction" and settings.damping):  # an even sample of the shot (model_choice)
@@ -457,7 +463,8 @@ def _propagate_work(scene, obj, frames, settings, t0, topo, mouth_faces, lip_fac
     # offsets, a new shape on every frame. The shown correction is spooled as it comes (the patch cache after the
     # capture, blender.bakes.add_correction_patch); the key offsets are compressed only until they clearly need
     # more shapes than the key budget (4x: the greedy basis overshoots the final one), then no longer mapped.
-    store = StreamingBasis(len(out_v), tol, max_rank=_key_shapes_over_cache(storage.key_budget) if on_cache else 1024)
+    store = StreamingBasis(len(out_v) if on_cache else len(iv), tol,
+                           max_rank=_key_shapes_over_cache(storage.key_budget) if on_cache else 1024)
     spool = CorrectionWriter(scene, obj, PROPAGATE_PREFIX, vertices=out_v, after_capture=True) if on_cache else None
     try:
         is_train = np.isin(frames, train)
@@ -475,7 +482,7 @@ def _propagate_work(scene, obj, frames, settings, t0, topo, mouth_faces, lip_fac
             if screen is not None:
                 screen.add_scores(i, feature_sq, score[i:j])
             corr[is_train[i:j]] = 0.0  # training frames keep the artist's own correction
-            if take is not None:  # every twin moves with its representative: the seams stay closed
+            if take is not None and on_cache:  # every twin moves with its representative: the seams stay closed
                 corr = corr[:, take]
             if spool is not None:
                 spool.add(frames[i:j], corr)
@@ -491,7 +498,14 @@ def _propagate_work(scene, obj, frames, settings, t0, topo, mouth_faces, lip_fac
             names = StoredKeys.of(spool.finish())  # the patch cache: no keys
         else:
             basis, weights = store.finish()
-            names = _store_corrections(scene, obj, frames, basis, weights, out_v)
+            if take is None or on_cache:
+                names = _store_corrections(scene, obj, frames, basis, weights, out_v)
+            else:  # stored as on the welded surface, then each twin given its representative's offsets
+                names = _store_corrections(scene, obj, frames, basis, weights, iv)
+                if names.storage.mode == "keys":
+                    spread_key_offsets(obj, list(names), topo)
+                elif names.storage.mode == "cache":  # a point cache of the vertices written: every twin in it
+                    names = _store_corrections(scene, obj, frames, basis[:, take], weights, out_v)
     finally:
         if spool is not None:
             spool.close()

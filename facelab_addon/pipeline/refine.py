@@ -245,18 +245,24 @@ def refine(scene, obj, frame: int, settings: RefineSettings | None = None, *, ca
     tris = topo.tris
     fixed, fixed_src = default_fixed_mask(obj, topo, settings.fixed_group)
     lips = _lip_region(obj) if settings.use_regions else None
-    if lips is not None:
-        lips = topo.spread(lips)
     rest = rest_vertices(obj) @ A.T + b  # the Basis, where the object is: the head unturned
-    X, info = refine_lips_views(V, tris, views, fixed=fixed, lips=lips, rest_vertices=rest, return_info=True,
-                                **settings.solver_weights())
+    if topo.n_duplicates:  # the solver sees the welded surface alone (no duplicate weighs in a fit twice)
+        w = topo.weld
+        Vc, tris_c = w.compact(V)
+        Xc, info = refine_lips_views(Vc, tris_c, views, fixed=fixed[w.kept], rest_vertices=rest[w.kept],
+                                     lips=None if lips is None else lips[w.kept], return_info=True,
+                                     **settings.solver_weights())
+        X = V + w.uncompact(Xc - Vc)  # each duplicate moves with its representative: the seams stay closed
+    else:
+        X, info = refine_lips_views(V, tris, views, fixed=fixed, lips=lips, rest_vertices=rest, return_info=True,
+                                    **settings.solver_weights())
     note = ""
     on_cache = caches.sequence_source(obj) in _CACHE_SOURCES
     state = ModifierState(obj)
     try:
         if on_cache:
             note = cache_integrate.cache_to_shape_key_ready(obj)  # so the corrective key shows on the cache
-        d_world = topo.spread(X - V)  # each duplicate moves with its representative: the seams stay closed
+        d_world = X - V
         d_local = world_to_local_deltas(obj, d_world)
         if on_cache:
             captured = caches.read_captured_frames(obj, [frame])[0]

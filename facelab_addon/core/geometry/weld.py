@@ -71,6 +71,35 @@ class Weld:
             return values
         return np.asarray(values)[self.representative]
 
+    @property
+    def kept(self) -> np.ndarray:
+        """(K,) int64 the representatives, ascending: the vertices of the welded mesh (:meth:`compact`)."""
+        return np.flatnonzero(self.representative == np.arange(len(self.representative)))
+
+    def compact(self, vertices):
+        """The welded mesh without its duplicates: ``(vertices[kept], faces renumbered to kept)``.
+
+        Parameters
+        ----------
+        vertices : (V, ...) array_like
+            Positions (or any per-vertex values) of the input mesh.
+
+        Returns
+        -------
+        vertices_kept : (K, ...) ndarray
+        faces : (F,3) int64
+            Indices into ``vertices_kept``.
+        """
+        keep = self.kept
+        at = np.full(len(self.representative), -1, np.int64)
+        at[keep] = np.arange(len(keep))
+        return np.asarray(vertices)[keep], at[self.faces]
+
+    def uncompact(self, values):
+        """(K, ...) ``values`` of the compact mesh (:meth:`compact`) -> (V, ...): each vertex its representative's."""
+        at = np.cumsum(self.representative == np.arange(len(self.representative))) - 1
+        return np.asarray(values)[at[self.representative]]
+
     def expand(self, vertices) -> tuple:
         """The vertices ``vertices`` (k,) (representatives) together with their duplicates.
 

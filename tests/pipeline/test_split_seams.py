@@ -1,0 +1,115 @@
+"""The Dinev route on a face split along its UV seams (a glTF import: 26,719 -> 28,911 ICT vertices, M_Face in 9
+pieces) gives the welded face's result at every vertex, and every seam stays closed.
+
+Both runs use one truth: the route scene of the ICT face and of ``testing.split_seams.split_seams(ict)`` (the same
+expressions, cameras, armature), the split scene's capture error set to the welded one's (the route's error model
+measures along the mesh, which a seam would cut), the same sketch pixels. Auto Regions, Refine Lips (frame 30) and
+Propagate (frames 21-40) must agree at every split vertex with the welded vertex it copies, to 1e-6 of the mouth
+width, and twins must coincide on the evaluated mesh after each step."""
+
+import numpy as np
+import pytest
+
+from facelab_addon.blender import caches
+from facelab_addon.names import LIPS_GROUP, MOUTH_GROUP
+
+pytestmark = pytest.mark.blender
+
+FRAME = 30
+FRAMES = np.arange(21, 41)
+
+
+def _route(face, error=None, strokes=None):
+    """Build the route scene of ``face``, run Auto Regions, Refine on FRAME, Propagate; return what it made."""
+    from facelab_addon.blender.camera import camera_from_blender
+    from facelab_addon.blender.mesh import vertex_group_mask
+    from facelab_addon.blender.strokes import new_lip_sketch, write_stroke_pixels
+    from facelab_addon.core.lips.lip_loop import loop_width
+    from facelab_addon.pipeline.propagate import propagate
+    from facelab_addon.pipeline.refine import refine
+    from facelab_addon.pipeline.regions import auto_regions
+    from facelab_addon.testing.route import ERROR_KEY, build_route_scene, sketch_truth
+
+    rs = build_route_scene(face, units="m", armature=True, frames=FRAMES)
+    scene, obj = rs.scene, rs.obj
+    if error is not None:  # the welded face's capture error, copied to every twin
+        kb = obj.data.shape_keys.key_blocks[ERROR_KEY]
+        co = np.empty(3 * len(obj.data.vertices))
+        obj.data.shape_keys.reference_key.data.foreach_get("co", co)
+        kb.data.foreach_set("co", (co + error.ravel()).astype(np.float32))
+    out = {"error": rs.error, "width": loop_width(rs.neutral, rs.loop)}
+    auto_regions(obj, scene=scene)
+    out["mouth"] = vertex_group_mask(obj, MOUTH_GROUP)
+    out["lips"] = vertex_group_mask(obj, LIPS_GROUP)
+    if strokes is None:
+        gp, up, lo = sketch_truth(rs, FRAME, rs.cameras[0])
+        out["strokes"] = (up, lo)
+    else:
+        scene.frame_set(FRAME)
+        cam = camera_from_blender(scene, rs.cameras[0])
+        gp = new_lip_sketch(scene, rs.cameras[0], name="FL_LipSketch")
+        write_stroke_pixels(gp, "Upper lip", FRAME, [strokes[0]], cam)
+        write_stroke_pixels(gp, "Lower lip", FRAME, [strokes[1]], cam)
+    out["captured"] = caches.evaluate_frames(obj, [FRAME]).astype(np.float64)[0]
+    out["refine"] = refine(scene, obj, FRAME, sketch=gp)
+    out["refined"] = caches.evaluate_frames(obj, [FRAME], mute_shape_keys_prefix=()).astype(np.float64)[0]
+    out["propagate"] = propagate(scene, obj, FRAMES)
+    out["propagated"] = caches.evaluate_frames(obj, FRAMES, mute_shape_keys_prefix=()).astype(np.float64)
+    return out
+
+
+@pytest.fixture(scope="module")
+def runs(ict, addon):
+    from facelab_addon.testing.split_seams import split_seams
+
+    welded = _route(ict)
+    split = split_seams(ict)
+    return welded, split, _route(split, error=welded["error"][split.source], strokes=welded["strokes"])
+
+
+def test_the_split_face_falls_into_pieces(ict):
+    from facelab_addon.core.lips.sketch_prior import separate_parts
+    from facelab_addon.testing.split_seams import split_seams
+
+    split = split_seams(ict)
+    assert (len(ict.neutral), len(split.neutral)) == (26719, 28911)
+    face = split.part_vertex_mask("M_Face")
+    # without welding, separate_parts (the default fixed set) would hold most of the face still
+    assert separate_parts(split.faces, len(split.neutral))[face].sum() > 1000
+
+
+def test_auto_regions_on_the_split_face_are_the_welded_regions(runs):
+    welded, split, cut = runs
+    assert welded["lips"].sum() > 100 and welded["mouth"].sum() > 100
+    np.testing.assert_array_equal(cut["lips"], welded["lips"][split.source])
+    np.testing.assert_array_equal(cut["mouth"], welded["mouth"][split.source])
+    d = split.duplicates()
+    assert cut["lips"][d[:, 1]].sum() > 0  # the lip band crosses seams
+
+
+def test_refine_on_the_split_face_is_the_welded_refine_and_the_seams_stay_closed(runs):
+    welded, split, cut = runs
+    tol = 1e-6 * welded["width"]
+    np.testing.assert_allclose(cut["captured"], welded["captured"][split.source], rtol=0, atol=tol)
+    moved = np.linalg.norm(welded["refined"] - welded["captured"], axis=1)
+    assert moved.max() > 1e-4  # m: Refine moved the lips (0.1 mm+)
+    assert cut["refine"].moved_vertices >= welded["refine"].moved_vertices
+    err = np.abs(cut["refined"] - welded["refined"][split.source]).max()
+    assert err < tol, (err, tol)
+    d = split.duplicates()
+    moved_twins = moved[split.source[d[:, 0]]] > 1e-6
+    assert moved_twins.sum() > 10  # the correction crosses seams
+    gap = np.linalg.norm(cut["refined"][d[:, 0]] - cut["refined"][d[:, 1]], axis=1).max()
+    assert gap < tol, gap
+
+
+def test_propagate_on_the_split_face_is_the_welded_propagate_and_the_seams_stay_closed(runs):
+    welded, split, cut = runs
+    tol = 1e-6 * welded["width"]
+    change = np.linalg.norm(welded["propagated"] - welded["captured"][None], axis=2).max()
+    assert change > 1e-4
+    err = np.abs(cut["propagated"] - welded["propagated"][:, split.source]).max()
+    assert err < tol, (err, tol)
+    d = split.duplicates()
+    gap = np.linalg.norm(cut["propagated"][:, d[:, 0]] - cut["propagated"][:, d[:, 1]], axis=2).max()
+    assert gap < tol, gap
