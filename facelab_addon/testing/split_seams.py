@@ -4,8 +4,8 @@ Blender's glTF importer (default: Merge Vertices off) and many engine formats ke
 (position, UV, normal) of the polygon corners: every vertex on a UV seam (or a sharp edge) becomes two or
 more coincident vertices and the surface falls into pieces. :func:`split_seams` makes such a face from a
 face model (:class:`~facelab_addon.core.capture.ict.ICTModel`, split by its own UVs, or
-:class:`~facelab_addon.testing.remeshed.RemeshedFace`, which has no UVs: split along the mirror plane, an
-edge loop crossing the mouth, and any other given cuts); the result is a face model
+:class:`~facelab_addon.testing.remeshed.RemeshedFace`, which has no UVs: islands of the mouth area cut out
+along their border loops, :func:`mouth_boxes`, or any planes or boxes given); the result is a face model
 :func:`~facelab_addon.testing.route.build_route_scene` accepts as it is (``neutral``, ``expressions``,
 ``faces``, ``poly_verts``, ``poly_offsets``, ``part_vertex_mask``), and ``source`` maps it back.
 
@@ -22,7 +22,7 @@ import numpy as np
 
 from ..core.geometry.mesh import triangulate
 
-__all__ = ["SplitFace", "split_seams", "mirror_labels"]
+__all__ = ["SplitFace", "split_seams", "plane_labels", "box_labels", "mouth_boxes"]
 
 
 @dataclass
@@ -73,22 +73,60 @@ class SplitFace:
         return np.c_[head[dup], dup]
 
 
-def mirror_labels(face, axis: int = 0, cuts=()) -> np.ndarray:
-    """(C,) int per polygon corner: which side of the mirror plane (and of each plane of ``cuts``) its polygon is on.
+def plane_labels(face, planes) -> np.ndarray:
+    """(C,) int per polygon corner: which side of each plane ``(axis, value)`` (model units) its polygon's centre is on.
 
-    The mirror plane is the median of the neutral's ``axis`` coordinate (the face's left-right axis in the
-    model's frame, x for ICT); ``cuts`` are further planes ``(axis, value)`` in the model's units. A vertex
-    whose polygons lie on both sides of a plane is split there: the polygons' boundary is an edge loop.
+    A vertex whose polygons lie on both sides of a plane is split there: the cut runs along the edge loop between
+    the polygons on either side.
     """
     V = np.asarray(face.neutral, dtype=np.float64)
     pv, off = np.asarray(face.poly_verts), np.asarray(face.poly_offsets)
     sizes = np.diff(off)
     centre = np.add.reduceat(V[pv], off[:-1], axis=0) / sizes[:, None]
-    planes = [(axis, float(np.median(V[:, axis])))] + [(int(a), float(v)) for a, v in cuts]
     label = np.zeros(len(sizes), np.int64)
     for k, (a, value) in enumerate(planes):
-        label |= (centre[:, a] > value).astype(np.int64) << k
+        label |= (centre[:, int(a)] > float(value)).astype(np.int64) << k
     return np.repeat(label, sizes)
+
+
+def box_labels(face, boxes) -> np.ndarray:
+    """(C,) int per polygon corner: 1 + the index of the first box ``(lo (3,), hi (3,))`` (model units) holding its
+    polygon's centre, 0 outside every box: each box's polygons become an island cut out along its border loop."""
+    V = np.asarray(face.neutral, dtype=np.float64)
+    pv, off = np.asarray(face.poly_verts), np.asarray(face.poly_offsets)
+    sizes = np.diff(off)
+    centre = np.add.reduceat(V[pv], off[:-1], axis=0) / sizes[:, None]
+    label = np.zeros(len(sizes), np.int64)
+    for k, (lo, hi) in reversed(list(enumerate(boxes))):
+        inside = ((centre >= np.asarray(lo, float)) & (centre <= np.asarray(hi, float))).all(axis=1)
+        label[inside] = k + 1
+    return np.repeat(label, sizes)
+
+
+def mouth_boxes(face, up: int = 1, across: int = 0) -> list:
+    """Boxes of the mouth area to cut out as islands: the upper lip's skin, the lower lip's and one mouth corner.
+
+    Relative to the inner-lip loop (``core.lips.lip_loop``: centre ``c``, width ``w``) along the ``up`` and
+    ``across`` axes (y and x for ICT), unbounded in depth: the upper lip ``0.15 w .. 0.4 w`` above ``c`` and the
+    lower lip as far below, each ``0.3 w`` to either side of the middle (in the mouth band of Auto Regions), and the
+    left corner (``0.55 w .. 0.8 w`` from the middle, ``0.15 w`` up and down: across the lip band's end). None cuts
+    the lips' contact (a cut across it, or too near it on a coarse mesh, leaves no closed loop to find, and the
+    route scene needs the loop); the islands stay small, so without welding they would be held as separate parts.
+    """
+    from ..core.lips.lip_loop import inner_lip_loop, loop_width
+
+    V = np.asarray(face.neutral, dtype=np.float64)
+    loop = inner_lip_loop(V, np.asarray(face.faces))
+    c, w = V[loop].mean(axis=0), loop_width(V, loop)
+    big = 1e3 * w
+
+    def box(a0, a1, u0, u1):
+        lo, hi = np.full(3, -big), np.full(3, big)
+        lo[across], hi[across] = c[across] + a0 * w, c[across] + a1 * w
+        lo[up], hi[up] = c[up] + u0 * w, c[up] + u1 * w
+        return lo, hi
+
+    return [box(-0.3, 0.3, 0.15, 0.4), box(-0.3, 0.3, -0.4, -0.15), box(0.55, 0.8, -0.15, 0.15)]
 
 
 def split_seams(face, labels=None) -> SplitFace:
@@ -101,7 +139,8 @@ def split_seams(face, labels=None) -> SplitFace:
     labels : (C,) int array_like, optional
         A label per polygon corner; corners of one vertex with different labels get different copies.
         Default: the model's UV index per corner (``poly_uv``: a UV-seam split, as a glTF import) when it has
-        one, else :func:`mirror_labels` (the mirror plane).
+        one, else islands of the mouth area cut out along their border loops (:func:`box_labels` of
+        :func:`mouth_boxes`).
 
     Returns
     -------
@@ -112,7 +151,7 @@ def split_seams(face, labels=None) -> SplitFace:
     if labels is None:
         labels = getattr(face, "poly_uv", None)
         if labels is None:
-            labels = mirror_labels(face)
+            labels = box_labels(face, mouth_boxes(face))
     labels = np.asarray(labels, dtype=np.int64)
     if labels.shape != pv.shape:
         raise ValueError(f"labels has shape {labels.shape}, the corners {pv.shape}")

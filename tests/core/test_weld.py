@@ -3,6 +3,7 @@
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from facelab_addon.core.geometry.mesh import connected_components
 from facelab_addon.core.geometry.weld import Weld, weld, weld_tolerance
@@ -132,3 +133,33 @@ def test_weld_is_a_frozen_record():
     assert isinstance(w, Weld)
     with pytest.raises(Exception):
         w.faces = None
+
+
+def test_compact_and_uncompact_drop_and_restore_the_duplicates():
+    V, F = _square_split()
+    w = weld(F, V)
+    Vc, Fc = w.compact(V)
+    np.testing.assert_array_equal(w.kept, [0, 1, 2, 3])
+    np.testing.assert_array_equal(Vc, V[:4])
+    np.testing.assert_array_equal(Fc, [[0, 1, 2], [1, 3, 2]])
+    np.testing.assert_array_equal(w.uncompact(np.arange(4) * 10), [0, 10, 20, 30, 10, 20])
+
+
+def test_the_ict_face_welds_nothing_and_its_uv_split_welds_back_to_it(ict):
+    """ICT-FaceKit has 367 vertices coincident at rest (250 in every expression too): its eyelashes, eye-occlusion
+    shell and tear film glued to the lid rims. They are parts, not seams: nothing is welded. Split by its own UVs
+    (26,719 -> 28,911 vertices), the split welds back to exactly ICT's vertices and triangles."""
+    from facelab_addon.testing.split_seams import split_seams
+
+    F, V = np.asarray(ict.faces), ict.neutral
+    assert weld(F, V, tol=weld_tolerance(V, F)).n_duplicates == 0
+    pairs_at_rest = cKDTree(V).query_pairs(weld_tolerance(V, F))
+    assert len(pairs_at_rest) > 300  # the glued parts
+    w = weld(F, V, ict.expressions.values())
+    assert w.n_duplicates == 0 and w.faces is F
+    s = split_seams(ict)
+    assert (len(V), len(s.neutral)) == (26719, 28911)
+    ws = weld(s.faces, s.neutral, s.expressions.values())
+    assert ws.n_duplicates == len(s.neutral) - len(V)
+    np.testing.assert_array_equal(s.source[ws.kept], np.arange(len(V)))
+    np.testing.assert_array_equal(ws.compact(s.neutral)[1], F)

@@ -1,7 +1,8 @@
 """The Dinev route on a face split along its UV seams (a glTF import: 26,719 -> 28,911 ICT vertices, M_Face in 9
-pieces) gives the welded face's result at every vertex, and every seam stays closed.
+pieces; the remeshed face, which has no UVs: islands of its mouth area cut out, 11,150 -> 12,049) gives the welded
+face's result at every vertex, and every seam stays closed.
 
-Both runs use one truth: the route scene of the ICT face and of ``testing.split_seams.split_seams(ict)`` (the same
+Both runs use one truth: the route scene of the face and of ``testing.split_seams.split_seams(face)`` (the same
 expressions, cameras, armature), the split scene's capture error set to the welded one's (the route's error model
 measures along the mesh, which a seam would cut), the same sketch pixels. Auto Regions, Refine Lips (frame 30) and
 Propagate (frames 21-40) must agree at every split vertex with the welded vertex it copies, to 1e-6 of the mouth
@@ -58,12 +59,14 @@ def _route(face, error=None, strokes=None):
     return out
 
 
-@pytest.fixture(scope="module")
-def runs(ict, addon):
+@pytest.fixture(scope="module", params=["ict", "remeshed"])
+def runs(request, ict, addon):
+    from facelab_addon.testing.remeshed import remeshed_ict
     from facelab_addon.testing.split_seams import split_seams
 
-    welded = _route(ict)
-    split = split_seams(ict)
+    face = ict if request.param == "ict" else remeshed_ict(ict)
+    welded = _route(face)
+    split = split_seams(face)
     return welded, split, _route(split, error=welded["error"][split.source], strokes=welded["strokes"])
 
 
@@ -113,3 +116,34 @@ def test_propagate_on_the_split_face_is_the_welded_propagate_and_the_seams_stay_
     d = split.duplicates()
     gap = np.linalg.norm(cut["propagated"][:, d[:, 0]] - cut["propagated"][:, d[:, 1]], axis=2).max()
     assert gap < tol, gap
+
+
+def test_a_lip_cut_opened_by_a_shape_key_or_a_read_frame_is_not_welded(addon):
+    """A mouth modelled closed, its upper and lower lip vertices coincident at rest (a cut): ``face_topology`` welds
+    them only while no shape key and no frame the step reads opens the mouth."""
+    import bpy
+
+    from facelab_addon.blender.mesh import face_topology, mesh_triangles
+
+    n = 6
+    x = np.arange(n, dtype=float)
+    V = np.vstack([np.c_[x, np.zeros(n), np.full(n, z)] for z in (1.0, 0.0, 0.0, -1.0)])  # rows 1, 2 coincide
+    F = []
+    for top in (0, 2):
+        for i in range(n - 1):
+            a, b, c, d = top * n + i, top * n + i + 1, (top + 1) * n + i, (top + 1) * n + i + 1
+            F.append([a, c, d, b])
+    me = bpy.data.meshes.new("Cut")
+    me.from_pydata(V.tolist(), [], F)
+    obj = bpy.data.objects.new("Cut", me)
+    bpy.context.scene.collection.objects.link(obj)
+    assert face_topology(obj).n_duplicates == n  # nothing tells the lips apart: welded
+    opened = V.copy()
+    opened[2 * n:, 2] -= 0.5
+    assert face_topology(obj, [opened]).n_duplicates == 0  # a frame read opens the mouth (Refine's, Propagate's)
+    obj.shape_key_add(name="Basis")
+    kb = obj.shape_key_add(name="jawOpen")
+    kb.data.foreach_set("co", opened.astype(np.float32).ravel())
+    topo = face_topology(obj)
+    assert topo.n_duplicates == 0
+    np.testing.assert_array_equal(topo.tris, mesh_triangles(me))  # the mesh's own triangles
