@@ -172,3 +172,81 @@ def split_seams(face, labels=None) -> SplitFace:
                      expressions={n: np.asarray(x)[source] for n, x in face.expressions.items()},
                      poly_verts=cv, poly_offsets=off, faces=np.asarray(tris, dtype=np.int64), source=source,
                      base=face)
+
+
+def run_route(face, *, frames, train, error=None, strokes=None) -> dict:
+    """The Dinev route on ``face``'s route scene: Auto Regions, Refine Lips on each of ``train``, Propagate ``frames``.
+
+    The scene is :func:`~facelab_addon.testing.route.build_route_scene` (metres, head + jaw armature, unposed, the
+    ``wide`` capture error, the main camera). Needs ``bpy`` with FaceLab registered.
+
+    Parameters
+    ----------
+    face : face model
+        As ``build_route_scene`` takes it (a :class:`SplitFace` too).
+    frames : (T,) int
+        The scene's frames, the range Propagate corrects.
+    train : sequence of int
+        The frames sketched (the truth's silhouettes through the main camera) and refined.
+    error : (V,3) float, optional
+        The capture error to use instead of the route's (object-local metres at key weight 1): a split face
+        takes the welded face's, ``welded["error"][split.source]`` (the route's error model measures along the
+        mesh, which a seam would cut, so its own error would be another truth).
+    strokes : dict frame -> (upper_px, lower_px), optional
+        Sketch pixels to draw instead of the truth's (the welded run's ``"strokes"``: one sketch for both).
+
+    Returns
+    -------
+    dict
+        ``rs`` (the RouteScene), ``error`` (V,3), ``width`` (mouth width, object-local), ``mouth``, ``lips`` (V,)
+        bool (the groups Auto Regions wrote), ``strokes``, ``captured`` (T,V,3) evaluated without FaceLab's keys,
+        ``refine`` (RefineResult per training frame), ``refined`` (k,V,3) the training frames after Refine,
+        ``propagate`` (PropagateResult), ``propagated`` (T,V,3), ``truth`` (T,V,3) the evaluated truth, all
+        object-local metres, and ``seconds``. ``rs`` is only alive until the next route scene is built.
+    """
+    import time
+
+    from ..blender import caches
+    from ..blender.camera import camera_from_blender
+    from ..blender.mesh import vertex_group_mask
+    from ..blender.strokes import new_lip_sketch, write_stroke_pixels
+    from ..core.lips.lip_loop import loop_width
+    from ..names import LIPS_GROUP, MOUTH_GROUP
+    from ..pipeline.propagate import propagate
+    from ..pipeline.refine import refine
+    from ..pipeline.regions import auto_regions
+    from .route import ERROR_KEY, build_route_scene, sketch_truth
+
+    frames = np.asarray(frames)
+    rs = build_route_scene(face, units="m", armature=True, frames=frames)
+    scene, obj = rs.scene, rs.obj
+    if error is not None:
+        kb = obj.data.shape_keys.key_blocks[ERROR_KEY]
+        co = np.empty(3 * len(obj.data.vertices))
+        obj.data.shape_keys.reference_key.data.foreach_get("co", co)
+        kb.data.foreach_set("co", (co + np.asarray(error).ravel()).astype(np.float32))
+        rs.error = np.asarray(error)
+    out = {"rs": rs, "error": rs.error, "width": loop_width(rs.neutral, rs.loop), "strokes": {}, "refine": []}
+    t0 = time.perf_counter()
+    auto_regions(obj, scene=scene)
+    out["mouth"] = vertex_group_mask(obj, MOUTH_GROUP)
+    out["lips"] = vertex_group_mask(obj, LIPS_GROUP)
+    out["captured"] = caches.evaluate_frames(obj, frames).astype(np.float64)
+    gp = None
+    for f in train:
+        if strokes is None:
+            gp, up, lo = sketch_truth(rs, f, rs.cameras[0])
+            out["strokes"][f] = (up, lo)
+        else:
+            scene.frame_set(int(f))
+            cam = camera_from_blender(scene, rs.cameras[0])
+            gp = new_lip_sketch(scene, rs.cameras[0], name="FL_LipSketch")
+            write_stroke_pixels(gp, "Upper lip", int(f), [strokes[f][0]], cam)
+            write_stroke_pixels(gp, "Lower lip", int(f), [strokes[f][1]], cam)
+        out["refine"].append(refine(scene, obj, int(f), sketch=gp))
+    out["refined"] = caches.evaluate_frames(obj, list(train), mute_shape_keys_prefix=()).astype(np.float64)
+    out["propagate"] = propagate(scene, obj, frames)
+    out["propagated"] = caches.evaluate_frames(obj, frames, mute_shape_keys_prefix=()).astype(np.float64)
+    out["seconds"] = time.perf_counter() - t0
+    out["truth"] = rs.evaluated_truth(frames)
+    return out

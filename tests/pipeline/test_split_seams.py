@@ -11,63 +11,26 @@ width, and twins must coincide on the evaluated mesh after each step."""
 import numpy as np
 import pytest
 
-from facelab_addon.blender import caches
-from facelab_addon.names import LIPS_GROUP, MOUTH_GROUP
-
 pytestmark = pytest.mark.blender
 
 FRAME = 30
 FRAMES = np.arange(21, 41)
 
 
-def _route(face, error=None, strokes=None):
-    """Build the route scene of ``face``, run Auto Regions, Refine on FRAME, Propagate; return what it made."""
-    from facelab_addon.blender.camera import camera_from_blender
-    from facelab_addon.blender.mesh import vertex_group_mask
-    from facelab_addon.blender.strokes import new_lip_sketch, write_stroke_pixels
-    from facelab_addon.core.lips.lip_loop import loop_width
-    from facelab_addon.pipeline.propagate import propagate
-    from facelab_addon.pipeline.refine import refine
-    from facelab_addon.pipeline.regions import auto_regions
-    from facelab_addon.testing.route import ERROR_KEY, build_route_scene, sketch_truth
-
-    rs = build_route_scene(face, units="m", armature=True, frames=FRAMES)
-    scene, obj = rs.scene, rs.obj
-    if error is not None:  # the welded face's capture error, copied to every twin
-        kb = obj.data.shape_keys.key_blocks[ERROR_KEY]
-        co = np.empty(3 * len(obj.data.vertices))
-        obj.data.shape_keys.reference_key.data.foreach_get("co", co)
-        kb.data.foreach_set("co", (co + error.ravel()).astype(np.float32))
-    out = {"error": rs.error, "width": loop_width(rs.neutral, rs.loop)}
-    auto_regions(obj, scene=scene)
-    out["mouth"] = vertex_group_mask(obj, MOUTH_GROUP)
-    out["lips"] = vertex_group_mask(obj, LIPS_GROUP)
-    if strokes is None:
-        gp, up, lo = sketch_truth(rs, FRAME, rs.cameras[0])
-        out["strokes"] = (up, lo)
-    else:
-        scene.frame_set(FRAME)
-        cam = camera_from_blender(scene, rs.cameras[0])
-        gp = new_lip_sketch(scene, rs.cameras[0], name="FL_LipSketch")
-        write_stroke_pixels(gp, "Upper lip", FRAME, [strokes[0]], cam)
-        write_stroke_pixels(gp, "Lower lip", FRAME, [strokes[1]], cam)
-    out["captured"] = caches.evaluate_frames(obj, [FRAME]).astype(np.float64)[0]
-    out["refine"] = refine(scene, obj, FRAME, sketch=gp)
-    out["refined"] = caches.evaluate_frames(obj, [FRAME], mute_shape_keys_prefix=()).astype(np.float64)[0]
-    out["propagate"] = propagate(scene, obj, FRAMES)
-    out["propagated"] = caches.evaluate_frames(obj, FRAMES, mute_shape_keys_prefix=()).astype(np.float64)
-    return out
-
-
 @pytest.fixture(scope="module", params=["ict", "remeshed"])
 def runs(request, ict, addon):
     from facelab_addon.testing.remeshed import remeshed_ict
-    from facelab_addon.testing.split_seams import split_seams
+    from facelab_addon.testing.split_seams import run_route, split_seams
 
     face = ict if request.param == "ict" else remeshed_ict(ict)
-    welded = _route(face)
+    welded = run_route(face, frames=FRAMES, train=[FRAME])
     split = split_seams(face)
-    return welded, split, _route(split, error=welded["error"][split.source], strokes=welded["strokes"])
+    cut = run_route(split, frames=FRAMES, train=[FRAME], error=welded["error"][split.source],
+                    strokes=welded["strokes"])
+    for r in (welded, cut):  # the refined and the captured frame
+        r["refined"], r["captured"] = r["refined"][0], r["captured"][list(FRAMES).index(FRAME)]
+        r["refine"] = r["refine"][0]
+    return welded, split, cut
 
 
 def test_the_split_face_falls_into_pieces(ict):
