@@ -86,9 +86,11 @@ def face_topology(obj, poses=()) -> FaceTopology:
 
     Vertices are welded only when they coincide (within 1e-4 median edge lengths,
     :func:`~facelab_addon.core.geometry.weld.weld`) in the mesh, in every shape key and in every
-    pose of ``poses``: a lip cut (upper and lower lip coincident at rest) that a key or a read frame
-    opens stays cut. On a mesh without coincident vertices the keys and ``poses`` are never read and
-    ``tris`` is ``mesh_triangles(obj.data)``.
+    pose of ``poses``, and only where they close a seam (two pieces sewn edge to edge into one
+    consistently oriented surface; a part merely touching the face, as ICT-FaceKit's eyelashes on the lid
+    rims, stays apart): a lip cut (upper and lower lip coincident at rest) that a key or a read frame opens
+    stays cut. On a mesh without such vertices the keys and ``poses`` are never read and ``tris`` is
+    ``mesh_triangles(obj.data)`` itself.
 
     Parameters
     ----------

@@ -165,8 +165,9 @@ def weld(faces, rest, poses=(), *, rel_tol: float = DEFAULT_REL_TOL, tol: float 
         Rest positions, scene units.
     poses : iterable of (V,3) float array_like
         Other positions of the same vertices (shape-key positions, evaluated frames), scene units. Read
-        lazily and only when the rest pose has coincident vertices, so a generator of expensive frames
-        costs nothing on a mesh without them.
+        lazily and only when the rest pose has coincident vertices that close a seam, so a generator of
+        expensive frames costs nothing on a mesh without them (ICT-FaceKit: its glued parts are rejected at
+        rest).
     rel_tol : float
         Tolerance in median edge lengths (:func:`weld_tolerance`); ignored when ``tol`` is given.
     tol : float, optional
@@ -189,6 +190,15 @@ def weld(faces, rest, poses=(), *, rel_tol: float = DEFAULT_REL_TOL, tol: float 
     pairs = cKDTree(V).query_pairs(tol, output_type="ndarray")
     if len(pairs) == 0:
         return ident
+    piece = connected_components(F, n)
+
+    def sewn(pairs):  # the pairs on one piece or on pieces the welding sews together
+        joined = _sewn_pieces(F, piece, _representatives(pairs, n), pairs)
+        return pairs[joined[piece[pairs[:, 0]]] == joined[piece[pairs[:, 1]]]]
+
+    pairs = sewn(pairs)  # first at rest: parts merely touching are never read in the poses
+    if len(pairs) == 0:
+        return ident
     for P in poses:  # a pair stays only while it coincides in every pose
         P = np.asarray(P, dtype=np.float64)
         if P.shape != V.shape:
@@ -196,9 +206,7 @@ def weld(faces, rest, poses=(), *, rel_tol: float = DEFAULT_REL_TOL, tol: float 
         pairs = pairs[np.linalg.norm(P[pairs[:, 0]] - P[pairs[:, 1]], axis=1) <= tol]
         if len(pairs) == 0:
             return ident
-    piece = connected_components(F, n)
-    joined = _sewn_pieces(F, piece, _representatives(pairs, n), pairs)
-    pairs = pairs[joined[piece[pairs[:, 0]]] == joined[piece[pairs[:, 1]]]]
+    pairs = sewn(pairs)  # again with the twins the poses left
     if len(pairs) == 0:
         return ident
     rep = _representatives(pairs, n)
