@@ -110,3 +110,23 @@ def test_a_lip_cut_opened_by_a_shape_key_or_a_read_frame_is_not_welded(addon):
     topo = face_topology(obj)
     assert topo.n_duplicates == 0
     np.testing.assert_array_equal(topo.tris, mesh_triangles(me))  # the mesh's own triangles
+
+
+def test_the_bhat_solve_skin_on_the_split_face_is_the_welded_skin(ict, addon):
+    """The Bhat solve's markers and contours go on the skin: triangles without a fixed vertex. Without an
+    ``FL_fixed`` group the fixed vertices are the separate parts, those of the welded surface: on the UV-split
+    face (M_Face in 9 pieces) the skin is the welded face's, not its largest UV island."""
+    from facelab_addon.blender.mesh import mesh_triangles
+    from facelab_addon.pipeline.solve import _skin_triangles
+    from facelab_addon.testing.scenes import build_ict_face_scene
+    from facelab_addon.testing.split_seams import split_seams
+
+    names = ["jawOpen", "mouthClose"]
+    fs = build_ict_face_scene(ict, names)
+    skin, fixed, src = _skin_triangles(fs.obj, mesh_triangles(fs.obj.data), "FL_fixed")
+    assert src == "separate mesh parts" and skin.sum() > 10000
+    split = split_seams(ict)
+    fs = build_ict_face_scene(split, names)
+    skin_s, fixed_s, _ = _skin_triangles(fs.obj, mesh_triangles(fs.obj.data), "FL_fixed")
+    np.testing.assert_array_equal(skin_s, skin)  # the same polygons, so the same triangles in the same order
+    np.testing.assert_array_equal(fixed_s, fixed[split.source])
