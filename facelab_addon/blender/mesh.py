@@ -3,18 +3,30 @@
 Positions are returned in world space (scene units) because cameras are in
 world space; ``world_to_local_deltas`` maps a world-space correction back to
 the object's local (shape-key) space.
+
+:func:`face_topology` is the face's surface as the Dinev route reads it: its triangles with the
+vertices a UV-seam split duplicated (a glTF import, a game export) welded back
+(:mod:`facelab_addon.core.geometry.weld`), and the map that gives every duplicate its
+representative's value in what is written back.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from itertools import chain
+
 import numpy as np
 
 from ..core.errors import MeshError
+from ..core.geometry.weld import Weld, weld
 from ..core.lips.sketch_prior import separate_parts
 from ..names import FIXED_GROUP
 
 __all__ = [
     "mesh_triangles",
+    "FaceTopology",
+    "face_topology",
+    "spread_key_offsets",
     "evaluated_vertices",
     "world_to_local_deltas",
     "vertex_group_mask",
@@ -40,6 +52,96 @@ def mesh_triangles(mesh) -> np.ndarray:
     tris = np.empty(len(mesh.loop_triangles) * 3, dtype=np.int32)
     mesh.loop_triangles.foreach_get("vertices", tris)
     return tris.reshape(-1, 3).astype(np.int64)
+
+
+@dataclass(frozen=True)
+class FaceTopology:
+    """The face's surface as one piece: welded triangles and the representative of every vertex.
+
+    Attributes
+    ----------
+    tris : (F,3) int64
+        ``mesh_triangles`` with every corner replaced by its representative (same order and count);
+        the duplicates are used by no triangle. The mesh's own triangles when nothing was welded.
+    weld : Weld
+        :class:`~facelab_addon.core.geometry.weld.Weld`: ``weld.representative`` (V,) int64.
+    """
+
+    tris: np.ndarray
+    weld: Weld
+
+    @property
+    def n_duplicates(self) -> int:
+        """Vertices welded onto a coincident twin (0 on a mesh without split seams)."""
+        return self.weld.n_duplicates
+
+    def spread(self, values):
+        """(V, ...) ``values`` with each duplicate given its representative's value (``values`` itself when
+        nothing was welded): what every mask, offset and position written back goes through."""
+        return self.weld.spread(values)
+
+
+def face_topology(obj, poses=()) -> FaceTopology:
+    """The triangles of ``obj``'s mesh with the vertices split along seams welded (see the module docstring).
+
+    Vertices are welded only when they coincide (within 1e-4 median edge lengths,
+    :func:`~facelab_addon.core.geometry.weld.weld`) in the mesh, in every shape key and in every
+    pose of ``poses``, and only where they close a seam (two pieces sewn edge to edge into one
+    consistently oriented surface; a part merely touching the face, as ICT-FaceKit's eyelashes on the lid
+    rims, stays apart): a lip cut (upper and lower lip coincident at rest) that a key or a read frame opens
+    stays cut. On a mesh without such vertices the keys and ``poses`` are never read and ``tris`` is
+    ``mesh_triangles(obj.data)`` itself.
+
+    Parameters
+    ----------
+    obj : bpy.types.Object
+        A mesh object.
+    poses : iterable of (V,3) float array_like
+        Further object-local positions the caller reads (evaluated frames); consumed lazily, only when
+        the mesh has coincident vertices.
+
+    Returns
+    -------
+    FaceTopology
+    """
+    mesh = obj.data
+    tris = mesh_triangles(mesh)
+    n = len(mesh.vertices)
+    rest = np.empty(n * 3, dtype=np.float64)
+    mesh.vertices.foreach_get("co", rest)
+
+    def keys():
+        sk = mesh.shape_keys
+        for kb in (sk.key_blocks if sk is not None else ()):
+            co = np.empty(n * 3, dtype=np.float64)
+            kb.data.foreach_get("co", co)
+            yield co.reshape(n, 3)
+
+    w = weld(tris, rest.reshape(n, 3), chain(keys(), poses))
+    return FaceTopology(tris=w.faces, weld=w)
+
+
+def spread_key_offsets(obj, names, topology: FaceTopology) -> None:
+    """Give every duplicate of ``topology`` its representative's offset in the shape keys ``names`` of ``obj``.
+
+    The offset of a key is its positions minus its relative key's; a duplicate's new position is its own
+    relative-key position plus its representative's offset (written with ``foreach_set``). Nothing happens
+    when ``topology`` welded nothing.
+    """
+    if topology.n_duplicates == 0:
+        return
+    blocks = obj.data.shape_keys.key_blocks
+    n = len(obj.data.vertices)
+    co = np.empty(n * 3, dtype=np.float64)
+    base = np.empty(n * 3, dtype=np.float64)
+    for name in names:
+        kb = blocks[name]
+        kb.data.foreach_get("co", co)
+        kb.relative_key.data.foreach_get("co", base)
+        B = base.reshape(n, 3)
+        out = B + topology.spread(co.reshape(n, 3) - B)
+        kb.data.foreach_set("co", out.astype(np.float32).ravel())
+    obj.data.update()
 
 
 def evaluated_vertices(obj, depsgraph, *, world: bool = True) -> np.ndarray:
@@ -116,7 +218,9 @@ def default_fixed_mask(obj, tris, group: str = FIXED_GROUP):
     The vertex group ``group`` if the mesh has one; otherwise every vertex that
     is not on the largest connected piece of the mesh (teeth, tongue, eyes
     and other separate parts): :func:`~facelab_addon.core.lips.sketch_prior.separate_parts`,
-    the default of ``refine_lips`` too.
+    the default of ``refine_lips`` too. ``tris`` may be a :class:`FaceTopology`: the pieces are
+    then those of the welded surface (a seam split does not make a piece) and each duplicate
+    takes its representative's value.
 
     Returns
     -------
@@ -124,7 +228,10 @@ def default_fixed_mask(obj, tris, group: str = FIXED_GROUP):
     source : str
         ``"vertex group <name>"`` or ``"separate mesh parts"``.
     """
+    topo = tris if isinstance(tris, FaceTopology) else None
+    spread = topo.spread if topo is not None else (lambda m: m)
     m = vertex_group_mask(obj, group)
     if m is not None:
-        return m, f"vertex group '{group}'"
-    return separate_parts(tris, len(obj.data.vertices)), "separate mesh parts"
+        return spread(m), f"vertex group '{group}'"
+    F = topo.tris if topo is not None else tris
+    return spread(separate_parts(F, len(obj.data.vertices))), "separate mesh parts"

@@ -28,7 +28,7 @@ import numpy as np
 
 from ..blender import bakes, cache_integrate, caches
 from ..blender.capture_stream import CaptureReader
-from ..blender.mesh import mesh_triangles, require_mesh
+from ..blender.mesh import face_topology, require_mesh, spread_key_offsets
 from ..blender.objects import ModifierState, local_length, require_editable
 from ..blender.shapekeys import (
     add_corrective_key,
@@ -75,6 +75,7 @@ __all__ = [
 _CACHE_SOURCES = ("mesh_cache", "mesh_sequence_cache")
 _CHUNK = 256  # frames per streamed chunk: working memory ~ chunk x (mouth + lip vertices), not the shot
 _SHOT_SAMPLE = 64  # frames of the shot read before the fit for the "auto" model choice
+_WELD_SAMPLE = 16  # frames of the shot (besides the training frames) on which split-seam twins must coincide
 
 
 @dataclass
@@ -344,9 +345,12 @@ def propagate_steps(scene, obj, frames, settings: PropagateSettings | None = Non
     frames = check_frames(frames, "Propagate", consecutive=True)
     require_mesh(obj)
     require_editable(obj, "Propagate")
-    tris = mesh_triangles(obj.data)
-    mouth_faces, lip_faces = region_faces(obj, tris)
     train = training_frames(obj)
+    # a mesh split along its UV seams is one surface: twins that coincide at rest, in every key and on the training
+    # frames and a sample of the shot (read only when the mesh has coincident vertices) are welded
+    topo = face_topology(obj, _weld_poses(obj, frames, train))
+    tris = topo.tris
+    mouth_faces, lip_faces = region_faces(obj, tris)
     if len(train) < 1:
         raise FaceLabError("No training frame: correct at least one frame (Refine Lips, or sculpt and Mark Training Frame).")
     outside = [f for f in train if f < frames[0] or f > frames[-1]]
@@ -361,7 +365,7 @@ def propagate_steps(scene, obj, frames, settings: PropagateSettings | None = Non
     chunk = min(_CHUNK, max(4, len(frames) // 40)) if chunk is None else chunk
     if int(chunk) < 1:
         raise FaceLabError(f"Propagate: chunk must be at least 1 frame, got {chunk}; use the default {_CHUNK}.")
-    return _propagate_steps(scene, obj, frames, settings, t0, tris, mouth_faces, lip_faces, train, int(chunk))
+    return _propagate_steps(scene, obj, frames, settings, t0, topo, mouth_faces, lip_faces, train, int(chunk))
 
 
 def _key_shapes_over_cache(budget) -> int:
@@ -373,11 +377,19 @@ def _chunks(n, size):
     return [(i, min(n, i + size)) for i in range(0, n, size)]
 
 
-def _propagate_steps(scene, obj, frames, settings, t0, tris, mouth_faces, lip_faces, train, chunk):
+def _weld_poses(obj, frames, train):
+    """The captured frames twins must coincide on to be welded: the training frames and an even sample of
+    ``frames`` (object-local, FaceLab's keys muted), evaluated one at a time when asked for."""
+    pick = frames[np.unique(np.linspace(0, len(frames) - 1, min(len(frames), _WELD_SAMPLE)).round().astype(int))]
+    for f in np.union1d(pick, np.asarray(train, dtype=frames.dtype)):
+        yield caches.evaluate_frames(obj, [f])[0]
+
+
+def _propagate_steps(scene, obj, frames, settings, t0, topo, mouth_faces, lip_faces, train, chunk):
     state = ModifierState(obj)
     done = False
     try:
-        result = yield from _propagate_work(scene, obj, frames, settings, t0, tris, mouth_faces, lip_faces, train,
+        result = yield from _propagate_work(scene, obj, frames, settings, t0, topo, mouth_faces, lip_faces, train,
                                             chunk)
         done = True
         return result
@@ -396,7 +408,7 @@ def _require_finite(X, frames, what):
                         "range).")
 
 
-def _propagate_work(scene, obj, frames, settings, t0, tris, mouth_faces, lip_faces, train, chunk):
+def _propagate_work(scene, obj, frames, settings, t0, topo, mouth_faces, lip_faces, train, chunk):
     T = len(frames)
     total = T + 2  # progress units: fit, T frames corrected, write
     on_cache = caches.sequence_source(obj) in _CACHE_SOURCES
@@ -409,22 +421,31 @@ def _propagate_work(scene, obj, frames, settings, t0, tris, mouth_faces, lip_fac
     note = cache_integrate.cache_to_shape_key_ready(obj, scene_frames=frames) if on_cache else ""
     yield "fitting", 0, total
     rest = rest_vertices(obj)
+    # a mesh split along seams: the regression sees the welded surface alone (no duplicates), ``kept`` its vertices
+    kept = topo.weld.kept if topo.n_duplicates else None
+    rest_w, tris_w = (rest, topo.tris) if kept is None else topo.weld.compact(rest)
     corrected = caches.evaluate_frames(obj, train, mute_shape_keys_prefix=(PROPAGATE_PREFIX,))
     _require_finite(corrected, train, "corrected (training)")
     unknown = captured_unknown(obj, train)
     model = "whole" if unknown and settings.model == "auto" else settings.model
-    reg = LipRegressor(rest, tris, mouth_faces, lip_faces, model=model, damping=bool(settings.damping))
+    reg = LipRegressor(rest_w, tris_w, mouth_faces, lip_faces, model=model, damping=bool(settings.damping))
     captured_train = caches.read_captured_frames(obj, list(train)).astype(np.float64)  # FaceLab keys muted
     _require_finite(captured_train, train, "captured (training)")
+    if kept is not None:
+        corrected, captured_train = corrected[:, kept], captured_train[:, kept]
     corrected = training_input(captured_train, corrected, reg.interior_vertices)
     # Only the mouth and lip vertices are read (plus, over a cache, the polygons around the interior lips).
-    iv = reg.interior_vertices
-    read_v, ring = reg.used_vertices, None
+    iv, used = reg.interior_vertices, reg.used_vertices
+    if kept is not None:  # the mesh's own vertex ids
+        iv, used = kept[iv], kept[used]
+    # the vertices written: the interior lips and their split-seam twins (each takes its representative's correction)
+    out_v, take = topo.weld.expand(iv)
+    read_v, ring = used, None
     if on_cache:
-        ring = cache_integrate.IntegrateMap(cache_integrate.polygon_corners(obj.data), iv, rest)
+        ring = cache_integrate.IntegrateMap(cache_integrate.polygon_corners(obj.data), out_v, rest)
         read_v = np.union1d(read_v, ring.vertices)
     reader = CaptureReader(obj, read_v)
-    at_used = np.searchsorted(read_v, reg.used_vertices)
+    at_used = np.searchsorted(read_v, used)
     at_ring = None if ring is None else np.searchsorted(read_v, ring.vertices)
     shot = None
     if model == "auto" or (model == "correction" and settings.damping):  # an even sample of the shot (model_choice)
@@ -442,8 +463,9 @@ def _propagate_work(scene, obj, frames, settings, t0, tris, mouth_faces, lip_fac
     # offsets, a new shape on every frame. The shown correction is spooled as it comes (the patch cache after the
     # capture, blender.bakes.add_correction_patch); the key offsets are compressed only until they clearly need
     # more shapes than the key budget (4x: the greedy basis overshoots the final one), then no longer mapped.
-    store = StreamingBasis(len(iv), tol, max_rank=_key_shapes_over_cache(storage.key_budget) if on_cache else 1024)
-    spool = CorrectionWriter(scene, obj, PROPAGATE_PREFIX, vertices=iv, after_capture=True) if on_cache else None
+    store = StreamingBasis(len(out_v) if on_cache else len(iv), tol,
+                           max_rank=_key_shapes_over_cache(storage.key_budget) if on_cache else 1024)
+    spool = CorrectionWriter(scene, obj, PROPAGATE_PREFIX, vertices=out_v, after_capture=True) if on_cache else None
     try:
         is_train = np.isin(frames, train)
         screen = SuggestScreen(reg, T, exclude=np.flatnonzero(is_train)) if settings.suggestions else None
@@ -460,6 +482,8 @@ def _propagate_work(scene, obj, frames, settings, t0, tris, mouth_faces, lip_fac
             if screen is not None:
                 screen.add_scores(i, feature_sq, score[i:j])
             corr[is_train[i:j]] = 0.0  # training frames keep the artist's own correction
+            if take is not None and on_cache:  # every twin moves with its representative: the seams stay closed
+                corr = corr[:, take]
             if spool is not None:
                 spool.add(frames[i:j], corr)
             if ring is not None and store is not None:  # keys ride on the cache surface: map the offsets through it
@@ -474,7 +498,14 @@ def _propagate_work(scene, obj, frames, settings, t0, tris, mouth_faces, lip_fac
             names = StoredKeys.of(spool.finish())  # the patch cache: no keys
         else:
             basis, weights = store.finish()
-            names = _store_corrections(scene, obj, frames, basis, weights, iv)
+            if take is None or on_cache:
+                names = _store_corrections(scene, obj, frames, basis, weights, out_v)
+            else:  # stored as on the welded surface, then each twin given its representative's offsets
+                names = _store_corrections(scene, obj, frames, basis, weights, iv)
+                if names.storage.mode == "keys":
+                    spread_key_offsets(obj, list(names), topo)
+                elif names.storage.mode == "cache":  # a point cache of the vertices written: every twin in it
+                    names = _store_corrections(scene, obj, frames, basis[:, take], weights, out_v)
     finally:
         if spool is not None:
             spool.close()

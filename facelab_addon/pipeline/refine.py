@@ -27,7 +27,7 @@ from ..blender.camera import camera_from_blender, evaluated_depsgraph
 from ..blender.mesh import (
     default_fixed_mask,
     evaluated_vertices,
-    mesh_triangles,
+    face_topology,
     require_mesh,
     vertex_group_mask,
     world_to_local_deltas,
@@ -239,13 +239,23 @@ def refine(scene, obj, frame: int, settings: RefineSettings | None = None, *, ca
         strokes = read_lip_strokes(scene, cam, frame, gp_obj=gp, depsgraph=dg)
         views.append(SketchView(cam, strokes["upper"], strokes["lower"], name=cam_obj.name))
     V = evaluated_vertices(obj, dg)
-    tris = mesh_triangles(obj.data)
-    fixed, fixed_src = default_fixed_mask(obj, tris, settings.fixed_group)
-    lips = _lip_region(obj) if settings.use_regions else None
     A, b = world_affine(obj, dg)
+    # split seams welded where the twins coincide at rest, in every key and on this frame (a lip cut stays cut)
+    topo = face_topology(obj, _local_frame(V, A, b))
+    tris = topo.tris
+    fixed, fixed_src = default_fixed_mask(obj, topo, settings.fixed_group)
+    lips = _lip_region(obj) if settings.use_regions else None
     rest = rest_vertices(obj) @ A.T + b  # the Basis, where the object is: the head unturned
-    X, info = refine_lips_views(V, tris, views, fixed=fixed, lips=lips, rest_vertices=rest, return_info=True,
-                                **settings.solver_weights())
+    if topo.n_duplicates:  # the solver sees the welded surface alone (no duplicate weighs in a fit twice)
+        w = topo.weld
+        Vc, tris_c = w.compact(V)
+        Xc, info = refine_lips_views(Vc, tris_c, views, fixed=fixed[w.kept], rest_vertices=rest[w.kept],
+                                     lips=None if lips is None else lips[w.kept], return_info=True,
+                                     **settings.solver_weights())
+        X = V + w.uncompact(Xc - Vc)  # each duplicate moves with its representative: the seams stay closed
+    else:
+        X, info = refine_lips_views(V, tris, views, fixed=fixed, lips=lips, rest_vertices=rest, return_info=True,
+                                    **settings.solver_weights())
     note = ""
     on_cache = caches.sequence_source(obj) in _CACHE_SOURCES
     state = ModifierState(obj)
@@ -269,6 +279,11 @@ def refine(scene, obj, frame: int, settings: RefineSettings | None = None, *, ca
                         max_move=float(moved.max()), fixed_source=fixed_src, cameras=[v.name for v in views],
                         lips_region=lips is not None, note=note, head_turn_deg=info["head_turn_deg"],
                         seconds=time.perf_counter() - t0)
+
+
+def _local_frame(V, A, b):
+    """The world positions ``V`` (V,3) in the object's local space, as a one-pose generator (read lazily)."""
+    yield np.linalg.solve(A, (V - b).T).T
 
 
 def _view_sources(scene, frame, sketch, camera_obj, all_views) -> list:

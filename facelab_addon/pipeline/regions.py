@@ -19,7 +19,7 @@ import numpy as np
 from ..assets import load_preset
 from ..blender.camera import camera_from_blender, evaluated_depsgraph
 from ..blender.mesh import (
-    mesh_triangles,
+    face_topology,
     require_mesh,
     selected_vertices,
     set_vertex_group,
@@ -113,7 +113,9 @@ def auto_regions(obj, settings: RegionSettings | None = None, *, scene=None, cam
                  sketch=None) -> RegionsResult:
     """Propose and write the mouth and inner-lip vertex groups of the face ``obj``.
 
-    Reads the rest pose (Basis key, else the mesh) and its triangles, runs
+    Reads the rest pose (Basis key, else the mesh) and its triangles (welded along split seams:
+    :func:`~facelab_addon.blender.mesh.face_topology`; each duplicate gets its representative's
+    groups), runs
     :func:`facelab_addon.core.lips.regions.auto_regions` and writes the two
     groups with weight 1. ``obj`` must be in Object Mode (the selection of an
     edited mesh is read from its mesh data). With ``settings.use_camera`` and a
@@ -157,11 +159,14 @@ def auto_regions(obj, settings: RegionSettings | None = None, *, scene=None, cam
     require_editable(obj, "Auto Regions")
     if scene is None and len(obj.users_scene):
         scene = obj.users_scene[0]
-    tris = mesh_triangles(obj.data)
+    topo = face_topology(obj)  # a mesh split along its UV seams is one surface
+    tris = topo.tris
     V = rest_vertices(obj)
     loop = None
     if settings.use_selection:
         loop = selected_vertices(obj)
+        if topo.n_duplicates:  # a selected duplicate stands for its representative
+            loop = np.unique(topo.weld.representative[loop])
         if len(loop) < 4:
             raise RegionError("Select the inner-lip edge loop (at least 4 vertices) in Edit Mode first.")
     find = dict(gap_name="the Lip Contact Gap (Auto Regions settings)")
@@ -173,6 +178,7 @@ def auto_regions(obj, settings: RegionSettings | None = None, *, scene=None, cam
     width = loop_width(V, loop)
     mouth, lips = core_regions.auto_regions(V, tris, loop=loop, lip_width=settings.lip_width * width,
                                             mouth_width=settings.mouth_width * width)
+    mouth, lips = topo.spread(mouth), topo.spread(lips)  # each duplicate in its representative's groups
     for name, mask in ((MOUTH_GROUP, mouth), (LIPS_GROUP, lips)):
         set_vertex_group(obj, name, mask)
     return RegionsResult(object=obj.name, mouth_vertices=int(mouth.sum()), lip_vertices=int(lips.sum()),
@@ -220,7 +226,7 @@ def region_faces(obj, tris) -> tuple:
     ----------
     obj : bpy.types.Object
     tris : (F,3) int array
-        ``mesh_triangles(obj.data)``.
+        ``face_topology(obj).tris`` (or ``mesh_triangles(obj.data)``).
 
     Returns
     -------

@@ -37,6 +37,7 @@ from ..blender.masks import read_curves
 from ..blender.mesh import (
     default_fixed_mask,
     evaluated_vertices,
+    face_topology,
     mesh_triangles,
     require_mesh,
     vertex_group_mask,
@@ -202,8 +203,11 @@ def face_axes(cameras):
 
 
 def _skin_triangles(obj, tris, fixed_group):
-    """(F,) bool: triangles that may carry markers/contours (no fixed vertex: teeth, eyes, mouth bag...)."""
-    fixed, src = default_fixed_mask(obj, tris, fixed_group)
+    """(F,) bool: triangles that may carry markers/contours (no fixed vertex: teeth, eyes, mouth bag...).
+
+    Without the fixed group, the separate parts are those of the surface welded along split seams (a glTF import's
+    UV islands are not teeth)."""
+    fixed, src = default_fixed_mask(obj, face_topology(obj), fixed_group)
     return ~fixed[tris].any(axis=1), fixed, src
 
 
