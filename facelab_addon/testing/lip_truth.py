@@ -298,7 +298,9 @@ def truth_line(face, expression: str = "jawOpen", skin: str = "M_Face") -> Truth
     ----------
     face : ICTModel, RemeshedFace or alike
         A face with a ``source`` model and ``source_vertices`` / ``barycentric`` (a remesh) gets its source's
-        line transferred (:func:`transferred_truth_line`); any other needs ``neutral``, ``faces``,
+        line transferred (:func:`transferred_truth_line`); a face split along seams (a ``base`` model and the
+        ``source`` vertex of each split vertex: ``testing.split_seams.SplitFace``) gets its base's line at the
+        first copy of each vertex; any other needs ``neutral``, ``faces``,
         ``expressions[expression]`` and ``part_vertex_mask(skin)`` (:func:`dense_truth_line`).
     expression : str
         The jaw-opening expression.
@@ -311,6 +313,14 @@ def truth_line(face, expression: str = "jawOpen", skin: str = "M_Face") -> Truth
     """
     if getattr(face, "source", None) is not None and hasattr(face, "barycentric"):
         return transferred_truth_line(face)
+    if getattr(face, "base", None) is not None and getattr(face, "source", None) is not None:
+        # a face split along seams (testing.split_seams.SplitFace): its source's line, at the first copy of each
+        # vertex, so the split face's truth is the welded face's
+        src = np.asarray(face.source)
+        line = truth_line(face.base, expression, skin)
+        first = np.full(int(src.max()) + 1, len(src), dtype=np.int64)
+        np.minimum.at(first, src, np.arange(len(src), dtype=np.int64))
+        return TruthLine(first[line.corners], first[line.upper], first[line.lower])
     if expression not in face.expressions:
         raise ValueError(f"the face has no {expression!r} expression to find its lips by; remesh a face that has one")
     return dense_truth_line(face.neutral, face.expressions[expression], face.faces, face.part_vertex_mask(skin))

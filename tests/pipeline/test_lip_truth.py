@@ -157,3 +157,19 @@ def test_a_face_split_along_uv_seams_gives_the_same_line(ict, dense):
     rep = lip_truth.weld_map(Vs)
     np.testing.assert_array_equal(rep[line.loop], line.loop)  # the lowest of each set of duplicates
     assert np.isin(line.loop, dup).any()  # the line crosses the seam (on its duplicates, the lower ids)
+
+
+def test_a_split_remeshed_face_takes_its_base_line(face):
+    """``testing.split_seams`` cuts islands out of the remeshed face's mouth area (it has no UVs): the split face's
+    truth is its base's line, at the first copy of each vertex (the same positions), so the split and the welded
+    route scenes share their capture error, metric and camera aim."""
+    from facelab_addon.testing.split_seams import split_seams
+
+    split = split_seams(face)  # no UVs: islands of the mouth area cut out
+    assert split.n_duplicates > 0
+    base = lip_truth.truth_line(face)
+    line = lip_truth.truth_line(split)
+    np.testing.assert_array_equal(split.source[line.loop], base.loop)
+    np.testing.assert_array_equal(split.source[line.corners], base.corners)
+    for v, s in zip(line.loop, split.source[line.loop]):
+        assert v == np.flatnonzero(split.source == s).min()  # the first copy
