@@ -219,3 +219,27 @@ def test_strokes_shorter_than_the_mouth_do_not_slide_the_lips_sideways():
     d = X - V
     assert np.abs(d[:, 1]).max() > 0.09  # the lips close to the strokes (0.1 each)
     assert np.abs(d[:, 0]).max() < 0.01, np.abs(d[:, 0]).max()  # measured 0.0036 (end rays: 0.1855)
+
+
+def test_a_stroke_stopping_short_of_a_curved_lip_does_not_pull_the_lip_onto_its_extension():
+    """A coarse mouth (silhouette vertices 1 apart along the lips) curving up toward its ends, ``y += 0.5 x^2``, with
+    an error-free capture: the sketch is its silhouettes, the lower stroke drawn only to x = 0.6. The last samples
+    pick the vertex at x = 1, 53 px beyond the stroke's end (10 % of the sketch's width), where the straight
+    extension of the stroke's end passes 10 px below the curving lip. It gets no term from the stroke (views.END_REACH),
+    so nothing moves; held to the end's tangent plane it was pulled 0.057 down (14 % of the 0.4 mouth opening)."""
+    step = np.pi / 24
+    Vu, Fu = tube(0.2 + 0.5, -np.pi / 2 - 4 * step, np.pi / 2, 0.5, nt=29, nx=5)
+    Vl, Fl = tube(-0.2 - 0.5, -np.pi / 2, np.pi / 2 + 4 * step, 0.5, nt=29, nx=5)
+    V, F = np.vstack([Vu, Vl]), np.vstack([Fu, Fl + len(Vu)])
+    V[:, 1] += 0.5 * V[:, 0] ** 2
+    cam = front_camera()
+
+    def curve(y0, x0, x1):
+        x = np.linspace(x0, x1, 200)
+        return cam.project(np.c_[x, y0 + 0.5 * x**2, np.zeros_like(x)])
+
+    X, info = refine_lips(V, F, cam, curve(0.2, -2, 2), curve(-0.2, -2, 0.6), fixed=free(V), prior="paper",
+                          reach_px=40, free_radius=0.2, return_info=True)
+    assert 1.0 in V[info["matched_lower"], 0]  # the vertex beyond the end is matched
+    d = np.linalg.norm(X - V, axis=1)
+    assert d.max() < 0.01, d.max()  # measured 0.0037 (tangent plane at the end: 0.0568 at x = 1)
