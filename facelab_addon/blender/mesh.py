@@ -212,15 +212,14 @@ def selected_vertices(obj) -> np.ndarray:
     return np.flatnonzero(sel)
 
 
-def default_fixed_mask(obj, tris, group: str = FIXED_GROUP):
+def default_fixed_mask(obj, topology: FaceTopology, group: str = FIXED_GROUP):
     """Vertices that must not move and are never lip silhouettes.
 
     The vertex group ``group`` if the mesh has one; otherwise every vertex that
-    is not on the largest connected piece of the mesh (teeth, tongue, eyes
-    and other separate parts): :func:`~facelab_addon.core.lips.sketch_prior.separate_parts`,
-    the default of ``refine_lips`` too. ``tris`` may be a :class:`FaceTopology`: the pieces are
-    then those of the welded surface (a seam split does not make a piece) and each duplicate
-    takes its representative's value.
+    is not on the largest connected piece of the welded surface ``topology`` (:func:`face_topology`: a seam
+    split does not make a piece), that is teeth, tongue, eyes and other separate parts:
+    :func:`~facelab_addon.core.lips.sketch_prior.separate_parts`, the default of ``refine_lips`` too.
+    Each duplicate takes its representative's value.
 
     Returns
     -------
@@ -228,10 +227,7 @@ def default_fixed_mask(obj, tris, group: str = FIXED_GROUP):
     source : str
         ``"vertex group <name>"`` or ``"separate mesh parts"``.
     """
-    topo = tris if isinstance(tris, FaceTopology) else None
-    spread = topo.spread if topo is not None else (lambda m: m)
     m = vertex_group_mask(obj, group)
     if m is not None:
-        return spread(m), f"vertex group '{group}'"
-    F = topo.tris if topo is not None else tris
-    return spread(separate_parts(F, len(obj.data.vertices))), "separate mesh parts"
+        return topology.spread(m), f"vertex group '{group}'"
+    return topology.spread(separate_parts(topology.tris, len(obj.data.vertices))), "separate mesh parts"
