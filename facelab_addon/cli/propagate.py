@@ -2,7 +2,7 @@
 sidebar's Train & Propagate: Auto Regions when FL_mouth/FL_lips are missing, then Propagate.
 
 The Auto Regions band widths and the number of suggestions are the shot's settings (FaceLab >
-Setup / Train & Propagate > Settings), or the flags below (saved with ``--out``).
+Setup / Train & Propagate > Propagate Settings), or the flags below (saved with ``--out``).
 
 Training frames are the ones already in the .blend (Refine Lips, Mark Training Frame), plus any
 ``--corrected FRAME:FILE.obj`` (the face corrected by hand on that frame, same vertex order), which

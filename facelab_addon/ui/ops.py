@@ -65,8 +65,8 @@ def poll_face(cls, context) -> bool:
 
 
 def refine_settings(context) -> RefineSettings:
-    """The Refine Lips settings saved with the shot (FaceLab > Sketch & Refine > Settings; the fixed group
-    from Setup)."""
+    """The Refine Lips settings saved with the shot (FaceLab > Sketch & Refine > Settings and its Advanced;
+    the fixed group from Setup)."""
     return scene_settings(context.scene, RefineSettings)
 
 
