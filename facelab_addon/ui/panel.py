@@ -22,7 +22,6 @@ from .panel_reconstruct import draw_reconstruct_section
 from .panel_solve import draw_retarget_section, draw_solve_advanced, draw_solve_section
 
 
-
 def frame_ranges(frames) -> list:
     """Sorted frames -> [(first, last), ...] runs of consecutive frames."""
     out = []
