@@ -1,7 +1,8 @@
-"""Build FaceLab's Blender extension zips, one per platform, with their wheels.
+"""Build FaceLab's Blender extension zips, one per platform and Blender Python, with their wheels.
 
-    python scripts/build_extension.py                       # all four platforms -> dist/
-    python scripts/build_extension.py --platform linux-x64  # just one
+    python scripts/build_extension.py                       # every platform x Blender Python -> dist/
+    python scripts/build_extension.py --platform linux-x64  # just one platform (both Pythons)
+    python scripts/build_extension.py --python 3.11         # just the zips for Blender 4.5 and 5.0
     python scripts/build_extension.py --update-manifest     # after bumping scipy/libigl/cholespy
 
 Steps:
@@ -15,16 +16,19 @@ Steps:
 2. Check that every (platform, Python) pair has one wheel of each package, and the file names
    against the ``wheels = [...]`` list of blender_manifest.toml (``--update-manifest`` rewrites that
    list instead).
-3. Stage the extension in ``build/extension/``: the root ``__init__.py``, the manifest (restricted
-   to the requested platforms), ``facelab_addon/``, ``assets/`` (presets, sample mesh) and ``wheels/``.
+3. For each Python: stage the extension in ``build/extension/``: the root ``__init__.py``, the
+   manifest (restricted to the requested platforms, that Python's wheels, and the Blender versions
+   running that Python: ``BLENDERS``), ``facelab_addon/``, ``assets/`` (presets, sample mesh) and
+   ``wheels/``.
 4. Run Blender's extension CLI (shipped in the bpy wheel, no Blender binary needed):
-   ``blender_ext.py build --split-platforms`` -> ``dist/facelab-<version>-<platform>.zip``; the CLI
-   keeps only each platform's wheels and appends ``[build.generated] platforms/wheels`` to the
-   zip's manifest.
+   ``blender_ext.py build --split-platforms``; the CLI keeps only each platform's wheels and appends
+   ``[build.generated] platforms/wheels`` to the zip's manifest. The zip is renamed
+   ``dist/facelab-<version>-blender<versions>-<platform>.zip`` (e.g. ``blender4.5-5.0``).
 5. Check every zip: ``blender_ext.py validate``, the expected files, exactly that platform's wheels
-   (a complete set for every supported Python), nothing from tests/, benchmarks/, docs/, scripts/, .venv/.
+   for that one Python (a complete set), nothing from tests/, benchmarks/, docs/, scripts/, .venv/.
 
-Prints a JSON summary on stdout (progress goes to stderr). Exit 0 on success, 1 on any failure.
+Prints a JSON summary on stdout; progress, and at the end which zip is for which Blender and where it
+is, go to stderr. Exit 0 on success, 1 on any failure.
 """
 
 from __future__ import annotations
@@ -52,6 +56,13 @@ PIP_PLATFORMS = {
     "windows-x64": ["win_amd64"],
     "macos-arm64": ["macosx_12_0_arm64"],
     "macos-x64": ["macosx_11_0_x86_64"],
+}
+
+# Blender Python -> the Blender versions running it: (blender_version_min, blender_version_max (the first
+# version NOT served, as Blender's manifest wants it), the label in the zip's name and in docs/install.md).
+BLENDERS = {
+    "3.11": ("4.5.0", "5.1.0", "4.5-5.0"),
+    "3.13": ("5.1.0", "5.4.0", "5.1-5.3"),
 }
 
 FORBIDDEN_PREFIXES = ("tests/", "benchmarks/", "docs/", "scripts/", "out/", ".venv/", ".git/", "build/", "dist/")
@@ -163,6 +174,21 @@ def with_platforms(text: str, platforms: list[str]) -> str:
     return new
 
 
+def with_blender_range(text: str, python: str) -> str:
+    """The manifest text declaring the Blender versions that run ``python`` (``BLENDERS``)."""
+    lo, hi, _ = BLENDERS[python]
+    new, n = re.subn(r'(?m)^blender_version_min = ".*"$', f'blender_version_min = "{lo}"\nblender_version_max = "{hi}"',
+                     text)
+    if n != 1 or "\nblender_version_max" in text:
+        raise SystemExit("blender_manifest.toml: expected one 'blender_version_min' line and no 'blender_version_max'.")
+    return new
+
+
+def zip_name(version: str, python: str, platform: str) -> str:
+    """``facelab-0.1.0-blender4.5-5.0-linux_x64.zip``: the Blender versions and platform it installs on."""
+    return f"facelab-{version}-blender{BLENDERS[python][2]}-{platform.replace('-', '_')}.zip"
+
+
 def wheels_for(files, pins: dict[str, str], python: str) -> dict[str, Path]:
     """Package -> the wheel among ``files`` serving ``python`` (its own ABI preferred over abi3)."""
     files = list(files)
@@ -270,6 +296,9 @@ def main(argv=None) -> int:
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--platform", action="append", choices=sorted(PIP_PLATFORMS),
                     help="build only this platform (repeatable; default: every platform of the manifest)")
+    ap.add_argument("--python", action="append", metavar="X.Y",
+                    help="build only the zips for the Blenders running this Python (repeatable; default: every "
+                         "supported Python: 3.11 for Blender 4.5 and 5.0, 3.13 for 5.1 to 5.3)")
     ap.add_argument("--wheels-dir", type=Path, default=ROOT / "build" / "wheels", help="wheel cache (build/wheels)")
     ap.add_argument("--stage-dir", type=Path, default=ROOT / "build" / "extension", help="staging dir")
     ap.add_argument("--out", type=Path, default=ROOT / "dist", help="where the zips go (dist/)")
@@ -293,7 +322,15 @@ def main(argv=None) -> int:
 
     pins = pinned_versions()
     pythons = supported_pythons()
-    wheels = {p: download(p, pythons, pins, args.wheels_dir, args.offline) for p in platforms}
+    unserved = [py for py in pythons if py not in BLENDERS]
+    if unserved:
+        raise SystemExit(f"Python {unserved} (requirements/bpy-*.txt) has no entry in BLENDERS of "
+                         "scripts/build_extension.py; add the Blender versions that run it.")
+    unknown_py = [py for py in args.python or [] if py not in pythons]
+    if unknown_py:
+        raise SystemExit(f"--python {unknown_py}: not a supported Blender Python {pythons}")
+    build_pythons = pythons if args.update_manifest else (args.python or pythons)
+    wheels = {p: download(p, build_pythons, pins, args.wheels_dir, args.offline) for p in platforms}
     listed = sorted(f"./wheels/{f.name}" for files in wheels.values() for f in files)
 
     if args.update_manifest:
@@ -310,22 +347,34 @@ def main(argv=None) -> int:
             raise SystemExit(f"blender_manifest.toml does not list {missing}; run with --update-manifest "
                              "(the pinned versions in requirements/bpy-*.txt or the supported Pythons changed?).")
 
-    staged = with_platforms(with_wheels(text, listed), platforms)
-    stage(args.stage_dir, staged, wheels)
-    args.out.mkdir(parents=True, exist_ok=True)
-    log(f"building {', '.join(platforms)} -> {args.out}")
-    run_cli(cli, "build", "--split-platforms", "--source-dir", str(args.stage_dir), "--output-dir", str(args.out))
-
     version = manifest_version(text)
     results = []
-    for p in platforms:
-        z = args.out / f"facelab-{version}-{p.replace('-', '_')}.zip"
-        if not z.exists():
-            raise SystemExit(f"the CLI did not produce {z}")
-        results.append(check_zip(cli, z, p, [f.name for f in wheels[p]], pins, pythons))
-        log(f"ok {z.name}: {results[-1]['bytes'] / 1e6:.1f} MB, {results[-1]['files']} files, "
-            f"wheels {', '.join(results[-1]['wheels'])}")
-    print(json.dumps({"version": version, "pythons": pythons, "zips": results}, indent=2))
+    for py in build_pythons:
+        own = {p: sorted(wheels_for(files, pins, py).values()) for p, files in wheels.items()}
+        staged = with_blender_range(with_platforms(with_wheels(text, sorted(
+            f"./wheels/{f.name}" for files in own.values() for f in files)), platforms), py)
+        stage(args.stage_dir, staged, own)
+        out = args.out / f".build-python{py}"
+        if out.exists():
+            shutil.rmtree(out)
+        out.mkdir(parents=True)
+        log(f"building {', '.join(platforms)} for Python {py} (Blender {BLENDERS[py][2]}) -> {args.out}")
+        run_cli(cli, "build", "--split-platforms", "--source-dir", str(args.stage_dir), "--output-dir", str(out))
+        for p in platforms:
+            built = out / f"facelab-{version}-{p.replace('-', '_')}.zip"
+            if not built.exists():
+                raise SystemExit(f"the CLI did not produce {built}")
+            z = args.out / zip_name(version, py, p)
+            built.replace(z)
+            results.append(check_zip(cli, z, p, [f.name for f in own[p]], pins, [py]))
+            results[-1]["blender"] = BLENDERS[py][2]
+            log(f"ok {z.name}: {results[-1]['bytes'] / 1e6:.1f} MB, {results[-1]['files']} files, "
+                f"wheels {', '.join(results[-1]['wheels'])}")
+        shutil.rmtree(out)
+    log("\nThe zips (install one with Edit > Preferences > Get Extensions > Install from Disk):")
+    for r in results:
+        log(f"  Blender {r['blender']:8s} {r['platform']:12s} {r['zip']}")
+    print(json.dumps({"version": version, "pythons": build_pythons, "zips": results}, indent=2))
     return 0
 
 

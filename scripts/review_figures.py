@@ -150,7 +150,8 @@ def figures(r, out, img_dir, samples):
     cmap = LinearSegmentedColormap.from_list("fl", [(s[0], tuple(srgb(np.array(s[1:])))) for s in HEAT_STOPS])
     fig, (ax, cax) = plt.subplots(1, 2, figsize=(7.2, 5.4), gridspec_kw=dict(width_ratios=[20, 1]))
     ax.imshow(plt.imread(pngs["heat"]))
-    ax.set_title(f"Correction Heat Map, frame {f} (not a training frame)", fontsize=10)
+    ax.set_title(f"Correction Heat Map: how far FaceLab's corrections move each vertex,\nframe {f} "
+                 "(not a training frame)", fontsize=10)
     ax.axis("off")
     sm = plt.cm.ScalarMappable(cmap=cmap, norm=plt.Normalize(0, r["vmax"]))
     fig.colorbar(sm, cax=cax, label="correction (mm, world space)")

@@ -146,3 +146,66 @@ def test_path_check_catches_stale_paths():
     assert check_path("facelab_addon.core.capture.camera.Camera") == ""
     assert "has no sketch" in check_path("facelab_addon.core.sketch.refine_lips")  # the pre-regroup path
     assert "has no refine" in check_path("facelab_addon.core.lips.sketch.refine")
+
+
+# --------------------------------------------------------------------------- written for artists
+GUIDES = [p for p in MARKDOWN if p.parent.name == "docs" and p.name != "api.md"]
+#: Phrases of a lab notebook, not of a guide: history stays in git.
+HISTORY = re.compile(r"(?i)\bthis session\b|\b(?:last|previous) session\b|\bused to\b|\(issue \d+|\bissue \d+'s\b"
+                     r"|\bsince then\b|\brerun after\b|\buntil now\b")
+MAX_CELL = 300  # characters of one table cell
+README_LINES = 150
+
+
+def table_cells(text):
+    """``(line number, cell)`` of every Markdown table row's cells outside code fences."""
+    out = []
+    fenced = False
+    for n, line in enumerate(text.splitlines(), 1):
+        if line.lstrip().startswith("```"):
+            fenced = not fenced
+        if fenced or not line.lstrip().startswith("|"):
+            continue
+        cells = re.split(r"(?<!\\)\|", line.strip().strip("|"))
+        out += [(n, c.strip()) for c in cells]
+    return out
+
+
+@pytest.mark.parametrize("path", GUIDES, ids=lambda p: str(p.relative_to(ROOT)))
+def test_guides_carry_no_history(path):
+    hits = [f"{path.name}:{n}: {m.group(0)!r}" for n, line in enumerate(path.read_text().splitlines(), 1)
+            for m in HISTORY.finditer(line)]
+    assert not hits, hits
+
+
+@pytest.mark.parametrize("path", [p for p in MARKDOWN if p.name != "README.md"],
+                         ids=lambda p: str(p.relative_to(ROOT)))
+def test_table_cells_are_short(path):
+    long = [f"{path.name}:{n}: {len(c)} characters: {c[:60]}..." for n, c in table_cells(path.read_text())
+            if len(c) > MAX_CELL]
+    assert not long, long
+
+
+def test_doc_checks_catch_what_they_should():
+    assert HISTORY.search("rows are from a rerun after this session's change")
+    assert HISTORY.search("Damp Uncertain Frames (issue 11)") and HISTORY.search("what used to read -1")
+    assert not HISTORY.search("the issue is the lips; 11 frames") and not HISTORY.search("a used tool")
+    cells = table_cells("| a | b |\n|---|---|\n| x | " + "y" * 400 + " |\n```\n| in | code |\n```\n")
+    assert [len(c) for _, c in cells] == [1, 1, 3, 3, 1, 400]
+
+
+@pytest.mark.xfail(reason="README rewrite pending", strict=False)
+def test_readme_is_short_and_table_cells_short():
+    text = (ROOT / "README.md").read_text()
+    assert len(text.splitlines()) <= README_LINES
+    assert not [c for _, c in table_cells(text) if len(c) > MAX_CELL]
+
+
+@pytest.mark.xfail(reason="README rewrite pending", strict=False)
+def test_every_readme_figure_links_to_benchmarks():
+    """Every line of the README giving a measured figure (a percentage, mm, ms, a ratio) links to
+    docs/benchmarks.md, where the figure and the command that made it live."""
+    text = FENCE.sub("", (ROOT / "README.md").read_text())
+    figure = re.compile(r"\d+(?:\.\d+)?\s?(?:%|mm\b|ms\b|×)")
+    bare = [line[:80] for line in text.splitlines() if figure.search(line) and "docs/benchmarks.md" not in line]
+    assert not bare, bare

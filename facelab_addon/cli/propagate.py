@@ -2,7 +2,7 @@
 sidebar's Train & Propagate: Auto Regions when FL_mouth/FL_lips are missing, then Propagate.
 
 The Auto Regions band widths and the number of suggestions are the shot's settings (FaceLab >
-Setup / Train & Propagate > Settings), or the flags below (saved with ``--out``).
+Setup / Train & Propagate > Propagate Settings), or the flags below (saved with ``--out``).
 
 Training frames are the ones already in the .blend (Refine Lips, Mark Training Frame), plus any
 ``--corrected FRAME:FILE.obj`` (the face corrected by hand on that frame, same vertex order), which
@@ -86,6 +86,7 @@ def run(args, session) -> dict:
 
     import numpy as np
 
+    from ..pipeline import wording
     from ..pipeline.bake import BakeSettings, bake
     from ..pipeline.propagate import PropagateSettings, propagate
     from ..pipeline.regions import RegionSettings, auto_regions
@@ -129,8 +130,10 @@ def run(args, session) -> dict:
     dt = time.perf_counter() - t0
     suggested = sorted(r.suggested)
     score = r.extrapolation.astype(np.float32)  # the values keyed on the object
-    session.log(f"Propagated to {len(frames):,} frames in {dt:.1f} s, {r.rank} corrective shapes"
-                + (f"; suggested next: {suggested}" if suggested else ""))
+    session.log(wording.join([
+        wording.propagate_headline(len(frames), dt, r.rank, len(r.training), r.whole_weight,
+                                   wording.forced_whole_reason(r.model)),
+        f"correct next (suggested): frames {', '.join(map(str, suggested))}" if suggested else ""]))
     result = {
         "object": obj.name,
         "frames": [f0, f1],

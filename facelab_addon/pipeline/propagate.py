@@ -104,7 +104,7 @@ class PropagateSettings:
     model: str = setting("auto", label="Model", choices=(
         ("auto", "Auto", "Blend the two models by the error each is expected to make on this shot "
                          "(from the training frames and the shot)"),
-        ("whole", "Whole Motion", "Learn the lips' whole motion from the mouth (the paper); needs training "
+        ("whole", "Whole Motion", "Learn the lips' whole motion from the mouth; needs training "
                                   "frames that span the shot's expressions"),
         ("correction", "Correction", "Learn only the correction and add it to the captured lips; works from "
                                      "few frames, keeps capture errors that do not follow the mouth")),

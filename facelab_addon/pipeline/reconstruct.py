@@ -106,7 +106,7 @@ class ReconstructSettings:
                                     "Bounded blendshape fit of the shape keys plus the fit's residual at the bundles, "
                                     "spread locally and filtered by the bundle noise (most accurate)"),
                                    ("INDEXING", "Local Indexing (exact)",
-                                    "The paper's local geometric indexing: per-bundle dataset shapes, exactly through "
+                                    "Local geometric indexing: per-bundle dataset shapes, exactly through "
                                     "every bundle; uses the jaw settings")))
     noise: float = setting(-1.0, label="Bundle Noise", min=-1.0, soft_max=2.0, unit="mm",
                            description="Standard deviation of the bundles' noise per axis, in millimetres (-1: "

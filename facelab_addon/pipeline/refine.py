@@ -93,14 +93,17 @@ class RefineSettings:
     """
 
     iterations: int = setting(REFINE_DEFAULTS["iterations"], label="Iterations", min=1, max=100,
-                              description="Solve / re-match iterations of the sketch refinement (paper: 5)")
+                              description="How often the lips are solved and matched to the sketch again; raise it when "
+                                          "the result stops short of a strongly curved sketch")
     lambda_pos: float = setting(REFINE_DEFAULTS["lambda_pos"], label="Position Weight", min=0.0, soft_max=10.0,
-                                description="How strongly vertices keep their captured position "
-                                            "(paper: 0.1; fixed vertices use 1)")
+                                description="How strongly vertices keep their captured position; lower it when the lips "
+                                            "do not reach the sketch, raise it when the face around them moves")
     lambda_reg: float = setting(REFINE_DEFAULTS["lambda_reg"], label="Rigidity Weight", min=0.0, soft_max=100.0,
-                                description="Preservation of the local shape (Laplacian coordinates) (paper: 3)")
+                                description="How strongly the lips keep their local shape; raise it when the refined lips "
+                                            "get dents or kinks, lower it when they do not bend to the sketch")
     lambda_silh: float = setting(REFINE_DEFAULTS["lambda_silh"], label="Silhouette Weight", min=0.0,
-                                 soft_max=100.0, description="Pull of the sketched contours (paper: 1)")
+                                 soft_max=100.0, description="Pull of the sketched contours; raise it when the lips stop short "
+                                                             "of the sketch, lower it when they overshoot or wrinkle")
     fixed_group: str = setting(FIXED_GROUP, label="Fixed Group",
                                description="Vertex group of hidden vertices that must not move (inner mouth, "
                                            "teeth, back of the head); without it, separate mesh parts are fixed")
@@ -110,11 +113,14 @@ class RefineSettings:
                          "lengths, so it crosses the lip band on a coarse mesh too (FaceLab's default)"),
         ("smooth", "Smooth", "The correction of the silhouettes carries smoothly across the lip band "
                              "(about Smooth Reach from the silhouettes)"),
-        ("paper", "Paper", "Dinev et al. 2018 Eq. 1 as written: every vertex anchored with the position weight")),
-        description="How the vertices away from the sketched silhouettes follow them")
+        ("paper", "Paper", "Every vertex anchored with the Position Weight, nothing carried across the lips "
+                           "(the published method, for comparison)")),
+        description="How the vertices away from the sketched silhouettes follow them; change it when the inside "
+                    "of the lips lags behind the corrected silhouette")
     smooth_reach: float = setting(0.12, label="Smooth Reach", min=0.01, soft_max=1.0, unit="mouth",
                                   description="How far the correction of a silhouette carries across the lips, "
-                                              "in mouth widths (Smooth prior)")
+                                              "in mouth widths (Band and Smooth priors); raise it when the lip "
+                                              "surface behind the silhouette stays behind")
     free_radius: float = setting(0.1, label="Free Region", min=0.01, soft_max=2.0, unit="mouth",
                                  description="How far from the sketched lips the mesh may move, in mouth widths; "
                                              "everything farther is held exactly")
@@ -134,13 +140,13 @@ class RefineSettings:
     depth_reg: float = setting(3.0, label="Depth Stiffness", min=0.0, soft_max=20.0,
                                description="With more than one camera: how much more stiffly the correction "
                                            "bends along the main camera's rays (the depth it cannot see) than "
-                                           "across them, so a second view adds depth without dents (0: as "
-                                           "stiff as across)")
+                                           "across them (0: as stiff as across); raise it when a second view "
+                                           "dents the lips")
     rest_depth_reg: float = setting(10.0, label="Depth From Rest", min=0.0, soft_max=100.0,
                                     description="With one camera: how strongly the depth it cannot see follows "
                                                 "the face's rest pose turned with the head, so a nodded head's "
-                                                "correction keeps its depth (0: the correction moves across the "
-                                                "camera's rays only)")
+                                                "correction keeps its depth (0: it moves across the camera's rays "
+                                                "only); lower it when the rest pose's depth is wrong for the shot")
 
     def solver_weights(self) -> dict:
         """The keyword arguments of :func:`~facelab_addon.core.lips.sketch.refine_lips`."""

@@ -137,21 +137,24 @@ class SolveSettings:
     anchor_weight: float = setting(
         50.0, label="Markers Anchor", min=0.0, soft_max=1000.0,
         description="How strongly the contour fit keeps the face away from the mouth and eyes where the markers "
-                    "alone put it, relative to their own misfit (0: the paper's fit; 50 chosen on test captures)")
+                    "alone put it; lower it when the contours are more reliable than the markers (0: contours move the "
+                    "whole face)")
     contour_damping: float = setting(
         0.03, label="Corrective Damping at Contours", min=0.0, soft_max=1.0,
         description="How strongly the corrective stays near the contours around the mouth and eyes (0.01 "
-                    "elsewhere); lower lets lip and lid corrections spread further")
+                    "elsewhere); lower it when lip and lid corrections stop short of their contours")
     lip_passes: int = setting(
         2, label="Lip Passes", min=0, max=10, soft_max=4,
         description="Times the contours are matched again on the corrected mesh and the lips alone solved again "
-                    "(0: one corrective pass, the paper)")
+                    "(0: one pass); raise it when the inner lips still miss their contour")
     lip_line_weight: float = setting(
         8.0, label="Lip Line Weight", min=0.0, soft_max=50.0,
-        description="Weight of the tracked lip lines in the lip passes, relative to the markers (1)")
+        description="Weight of the tracked lip lines in the lip passes, relative to the markers (1); raise it "
+                    "when the lips miss the tracked lip lines")
     lip_damping: float = setting(
         0.3, label="Lip Pass Damping", min=0.0, soft_max=3.0,
-        description="How strongly the lip passes keep the lip correction on the lip rim")
+        description="How strongly the lip passes keep the lip correction on the lip rim; raise it when the lip "
+                    "passes dent the lips")
 
 
 @dataclass

@@ -8,6 +8,7 @@ import bpy
 
 from ..blender.strokes import has_lip_sketch, new_lip_sketch
 from ..core.errors import FaceLabError
+from ..pipeline import wording
 from ..pipeline.propagate import record_training_frame  # noqa: F401  (re-exported for scripts)
 from ..pipeline.refine import RefineSettings, refine
 from .scene_settings import scene_settings
@@ -38,6 +39,14 @@ def operator_range(op) -> tuple:
     return tuple(getattr(op, p) if op.properties.is_property_set(p) else None for p in ("frame_start", "frame_end"))
 
 
+def fill_scene_range(op, scene) -> None:
+    """Give an operator's unset ``frame_start`` / ``frame_end`` the scene's range, so its redo panel shows
+    the frames it works on (the properties are ``SKIP_SAVE``: the next run starts from the scene again)."""
+    for p, v in (("frame_start", scene.frame_start), ("frame_end", scene.frame_end)):
+        if not op.properties.is_property_set(p):
+            setattr(op, p, v)
+
+
 def face_object(context):
     """The face to correct: FaceLab > Setup > Face, else the active mesh object."""
     s = context.scene.facelab
@@ -56,8 +65,8 @@ def poll_face(cls, context) -> bool:
 
 
 def refine_settings(context) -> RefineSettings:
-    """The Refine Lips settings saved with the shot (FaceLab > Sketch & Refine > Settings; the fixed group
-    from Setup)."""
+    """The Refine Lips settings saved with the shot (FaceLab > Sketch & Refine > Settings and its Advanced;
+    the fixed group from Setup)."""
     return scene_settings(context.scene, RefineSettings)
 
 
@@ -98,7 +107,7 @@ class FACELAB_OT_new_lip_sketch(bpy.types.Operator):
 
 
 class FACELAB_OT_refine_lips(bpy.types.Operator):
-    """Deform the lips of the face so their silhouettes match the sketched contours on this frame (Dinev et al. 2018 §5); the result is a new corrective shape key keyed on this frame"""
+    """Deform the lips of the face so their silhouettes match the sketched contours on this frame; the result is a new corrective shape key keyed on this frame"""
 
     bl_idname = "facelab.refine_lips"
     bl_label = "Refine Lips"
@@ -127,14 +136,15 @@ class FACELAB_OT_refine_lips(bpy.types.Operator):
         except FaceLabError as e:
             self.report({"ERROR"}, str(e))
             return {"CANCELLED"}
-        self.report(
-            {"INFO"},
+        metres = r.max_move * float(scene.unit_settings.scale_length or 1.0)  # world scene units -> m
+        self.report({"INFO"}, wording.join([
             f"Refined lips on frame {r.frame} in {r.seconds:.2f} s: shape key '{r.shape_key}', "
-            f"{r.moved_vertices} vertices moved (max {r.max_move:.4g} scene units), "
-            f"fixed: {r.fixed_source}" + (f"; {r.note}" if r.note else "")
-            + (f"; head turned {r.head_turn_deg:.0f}° from the Basis: its depth taken from there"
-               if r.head_turn_deg is not None and r.head_turn_deg >= 2 else ""),
-        )
+            f"{r.moved_vertices} vertices moved by up to {wording.mm(metres)}",
+            wording.held_fixed(r.fixed_source, scene.facelab.fixed_group),
+            r.note,
+            f"head turned {r.head_turn_deg:.0f}° from the Basis: its depth taken from there"
+            if r.head_turn_deg is not None and r.head_turn_deg >= 2 else "",
+        ]))
         return {"FINISHED"}
 
 

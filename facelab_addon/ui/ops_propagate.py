@@ -1,4 +1,4 @@
-"""Operators of regression propagation (Dinev et al. 2018 §4): Auto Regions, the training-frame list,
+"""Operators of regression propagation: Auto Regions, the training-frame list,
 Propagate and Bake. They poll, gather settings, call :mod:`facelab_addon.pipeline` (``regions``,
 ``propagate``, ``bake``) and report.
 
@@ -17,6 +17,7 @@ from bpy.props import BoolProperty, EnumProperty, IntProperty, StringProperty
 from ..core.errors import FaceLabError
 from ..names import LIPS_GROUP, MOUTH_GROUP
 from ..pipeline import bake as bake_pipeline
+from ..pipeline import wording
 from ..pipeline.frames import frame_range
 from ..pipeline.propagate import (
     PropagateSettings,
@@ -27,7 +28,7 @@ from ..pipeline.propagate import (
 )
 from ..pipeline.regions import RegionSettings, auto_regions
 from ..pipeline.steps import StepJob, run_steps
-from .ops import face_object, operator_range, poll_face, progress_callback
+from .ops import face_object, fill_scene_range, operator_range, poll_face, progress_callback
 from .scene_settings import scene_settings
 
 
@@ -122,7 +123,7 @@ class FACELAB_OT_jump_to_frame(bpy.types.Operator):
     bl_idname = "facelab.jump_to_frame"
     bl_label = "Jump to Frame"
 
-    frame: IntProperty(name="Frame")
+    frame: IntProperty(name="Frame", description="The frame to go to")
 
     def execute(self, context):
         context.scene.frame_set(self.frame)
@@ -232,18 +233,20 @@ def stage_progress(context, label):
 
 
 class FACELAB_OT_propagate(_ModalJob, bpy.types.Operator):
-    """Learn how the inner lips follow the mouth from the training frames (Dinev et al. 2018 §4) and correct every frame; the result is a small set of corrective shape keys keyed on the timeline. Esc cancels while it reads the frames"""
+    """Learn how the inner lips follow the mouth from the training frames and correct every frame; the result is a small set of corrective shape keys keyed on the timeline. Esc cancels while it reads the frames"""
 
     bl_idname = "facelab.propagate"
     bl_label = "Propagate"
     bl_options = {"REGISTER", "UNDO"}
 
-    frame_start: IntProperty(name="Start", default=1, description="First frame (not set: the scene's start; "
-                                                                  "negative frames are allowed)")
-    frame_end: IntProperty(name="End", default=250, description="Last frame (not set: the scene's end)")
-    suggestions: IntProperty(name="Suggestions", default=3, min=0, max=50,
-                             description="How many frames to suggest correcting next (not set: the shot's "
-                                         "setting, FaceLab > Train & Propagate > Settings)")
+    frame_start: IntProperty(name="Start", default=1, options={"SKIP_SAVE"},
+                             description="First frame to correct (starts at the scene's start; negative frames "
+                                         "are allowed)")
+    frame_end: IntProperty(name="End", default=250, options={"SKIP_SAVE"},
+                           description="Last frame to correct (starts at the scene's end)")
+    suggestions: IntProperty(name="Suggestions", default=3, min=0, max=50, options={"SKIP_SAVE"},
+                             description="How many frames to suggest correcting next (starts at the shot's "
+                                         "setting, FaceLab > Train & Propagate > Propagate Settings)")
 
     @classmethod
     def poll(cls, context):
@@ -259,20 +262,22 @@ class FACELAB_OT_propagate(_ModalJob, bpy.types.Operator):
 
     def _settings(self, context):
         over = {"suggestions": self.suggestions} if self.properties.is_property_set("suggestions") else {}
-        return scene_settings(context.scene, PropagateSettings, **over)
+        settings = scene_settings(context.scene, PropagateSettings, **over)
+        self.suggestions = settings.suggestions  # the redo panel shows what was used
+        return settings
 
     def _frames(self, context):
-        return frame_range(context.scene, *operator_range(self), "Propagate")
+        frames = frame_range(context.scene, *operator_range(self), "Propagate")
+        fill_scene_range(self, context.scene)
+        return frames
 
     def _report_done(self, r, seconds):
-        self.report(
-            {"INFO"},
-            f"Propagated to {len(r.frames):,} frames in {seconds:.1f} s, {r.rank} corrective "
-            f"shapes from {len(r.training)} training frames"
-            + (f" ({r.model})" if r.model else "")
-            + (f"; {r.note}" if r.note else "")
-            + (f"; suggested next: {', '.join(map(str, r.suggested))}" if r.suggested else ""),
-        )
+        self.report({"INFO"}, wording.join([
+            wording.propagate_headline(len(r.frames), seconds, r.rank, len(r.training), r.whole_weight,
+                                       wording.forced_whole_reason(r.model)),
+            r.note,
+            f"correct next (suggested): frames {', '.join(map(str, r.suggested))}" if r.suggested else "",
+        ]))
 
     def execute(self, context):
         """Synchronous: scripts, ``blender -b``, the CLI (timers and modal handlers never run there)."""
@@ -320,8 +325,11 @@ class FACELAB_OT_bake(_ModalJob, bpy.types.Operator):
     bl_label = "Bake Corrected Sequence"
     bl_options = {"REGISTER"}
 
-    filepath: StringProperty(subtype="FILE_PATH")
-    format: EnumProperty(items=[("PC2", "PC2", ""), ("MDD", "MDD", ""), ("ABC", "Alembic", "")], default="PC2")
+    filepath: StringProperty(subtype="FILE_PATH", description="The file to write")
+    format: EnumProperty(name="Format", items=[("PC2", "PC2", "Point cache 2 (Mesh Cache modifier)"),
+                                               ("MDD", "MDD", "Lightwave MDD (Mesh Cache modifier)"),
+                                               ("ABC", "Alembic", "Alembic (Mesh Sequence Cache modifier)")],
+                         default="PC2", description="File format of the baked sequence")
     overwrite: BoolProperty(name="Overwrite", default=False,
                             description="Replace an existing file (not set: the shot's setting, Bake > Settings)")
 

@@ -14,7 +14,7 @@ from ..pipeline.reconstruct import (
     reconstruct_from_bundles,
 )
 from . import props_reconstruct
-from .ops import face_object, operator_range, poll_face, progress_callback
+from .ops import face_object, fill_scene_range, operator_range, poll_face, progress_callback
 from .props_reconstruct import corrective_settings, reconstruct_settings
 
 
@@ -43,15 +43,17 @@ def bundles_problem(context) -> str | None:
 
 
 class FACELAB_OT_reconstruct_from_bundles(bpy.types.Operator):
-    """Rebuild the high-resolution face on every frame from animated 3D bundles and the face's shape-key dataset (a bounded blendshape fit plus the noise-filtered residual at the bundles, or the paper's exact local geometric indexing); the result is keyed as corrective shape keys"""
+    """Rebuild the high-resolution face on every frame from animated 3D bundles and the face's shape-key dataset (a bounded blendshape fit plus the noise-filtered residual at the bundles, or the exact local geometric indexing); the result is keyed as corrective shape keys"""
 
     bl_idname = "facelab.reconstruct_from_bundles"
     bl_label = "Reconstruct from Bundles"
     bl_options = {"REGISTER", "UNDO"}
 
-    frame_start: IntProperty(name="Start", default=1, description="First frame (not set: the scene's start; "
-                                                                  "negative frames are allowed)")
-    frame_end: IntProperty(name="End", default=250, description="Last frame (not set: the scene's end)")
+    frame_start: IntProperty(name="Start", default=1, options={"SKIP_SAVE"},
+                             description="First frame to rebuild (starts at the scene's start; negative frames "
+                                         "are allowed)")
+    frame_end: IntProperty(name="End", default=250, options={"SKIP_SAVE"},
+                           description="Last frame to rebuild (starts at the scene's end)")
     bind_frame: IntProperty(name="Bind Frame", default=-2,
                             description="Frame where the face is neutral (-1: the first frame; -2: the panel's "
                                         "setting)")
@@ -83,6 +85,7 @@ class FACELAB_OT_reconstruct_from_bundles(bpy.types.Operator):
         except FaceLabError as e:
             self.report({"ERROR"}, str(e))
             return {"CANCELLED"}
+        fill_scene_range(self, scene)
         prog = progress_callback(context, len(frames), "FaceLab Reconstruct")
         try:
             r = reconstruct_from_bundles(scene, face_object(context), settings, progress=prog)

@@ -9,7 +9,8 @@ from bpy.props import BoolProperty, FloatProperty, IntProperty, StringProperty
 from ..blender import review
 from ..blender.strokes import find_sketch_object
 from ..core.errors import FaceLabError
-from ..names import SUGGEST_MARKER
+from ..names import EXTRAPOLATION_PROP, SUGGEST_MARKER
+from ..pipeline import wording
 from . import scene_settings
 from .ops import face_object, poll_face
 
@@ -104,7 +105,8 @@ class FACELAB_OT_sketch_onion_skin(bpy.types.Operator):
     show: BoolProperty(name="Show", default=True, description="Show (on) or hide (off) the neighbouring sketches")
     before: IntProperty(name="Before", default=2, min=0, max=20, description="Sketched keyframes shown before")
     after: IntProperty(name="After", default=2, min=0, max=20, description="Sketched keyframes shown after")
-    opacity: FloatProperty(name="Opacity", default=0.3, min=0.0, max=1.0, subtype="FACTOR")
+    opacity: FloatProperty(name="Opacity", default=0.3, min=0.0, max=1.0, subtype="FACTOR",
+                           description="How strongly the neighbouring sketches show (0: invisible, 1: as drawn)")
 
     @classmethod
     def poll(cls, context):
@@ -153,6 +155,13 @@ class FACELAB_OT_most_extrapolated_frame(bpy.types.Operator):
     bl_options = {"REGISTER", "UNDO"}
 
     @classmethod
+    def description(cls, context, properties):
+        """The current frame's extrapolation score and its bands, then what the button does."""
+        obj = face_object(context)
+        score = obj.get(EXTRAPOLATION_PROP) if obj is not None else None
+        return cls.__doc__ if score is None else f"{wording.extrapolation_tooltip(float(score))}.\n{cls.__doc__}"
+
+    @classmethod
     def poll(cls, context):
         if not poll_face(cls, context):
             return False
@@ -169,8 +178,9 @@ class FACELAB_OT_most_extrapolated_frame(bpy.types.Operator):
             self.report({"ERROR"}, "Every propagated frame is a training frame; nothing extrapolates")
             return {"CANCELLED"}
         context.scene.frame_set(best[0])
-        self.report({"INFO"}, f"Frame {best[0]}: extrapolation {best[1]:.2f} (above 0.5 the model guesses; correct "
-                              "this frame and Propagate again)")
+        word = wording.extrapolation_word(best[1])
+        self.report({"INFO"}, f"Frame {best[0]}: prediction {word} (extrapolation {best[1]:.2f})"
+                              + ("; correct this frame and Propagate again" if word != "reliable" else ""))
         return {"FINISHED"}
 
 

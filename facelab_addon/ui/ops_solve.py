@@ -77,7 +77,7 @@ class FACELAB_OT_solve_remove_view(bpy.types.Operator):
 
 
 class FACELAB_OT_bind_tracks(bpy.types.Operator):
-    """Tie every track (and bundle) to the face surface: on the bind frame, each marker's camera ray is cast onto the mesh (Bhat et al. 2013 §4.1); bundles take their nearest surface point"""
+    """Tie every track (and bundle) to the face surface: on the bind frame, each marker's camera ray is cast onto the mesh; bundles take their nearest surface point"""
 
     bl_idname = "facelab.bind_tracks"
     bl_label = "Bind Tracks"
@@ -124,7 +124,7 @@ class FACELAB_OT_bind_tracks(bpy.types.Operator):
 
 
 class FACELAB_OT_solve_performance(bpy.types.Operator):
-    """Solve blendshape weights for every frame from the bound tracks, bundles and lip/eyelid contours (Bhat et al. 2013 §4), keyed as ordinary F-curves, plus a per-frame corrective as FL_Solve_ shape keys"""
+    """Solve blendshape weights for every frame from the bound tracks, bundles and lip/eyelid contours, keyed as ordinary F-curves, plus a per-frame corrective as FL_Solve_ shape keys"""
 
     bl_idname = "facelab.solve_performance"
     bl_label = "Solve Performance"
@@ -174,7 +174,7 @@ class FACELAB_OT_solve_performance(bpy.types.Operator):
 
 
 class FACELAB_OT_retarget(bpy.types.Operator):
-    """Carry the solved performance to the creature (Bhat et al. 2013 §5.1): transfer the blendshapes by deformation transfer, copy the weights, transfer the correctives, and keep the lips talking (lip-sync heuristic)"""
+    """Carry the solved performance to the creature: transfer the blendshapes by deformation transfer, copy the weights, transfer the correctives, and keep the lips talking (lip-sync heuristic)"""
 
     bl_idname = "facelab.retarget"
     bl_label = "Retarget"

@@ -3,8 +3,9 @@
 1. Setup (face, camera and plate, fixed group, regions)  2. Sketch & Refine  3. Train & Propagate
 4. Review (capture vs corrected, heat map, neighbouring sketches, frames to look at)
 5. Solve from Markers (``panel_solve``)  6. Retarget to a Creature  7. Reconstruct from Bundles
-(``panel_reconstruct``)  8. Bake / Export. Each step with settings has a closed *Settings*
-sub-panel generated from its pipeline's settings (:mod:`.scene_settings`).
+(``panel_reconstruct``)  8. Bake / Export. Each step with settings has a closed settings
+sub-panel generated from its pipeline's settings (:mod:`.scene_settings`), the solver weights in a
+closed *Advanced* sub-panel below it.
 
 Panels only draw; every button is an operator whose ``poll`` explains why it is disabled.
 """
@@ -13,14 +14,12 @@ import bpy
 
 from ..blender.review import keyed_extrapolation, showing_capture
 from ..names import CORRECTION_ATTR, CORRECTION_RANGE_PROP, EXTRAPOLATION_PROP, LIPS_GROUP, MOUTH_GROUP, SUGGEST_MARKER
+from ..pipeline.wording import EXTRAPOLATING, extrapolation_word
 from . import scene_settings
 from .ops import face_object
 from .ops_propagate import RUNNING
 from .panel_reconstruct import draw_reconstruct_section
-from .panel_solve import draw_retarget_section, draw_solve_section
-
-# Extrapolation scores above this are flagged (the frame's mouth lies well outside the training poses).
-EXTRAPOLATING = 0.5
+from .panel_solve import draw_retarget_section, draw_solve_advanced, draw_solve_section
 
 
 def frame_ranges(frames) -> list:
@@ -186,11 +185,13 @@ class FACELAB_PT_propagate(_Section, bpy.types.Panel):
         if score is None:
             return
         box = col.box()
-        flag = "ERROR" if score > EXTRAPOLATING else "CHECKMARK"
-        box.label(text=f"Extrapolation on this frame: {score:.2f}", icon=flag)
+        word = extrapolation_word(score)
+        # drawn as a flat button: its tooltip gives the score and the bands; a click goes to the worst frame
+        box.operator("facelab.most_extrapolated_frame", text=f"Prediction on this frame: {word}", emboss=False,
+                     icon="CHECKMARK" if word == "reliable" else "ERROR")
         ranges, n_over = extrapolating_ranges(ob)
         if ranges:
-            box.label(text=f"Model extrapolates on {n_over} frames:", icon="ERROR")
+            box.label(text=f"Uncertain or guessing on {n_over} frames:", icon="ERROR")
             flow = box.grid_flow(columns=3, align=True)
             for a, b in ranges:
                 op = flow.operator("facelab.jump_to_frame", text=f"{a}" if a == b else f"{a}-{b}")
@@ -231,7 +232,7 @@ class FACELAB_PT_review(_Section, bpy.types.Panel):
 
 
 class FACELAB_PT_solve(_Section, bpy.types.Panel):
-    """Bhat et al. 2013 §4: shown when ui/panel_solve.py and its properties are there."""
+    """Solve a shape-key rig's weights on every frame from tracked markers and contours"""
 
     bl_label = "5. Solve from Markers"
     bl_options = {"DEFAULT_CLOSED"}
@@ -244,8 +245,23 @@ class FACELAB_PT_solve(_Section, bpy.types.Panel):
         draw_solve_section(self.layout, context)
 
 
+class FACELAB_PT_solve_advanced(_SidebarTab, bpy.types.Panel):
+    """Solver weights of Solve Performance: change them when the solve misses markers or contours"""
+
+    bl_parent_id = "FACELAB_PT_solve"
+    bl_label = "Advanced"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    @classmethod
+    def poll(cls, context):
+        return hasattr(context.scene, "facelab_solve")
+
+    def draw(self, context):
+        draw_solve_advanced(self.layout, context)
+
+
 class FACELAB_PT_retarget(_Section, bpy.types.Panel):
-    """Bhat et al. 2013 §5.1: carry the solved performance to a creature."""
+    """Carry the solved performance to a creature mesh"""
 
     bl_label = "6. Retarget to a Creature"
     bl_options = {"DEFAULT_CLOSED"}
@@ -289,6 +305,7 @@ classes = (
     FACELAB_PT_propagate,
     FACELAB_PT_review,
     FACELAB_PT_solve,
+    FACELAB_PT_solve_advanced,
     FACELAB_PT_retarget,
     FACELAB_PT_reconstruct,
     FACELAB_PT_bake,

@@ -1,8 +1,8 @@
 """Sidebar UI of the contour-based solve and retargeting (Bhat et al. 2013).
 
-``draw_solve_section(layout, context)`` and ``draw_retarget_section(layout,
-context)`` are called by the panels *5. Solve from Markers* and *6. Retarget to a
-Creature* in ``ui/panel.py``; this module registers only the views list. Frames
+``draw_solve_section(layout, context)``, ``draw_solve_advanced`` and ``draw_retarget_section(layout,
+context)`` are called by the panels *5. Solve from Markers* (and its *Advanced* sub-panel) and
+*6. Retarget to a Creature* in ``ui/panel.py``; this module registers only the views list. Frames
 whose ``-1`` means "the current / scene frame" are drawn as toggles, never as -1.
 """
 
@@ -65,21 +65,21 @@ def draw_solve_section(layout, context):
     else:
         row.prop(s, "frame_start")
         row.prop(s, "frame_end")
-    row = col.row(align=True)
-    row.prop(s, "weight_min")
-    row.prop(s, "weight_max")
-    row = col.row(align=True)
-    row.prop(s, "marker_weight")
-    row.prop(s, "contour_weight")
-    row = col.row(align=True)
-    row.prop(s, "anchor_weight")
-    row.prop(s, "contour_damping")
-    row = col.row(align=True)
-    row.prop(s, "lip_passes")
-    row.prop(s, "lip_line_weight")
-    row.prop(s, "lip_damping")
     col.prop(s, "existing_animation")
     col.operator("facelab.solve_performance", icon="SHAPEKEY_DATA")
+
+
+#: The solver weights of Solve Performance, in its closed *Advanced* sub-panel.
+SOLVE_ADVANCED = ("weight_min", "weight_max", "marker_weight", "contour_weight", "anchor_weight",
+                  "contour_damping", "lip_passes", "lip_line_weight", "lip_damping")
+
+
+def draw_solve_advanced(layout, context):
+    """The solver weights, one per row (each tooltip says when to change it)."""
+    s = context.scene.facelab_solve
+    col = layout.column()
+    for name in SOLVE_ADVANCED:
+        col.prop(s, name)
 
 
 def draw_retarget_section(layout, context):

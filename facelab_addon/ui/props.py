@@ -11,9 +11,9 @@ def _is_mesh(self, obj):
 
 
 class FACELAB_PG_training_frame(bpy.types.PropertyGroup):
-    """A corrected frame: training data for regression propagation (Dinev §4)."""
+    """A corrected frame: training data for Propagate"""
 
-    frame: IntProperty(name="Frame")
+    frame: IntProperty(name="Frame", description="The corrected frame")
     shape_key: StringProperty(name="Shape Key", description="Corrective shape key holding the correction")
     source: StringProperty(name="Source", default="sketch", description="'sketch' or 'sculpt'")
 

@@ -45,9 +45,12 @@ def _armature_poll(self, ob):
 class FACELAB_PG_reconstruct(bpy.types.PropertyGroup):
     """Scene settings of Reconstruct from Bundles and Generate Correctives (``scene.facelab_recon``)."""
 
-    bundle_source: EnumProperty(name="Bundles", items=BUNDLE_SOURCES, default="SELECTED")
-    bundle_collection: PointerProperty(name="Collection", type=bpy.types.Collection)
-    bundle_mesh: PointerProperty(name="Point Mesh", type=bpy.types.Object, poll=_mesh_poll)
+    bundle_source: EnumProperty(name="Bundles", items=BUNDLE_SOURCES, default="SELECTED",
+                                description="Where the animated 3D bundles come from")
+    bundle_collection: PointerProperty(name="Collection", type=bpy.types.Collection,
+                                       description="Collection of the bundle empties (and point meshes)")
+    bundle_mesh: PointerProperty(name="Point Mesh", type=bpy.types.Object, poll=_mesh_poll,
+                                 description="Mesh whose animated vertices are the bundles")
     bind_frame: IntProperty(name="Bind Frame", default=-1,
                             description="Frame where the face is neutral: bundles are bound to the surface there "
                                         "(-1: the scene's first frame)")
@@ -63,10 +66,14 @@ class FACELAB_PG_reconstruct(bpy.types.PropertyGroup):
     noise: FloatProperty(name=_SETTINGS["noise"]["label"], default=_SETTINGS["noise"]["default"],
                          min=_SETTINGS["noise"]["min"], soft_max=_SETTINGS["noise"]["soft_max"], precision=3,
                          description=_SETTINGS["noise"]["description"])
-    jaw_source: EnumProperty(name="Jaw", items=JAW_SOURCES, default="NONE")
-    jaw_armature: PointerProperty(name="Armature", type=bpy.types.Object, poll=_armature_poll)
-    jaw_bone: StringProperty(name="Bone", default="jaw")
-    jaw_object: PointerProperty(name="Jaw Object", type=bpy.types.Object)
+    jaw_source: EnumProperty(name="Jaw", items=JAW_SOURCES, default="NONE",
+                             description="What moves the jaw (Local Indexing only); set it when the shot's jaw "
+                                         "opens wider than the dataset shapes")
+    jaw_armature: PointerProperty(name="Armature", type=bpy.types.Object, poll=_armature_poll,
+                                  description="Armature holding the jaw bone")
+    jaw_bone: StringProperty(name="Bone", default="jaw", description="Name of the jaw bone in the armature")
+    jaw_object: PointerProperty(name="Jaw Object", type=bpy.types.Object,
+                                description="Object (an empty, a jaw mesh) that moves with the jaw")
     jaw_group: StringProperty(name="Jaw Weights",
                               description="Vertex group of the face with the jaw's skinning weights (empty: the "
                                           "bone's name)")

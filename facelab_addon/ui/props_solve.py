@@ -66,9 +66,11 @@ class FACELAB_PG_binding(bpy.types.PropertyGroup):
 
     # ``name`` (built in) is the track / bundle name
     kind: EnumProperty(name="Kind", items=[("MARKER", "Marker", "2D track"), ("BUNDLE", "Bundle", "3D bundle")],
-                       default="MARKER")
-    vertices: IntVectorProperty(name="Vertices", size=3, default=(-1, -1, -1))
-    bary: FloatVectorProperty(name="Barycentric", size=3, default=(0.0, 0.0, 0.0))
+                       default="MARKER", description="Whether a 2D track or a 3D bundle is tied to the face")
+    vertices: IntVectorProperty(name="Vertices", size=3, default=(-1, -1, -1),
+                                description="The face triangle the track is tied to (its three vertex indices)")
+    bary: FloatVectorProperty(name="Barycentric", size=3, default=(0.0, 0.0, 0.0),
+                              description="Where on that triangle the track sits (weights of its three corners)")
 
 
 class FACELAB_PG_solve_object(bpy.types.PropertyGroup):
@@ -93,7 +95,7 @@ class FACELAB_PG_solve_scene(bpy.types.PropertyGroup):
                ("EMPTIES", "Empties", "The empties (or point meshes) of the Bundle Collection"),
                ("TRACKING", "Tracking", "The reconstructed bundles of the first view's Movie Clip (its camera solve)")],
         default="NONE",
-        description="3D bundles to fit (Bhat Eq. 2) besides the 2D markers",
+        description="3D bundles to fit besides the 2D markers",
     )
     bundle_collection: PointerProperty(name="Bundle Collection", type=bpy.types.Collection,
                                        description=f"Collection of bundle empties (default: '{BUNDLES_COLLECTION}')")
@@ -121,28 +123,39 @@ class FACELAB_PG_solve_scene(bpy.types.PropertyGroup):
     frame_end: IntProperty(name="End", get=lambda self: _range_get(self, 1),
                            set=lambda self, v: _range_set(self, 1, v),
                            description="Last frame (the scene's end while Scene Range is on)")
-    weight_min: FloatProperty(name="Min Weight", default=-1.0, soft_min=-1.0, soft_max=0.0)
-    weight_max: FloatProperty(name="Max Weight", default=1.0, soft_min=0.0, soft_max=1.0)
-    marker_weight: FloatProperty(name="Marker Weight", default=1.0, min=0.0)
-    contour_weight: FloatProperty(name="Contour Weight", default=1.0, min=0.0)
+    weight_min: FloatProperty(name="Min Weight", default=-1.0, soft_min=-1.0, soft_max=0.0,
+                              description="Lowest weight a shape key may get (-1 allows subtracting shapes); raise "
+                                          "it to 0 when the solve uses shapes backwards")
+    weight_max: FloatProperty(name="Max Weight", default=1.0, soft_min=0.0, soft_max=1.0,
+                              description="Highest weight a shape key may get; lower it when expressions overshoot "
+                                          "the rig's sculpted shapes")
+    marker_weight: FloatProperty(name="Marker Weight", default=1.0, min=0.0,
+                                 description="How much the solve trusts the tracked markers; lower it when noisy "
+                                             "tracks make the face jitter")
+    contour_weight: FloatProperty(name="Contour Weight", default=1.0, min=0.0,
+                                  description="How much the solve trusts the lip and eyelid contours against the "
+                                              "markers; raise it when lips or lids miss their contours")
     anchor_weight: FloatProperty(
         name="Markers Anchor", default=50.0, min=0.0, soft_max=1000.0,
         description="How strongly the contour fit keeps the face away from the mouth and eyes where the markers "
-                    "alone put it, relative to their own misfit (0: the paper's fit; 50 chosen on test captures)")
+                    "alone put it; lower it when the contours are more reliable than the markers (0: contours move the "
+                    "whole face)")
     contour_damping: FloatProperty(
         name="Corrective Damping at Contours", default=0.03, min=0.0, soft_max=1.0,
         description="How strongly the corrective stays near the contours around the mouth and eyes (0.01 "
-                    "elsewhere); lower lets lip and lid corrections spread further")
+                    "elsewhere); lower it when lip and lid corrections stop short of their contours")
     lip_passes: IntProperty(
         name="Lip Passes", default=2, min=0, max=10, soft_max=4,
         description="Times the contours are matched again on the corrected mesh and the lips alone solved again "
-                    "(0: one corrective pass, the paper)")
+                    "(0: one pass); raise it when the inner lips still miss their contour")
     lip_line_weight: FloatProperty(
         name="Lip Line Weight", default=8.0, min=0.0, soft_max=50.0,
-        description="Weight of the tracked lip lines in the lip passes, relative to the markers (1)")
+        description="Weight of the tracked lip lines in the lip passes, relative to the markers (1); raise it "
+                    "when the lips miss the tracked lip lines")
     lip_damping: FloatProperty(
         name="Lip Pass Damping", default=0.3, min=0.0, soft_max=3.0,
-        description="How strongly the lip passes keep the lip correction on the lip rim")
+        description="How strongly the lip passes keep the lip correction on the lip rim; raise it when the lip "
+                    "passes dent the lips")
     existing_animation: EnumProperty(
         name="Existing Animation",
         items=[("NEW_ACTION", "New Action", "Keep the artist's shape-key action (fake user) and write the solve to a "
@@ -161,12 +174,13 @@ class FACELAB_PG_solve_scene(bpy.types.PropertyGroup):
                ("MARKERS", "Markers", "Empties in the Creature Markers collection named like the actor's bound "
                                       "tracks mark the same points on the creature")],
         default="AUTO",
+        description="How the creature's points are matched to the actor's",
     )
     creature_markers: PointerProperty(name="Creature Markers", type=bpy.types.Collection,
                                       description="Empties on the creature named like the actor's tracks")
     lip_sync: BoolProperty(name="Lip Sync", default=True,
                            description="Seal the creature's lip corners so its talking portion matches the actor's "
-                                       "lip length (Bhat §5.1)")
+                                       "lip length")
     lip_threshold: FloatProperty(name="Threshold", default=0.0, min=0.0, subtype="DISTANCE",
                                  description="Extra talking length allowed before the corners are sealed")
     use_end_points: BoolProperty(name="Custom End Points", default=False,

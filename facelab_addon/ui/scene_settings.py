@@ -5,7 +5,8 @@ Every field a pipeline's settings dataclass declares with
 :func:`facelab_addon.pipeline.settings.setting` becomes, without further code:
 
 * a property of a generated ``PropertyGroup`` on the scene (``scene.<attr>``), saved in the .blend;
-* a row of the step's *Settings* sub-panel (:func:`draw_settings`);
+* a row of the step's *Settings* sub-panel, or of its closed *Advanced* one (:data:`Entry` ``everyday``,
+  :func:`draw_settings`);
 * a flag of the CLI commands that run the step (:func:`add_flags`, :func:`apply_flags`);
 * a default for new scenes in the add-on preferences (:mod:`.prefs`), which hold nothing else.
 
@@ -48,21 +49,30 @@ class Entry(NamedTuple):
         ``bl_idname`` of the panel whose *Settings* sub-panel draws the fields (None: FaceLab's main panel).
     commands : tuple of str
         CLI commands (``python -m facelab_addon COMMAND``) that take the fields as flags.
+    label : str
+        The sub-panel's title (distinct among the sub-panels of one step).
+    everyday : tuple of str or None
+        The fields an artist changes in everyday work, drawn in the sub-panel; the others (solver
+        weights) go to its closed *Advanced* sub-panel. None: every field is everyday.
     """
 
     attr: str
     cls: type
     panel: str | None = None
     commands: tuple = ()
+    label: str = "Settings"
+    everyday: tuple | None = None
 
 
 #: The settings stored with the shot. Adding a settings class is one line here.
 SCENE_SETTINGS = (
     Entry("facelab_regions", RegionSettings, "FACELAB_PT_setup", ("propagate",)),
-    Entry("facelab_refine", RefineSettings, "FACELAB_PT_sketch", ("refine",)),
-    Entry("facelab_propagate", PropagateSettings, "FACELAB_PT_propagate", ("propagate",)),
+    Entry("facelab_refine", RefineSettings, "FACELAB_PT_sketch", ("refine",),
+          everyday=("free_radius", "use_regions", "crossings", "all_views")),
+    Entry("facelab_propagate", PropagateSettings, "FACELAB_PT_propagate", ("propagate",), label="Propagate Settings"),
     Entry("facelab_bake", BakeSettings, "FACELAB_PT_bake", ()),
-    Entry(STORE_SETTINGS_ATTR, StorageSettings, "FACELAB_PT_propagate", ("propagate", "solve", "reconstruct", "retarget")),
+    Entry(STORE_SETTINGS_ATTR, StorageSettings, "FACELAB_PT_propagate", ("propagate", "solve", "reconstruct", "retarget"),
+          label="Shape Key Storage", everyday=("cache_directory",)),
 )
 
 #: Fields every step shares, stored once in FaceLab > Setup: ``{field: property of scene.facelab}``.
@@ -81,6 +91,11 @@ _PANELS: list = []  # generated sub-panels (registered)
 def fields(entry: Entry) -> list:
     """The described fields of ``entry`` stored in its scene group (not the shared ones)."""
     return [d for d in describe(entry.cls) if d["name"] not in SHARED]
+
+
+def panel_fields(entry: Entry, advanced: bool) -> list:
+    """The fields drawn in ``entry``'s sub-panel (``advanced`` False) or in its *Advanced* sub-panel."""
+    return [d for d in fields(entry) if (entry.everyday is not None and d["name"] not in entry.everyday) == advanced]
 
 
 def label(d: dict) -> str:
@@ -203,8 +218,9 @@ def _on_load(_dummy=None):
 
 
 # --------------------------------------------------------------------------- panel
-def draw_settings(layout, context, entry: Entry) -> None:
-    """The rows of ``entry``'s fields (a ``*_group`` text field is a vertex-group picker on the face)."""
+def draw_settings(layout, context, entry: Entry, advanced: bool = False) -> None:
+    """The rows of ``entry``'s everyday fields, or its ``advanced`` ones (a ``*_group`` text field is a
+    vertex-group picker on the face), then Reset / Save as Defaults (under the everyday ones)."""
     from .ops import face_object
 
     grp = getattr(context.scene, entry.attr, None)
@@ -213,37 +229,43 @@ def draw_settings(layout, context, entry: Entry) -> None:
         col.label(text=f"{entry.attr} is not registered", icon="ERROR")
         return
     face = face_object(context)
-    for d in fields(entry):
+    for d in panel_fields(entry, advanced):
         if d["type"] is str and not d["choices"] and d["name"].endswith("_group") and face is not None:
             col.prop_search(grp, d["name"], face, "vertex_groups")
         else:
             col.prop(grp, d["name"])
+    if advanced:
+        return
     row = col.row(align=True)
     row.operator("facelab.reset_settings", text="Reset", icon="LOOP_BACK").target = entry.attr
     row.operator("facelab.save_settings_defaults", text="Save as Defaults", icon="PREFERENCES").target = entry.attr
 
 
-def make_panel(entry: Entry):
-    """A closed *Settings* sub-panel under ``entry.panel`` drawing ``entry``'s fields."""
-    parent = entry.panel or "FACELAB_PT_main"
+def make_panel(entry: Entry, advanced: bool = False):
+    """A closed sub-panel under ``entry.panel`` (titled ``entry.label``) drawing ``entry``'s everyday fields,
+    or (``advanced``) its closed *Advanced* sub-panel with the other fields."""
+    idname = f"FACELAB_PT_{entry.attr}" + ("_advanced" if advanced else "")
+    parent = f"FACELAB_PT_{entry.attr}" if advanced else (entry.panel or "FACELAB_PT_main")
 
     def draw(self, context):
-        draw_settings(self.layout, context, entry)
+        draw_settings(self.layout, context, entry, advanced)
 
-    return type(f"FACELAB_PT_{entry.attr}", (bpy.types.Panel,), dict(
+    return type(idname, (bpy.types.Panel,), dict(
         bl_space_type="VIEW_3D", bl_region_type="UI", bl_category="FaceLab", bl_parent_id=parent,
-        bl_label="Settings" if entry.panel else entry.cls.__name__, bl_options={"DEFAULT_CLOSED"},
-        bl_idname=f"FACELAB_PT_{entry.attr}", draw=draw,
-        __doc__=f"Settings of {entry.cls.__name__}, saved with the shot"))
+        bl_label="Advanced" if advanced else entry.label, bl_options={"DEFAULT_CLOSED"},
+        bl_idname=idname, draw=draw,
+        __doc__=("Solver settings: change them when the everyday ones do not give the result" if advanced
+                 else f"{entry.label}, saved with the shot")))
 
 
 def register_panels() -> None:
     """Register the sub-panels (after their parent panels)."""
     for e in SCENE_SETTINGS:
         if e.panel is None or hasattr(bpy.types, e.panel):
-            p = make_panel(e)
-            bpy.utils.register_class(p)
-            _PANELS.append(p)
+            for advanced in (False, True) if panel_fields(e, True) else (False,):
+                p = make_panel(e, advanced)
+                bpy.utils.register_class(p)
+                _PANELS.append(p)
 
 
 def unregister_panels() -> None:

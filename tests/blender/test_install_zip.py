@@ -10,9 +10,9 @@ wheels (into ``<user>/extensions/.local/lib/pythonX.Y/site-packages``, the site 
 ``sys.path``). The repository checkout is not importable there either: every FaceLab module must
 come from the extension folder.
 
-The zip carries wheels for every supported Python (``# python:`` lines of requirements/bpy-*.txt);
-the test runs with whichever bpy the suite runs on (scripts/test.sh runs it on the oldest and the
-newest supported Blender), so the Python at hand must be one of them and get a complete set.
+There is one zip per platform and Blender Python (``# python:`` lines of requirements/bpy-*.txt), each
+with that Python's wheels only; the test builds the one for the Python at hand (scripts/test.sh runs it
+on the oldest and the newest supported Blender).
 """
 
 import importlib.util
@@ -40,11 +40,13 @@ def this_platform():
 
 @pytest.fixture(scope="session")
 def extension_zip(tmp_path_factory):
-    """This platform's zip, built by scripts/build_extension.py (wheels cached in build/wheels/)."""
+    """This platform's zip for this Python's Blenders, built by scripts/build_extension.py (wheels cached in
+    build/wheels/)."""
     out = tmp_path_factory.mktemp("dist")
+    here = "%d.%d" % sys.version_info[:2]
     r = subprocess.run(
         [sys.executable, str(ROOT / "scripts" / "build_extension.py"), "--platform", this_platform(),
-         "--stage-dir", str(out / "stage"), "--out", str(out)],
+         "--python", here, "--stage-dir", str(out / "stage"), "--out", str(out)],
         cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, timeout=600,
     )
     assert r.returncode == 0, r.stderr[-3000:]
@@ -52,11 +54,23 @@ def extension_zip(tmp_path_factory):
     (z,) = summary["zips"]
     assert z["platform"] == this_platform()
     pythons = summary["pythons"]
-    assert "%d.%d" % sys.version_info[:2] in pythons and pythons == z["pythons"]
-    # a wheel of each package for every supported Python (an abi3 wheel may serve several), nothing else
-    assert sorted({w.split("-")[0] for w in z["wheels"]}) == ["cholespy", "libigl", "scipy"]
+    assert pythons == [here] and z["pythons"] == [here]
+    # one wheel of each package, for this Python only (the other Python's Blenders get their own zip)
+    assert sorted(w.split("-")[0] for w in z["wheels"]) == ["cholespy", "libigl", "scipy"]
     build = build_script()
-    assert build.check_complete(z["wheels"], build.pinned_versions(), pythons) == []
+    assert build.check_complete(z["wheels"], build.pinned_versions(), [here]) == []
+    other = [py for py in build.supported_pythons() if py != here]
+    assert other and all(build.check_complete(z["wheels"], build.pinned_versions(), [py]) for py in other)
+    # the name and the manifest say which Blenders it is for; Blender refuses it on the others
+    lo, hi, label = build.BLENDERS[here]
+    assert Path(z["zip"]).name == f"facelab-{summary['version']}-blender{label}-{this_platform().replace('-', '_')}.zip"
+    import tomllib
+    import zipfile
+
+    with zipfile.ZipFile(z["zip"]) as f:
+        manifest = tomllib.loads(f.read("blender_manifest.toml").decode())
+    assert (manifest["blender_version_min"], manifest["blender_version_max"]) == (lo, hi)
+    assert "website" not in manifest
     return Path(z["zip"])
 
 

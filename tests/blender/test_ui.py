@@ -2,6 +2,8 @@
 polled with and without a face and explains a refusal, the cheap ones run (with undo), panels are
 in workflow order, property defaults, the extrapolation helpers the panel draws from."""
 
+import re
+
 import bpy
 import numpy as np
 import pytest
@@ -80,8 +82,9 @@ def test_panels_read_as_the_workflow(addon):
     cls = [getattr(bpy.types, p) for p in PANELS]
     assert all(c.bl_category == "FaceLab" and c.bl_space_type == "VIEW_3D" and c.bl_region_type == "UI" for c in cls)
     assert all(c.bl_parent_id == "FACELAB_PT_main" for c in cls[1:])
-    # registration order = display order, numbered as the workflow
-    order = [c.__name__ for c in panel.classes if c.__name__.startswith("FACELAB_PT_")]
+    # registration order = display order, numbered as the workflow (sub-panels follow their parent)
+    order = [c.__name__ for c in panel.classes if c.__name__.startswith("FACELAB_PT_")
+             and getattr(c, "bl_parent_id", "FACELAB_PT_main") == "FACELAB_PT_main"]
     assert order == PANELS
     labels = [getattr(bpy.types, p).bl_label for p in PANELS[1:]]
     numbers = [lab.split(".")[0] for lab in labels]
@@ -89,12 +92,28 @@ def test_panels_read_as_the_workflow(addon):
     assert bpy.types.FACELAB_PT_retarget.bl_label == "6. Retarget to a Creature"  # findable (docs/retarget.md)
     ctx = bpy.context
     assert bpy.types.FACELAB_PT_solve.poll(ctx) and bpy.types.FACELAB_PT_retarget.poll(ctx)
-    # every step with settings has a Settings sub-panel under it
-    from facelab_addon.ui.scene_settings import SCENE_SETTINGS
+    # every step with settings has a closed settings sub-panel under it, the solver weights in a closed
+    # Advanced sub-panel under that; no two sub-panels of one panel share a title
+    from facelab_addon.ui.scene_settings import SCENE_SETTINGS, panel_fields
 
     for e in SCENE_SETTINGS:
         sub = getattr(bpy.types, f"FACELAB_PT_{e.attr}")
-        assert sub.bl_parent_id == e.panel and sub.bl_label == "Settings" and "DEFAULT_CLOSED" in sub.bl_options
+        assert sub.bl_parent_id == e.panel and sub.bl_label == e.label and "DEFAULT_CLOSED" in sub.bl_options
+        adv = getattr(bpy.types, f"FACELAB_PT_{e.attr}_advanced", None)
+        assert (adv is not None) == bool(panel_fields(e, True)), e.attr
+        if adv is not None:
+            assert adv.bl_parent_id == sub.bl_idname and adv.bl_label == "Advanced" and "DEFAULT_CLOSED" in adv.bl_options
+    subs = [getattr(bpy.types, n) for n in dir(bpy.types) if n.startswith("FACELAB_PT_")]
+    for parent in {c.bl_parent_id for c in subs if getattr(c, "bl_parent_id", "")}:
+        labels = [c.bl_label for c in subs if getattr(c, "bl_parent_id", "") == parent]
+        assert len(labels) == len(set(labels)), (parent, labels)
+    assert bpy.types.FACELAB_PT_facelab_propagate.bl_label != bpy.types.FACELAB_PT_facelab_store.bl_label
+    # Refine: the everyday settings in the sub-panel, the solver weights in Advanced
+    refine_entry = next(e for e in SCENE_SETTINGS if e.attr == "facelab_refine")
+    everyday = {d["name"] for d in panel_fields(refine_entry, False)}
+    advanced = {d["name"] for d in panel_fields(refine_entry, True)}
+    assert {"free_radius", "use_regions"} <= everyday and not everyday & advanced
+    assert {"lambda_pos", "lambda_reg", "lambda_silh", "iterations"} <= advanced
 
 
 def test_without_a_face_every_operator_explains(addon):
@@ -226,11 +245,67 @@ def test_property_defaults(addon):
     # operator options
     props = bpy.ops.facelab.propagate.get_rna_type().properties
     assert props["suggestions"].default == 3  # Start / End: the scene's range unless set (negative frames allowed)
-    assert "not set: the scene's" in props["frame_start"].description
+    assert "starts at the scene's start" in props["frame_start"].description
     props = bpy.ops.facelab.auto_regions.get_rna_type().properties
     assert not props["replace"].default and not props["use_selection"].default
     props = bpy.ops.facelab.bake.get_rna_type().properties
     assert props["format"].default == "PC2" and not props["overwrite"].default
+
+
+def test_redo_panels_start_from_the_scene_range(addon):
+    """Propagate's and Reconstruct's Start / End show the frames they work on (not 1 / 250 on a 48-frame
+    shot), and every new run starts from the scene's range again (SKIP_SAVE)."""
+    scene = empty_scene()
+    scene.frame_start, scene.frame_end = 7, 48
+
+    class Given:
+        def __init__(self, names):
+            self.names = names
+
+        def is_property_set(self, name):
+            return name in self.names
+
+    op = type("Op", (), {})()
+    op.properties, op.frame_start, op.frame_end = Given({"frame_end"}), 1, 30  # End given, Start not
+    ops.fill_scene_range(op, scene)
+    assert (op.frame_start, op.frame_end) == (7, 30)
+    for name in ("propagate", "reconstruct_from_bundles"):
+        props = getattr(bpy.ops.facelab, name).get_rna_type().properties
+        assert props["frame_start"].is_skip_save and props["frame_end"].is_skip_save, name
+    assert bpy.ops.facelab.propagate.get_rna_type().properties["suggestions"].is_skip_save
+
+
+def _registered_properties():
+    """``(owner, property)`` of every property FaceLab registers: its property groups (scene, object,
+    preferences, generated settings) and its operators' options."""
+    out = []
+    for name in dir(bpy.types):
+        if name.startswith("FACELAB_OT_"):
+            rna = getattr(bpy.ops.facelab, getattr(bpy.types, name).bl_idname.split(".")[-1]).get_rna_type()
+            out += [(name, p) for p in rna.properties if p.identifier != "rna_type"]
+    groups = [c for base in (bpy.types.PropertyGroup, bpy.types.AddonPreferences) for c in base.__subclasses__()
+              if c.__name__.startswith("FACELAB_") and c.is_registered]
+    for cls in groups:
+        out += [(cls.__name__, p) for p in cls.bl_rna.properties if p.identifier not in ("rna_type", "name")]
+    return out
+
+
+def test_every_registered_property_has_a_tooltip(addon):
+    """Every property an artist can see says what it is (no empty tooltip), and no tooltip or operator
+    description cites a paper (citations live in the docs)."""
+    props = _registered_properties()
+    assert len(props) > 100 and any(o == "FACELAB_PG_facelab_refine" for o, _ in props)
+    def internal(p):  # never drawn as a field: lists (drawn as a list), their active row, the preferences'
+        return (p.type == "COLLECTION" or p.identifier.startswith("active_") or p.identifier == "bl_idname"
+                or p.is_hidden or (p.type == "POINTER" and p.fixed_type.identifier.startswith("FACELAB_PG")))
+
+    empty = [f"{o}.{p.identifier}" for o, p in props if not p.description.strip() and not internal(p)]
+    assert not empty, empty
+    cited = re.compile(r"et al\.|§|\bpaper\b|\bBhat\b|\bDinev\b|Eq\. ?\d")
+    texts = [(f"{o}.{p.identifier}", p.description) for o, p in props]
+    texts += [(n, getattr(bpy.types, n).__doc__ or "") for n in dir(bpy.types)
+              if n.startswith(("FACELAB_OT_", "FACELAB_PT_"))]
+    assert not [n for n, t in texts if cited.search(t)], [n for n, t in texts if cited.search(t)]
 
 
 def test_extrapolation_helpers(addon):
@@ -403,8 +478,12 @@ def test_panels_draw_the_workflow(addon):
     lay = draw(bpy.types.FACELAB_PT_propagate, ctx)
     labels = lay.texts("label")
     assert "Training frames (2)" in labels
-    assert "Extrapolation on this frame: 0.90" in labels and "Model extrapolates on 3 frames:" in labels
+    assert "Uncertain or guessing on 3 frames:" in labels
     ops_drawn = [(a[0], kw.get("text")) for m, a, kw in lay.log if m == "operator"]
+    # the current frame's prediction in words (0.9: uncertain), the score in the button's tooltip
+    assert ("facelab.most_extrapolated_frame", "Prediction on this frame: uncertain") in ops_drawn
+    tip = bpy.types.FACELAB_OT_most_extrapolated_frame.description(ctx, None)
+    assert tip.startswith("Extrapolation 0.90 on this frame") and "reliable up to 0.5" in tip
     assert ("facelab.jump_to_frame", "11-13") in ops_drawn and ("facelab.jump_to_frame", "12") in ops_drawn
     assert ("facelab.propagate", None) in ops_drawn
     # the training list's rows
@@ -479,7 +558,8 @@ def test_panels_draw_in_every_state(ict, addon):
             texts = [str(t) for t in lay.texts()]
             assert not any(t == "-1" or t.endswith(" -1") for t in texts), (state, name)
     prop = states["after Propagate"]["FACELAB_PT_propagate"]
-    assert any(t.startswith("Extrapolation on this frame") for t in prop.texts("label"))
+    assert any(str(kw.get("text", "")).startswith("Prediction on this frame: ") for m, a, kw in prop.log
+               if m == "operator")
     review_ops = [a[0] for m, a, kw in states["after Propagate"]["FACELAB_PT_review"].log if m == "operator"]
     assert {"facelab.review_toggle", "facelab.correction_heatmap", "facelab.sketch_onion_skin",
             "facelab.next_suggested_frame", "facelab.most_extrapolated_frame"} <= set(review_ops)
@@ -487,6 +567,11 @@ def test_panels_draw_in_every_state(ict, addon):
     solve = states["after Propagate"]["FACELAB_PT_solve"]
     drawn = [a[1] for m, a, kw in solve.log if m == "prop"]
     assert "bind_current" in drawn and "bind_frame" not in drawn and "annotation_view" not in drawn
+    # the solver weights are in the closed Advanced sub-panel, not in the Solve panel
+    from facelab_addon.ui.panel_solve import SOLVE_ADVANCED
+
+    advanced = [a[1] for m, a, kw in states["after Propagate"]["FACELAB_PT_solve_advanced"].log if m == "prop"]
+    assert advanced == list(SOLVE_ADVANCED) and not set(SOLVE_ADVANCED) & set(drawn)
     assert "use_annotation" in drawn and "frame_start" not in drawn  # Scene Range: "Scene: 1-40" instead
     assert f"Scene: {scene.frame_start}-{scene.frame_end}" in solve.texts("label")
     scene.facelab_solve.bind_current = False
