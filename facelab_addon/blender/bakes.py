@@ -25,7 +25,7 @@ import numpy as np
 
 from ..core.capture import pointcache_writer
 from ..core.errors import FaceLabError, OutputError
-from ..names import CORRECTION_CACHE_MODIFIER, CORRECTION_CACHES_PROP
+from ..names import CORRECTION_CACHE_MODIFIER, CORRECTION_CACHES_PROP, file_name_part
 from .caches import (
     _frames,
     _iter_evaluated,
@@ -353,8 +353,8 @@ def correction_cache_path(obj, prefix: str, fmt: str, directory=None) -> Path:
     if not folder.is_absolute():
         raise OutputError(f"The cache folder '{directory}' is a relative path; choose an absolute folder "
                           "(or save the .blend and use a '//' path relative to it).")
-    stem = bpy.path.clean_name(Path(bpy.data.filepath).stem) + "_" if bpy.data.filepath else ""
-    base = f"{stem}{bpy.path.clean_name(obj.name)}_{prefix.strip('_')}"
+    stem = file_name_part(Path(bpy.data.filepath).stem) + "_" if bpy.data.filepath else ""
+    base = f"{stem}{file_name_part(obj.name)}_{file_name_part(prefix.strip('_'))}"
     ext = "." + fmt.lower()
     path, i = folder / f"{base}{ext}", 0
     while path.exists() or path.with_name(path.name + ".tmp").exists():
