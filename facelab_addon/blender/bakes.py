@@ -357,7 +357,7 @@ def correction_cache_path(obj, prefix: str, fmt: str, directory=None) -> Path:
     base = f"{stem}{file_name_part(obj.name)}_{file_name_part(prefix.strip('_'))}"
     ext = "." + fmt.lower()
     path, i = folder / f"{base}{ext}", 0
-    while path.exists() or path.with_name(path.name + ".tmp").exists():
+    while path.exists() or path.with_name(path.name + pointcache_writer.TMP_SUFFIX).exists():
         i += 1
         path = folder / f"{base}.{i:03d}{ext}"
     return pointcache_writer.check_writable(path)

@@ -142,7 +142,9 @@ def parse_frames(text: str | None, scene) -> list[int]:
     Ranges are checked arithmetically before any list is built: frames must be
     0..``MAX_FRAME`` (the scene range of Blender and FaceLab's settings start
     at 0), a range must not end before it starts, and at most
-    ``MAX_FRAME_COUNT`` frames are taken.
+    ``MAX_FRAME_COUNT`` frames are taken. Every frame must lie in the scene's
+    frame range, the shot: frames past it are refused, not clamped (every
+    command alike), so a typo never keys hundreds of frames of a held pose.
     """
     if text is None or text == "":
         return list(range(scene.frame_start, scene.frame_end + 1))
@@ -178,6 +180,12 @@ def parse_frames(text: str | None, scene) -> list[int]:
     if count > MAX_FRAME_COUNT:
         raise CliError(f"--frames {text!r}: {count:,} frames, more than the {MAX_FRAME_COUNT:,} one run takes; "
                        "check the range for a typo, or split the shot into several runs.", EXIT_USAGE)
+    lo, hi = int(scene.frame_start), int(scene.frame_end)
+    outside = [f for f in (merged[0][0], merged[-1][1]) if not lo <= f <= hi]
+    if outside:
+        raise CliError(f"--frames {text!r}: frame {outside[0]} is outside the shot, whose frame range is {lo}-{hi} "
+                       "(the scene's Frame Start / End); give frames inside it, or set the scene's frame range to "
+                       "the frames the capture covers and save the .blend first.", EXIT_USAGE)
     return [f for a, b in merged for f in range(a, b + 1)]
 
 
@@ -220,6 +228,7 @@ class Session:
         self.quiet = getattr(args, "quiet", False)
         self.t0 = time.perf_counter()
         self.inputs: dict = {}
+        self.notes: list = []
         import bpy
 
         self.bpy = bpy
@@ -228,6 +237,11 @@ class Session:
     def log(self, msg: str) -> None:
         if not self.quiet:
             log(msg)
+
+    def note(self, msg: str) -> None:
+        """Something the user must know about a successful run: logged now, and in the summary's ``notes``."""
+        self.notes.append(msg)
+        self.log(f"note: {msg}")
 
     def progress(self, label: str, total: int):
         """A callable ``(i, n=total)`` printing ``label i/n (p %)`` on stderr about every 10 %."""
@@ -268,16 +282,57 @@ class Session:
 
     def open_blend(self, path) -> None:
         p = Path(path)
+        if p.is_dir():
+            blends = sorted(q.name for q in p.glob("*.blend"))[:5]
+            raise CliError(f"{path} is a folder, not a .blend file; give the .blend itself"
+                           + (f" (the folder holds {', '.join(blends)})." if blends else "."), EXIT_INPUT)
         if not p.is_file():
             raise CliError(f"{path}: no such .blend file; check the path.", EXIT_INPUT)
+        self.check_blend_caches(p)
         self.log(f"opening {p}")
         try:
             with quiet_stdout():
                 self.bpy.ops.wm.open_mainfile(filepath=str(p.resolve()), load_ui=False)
         except RuntimeError as e:
-            raise CliError(f"{path}: Blender cannot read it ({first_line(e)}); is it a .blend from Blender 5.0 "
-                           "or older?", EXIT_INPUT) from None
+            this = self.bpy.app.version_string
+            if "newer" in str(e).lower():
+                raise CliError(f"{path}: this Blender ({this}) cannot read it: {first_line(e)}. Run FaceLab in the "
+                               "Blender that saved it (or open it there and save it in an older format).",
+                               EXIT_INPUT) from None
+            raise CliError(f"{path}: Blender {this} cannot read it ({first_line(e)}); check that it is a whole "
+                           ".blend file (re-copy it, or open it in Blender and save it again).", EXIT_INPUT) from None
         self.inputs["blend"] = str(p.resolve())
+        saved = tuple(self.bpy.data.version)[:2]
+        if saved > tuple(self.bpy.app.version)[:2]:
+            self.note(f"{p.name} was saved by Blender {saved[0]}.{saved[1]}, newer than this Blender "
+                      f"{self.bpy.app.version_string}: what this one does not know is dropped from the saved result; "
+                      "run FaceLab in that Blender to keep everything.")
+
+    def check_blend_caches(self, p: Path) -> None:
+        """Refuse a .blend that plays a broken Alembic file before Blender opens it: Blender's Alembic reader
+        aborts the whole process on a truncated file. The file's Cache Files are linked (not evaluated) to read
+        their paths; a missing file is left to the checks after opening (Blender plays it as the static mesh)."""
+        from ..blender.caches import alembic_file_problem
+
+        bpy = self.bpy
+        try:
+            with quiet_stdout(), bpy.data.libraries.load(str(p.resolve()), link=True) as (src, dst):
+                dst.cache_files = list(src.cache_files)
+        except (OSError, RuntimeError, ValueError):
+            return  # unreadable: open_mainfile says why
+        for cf in dst.cache_files:
+            if cf is None:
+                continue
+            paths = [cf.filepath] + [lay.filepath for lay in getattr(cf, "layers", ())]
+            for fp in paths:
+                full = bpy.path.abspath(fp, library=cf.library)
+                if not fp or not os.path.exists(full):
+                    continue
+                why = alembic_file_problem(full)
+                if why is not None:
+                    raise CliError(f"{p.name} plays the Alembic file '{full}' (Cache File '{cf.name}'), but {why}, and "
+                                   "Blender would abort reading it. Re-export or re-copy the Alembic file, then run "
+                                   "again.", EXIT_INPUT)
 
     def build_scene(self, mesh_path, cache_path) -> None:
         import numpy as np
@@ -438,21 +493,40 @@ class Session:
             raise CliError(*operator_failure(e)) from None
 
     # -- outputs ----------------------------------------------------------------------------------
-    def check_out(self) -> None:
-        """Refuse a bad ``--out`` before any work is done."""
-        out = getattr(self.args, "out", None)
-        if not out:
-            return
-        p = Path(out).resolve()
-        if p.suffix.lower() != ".blend":
-            raise CliError(f"--out {out}: give a .blend path.", EXIT_USAGE)
-        if not p.parent.is_dir():
-            raise CliError(f"--out {out}: the folder {p.parent} does not exist; create it first.", EXIT_OUTPUT)
+    def check_out(self, only=None) -> None:
+        """Refuse a bad ``--out``, ``--json`` or ``--bake`` before any work is done: the wrong type, a
+        folder that does not exist or cannot be written, a name the file system cannot hold, an existing
+        ``--bake`` file without ``--overwrite`` (the panel's rule), the open .blend itself."""
+        from ..core.capture.pointcache_writer import check_writable
+        from ..core.errors import OutputError
+
+        a = self.args
+        checks = [("--out", getattr(a, "out", None), (".blend",)), ("--json", getattr(a, "json_path", None), None),
+                  ("--bake", getattr(a, "bake", None), (".pc2", ".mdd", ".abc"))]
+        opened = self.bpy.data.filepath
+        for flag, out, exts in checks:
+            if not out or (only and flag != only):
+                continue
+            p = Path(out).resolve()
+            if exts and p.suffix.lower() not in exts:
+                raise CliError(f"{flag} {out}: give a {' or '.join(exts)} file.", EXIT_USAGE)
+            try:
+                check_writable(p)
+            except OutputError as e:
+                raise CliError(f"{flag} {out}: {e}", EXIT_OUTPUT) from None
+            if not p.parent.is_dir():
+                raise CliError(f"{flag} {out}: the folder {p.parent} does not exist; create it first.", EXIT_OUTPUT)
+            if opened and not a.blend and not getattr(a, "mesh", None) and same_file(p, Path(opened)):
+                raise CliError(f"{flag} {out} is the .blend Blender opened, FaceLab's input: it never writes over "
+                               f"its input. Give another file, such as {p.stem}_fixed{p.suffix}.", EXIT_USAGE)
+            if flag == "--bake" and p.exists() and not getattr(a, "overwrite", False):
+                raise CliError(f"--bake {out}: the file exists; give --overwrite to replace it (the panel's Overwrite), "
+                               "or choose another file.", EXIT_OUTPUT)
 
     def save(self, out) -> str | None:
         if not out:
             return None
-        self.check_out()
+        self.check_out("--out")
         p = Path(out).resolve()
         self.log(f"saving {p}")
         try:
@@ -461,6 +535,72 @@ class Session:
         except RuntimeError as e:
             raise CliError(f"--out {out}: cannot write it ({first_line(e)}).", EXIT_OUTPUT) from None
         return str(p)
+
+
+def same_file(a: Path, b: Path) -> bool:
+    """Whether two absolute paths name one file (the same path, or links to one file)."""
+    if a == b:
+        return True
+    try:
+        return a.exists() and b.exists() and os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+#: Path options expanded (``~``) and checked against each other: (flag, attribute).
+OUTPUT_FLAGS = (("--out", "out"), ("--json", "json_path"), ("--bake", "bake"))
+INPUT_FLAGS = (("SHOT.blend", "blend"), ("--mesh", "mesh"), ("--cache", "cache"), ("--rest", "rest"))
+
+
+def expand_paths(args) -> None:
+    """``~`` and ``~user`` in every path option, as a shell would (``--out=~/x.blend`` and paths given from
+    Python reach FaceLab unexpanded)."""
+    for _, attr in OUTPUT_FLAGS + INPUT_FLAGS:
+        v = getattr(args, attr, None)
+        if isinstance(v, str) and v.startswith("~"):
+            setattr(args, attr, os.path.expanduser(v))
+    specs = getattr(args, "corrected", None)
+    if specs:
+        out = []
+        for s in specs:
+            frame, sep, path = s.partition(":")
+            out.append(f"{frame}:{os.path.expanduser(path)}" if sep and path.startswith("~") else s)
+        args.corrected = out
+
+
+def check_distinct_outputs(args) -> None:
+    """Refuse, before anything is read or written, two outputs that are one file (``--json X.blend --out
+    X.blend``: the summary would overwrite the saved .blend) and an output that is an input file (FaceLab
+    never writes over its input)."""
+    outs = [(f, Path(v).resolve()) for f, a in OUTPUT_FLAGS if (v := getattr(args, a, None))]
+    ins = [(f, Path(v).resolve()) for f, a in INPUT_FLAGS if (v := getattr(args, a, None))]
+    for s in getattr(args, "corrected", None) or []:
+        frame, sep, path = s.partition(":")
+        if sep and path:
+            ins.append((f"--corrected {s}", Path(path).resolve()))
+    for i, (fa, pa) in enumerate(outs):
+        for fb, pb in outs[i + 1:]:
+            if same_file(pa, pb):
+                raise CliError(f"{fa} and {fb} are the same file ({pa}): one output would overwrite the other. "
+                               "Give each its own file.", EXIT_USAGE)
+        for fb, pb in ins:
+            if same_file(pa, pb):
+                raise CliError(f"{fa} {pa} is the input {fb}: FaceLab never writes over its input. Give another "
+                               f"file, such as {pa.stem}_fixed{pa.suffix}.", EXIT_USAGE)
+
+
+def played_files(bpy) -> list:
+    """Absolute paths of every file the open scene plays: Mesh Cache modifiers (of any object, FaceLab's
+    correction caches included) and Alembic Cache Files."""
+    out = []
+    for ob in bpy.data.objects:
+        for md in ob.modifiers:
+            if md.type == "MESH_CACHE" and md.filepath:
+                out.append(Path(bpy.path.abspath(md.filepath, library=ob.library)).resolve())
+    for cf in bpy.data.cache_files:
+        if cf.filepath:
+            out.append(Path(bpy.path.abspath(cf.filepath, library=cf.library)).resolve())
+    return out
 
 
 def first_line(e) -> str:
@@ -541,8 +681,16 @@ def execute(args) -> int:
     code = EXIT_INTERNAL
     registered_here = False
     quiet = getattr(args, "quiet", False)
+    expand_paths(args)
+    try:
+        check_distinct_outputs(args)
+        clash = None
+    except CliError as e:  # the JSON then goes to stdout: --json may be the input or the --out .blend
+        clash = e
     with blender_output(getattr(args, "verbose", False)) as blender_lines:
         try:
+            if clash is not None:
+                raise clash
             try:
                 import bpy
             except ImportError as e:
@@ -562,6 +710,8 @@ def execute(args) -> int:
             settings = apply_settings(args, session.scene)
             result = args._module.run(args, session)
             summary.update(result)
+            if session.notes:
+                summary["notes"] = session.notes + list(summary.get("notes") or [])
             if settings:
                 summary["settings"] = settings
             summary.update(ok=True, inputs=session.inputs)
@@ -590,7 +740,7 @@ def execute(args) -> int:
             log(f"blender: {line.strip()}")
     summary.update(exit_code=code, seconds=round(time.perf_counter() - t0, 3))
     text = json.dumps(summary, indent=2, default=_json_default)
-    if getattr(args, "json_path", None):
+    if getattr(args, "json_path", None) and clash is None:
         try:
             Path(args.json_path).write_text(text + "\n")
         except OSError as e:

@@ -218,7 +218,7 @@ class PointCacheWriter:
         else:
             raise CacheFileError(f"Unknown point-cache format '{fmt}'; use 'PC2' or 'MDD'.")
         check_writable(self.path)
-        self._tmp = self.path.with_name(self.path.name + ".tmp")
+        self._tmp = self.path.with_name(self.path.name + TMP_SUFFIX)
         self._f = None
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
