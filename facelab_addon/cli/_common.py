@@ -476,6 +476,10 @@ class Session:
             raise CliError(f"'{obj.name}' is not in the scene '{scene.name}'; link it or give another --object.",
                            EXIT_OBJECT)
         scene.facelab.face = obj
+        from ..blender.bakes import correction_cache_problems
+
+        for problem in correction_cache_problems(obj):  # a bake refuses; every other command says it
+            self.note(problem)
         vl = bpy.context.view_layer
         if vl.objects.get(obj.name) is not None:
             vl.objects.active = obj
