@@ -134,7 +134,7 @@ def correction_magnitude(obj, depsgraph, *, metres_per_unit: float = 1.0) -> np.
     unit scale). A correction cache whose file is missing is refused (``CacheFileError``): the map would
     show no correction where there is one.
     """
-    from .bakes import require_correction_caches
+    from .correction_files import require_correction_caches
 
     require_correction_caches(obj, "The correction heat map")
     saved = json.loads(obj[REVIEW_SAVED_PROP]) if showing_capture(obj) else None

@@ -16,25 +16,29 @@ import time
 import traceback
 from pathlib import Path
 
-EXIT_OK = 0
-EXIT_FAILED = 1  # FaceLab refused the data (operator error / FaceLabError)
-EXIT_USAGE = 2  # bad arguments (argparse uses 2 too)
-EXIT_INPUT = 3  # input file missing or unreadable
-EXIT_OBJECT = 4  # object missing or not a mesh
-EXIT_OUTPUT = 5  # output not writable
-EXIT_BPY = 6  # bpy, or a module FaceLab needs (SciPy...), not importable
-EXIT_INTERNAL = 70  # a bug
+from ._errors import (  # noqa: F401  (the exit codes and CliError are imported from here by the commands)
+    EXIT_BPY,
+    EXIT_FAILED,
+    EXIT_INPUT,
+    EXIT_INTERNAL,
+    EXIT_OBJECT,
+    EXIT_OK,
+    EXIT_OUTPUT,
+    EXIT_USAGE,
+    CliError,
+)
+from ._frames import MAX_FRAME, MAX_FRAME_COUNT, contiguous, parse_frames  # noqa: F401  (for the commands)
+from ._paths import (  # noqa: F401  (same_file and played_files for the commands)
+    check_blend_caches,
+    check_distinct_outputs,
+    check_outputs,
+    expand_paths,
+    played_files,
+    same_file,
+)
 
 MESH_EXTS = (".obj", ".abc")
 CACHE_EXTS = (".pc2", ".mdd")
-
-
-class CliError(Exception):
-    """A failure with a message for the user (problem + fix) and an exit code."""
-
-    def __init__(self, message: str, code: int = EXIT_FAILED):
-        super().__init__(message)
-        self.code = code
 
 
 _T0 = time.perf_counter()
@@ -130,75 +134,6 @@ def argparse_suppress():
     return argparse.SUPPRESS
 
 
-#: Blender's frame limits (``MAXFRAME``): no scene frame lies outside them.
-MAX_FRAME = 1048574
-#: More frames than this in one ``--frames`` is refused (a typo such as 1-3000000, not a shot).
-MAX_FRAME_COUNT = 100_000
-
-
-def parse_frames(text: str | None, scene) -> list[int]:
-    """``'A-B'`` / ``'N'`` / ``'A,B,C'`` -> sorted frames; None -> the scene's range.
-
-    Ranges are checked arithmetically before any list is built: frames must be
-    0..``MAX_FRAME`` (the scene range of Blender and FaceLab's settings start
-    at 0), a range must not end before it starts, and at most
-    ``MAX_FRAME_COUNT`` frames are taken. Every frame must lie in the scene's
-    frame range, the shot: frames past it are refused, not clamped (every
-    command alike), so a typo never keys hundreds of frames of a held pose.
-    """
-    if text is None or text == "":
-        return list(range(scene.frame_start, scene.frame_end + 1))
-    spans = []
-    for part in text.split(","):
-        part = part.strip()
-        m = re.fullmatch(r"(-?\d+)\s*(?:-|\.\.|:)\s*(-?\d+)", part)
-        if m:
-            a, b = int(m.group(1)), int(m.group(2))
-            if b < a:
-                raise CliError(f"--frames {text!r}: the range {a}-{b} ends before it starts; write it as "
-                               f"{b}-{a}.", EXIT_USAGE)
-        elif re.fullmatch(r"-?\d+", part):
-            a = b = int(part)
-        else:
-            raise CliError(f"--frames {text!r}: expected 'A-B', 'N' or a comma list such as '1-100,120'.", EXIT_USAGE)
-        if a < 0:
-            raise CliError(f"--frames {text!r}: frame {a} is negative; Blender's scene range (and FaceLab's) starts "
-                           "at frame 0. Shift the animation to frame 0 or later (or re-export the cache starting "
-                           "there).", EXIT_USAGE)
-        if b > MAX_FRAME:
-            raise CliError(f"--frames {text!r}: frame {b} is past Blender's last frame {MAX_FRAME:,}; give the "
-                           "shot's frames.", EXIT_USAGE)
-        spans.append((a, b))
-    spans.sort()
-    merged = []
-    for a, b in spans:
-        if merged and a <= merged[-1][1] + 1:
-            merged[-1][1] = max(merged[-1][1], b)
-        else:
-            merged.append([a, b])
-    count = sum(b - a + 1 for a, b in merged)
-    if count > MAX_FRAME_COUNT:
-        raise CliError(f"--frames {text!r}: {count:,} frames, more than the {MAX_FRAME_COUNT:,} one run takes; "
-                       "check the range for a typo, or split the shot into several runs.", EXIT_USAGE)
-    lo, hi = int(scene.frame_start), int(scene.frame_end)
-    outside = [f for f in (merged[0][0], merged[-1][1]) if not lo <= f <= hi]
-    if outside:
-        raise CliError(f"--frames {text!r}: frame {outside[0]} is outside the shot, whose frame range is {lo}-{hi} "
-                       "(the scene's Frame Start / End); give frames inside it, or set the scene's frame range to "
-                       "the frames the capture covers and save the .blend first.", EXIT_USAGE)
-    return [f for a, b in merged for f in range(a, b + 1)]
-
-
-def contiguous(frames: list[int], what: str) -> tuple[int, int]:
-    """(first, last) of a gap-free, non-empty frame list (the operators take a range)."""
-    if not frames:
-        raise CliError(f"{what}: no frames to work on; give --frames as 'A-B' (or set the scene's frame range).",
-                       EXIT_USAGE)
-    if frames != list(range(frames[0], frames[-1] + 1)):
-        raise CliError(f"{what} works on one frame range; give --frames as 'A-B'.", EXIT_USAGE)
-    return frames[0], frames[-1]
-
-
 def exit_code_for(e: BaseException) -> int:
     """The documented exit code of a FaceLab error: 3 for an unreadable input file (cache, OBJ),
     5 for an output that cannot be written, 1 for data FaceLab refuses; 70 for anything else (a bug)."""
@@ -288,7 +223,7 @@ class Session:
                            + (f" (the folder holds {', '.join(blends)})." if blends else "."), EXIT_INPUT)
         if not p.is_file():
             raise CliError(f"{path}: no such .blend file; check the path.", EXIT_INPUT)
-        self.check_blend_caches(p)
+        check_blend_caches(self.bpy, p)
         self.log(f"opening {p}")
         try:
             with quiet_stdout():
@@ -307,32 +242,6 @@ class Session:
             self.note(f"{p.name} was saved by Blender {saved[0]}.{saved[1]}, newer than this Blender "
                       f"{self.bpy.app.version_string}: what this one does not know is dropped from the saved result; "
                       "run FaceLab in that Blender to keep everything.")
-
-    def check_blend_caches(self, p: Path) -> None:
-        """Refuse a .blend that plays a broken Alembic file before Blender opens it: Blender's Alembic reader
-        aborts the whole process on a truncated file. The file's Cache Files are linked (not evaluated) to read
-        their paths; a missing file is left to the checks after opening (Blender plays it as the static mesh)."""
-        from ..blender.caches import alembic_file_problem
-
-        bpy = self.bpy
-        try:
-            with quiet_stdout(), bpy.data.libraries.load(str(p.resolve()), link=True) as (src, dst):
-                dst.cache_files = list(src.cache_files)
-        except (OSError, RuntimeError, ValueError):
-            return  # unreadable: open_mainfile says why
-        for cf in dst.cache_files:
-            if cf is None:
-                continue
-            paths = [cf.filepath] + [lay.filepath for lay in getattr(cf, "layers", ())]
-            for fp in paths:
-                full = bpy.path.abspath(fp, library=cf.library)
-                if not fp or not os.path.exists(full):
-                    continue
-                why = alembic_file_problem(full)
-                if why is not None:
-                    raise CliError(f"{p.name} plays the Alembic file '{full}' (Cache File '{cf.name}'), but {why}, and "
-                                   "Blender would abort reading it. Re-export or re-copy the Alembic file, then run "
-                                   "again.", EXIT_INPUT)
 
     def build_scene(self, mesh_path, cache_path) -> None:
         import numpy as np
@@ -476,7 +385,7 @@ class Session:
             raise CliError(f"'{obj.name}' is not in the scene '{scene.name}'; link it or give another --object.",
                            EXIT_OBJECT)
         scene.facelab.face = obj
-        from ..blender.bakes import correction_cache_problems
+        from ..blender.correction_files import correction_cache_problems
 
         for problem in correction_cache_problems(obj):  # a bake refuses; every other command says it
             self.note(problem)
@@ -498,34 +407,8 @@ class Session:
 
     # -- outputs ----------------------------------------------------------------------------------
     def check_out(self, only=None) -> None:
-        """Refuse a bad ``--out``, ``--json`` or ``--bake`` before any work is done: the wrong type, a
-        folder that does not exist or cannot be written, a name the file system cannot hold, an existing
-        ``--bake`` file without ``--overwrite`` (the panel's rule), the open .blend itself."""
-        from ..core.capture.pointcache_writer import check_writable
-        from ..core.errors import OutputError
-
-        a = self.args
-        checks = [("--out", getattr(a, "out", None), (".blend",)), ("--json", getattr(a, "json_path", None), None),
-                  ("--bake", getattr(a, "bake", None), (".pc2", ".mdd", ".abc"))]
-        opened = self.bpy.data.filepath
-        for flag, out, exts in checks:
-            if not out or (only and flag != only):
-                continue
-            p = Path(out).resolve()
-            if exts and p.suffix.lower() not in exts:
-                raise CliError(f"{flag} {out}: give a {' or '.join(exts)} file.", EXIT_USAGE)
-            try:
-                check_writable(p)
-            except OutputError as e:
-                raise CliError(f"{flag} {out}: {e}", EXIT_OUTPUT) from None
-            if not p.parent.is_dir():
-                raise CliError(f"{flag} {out}: the folder {p.parent} does not exist; create it first.", EXIT_OUTPUT)
-            if opened and not a.blend and not getattr(a, "mesh", None) and same_file(p, Path(opened)):
-                raise CliError(f"{flag} {out} is the .blend Blender opened, FaceLab's input: it never writes over "
-                               f"its input. Give another file, such as {p.stem}_fixed{p.suffix}.", EXIT_USAGE)
-            if flag == "--bake" and p.exists() and not getattr(a, "overwrite", False):
-                raise CliError(f"--bake {out}: the file exists; give --overwrite to replace it (the panel's Overwrite), "
-                               "or choose another file.", EXIT_OUTPUT)
+        """Refuse a bad ``--out``, ``--json`` or ``--bake`` before any work (``_paths.check_outputs``)."""
+        check_outputs(self.args, self.bpy.data.filepath, only)
 
     def save(self, out) -> str | None:
         if not out:
@@ -539,72 +422,6 @@ class Session:
         except RuntimeError as e:
             raise CliError(f"--out {out}: cannot write it ({first_line(e)}).", EXIT_OUTPUT) from None
         return str(p)
-
-
-def same_file(a: Path, b: Path) -> bool:
-    """Whether two absolute paths name one file (the same path, or links to one file)."""
-    if a == b:
-        return True
-    try:
-        return a.exists() and b.exists() and os.path.samefile(a, b)
-    except OSError:
-        return False
-
-
-#: Path options expanded (``~``) and checked against each other: (flag, attribute).
-OUTPUT_FLAGS = (("--out", "out"), ("--json", "json_path"), ("--bake", "bake"))
-INPUT_FLAGS = (("SHOT.blend", "blend"), ("--mesh", "mesh"), ("--cache", "cache"), ("--rest", "rest"))
-
-
-def expand_paths(args) -> None:
-    """``~`` and ``~user`` in every path option, as a shell would (``--out=~/x.blend`` and paths given from
-    Python reach FaceLab unexpanded)."""
-    for _, attr in OUTPUT_FLAGS + INPUT_FLAGS:
-        v = getattr(args, attr, None)
-        if isinstance(v, str) and v.startswith("~"):
-            setattr(args, attr, os.path.expanduser(v))
-    specs = getattr(args, "corrected", None)
-    if specs:
-        out = []
-        for s in specs:
-            frame, sep, path = s.partition(":")
-            out.append(f"{frame}:{os.path.expanduser(path)}" if sep and path.startswith("~") else s)
-        args.corrected = out
-
-
-def check_distinct_outputs(args) -> None:
-    """Refuse, before anything is read or written, two outputs that are one file (``--json X.blend --out
-    X.blend``: the summary would overwrite the saved .blend) and an output that is an input file (FaceLab
-    never writes over its input)."""
-    outs = [(f, Path(v).resolve()) for f, a in OUTPUT_FLAGS if (v := getattr(args, a, None))]
-    ins = [(f, Path(v).resolve()) for f, a in INPUT_FLAGS if (v := getattr(args, a, None))]
-    for s in getattr(args, "corrected", None) or []:
-        frame, sep, path = s.partition(":")
-        if sep and path:
-            ins.append((f"--corrected {s}", Path(path).resolve()))
-    for i, (fa, pa) in enumerate(outs):
-        for fb, pb in outs[i + 1:]:
-            if same_file(pa, pb):
-                raise CliError(f"{fa} and {fb} are the same file ({pa}): one output would overwrite the other. "
-                               "Give each its own file.", EXIT_USAGE)
-        for fb, pb in ins:
-            if same_file(pa, pb):
-                raise CliError(f"{fa} {pa} is the input {fb}: FaceLab never writes over its input. Give another "
-                               f"file, such as {pa.stem}_fixed{pa.suffix}.", EXIT_USAGE)
-
-
-def played_files(bpy) -> list:
-    """Absolute paths of every file the open scene plays: Mesh Cache modifiers (of any object, FaceLab's
-    correction caches included) and Alembic Cache Files."""
-    out = []
-    for ob in bpy.data.objects:
-        for md in ob.modifiers:
-            if md.type == "MESH_CACHE" and md.filepath:
-                out.append(Path(bpy.path.abspath(md.filepath, library=ob.library)).resolve())
-    for cf in bpy.data.cache_files:
-        if cf.filepath:
-            out.append(Path(bpy.path.abspath(cf.filepath, library=cf.library)).resolve())
-    return out
 
 
 def first_line(e) -> str:
@@ -691,6 +508,7 @@ def execute(args) -> int:
         clash = None
     except CliError as e:  # the JSON then goes to stdout: --json may be the input or the --out .blend
         clash = e
+    notes: list = []  # the session's notes, kept on failure too
     with blender_output(getattr(args, "verbose", False)) as blender_lines:
         try:
             if clash is not None:
@@ -708,14 +526,13 @@ def execute(args) -> int:
                                "brings SciPy, libigl and cholespy), or use the project's Python (.venv).",
                                EXIT_BPY) from None
             session = Session(args)
+            session.notes = notes
             session.log(f"{args.command}: FaceLab {reg}")
             session.check_out()
             session.open_inputs()
             settings = apply_settings(args, session.scene)
             result = args._module.run(args, session)
             summary.update(result)
-            if session.notes:
-                summary["notes"] = session.notes + list(summary.get("notes") or [])
             if settings:
                 summary["settings"] = settings
             summary.update(ok=True, inputs=session.inputs)
@@ -734,6 +551,8 @@ def execute(args) -> int:
             code = EXIT_INTERNAL
             summary.update(error="interrupted (Ctrl+C); nothing was saved")
             log("error: interrupted; nothing was saved")
+        if notes:
+            summary["notes"] = notes + list(summary.get("notes") or [])
         _release_solvers()
         if registered_here:  # a process exiting with FaceLab registered hangs in bpy 4.5's exit
             from .. import unregister

@@ -11,7 +11,7 @@ Panels only draw; every button is an operator whose ``poll`` explains why it is 
 
 import bpy
 
-from ..blender.bakes import correction_cache_problems, missing_correction_files
+from ..blender.correction_files import correction_cache_problems, missing_correction_files
 from ..blender.review import keyed_extrapolation, showing_capture
 from ..names import CORRECTION_ATTR, CORRECTION_RANGE_PROP, EXTRAPOLATION_PROP, LIPS_GROUP, MOUTH_GROUP, SUGGEST_MARKER
 from . import scene_settings

@@ -10,7 +10,7 @@ import bpy
 import numpy as np
 import pytest
 
-from facelab_addon.blender import bakes, cache_integrate, caches
+from facelab_addon.blender import bakes, cache_integrate, caches, correction_files
 from facelab_addon.core.capture import pointcache, pointcache_writer
 from facelab_addon.core.errors import CacheFileError, CacheVertexCountError, OutputError
 from facelab_addon.pipeline.bake import BakeSettings, bake
@@ -253,7 +253,7 @@ def test_correction_cache_names_fit_the_file_system_whatever_the_names(tmp_path)
     assert cache_integrate.file_name_part is bakes.file_name_part  # one sanitiser for every generated file
 
 
-def test_a_blend_moved_without_its_correction_cache_is_refused_not_baked_uncorrected(tmp_path):
+def test_a_blend_moved_without_its_correction_cache_is_refused_not_baked_uncorrected(tmp_path, addon):
     a, b = tmp_path / "a", tmp_path / "b"
     a.mkdir()
     b.mkdir()
@@ -273,17 +273,17 @@ def test_a_blend_moved_without_its_correction_cache_is_refused_not_baked_uncorre
     corrected = caches.evaluate_frames(ob, range(1, T + 1), mute_shape_keys_prefix=())
     moved = np.linalg.norm(corrected - seq, axis=2)
     assert moved[:, :5].min() > 0.05  # the correction plays on every frame
-    assert bakes.correction_cache_problems(ob) == []
+    assert correction_files.correction_cache_problems(ob) == []
     bpy.ops.wm.save_as_mainfile(filepath=str(a / "shot.blend"))
     shutil.copy(a / "shot.blend", b / "shot.blend")  # copied to another machine, without the cache
 
     bpy.ops.wm.open_mainfile(filepath=str(b / "shot.blend"))
     ob = bpy.data.objects["Face"]
-    (problem,) = bakes.correction_cache_problems(ob)
+    (problem,) = correction_files.correction_cache_problems(ob)
     assert "The correction cache of 'Face' (FL_Prop_*, modifier 'FL_Prop_Cache') plays '//shot_Face_FL_Prop.pc2'" \
         in problem and f"no such file ('{b / 'shot_Face_FL_Prop.pc2'}'" in problem
     assert f"it is still at '{cache}': copy it to '{b / 'shot_Face_FL_Prop.pc2'}'" in problem
-    assert bakes.missing_correction_files(ob) == [("FL_Prop_", "//shot_Face_FL_Prop.pc2")]
+    assert correction_files.missing_correction_files(ob) == [("FL_Prop_", "//shot_Face_FL_Prop.pc2")]
     out = tmp_path / "baked.pc2"
     with pytest.raises(CacheFileError, match=r"Bake Corrected Sequence would use 'Face' without FaceLab's correction"):
         bake(ob, range(1, T + 1), out, BakeSettings(format="PC2"))
@@ -293,9 +293,20 @@ def test_a_blend_moved_without_its_correction_cache_is_refused_not_baked_uncorre
     with pytest.raises(CacheFileError, match="The correction heat map would use 'Face' without"):
         review.correction_magnitude(ob, bpy.context.evaluated_depsgraph_get())
     cache.unlink()
-    assert "copy 'shot_Face_FL_Prop.pc2' back beside the .blend" in bakes.correction_cache_problems(ob)[0]
+    assert "copy 'shot_Face_FL_Prop.pc2' back beside the .blend" in correction_files.correction_cache_problems(ob)[0]
+    # the CLI says it in the summary's notes, even when the command then fails for another reason
+    import json
+
+    from facelab_addon import cli
+
+    js = tmp_path / "s.json"
+    cli.main(["propagate", str(b / "shot.blend"), "--object", "Face", "--json", str(js), "--quiet"])
+    notes = json.loads(js.read_text())["notes"]
+    assert any("plays '//shot_Face_FL_Prop.pc2', but there is no such file" in n for n in notes)
+    bpy.ops.wm.open_mainfile(filepath=str(b / "shot.blend"))
+    ob = bpy.data.objects["Face"]
     # once the file is back beside the .blend, the correction plays and bakes again
     pointcache_writer.write_pc2(b / "shot_Face_FL_Prop.pc2", np.repeat((rest + corr)[None], T, 0))
-    assert bakes.correction_cache_problems(ob) == []
+    assert correction_files.correction_cache_problems(ob) == []
     bake(ob, range(1, T + 1), out, BakeSettings(format="PC2"))
     np.testing.assert_allclose(pointcache.read_pc2(out)[0], corrected, atol=1e-5)
