@@ -28,12 +28,12 @@ from ._errors import (  # noqa: F401  (the exit codes and CliError are imported 
     CliError,
 )
 from ._frames import MAX_FRAME, MAX_FRAME_COUNT, contiguous, parse_frames  # noqa: F401  (for the commands)
-from ._paths import (  # noqa: F401  (same_file and played_files for the commands)
+from ._paths import (  # noqa: F401  (same_file for the commands)
     check_blend_caches,
     check_distinct_outputs,
     check_outputs,
+    check_outputs_not_played,
     expand_paths,
-    played_files,
     same_file,
 )
 
@@ -530,6 +530,7 @@ def execute(args) -> int:
             session.log(f"{args.command}: FaceLab {reg}")
             session.check_out()
             session.open_inputs()
+            check_outputs_not_played(args, bpy)
             settings = apply_settings(args, session.scene)
             result = args._module.run(args, session)
             summary.update(result)
@@ -539,6 +540,8 @@ def execute(args) -> int:
             code = EXIT_OK
         except Exception as e:  # noqa: BLE001  (a bug: report it, never a silent success)
             code = exit_code_for(e)
+            if getattr(e, "json_to_stdout", False):
+                clash = e
             if code == EXIT_INTERNAL:
                 summary.update(error=one_line(f"internal error: {type(e).__name__}: {e}"))
                 traceback.print_exc(file=_LOG["stream"] or sys.stderr)

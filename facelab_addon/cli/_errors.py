@@ -14,6 +14,9 @@ EXIT_INTERNAL = 70  # a bug
 class CliError(Exception):
     """A failure with a message for the user (problem + fix) and an exit code."""
 
-    def __init__(self, message: str, code: int = EXIT_FAILED):
+    def __init__(self, message: str, code: int = EXIT_FAILED, *, json_to_stdout: bool = False):
         super().__init__(message)
         self.code = code
+        #: The refusal is about the outputs themselves: the JSON summary goes to stdout, not to ``--json``
+        #: (which may be the input, the saved .blend or a file the scene reads).
+        self.json_to_stdout = json_to_stdout

@@ -54,25 +54,44 @@ def check_distinct_outputs(args) -> None:
         for fb, pb in outs[i + 1:]:
             if same_file(pa, pb):
                 raise CliError(f"{fa} and {fb} are the same file ({pa}): one output would overwrite the other. "
-                               "Give each its own file.", EXIT_USAGE)
+                               "Give each its own file.", EXIT_USAGE, json_to_stdout=True)
         for fb, pb in ins:
             if same_file(pa, pb):
                 raise CliError(f"{fa} {pa} is the input {fb}: FaceLab never writes over its input. Give another "
-                               f"file, such as {pa.stem}_fixed{pa.suffix}.", EXIT_USAGE)
+                               f"file, such as {pa.stem}_fixed{pa.suffix}.", EXIT_USAGE, json_to_stdout=True)
 
 
 def played_files(bpy) -> list:
-    """Absolute paths of every file the open scene plays: Mesh Cache modifiers (of any object, FaceLab's
-    correction caches included) and Alembic Cache Files."""
+    """``[(what, absolute path)]`` of every file the open scene reads: Mesh Cache modifiers (FaceLab's
+    correction caches included), Alembic Cache Files, linked libraries, images and movie clips."""
     out = []
     for ob in bpy.data.objects:
         for md in ob.modifiers:
             if md.type == "MESH_CACHE" and md.filepath:
-                out.append(Path(bpy.path.abspath(md.filepath, library=ob.library)).resolve())
-    for cf in bpy.data.cache_files:
-        if cf.filepath:
-            out.append(Path(bpy.path.abspath(cf.filepath, library=cf.library)).resolve())
-    return out
+                out.append((f"the Mesh Cache '{md.name}' of '{ob.name}'", md.filepath, ob.library))
+    for kind, coll in (("the Cache File", bpy.data.cache_files), ("the library", bpy.data.libraries),
+                       ("the image", bpy.data.images), ("the Movie Clip", bpy.data.movieclips)):
+        for d in coll:
+            fp = getattr(d, "filepath", "")
+            if fp:
+                out.append((f"{kind} '{d.name}'", fp, getattr(d, "library", None)))
+    return [(what, Path(bpy.path.abspath(fp, library=lib)).resolve()) for what, fp, lib in out]
+
+
+def check_outputs_not_played(args, bpy) -> None:
+    """Refuse an output that is a file the opened scene reads (its capture, a cache, a library, footage):
+    writing it would destroy what the result is made from."""
+    played = played_files(bpy)
+    for flag, attr in OUTPUT_FLAGS:
+        v = getattr(args, attr, None)
+        if not v:
+            continue
+        p = Path(v).resolve()
+        hit = next((what for what, f in played if same_file(p, f)), None)
+        if hit is not None:
+            raise CliError(f"{flag} {v}: the scene reads this file ({hit}), so writing it would overwrite what "
+                           f"the result is made from; choose another file, such as {p.stem}_fixed{p.suffix}.",
+                           EXIT_USAGE, json_to_stdout=True)
 
 
 def check_outputs(args, opened: str = "", only=None) -> None:
@@ -99,7 +118,8 @@ def check_outputs(args, opened: str = "", only=None) -> None:
             raise CliError(f"{flag} {out}: the folder {p.parent} does not exist; create it first.", EXIT_OUTPUT)
         if opened and not args.blend and not getattr(args, "mesh", None) and same_file(p, Path(opened)):
             raise CliError(f"{flag} {out} is the .blend Blender opened, FaceLab's input: it never writes over "
-                           f"its input. Give another file, such as {p.stem}_fixed{p.suffix}.", EXIT_USAGE)
+                           f"its input. Give another file, such as {p.stem}_fixed{p.suffix}.", EXIT_USAGE,
+                           json_to_stdout=True)
         if flag == "--bake" and p.exists() and not getattr(args, "overwrite", False):
             raise CliError(f"--bake {out}: the file exists; give --overwrite to replace it (the panel's Overwrite), "
                            "or choose another file.", EXIT_OUTPUT)

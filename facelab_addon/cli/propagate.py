@@ -24,8 +24,6 @@ from ._common import (
     CliError,
     contiguous,
     parse_frames,
-    played_files,
-    same_file,
 )
 
 HELP = "propagate the training frames' lip corrections to every frame (corrective shape keys)"
@@ -99,13 +97,6 @@ def run(args, session) -> dict:
     frames = parse_frames(args.frames, scene)
     f0, f1 = contiguous(frames, "propagate")
     specs = _corrected_specs(args.corrected)
-    if args.bake:
-        played = played_files(session.bpy)
-        p = Path(args.bake).resolve()
-        hit = next((f for f in played if same_file(p, f)), None)
-        if hit is not None:
-            raise CliError(f"--bake {args.bake}: the scene plays this file (the capture or a cache), so the bake "
-                           "would overwrite what it reads; choose another file.", EXIT_USAGE)
     if args.out and (obj.modifiers and any(m.type == "MESH_SEQUENCE_CACHE" for m in obj.modifiers)):
         session.save(args.out)  # an Alembic capture is baked to a PC2 beside the .blend: save it first
     added = add_corrected_frames(session, obj, specs)

@@ -259,7 +259,8 @@ def run_stdout(capfd, *args):
 
     capfd.readouterr()
     code = cli.main([*map(str, args), "--quiet"])
-    s = json.loads(capfd.readouterr().out)
+    out = capfd.readouterr().out  # (the test's own Blender calls may flush their C-buffered lines first)
+    s = json.loads(out[out.index('{\n  "command"'):])
     assert s["exit_code"] == code and (s["ok"] is (code == 0))
     return code, s
 
@@ -283,7 +284,16 @@ def test_outputs_that_are_one_file_or_an_input_are_refused_before_any_work(tmp_p
         code, s = run_stdout(capfd, "propagate", *args)
         assert code == 2 and message in s["error"], (args, s["error"])
         assert not x.exists() and {p: p.read_bytes() for p in kept} == kept  # nothing written, the JSON on stdout
-    # a --json inside Blender's open file: the open .blend is the input
+    # an output that is a file the opened scene reads (its capture here): refused once the .blend is open
+    bpy.ops.wm.open_mainfile(filepath=str(shot))
+    md = bpy.data.objects["Face"].modifiers.new("Capture", "MESH_CACHE")
+    md.cache_format, md.filepath = "PC2", str(perf)
+    played = tmp_path / "played.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(played))
+    code, s = run_stdout(capfd, "propagate", played, "--json", perf)
+    assert code == 2 and "the scene reads this file (the Mesh Cache 'Capture' of 'Face')" in s["error"]
+    assert perf.read_bytes() == kept[perf]
+    # an output inside Blender's open file: the open .blend is the input
     bpy.ops.wm.open_mainfile(filepath=str(shot))
     code, s = run_stdout(capfd, "propagate", "--from-open-scene", "--out", shot)
     assert code == 2 and "is the .blend Blender opened, FaceLab's input" in s["error"]
@@ -299,6 +309,9 @@ def test_output_folders_checked_before_any_work(tmp_path, addon, monkeypatch):
 
     code = cli.main(["propagate", "--mesh", str(face), "--json", str(tmp_path / "nowhere" / "s.json"), "--quiet"])
     assert code == 5 and not (tmp_path / "nowhere").exists()
+    code, s = run_main(tmp_path, "propagate", "--mesh", face, "--out",
+                       os.path.join(unwritable_folder(tmp_path), "fixed.blend"))
+    assert code == 5 and ("read-only" in s["error"] or "permission denied" in s["error"])
     long_name = "Л" * 130 + ".blend"  # 260 bytes in UTF-8
     code, s = run_main(tmp_path, "propagate", "--mesh", face, "--out", tmp_path / long_name)
     assert code == 5 and "more than the file system's limit of 255 bytes" in s["error"]
