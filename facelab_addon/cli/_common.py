@@ -230,10 +230,13 @@ class Session:
                 self.bpy.ops.wm.open_mainfile(filepath=str(p.resolve()), load_ui=False)
         except RuntimeError as e:
             this = self.bpy.app.version_string
-            if "newer" in str(e).lower():
-                raise CliError(f"{path}: this Blender ({this}) cannot read it: {first_line(e)}. Run FaceLab in the "
-                               "Blender that saved it (or open it there and save it in an older format).",
-                               EXIT_INPUT) from None
+            with open(p, "rb") as f:
+                head = f.read(7)
+            said = str(e).lower()
+            if "newer" in said or (head == b"BLENDER" and "not supported" in said):  # a header it cannot parse
+                raise CliError(f"{path}: this Blender ({this}) cannot read it ({clean_report(e)}): a newer Blender "
+                               "saved it. Run FaceLab in the Blender that saved it (or open it there and save it "
+                               "in an older format).", EXIT_INPUT) from None
             raise CliError(f"{path}: Blender {this} cannot read it ({first_line(e)}); check that it is a whole "
                            ".blend file (re-copy it, or open it in Blender and save it again).", EXIT_INPUT) from None
         self.inputs["blend"] = str(p.resolve())

@@ -373,6 +373,12 @@ def test_a_folder_or_a_blend_from_a_newer_blender(tmp_path, addon):
     code, s = run_main(tmp_path, "propagate", future)
     assert code == 3 and f"this Blender ({bpy.app.version_string}) cannot read it" in s["error"]
     assert "newer" in s["error"] and "or older?" not in s["error"]
+    # a newer version number in a header this Blender parses: it reads the file, and the summary says so
+    later = tmp_path / "later.blend"
+    later.write_bytes(raw[:13] + b"0900" + raw[17:] if raw[7:9] == b"17" else raw[:9] + b"900" + raw[12:])
+    code, s = run_main(tmp_path, "propagate", later)
+    assert code != 3 and any(n.startswith("later.blend was saved by Blender 9.0, newer than this Blender")
+                             for n in s["notes"]), s
 
 
 def test_a_saved_shot_whose_alembic_was_truncated_is_refused_before_blender_reads_it(tmp_path, addon):
