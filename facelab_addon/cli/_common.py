@@ -174,7 +174,7 @@ class Session:
             log(msg)
 
     def note(self, msg: str) -> None:
-        """Something the user must know about a successful run: logged now, and in the summary's ``notes``."""
+        """Something the user must know about the run: logged now, and in the summary's ``notes`` (on failure too)."""
         self.notes.append(msg)
         self.log(f"note: {msg}")
 
