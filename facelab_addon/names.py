@@ -7,6 +7,9 @@ the adapters and the CLI agree on them. Plain strings; no ``bpy``.
 
 from __future__ import annotations
 
+import hashlib
+import unicodedata
+
 #: Prefix shared by everything FaceLab creates (muted when reading the capture).
 PREFIX = "FL_"
 
@@ -73,3 +76,44 @@ SUGGEST_MARKER = "FL suggest"
 #: Scene property group holding the shot's :class:`~facelab_addon.pipeline.correctives.StorageSettings`
 #: (registered by ``ui/scene_settings.py``, read by the correction writer when no settings are passed).
 STORE_SETTINGS_ATTR = "facelab_store"
+
+
+# --- file names -------------------------------------------------------------------------------
+#: Most UTF-8 bytes of the part of a generated file name taken from one of the artist's names (the
+#: .blend's or the object's), so that ``<blend>_<object>_<prefix>.001.pc2.tmp`` stays well inside
+#: the 255-byte file-name limit of common file systems however long or non-ASCII the names are.
+NAME_PART_BYTES = 80
+
+
+def file_name_part(name: str, max_bytes: int = NAME_PART_BYTES) -> str:
+    """The one sanitiser of every file name FaceLab generates from an artist's name.
+
+    Letters and digits of any script are kept (``'Лицо'``, ``'visage_é'``: NFC-normalised, so an
+    'é' typed as 'e' + accent is one letter), ``-`` and ``_`` too; every other character (spaces,
+    dots, slashes, punctuation, control characters) becomes ``_``. A result longer than
+    ``max_bytes`` UTF-8 bytes is cut on a character boundary and ends in ``~`` and 8 hex digits of
+    a hash of the whole name, so two long names that share their start still give two files.
+
+    Only new files are named with it: files FaceLab wrote before are found by the path stored in
+    the .blend (the modifier's file path and the ``facelab_caches`` record), never by re-deriving
+    their name, so older files keep working.
+
+    Parameters
+    ----------
+    name : str
+    max_bytes : int
+        At least 16.
+
+    Returns
+    -------
+    str
+        Non-empty (``'_'`` for an empty name).
+    """
+    text = unicodedata.normalize("NFC", str(name))
+    out = "".join(c if (c.isalnum() or c in "-_") else "_" for c in text) or "_"
+    raw = out.encode("utf-8")
+    if len(raw) <= max_bytes:
+        return out
+    tag = "~" + hashlib.sha1(text.encode("utf-8")).hexdigest()[:8]
+    head = raw[: max(1, max_bytes - len(tag))].decode("utf-8", "ignore")
+    return head + tag

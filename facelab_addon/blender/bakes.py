@@ -25,7 +25,7 @@ import numpy as np
 
 from ..core.capture import pointcache_writer
 from ..core.errors import FaceLabError, OutputError
-from ..names import CORRECTION_CACHE_MODIFIER, CORRECTION_CACHES_PROP
+from ..names import CORRECTION_CACHE_MODIFIER, CORRECTION_CACHES_PROP, file_name_part
 from .caches import (
     _frames,
     _iter_evaluated,
@@ -308,6 +308,11 @@ def _record(obj) -> dict:
     return rec.to_dict() if rec is not None and hasattr(rec, "to_dict") else {}
 
 
+def correction_cache_entries(obj) -> dict:
+    """``{prefix: record}`` of the correction caches FaceLab recorded on ``obj`` (modifier, files, patch...)."""
+    return _record(obj)
+
+
 def correction_cache(obj, prefix: str):
     """``(modifier or None, files)``: the correction cache FaceLab recorded on ``obj`` for ``prefix``.
 
@@ -353,11 +358,11 @@ def correction_cache_path(obj, prefix: str, fmt: str, directory=None) -> Path:
     if not folder.is_absolute():
         raise OutputError(f"The cache folder '{directory}' is a relative path; choose an absolute folder "
                           "(or save the .blend and use a '//' path relative to it).")
-    stem = bpy.path.clean_name(Path(bpy.data.filepath).stem) + "_" if bpy.data.filepath else ""
-    base = f"{stem}{bpy.path.clean_name(obj.name)}_{prefix.strip('_')}"
+    stem = file_name_part(Path(bpy.data.filepath).stem) + "_" if bpy.data.filepath else ""
+    base = f"{stem}{file_name_part(obj.name)}_{file_name_part(prefix.strip('_'))}"
     ext = "." + fmt.lower()
     path, i = folder / f"{base}{ext}", 0
-    while path.exists() or path.with_name(path.name + ".tmp").exists():
+    while path.exists() or path.with_name(path.name + pointcache_writer.TMP_SUFFIX).exists():
         i += 1
         path = folder / f"{base}.{i:03d}{ext}"
     return pointcache_writer.check_writable(path)

@@ -18,6 +18,7 @@ import numpy as np
 
 from ..core.capture import pointcache, pointcache_writer
 from ..core.errors import FaceLabError, MeshError
+from ..names import file_name_part
 from ..core.geometry.gradients import _inv3
 from .bakes import _bake_steps, _run, _uniform_step, blend_relative
 from .caches import (
@@ -128,7 +129,7 @@ def cache_to_shape_key_ready(obj, *, directory=None, scene_frames=None, progress
             )
         directory = os.path.dirname(bpy.data.filepath)
     directory = Path(bpy.path.abspath(os.fspath(directory)))
-    base = bpy.path.clean_name(obj.name) or "capture"
+    base = file_name_part(obj.name)
     path = _unique_file(directory / f"{base}_capture.pc2")
 
     mods = list(obj.modifiers)

@@ -131,8 +131,12 @@ def correction_magnitude(obj, depsgraph, *, metres_per_unit: float = 1.0) -> np.
     The corrected mesh is what the artist would see with FaceLab's corrections on (their saved state
     while Review shows the capture); the captured mesh has all of them muted. Both are evaluated in
     world space (object scale and parents count), then scaled by ``metres_per_unit`` (the scene's
-    unit scale).
+    unit scale). A correction cache whose file is missing is refused (``CacheFileError``): the map would
+    show no correction where there is one.
     """
+    from .correction_files import require_correction_caches
+
+    require_correction_caches(obj, "The correction heat map")
     saved = json.loads(obj[REVIEW_SAVED_PROP]) if showing_capture(obj) else None
     if saved is not None:
         _apply(obj, saved, off=False)

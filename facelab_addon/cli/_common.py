@@ -16,25 +16,29 @@ import time
 import traceback
 from pathlib import Path
 
-EXIT_OK = 0
-EXIT_FAILED = 1  # FaceLab refused the data (operator error / FaceLabError)
-EXIT_USAGE = 2  # bad arguments (argparse uses 2 too)
-EXIT_INPUT = 3  # input file missing or unreadable
-EXIT_OBJECT = 4  # object missing or not a mesh
-EXIT_OUTPUT = 5  # output not writable
-EXIT_BPY = 6  # bpy, or a module FaceLab needs (SciPy...), not importable
-EXIT_INTERNAL = 70  # a bug
+from ._errors import (  # noqa: F401  (the exit codes and CliError are imported from here by the commands)
+    EXIT_BPY,
+    EXIT_FAILED,
+    EXIT_INPUT,
+    EXIT_INTERNAL,
+    EXIT_OBJECT,
+    EXIT_OK,
+    EXIT_OUTPUT,
+    EXIT_USAGE,
+    CliError,
+)
+from ._frames import MAX_FRAME, MAX_FRAME_COUNT, contiguous, parse_frames  # noqa: F401  (for the commands)
+from ._paths import (  # noqa: F401  (same_file for the commands)
+    check_blend_caches,
+    check_distinct_outputs,
+    check_outputs,
+    check_outputs_not_played,
+    expand_paths,
+    same_file,
+)
 
 MESH_EXTS = (".obj", ".abc")
 CACHE_EXTS = (".pc2", ".mdd")
-
-
-class CliError(Exception):
-    """A failure with a message for the user (problem + fix) and an exit code."""
-
-    def __init__(self, message: str, code: int = EXIT_FAILED):
-        super().__init__(message)
-        self.code = code
 
 
 _T0 = time.perf_counter()
@@ -130,67 +134,6 @@ def argparse_suppress():
     return argparse.SUPPRESS
 
 
-#: Blender's frame limits (``MAXFRAME``): no scene frame lies outside them.
-MAX_FRAME = 1048574
-#: More frames than this in one ``--frames`` is refused (a typo such as 1-3000000, not a shot).
-MAX_FRAME_COUNT = 100_000
-
-
-def parse_frames(text: str | None, scene) -> list[int]:
-    """``'A-B'`` / ``'N'`` / ``'A,B,C'`` -> sorted frames; None -> the scene's range.
-
-    Ranges are checked arithmetically before any list is built: frames must be
-    0..``MAX_FRAME`` (the scene range of Blender and FaceLab's settings start
-    at 0), a range must not end before it starts, and at most
-    ``MAX_FRAME_COUNT`` frames are taken.
-    """
-    if text is None or text == "":
-        return list(range(scene.frame_start, scene.frame_end + 1))
-    spans = []
-    for part in text.split(","):
-        part = part.strip()
-        m = re.fullmatch(r"(-?\d+)\s*(?:-|\.\.|:)\s*(-?\d+)", part)
-        if m:
-            a, b = int(m.group(1)), int(m.group(2))
-            if b < a:
-                raise CliError(f"--frames {text!r}: the range {a}-{b} ends before it starts; write it as "
-                               f"{b}-{a}.", EXIT_USAGE)
-        elif re.fullmatch(r"-?\d+", part):
-            a = b = int(part)
-        else:
-            raise CliError(f"--frames {text!r}: expected 'A-B', 'N' or a comma list such as '1-100,120'.", EXIT_USAGE)
-        if a < 0:
-            raise CliError(f"--frames {text!r}: frame {a} is negative; Blender's scene range (and FaceLab's) starts "
-                           "at frame 0. Shift the animation to frame 0 or later (or re-export the cache starting "
-                           "there).", EXIT_USAGE)
-        if b > MAX_FRAME:
-            raise CliError(f"--frames {text!r}: frame {b} is past Blender's last frame {MAX_FRAME:,}; give the "
-                           "shot's frames.", EXIT_USAGE)
-        spans.append((a, b))
-    spans.sort()
-    merged = []
-    for a, b in spans:
-        if merged and a <= merged[-1][1] + 1:
-            merged[-1][1] = max(merged[-1][1], b)
-        else:
-            merged.append([a, b])
-    count = sum(b - a + 1 for a, b in merged)
-    if count > MAX_FRAME_COUNT:
-        raise CliError(f"--frames {text!r}: {count:,} frames, more than the {MAX_FRAME_COUNT:,} one run takes; "
-                       "check the range for a typo, or split the shot into several runs.", EXIT_USAGE)
-    return [f for a, b in merged for f in range(a, b + 1)]
-
-
-def contiguous(frames: list[int], what: str) -> tuple[int, int]:
-    """(first, last) of a gap-free, non-empty frame list (the operators take a range)."""
-    if not frames:
-        raise CliError(f"{what}: no frames to work on; give --frames as 'A-B' (or set the scene's frame range).",
-                       EXIT_USAGE)
-    if frames != list(range(frames[0], frames[-1] + 1)):
-        raise CliError(f"{what} works on one frame range; give --frames as 'A-B'.", EXIT_USAGE)
-    return frames[0], frames[-1]
-
-
 def exit_code_for(e: BaseException) -> int:
     """The documented exit code of a FaceLab error: 3 for an unreadable input file (cache, OBJ),
     5 for an output that cannot be written, 1 for data FaceLab refuses; 70 for anything else (a bug)."""
@@ -220,6 +163,7 @@ class Session:
         self.quiet = getattr(args, "quiet", False)
         self.t0 = time.perf_counter()
         self.inputs: dict = {}
+        self.notes: list = []
         import bpy
 
         self.bpy = bpy
@@ -228,6 +172,11 @@ class Session:
     def log(self, msg: str) -> None:
         if not self.quiet:
             log(msg)
+
+    def note(self, msg: str) -> None:
+        """Something the user must know about the run: logged now, and in the summary's ``notes`` (on failure too)."""
+        self.notes.append(msg)
+        self.log(f"note: {msg}")
 
     def progress(self, label: str, total: int):
         """A callable ``(i, n=total)`` printing ``label i/n (p %)`` on stderr about every 10 %."""
@@ -268,16 +217,34 @@ class Session:
 
     def open_blend(self, path) -> None:
         p = Path(path)
+        if p.is_dir():
+            blends = sorted(q.name for q in p.glob("*.blend"))[:5]
+            raise CliError(f"{path} is a folder, not a .blend file; give the .blend itself"
+                           + (f" (the folder holds {', '.join(blends)})." if blends else "."), EXIT_INPUT)
         if not p.is_file():
             raise CliError(f"{path}: no such .blend file; check the path.", EXIT_INPUT)
+        check_blend_caches(self.bpy, p)
         self.log(f"opening {p}")
         try:
             with quiet_stdout():
                 self.bpy.ops.wm.open_mainfile(filepath=str(p.resolve()), load_ui=False)
         except RuntimeError as e:
-            raise CliError(f"{path}: Blender cannot read it ({first_line(e)}); is it a .blend from Blender 5.0 "
-                           "or older?", EXIT_INPUT) from None
+            this = self.bpy.app.version_string
+            with open(p, "rb") as f:
+                head = f.read(7)
+            said = str(e).lower()
+            if "newer" in said or (head == b"BLENDER" and "not supported" in said):  # a header it cannot parse
+                raise CliError(f"{path}: this Blender ({this}) cannot read it ({clean_report(e)}): a newer Blender "
+                               "saved it. Run FaceLab in the Blender that saved it (or open it there and save it "
+                               "in an older format).", EXIT_INPUT) from None
+            raise CliError(f"{path}: Blender {this} cannot read it ({first_line(e)}); check that it is a whole "
+                           ".blend file (re-copy it, or open it in Blender and save it again).", EXIT_INPUT) from None
         self.inputs["blend"] = str(p.resolve())
+        saved = tuple(self.bpy.data.version)[:2]
+        if saved > tuple(self.bpy.app.version)[:2]:
+            self.note(f"{p.name} was saved by Blender {saved[0]}.{saved[1]}, newer than this Blender "
+                      f"{self.bpy.app.version_string}: what this one does not know is dropped from the saved result; "
+                      "run FaceLab in that Blender to keep everything.")
 
     def build_scene(self, mesh_path, cache_path) -> None:
         import numpy as np
@@ -421,6 +388,10 @@ class Session:
             raise CliError(f"'{obj.name}' is not in the scene '{scene.name}'; link it or give another --object.",
                            EXIT_OBJECT)
         scene.facelab.face = obj
+        from ..blender.correction_files import correction_cache_problems
+
+        for problem in correction_cache_problems(obj):  # a bake refuses; every other command says it
+            self.note(problem)
         vl = bpy.context.view_layer
         if vl.objects.get(obj.name) is not None:
             vl.objects.active = obj
@@ -438,21 +409,14 @@ class Session:
             raise CliError(*operator_failure(e)) from None
 
     # -- outputs ----------------------------------------------------------------------------------
-    def check_out(self) -> None:
-        """Refuse a bad ``--out`` before any work is done."""
-        out = getattr(self.args, "out", None)
-        if not out:
-            return
-        p = Path(out).resolve()
-        if p.suffix.lower() != ".blend":
-            raise CliError(f"--out {out}: give a .blend path.", EXIT_USAGE)
-        if not p.parent.is_dir():
-            raise CliError(f"--out {out}: the folder {p.parent} does not exist; create it first.", EXIT_OUTPUT)
+    def check_out(self, only=None) -> None:
+        """Refuse a bad ``--out``, ``--json`` or ``--bake`` before any work (``_paths.check_outputs``)."""
+        check_outputs(self.args, self.bpy.data.filepath, only)
 
     def save(self, out) -> str | None:
         if not out:
             return None
-        self.check_out()
+        self.check_out("--out")
         p = Path(out).resolve()
         self.log(f"saving {p}")
         try:
@@ -541,8 +505,17 @@ def execute(args) -> int:
     code = EXIT_INTERNAL
     registered_here = False
     quiet = getattr(args, "quiet", False)
+    expand_paths(args)
+    try:
+        check_distinct_outputs(args)
+        clash = None
+    except CliError as e:  # the JSON then goes to stdout: --json may be the input or the --out .blend
+        clash = e
+    notes: list = []  # the session's notes, kept on failure too
     with blender_output(getattr(args, "verbose", False)) as blender_lines:
         try:
+            if clash is not None:
+                raise clash
             try:
                 import bpy
             except ImportError as e:
@@ -556,9 +529,11 @@ def execute(args) -> int:
                                "brings SciPy, libigl and cholespy), or use the project's Python (.venv).",
                                EXIT_BPY) from None
             session = Session(args)
+            session.notes = notes
             session.log(f"{args.command}: FaceLab {reg}")
             session.check_out()
             session.open_inputs()
+            check_outputs_not_played(args, bpy)
             settings = apply_settings(args, session.scene)
             result = args._module.run(args, session)
             summary.update(result)
@@ -568,6 +543,8 @@ def execute(args) -> int:
             code = EXIT_OK
         except Exception as e:  # noqa: BLE001  (a bug: report it, never a silent success)
             code = exit_code_for(e)
+            if getattr(e, "json_to_stdout", False):
+                clash = e
             if code == EXIT_INTERNAL:
                 summary.update(error=one_line(f"internal error: {type(e).__name__}: {e}"))
                 traceback.print_exc(file=_LOG["stream"] or sys.stderr)
@@ -580,6 +557,8 @@ def execute(args) -> int:
             code = EXIT_INTERNAL
             summary.update(error="interrupted (Ctrl+C); nothing was saved")
             log("error: interrupted; nothing was saved")
+        if notes:
+            summary["notes"] = notes + list(summary.get("notes") or [])
         _release_solvers()
         if registered_here:  # a process exiting with FaceLab registered hangs in bpy 4.5's exit
             from .. import unregister
@@ -590,7 +569,7 @@ def execute(args) -> int:
             log(f"blender: {line.strip()}")
     summary.update(exit_code=code, seconds=round(time.perf_counter() - t0, 3))
     text = json.dumps(summary, indent=2, default=_json_default)
-    if getattr(args, "json_path", None):
+    if getattr(args, "json_path", None) and clash is None:
         try:
             Path(args.json_path).write_text(text + "\n")
         except OSError as e:

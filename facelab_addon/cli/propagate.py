@@ -20,7 +20,6 @@ from pathlib import Path
 from ..names import LIPS_GROUP, MOUTH_GROUP
 from ._common import (
     EXIT_INPUT,
-    EXIT_OUTPUT,
     EXIT_USAGE,
     CliError,
     contiguous,
@@ -37,6 +36,8 @@ def add_arguments(p) -> None:
                    help=f"fail instead of running Auto Regions when {MOUTH_GROUP} / {LIPS_GROUP} are missing")
     p.add_argument("--bake", metavar="FILE",
                    help="also bake the corrected performance to FILE (.pc2, .mdd or .abc) over the frames")
+    p.add_argument("--overwrite", action="store_true",
+                   help="let --bake replace an existing file (without it an existing file is refused, as in the panel)")
 
 
 def _corrected_specs(specs):
@@ -97,16 +98,6 @@ def run(args, session) -> dict:
     frames = parse_frames(args.frames, scene)
     f0, f1 = contiguous(frames, "propagate")
     specs = _corrected_specs(args.corrected)
-    if args.bake and Path(args.bake).suffix.lower() not in (".pc2", ".mdd", ".abc"):
-        raise CliError(f"--bake {args.bake}: give a .pc2, .mdd or .abc file.", EXIT_USAGE)
-    if args.bake:
-        from ..blender.bakes import bake_destination
-        from ..core.errors import OutputError
-
-        try:  # before any work: a read-only folder or a parent that is a file
-            bake_destination(Path(args.bake).resolve())
-        except OutputError as e:
-            raise CliError(f"--bake {args.bake}: {e}", EXIT_OUTPUT) from None
     if args.out and (obj.modifiers and any(m.type == "MESH_SEQUENCE_CACHE" for m in obj.modifiers)):
         session.save(args.out)  # an Alembic capture is baked to a PC2 beside the .blend: save it first
     added = add_corrected_frames(session, obj, specs)
@@ -151,12 +142,10 @@ def run(args, session) -> dict:
     if args.bake:
         fmt = {".pc2": "PC2", ".mdd": "MDD", ".abc": "ABC"}[Path(args.bake).suffix.lower()]
         p = Path(args.bake).resolve()
-        if not p.parent.is_dir():
-            raise CliError(f"--bake {args.bake}: the folder {p.parent} does not exist.", EXIT_OUTPUT)
         session.log(f"baking {fmt} to {p}")
         scene.frame_start, scene.frame_end = f0, f1  # the saved scene's range is the baked range
         frame_done = session.progress(f"bake {fmt}", len(frames))
-        bake(obj, np.arange(f0, f1 + 1), p, BakeSettings(format=fmt, overwrite=True),
+        bake(obj, np.arange(f0, f1 + 1), p, BakeSettings(format=fmt, overwrite=args.overwrite),
              progress=lambda stage, done, total: frame_done(done - 1, total))
         result["bake"] = str(p)
     result["saved"] = session.save(args.out)

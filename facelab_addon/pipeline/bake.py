@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..blender import bakes, caches
+from ..blender import bakes, caches, correction_files
 from ..core.errors import FaceLabError
 from .settings import setting
 from .steps import run_steps
@@ -100,6 +100,9 @@ def bake_steps(obj, frames, path, settings: BakeSettings | None = None):
     OutputError
         A relative path, or a destination that cannot be written (a read-only
         folder, a parent that is a file): :func:`facelab_addon.blender.bakes.bake_destination`.
+    CacheFileError
+        A correction cache of ``obj`` is missing or broken (the .blend moved
+        without it): :func:`facelab_addon.blender.correction_files.require_correction_caches`.
     """
     settings = settings or BakeSettings()
     t0 = time.perf_counter()
@@ -112,6 +115,7 @@ def bake_steps(obj, frames, path, settings: BakeSettings | None = None):
         raise FaceLabError(f"{path} exists; enable Overwrite or choose another file.")
     frames = np.asarray(frames)
     caches.require_mesh_object(obj)
+    correction_files.require_correction_caches(obj, "Bake Corrected Sequence")  # never the capture baked as corrected
     if settings.format == "ABC":
         return _alembic_step(obj, frames, path, t0)
     steps = bakes.bake_point_cache_steps(obj, frames, path, settings.format)

@@ -15,7 +15,7 @@ import bpy
 from bpy.props import BoolProperty, EnumProperty, IntProperty, StringProperty
 
 from ..core.errors import FaceLabError
-from ..names import LIPS_GROUP, MOUTH_GROUP
+from ..names import LIPS_GROUP, MOUTH_GROUP, file_name_part
 from ..pipeline import bake as bake_pipeline
 from ..pipeline import wording
 from ..pipeline.frames import frame_range
@@ -345,7 +345,7 @@ class FACELAB_OT_bake(_ModalJob, bpy.types.Operator):
             fmt = self.format if self.properties.is_property_set("format") else \
                 scene_settings(context.scene, bake_pipeline.BakeSettings).format
             ext = bake_pipeline.FORMATS[fmt]
-            self.filepath = bpy.path.abspath("//") + face_object(context).name + "_corrected" + ext
+            self.filepath = bpy.path.abspath("//") + file_name_part(face_object(context).name) + "_corrected" + ext
         context.window_manager.fileselect_add(self)
         return {"RUNNING_MODAL"}
 

@@ -12,6 +12,7 @@ Panels only draw; every button is an operator whose ``poll`` explains why it is 
 
 import bpy
 
+from ..blender.correction_files import correction_cache_problems, missing_correction_files
 from ..blender.review import keyed_extrapolation, showing_capture
 from ..names import CORRECTION_ATTR, CORRECTION_RANGE_PROP, EXTRAPOLATION_PROP, LIPS_GROUP, MOUTH_GROUP, SUGGEST_MARKER
 from ..pipeline.wording import EXTRAPOLATING, extrapolation_word
@@ -108,6 +109,14 @@ class FACELAB_PT_main(_SidebarTab, bpy.types.Panel):
             self.layout.label(text="Select the captured face mesh", icon="INFO")
         else:
             self.layout.label(text=f"Face: {ob.name}", icon="MESH_DATA")
+            missing = missing_correction_files(ob)
+            if missing:  # the .blend moved without them: the face shows (and would bake) the capture
+                box = self.layout.box()
+                box.alert = True
+                box.label(text="Correction cache missing (the face shows the capture):", icon="ERROR")
+                for prefix, path in missing:
+                    box.label(text=f"{prefix}*: {path}")
+                box.label(text="Copy it back beside the .blend, or run the step again; Bake refuses meanwhile")
 
 
 class FACELAB_PT_setup(_Section, bpy.types.Panel):
@@ -314,11 +323,26 @@ classes = (
 _register, _unregister = bpy.utils.register_classes_factory(classes)
 
 
+@bpy.app.handlers.persistent
+def report_missing_caches(_dummy=None):
+    """On opening a .blend: name every FaceLab correction cache whose file is missing or broken (on stderr,
+    Blender's console; the sidebar shows it too), so the loss is known before anything is baked."""
+    import sys
+
+    for ob in bpy.data.objects:
+        for problem in correction_cache_problems(ob):
+            print(f"FaceLab: {problem}", file=sys.stderr, flush=True)
+
+
 def register():
     _register()
     scene_settings.register_panels()  # each step's Settings sub-panel, after its parent
+    if report_missing_caches not in bpy.app.handlers.load_post:
+        bpy.app.handlers.load_post.append(report_missing_caches)
 
 
 def unregister():
+    if report_missing_caches in bpy.app.handlers.load_post:
+        bpy.app.handlers.load_post.remove(report_missing_caches)
     scene_settings.unregister_panels()
     _unregister()

@@ -10,8 +10,8 @@ import bpy
 import numpy as np
 import pytest
 
-from facelab_addon.blender import bakes, cache_integrate, caches
-from facelab_addon.core.capture import pointcache_writer
+from facelab_addon.blender import bakes, cache_integrate, caches, correction_files
+from facelab_addon.core.capture import pointcache, pointcache_writer
 from facelab_addon.core.errors import CacheFileError, CacheVertexCountError, OutputError
 from facelab_addon.pipeline.bake import BakeSettings, bake
 
@@ -233,3 +233,80 @@ def test_propagate_operator_refuses_a_broken_mesh_cache(tmp_path, ict, addon, ki
         bpy.ops.facelab.propagate(suggestions=0)
     assert state(obj) == before and md.deform_mode == "OVERWRITE"  # nothing switched, no FL_Prop key
     assert not [k for k in obj.data.shape_keys.key_blocks if k.name.startswith("FL_Prop")]
+
+
+# --------------------------------------------------------------------------- correction caches: names and moves
+
+
+def test_correction_cache_names_fit_the_file_system_whatever_the_names(tmp_path):
+    """A face named with 150 Cyrillic letters in a .blend with a 120-letter name: the cache name fits the
+    255-byte limit (it was 542 bytes and a raw OSError escaped), and is written; 'é' is kept like Cyrillic."""
+    ob = ico("Л" * 150)
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / ("Ж" * 120 + ".blend")))
+    path = bakes.correction_cache_path(ob, "FL_Prop_", "PC2")
+    assert path.parent == tmp_path and len(path.name.encode()) + len(".tmp") <= 255
+    assert path.name.startswith("Ж" * 20) and "Л" * 20 in path.name and path.name.endswith("_FL_Prop.pc2")
+    seq = np.repeat(rest_of(ob)[None], 2, 0)
+    assert pointcache_writer.write_pc2(path, seq) == path and path.is_file()
+    ob.name = "visage é"
+    assert "_visage_é_FL_Prop" in bakes.correction_cache_path(ob, "FL_Prop_", "PC2").name
+    assert cache_integrate.file_name_part is bakes.file_name_part  # one sanitiser for every generated file
+
+
+def test_a_blend_moved_without_its_correction_cache_is_refused_not_baked_uncorrected(tmp_path, addon):
+    a, b = tmp_path / "a", tmp_path / "b"
+    a.mkdir()
+    b.mkdir()
+    ob = ico("Face")
+    rest = rest_of(ob)
+    seq = known_sequence(rest)
+    key_per_frame(ob, seq)
+    scene = bpy.context.scene
+    scene.frame_start, scene.frame_end = 1, T
+    bpy.ops.wm.save_as_mainfile(filepath=str(a / "shot.blend"))
+    corr = np.zeros_like(rest)
+    corr[:5] = [0.0, 0.0, 0.1]  # a correction of five vertices, on every frame
+    cache = bakes.correction_cache_path(ob, "FL_Prop_", "PC2")
+    pointcache_writer.write_pc2(cache, np.repeat((rest + corr)[None], T, 0))
+    bakes.add_correction_cache(ob, "FL_Prop_", cache, "PC2", 1, T, integrate=True)
+    assert ob.modifiers[0].filepath == "//shot_Face_FL_Prop.pc2"
+    corrected = caches.evaluate_frames(ob, range(1, T + 1), mute_shape_keys_prefix=())
+    moved = np.linalg.norm(corrected - seq, axis=2)
+    assert moved[:, :5].min() > 0.05  # the correction plays on every frame
+    assert correction_files.correction_cache_problems(ob) == []
+    bpy.ops.wm.save_as_mainfile(filepath=str(a / "shot.blend"))
+    shutil.copy(a / "shot.blend", b / "shot.blend")  # copied to another machine, without the cache
+
+    bpy.ops.wm.open_mainfile(filepath=str(b / "shot.blend"))
+    ob = bpy.data.objects["Face"]
+    (problem,) = correction_files.correction_cache_problems(ob)
+    assert "The correction cache of 'Face' (FL_Prop_*, modifier 'FL_Prop_Cache') plays '//shot_Face_FL_Prop.pc2'" \
+        in problem and f"no such file ('{b / 'shot_Face_FL_Prop.pc2'}'" in problem
+    assert f"it is still at '{cache}': copy it to '{b / 'shot_Face_FL_Prop.pc2'}'" in problem
+    assert correction_files.missing_correction_files(ob) == [("FL_Prop_", "//shot_Face_FL_Prop.pc2")]
+    out = tmp_path / "baked.pc2"
+    with pytest.raises(CacheFileError, match=r"Bake Corrected Sequence would use 'Face' without FaceLab's correction"):
+        bake(ob, range(1, T + 1), out, BakeSettings(format="PC2"))
+    assert not out.exists()
+    from facelab_addon.blender import review
+
+    with pytest.raises(CacheFileError, match="The correction heat map would use 'Face' without"):
+        review.correction_magnitude(ob, bpy.context.evaluated_depsgraph_get())
+    cache.unlink()
+    assert "copy 'shot_Face_FL_Prop.pc2' back beside the .blend" in correction_files.correction_cache_problems(ob)[0]
+    # the CLI says it in the summary's notes, even when the command then fails for another reason
+    import json
+
+    from facelab_addon import cli
+
+    js = tmp_path / "s.json"
+    cli.main(["propagate", str(b / "shot.blend"), "--object", "Face", "--json", str(js), "--quiet"])
+    notes = json.loads(js.read_text())["notes"]
+    assert any("plays '//shot_Face_FL_Prop.pc2', but there is no such file" in n for n in notes)
+    bpy.ops.wm.open_mainfile(filepath=str(b / "shot.blend"))
+    ob = bpy.data.objects["Face"]
+    # once the file is back beside the .blend, the correction plays and bakes again
+    pointcache_writer.write_pc2(b / "shot_Face_FL_Prop.pc2", np.repeat((rest + corr)[None], T, 0))
+    assert correction_files.correction_cache_problems(ob) == []
+    bake(ob, range(1, T + 1), out, BakeSettings(format="PC2"))
+    np.testing.assert_allclose(pointcache.read_pc2(out)[0], corrected, atol=1e-5)

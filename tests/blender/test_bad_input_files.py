@@ -169,3 +169,32 @@ def test_writer_failures_after_opening_are_output_errors(tmp_path, monkeypatch):
     with pytest.raises(OutputError, match="permission denied"):
         w.close()
     assert old.read_bytes() == before and not (tmp_path / "perf.pc2.tmp").exists()
+
+
+# --------------------------------------------------------------------------- generated file names
+
+
+def test_one_sanitiser_keeps_letters_of_every_script_and_bounds_the_bytes():
+    from facelab_addon.names import NAME_PART_BYTES, file_name_part
+
+    assert file_name_part("visage é") == "visage_é"  # 'é' is a letter, as Cyrillic is
+    assert file_name_part("Лицо.001/x") == "Лицо_001_x"
+    assert file_name_part("visage e\u0301") == "visage_é"  # decomposed accent: one letter (NFC)
+    assert file_name_part("") == "_" and file_name_part("a b:c*?") == "a_b_c__"
+    long_a, long_b = "Л" * 150, "Л" * 149 + "Ж"
+    a, b = file_name_part(long_a), file_name_part(long_b)
+    assert len(a.encode()) <= NAME_PART_BYTES and len(b.encode()) <= NAME_PART_BYTES
+    assert a != b and a.startswith("Л" * 30) and "~" in a  # cut on a letter, told apart by a hash
+
+
+def test_a_name_the_file_system_cannot_hold_is_an_output_error(tmp_path):
+    name = "Л" * 126 + ".pc2"  # 256 bytes
+    with pytest.raises(OutputError, match=r"is 256 bytes long in UTF-8.*more than the file system's limit of 255"):
+        pointcache_writer.check_writable(tmp_path / name)
+    with pytest.raises(OutputError, match=r"more than the file system's limit"):  # with the writer's '.tmp'
+        pointcache_writer.PointCacheWriter(tmp_path / ("x" * 252 + ".pc2"), "PC2", 5, 4)
+    with pytest.raises(OutputError, match="the path is"):
+        pointcache_writer.check_writable(tmp_path / "/".join(["d" * 200] * 25) / "x.pc2")
+    assert not list(tmp_path.iterdir())
+    ok = pointcache_writer.write_pc2(tmp_path / ("Л" * 120 + ".pc2"), SEQ)  # 244 bytes: fits
+    assert pointcache.read_pc2(ok)[0].shape == SEQ.shape

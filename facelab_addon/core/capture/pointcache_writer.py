@@ -14,6 +14,7 @@ module.
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import tempfile
 from pathlib import Path
@@ -23,7 +24,7 @@ import numpy as np
 from ..errors import CacheFileError, CacheVertexCountError, MeshError, OutputError
 from .pointcache import _PC2_HEADER, _PC2_HEADER_BYTES, PC2_MAGIC
 
-__all__ = ["PointCacheWriter", "write_pc2", "write_mdd", "check_writable", "output_error"]
+__all__ = ["PointCacheWriter", "write_pc2", "write_mdd", "check_writable", "check_name_length", "output_error"]
 
 
 def output_error(path, err: OSError) -> OutputError:
@@ -37,9 +38,61 @@ def output_error(path, err: OSError) -> OutputError:
         why = "it is a folder"
     elif getattr(err, "errno", None) == 28:
         why = "the disk is full"
+    elif getattr(err, "errno", None) == errno.ENAMETOOLONG:
+        why = "the name is longer than the file system allows"
     else:
         why = err.strerror or type(err).__name__
     return OutputError(f"Cannot write '{p}': {why}. Choose a file in a writable folder (or free disk space).")
+
+
+#: File-name and path limits (bytes) when the file system does not say (``os.pathconf``): Linux, macOS.
+NAME_MAX, PATH_MAX = 255, 4096
+#: What the writers append to a file's name while it is written (``<name>.tmp``).
+TMP_SUFFIX = ".tmp"
+
+
+def check_name_length(path) -> Path:
+    """Refuse a path the file system cannot hold: a name over its limit (255 bytes on common file
+    systems; the name plus :data:`TMP_SUFFIX`, which the writers use meanwhile) or a path over 4,096 bytes.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+
+    Returns
+    -------
+    pathlib.Path
+
+    Raises
+    ------
+    OutputError
+        Naming the over-long part, its length in bytes and the limit.
+    """
+    p = Path(os.fspath(path))
+    anc = p.parent
+    try:
+        while not anc.is_dir() and anc != anc.parent:
+            anc = anc.parent
+    except OSError:  # a parent name itself too long
+        anc = Path(p.anchor or ".")
+    try:
+        name_max = os.pathconf(anc, "PC_NAME_MAX")
+    except (OSError, ValueError, AttributeError):
+        name_max = NAME_MAX
+    full = len(os.fsencode(p))
+    if full > PATH_MAX:
+        raise OutputError(f"Cannot write '{p}': the path is {full:,} bytes long, more than the {PATH_MAX:,} the "
+                          "system allows. Choose a shorter folder or file name.")
+    extra = len(TMP_SUFFIX.encode())
+    for part, last in [(x, False) for x in p.parts[1 if p.anchor else 0:-1]] + [(p.name, True)]:
+        n = len(os.fsencode(part))
+        if n + (extra if last else 0) > name_max:
+            tmp = f" (plus the {extra} of the '{TMP_SUFFIX}' the writer adds meanwhile)" if last else ""
+            raise OutputError(
+                f"Cannot write '{p}': the name '{part[:40]}…' is {n} bytes long in UTF-8{tmp}, more than the file "
+                f"system's limit of {name_max} bytes. Give the .blend, the object or the file a shorter name "
+                "(non-Latin letters take 2-4 bytes each), or choose a shorter file name.")
+    return p
 
 
 def check_writable(path) -> Path:
@@ -66,6 +119,7 @@ def check_writable(path) -> Path:
         or ``path`` exists and is read-only.
     """
     p = Path(os.fspath(path))
+    check_name_length(p)
     if p.is_dir():
         raise OutputError(f"Cannot write '{p}': it is a folder. Give a file name, such as '{p / 'capture.pc2'}'.")
     anc = p.parent
@@ -164,7 +218,7 @@ class PointCacheWriter:
         else:
             raise CacheFileError(f"Unknown point-cache format '{fmt}'; use 'PC2' or 'MDD'.")
         check_writable(self.path)
-        self._tmp = self.path.with_name(self.path.name + ".tmp")
+        self._tmp = self.path.with_name(self.path.name + TMP_SUFFIX)
         self._f = None
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
