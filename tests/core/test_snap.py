@@ -49,9 +49,12 @@ def test_curved_edge_with_hand_jitter_ends_on_the_line():
 
 def test_no_edge_leaves_points_exactly_and_says_so():
     rng = np.random.default_rng(0)
-    flat = rng.normal(0.5, 0.01, (120, 160))
+    noise = rng.normal(0.0, 0.01, (120, 160))
+    yy, xx = np.mgrid[:120, :160]
+    blurred = 0.5 + 0.1 * np.sin(xx / 25.0) * np.cos(yy / 30.0)  # soft shading, no edge (a defocused region)
     stroke = np.c_[np.linspace(20, 140, 50), 60 + 2 * np.sin(np.linspace(0, 3, 50))]
-    for img in (flat, ndimage.gaussian_filter(flat, 3.0), np.full((120, 160), 0.3)):
+    for img in (0.5 + noise, blurred + noise, blurred + 0.3 * noise, np.full((120, 160), 0.3),
+                np.round(255 * ndimage.gaussian_filter(0.5 + noise, 3.0)) / 255):
         r = snap_strokes(img, [stroke])[0]
         assert r.n_snapped == 0 and r.n_left == 50 and r.polarity == 0
         np.testing.assert_array_equal(r.points, stroke)

@@ -10,9 +10,9 @@ most of its points see: the upper lip's inner edge is light above, dark below), 
 edge of a sealed mouth is not taken.
 
 Where no edge is found a point is left exactly where the artist drew it: an edge counts when its
-gradient stands ``contrast`` times above the noise of the image around the stroke (a robust spread of
-the gradient across the whole search band, so the threshold follows the plate's own contrast and
-noise, no absolute level), and lies within ``search_px`` of the stroke.
+gradient stands ``contrast`` times above what the noise of the image around the strokes gives a
+gradient (:func:`image_noise`: a robust spread of the image's finest detail, so the threshold follows
+the plate's own noise, no absolute level), and lies within ``search_px`` of the stroke.
 
 Conventions: pixels as in :mod:`facelab_addon.core.capture.camera` (top-left image corner at
 ``(0, 0)``, the centre of pixel ``(i, j)`` at ``(i + 0.5, j + 0.5)``, y down); images ``(H, W)`` or
@@ -28,12 +28,9 @@ from scipy import linalg, ndimage
 
 from ..errors import FaceLabError
 
-__all__ = ["SnapResult", "grey", "snap_stroke", "snap_strokes"]
+__all__ = ["SnapResult", "grey", "image_noise", "snap_stroke", "snap_strokes"]
 
 _STEP = 0.5  # profile sample spacing, pixels
-#: Least noise spread, as a fraction of the band's gradient range (an 8-bit plate's quantisation): a noise-free
-#: image's spline ripple is no edge.
-_QUANT = 2e-3
 
 
 @dataclass
@@ -106,8 +103,9 @@ def _smooth(meas, weight, smooth: float) -> np.ndarray:
     return linalg.solveh_banded(ab, b)
 
 
-def snap_stroke(image, stroke_px, *, search_px: float = 6.0, sigma: float = 1.0, contrast: float = 6.0,
-                smooth: float = 2.0, polarity: int | None = None, prepared=None) -> SnapResult:
+def snap_stroke(image, stroke_px, *, search_px: float = 6.0, sigma: float = 1.0, contrast: float = 5.0,
+                smooth: float = 2.0, polarity: int | None = None, noise: float | None = None,
+                quantum: float = 1.0 / 255.0, min_run_px: float = 12.0, prepared=None) -> SnapResult:
     """Move the points of one stroke along its normal onto the plate's edge.
 
     Parameters
@@ -121,16 +119,23 @@ def snap_stroke(image, stroke_px, *, search_px: float = 6.0, sigma: float = 1.0,
     sigma : float
         Scale of the Gaussian derivative, pixels (about the blur of the plate's edges).
     contrast : float
-        An edge must have a gradient ``contrast`` times the robust spread (1.4826 x median absolute
-        deviation) of the gradient across the stroke's search band.
+        An edge must have a gradient ``contrast`` times what the image's noise gives the gradient (a
+        signal-to-noise ratio).
     smooth : float
         Weight of the offsets' second differences along the stroke (0: each point on its own).
     polarity : int, optional
         +1 / -1 to take only edges whose gradient along the left-hand normal has that sign; default:
         the sign most points' strongest edge has.
+    noise : float, optional
+        The image's noise, standard deviation in its units; default :func:`image_noise` of ``image``.
+    quantum : float
+        The image's storage step (1/255: 8-bit footage read as 0..1; 0: float footage).
+    min_run_px : float
+        Edges found along less than this length of the stroke (pixels) are not taken: a lip edge runs
+        along the stroke, a shadow or a crease crossing it does not.
     prepared : tuple, optional
         ``(gy, gx)`` spline coefficients from an earlier call on the same image and ``sigma``
-        (:func:`snap_strokes` shares them).
+        (:func:`snap_strokes` shares them; pass ``noise`` with them).
 
     Returns
     -------
@@ -152,8 +157,12 @@ def snap_stroke(image, stroke_px, *, search_px: float = 6.0, sigma: float = 1.0,
     g = g.reshape(n, len(t))  # directional derivative along the normal, (N,S)
     inside = ((Q[..., 0] >= 0) & (Q[..., 0] <= gx.shape[1]) & (Q[..., 1] >= 0) & (Q[..., 1] <= gx.shape[0]))
     g = np.where(inside, g, 0.0)
-    spread = 1.4826 * float(np.median(np.abs(g - np.median(g))))
-    level = contrast * max(spread, _QUANT * float(np.ptp(g)) + 1e-300)
+    if noise is None:
+        noise = image_noise(grey(image), quantum)
+    # an edge stands `contrast` noise deviations above the profile on both sides, and above twice a step of
+    # one storage level (a banded gradient of 8-bit footage is no edge)
+    level = max(contrast * float(noise) * _derivative_gain(sigma), 2.0 * quantum / (np.sqrt(2 * np.pi) * sigma),
+                1e-300)
     if polarity is None:
         best = g[np.arange(n), np.abs(g).argmax(1)]
         strong = np.abs(best) > level
@@ -164,6 +173,10 @@ def snap_stroke(image, stroke_px, *, search_px: float = 6.0, sigma: float = 1.0,
     # local maxima above the level, with their subpixel offsets
     peak = np.zeros_like(s, dtype=bool)
     peak[:, 1:-1] = (s[:, 1:-1] > level) & (s[:, 1:-1] >= s[:, :-2]) & (s[:, 1:-1] > s[:, 2:])
+    # prominence: the profile must fall by `level` on each side of the peak (soft shading does not)
+    for r, c in zip(*np.nonzero(peak)):
+        if s[r, c] - max(s[r, :c].min(), s[r, c + 1:].min()) < level:
+            peak[r, c] = False
     rows, cols = np.nonzero(peak)
     b = s[rows, cols]
     # a Gaussian through the three samples (a parabola through their logarithms): exact for a blurred step
@@ -188,9 +201,59 @@ def snap_stroke(image, stroke_px, *, search_px: float = 6.0, sigma: float = 1.0,
             if e < gap[r]:
                 gap[r], meas2[r] = e, p
         found &= gap <= 1.0 + 0.25 * search_px  # an edge far off the smoothed line: none for this point
+        found = _long_runs(P, found, min_run_px)
         d = _smooth(meas2, found.astype(np.float64), smooth)
     d = np.where(found, d, 0.0)
-    return SnapResult(P + d[:, None] * N, d, found, polarity)
+    return SnapResult(P + d[:, None] * N, d, found, polarity if found.any() else 0)
+
+
+def _long_runs(P, found, min_len) -> np.ndarray:
+    """``found`` (N,) bool with the runs of consecutive True points spanning less than ``min_len`` pixels
+    of the polyline ``P`` (N,2) set False."""
+    out = found.copy()
+    s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))]
+    i, n = 0, len(found)
+    while i < n:
+        if not found[i]:
+            i += 1
+            continue
+        j = i
+        while j + 1 < n and found[j + 1]:
+            j += 1
+        if s[j] - s[i] < min_len and not (i == 0 and j == n - 1):
+            out[i:j + 1] = False
+        i = j + 1
+    return out
+
+
+def image_noise(img, quantum: float = 0.0) -> float:
+    """Standard deviation of the noise of a grey image (its units), from its finest detail: the robust
+    spread (1.4826 x median absolute deviation) of the image minus its 1-pixel Gaussian blur, divided by
+    what that filter leaves of white noise. Edges are few pixels of an image, so they barely count. At
+    least the rounding noise of the image's storage step ``quantum`` (``quantum / sqrt(12)``: 1/255 for
+    8-bit footage read as 0..1, 0 for float footage)."""
+    img = np.asarray(img, dtype=np.float64)
+    r = img - ndimage.gaussian_filter(img, 1.0)
+    mad = 1.4826 * float(np.median(np.abs(r - np.median(r)))) if img.size else 0.0
+    return max(mad / _residual_gain(), float(quantum) / np.sqrt(12.0), 1e-300)
+
+
+def _impulse(n=33):
+    z = np.zeros((n, n))
+    z[n // 2, n // 2] = 1.0
+    return z
+
+
+def _residual_gain() -> float:
+    """Standard deviation of (image - its 1 px Gaussian blur) for unit white noise."""
+    z = _impulse()
+    return float(np.linalg.norm(z - ndimage.gaussian_filter(z, 1.0)))
+
+
+def _derivative_gain(sigma: float) -> float:
+    """Standard deviation of one Gaussian derivative (scale ``sigma``) of unit white noise."""
+    z = _impulse(2 * int(4 * sigma + 4) + 1)
+    return float(np.linalg.norm(ndimage.gaussian_filter(z, sigma, order=(0, 1))))
 
 
 def _gradients(img, sigma):
@@ -201,9 +264,12 @@ def _gradients(img, sigma):
 
 
 def snap_strokes(image, strokes, **options) -> list:
-    """:func:`snap_stroke` for each stroke of one image (its gradients computed once, on the part of the
-    image around the strokes). ``strokes``: list of (N,2) pixel arrays. Returns a list of
-    :class:`SnapResult`, one per stroke, in order."""
+    """:func:`snap_stroke` for each stroke of one image (its gradients and noise computed once, on the part
+    of the image around the strokes). ``strokes``: list of (N,2) pixel arrays; ``options``: those of
+    :func:`snap_stroke`. Returns a list of :class:`SnapResult`, one per
+    stroke, in order."""
+    options = dict(options)
+    quantum = options.setdefault("quantum", 1.0 / 255.0)
     strokes = [np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in strokes]
     img = grey(image)
     H, W = img.shape
@@ -218,6 +284,8 @@ def snap_strokes(image, strokes, **options) -> list:
         return [SnapResult(p.copy(), np.zeros(len(p)), np.zeros(len(p), bool)) for p in strokes]
     crop = img[y0:y1, x0:x1]
     prepared = _gradients(crop, sigma)
+    if options.get("noise") is None:
+        options = dict(options, noise=image_noise(crop, quantum))
     off = np.array([x0, y0], dtype=np.float64)
     out = []
     for p in strokes:
