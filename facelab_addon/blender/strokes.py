@@ -75,24 +75,10 @@ __all__ = [
     "sketch_keyframes",
     "require_sketch_keyed_on",
     "read_lip_strokes",
-    "DRAW_MODE",
-    "SKETCH_MODES",
-    "SNAP_PROP",
-    "SNAP_REPORT_PROP",
     "set_lip_layer",
-    "start_drawing",
-    "snap_to_plate",
 ]
 
-#: ``Object.mode`` / ``context.mode`` of Grease Pencil (v3) Draw mode (Blender 4.3 and newer: 4.5, 5.0, 5.3).
-DRAW_MODE = "PAINT_GREASE_PENCIL"
-#: ``context.mode`` values a sketch step may run from: Object mode, and Draw / Edit mode of the sketch.
-SKETCH_MODES = ("OBJECT", DRAW_MODE, "EDIT_GREASE_PENCIL")
-#: Sketch object custom property (bool): its strokes are snapped to the plate when read (the strokes drawn
-#: stay as they are).
-SNAP_PROP = "facelab_snap"
-#: Sketch object custom property (str): what the last snapping did (points snapped, left alone, and why).
-SNAP_REPORT_PROP = "facelab_snap_report"
+
 
 UPPER_LAYER = "Upper lip"
 LOWER_LAYER = "Lower lip"
@@ -315,6 +301,16 @@ def new_lip_sketch(scene, camera_obj=None, name: str | None = None, depth: float
     return obj
 
 
+def set_lip_layer(gp_obj, lip: str) -> str:
+    """Make the sketch's ``lip`` layer (``"upper"`` / ``"lower"``) the one drawn on; returns its name."""
+    layers = _lip_layers(gp_obj.data.layers, lambda lay: lay.name)[lip]
+    if not layers:
+        nice = UPPER_LAYER if lip == "upper" else LOWER_LAYER
+        raise SketchError(f"Sketch '{gp_obj.name}' has no '{nice}' layer; press New Lip Sketch to add it.")
+    gp_obj.data.layers.active = layers[0]
+    return layers[0].name
+
+
 # --------------------------------------------------------------------------- write
 def write_stroke_pixels(gp_obj, layer_name: str, frame: int, polylines_px, camera: Camera,
                         depth: float | None = None, radius_px: float = 1.5, depsgraph=None) -> None:
@@ -522,136 +518,12 @@ def _read_gp_object(obj, camera: Camera, frame: int, depsgraph, snap=None) -> di
                 f"draw the {nice.lower()} contour on it in camera view on this frame (keyed on it)."
             )
         out[lab] = polys
+    from .sketch_snap import SNAP_PROP, SNAP_REPORT_PROP, snap_to_plate  # (it reads the sketch's camera: a cycle)
+
     if snap if snap is not None else bool(obj.get(SNAP_PROP, False)):
         out, report = snap_to_plate(obj, camera, frame, out)
         obj[SNAP_REPORT_PROP] = report
     return out
-
-
-def snap_to_plate(gp_obj, camera: Camera, frame: int, strokes: dict, **options) -> tuple:
-    """The lip strokes snapped onto the edges of the plate the sketch's camera shows on ``frame``.
-
-    Parameters
-    ----------
-    gp_obj : bpy.types.Object
-        The sketch (its camera: :func:`.sketch_views.sketch_camera`, else the scene's).
-    camera : Camera
-        That camera, in pixels of the render (the plate is scaled to them when its size differs).
-    frame : int
-    strokes : dict
-        ``{"upper": [(N,2), ...], "lower": [...]}`` pixels, as :func:`read_lip_strokes` returns them.
-    **options
-        Of :func:`facelab_addon.core.lips.snap.snap_stroke` (``search_px`` in render pixels).
-
-    Returns
-    -------
-    (dict, str)
-        The snapped strokes (same layout; the input is not changed) and a report: how many points
-        moved onto an edge, how many were left as drawn, or why nothing was snapped (no plate).
-
-    Raises
-    ------
-    PlateError
-        The plate is a movie file, or its image for the frame is missing.
-    """
-    from ..core.lips.snap import snap_strokes
-    from .plate import plate_file, plate_pixels
-    from .sketch_views import sketch_camera
-
-    cam_obj = sketch_camera(gp_obj) or getattr(bpy.context.scene, "camera", None)
-    path = plate_file(cam_obj, frame)
-    if path is None:
-        return strokes, "not snapped: the camera shows no plate"
-    img = plate_pixels(path)
-    H, W = img.shape[:2]
-    sx, sy = W / camera.width, H / camera.height
-    if abs(sx - sy) > 1e-3 * max(sx, sy):
-        return strokes, (f"not snapped: the plate ({W}x{H}) has another aspect than the render "
-                         f"({camera.width}x{camera.height})")
-    opts = dict(options)
-    if "search_px" in opts:
-        opts["search_px"] = opts["search_px"] * sx
-    out, moved, left = {}, 0, 0
-    for lab in ("upper", "lower"):
-        res = snap_strokes(img, [np.asarray(p) * [sx, sy] for p in strokes[lab]], **opts)
-        out[lab] = [r.points / [sx, sy] for r in res]
-        moved += sum(r.n_snapped for r in res)
-        left += sum(r.n_left for r in res)
-    report = f"snapped {moved} of {moved + left} points to the plate"
-    if left:
-        report += f"; {left} left as drawn (no edge within reach)"
-    return out, report
-
-
-def set_lip_layer(gp_obj, lip: str) -> str:
-    """Make the sketch's ``lip`` layer (``"upper"`` / ``"lower"``) the active one (the one drawn on).
-
-    Returns the layer's name. Raises SketchError when the sketch has no such layer.
-    """
-    if lip not in ("upper", "lower"):
-        raise ValueError(f"lip must be 'upper' or 'lower', got {lip!r}")
-    layers = _lip_layers(gp_obj.data.layers, lambda lay: lay.name)[lip]
-    if not layers:
-        nice = UPPER_LAYER if lip == "upper" else LOWER_LAYER
-        raise SketchError(f"Sketch '{gp_obj.name}' has no '{nice}' layer; press New Lip Sketch to add it.")
-    gp_obj.data.layers.active = layers[0]
-    return layers[0].name
-
-
-def start_drawing(context, gp_obj, lip: str = "upper") -> dict:
-    """Leave the artist drawing on the sketch: active and selected, in Draw mode, on the ``lip`` layer,
-    every 3D view of the window looking through the sketch's camera with its plate shown.
-
-    Parameters
-    ----------
-    context : bpy.types.Context
-    gp_obj : bpy.types.Object
-        The lip sketch.
-    lip : str
-        ``"upper"`` or ``"lower"``.
-
-    Returns
-    -------
-    dict
-        ``mode`` (the object's mode now), ``layer`` (the active layer's name), ``views`` (3D views
-        switched to the camera; 0 without a window, as under ``blender -b``), ``plate`` (whether the
-        camera has a background image shown).
-    """
-    from .sketch_views import sketch_camera
-
-    view_layer = context.view_layer
-    active = view_layer.objects.active
-    if active is not None and active != gp_obj and active.mode != "OBJECT":
-        bpy.ops.object.mode_set(mode="OBJECT")  # leave the face's Edit / Sculpt mode first
-    for o in context.selected_objects:
-        o.select_set(False)
-    gp_obj.hide_set(False)
-    gp_obj.hide_viewport = False
-    view_layer.objects.active = gp_obj
-    gp_obj.select_set(True)
-    layer = set_lip_layer(gp_obj, lip)
-    if gp_obj.mode != DRAW_MODE:
-        bpy.ops.object.mode_set(mode=DRAW_MODE)
-    cam_obj = sketch_camera(gp_obj) or context.scene.camera
-    plate = False
-    if cam_obj is not None and cam_obj.type == "CAMERA" and len(cam_obj.data.background_images):
-        cam_obj.data.show_background_images = True
-        for bg in cam_obj.data.background_images:
-            bg.show_background_image = True
-        plate = True
-    views = 0
-    if cam_obj is not None and context.scene.camera != cam_obj:
-        context.scene.camera = cam_obj  # "look through the camera" shows the scene camera
-    wm = getattr(context, "window_manager", None)
-    for win in (wm.windows if wm is not None else []):
-        for area in win.screen.areas:
-            if area.type != "VIEW_3D":
-                continue
-            for space in area.spaces:
-                if space.type == "VIEW_3D" and space.region_3d is not None:
-                    space.region_3d.view_perspective = "CAMERA"
-                    views += 1
-    return dict(mode=gp_obj.mode, layer=layer, views=views, plate=plate)
 
 
 def _annotation_frame_at(layer, frame: int):

@@ -6,7 +6,8 @@ import sys
 
 import bpy
 
-from ..blender.strokes import DRAW_MODE, SKETCH_MODES, has_lip_sketch, new_lip_sketch, set_lip_layer, start_drawing
+from ..blender.sketch_mode import DRAW_MODE, SKETCH_MODES, start_drawing
+from ..blender.strokes import has_lip_sketch, new_lip_sketch, set_lip_layer
 from ..core.errors import FaceLabError
 from ..pipeline.propagate import record_training_frame  # noqa: F401  (re-exported for scripts)
 from ..pipeline.refine import RefineSettings, refine
