@@ -165,3 +165,194 @@ def test_snap_to_plate_brings_jittered_strokes_onto_the_rendered_lip_line(sample
     # the strokes drawn are untouched: reading without snapping gives them back
     again = read_lip_strokes(scene, cam, FRAME, gp_obj=gp, snap=False)
     np.testing.assert_allclose(again["upper"][0], plain["upper"][0], atol=1e-6)
+
+
+# --------------------------------------------------------------------------- Live Refine
+def _half(P, first=True):
+    k = len(P) // 2
+    return P[: k + 1] if first else P[k:]
+
+
+def test_live_refine_stroke_by_stroke_then_accept_is_a_refine(sample):
+    from facelab_addon.blender.caches import evaluate_frames
+    from facelab_addon.blender.mesh import evaluated_vertices
+    from facelab_addon.blender.shapekeys import key_matches, owned_keys
+    from facelab_addon.pipeline.live_refine import PREVIEW_KEY, LiveRefine
+
+    data, scene, face = _fresh(sample)
+    bpy.ops.facelab.new_lip_sketch()
+    gp = scene.facelab.sketch
+    up, lo = sample[2][FRAME]
+    cam = camera_from_blender(scene)
+    X0 = evaluated_vertices(face, bpy.context.evaluated_depsgraph_get())
+    bpy.ops.ed.undo_push(message="before Live Refine")
+    live = LiveRefine(scene, face, sketch=gp)
+    # first strokes: half of each lip
+    write_stroke_pixels(gp, "Upper lip", FRAME, [_half(up)], cam)
+    write_stroke_pixels(gp, "Lower lip", FRAME, [_half(lo)], cam)
+    u1 = live.update()
+    keys = face.data.shape_keys
+    kb = keys.key_blocks[PREVIEW_KEY]
+    assert kb.value == 1.0 and u1.n_free > 0 and u1.max_move > 1e-4
+    X1 = evaluated_vertices(face, bpy.context.evaluated_depsgraph_get())
+    np.testing.assert_allclose(X1, live.preview_vertices(), atol=1e-6)  # the preview shows the solve
+    # nothing else reads the preview: not FaceLab's recorded output, no training frame, not the capture
+    assert PREVIEW_KEY not in owned_keys(face) and len(face.facelab.training_frames) == 0
+    assert key_matches(keys, PREVIEW_KEY, (PREFIX,))
+    np.testing.assert_allclose(evaluate_frames(face, [FRAME], mute_shape_keys_prefix=(PREFIX,))[0], X0, atol=1e-6)
+    # the other halves: the preview follows
+    write_stroke_pixels(gp, "Upper lip", FRAME, [_half(up, False)], cam)
+    write_stroke_pixels(gp, "Lower lip", FRAME, [_half(lo, False)], cam)
+    live.update()
+    X2 = live.preview_vertices()
+    assert np.abs(X2 - X1).max() > 1e-5
+    region = live.region()
+    moved = np.linalg.norm(X2 - X0, axis=1) > 1e-9
+    assert moved.any() and not (moved & ~region).any()  # only the drawn region moves
+    # Accept: a Refine of the same strokes, the preview gone
+    r = live.accept()
+    assert PREVIEW_KEY not in face.data.shape_keys.key_blocks
+    assert r.shape_key == f"FL_Refine_{FRAME:04d}" and r.shape_key in owned_keys(face)
+    assert [t.frame for t in face.facelab.training_frames] == [FRAME]
+    X3 = evaluated_vertices(face, bpy.context.evaluated_depsgraph_get())
+    d_px = np.abs(cam.project(X3) - cam.project(X2)).max()
+    assert d_px < 0.05, d_px  # the preview is what Refine makes
+    with pytest.raises(Exception, match="closed"):
+        live.update()
+    # undo after Accept restores the frame
+    bpy.ops.ed.undo_push(message="Accept")
+    name = face.name
+    bpy.ops.ed.undo()
+    face = bpy.data.objects[name]
+    assert not [k for k in face.data.shape_keys.key_blocks if k.name.startswith(PREFIX)]
+    assert len(face.facelab.training_frames) == 0
+    np.testing.assert_allclose(evaluated_vertices(face, bpy.context.evaluated_depsgraph_get()), X0, atol=1e-7)
+
+
+def test_live_refine_discard_leaves_nothing(sample):
+    from facelab_addon.blender.mesh import evaluated_vertices
+    from facelab_addon.pipeline.live_refine import LiveRefine
+
+    data, scene, face = _fresh(sample)
+    bpy.ops.facelab.new_lip_sketch()
+    gp = scene.facelab.sketch
+    up, lo = sample[2][FRAME]
+    cam = camera_from_blender(scene)
+    names = [k.name for k in face.data.shape_keys.key_blocks]
+    X0 = evaluated_vertices(face, bpy.context.evaluated_depsgraph_get())
+    live = LiveRefine(scene, face, sketch=gp)
+    write_stroke_pixels(gp, "Upper lip", FRAME, [up], cam)
+    write_stroke_pixels(gp, "Lower lip", FRAME, [lo], cam)
+    live.update()
+    live.discard()
+    assert [k.name for k in face.data.shape_keys.key_blocks] == names
+    assert len(face.facelab.training_frames) == 0 and "facelab_live_basis" not in face
+    np.testing.assert_allclose(evaluated_vertices(face, bpy.context.evaluated_depsgraph_get()), X0, atol=1e-7)
+
+
+def test_live_refine_on_a_face_without_keys_removes_the_basis_it_made(sample):
+    from facelab_addon.blender.scene import new_mesh_object
+    from facelab_addon.pipeline.live_refine import LiveRefine
+
+    data, scene, face = _fresh(sample)
+    pv, po = data.poly_verts, data.poly_offsets
+    plain = new_mesh_object("Plain", data.truth()[FRAME - 1] + data.capture_error * data.capture_error_weights[FRAME - 1],
+                            poly_verts=pv, poly_offsets=po)
+    bpy.ops.facelab.new_lip_sketch()
+    gp = scene.facelab.sketch
+    up, lo = sample[2][FRAME]
+    cam = camera_from_blender(scene)
+    write_stroke_pixels(gp, "Upper lip", FRAME, [up], cam)
+    write_stroke_pixels(gp, "Lower lip", FRAME, [lo], cam)
+    live = LiveRefine(scene, plain, sketch=gp)
+    live.update()
+    assert plain.data.shape_keys is not None
+    live.discard()
+    assert plain.data.shape_keys is None
+    bpy.data.objects.remove(plain)
+
+
+def test_influence_in_mm_sets_the_free_region_through_the_face_mouth_width(sample):
+    from facelab_addon.pipeline.live_refine import LiveRefine, influence_to_mouth_widths
+
+    data, scene, face = _fresh(sample)
+    bpy.ops.facelab.new_lip_sketch()
+    gp = scene.facelab.sketch
+    up, lo = sample[2][FRAME]
+    cam = camera_from_blender(scene)
+    write_stroke_pixels(gp, "Upper lip", FRAME, [up], cam)
+    write_stroke_pixels(gp, "Lower lip", FRAME, [lo], cam)
+    regions = {}
+    for mm in (2.0, 8.0):
+        live = LiveRefine(scene, face, sketch=gp, influence_mm=mm)
+        u = live.update()
+        # metres scene: mm = free_radius x mouth width (m) x 1000
+        assert u.free_radius == pytest.approx(mm / (live.mouth_width * 1000.0))
+        assert u.influence_mm == pytest.approx(mm)
+        assert live.refine_settings().free_radius == pytest.approx(u.free_radius)
+        # the free region reaches about `mm` from the lips the sketch matched, and no farther
+        regions[mm] = live.region()
+        live.discard()
+    assert regions[2.0].sum() < regions[8.0].sum() and not (regions[2.0] & ~regions[8.0]).any()
+    assert influence_to_mouth_widths(5.0, 0.05, 1000.0) == pytest.approx(0.1)  # 5 mm of a 50 mm mouth
+    assert influence_to_mouth_widths(5.0, 5.0, 10.0) == pytest.approx(0.1)  # centimetre units
+
+
+def test_live_refine_operators_drive_a_session_stroke_by_stroke(sample):
+    from facelab_addon.blender.mesh import evaluated_vertices
+    from facelab_addon.pipeline.live_refine import PREVIEW_KEY
+    from facelab_addon.ui import ops_live
+
+    data, scene, face = _fresh(sample)
+    bpy.ops.facelab.new_lip_sketch()
+    gp = scene.facelab.sketch
+    up, lo = sample[2][FRAME]
+    cam = camera_from_blender(scene)
+    assert not bpy.ops.facelab.live_refine_accept.poll() and not bpy.ops.facelab.live_refine_update.poll()
+    scene.facelab_live.influence_mm = 6.0
+    assert bpy.ops.facelab.live_refine() == {"FINISHED"}  # from Draw mode; no stroke yet: waiting
+    assert "waiting" in ops_live.LIVE["message"] and PREVIEW_KEY not in face.data.shape_keys.key_blocks
+    assert ops_live.on_depsgraph_update in bpy.app.handlers.depsgraph_update_post
+    write_stroke_pixels(gp, "Upper lip", FRAME, [up], cam)
+    write_stroke_pixels(gp, "Lower lip", FRAME, [lo], cam)
+    ops_live.on_depsgraph_update(scene)  # what Blender calls after the stroke (headless: by hand)
+    assert PREVIEW_KEY in face.data.shape_keys.key_blocks and "Influence 6.0 mm" in ops_live.LIVE["message"]
+    P = ops_live.influence_points()
+    assert len(P) == ops_live.session().region().sum() > 0
+    n6 = len(P)
+    scene.facelab_live.influence_mm = 3.0  # the Influence updates the preview live
+    assert 0 < len(ops_live.influence_points()) < n6 and "Influence 3.0 mm" in ops_live.LIVE["message"]
+    X = ops_live.session().preview_vertices()
+    assert bpy.ops.facelab.live_refine_accept() == {"FINISHED"}
+    assert ops_live.session() is None and ops_live.on_depsgraph_update not in bpy.app.handlers.depsgraph_update_post
+    assert PREVIEW_KEY not in face.data.shape_keys.key_blocks
+    assert f"FL_Refine_{FRAME:04d}" in face.data.shape_keys.key_blocks
+    d = cam.project(evaluated_vertices(face, bpy.context.evaluated_depsgraph_get())) - cam.project(X)
+    assert np.abs(d).max() < 0.05
+    assert bpy.context.mode == DRAW_MODE  # the artist is still drawing
+    # Discard: nothing left
+    n_keys = len(face.data.shape_keys.key_blocks)
+    assert bpy.ops.facelab.live_refine() == {"FINISHED"}
+    assert PREVIEW_KEY in face.data.shape_keys.key_blocks
+    assert bpy.ops.facelab.live_refine_discard() == {"FINISHED"}
+    assert len(face.data.shape_keys.key_blocks) == n_keys and ops_live.session() is None
+
+
+def test_undo_during_live_refine_ends_it_and_drops_the_preview(sample):
+    from facelab_addon.pipeline.live_refine import PREVIEW_KEY
+    from facelab_addon.ui import ops_live
+
+    data, scene, face = _fresh(sample)
+    bpy.ops.facelab.new_lip_sketch()
+    gp = scene.facelab.sketch
+    up, lo = sample[2][FRAME]
+    cam = camera_from_blender(scene)
+    write_stroke_pixels(gp, "Upper lip", FRAME, [up], cam)
+    write_stroke_pixels(gp, "Lower lip", FRAME, [lo], cam)
+    bpy.ops.ed.undo_push(message="drawn")
+    assert bpy.ops.facelab.live_refine() == {"FINISHED"}
+    bpy.ops.ed.undo_push(message="a stroke while live")  # a state holding the preview key
+    bpy.ops.ed.undo()
+    bpy.ops.ed.redo()  # back to the state with the preview: the handler ends the session and drops it
+    assert ops_live.session() is None
+    assert PREVIEW_KEY not in bpy.context.scene.facelab.face.data.shape_keys.key_blocks
