@@ -1,10 +1,11 @@
 """Snap to plate, the adapter: the lip strokes read from a sketch, moved onto the edges of the plate its
 camera shows on the frame (:func:`facelab_addon.core.lips.snap.snap_strokes`).
 
-A sketch asks for it with the custom property :data:`SNAP_PROP`; :func:`.strokes.read_lip_strokes` then
-returns the snapped strokes (the strokes drawn are never changed) and writes what snapping did to
-:data:`SNAP_REPORT_PROP`. The plate is read with :func:`.plate.plate_file` / :func:`.plate.plate_pixels`
-(image sequences, as a Movie Clip or an Image, and stills).
+A sketch asks for it with the custom property :data:`~facelab_addon.names.SNAP_PROP`;
+:func:`.strokes.read_lip_strokes` then returns the snapped strokes (the strokes drawn are never changed)
+and writes what snapping did to :data:`~facelab_addon.names.SNAP_REPORT_PROP`. The plate is read with
+:func:`.plate.plate_file` / :func:`.plate.plate_pixels` (image sequences, as a Movie Clip or an Image, and
+stills).
 """
 
 from __future__ import annotations
@@ -17,13 +18,7 @@ from ..core.lips.snap import snap_strokes
 from .plate import plate_file, plate_pixels
 from .sketch_views import sketch_camera
 
-__all__ = ["SNAP_PROP", "SNAP_REPORT_PROP", "snap_to_plate"]
-
-#: Sketch object custom property (bool): its strokes are snapped to the plate when read (the strokes drawn
-#: stay as they are).
-SNAP_PROP = "facelab_snap"
-#: Sketch object custom property (str): what the last snapping did (points snapped, left alone, and why).
-SNAP_REPORT_PROP = "facelab_snap_report"
+__all__ = ["snap_to_plate"]
 
 
 def snap_to_plate(gp_obj, camera: Camera, frame: int, strokes: dict, **options) -> tuple:

@@ -61,7 +61,7 @@ from mathutils import Matrix
 
 from ..core.capture.camera import Camera
 from ..core.errors import CameraError, SketchError
-from ..names import SKETCH_OBJECT
+from ..names import SKETCH_OBJECT, SNAP_PROP, SNAP_REPORT_PROP
 from . import compat
 from .camera import evaluated_depsgraph
 
@@ -518,9 +518,9 @@ def _read_gp_object(obj, camera: Camera, frame: int, depsgraph, snap=None) -> di
                 f"draw the {nice.lower()} contour on it in camera view on this frame (keyed on it)."
             )
         out[lab] = polys
-    from .sketch_snap import SNAP_PROP, SNAP_REPORT_PROP, snap_to_plate  # (it reads the sketch's camera: a cycle)
-
     if snap if snap is not None else bool(obj.get(SNAP_PROP, False)):
+        from .sketch_snap import snap_to_plate  # (it reads the sketch's camera: an import cycle)
+
         out, report = snap_to_plate(obj, camera, frame, out)
         obj[SNAP_REPORT_PROP] = report
     return out

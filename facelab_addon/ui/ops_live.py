@@ -14,6 +14,7 @@ import numpy as np
 
 from ..blender.strokes import has_lip_sketch
 from ..core.errors import FaceLabError
+from ..names import SNAP_PROP, SNAP_REPORT_PROP
 from ..pipeline.live_refine import PREVIEW_KEY, LiveRefine, remove_preview
 from .ops import face_object, poll_face, refine_settings
 
@@ -283,9 +284,9 @@ def draw_live(layout, context) -> None:
         row = col.row(align=True)
         row.operator("facelab.sketch_lip_layer", text="Upper Lip", icon="TRIA_UP").lip = "upper"
         row.operator("facelab.sketch_lip_layer", text="Lower Lip", icon="TRIA_DOWN").lip = "lower"
-        col.prop(gp, "facelab_snap", text="Snap to Plate")
-        report = gp.get("facelab_snap_report")
-        if report and gp.facelab_snap:
+        col.prop(gp, SNAP_PROP, text="Snap to Plate")
+        report = gp.get(SNAP_REPORT_PROP)
+        if report and gp.get(SNAP_PROP):
             col.label(text=report, icon="INFO")
     box = layout.box()
     props = scene.facelab_live
@@ -308,10 +309,10 @@ def register():
     for c in classes:
         bpy.utils.register_class(c)
     bpy.types.Scene.facelab_live = bpy.props.PointerProperty(type=FACELAB_PG_live)
-    bpy.types.Object.facelab_snap = bpy.props.BoolProperty(
+    setattr(bpy.types.Object, SNAP_PROP, bpy.props.BoolProperty(
         name="Snap to Plate", default=False,
         description="Read this sketch's strokes snapped onto the lip edges of the plate (the strokes drawn stay as "
-                    "they are); points with no edge within a few pixels stay as drawn")
+                    "they are); points with no edge within a few pixels stay as drawn"))
     for h in (bpy.app.handlers.undo_post, bpy.app.handlers.redo_post):
         if on_undo not in h:
             h.append(on_undo)
@@ -322,7 +323,7 @@ def unregister():
     for h in (bpy.app.handlers.undo_post, bpy.app.handlers.redo_post):
         if on_undo in h:
             h.remove(on_undo)
-    del bpy.types.Object.facelab_snap
+    delattr(bpy.types.Object, SNAP_PROP)
     del bpy.types.Scene.facelab_live
     for c in reversed(classes):
         bpy.utils.unregister_class(c)

@@ -8,7 +8,7 @@ import pytest
 from facelab_addon.blender.camera import camera_from_blender
 from facelab_addon.blender.sample import read_sample
 from facelab_addon.blender.sketch_mode import DRAW_MODE
-from facelab_addon.blender.sketch_snap import SNAP_PROP, SNAP_REPORT_PROP
+from facelab_addon.names import SNAP_PROP, SNAP_REPORT_PROP
 from facelab_addon.blender.strokes import read_lip_strokes, write_stroke_pixels
 from facelab_addon.names import PREFIX
 
