@@ -321,26 +321,21 @@ def plate_file(cam_obj, frame: int):
     for bg in cam.background_images:
         if not getattr(bg, "show_background_image", True):
             continue
-        if bg.source == "MOVIE_CLIP" and bg.clip is not None:
-            clip = bg.clip
-            first = Path(bpy.path.abspath(clip.filepath))
-            if clip.source == "MOVIE":
-                raise PlateError(f"The plate {first.name!r} is a movie file; snapping reads image sequences: export "
-                                 "it as PNG/JPEG images (a numbered sequence) and load that as the plate.")
-            path = _numbered(first, _first_number(first) + int(frame) - int(clip.frame_start) + int(clip.frame_offset))
-        elif bg.source == "IMAGE" and bg.image is not None:
-            img = bg.image
-            first = Path(bpy.path.abspath(img.filepath))
-            if img.source == "MOVIE":
-                raise PlateError(f"The plate {first.name!r} is a movie file; snapping reads image sequences: export "
-                                 "it as PNG/JPEG images (a numbered sequence) and load that as the plate.")
-            if img.source == "SEQUENCE":
-                iu = bg.image_user
-                path = _numbered(first, int(frame) - int(iu.frame_start) + 1 + int(iu.frame_offset))
-            else:
-                path = first
-        else:
+        footage = bg.clip if bg.source == "MOVIE_CLIP" else bg.image if bg.source == "IMAGE" else None
+        if footage is None:
             continue
+        first = Path(bpy.path.abspath(footage.filepath))
+        if footage.source == "MOVIE":
+            raise PlateError(f"The plate {first.name!r} is a movie file; snapping reads image sequences: export it "
+                             "as PNG/JPEG images (a numbered sequence) and load that as the plate.")
+        if bg.source == "MOVIE_CLIP":
+            n = _first_number(first) + int(frame) - int(footage.frame_start) + int(footage.frame_offset)
+            path = _numbered(first, n)
+        elif footage.source == "SEQUENCE":
+            iu = bg.image_user
+            path = _numbered(first, int(frame) - int(iu.frame_start) + 1 + int(iu.frame_offset))
+        else:
+            path = first
         if not path.exists():
             raise PlateError(f"The plate has no image for frame {frame} ({str(path)!r}); check the footage's start "
                              "frame (the clip's Start Frame) or the missing file.")

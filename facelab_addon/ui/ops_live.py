@@ -207,12 +207,8 @@ class FACELAB_OT_live_refine(bpy.types.Operator):
         return {"PASS_THROUGH"}
 
 
-class FACELAB_OT_live_refine_update(bpy.types.Operator):
-    """Re-solve the live preview from the strokes drawn now"""
-
-    bl_idname = "facelab.live_refine_update"
-    bl_label = "Update Preview"
-    bl_options = {"REGISTER"}
+class _WhileLive:
+    """``poll`` of the operators of a running session."""
 
     @classmethod
     def poll(cls, context):
@@ -220,6 +216,14 @@ class FACELAB_OT_live_refine_update(bpy.types.Operator):
             cls.poll_message_set("Live Refine is not running")
             return False
         return True
+
+
+class FACELAB_OT_live_refine_update(_WhileLive, bpy.types.Operator):
+    """Re-solve the live preview from the strokes drawn now"""
+
+    bl_idname = "facelab.live_refine_update"
+    bl_label = "Update Preview"
+    bl_options = {"REGISTER"}
 
     def execute(self, context):
         LIVE["signature"] = None
@@ -227,19 +231,12 @@ class FACELAB_OT_live_refine_update(bpy.types.Operator):
         return {"FINISHED"}
 
 
-class FACELAB_OT_live_refine_accept(bpy.types.Operator):
+class FACELAB_OT_live_refine_accept(_WhileLive, bpy.types.Operator):
     """Keep the live preview: refine the frame from the same strokes (a new FL_Refine key and training frame)"""
 
     bl_idname = "facelab.live_refine_accept"
     bl_label = "Accept"
     bl_options = {"REGISTER", "UNDO"}
-
-    @classmethod
-    def poll(cls, context):
-        if session() is None:
-            cls.poll_message_set("Live Refine is not running")
-            return False
-        return True
 
     def execute(self, context):
         s = session()
@@ -255,19 +252,12 @@ class FACELAB_OT_live_refine_accept(bpy.types.Operator):
         return {"FINISHED"}
 
 
-class FACELAB_OT_live_refine_discard(bpy.types.Operator):
+class FACELAB_OT_live_refine_discard(_WhileLive, bpy.types.Operator):
     """Drop the live preview; nothing is left"""
 
     bl_idname = "facelab.live_refine_discard"
     bl_label = "Discard"
     bl_options = {"REGISTER"}
-
-    @classmethod
-    def poll(cls, context):
-        if session() is None:
-            cls.poll_message_set("Live Refine is not running")
-            return False
-        return True
 
     def execute(self, context):
         stop_live(discard=True)

@@ -59,6 +59,19 @@ def _fresh(sample):
     return data, scene, face
 
 
+def _sketch(sample, draw=False):
+    """:func:`_fresh`, then New Lip Sketch (and, with ``draw``, the truth's lips drawn on it)."""
+    data, scene, face = _fresh(sample)
+    bpy.ops.facelab.new_lip_sketch()
+    gp = scene.facelab.sketch
+    up, lo = sample[2][FRAME]
+    cam = camera_from_blender(scene)
+    if draw:
+        write_stroke_pixels(gp, "Upper lip", FRAME, [up], cam)
+        write_stroke_pixels(gp, "Lower lip", FRAME, [lo], cam)
+    return data, scene, face, gp, cam, (up, lo)
+
+
 def _view3d_perspectives():
     return [a.spaces.active.region_3d.view_perspective for a in bpy.context.screen.areas if a.type == "VIEW_3D"]
 
@@ -102,13 +115,7 @@ def test_lip_layer_needs_a_sketch(sample):
 def test_refine_runs_from_draw_mode_and_stays_there_and_undo_restores(sample):
     from facelab_addon.blender.mesh import evaluated_vertices
 
-    data, scene, face = _fresh(sample)
-    bpy.ops.facelab.new_lip_sketch()
-    gp = scene.facelab.sketch
-    up, lo = sample[2][FRAME]
-    cam = camera_from_blender(scene)
-    write_stroke_pixels(gp, "Upper lip", FRAME, [up], cam)
-    write_stroke_pixels(gp, "Lower lip", FRAME, [lo], cam)
+    data, scene, face, gp, cam, (up, lo) = _sketch(sample, draw=True)
     X0 = evaluated_vertices(face, bpy.context.evaluated_depsgraph_get())
     bpy.ops.ed.undo_push(message="sketched")
     assert bpy.context.mode == DRAW_MODE
@@ -139,11 +146,7 @@ def _contour_error(P, truth):
 def test_snap_to_plate_brings_jittered_strokes_onto_the_rendered_lip_line(sample):
     from facelab_addon.testing.route import jitter_stroke
 
-    data, scene, face = _fresh(sample)
-    bpy.ops.facelab.new_lip_sketch()
-    gp = scene.facelab.sketch
-    up, lo = sample[2][FRAME]
-    cam = camera_from_blender(scene)
+    data, scene, face, gp, cam, (up, lo) = _sketch(sample)
     rng = np.random.default_rng(3)
     drawn = {"upper": jitter_stroke(up, 3.0, rng), "lower": jitter_stroke(lo, 3.0, rng)}
     write_stroke_pixels(gp, "Upper lip", FRAME, [drawn["upper"]], cam)
@@ -179,11 +182,7 @@ def test_live_refine_stroke_by_stroke_then_accept_is_a_refine(sample):
     from facelab_addon.blender.shapekeys import key_matches, owned_keys
     from facelab_addon.pipeline.live_refine import PREVIEW_KEY, LiveRefine
 
-    data, scene, face = _fresh(sample)
-    bpy.ops.facelab.new_lip_sketch()
-    gp = scene.facelab.sketch
-    up, lo = sample[2][FRAME]
-    cam = camera_from_blender(scene)
+    data, scene, face, gp, cam, (up, lo) = _sketch(sample)
     X0 = evaluated_vertices(face, bpy.context.evaluated_depsgraph_get())
     bpy.ops.ed.undo_push(message="before Live Refine")
     live = LiveRefine(scene, face, sketch=gp)
@@ -233,11 +232,7 @@ def test_live_refine_discard_leaves_nothing(sample):
     from facelab_addon.blender.mesh import evaluated_vertices
     from facelab_addon.pipeline.live_refine import LiveRefine
 
-    data, scene, face = _fresh(sample)
-    bpy.ops.facelab.new_lip_sketch()
-    gp = scene.facelab.sketch
-    up, lo = sample[2][FRAME]
-    cam = camera_from_blender(scene)
+    data, scene, face, gp, cam, (up, lo) = _sketch(sample)
     names = [k.name for k in face.data.shape_keys.key_blocks]
     X0 = evaluated_vertices(face, bpy.context.evaluated_depsgraph_get())
     live = LiveRefine(scene, face, sketch=gp)
@@ -275,13 +270,7 @@ def test_live_refine_on_a_face_without_keys_removes_the_basis_it_made(sample):
 def test_influence_in_mm_sets_the_free_region_through_the_face_mouth_width(sample):
     from facelab_addon.pipeline.live_refine import LiveRefine, influence_to_mouth_widths
 
-    data, scene, face = _fresh(sample)
-    bpy.ops.facelab.new_lip_sketch()
-    gp = scene.facelab.sketch
-    up, lo = sample[2][FRAME]
-    cam = camera_from_blender(scene)
-    write_stroke_pixels(gp, "Upper lip", FRAME, [up], cam)
-    write_stroke_pixels(gp, "Lower lip", FRAME, [lo], cam)
+    data, scene, face, gp, cam, (up, lo) = _sketch(sample, draw=True)
     regions = {}
     for mm in (2.0, 8.0):
         live = LiveRefine(scene, face, sketch=gp, influence_mm=mm)
@@ -303,11 +292,7 @@ def test_live_refine_operators_drive_a_session_stroke_by_stroke(sample):
     from facelab_addon.pipeline.live_refine import PREVIEW_KEY
     from facelab_addon.ui import ops_live
 
-    data, scene, face = _fresh(sample)
-    bpy.ops.facelab.new_lip_sketch()
-    gp = scene.facelab.sketch
-    up, lo = sample[2][FRAME]
-    cam = camera_from_blender(scene)
+    data, scene, face, gp, cam, (up, lo) = _sketch(sample)
     assert not bpy.ops.facelab.live_refine_accept.poll() and not bpy.ops.facelab.live_refine_update.poll()
     scene.facelab_live.influence_mm = 6.0
     assert bpy.ops.facelab.live_refine() == {"FINISHED"}  # from Draw mode; no stroke yet: waiting
@@ -342,13 +327,7 @@ def test_undo_during_live_refine_ends_it_and_drops_the_preview(sample):
     from facelab_addon.pipeline.live_refine import PREVIEW_KEY
     from facelab_addon.ui import ops_live
 
-    data, scene, face = _fresh(sample)
-    bpy.ops.facelab.new_lip_sketch()
-    gp = scene.facelab.sketch
-    up, lo = sample[2][FRAME]
-    cam = camera_from_blender(scene)
-    write_stroke_pixels(gp, "Upper lip", FRAME, [up], cam)
-    write_stroke_pixels(gp, "Lower lip", FRAME, [lo], cam)
+    data, scene, face, gp, cam, (up, lo) = _sketch(sample, draw=True)
     bpy.ops.ed.undo_push(message="drawn")
     assert bpy.ops.facelab.live_refine() == {"FINISHED"}
     bpy.ops.ed.undo_push(message="a stroke while live")  # a state holding the preview key
