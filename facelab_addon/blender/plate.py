@@ -332,8 +332,7 @@ def plate_file(cam_obj, frame: int):
             n = _first_number(first) + int(frame) - int(footage.frame_start) + int(footage.frame_offset)
             path = _numbered(first, n)
         elif footage.source == "SEQUENCE":
-            iu = bg.image_user
-            path = _numbered(first, int(frame) - int(iu.frame_start) + 1 + int(iu.frame_offset))
+            path = _numbered(first, _image_user_number(bg.image_user, frame))
         else:
             path = first
         if not path.exists():
@@ -341,6 +340,19 @@ def plate_file(cam_obj, frame: int):
                              "frame (the clip's Start Frame) or the missing file.")
         return path
     return None
+
+
+def _image_user_number(iu, frame: int) -> int:
+    """The file number an image user shows on scene ``frame`` (Blender's ``BKE_image_user_frame_get``: from its
+    start frame, held at its first / last frame outside its duration, or cycling, plus its offset)."""
+    n = int(iu.frame_duration)
+    if n < 1:
+        return int(iu.frame_offset)
+    c = int(frame) - int(iu.frame_start) + 1
+    if iu.use_cyclic:
+        c %= n
+        c = n if c == 0 else c
+    return min(max(c, 0), n) + int(iu.frame_offset)
 
 
 _PIXELS_CACHE = {}

@@ -122,7 +122,10 @@ def _draw_influence():
     P = influence_points()
     if props is None or not props.show_influence or not len(P):
         return
-    shader = gpu.shader.from_builtin("UNIFORM_COLOR")
+    try:
+        shader = gpu.shader.from_builtin("POINT_UNIFORM_COLOR")  # round points where the GPU backend has them
+    except (ValueError, KeyError):
+        shader = gpu.shader.from_builtin("UNIFORM_COLOR")
     batch = batch_for_shader(shader, "POINTS", {"pos": P.astype(np.float32).tolist()})
     gpu.state.point_size_set(4.0)
     gpu.state.blend_set("ALPHA")

@@ -335,3 +335,50 @@ def test_undo_during_live_refine_ends_it_and_drops_the_preview(sample):
     bpy.ops.ed.redo()  # back to the state with the preview: the handler ends the session and drops it
     assert ops_live.session() is None
     assert PREVIEW_KEY not in bpy.context.scene.facelab.face.data.shape_keys.key_blocks
+
+
+def test_plate_file_follows_the_clip_and_image_sequences_frame_by_frame(sample):
+    from pathlib import Path
+
+    from facelab_addon.blender.plate import PlateError, plate_file, plate_pixels
+
+    data, scene, face = _fresh(sample)
+    cam = scene.camera
+    clip = cam.data.background_images[0].clip
+    assert plate_file(cam, 20).name == "plate_0020.jpg"
+    start = clip.frame_start
+    try:
+        clip.frame_start = 11  # the footage's first frame shows on scene frame 11
+        assert plate_file(cam, 20).name == "plate_0010.jpg"
+        with pytest.raises(PlateError, match="no image for frame 60"):
+            plate_file(cam, 60)
+    finally:
+        clip.frame_start = start
+    px = plate_pixels(plate_file(cam, 20))
+    assert px.shape[:2] == (data.camera.height, data.camera.width)
+    # the plate's top rows are the image's top (Blender stores rows bottom-up)
+    from PIL import Image
+
+    ref = np.asarray(Image.open(plate_file(cam, 20)), dtype=np.float64) / 255
+    assert np.abs(px[..., :3] - ref).mean() < 0.02
+    # the same footage as an Image sequence behind another camera
+    other = bpy.data.objects.new("Seq cam", cam.data.copy())
+    scene.collection.objects.link(other)
+    other.data.background_images.clear()
+    bg = other.data.background_images.new()
+    img = bpy.data.images.load(str(Path(plate_file(cam, 1))))
+    img.source = "SEQUENCE"
+    bg.image = img
+    iu = bg.image_user
+    iu.frame_start, iu.frame_offset, iu.frame_duration = 1, 0, 48
+    assert plate_file(other, 7).name == "plate_0007.jpg"
+    iu.frame_start, iu.frame_offset = 3, 2  # from scene frame 3, starting at the third image
+    assert plate_file(other, 7).name == "plate_0007.jpg" and plate_file(other, 3).name == "plate_0003.jpg"
+    iu.frame_duration = 4  # held on its last image after 4 frames, as Blender shows it
+    assert plate_file(other, 20).name == "plate_0006.jpg"
+    iu.use_cyclic = True
+    assert plate_file(other, 8).name == "plate_0004.jpg"
+    img.source = "FILE"
+    assert plate_file(other, 7).name == "plate_0001.jpg"  # a still is the plate of every frame
+    assert plate_file(face, 7) is None  # not a camera
+    bpy.data.objects.remove(other)
