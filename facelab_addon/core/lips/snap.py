@@ -28,9 +28,12 @@ from scipy import linalg, ndimage
 
 from ..errors import FaceLabError
 
-__all__ = ["SnapResult", "grey", "image_noise", "snap_stroke", "snap_strokes"]
+__all__ = ["SEARCH_PX", "SnapResult", "grey", "image_noise", "snap_stroke", "snap_strokes"]
 
 _STEP = 0.5  # profile sample spacing, pixels
+#: How far along the normal an edge is looked for, pixels each side (chosen on the sample plate's frames 2, 5,
+#: 8, ...: farther, the shading next to a lip's edge is taken more often than the edge).
+SEARCH_PX = 4.5
 
 
 @dataclass
@@ -103,7 +106,7 @@ def _smooth(meas, weight, smooth: float) -> np.ndarray:
     return linalg.solveh_banded(ab, b)
 
 
-def snap_stroke(image, stroke_px, *, search_px: float = 6.0, sigma: float = 1.0, contrast: float = 5.0,
+def snap_stroke(image, stroke_px, *, search_px: float = SEARCH_PX, sigma: float = 1.0, contrast: float = 5.0,
                 smooth: float = 2.0, polarity: int | None = None, noise: float | None = None,
                 quantum: float = 1.0 / 255.0, min_run_px: float = 12.0, prepared=None) -> SnapResult:
     """Move the points of one stroke along its normal onto the plate's edge.
@@ -274,7 +277,7 @@ def snap_strokes(image, strokes, **options) -> list:
     img = grey(image)
     H, W = img.shape
     sigma = float(options.get("sigma", 1.0))
-    reach = float(options.get("search_px", 6.0)) + 4 * sigma + 4
+    reach = float(options.get("search_px", SEARCH_PX)) + 4 * sigma + 4
     pts = np.vstack([p for p in strokes if len(p)]) if any(len(p) for p in strokes) else np.zeros((0, 2))
     if len(pts) == 0:
         return [snap_stroke(img, p, **options) for p in strokes]
