@@ -254,8 +254,7 @@ def test_live_refine_on_a_face_without_keys_removes_the_basis_it_made(sample):
 
     data, scene, face = _fresh(sample)
     pv, po = data.poly_verts, data.poly_offsets
-    plain = new_mesh_object("Plain", data.truth()[FRAME - 1] + data.capture_error * data.capture_error_weights[FRAME - 1],
-                            poly_verts=pv, poly_offsets=po)
+    plain = new_mesh_object("Plain", data.captured()[FRAME - 1], poly_verts=pv, poly_offsets=po)
     bpy.ops.facelab.new_lip_sketch()
     gp = scene.facelab.sketch
     up, lo = sample[2][FRAME]
