@@ -49,6 +49,12 @@ def _fresh(sample):
     for o in [o for o in scene.objects if o.type == "GREASEPENCIL"]:
         bpy.data.objects.remove(o)
     face = scene.facelab.face
+    from facelab_addon.blender.shapekeys import remove_keys
+    from facelab_addon.pipeline.live_refine import remove_preview
+
+    remove_keys(face, PREFIX)  # what an earlier test refined
+    remove_preview(face)
+    face.facelab.training_frames.clear()
     face.select_set(True)
     bpy.context.view_layer.objects.active = face
     for area in bpy.context.screen.areas:
@@ -171,6 +177,15 @@ def test_snap_to_plate_brings_jittered_strokes_onto_the_rendered_lip_line(sample
     # the strokes drawn are untouched: reading without snapping gives them back
     again = read_lip_strokes(scene, cam, FRAME, gp_obj=gp, snap=False)
     np.testing.assert_allclose(again["upper"][0], plain["upper"][0], atol=1e-6)
+    # Refine Lips and Live Refine read them snapped
+    from facelab_addon.pipeline.live_refine import LiveRefine
+
+    live = LiveRefine(scene, face, sketch=gp)
+    np.testing.assert_allclose(live.views()[0].lower[0], snapped["lower"][0], atol=1e-9)
+    live.discard()
+    del gp[SNAP_REPORT_PROP]
+    assert bpy.ops.facelab.refine_lips() == {"FINISHED"}
+    assert gp[SNAP_REPORT_PROP] == report
 
 
 # --------------------------------------------------------------------------- Live Refine
