@@ -42,6 +42,13 @@ LEGACY_KEY_PATTERNS = (
     r"FL_(Refine|Corrected)_-?\d{4,}(\.\d{3})?",
 )
 
+#: Live Refine's preview shape key (value 1 while a session is open); never recorded as FaceLab's output
+#: and left out wherever the capture is read.
+LIVE_PREVIEW_KEY = "FL_LivePreview"
+#: Sketch object custom property (bool): read its strokes snapped to the plate (the strokes drawn stay as they are).
+SNAP_PROP = "facelab_snap"
+#: Sketch object custom property (str): what the last snapping did (points snapped, left alone, and why).
+SNAP_REPORT_PROP = "facelab_snap_report"
 #: Temporary shape keys (``x``, ``y``, ``z``, ``c`` follow) that measure the modifier stack's
 #: Jacobian in ``blender.rest_space``; removed before it returns.
 REST_SPACE_KEY = "FL_tmp_rest_"

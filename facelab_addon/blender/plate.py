@@ -11,7 +11,9 @@ What an artist does by hand before sketching over real footage, as adapters:
 * :func:`match_scene_to_clip` -- the scene's frame range, frame rate and render resolution from the
   clip;
 * :func:`clip_lens_is_set` / :func:`lens_from_clip` -- the lens, sensor, principal point (shift) and
-  pixel aspect from the clip's tracking camera, the way Blender's *Setup Tracking Scene* sets them.
+  pixel aspect from the clip's tracking camera, the way Blender's *Setup Tracking Scene* sets them;
+* :func:`plate_file` / :func:`plate_pixels` -- the footage file a camera's plate shows on a scene frame
+  and its pixels (an image sequence as a Movie Clip or as an Image, or a still image).
 
 Conventions: the clip's tracking camera stores the focal length in millimetres for a sensor width
 in millimetres along the footage's width, and the principal point in footage pixels from the
@@ -26,11 +28,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import bpy
+import numpy as np
 
 from ..core.errors import CameraError, FaceLabError
 
 __all__ = ["PlateError", "ClipInfo", "footage_extensions", "check_footage", "load_clip", "loaded_clip", "clip_info",
-           "add_clip_background", "match_scene_to_clip", "clip_lens_is_set", "lens_from_clip"]
+           "add_clip_background", "match_scene_to_clip", "clip_lens_is_set", "lens_from_clip", "plate_file",
+           "plate_pixels"]
 
 #: Focal length (mm) and sensor width (mm) Blender gives the tracking camera of a freshly loaded clip.
 BLENDER_DEFAULT_LENS = (24.0, 35.0)
@@ -280,3 +284,98 @@ def lens_from_clip(cam_obj, clip, scene=None) -> dict:
         r = scene.render
         r.pixel_aspect_x, r.pixel_aspect_y = (aspect, 1.0) if aspect >= 1.0 else (1.0, 1.0 / aspect)
     return dict(lens_mm=cam.lens, sensor_mm=cam.sensor_width, shift=(cam.shift_x, cam.shift_y), pixel_aspect=aspect)
+
+
+# --------------------------------------------------------------------------- pixels of a frame
+def _numbered(path: Path, number: int) -> Path:
+    """``path`` with the last run of digits in its name replaced by ``number`` (same zero padding)."""
+    m = list(re.finditer(r"\d+", path.stem))
+    if not m:
+        return path
+    d = m[-1]
+    stem = path.stem[:d.start()] + f"{number:0{len(d.group())}d}" + path.stem[d.end():]
+    return path.with_name(stem + path.suffix)
+
+
+def _first_number(path: Path) -> int:
+    m = list(re.finditer(r"\d+", path.stem))
+    return int(m[-1].group()) if m else 1
+
+
+def plate_file(cam_obj, frame: int):
+    """The footage file the camera's plate shows on scene ``frame``, or None when it has no plate.
+
+    The first shown background image of the camera that is a Movie Clip or an Image: an image
+    sequence (a clip of source ``SEQUENCE``, or an Image of source ``SEQUENCE`` with its image user's
+    start frame and offset) gives the numbered file of that frame, a still image its file.
+
+    Raises
+    ------
+    PlateError
+        The plate is a movie file (this reads image sequences and stills; convert the movie to images),
+        or the frame's file is missing.
+    """
+    cam = getattr(cam_obj, "data", None)
+    if cam is None or getattr(cam_obj, "type", None) != "CAMERA":
+        return None
+    for bg in cam.background_images:
+        if not getattr(bg, "show_background_image", True):
+            continue
+        footage = bg.clip if bg.source == "MOVIE_CLIP" else bg.image if bg.source == "IMAGE" else None
+        if footage is None:
+            continue
+        first = Path(bpy.path.abspath(footage.filepath))
+        if footage.source == "MOVIE":
+            raise PlateError(f"The plate {first.name!r} is a movie file; snapping reads image sequences: export it "
+                             "as PNG/JPEG images (a numbered sequence) and load that as the plate.")
+        if bg.source == "MOVIE_CLIP":
+            n = _first_number(first) + int(frame) - int(footage.frame_start) + int(footage.frame_offset)
+            path = _numbered(first, n)
+        elif footage.source == "SEQUENCE":
+            path = _numbered(first, _image_user_number(bg.image_user, frame))
+        else:
+            path = first
+        if not path.exists():
+            raise PlateError(f"The plate has no image for frame {frame} ({str(path)!r}); check the footage's start "
+                             "frame (the clip's Start Frame) or the missing file.")
+        return path
+    return None
+
+
+def _image_user_number(iu, frame: int) -> int:
+    """The file number an image user shows on scene ``frame`` (Blender's ``BKE_image_user_frame_get``: from its
+    start frame, held at its first / last frame outside its duration, or cycling, plus its offset)."""
+    n = int(iu.frame_duration)
+    if n < 1:
+        return int(iu.frame_offset)
+    c = int(frame) - int(iu.frame_start) + 1
+    if iu.use_cyclic:
+        c %= n
+        c = n if c == 0 else c
+    return min(max(c, 0), n) + int(iu.frame_offset)
+
+
+_PIXELS_CACHE = {}
+
+
+def plate_pixels(path) -> np.ndarray:
+    """(H,W,C) float32 pixels of an image file, row 0 at the top, as Blender reads it (0..1 for 8-bit
+    footage). The last file read is kept (a live sketch snaps to the same plate stroke after stroke)."""
+    path = Path(path)
+    key = (str(path), path.stat().st_mtime_ns)
+    if key in _PIXELS_CACHE:
+        return _PIXELS_CACHE[key]
+    img = bpy.data.images.load(str(path), check_existing=False)
+    try:
+        W, H = (int(v) for v in img.size)
+        ch = int(img.channels)
+        if W < 1 or H < 1:
+            raise PlateError(f"Blender could not read {path.name!r}; re-export the plate as PNG or JPEG.")
+        px = np.empty(W * H * ch, np.float32)
+        img.pixels.foreach_get(px)
+    finally:
+        bpy.data.images.remove(img)
+    out = px.reshape(H, W, ch)[::-1].copy()  # Blender's rows run bottom-up
+    _PIXELS_CACHE.clear()
+    _PIXELS_CACHE[key] = out
+    return out

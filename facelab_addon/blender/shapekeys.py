@@ -7,7 +7,7 @@ import re
 import bpy
 import numpy as np
 
-from ..names import CORRECTIVES_ACTION, LEGACY_KEY_PATTERNS, OWNED_KEYS_PROP, PREFIX
+from ..names import CORRECTIVES_ACTION, LEGACY_KEY_PATTERNS, LIVE_PREVIEW_KEY, OWNED_KEYS_PROP, PREFIX
 from . import compat
 
 __all__ = [
@@ -116,7 +116,7 @@ def key_matches(key, name: str, prefixes, owned=None) -> bool:
     """
     for p in prefixes:
         if name.startswith(p):
-            if not p.startswith(PREFIX):
+            if not p.startswith(PREFIX) or name == LIVE_PREVIEW_KEY:  # Live Refine's preview is never the capture
                 return True
             if owned is None:
                 owned = set(_registry(key, create=False))

@@ -61,7 +61,7 @@ from mathutils import Matrix
 
 from ..core.capture.camera import Camera
 from ..core.errors import CameraError, SketchError
-from ..names import SKETCH_OBJECT
+from ..names import SKETCH_OBJECT, SNAP_PROP, SNAP_REPORT_PROP
 from . import compat
 from .camera import evaluated_depsgraph
 
@@ -75,7 +75,10 @@ __all__ = [
     "sketch_keyframes",
     "require_sketch_keyed_on",
     "read_lip_strokes",
+    "set_lip_layer",
 ]
+
+
 
 UPPER_LAYER = "Upper lip"
 LOWER_LAYER = "Lower lip"
@@ -298,6 +301,16 @@ def new_lip_sketch(scene, camera_obj=None, name: str | None = None, depth: float
     return obj
 
 
+def set_lip_layer(gp_obj, lip: str) -> str:
+    """Make the sketch's ``lip`` layer (``"upper"`` / ``"lower"``) the one drawn on; returns its name."""
+    layers = _lip_layers(gp_obj.data.layers, lambda lay: lay.name)[lip]
+    if not layers:
+        nice = UPPER_LAYER if lip == "upper" else LOWER_LAYER
+        raise SketchError(f"Sketch '{gp_obj.name}' has no '{nice}' layer; press New Lip Sketch to add it.")
+    gp_obj.data.layers.active = layers[0]
+    return layers[0].name
+
+
 # --------------------------------------------------------------------------- write
 def write_stroke_pixels(gp_obj, layer_name: str, frame: int, polylines_px, camera: Camera,
                         depth: float | None = None, radius_px: float = 1.5, depsgraph=None) -> None:
@@ -482,7 +495,7 @@ def require_sketch_keyed_on(scene, frame: int, gp_obj=None) -> None:
         )
 
 
-def _read_gp_object(obj, camera: Camera, frame: int, depsgraph) -> dict:
+def _read_gp_object(obj, camera: Camera, frame: int, depsgraph, snap=None) -> dict:
     lips = _lip_layers(obj.data.layers, lambda lay: lay.name)
     out = {}
     for lab, nice in (("upper", UPPER_LAYER), ("lower", LOWER_LAYER)):
@@ -505,6 +518,11 @@ def _read_gp_object(obj, camera: Camera, frame: int, depsgraph) -> dict:
                 f"draw the {nice.lower()} contour on it in camera view on this frame (keyed on it)."
             )
         out[lab] = polys
+    if snap if snap is not None else bool(obj.get(SNAP_PROP, False)):
+        from .sketch_snap import snap_to_plate  # (it reads the sketch's camera: an import cycle)
+
+        out, report = snap_to_plate(obj, camera, frame, out)
+        obj[SNAP_REPORT_PROP] = report
     return out
 
 
@@ -587,7 +605,7 @@ def _read_annotation(ann, camera: Camera, frame: int) -> dict:
     return out
 
 
-def read_lip_strokes(scene, camera: Camera, frame: int, gp_obj=None, depsgraph=None) -> dict:
+def read_lip_strokes(scene, camera: Camera, frame: int, gp_obj=None, depsgraph=None, snap=None) -> dict:
     """Read the upper and lower lip sketch as pixel polylines.
 
     Parameters
@@ -623,7 +641,7 @@ def read_lip_strokes(scene, camera: Camera, frame: int, gp_obj=None, depsgraph=N
     if obj is not None:
         if depsgraph is None:
             depsgraph = evaluated_depsgraph(scene)
-        return _read_gp_object(obj, camera, int(frame), depsgraph)
+        return _read_gp_object(obj, camera, int(frame), depsgraph, snap)
     ann = compat.scene_annotation(scene)
     if ann is not None and any(_label(lay.info) for lay in ann.layers):
         return _read_annotation(ann, camera, int(frame))

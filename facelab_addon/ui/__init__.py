@@ -3,6 +3,7 @@
 from . import (
     ops,
     ops_assets,
+    ops_live,
     ops_propagate,
     ops_reconstruct,
     ops_review,
@@ -15,7 +16,7 @@ from . import (
     scene_settings,
 )
 
-modules = (props, props_solve, scene_settings, prefs, ops, ops_assets, ops_propagate, ops_reconstruct, ops_solve,
+modules = (props, props_solve, scene_settings, prefs, ops, ops_live, ops_assets, ops_propagate, ops_reconstruct, ops_solve,
            ops_review, panel_solve, panel)
 
 

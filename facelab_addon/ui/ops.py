@@ -6,7 +6,8 @@ import sys
 
 import bpy
 
-from ..blender.strokes import has_lip_sketch, new_lip_sketch
+from ..blender.sketch_mode import DRAW_MODE, SKETCH_MODES, start_drawing
+from ..blender.strokes import has_lip_sketch, new_lip_sketch, set_lip_layer
 from ..core.errors import FaceLabError
 from ..pipeline import wording
 from ..pipeline.propagate import record_training_frame  # noqa: F401  (re-exported for scripts)
@@ -95,14 +96,49 @@ class FACELAB_OT_new_lip_sketch(bpy.types.Operator):
         if scene.facelab.face is None and face is not None:
             scene.facelab.face = face
         scene.facelab.sketch = gp
-        space = getattr(context, "space_data", None)
-        if space is not None and space.type == "VIEW_3D":
-            space.region_3d.view_perspective = "CAMERA"
+        try:
+            ready = start_drawing(context, gp, "upper")
+        except (RuntimeError, FaceLabError) as e:  # no Draw mode here (a locked object, no view layer)
+            self.report({"WARNING"}, f"Lip sketch '{gp.name}' made, but Draw mode could not start ({e}); select "
+                                     "it and press Tab / Ctrl+Tab to draw")
+            return {"FINISHED"}
         self.report(
             {"INFO"},
-            f"Lip sketch '{gp.name}' ready on frame {scene.frame_current}: draw the inner-lip contours on the "
-            "'Upper lip' and 'Lower lip' layers in camera view, then press Refine Lips",
+            f"Lip sketch '{gp.name}' ready on frame {scene.frame_current}: drawing on '{ready['layer']}' in "
+            "camera view" + ("" if ready["plate"] else " (the camera shows no plate: Load Plate first)")
+            + "; draw the upper inner-lip contour, switch to Lower Lip, draw it, then press Refine Lips",
         )
+        return {"FINISHED"}
+
+
+class FACELAB_OT_sketch_lip_layer(bpy.types.Operator):
+    """Draw on the sketch's Upper lip or Lower lip layer (in Draw mode)"""
+
+    bl_idname = "facelab.sketch_lip_layer"
+    bl_label = "Lip Layer"
+    bl_options = {"REGISTER", "UNDO"}
+
+    lip: bpy.props.EnumProperty(name="Lip", items=(("upper", "Upper Lip", "Draw the upper inner-lip contour"),
+                                                   ("lower", "Lower Lip", "Draw the lower inner-lip contour")))
+
+    @classmethod
+    def poll(cls, context):
+        if context.scene.facelab.sketch is None:
+            cls.poll_message_set("No lip sketch yet: press New Lip Sketch")
+            return False
+        return True
+
+    def execute(self, context):
+        gp = context.scene.facelab.sketch
+        try:
+            if context.view_layer.objects.active == gp and gp.mode == DRAW_MODE:
+                name = set_lip_layer(gp, self.lip)
+            else:
+                name = start_drawing(context, gp, self.lip)["layer"]
+        except (RuntimeError, FaceLabError) as e:
+            self.report({"ERROR"}, str(e))
+            return {"CANCELLED"}
+        self.report({"INFO"}, f"Drawing on '{name}'")
         return {"FINISHED"}
 
 
@@ -120,8 +156,8 @@ class FACELAB_OT_refine_lips(bpy.types.Operator):
         if context.scene.camera is None:
             cls.poll_message_set("Set a scene camera first (the camera the sketch was drawn in)")
             return False
-        if context.mode != "OBJECT":
-            cls.poll_message_set("Switch to Object Mode to refine")
+        if context.mode not in SKETCH_MODES:
+            cls.poll_message_set("Switch to Object Mode (or the sketch's Draw mode) to refine")
             return False
         if not has_lip_sketch(context.scene, context.scene.facelab.sketch):
             cls.poll_message_set("No lip sketch yet: press New Lip Sketch and draw the inner lips in camera view")
@@ -148,7 +184,7 @@ class FACELAB_OT_refine_lips(bpy.types.Operator):
         return {"FINISHED"}
 
 
-classes = (FACELAB_OT_new_lip_sketch, FACELAB_OT_refine_lips)
+classes = (FACELAB_OT_new_lip_sketch, FACELAB_OT_sketch_lip_layer, FACELAB_OT_refine_lips)
 
 
 register, unregister = bpy.utils.register_classes_factory(classes)

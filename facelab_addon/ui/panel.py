@@ -18,6 +18,7 @@ from ..names import CORRECTION_ATTR, CORRECTION_RANGE_PROP, EXTRAPOLATION_PROP, 
 from ..pipeline.wording import EXTRAPOLATING, extrapolation_word
 from . import scene_settings
 from .ops import face_object
+from .ops_live import draw_live
 from .ops_propagate import RUNNING
 from .panel_reconstruct import draw_reconstruct_section
 from .panel_solve import draw_retarget_section, draw_solve_advanced, draw_solve_section
@@ -162,6 +163,7 @@ class FACELAB_PT_sketch(_Section, bpy.types.Panel):
         col = self.layout.column()
         col.operator("facelab.new_lip_sketch", icon="GREASEPENCIL")
         col.prop(s, "sketch")
+        draw_live(col, context)
         col.operator("facelab.refine_lips", icon="MOD_SMOOTH")
 
 

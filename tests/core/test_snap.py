@@ -1,0 +1,102 @@
+"""Snap to plate (core.lips.snap): synthetic images with an edge at a known subpixel position."""
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from facelab_addon.core.lips.snap import snap_stroke, snap_strokes
+
+
+def area_image(H, W, inside, ss=8, blur=0.7, dark=0.1, light=0.8, noise=0.0, seed=0):
+    """(H,W) image of a region drawn with ``ss``x``ss`` supersampling (pixel (i, j) covers [i, i+1] x [j, j+1]),
+    ``dark`` where ``inside(x, y)``, blurred by ``blur`` px, plus Gaussian noise."""
+    ys, xs = (np.arange(H * ss) + 0.5) / ss, (np.arange(W * ss) + 0.5) / ss
+    m = np.broadcast_to(inside(xs[None], ys[:, None]), (H * ss, W * ss))
+    img = np.where(m, dark, light).reshape(H, ss, W, ss).mean((1, 3))
+    img = ndimage.gaussian_filter(img, blur)
+    return img + np.random.default_rng(seed).normal(0.0, noise, img.shape)
+
+
+@pytest.mark.parametrize("edge_y", [40.0, 40.25, 40.5, 40.8])
+def test_straight_edge_found_at_its_subpixel_row(edge_y):
+    img = area_image(80, 120, lambda x, y: y > edge_y)
+    x = np.linspace(20, 100, 41)
+    stroke = np.c_[x, edge_y + 3.0 + 0.5 * np.sin(x / 9)]  # drawn 2.5-3.5 px low
+    r = snap_strokes(img, [stroke])[0]
+    assert r.n_snapped == len(x) and r.n_left == 0
+    np.testing.assert_allclose(r.points[:, 1], edge_y, atol=0.05)
+    moved = r.points - stroke
+    tangent = np.gradient(stroke, axis=0)
+    np.testing.assert_allclose(np.sum(moved * tangent, 1), 0.0, atol=1e-9)  # along the normal only
+
+
+def test_curved_edge_with_hand_jitter_ends_on_the_line():
+    from facelab_addon.testing.route import jitter_stroke
+
+    cx, cy, R = 150.3, 100.7, 60.0
+    img = area_image(200, 300, lambda x, y: (x - cx) ** 2 + (y - cy) ** 2 < R * R, noise=0.01)
+    a = np.linspace(0.3, 2.8, 80)
+    truth = np.c_[cx + R * np.cos(a), cy + R * np.sin(a)]
+    for noise, seed in ((2.0, 0), (3.0, 1), (4.0, 2)):
+        s = jitter_stroke(truth, noise, np.random.default_rng(seed))
+        r = snap_strokes(img, [s])[0]
+        before = np.abs(np.hypot(*(s - [cx, cy]).T) - R)
+        after = np.abs(np.hypot(*(r.points - [cx, cy]).T) - R)
+        assert before.mean() > 0.6
+        assert r.n_snapped == len(s)
+        assert after.max() < 0.1, (noise, after.max())
+
+
+def test_no_edge_leaves_points_exactly_and_says_so():
+    rng = np.random.default_rng(0)
+    noise = rng.normal(0.0, 0.01, (120, 160))
+    yy, xx = np.mgrid[:120, :160]
+    blurred = 0.5 + 0.1 * np.sin(xx / 25.0) * np.cos(yy / 30.0)  # soft shading, no edge (a defocused region)
+    stroke = np.c_[np.linspace(20, 140, 50), 60 + 2 * np.sin(np.linspace(0, 3, 50))]
+    for img in (0.5 + noise, blurred + noise, blurred + 0.3 * noise, np.full((120, 160), 0.3),
+                np.round(255 * ndimage.gaussian_filter(0.5 + noise, 3.0)) / 255):
+        r = snap_strokes(img, [stroke])[0]
+        assert r.n_snapped == 0 and r.n_left == 50 and r.polarity == 0
+        np.testing.assert_array_equal(r.points, stroke)
+
+
+def test_edge_on_part_of_the_stroke_only_moves_that_part():
+    # the edge (dark below y = 50.4) ends at x = 70; right of it the image is flat
+    img = area_image(100, 140, lambda x, y: (y > 50.4) & (x < 70), noise=0.005)
+    x = np.linspace(10, 130, 61)
+    stroke = np.c_[x, np.full_like(x, 52.5)]
+    r = snap_strokes(img, [stroke])[0]
+    left, right = x < 60, x > 80
+    assert r.snapped[left].all() and not r.snapped[right].any()
+    np.testing.assert_allclose(r.points[left, 1], 50.4, atol=0.1)
+    np.testing.assert_array_equal(r.points[right], stroke[right])
+    assert r.n_left == int((~r.snapped).sum()) >= right.sum()
+
+
+def test_sealed_lips_each_stroke_takes_its_own_edge():
+    # a dark gap from y = 50.2 to 55.2 between two light lips: the upper stroke (light above, dark below)
+    # takes the top edge, the lower stroke the bottom edge, each drawn 2 px off on the far side
+    img = area_image(100, 140, lambda x, y: (y > 50.2) & (y < 55.2), blur=0.5)
+    x = np.linspace(20, 120, 41)
+    up = snap_strokes(img, [np.c_[x, np.full_like(x, 48.2)]], polarity=None)[0]
+    lo = snap_strokes(img, [np.c_[x[::-1], np.full_like(x, 57.2)]])[0]
+    np.testing.assert_allclose(up.points[:, 1], 50.2, atol=0.06)
+    np.testing.assert_allclose(lo.points[:, 1], 55.2, atol=0.06)
+
+
+def test_opposite_polarity_is_refused_when_asked():
+    img = area_image(80, 120, lambda x, y: y > 40.3)
+    stroke = np.c_[np.linspace(20, 100, 30), np.full(30, 42.0)]
+    found = snap_stroke(img, stroke)
+    assert found.n_snapped == 30
+    other = snap_stroke(img, stroke, polarity=-found.polarity)
+    assert other.n_snapped == 0
+    np.testing.assert_array_equal(other.points, stroke)
+
+
+def test_search_range_bounds_the_move():
+    img = area_image(80, 120, lambda x, y: y > 30.0)
+    stroke = np.c_[np.linspace(20, 100, 30), np.full(30, 40.0)]  # 10 px away
+    assert snap_strokes(img, [stroke], search_px=6.0)[0].n_snapped == 0
+    r = snap_strokes(img, [stroke], search_px=12.0)[0]
+    np.testing.assert_allclose(r.points[:, 1], 30.0, atol=0.03)
