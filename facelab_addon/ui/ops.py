@@ -119,7 +119,8 @@ class FACELAB_OT_sketch_lip_layer(bpy.types.Operator):
     bl_options = {"REGISTER", "UNDO"}
 
     lip: bpy.props.EnumProperty(name="Lip", items=(("upper", "Upper Lip", "Draw the upper inner-lip contour"),
-                                                   ("lower", "Lower Lip", "Draw the lower inner-lip contour")))
+                                                   ("lower", "Lower Lip", "Draw the lower inner-lip contour")),
+                                description="Which inner-lip contour to draw: its layer of the lip sketch")
 
     @classmethod
     def poll(cls, context):
