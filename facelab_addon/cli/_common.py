@@ -602,22 +602,22 @@ def execute(args) -> int:
 
 
 def add_settings_arguments(p, command: str) -> None:
-    """The flags of the settings stored with the shot that ``command`` uses (``ui.scene_settings``);
+    """The flags of the settings stored with the shot that ``command`` uses (``pipeline.shot_settings``);
     none when FaceLab's Blender side cannot be imported (no bpy: the run then exits with code 6)."""
     try:
-        from ..ui import scene_settings
+        from ..pipeline import shot_settings
     except ImportError:
         return
-    scene_settings.add_flags(p, command)
+    shot_settings.add_flags(p, command)
 
 
 def apply_settings(args, scene) -> dict:
     """Write the settings flags given into the scene (saved with ``--out``); ``{group: {field: value}}``
     of the settings the command uses."""
-    from ..ui import scene_settings
+    from ..pipeline import shot_settings
 
     try:
-        return scene_settings.apply_flags(args, scene, args.command)
+        return shot_settings.apply_flags(args, scene, args.command)
     except ValueError as e:
         raise CliError(str(e), EXIT_USAGE) from None
 

@@ -14,7 +14,7 @@ import bpy
 from ..blender.review import keyed_extrapolation, showing_capture
 from ..names import CORRECTION_ATTR, CORRECTION_RANGE_PROP, EXTRAPOLATION_PROP, LIPS_GROUP, MOUTH_GROUP, SUGGEST_MARKER
 from . import scene_settings
-from .ops import face_object
+from .common import face_object
 from .ops_propagate import RUNNING
 from .panel_reconstruct import draw_reconstruct_section
 from .panel_solve import draw_retarget_section, draw_solve_section

@@ -90,7 +90,7 @@ def test_panels_read_as_the_workflow(addon):
     ctx = bpy.context
     assert bpy.types.FACELAB_PT_solve.poll(ctx) and bpy.types.FACELAB_PT_retarget.poll(ctx)
     # every step with settings has a Settings sub-panel under it
-    from facelab_addon.ui.scene_settings import SCENE_SETTINGS
+    from facelab_addon.pipeline.shot_settings import SCENE_SETTINGS
 
     for e in SCENE_SETTINGS:
         sub = getattr(bpy.types, f"FACELAB_PT_{e.attr}")

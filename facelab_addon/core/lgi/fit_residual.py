@@ -61,7 +61,7 @@ from scipy.spatial import cKDTree
 
 from ..errors import BundleError, DatasetError
 from ..geometry.linsolve import one_blas_thread
-from .binding import _labels
+from .binding import bundle_labels
 from .inputs import check_bundle_frame, check_bundle_sequence, check_reconstruction_inputs
 from .natural_neighbor import natural_neighbor_weights, surface_points
 
@@ -128,9 +128,8 @@ def _check_dataset(D, names, tol):
 class FitResidual:
     """Bounded blendshape fit + natural-neighbour residual from bundles (module docstring).
 
-    Build once per (mesh, dataset, bundle binding; about 0.5 s for 110
-    shapes and 100 bundles on the 26,719-vertex ICT face); each frame then
-    costs a bounded least-squares fit and two small products.
+    Build once per (mesh, dataset, bundle binding); each frame then costs a
+    bounded least-squares fit and two small products.
 
     Parameters
     ----------
@@ -226,7 +225,7 @@ class FitResidual:
         still = np.flatnonzero(moved <= tol)
         if len(still):
             raise BundleError(
-                f"{len(still)} bundles are not moved by any dataset shape ({_labels(self.bundle_names, still)}, for "
+                f"{len(still)} bundles are not moved by any dataset shape ({bundle_labels(self.bundle_names, still)}, for "
                 "example on the back of the head or a rigid part); remove them, bind them on the moving face, or "
                 "add shapes that move them."
             )

@@ -11,7 +11,7 @@ import numpy as np
 
 from ..errors import BundleError, DatasetError
 from ..geometry.mesh import validate_mesh
-from .binding import _labels
+from .binding import bundle_labels
 
 __all__ = ["check_reconstruction_inputs", "check_bundle_frame", "check_bundle_sequence"]
 
@@ -118,7 +118,7 @@ def check_bundle_frame(q, count: int, bundle_names=None, what: str = "bundles"):
     bad = ~np.isfinite(q).all(axis=1)
     if bad.any():
         raise BundleError(
-            f"{int(bad.sum())} bundles have NaN positions ({_labels(bundle_names, np.flatnonzero(bad))}); "
+            f"{int(bad.sum())} bundles have NaN positions ({bundle_labels(bundle_names, np.flatnonzero(bad))}); "
             "skip the frame or fill the track gaps."
         )
     return q
