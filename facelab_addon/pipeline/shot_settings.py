@@ -84,6 +84,7 @@ UNIT_LABELS = {"mm": "mm", "mouth": "mouth widths", "edge": "edge lengths", "px"
 #: Marks a scene group whose values are the shot's own (set from the preferences or edited).
 INITIALIZED = "initialized"
 
+
 def fields(entry: Entry) -> list:
     """The described fields of ``entry`` stored in its scene group (not the shared ones)."""
     return [d for d in describe(entry.cls) if d["name"] not in SHARED]
