@@ -23,8 +23,18 @@ import numpy as np
 from ..errors import FaceLabError, MeshError
 from ..geometry.gradients import rest_inverse, shape_matrices
 from ..geometry.linsolve import idle_core, one_blas_thread
-from .guards import check_prediction as _check_prediction, checked_out as _checked_out, same_array as _same_array
-from .predict32 import F32_BLOCK as _F32_BLOCK, check_moves as _check_moves, Float32Prediction as _Float32Prediction, put_rows as _put_rows, PredictionWork as _Work
+from .guards import (
+    check_prediction as _check_prediction,
+    checked_out as _checked_out,
+    same_array as _same_array,
+)
+from .predict32 import (
+    F32_BLOCK as _F32_BLOCK,
+    check_moves as _check_moves,
+    Float32Prediction as _Float32Prediction,
+    put_rows as _put_rows,
+    PredictionWork as _Work,
+)
 
 __all__: list[str] = []
 
