@@ -42,6 +42,7 @@ from scipy.spatial import cKDTree
 
 from ..errors import BundleError, DatasetError
 from .binding import bundle_labels
+from .inputs import check_bundles_move
 from .natural_neighbor import surface_points
 from .tets import TET_EDGES, tet_inverse, tetrahedron_quality
 
@@ -73,14 +74,7 @@ class IndexerClouds:
             P[1:] = surface_points(X, F, bf, bb)
         self.points_all = P
         move = np.linalg.norm(P[1:] - P[0], axis=2)  # (S,B)
-        moved = move.max(axis=0)
-        still_b = np.flatnonzero(moved <= dup_tol)
-        if len(still_b):
-            raise BundleError(
-                f"{len(still_b)} bundles are not moved by any dataset shape ({bundle_labels(self.bundle_names, still_b)}, for "
-                "example on the back of the head or a rigid part); remove them, bind them on the moving face, or "
-                "add shapes that move them."
-            )
+        check_bundles_move(move.max(axis=0), dup_tol, self.bundle_names)
         return P, move
 
     def _prune(self, W, mags, move, forbidden):
