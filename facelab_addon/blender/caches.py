@@ -40,8 +40,14 @@ from ..core.errors import CacheFileError, FaceLabError, MeshError
 from ..names import PREFIX
 from . import compat
 from .objects import disabled_modifiers, modifier_enabled
-from .ownership import as_prefixes, correction_cache_prefix, is_correction_cache, key_matches, muted_correction_caches, \
-    muted_shape_keys
+from .ownership import (
+    as_prefixes,
+    correction_cache_prefix,
+    is_correction_cache,
+    key_matches,
+    muted_correction_caches,
+    muted_shape_keys,
+)
 from .shapekeys import shape_key_sequence
 
 __all__ = [
