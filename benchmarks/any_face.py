@@ -115,7 +115,7 @@ def run_route(face, units, posed, tmp, log, extra=(), *, error="wide", noise_px=
     scene.facelab.face = obj
     if prior is not None:  # through the shot's Refine settings, which the operator reads
         from facelab_addon.pipeline.refine import RefineSettings
-        from facelab_addon.ui.scene_settings import ensure_initialized, entry_for, scene_settings
+        from facelab_addon.pipeline.shot_settings import ensure_initialized, entry_for, scene_settings
 
         ensure_initialized(scene, entry_for(RefineSettings))
         scene.facelab_refine.prior = prior
@@ -349,7 +349,7 @@ def errors_case(face, error, noise_px, log):
     from facelab_addon.names import LIPS_GROUP, MOUTH_GROUP, PREFIX
     from facelab_addon.pipeline.refine import RefineSettings
     from facelab_addon.testing.route import build_route_scene, sketch_truth
-    from facelab_addon.ui.scene_settings import ensure_initialized, entry_for, scene_settings
+    from facelab_addon.pipeline.shot_settings import ensure_initialized, entry_for, scene_settings
 
     rs = build_route_scene(face, units="m", armature=True, frames=FRAMES, error=error)
     scene, obj = rs.scene, rs.obj

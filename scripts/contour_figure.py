@@ -22,7 +22,7 @@ from facelab_addon.core.capture.camera import Camera  # noqa: E402
 from facelab_addon.core.capture.ict import load_ict  # noqa: E402
 from facelab_addon.core.solve.contour_loops import MOUTH_CURVES  # noqa: E402
 from facelab_addon.core.solve.matching import match_contours  # noqa: E402
-from facelab_addon.core.solve.occlusion import _facing_sign, _half_counts  # noqa: E402
+from facelab_addon.core.solve.occlusion import _facing_sign, half_silhouette_counts  # noqa: E402
 from facelab_addon.testing.contour_truth import (  # noqa: E402
     ict_contour_loops,
     synthetic_tracked_curves,
@@ -45,7 +45,7 @@ def main(out="docs/images/contours_selection.png"):
             c.pixels = c.pixels + [0.0, -8.0 if c.name == "mouth_upper" else 8.0]
         corr = match_contours(V, m.faces, [cam], curves, loops)
         P = cam.project(V)
-        counts = _half_counts(V, cam, loops)
+        counts = half_silhouette_counts(V, cam, loops)
         for k, lp in enumerate(loops.mouth):
             q = P[np.r_[lp, lp[:1]]]
             ax.plot(q[:, 0], q[:, 1], color="0.75", lw=0.6, zorder=1)

@@ -3,7 +3,9 @@
 Fixtures
 --------
 ict
-    The ICT-FaceKit model (centimetres), parsed once per session.
+    The ICT-FaceKit model (centimetres), parsed once per session. Without the data, every test
+    that uses it (directly or through another fixture), or is marked ``ict``, is skipped with a
+    message saying how to get it.
 empty_scene
     A factory-fresh, empty Blender scene.
 addon
@@ -37,6 +39,31 @@ _blender_deprecations = {}
 
 def pytest_configure(config):
     config.addinivalue_line("filterwarnings", "always:.*expected to be removed in Blender:DeprecationWarning")
+    config.addinivalue_line("markers", "ict: needs the ICT-FaceKit data (skipped with a how-to when it is absent)")
+
+
+def ict_missing():
+    """Why the ICT-FaceKit data cannot be found (the message says how to get it), or None."""
+    from facelab_addon.core.capture.ict import find_ict_dir
+    from facelab_addon.core.errors import DataMissingError
+
+    try:
+        find_ict_dir()
+    except DataMissingError as e:
+        return str(e)
+    return None
+
+
+def pytest_collection_modifyitems(config, items):
+    """Skip the tests that need the ICT data (the ``ict`` fixture anywhere in their fixtures, or the
+    ``ict`` marker) when it is absent, before any of their setup runs."""
+    why = ict_missing()
+    if why is None:
+        return
+    skip = pytest.mark.skip(reason=f"needs the ICT-FaceKit data: {why}")
+    for item in items:
+        if "ict" in getattr(item, "fixturenames", ()) or item.get_closest_marker("ict"):
+            item.add_marker(skip)
 
 
 def pytest_warning_recorded(warning_message, when, nodeid, location):

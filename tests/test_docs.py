@@ -1,9 +1,10 @@
 """The docs follow the code: docs/api.md is what scripts/api_docs.py generates now, every link in the
-Markdown stays inside the repository and resolves, and every `facelab_addon` path the Markdown names
+Markdown stays inside the repository and resolves, every `facelab_addon` path the Markdown names
 (`facelab_addon.core.lips.sketch.refine_lips`, `core.capture.camera.Camera`, `from ... import ...`)
-exists in the code."""
+exists in the code, and every figure of docs/benchmarks.md is a value of benchmarks/results/*.json."""
 
 import ast
+import json
 import importlib.util
 import re
 import subprocess
@@ -209,3 +210,40 @@ def test_every_readme_figure_links_to_benchmarks():
     figure = re.compile(r"\d+(?:\.\d+)?\s?(?:%|mm\b|ms\b|×)")
     bare = [line[:80] for line in text.splitlines() if figure.search(line) and "docs/benchmarks.md" not in line]
     assert not bare, bare
+
+
+#: Figures of docs/benchmarks.md measured outside the benchmarks' JSON (the text says where).
+NOT_IN_RESULTS = {"0.000023"}  # the posed head and jaw of tests/blender/test_rest_space.py
+
+
+def _result_values():
+    vals = []
+
+    def walk(o):
+        if isinstance(o, dict):
+            for v in o.values():
+                walk(v)
+        elif isinstance(o, list):
+            for v in o:
+                walk(v)
+        elif isinstance(o, (int, float)) and not isinstance(o, bool):
+            vals.append(float(o))
+
+    for f in sorted((ROOT / "benchmarks" / "results").glob("*.json")):
+        walk(json.loads(f.read_text()))
+    return vals
+
+
+def test_benchmark_figures_are_in_the_results():
+    """Every figure with two or more decimals in docs/benchmarks.md is some value of the results JSON
+    (as stored, or as a percentage / per mille / x10), rounded as the text shows it: a figure typed by
+    hand, or left behind when a benchmark was re-run, fails."""
+    vals = _result_values()
+    text = FENCE.sub("", (ROOT / "docs" / "benchmarks.md").read_text())
+    figures = set(re.findall(r"(?<![\w.])(\d+\.\d{2,})(?![\w.])", text)) - NOT_IN_RESULTS
+    missing = sorted(
+        n for n in figures
+        if not any(abs(round(v * s, len(n.split(".")[1])) - float(n)) < 1e-9 for v in vals for s in (1, 10, 100, 1000))
+    )
+    assert not missing, f"docs/benchmarks.md figures in no benchmarks/results/*.json: {missing}"
+

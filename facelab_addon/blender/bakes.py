@@ -26,14 +26,16 @@ import numpy as np
 from ..core.capture import pointcache_writer
 from ..core.errors import FaceLabError, OutputError
 from ..names import CORRECTION_CACHE_MODIFIER, CORRECTION_CACHES_PROP, file_name_part
-from .caches import (
-    _frames,
-    _iter_evaluated,
-    _kept_frame,
-    _prefixes,
-    require_mesh_object,
-    scene_fps,
+from .caches import checked_frames, iter_evaluated, kept_frame, require_mesh_object, scene_fps
+from .ownership import (
+    as_prefixes,
+    correction_cache,
+    correction_cache_prefix,
+    correction_cache_record,
+    is_correction_cache,
+    muted_correction_caches,
 )
+from .shapekeys import key_property_bulk, remove_fcurve, unique_name
 
 __all__ = ["bake_point_cache_steps", "bake_pc2", "bake_mdd", "bake_alembic", "bake_destination",
            "correction_cache_path", "correction_cache", "is_correction_cache", "correction_cache_prefix",
@@ -76,7 +78,8 @@ def bake_destination(path) -> Path:
     return pointcache_writer.check_writable(out)
 
 
-def _uniform_step(frames, what):
+def uniform_step(frames, what) -> float:
+    """The constant step (scene frames) of increasing ``frames`` (T,); FaceLabError naming ``what`` otherwise."""
     if len(frames) == 1:
         return 1.0
     steps = np.diff(frames)
@@ -91,7 +94,7 @@ def _uniform_step(frames, what):
 def _point_cache_header(frames, fmt) -> dict:
     """Header keywords of a ``PointCacheWriter`` for ``frames``; raises when the frames do not fit ``fmt``."""
     if fmt == "PC2":
-        return dict(start_frame=float(frames[0]), sample_rate=_uniform_step(frames, "A PC2 bake"))
+        return dict(start_frame=float(frames[0]), sample_rate=uniform_step(frames, "A PC2 bake"))
     if fmt == "MDD":
         if len(frames) > 1 and not (np.diff(frames) > 0).all():
             raise FaceLabError("An MDD bake needs increasing scene frames.")
@@ -99,7 +102,7 @@ def _point_cache_header(frames, fmt) -> dict:
     raise FaceLabError(f"Unknown point-cache format {fmt!r}; bake to 'PC2' or 'MDD'.")
 
 
-def _bake_steps(obj, frames, new_writer, *, mute_prefixes=(), progress=None):
+def bake_steps(obj, frames, new_writer, *, mute_prefixes=(), progress=None):
     """Write the evaluated mesh of every frame; yields ``("baking frame F", i + 1, T)``, returns the path.
 
     ``new_writer()`` opens the ``PointCacheWriter`` on the first step. Closing
@@ -107,7 +110,7 @@ def _bake_steps(obj, frames, new_writer, *, mute_prefixes=(), progress=None):
     the destination stays untouched) and restores the scene frame.
     """
     writer = new_writer()
-    it = _iter_evaluated(obj, frames, mute_prefixes=mute_prefixes, progress=progress)
+    it = iter_evaluated(obj, frames, mute_prefixes=mute_prefixes, progress=progress)
     ok = False
     try:
         for i, co in it:
@@ -121,7 +124,7 @@ def _bake_steps(obj, frames, new_writer, *, mute_prefixes=(), progress=None):
     return writer.close()
 
 
-def _run(steps):
+def run_steps(steps):
     """Run a generator of steps to the end; its return value."""
     while True:
         try:
@@ -168,11 +171,11 @@ def bake_point_cache_steps(obj, scene_frames, path, fmt, *, mute_shape_keys_pref
         The destination cannot be written (:func:`bake_destination`), checked here, before any frame.
     """
     require_mesh_object(obj)
-    frames = _frames(scene_frames)
+    frames = checked_frames(scene_frames)
     header = _point_cache_header(frames, fmt)
     dest, n = bake_destination(path), len(obj.data.vertices)
-    return _bake_steps(obj, frames, lambda: pointcache_writer.PointCacheWriter(dest, fmt, n, len(frames), **header),
-                       mute_prefixes=_prefixes(mute_shape_keys_prefix), progress=progress)
+    return bake_steps(obj, frames, lambda: pointcache_writer.PointCacheWriter(dest, fmt, n, len(frames), **header),
+                       mute_prefixes=as_prefixes(mute_shape_keys_prefix), progress=progress)
 
 
 def bake_pc2(obj, scene_frames, path, *, progress=None, mute_shape_keys_prefix=()) -> Path:
@@ -198,7 +201,7 @@ def bake_pc2(obj, scene_frames, path, *, progress=None, mute_shape_keys_prefix=(
     -------
     pathlib.Path
     """
-    return _run(bake_point_cache_steps(obj, scene_frames, path, "PC2", progress=progress,
+    return run_steps(bake_point_cache_steps(obj, scene_frames, path, "PC2", progress=progress,
                                        mute_shape_keys_prefix=mute_shape_keys_prefix))
 
 
@@ -222,7 +225,7 @@ def bake_mdd(obj, scene_frames, path, *, progress=None, mute_shape_keys_prefix=(
     -------
     pathlib.Path
     """
-    return _run(bake_point_cache_steps(obj, scene_frames, path, "MDD", progress=progress,
+    return run_steps(bake_point_cache_steps(obj, scene_frames, path, "MDD", progress=progress,
                                        mute_shape_keys_prefix=mute_shape_keys_prefix))
 
 
@@ -258,7 +261,7 @@ def bake_alembic(obj, scene_frames, path, *, evaluation_mode="VIEWPORT") -> Path
         The destination cannot be written (:func:`bake_destination`) or the exporter fails.
     """
     require_mesh_object(obj)
-    frames = _frames(scene_frames)
+    frames = checked_frames(scene_frames)
     start, end = int(math.floor(frames.min())), int(math.ceil(frames.max()))
     out = bake_destination(path)
     try:
@@ -272,7 +275,7 @@ def bake_alembic(obj, scene_frames, path, *, evaluation_mode="VIEWPORT") -> Path
     prev_sel = [o for o in vl.objects if o.select_get()]
     prev_active = vl.objects.active
     try:
-        with _kept_frame(scene):
+        with kept_frame(scene):
             for o in prev_sel:
                 o.select_set(False)
             obj.select_set(True)
@@ -300,44 +303,6 @@ def bake_alembic(obj, scene_frames, path, *, evaluation_mode="VIEWPORT") -> Path
 
 # --------------------------------------------------------------------------- correction caches
 _KEEP_FILES = 2  # FaceLab's files kept per prefix: the current one and the one an undo step may show
-_CORRECTION_TYPES = ("MESH_CACHE", "NODES")  # a Mesh Cache, or the Geometry Nodes modifier of a patch cache
-
-
-def _record(obj) -> dict:
-    rec = obj.get(CORRECTION_CACHES_PROP)
-    return rec.to_dict() if rec is not None and hasattr(rec, "to_dict") else {}
-
-
-def correction_cache_entries(obj) -> dict:
-    """``{prefix: record}`` of the correction caches FaceLab recorded on ``obj`` (modifier, files, patch...)."""
-    return _record(obj)
-
-
-def correction_cache(obj, prefix: str):
-    """``(modifier or None, files)``: the correction cache FaceLab recorded on ``obj`` for ``prefix``.
-
-    ``files`` are the absolute paths FaceLab wrote for it, oldest first (the last is the one the
-    modifier plays).
-    """
-    entry = _record(obj).get(prefix, {})
-    md = obj.modifiers.get(entry.get("modifier", "")) if entry.get("modifier") else None
-    if md is not None and md.type not in _CORRECTION_TYPES:
-        md = None
-    return md, [str(f) for f in entry.get("files", [])]
-
-
-def is_correction_cache(obj, md) -> bool:
-    """Whether the modifier ``md`` of ``obj`` is a correction cache FaceLab added (not a capture)."""
-    return correction_cache_prefix(obj, md) is not None
-
-
-def correction_cache_prefix(obj, md):
-    """The key prefix whose correction cache the modifier ``md`` of ``obj`` plays, or None (not FaceLab's)."""
-    if md.type not in _CORRECTION_TYPES:
-        return None
-    return next((p for p, e in _record(obj).items() if e.get("modifier") == md.name), None)
-
-
 def correction_cache_path(obj, prefix: str, fmt: str, directory=None) -> Path:
     """A new file for ``obj``'s ``prefix`` correction cache: ``<blend>_<object>_<prefix>.<fmt>``.
 
@@ -379,11 +344,9 @@ def remove_correction_cache(obj, prefix: str) -> list:
     list of str
         What was removed, one phrase each.
     """
-    from .shapekeys import remove_fcurve
-
     done = []
     md, files = correction_cache(obj, prefix)
-    entry = _record(obj).get(prefix, {})
+    entry = correction_cache_record(obj).get(prefix, {})
     if md is not None:
         name = md.name
         if md.type == "MESH_CACHE":
@@ -403,7 +366,7 @@ def remove_correction_cache(obj, prefix: str) -> list:
     attr = obj.data.attributes.get(entry.get("attribute", "")) if entry.get("attribute") else None
     if attr is not None:
         obj.data.attributes.remove(attr)
-    rec = _record(obj)
+    rec = correction_cache_record(obj)
     if prefix in rec:
         keep = files[-1:]
         for f in files[:-1]:
@@ -437,8 +400,6 @@ def add_correction_cache(obj, prefix: str, path, fmt: str, first_frame: float, l
     index : int
         Position in the modifier stack (0: before every deformer, so a rig deforms the result).
     """
-    from .shapekeys import key_property_bulk, unique_name
-
     name = unique_name(CORRECTION_CACHE_MODIFIER.format(prefix=prefix), (m.name for m in obj.modifiers))
     mc = obj.modifiers.new(name, "MESH_CACHE")
     mc.cache_format = fmt
@@ -458,7 +419,7 @@ def add_correction_cache(obj, prefix: str, path, fmt: str, first_frame: float, l
     f0, f1 = float(first_frame), float(last_frame)
     key_property_bulk(obj, f'modifiers["{bpy.utils.escape_identifier(name)}"].factor',
                       [f0 - 1, f0, f1, f1 + 1], [0.0, 1.0, 1.0, 0.0])
-    rec = _record(obj)
+    rec = correction_cache_record(obj)
     files = [f for f in rec.get(prefix, {}).get("files", []) if f != str(path)] + [str(path)]
     rec[prefix] = {"modifier": name, "files": files[-_KEEP_FILES:]}
     obj[CORRECTION_CACHES_PROP] = rec
@@ -489,8 +450,6 @@ def add_correction_patch(obj, prefix: str, path, fmt: str, vertices, first_frame
     index : int
         Position of the modifier in the stack (right after the capture cache).
     """
-    from .shapekeys import key_property_bulk, unique_name
-
     v = np.asarray(vertices, dtype=np.int64)
     name = unique_name(CORRECTION_CACHE_MODIFIER.format(prefix=prefix),
                        set(m.name for m in obj.modifiers) | set(obj.data.attributes.keys()))
@@ -518,7 +477,7 @@ def add_correction_patch(obj, prefix: str, path, fmt: str, vertices, first_frame
     md = obj.modifiers.new(name, "NODES")
     md.node_group = ng
     obj.modifiers.move(len(obj.modifiers) - 1, int(index))
-    rec = _record(obj)
+    rec = correction_cache_record(obj)
     files = [f for f in rec.get(prefix, {}).get("files", []) if f != str(path)] + [str(path)]
     rec[prefix] = {"modifier": md.name, "files": files[-_KEEP_FILES:], "patch": patch.name,
                    "attribute": attr.name, "node_group": ng.name}
@@ -552,26 +511,6 @@ def _patch_nodes(name, patch, attribute):
     for i, n in enumerate((gi, info, pos, idx, sample, setpos, go)):
         n.location = (200 * i, 0)
     return ng
-
-
-@contextlib.contextmanager
-def muted_correction_caches(obj, prefixes):
-    """Turn off FaceLab's correction-cache modifiers whose key prefix ``prefixes`` select (as FaceLab's
-    keys are muted when the capture is read); restore on exit."""
-    pref = (prefixes,) if isinstance(prefixes, str) else tuple(prefixes or ())
-    mods = []
-    if obj.type == "MESH" and pref:
-        for p in _record(obj):
-            md = correction_cache(obj, p)[0]
-            if md is not None and md.show_viewport and any(p.startswith(q) for q in pref):
-                mods.append(md)
-    try:
-        for m in mods:
-            m.show_viewport = False
-        yield
-    finally:
-        for m in mods:
-            m.show_viewport = True
 
 
 def blend_relative(path) -> str:

@@ -17,21 +17,23 @@ import bpy
 import numpy as np
 
 from ..core.capture import pointcache, pointcache_writer
+from ..core.capture.integrate import corner_neighbours
 from ..core.errors import FaceLabError, MeshError
 from ..names import file_name_part
-from ..core.geometry.gradients import _inv3
-from .bakes import _bake_steps, _run, _uniform_step, blend_relative
+from ..core.geometry.inv3 import inv3
+from .bakes import bake_steps, blend_relative, run_steps, uniform_step
 from .caches import (
-    _alembic_still_error,
-    _disabled_modifiers,
-    _enabled,
-    _frames,
-    _msc_modifier,
+    alembic_still_error,
     check_capture_files,
+    checked_frames,
+    mesh_sequence_cache_modifier,
     mesh_cache_modifier,
     require_mesh_object,
     sequence_source,
 )
+from .objects import disabled_modifiers, modifier_enabled
+from .ownership import key_matches, owned_key_names
+from .shapekeys import key_values, values_from_action_only
 
 __all__ = ["cache_to_shape_key_ready", "polygon_corners", "polygon_neighbourhood", "keys_move_frames",
            "correction_to_key_offsets", "IntegrateMap"]
@@ -118,10 +120,10 @@ def cache_to_shape_key_ready(obj, *, directory=None, scene_frames=None, progress
         return f"'{obj.name}' has no captured cache; corrective keys already show. Nothing changed."
 
     # Alembic
-    msc = _msc_modifier(obj)
+    msc = mesh_sequence_cache_modifier(obj)
     scene = bpy.context.scene
-    frames = _frames(range(scene.frame_start, scene.frame_end + 1) if scene_frames is None else scene_frames)
-    step = _uniform_step(frames, "Baking the Alembic cache")
+    frames = checked_frames(range(scene.frame_start, scene.frame_end + 1) if scene_frames is None else scene_frames)
+    step = uniform_step(frames, "Baking the Alembic cache")
     if directory is None:
         if not bpy.data.filepath:
             raise FaceLabError(
@@ -134,17 +136,17 @@ def cache_to_shape_key_ready(obj, *, directory=None, scene_frames=None, progress
 
     mods = list(obj.modifiers)
     k = mods.index(msc)
-    later = [m for m in mods[k + 1 :] if _enabled(m)]
+    later = [m for m in mods[k + 1 :] if modifier_enabled(m)]
     n = len(obj.data.vertices)
-    with _disabled_modifiers(later):
-        _run(_bake_steps(obj, frames, lambda: pointcache_writer.PointCacheWriter(
+    with disabled_modifiers(later):
+        run_steps(bake_steps(obj, frames, lambda: pointcache_writer.PointCacheWriter(
             path, "PC2", n, len(frames), start_frame=float(frames[0]), sample_rate=step), progress=progress))
     try:  # a capture that never moves is a file Blender could not read: keep the artist's modifier on
         baked = pointcache.read_pc2(path, mmap=True)[0]
         moved = len(frames) == 1 or any(np.any(baked[t] != baked[0]) for t in range(1, len(frames)))
         del baked
         if not moved:
-            raise _alembic_still_error(obj, frames)
+            raise alembic_still_error(obj, frames)
     except FaceLabError:
         path.unlink(missing_ok=True)
         raise
@@ -193,12 +195,9 @@ def polygon_neighbourhood(corners, verts) -> np.ndarray:
     (k,) int64 ndarray
     """
     offs, cv = corners
-    sizes = np.diff(offs)
-    face_of = np.repeat(np.arange(len(sizes)), sizes)
-    local = np.arange(len(cv)) - offs[face_of]
+    prev, nxt = corner_neighbours(offs, cv)
     sel = np.isin(cv, np.asarray(verts, dtype=np.int64))
-    f, loc, n = face_of[sel], local[sel], sizes[face_of[sel]]
-    return np.unique(np.r_[cv[sel], cv[offs[f] + (loc - 1) % n], cv[offs[f] + (loc + 1) % n]]).astype(np.int64)
+    return np.unique(np.r_[cv[sel], prev[sel], nxt[sel]]).astype(np.int64)
 
 
 def keys_move_frames(obj, verts, frames, *, skip_prefixes=()) -> np.ndarray:
@@ -221,8 +220,6 @@ def keys_move_frames(obj, verts, frames, *, skip_prefixes=()) -> np.ndarray:
     -------
     (T,) bool ndarray
     """
-    from .shapekeys import _registry, key_matches, key_values, values_from_action_only
-
     frames = np.asarray(frames, dtype=np.float64).ravel()
     key = obj.data.shape_keys
     out = np.zeros(len(frames), bool)
@@ -232,7 +229,7 @@ def keys_move_frames(obj, verts, frames, *, skip_prefixes=()) -> np.ndarray:
         return ~out
     v = np.asarray(verts, dtype=np.int64)
     n = len(obj.data.vertices)
-    owned = set(_registry(key, create=False))
+    owned = set(owned_key_names(key, create=False))
     blended = not values_from_action_only(key)
 
     def coords(data):
@@ -305,12 +302,7 @@ class IntegrateMap:
 
     def __init__(self, corners, verts, rest):
         offs, cv = corners
-        sizes = np.diff(offs)
-        face_of = np.repeat(np.arange(len(sizes)), sizes)
-        local = np.arange(len(cv)) - offs[face_of]
-        n = sizes[face_of]
-        prev = cv[offs[face_of] + (local - 1) % n]
-        nxt = cv[offs[face_of] + (local + 1) % n]
+        prev, nxt = corner_neighbours(offs, cv)
         verts = np.asarray(verts, dtype=np.int64)
         sel = np.isin(cv, verts)
         cur, prev, nxt = cv[sel], prev[sel], nxt[sel]
@@ -322,7 +314,7 @@ class IntegrateMap:
         self._ok = self._area > 0
         Bs = np.stack([e1[0], e2[0], nrm[0]], axis=2)
         self._inv = np.zeros_like(Bs)
-        self._inv[self._ok] = _inv3(Bs[self._ok])
+        self._inv[self._ok] = inv3(Bs[self._ok])
         rows = np.searchsorted(verts, cur)
         cnt = np.bincount(rows, minlength=len(verts)).astype(np.float64)
         import scipy.sparse as sp
@@ -350,7 +342,7 @@ class IntegrateMap:
             d = np.asarray(deltas[s : s + block], dtype=np.float64)
             good = np.abs(np.sum(M[..., 0, :] * np.cross(M[..., 1, :], M[..., 2, :]), axis=-1)) > 1e-12  # det
             res = np.zeros_like(d)
-            res[good] = np.einsum("nij,nj->ni", _inv3(M[good]), d[good])  # closed form: no LAPACK call per vertex
+            res[good] = np.einsum("nij,nj->ni", inv3(M[good]), d[good])  # closed form: no LAPACK call per vertex
             for i, v in zip(*np.nonzero(~good)):
                 res[i, v] = np.linalg.lstsq(M[i, v], d[i, v], rcond=None)[0]
             out[s : s + t] = res

@@ -39,6 +39,16 @@ from ..core.capture import meshcache, pointcache
 from ..core.errors import CacheFileError, FaceLabError, MeshError
 from ..names import PREFIX
 from . import compat
+from .objects import disabled_modifiers, modifier_enabled
+from .ownership import (
+    as_prefixes,
+    correction_cache_prefix,
+    is_correction_cache,
+    key_matches,
+    muted_correction_caches,
+    muted_shape_keys,
+)
+from .shapekeys import shape_key_sequence
 
 __all__ = [
     "sequence_source",
@@ -52,6 +62,14 @@ __all__ = [
     "check_alembic_moves",
     "require_mesh_object",
     "scene_fps",
+    "input_positions",
+    "checked_frames",
+    "kept_frame",
+    "set_frame",
+    "iter_evaluated",
+    "cache_path",
+    "alembic_still_error",
+    "mesh_sequence_cache_modifier",
 ]
 
 FACELAB_PREFIXES = (PREFIX,)
@@ -60,15 +78,8 @@ FACELAB_PREFIXES = (PREFIX,)
 # --------------------------------------------------------------------------- helpers
 
 
-def _prefixes(p):
-    if p is None:
-        return ()
-    if isinstance(p, str):
-        return (p,)
-    return tuple(p)
-
-
-def _frames(scene_frames) -> np.ndarray:
+def checked_frames(scene_frames) -> np.ndarray:
+    """(T,) float64 scene frames (subframes allowed); FaceLabError when empty or not finite."""
     f = np.asarray(list(scene_frames) if not isinstance(scene_frames, np.ndarray) else scene_frames, dtype=np.float64)
     f = f.reshape(-1)
     if len(f) == 0:
@@ -91,22 +102,18 @@ def require_mesh_object(obj):
     return obj
 
 
-def _enabled(md) -> bool:
-    return bool(md.show_viewport)
-
-
 def _mesh_cache_active(md) -> bool:
-    from .bakes import is_correction_cache  # a correction cache FaceLab added is not a capture
-
-    return md.type == "MESH_CACHE" and _enabled(md) and bool(md.filepath) and md.factor > 0.0 \
+    # a correction cache FaceLab added is not a capture
+    return md.type == "MESH_CACHE" and modifier_enabled(md) and bool(md.filepath) and md.factor > 0.0 \
         and not is_correction_cache(md.id_data, md)
 
 
 def _msc_active(md) -> bool:
-    return md.type == "MESH_SEQUENCE_CACHE" and _enabled(md) and md.cache_file is not None
+    return md.type == "MESH_SEQUENCE_CACHE" and modifier_enabled(md) and md.cache_file is not None
 
 
-def _cache_path(obj, md) -> str:
+def cache_path(obj, md) -> str:
+    """Absolute path of the file the Mesh Cache modifier ``md`` of ``obj`` plays (library-relative paths resolved)."""
     return bpy.path.abspath(md.filepath, library=obj.library)
 
 
@@ -139,9 +146,7 @@ def _shape_keys_animated(obj, ignore_prefixes=FACELAB_PREFIXES) -> bool:
     keys = obj.data.shape_keys if obj.type == "MESH" else None
     if keys is None or len(keys.key_blocks) < 2:
         return False
-    from .shapekeys import key_matches
-
-    pref = _prefixes(ignore_prefixes)
+    pref = as_prefixes(ignore_prefixes)
     for fc in _anim_fcurves(keys):
         if fc.data_path == "eval_time":
             return True
@@ -152,42 +157,8 @@ def _shape_keys_animated(obj, ignore_prefixes=FACELAB_PREFIXES) -> bool:
 
 
 @contextlib.contextmanager
-def _muted_shape_keys(obj, prefixes):
-    """Mute the shape keys ``prefixes`` select (``shapekeys.key_matches``: under ``FL_`` only FaceLab's
-    recorded keys); restore on exit."""
-    from .shapekeys import _registry, key_matches
-
-    pref = _prefixes(prefixes)
-    keys = obj.data.shape_keys if obj.type == "MESH" else None
-    saved = []
-    try:
-        if keys is not None and pref:
-            owned = set(_registry(keys, create=False))
-            for kb in keys.key_blocks:
-                if key_matches(keys, kb.name, pref, owned) and kb != keys.reference_key:
-                    saved.append((kb, kb.mute))
-                    kb.mute = True
-        yield
-    finally:
-        for kb, mute in saved:
-            kb.mute = mute
-
-
-@contextlib.contextmanager
-def _disabled_modifiers(mods):
-    """Turn ``show_viewport`` off for ``mods``; restore on exit."""
-    saved = [(m, m.show_viewport) for m in mods]
-    try:
-        for m in mods:
-            m.show_viewport = False
-        yield
-    finally:
-        for m, v in saved:
-            m.show_viewport = v
-
-
-@contextlib.contextmanager
-def _kept_frame(scene):
+def kept_frame(scene):
+    """Context manager: the scene's current frame and subframe are restored on exit."""
     frame, sub = scene.frame_current, scene.frame_subframe
     try:
         yield
@@ -195,12 +166,13 @@ def _kept_frame(scene):
         scene.frame_set(frame, subframe=sub)
 
 
-def _set_frame(scene, f: float):
+def set_frame(scene, f: float):
+    """Go to scene frame ``f`` (float: the fraction is the subframe)."""
     fi = math.floor(f)
     scene.frame_set(int(fi), subframe=float(f - fi))
 
 
-def _iter_evaluated(obj, frames, *, mute_prefixes=(), progress=None, scene=None):
+def iter_evaluated(obj, frames, *, mute_prefixes=(), progress=None, scene=None):
     """Yield ``(i, co (V,3) float32)`` of the evaluated mesh on each frame.
 
     Shape keys with ``mute_prefixes`` are muted and the current frame is
@@ -216,11 +188,10 @@ def _iter_evaluated(obj, frames, *, mute_prefixes=(), progress=None, scene=None)
         )
     T = len(frames)
     buf = np.empty(n * 3, dtype=np.float32)
-    from .bakes import muted_correction_caches  # FaceLab's correction caches are muted like its keys
-
-    with _kept_frame(scene), _muted_shape_keys(obj, mute_prefixes), muted_correction_caches(obj, mute_prefixes):
+    # FaceLab's correction caches are muted like its keys
+    with kept_frame(scene), muted_shape_keys(obj, mute_prefixes), muted_correction_caches(obj, mute_prefixes):
         for i, f in enumerate(frames):
-            _set_frame(scene, float(f))
+            set_frame(scene, float(f))
             dg = bpy.context.evaluated_depsgraph_get()
             ev = obj.evaluated_get(dg)
             me = ev.to_mesh()
@@ -325,7 +296,7 @@ def check_capture_files(obj) -> None:
     for md in obj.modifiers:
         if _mesh_cache_active(md):
             try:
-                info = pointcache.cache_info(_cache_path(obj, md), md.cache_format)
+                info = pointcache.cache_info(cache_path(obj, md), md.cache_format)
                 pointcache.check_vertex_count(info, len(obj.data.vertices), name=f"'{obj.name}'")
             except CacheFileError as e:
                 raise type(e)(f"Mesh Cache '{md.name}' of '{obj.name}': {e}") from None
@@ -362,11 +333,12 @@ def check_alembic_moves(obj, frames, positions) -> None:
         When ``T > 1`` and no vertex moves between the frames.
     """
     if len(frames) > 1 and not np.any(positions != positions[:1]):
-        raise _alembic_still_error(obj, frames)
+        raise alembic_still_error(obj, frames)
 
 
-def _alembic_still_error(obj, frames) -> CacheFileError:
-    md = _msc_modifier(obj)
+def alembic_still_error(obj, frames) -> CacheFileError:
+    """The error for an Alembic capture of ``obj`` that does not move over ``frames`` (T,) (to raise)."""
+    md = mesh_sequence_cache_modifier(obj)
     what = f"'{md.cache_file.filepath}'" if md is not None else "its Alembic file"
     return CacheFileError(
         f"The Alembic capture of '{obj.name}' ({what}) does not move on frames {frames[0]:g}-{frames[-1]:g}: "
@@ -419,7 +391,8 @@ def mesh_cache_modifier(obj):
     return None
 
 
-def _msc_modifier(obj):
+def mesh_sequence_cache_modifier(obj):
+    """The last enabled Mesh Sequence Cache modifier of ``obj`` (with a Cache File), or None."""
     for md in reversed(obj.modifiers):
         if _msc_active(md):
             return md
@@ -446,12 +419,11 @@ def mesh_cache_direct_read_problem(obj, md=None, *, mute_prefixes=FACELAB_PREFIX
         return "no enabled Mesh Cache modifier with a file"
     mods = list(obj.modifiers)
     k = mods.index(md)
-    pref = _prefixes(mute_prefixes)
-    from .bakes import correction_cache_prefix
+    pref = as_prefixes(mute_prefixes)
 
     def counts(m):  # FaceLab's correction caches of muted prefixes are off while the capture is read
         p = correction_cache_prefix(obj, m)
-        return _enabled(m) and not (p is not None and pref and p.startswith(pref))
+        return modifier_enabled(m) and not (p is not None and pref and p.startswith(pref))
 
     after = [m.name for m in mods[k + 1 :] if counts(m)]
     if after:
@@ -518,7 +490,7 @@ def read_mesh_cache_frames(obj, scene_frames, *, modifier=None, mute_shape_keys_
         :func:`check_capture_files`).
     """
     require_mesh_object(obj)
-    frames = _frames(scene_frames)
+    frames = checked_frames(scene_frames)
     md = modifier or mesh_cache_modifier(obj)
     if md is None:
         raise MeshError(
@@ -529,7 +501,7 @@ def read_mesh_cache_frames(obj, scene_frames, *, modifier=None, mute_shape_keys_
     if mesh_cache_direct_read_problem(obj, md, mute_prefixes=mute_shape_keys_prefix) is not None:
         return evaluate_frames(obj, frames, mute_shape_keys_prefix=mute_shape_keys_prefix, progress=progress)
     scene = bpy.context.scene
-    path = _cache_path(obj, md)
+    path = cache_path(obj, md)
     info = pointcache.cache_info(path, md.cache_format)
     r = scene.render
     i0, i1, w = meshcache.mesh_cache_samples(
@@ -592,9 +564,9 @@ def evaluate_frames(obj, scene_frames, *, mute_shape_keys_prefix=FACELAB_PREFIXE
         A cache modifier's file is missing or broken (:func:`check_capture_files`).
     """
     require_mesh_object(obj)
-    frames = _frames(scene_frames)
+    frames = checked_frames(scene_frames)
     out = np.empty((len(frames), len(obj.data.vertices), 3), dtype=np.float32)
-    for i, co in _iter_evaluated(obj, frames, mute_prefixes=mute_shape_keys_prefix, progress=progress):
+    for i, co in iter_evaluated(obj, frames, mute_prefixes=mute_shape_keys_prefix, progress=progress):
         out[i] = co
     return out
 
@@ -630,9 +602,31 @@ def read_captured_frames(obj, scene_frames, *, mute_shape_keys_prefix=FACELAB_PR
             obj, scene_frames, mute_shape_keys_prefix=mute_shape_keys_prefix, progress=progress
         )
     if source in ("shape_keys", "static"):
-        from .shapekeys import shape_key_sequence
-
-        seq = shape_key_sequence(obj, _frames(scene_frames), skip_prefixes=_prefixes(mute_shape_keys_prefix))
-        if seq is not None:  # F-curves mixed directly, 7-9x faster than frame by frame
+        seq = shape_key_sequence(obj, checked_frames(scene_frames), skip_prefixes=as_prefixes(mute_shape_keys_prefix))
+        if seq is not None:  # F-curves mixed directly, no frame_set per frame
             return seq
     return evaluate_frames(obj, scene_frames, mute_shape_keys_prefix=mute_shape_keys_prefix, progress=progress)
+
+
+def input_positions(obj, frames, *, upto=None, skip_prefixes=()) -> np.ndarray:
+    """(T,V,3) float32 object-local positions entering the modifier ``upto`` (default: the first).
+
+    The shape-key mix on each frame (every key, FaceLab's included) when ``upto`` is the first
+    modifier; otherwise the evaluated mesh with ``upto`` and every later modifier turned off.
+
+    Parameters
+    ----------
+    obj : bpy.types.Object
+    frames : (T,) array_like of float
+    upto : int, optional
+        Index in ``obj.modifiers`` (default 0).
+    skip_prefixes : tuple of str
+        Shape keys to leave out (:func:`.ownership.key_matches`: under ``FL_`` only FaceLab's recorded keys).
+    """
+    k = 0 if upto is None else int(upto)
+    if k == 0:
+        seq = shape_key_sequence(obj, frames, skip_prefixes=tuple(skip_prefixes), ignore_modifiers=True)
+        if seq is not None:
+            return seq
+    with disabled_modifiers([m for m in list(obj.modifiers)[k:] if m.show_viewport]):
+        return evaluate_frames(obj, frames, mute_shape_keys_prefix=tuple(skip_prefixes))

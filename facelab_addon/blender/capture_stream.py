@@ -25,7 +25,8 @@ import numpy as np
 
 from ..core.capture import meshcache, pointcache
 from . import caches
-from .shapekeys import _fcurve_for_key, _registry, key_matches, values_from_action_only
+from .ownership import as_prefixes, key_matches, owned_key_names
+from .shapekeys import fcurve_for_key, values_from_action_only
 
 __all__ = ["CaptureReader"]
 
@@ -75,7 +76,7 @@ class CaptureReader:
     def _prepare_cache(self, md):
         self.path = "mesh_cache"
         self._md = md
-        self._file = caches._cache_path(self.obj, md)
+        self._file = caches.cache_path(self.obj, md)
         self._info = pointcache.cache_info(self._file, md.cache_format)
         M = meshcache.axis_conversion_matrix(md.forward_axis, md.up_axis, tuple(md.flip_axis))
         self._axis = None if np.array_equal(M, np.eye(3)) else M.astype(np.float32)
@@ -103,14 +104,14 @@ class CaptureReader:
                                                                                               np.float32)
             return True
         basis = key.reference_key
-        skip, owned = caches._prefixes(self.mute), set(_registry(key, create=False))
+        skip, owned = as_prefixes(self.mute), set(owned_key_names(key, create=False))
         curves, deltas = [], []
         for kb in key.key_blocks:
             if kb == basis or kb.mute or key_matches(key, kb.name, skip, owned):
                 continue
             if kb.vertex_group:
                 return False
-            fc = _fcurve_for_key(key, kb)
+            fc = fcurve_for_key(key, kb)
             curves.append((fc if fc is not None and not fc.mute else None, kb.value, kb.slider_min, kb.slider_max))
             deltas.append((coords(kb.data) - coords(kb.relative_key.data)).ravel())
         self._basis = coords(basis.data)
@@ -127,7 +128,7 @@ class CaptureReader:
         if self.path == "shape_keys":
             return self._read_keys(frames)
         out = np.empty((len(frames), len(self.vertices), 3), np.float32)
-        for i, co in caches._iter_evaluated(self.obj, frames, mute_prefixes=self.mute):
+        for i, co in caches.iter_evaluated(self.obj, frames, mute_prefixes=self.mute):
             out[i] = co[self.vertices]
         return out
 

@@ -15,7 +15,7 @@ from pathlib import Path
 import bpy
 
 from ..names import PROPAGATE_PREFIX, RECONSTRUCT_PREFIX, RETARGET_PREFIX, SOLVE_PREFIX
-from .bakes import correction_cache, correction_cache_entries
+from .ownership import correction_cache, correction_cache_record
 
 __all__ = ["correction_cache_players", "missing_correction_files", "correction_cache_problems",
            "require_correction_caches"]
@@ -32,7 +32,7 @@ def correction_cache_players(obj) -> list:
     out = []
     if getattr(obj, "type", None) != "MESH":
         return out
-    for prefix, entry in correction_cache_entries(obj).items():
+    for prefix, entry in correction_cache_record(obj).items():
         md = correction_cache(obj, prefix)[0]
         if md is None:
             continue

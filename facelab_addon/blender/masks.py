@@ -271,9 +271,9 @@ def sketch_polylines(gp_obj, camera: Camera, frame: int, *, depsgraph, hold: boo
         fr = _layer_frame(layer.frames, int(frame), hold, lambda f: f.frame_number)
         if fr is None or fr.drawing is None or fr.drawing.type != "DRAWING":
             continue
-        M = _st._layer_to_world(layer, gp_obj, depsgraph)
-        world = [_st._transform(M, P) for P in _st._drawing_polylines(fr.drawing)]
-        polys = _st._project_world(camera, world, f"Layer '{layer.name}' of '{gp_obj.name}' on frame {frame}")
+        M = _st.layer_to_world(layer, gp_obj, depsgraph)
+        world = [_st.transform_points(M, P) for P in _st.drawing_polylines(fr.drawing)]
+        polys = _st.project_world(camera, world, f"Layer '{layer.name}' of '{gp_obj.name}' on frame {frame}")
         if polys:
             out.setdefault(name, []).extend(polys)
     return out

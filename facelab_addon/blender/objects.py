@@ -5,6 +5,7 @@ object's own units (:func:`local_length`)."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 
 import bpy
@@ -13,7 +14,7 @@ import numpy as np
 from ..core.errors import FaceLabError
 from .camera import evaluated_depsgraph
 
-__all__ = ["NotEditableError", "require_editable", "ModifierState",
+__all__ = ["NotEditableError", "require_editable", "ModifierState", "modifier_enabled", "disabled_modifiers",
            "world_affine", "world_matrices", "local_length", "points_to_local", "triangle_uvs", "same_polygons"]
 
 
@@ -111,6 +112,24 @@ class ModifierState:
                 m.deform_mode = mode
                 undone.append(f"modifier '{m.name}' back to {mode.title()}")
         return undone
+
+
+def modifier_enabled(md) -> bool:
+    """Whether the modifier ``md`` shows in the viewport (the evaluation FaceLab reads)."""
+    return bool(md.show_viewport)
+
+
+@contextlib.contextmanager
+def disabled_modifiers(mods):
+    """Turn ``show_viewport`` off for ``mods``; restore on exit."""
+    saved = [(m, m.show_viewport) for m in mods]
+    try:
+        for m in mods:
+            m.show_viewport = False
+        yield
+    finally:
+        for m, v in saved:
+            m.show_viewport = v
 
 
 def world_affine(obj, depsgraph=None):

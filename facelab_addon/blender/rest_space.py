@@ -24,7 +24,7 @@ import numpy as np
 
 from ..core.errors import MeshError
 from ..names import REST_SPACE_KEY
-from .caches import _kept_frame, _set_frame
+from .caches import kept_frame, set_frame
 
 __all__ = ["deforming_modifiers", "require_same_vertex_count", "to_rest_space"]
 
@@ -124,9 +124,9 @@ def _armature_jacobians(obj, md, frames, idx, W, bones):
     contrib = Wv.sum(axis=1)
     skinned = contrib > 1e-4  # Blender's threshold: below it the vertex is left where it is
     out = np.empty((len(frames), len(idx), 3, 3))
-    with _kept_frame(scene):
+    with kept_frame(scene):
         for t, f in enumerate(frames):
-            _set_frame(scene, float(f))
+            set_frame(scene, float(f))
             dg = bpy.context.evaluated_depsgraph_get()
             arm = md.object.evaluated_get(dg)
             ob = obj.evaluated_get(dg)
@@ -227,9 +227,9 @@ def to_rest_space(obj, frames, deltas, vertices=None, depsgraph=None, *, newton:
         probe.relative_key = basis
         probe.value = 0.0
         temp.append(probe)
-        with _kept_frame(scene):
+        with kept_frame(scene):
             for t, f in enumerate(frames):
-                _set_frame(scene, float(f))
+                set_frame(scene, float(f))
                 dg = bpy.context.evaluated_depsgraph_get()
                 base = _evaluated(obj, dg, n_all)[idx]
                 J = np.empty((len(idx), 3, 3))

@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-import re
 
 import bpy
 import numpy as np
 
-from ..names import CORRECTIVES_ACTION, LEGACY_KEY_PATTERNS, LIVE_PREVIEW_KEY, OWNED_KEYS_PROP, PREFIX
+from ..names import CORRECTIVES_ACTION, OWNED_KEYS_PROP, PREFIX
 from . import compat
+from .ownership import key_matches, own_key, owned_key_names, owned_keys
 
 __all__ = [
     "unique_key_name",
@@ -26,7 +26,7 @@ __all__ = [
     "add_keys_from_deltas",
     "rest_vertices",
     "remove_fcurve",
-    "input_positions",
+    "fcurve_for_key",
 ]
 
 
@@ -69,74 +69,6 @@ def add_corrective_key(obj, name: str, deltas_local) -> "bpy.types.ShapeKey":
     own_key(kb)
     obj.data.update()
     return kb
-
-
-# --------------------------------------------------------------------------- ownership
-def _registry(key, create: bool):
-    """The names listed in ``key[OWNED_KEYS_PROP]`` (a list, pruned to existing keys), or None.
-
-    Created on first use; a datablock without one (a file from before the registry) first
-    adopts the keys whose names match :data:`facelab_addon.names.LEGACY_KEY_PATTERNS`."""
-    names = set(key.key_blocks.keys())
-    reg = key.get(OWNED_KEYS_PROP)
-    if reg is None:
-        if not create:
-            return [n for n in names if _legacy(n)]
-        reg = sorted(n for n in names if _legacy(n))
-    return [str(n) for n in reg if str(n) in names]
-
-
-def _legacy(name: str) -> bool:
-    return any(re.fullmatch(p, name) for p in LEGACY_KEY_PATTERNS)
-
-
-def own_key(key_block) -> None:
-    """Record ``key_block`` as created by FaceLab (:data:`facelab_addon.names.OWNED_KEYS_PROP`)."""
-    key = key_block.id_data
-    reg = _registry(key, create=True)
-    if key_block.name not in reg:
-        reg.append(key_block.name)
-    key[OWNED_KEYS_PROP] = reg
-
-
-def key_matches(key, name: str, prefixes, owned=None) -> bool:
-    """Whether the shape key ``name`` of the Key datablock ``key`` is one ``prefixes`` select.
-
-    A prefix under FaceLab's own (:data:`facelab_addon.names.PREFIX`, ``FL_``) selects only keys
-    FaceLab recorded as its own, so an artist's ``FL_Prop_MyFix`` is never taken for FaceLab's output;
-    any other prefix (``"CaptureError"``) selects by name.
-
-    Parameters
-    ----------
-    key : bpy.types.Key
-    name : str
-    prefixes : tuple of str
-    owned : collection of str, optional
-        FaceLab's recorded keys of ``key`` (computed when omitted; pass it in loops).
-    """
-    for p in prefixes:
-        if name.startswith(p):
-            if not p.startswith(PREFIX) or name == LIVE_PREVIEW_KEY:  # Live Refine's preview is never the capture
-                return True
-            if owned is None:
-                owned = set(_registry(key, create=False))
-            if name in owned:
-                return True
-    return False
-
-
-def owned_keys(obj, prefix: str = "") -> list:
-    """Names of the shape keys of ``obj`` FaceLab created (recorded in the registry), starting with ``prefix``.
-
-    A key the artist made is never listed, whatever its name (an ``FL_Prop_MyFix`` sculpted by hand
-    stays the artist's). In a file from before the registry, keys named exactly as FaceLab named
-    them (``FL_Prop_00``, ``FL_Refine_0012``..., :data:`facelab_addon.names.LEGACY_KEY_PATTERNS`)
-    count as FaceLab's.
-    """
-    key = obj.data.shape_keys
-    if key is None:
-        return []
-    return [n for n in _registry(key, create=False) if n.startswith(prefix)]
 
 
 def key_spike(key_block, frame: int) -> None:
@@ -186,7 +118,8 @@ def _find_fcurve(anim_data, data_path):
 
 
 # --------------------------------------------------------------------------- sequences
-def _fcurve_for_key(key, kb):
+def fcurve_for_key(key, kb):
+    """The F-curve keying the value of the key block ``kb`` of the Key datablock ``key``, or None."""
     ad = key.animation_data
     if ad is None or ad.action is None:
         return None
@@ -205,7 +138,7 @@ def key_values(key, kb, frames) -> np.ndarray:
     """(T,) float64 value of the key block ``kb`` on scene ``frames``: its (unmuted) F-curve, else its current
     value, clipped to its slider range (what the mix uses when :func:`values_from_action_only`)."""
     frames = np.asarray(frames, dtype=np.float64).ravel()
-    fc = _fcurve_for_key(key, kb)
+    fc = fcurve_for_key(key, kb)
     if fc is not None and not fc.mute:
         w = np.array([fc.evaluate(f) for f in frames])
     else:
@@ -247,7 +180,7 @@ def shape_key_sequence(obj, frames, *, skip_prefixes=(PREFIX,), ignore_modifiers
         return c
 
     deltas, weights = [], []
-    skip, owned = tuple(skip_prefixes), set(_registry(key, create=False))
+    skip, owned = tuple(skip_prefixes), set(owned_key_names(key, create=False))
     for kb in key.key_blocks:
         if kb == basis or kb.mute or key_matches(key, kb.name, skip, owned):
             continue
@@ -288,7 +221,7 @@ def remove_keys(obj, prefix: str) -> int:
     if names:
         key = obj.data.shape_keys
         if key is not None:
-            key[OWNED_KEYS_PROP] = _registry(key, create=True)
+            key[OWNED_KEYS_PROP] = owned_key_names(key, create=True)
     return len(names)
 
 
@@ -366,29 +299,3 @@ def remove_fcurve(id_data, data_path: str) -> bool:
         return True
     cb.fcurves.remove(fc)
     return True
-
-
-def input_positions(obj, frames, *, upto=None, skip_prefixes=()) -> np.ndarray:
-    """(T,V,3) float32 object-local positions entering the modifier ``upto`` (default: the first).
-
-    The shape-key mix on each frame (every key, FaceLab's included) when ``upto`` is the first
-    modifier; otherwise the evaluated mesh with ``upto`` and every later modifier turned off.
-
-    Parameters
-    ----------
-    obj : bpy.types.Object
-    frames : (T,) array_like of float
-    upto : int, optional
-        Index in ``obj.modifiers`` (default 0).
-    skip_prefixes : tuple of str
-        Shape keys to leave out (:func:`key_matches`: under ``FL_`` only FaceLab's recorded keys).
-    """
-    from .caches import _disabled_modifiers, evaluate_frames
-
-    k = 0 if upto is None else int(upto)
-    if k == 0:
-        seq = shape_key_sequence(obj, frames, skip_prefixes=tuple(skip_prefixes), ignore_modifiers=True)
-        if seq is not None:
-            return seq
-    with _disabled_modifiers([m for m in list(obj.modifiers)[k:] if m.show_viewport]):
-        return evaluate_frames(obj, frames, mute_shape_keys_prefix=tuple(skip_prefixes))

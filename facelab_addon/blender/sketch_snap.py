@@ -10,24 +10,22 @@ stills).
 
 from __future__ import annotations
 
-import bpy
 import numpy as np
 
 from ..core.capture.camera import Camera
 from ..core.lips.snap import snap_strokes
 from .plate import plate_file, plate_pixels
-from .sketch_views import sketch_camera
 
 __all__ = ["snap_to_plate"]
 
 
-def snap_to_plate(gp_obj, camera: Camera, frame: int, strokes: dict, **options) -> tuple:
+def snap_to_plate(cam_obj, camera: Camera, frame: int, strokes: dict, **options) -> tuple:
     """The lip strokes snapped onto the edges of the plate the sketch's camera shows on ``frame``.
 
     Parameters
     ----------
-    gp_obj : bpy.types.Object
-        The sketch (its camera: :func:`.sketch_views.sketch_camera`, else the scene's).
+    cam_obj : bpy.types.Object or None
+        The camera object the sketch was drawn through (its plate is read; None: no plate).
     camera : Camera
         That camera, in pixels of the render (the plate is scaled to them when its size differs).
     frame : int
@@ -47,8 +45,7 @@ def snap_to_plate(gp_obj, camera: Camera, frame: int, strokes: dict, **options) 
     PlateError
         The plate is a movie file, or its image for the frame is missing.
     """
-    cam_obj = sketch_camera(gp_obj) or getattr(bpy.context.scene, "camera", None)
-    path = plate_file(cam_obj, frame)
+    path = None if cam_obj is None else plate_file(cam_obj, frame)
     if path is None:
         return strokes, "not snapped: the camera shows no plate"
     img = plate_pixels(path)

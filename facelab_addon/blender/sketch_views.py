@@ -4,45 +4,17 @@ Dinev et al. 2018 §5 sketch the inner lips through one camera; FaceLab lets the
 same frame through several (a helmet stereo pair, a witness camera), one Grease Pencil sketch per
 camera (:func:`facelab_addon.blender.strokes.new_lip_sketch` names them ``FL_LipSketch`` and
 ``FL_LipSketch.<camera>``). A sketch records its camera in the custom property
-:data:`SKETCH_CAMERA_PROP`; a sketch parented to a camera (as New Lip Sketch makes it) belongs to
+:data:`facelab_addon.blender.strokes.SKETCH_CAMERA_PROP` (:func:`~facelab_addon.blender.strokes.sketch_camera`
+reads it); a sketch parented to a camera (as New Lip Sketch makes it) belongs to
 that camera too. :func:`sketch_views` lists the sketches keyed on a frame with their cameras, one
 view each of the Refine Lips solve (:func:`facelab_addon.core.lips.sketch.refine_lips_views`).
 """
 
 from __future__ import annotations
 
-import bpy
-
-from .strokes import DEFAULT_SKETCH_NAME, _has_lip_layers, _lip_layers
+from .strokes import SKETCH_CAMERA_PROP, has_lip_layers, lip_layers, sketch_camera, sketch_name_for
 
 __all__ = ["SKETCH_CAMERA_PROP", "sketch_camera", "sketch_name_for", "sketch_views"]
-
-#: Custom property of a sketch object pointing to the camera object it is drawn through.
-SKETCH_CAMERA_PROP = "facelab_camera"
-
-
-def sketch_camera(gp_obj):
-    """The camera object a sketch is drawn through, or None when it does not say.
-
-    Its :data:`SKETCH_CAMERA_PROP` custom property (set by :func:`new_lip_sketch`), else its
-    parent when that is a camera.
-    """
-    cam = gp_obj.get(SKETCH_CAMERA_PROP) if hasattr(gp_obj, "get") else None
-    if cam is not None and getattr(cam, "type", None) == "CAMERA":
-        return cam
-    par = gp_obj.parent
-    return par if par is not None and par.type == "CAMERA" else None
-
-
-def sketch_name_for(scene, cam) -> str:
-    """The name of ``cam``'s sketch: an existing one drawn through it, else a new name."""
-    for o in scene.objects:
-        if o.type == "GREASEPENCIL" and _has_lip_layers(o.data) and sketch_camera(o) == cam:
-            return o.name
-    default = bpy.data.objects.get(DEFAULT_SKETCH_NAME)
-    if default is None or default.type != "GREASEPENCIL" or sketch_camera(default) in (None, cam):
-        return DEFAULT_SKETCH_NAME
-    return f"{DEFAULT_SKETCH_NAME}.{cam.name}"
 
 
 def sketch_views(scene, frame: int) -> list:
@@ -55,12 +27,12 @@ def sketch_views(scene, frame: int) -> list:
     """
     out, seen = [], set()
     for o in sorted(scene.objects, key=lambda o: o.name):
-        if o.type != "GREASEPENCIL" or not _has_lip_layers(o.data):
+        if o.type != "GREASEPENCIL" or not has_lip_layers(o.data):
             continue
         cam = sketch_camera(o)
         if cam is None or cam.name in seen:
             continue
-        lips = _lip_layers(o.data.layers, lambda lay: lay.name)
+        lips = lip_layers(o.data.layers, lambda lay: lay.name)
         keyed = all(lips[lab] and any(int(fr.frame_number) == int(frame) for lay in lips[lab] for fr in lay.frames)
                     for lab in ("upper", "lower"))
         if keyed:

@@ -64,8 +64,18 @@ from ..core.errors import CameraError, SketchError
 from ..names import SKETCH_OBJECT, SNAP_PROP, SNAP_REPORT_PROP
 from . import compat
 from .camera import evaluated_depsgraph
+from .sketch_snap import snap_to_plate
 
 __all__ = [
+    "SKETCH_CAMERA_PROP",
+    "sketch_camera",
+    "sketch_name_for",
+    "lip_layers",
+    "has_lip_layers",
+    "layer_to_world",
+    "transform_points",
+    "drawing_polylines",
+    "project_world",
     "UPPER_LAYER",
     "LOWER_LAYER",
     "new_lip_sketch",
@@ -103,7 +113,7 @@ def _label(name: str):
     return None
 
 
-def _lip_layers(layers, name_of):
+def lip_layers(layers, name_of):
     """{'upper': [layers], 'lower': [layers]}; an exact name wins over partial matches."""
     out = {"upper": [], "lower": []}
     for layer in layers:
@@ -117,8 +127,9 @@ def _lip_layers(layers, name_of):
     return out
 
 
-def _has_lip_layers(gp_data) -> bool:
-    lips = _lip_layers(gp_data.layers, lambda lay: lay.name)
+def has_lip_layers(gp_data) -> bool:
+    """Whether the Grease Pencil data ``gp_data`` has an upper or a lower lip layer (:func:`lip_layers`)."""
+    lips = lip_layers(gp_data.layers, lambda lay: lay.name)
     return bool(lips["upper"] or lips["lower"])
 
 
@@ -133,7 +144,7 @@ def _matrix(m) -> np.ndarray:
     return np.array(m, dtype=np.float64).reshape(4, 4)
 
 
-def _layer_to_world(layer, obj, depsgraph) -> np.ndarray:
+def layer_to_world(layer, obj, depsgraph) -> np.ndarray:
     """(4,4) layer space -> world (scene units), as ``Layer::to_world_space`` in Blender.
 
     ``obj`` and the layer's parent are read evaluated (current frame).
@@ -151,11 +162,12 @@ def _layer_to_world(layer, obj, depsgraph) -> np.ndarray:
     return parent_to_world @ _matrix(layer.matrix_parent_inverse) @ local
 
 
-def _transform(M, P) -> np.ndarray:
+def transform_points(M, P) -> np.ndarray:
+    """(n,3) points ``P`` mapped by the (4,4) affine matrix ``M``."""
     return P @ M[:3, :3].T + M[:3, 3]
 
 
-def _drawing_polylines(drawing) -> list:
+def drawing_polylines(drawing) -> list:
     """Layer-space polylines of a GP v3 drawing: list of (n,3) float64 arrays."""
     n_off = len(drawing.curve_offsets)
     if n_off < 2:
@@ -180,12 +192,44 @@ def _check_in_front(camera: Camera, P, where: str):
         )
 
 
-def _project_world(camera: Camera, polylines, where: str) -> list:
+def project_world(camera: Camera, polylines, where: str) -> list:
+    """World polylines (list of (n,3), scene units) -> (n,2) pixels; SketchError naming ``where`` when
+    a point is at or behind the camera."""
     out = []
     for P in polylines:
         _check_in_front(camera, P, where)
         out.append(camera.project(P))
     return out
+
+
+# --------------------------------------------------------------------------- sketch cameras
+#: Custom property of a sketch object pointing to the camera object it is drawn through.
+SKETCH_CAMERA_PROP = "facelab_camera"
+
+
+def sketch_camera(gp_obj):
+    """The camera object a sketch is drawn through, or None when it does not say.
+
+    Its :data:`SKETCH_CAMERA_PROP` custom property (set by :func:`new_lip_sketch`), else its
+    parent when that is a camera.
+    """
+    cam = gp_obj.get(SKETCH_CAMERA_PROP) if hasattr(gp_obj, "get") else None
+    if cam is not None and getattr(cam, "type", None) == "CAMERA":
+        return cam
+    par = gp_obj.parent
+    return par if par is not None and par.type == "CAMERA" else None
+
+
+def sketch_name_for(scene, cam) -> str:
+    """The name of ``cam``'s sketch: an existing one drawn through it, else a new name."""
+    for o in scene.objects:
+        if o.type == "GREASEPENCIL" and has_lip_layers(o.data) and sketch_camera(o) == cam:
+            return o.name
+    default = bpy.data.objects.get(DEFAULT_SKETCH_NAME)
+    if default is None or default.type != "GREASEPENCIL" or sketch_camera(default) in (None, cam):
+        return DEFAULT_SKETCH_NAME
+    return f"{DEFAULT_SKETCH_NAME}.{cam.name}"
+
 
 
 # --------------------------------------------------------------------------- create
@@ -216,10 +260,10 @@ def new_lip_sketch(scene, camera_obj=None, name: str | None = None, depth: float
 
     Every camera has its own sketch (a stereo pair or a witness camera sketches
     the same frame from several views): without ``name``, the sketch of this
-    camera is reused (:func:`.sketch_views.sketch_camera`), else ``FL_LipSketch``
+    camera is reused (:func:`sketch_camera`), else ``FL_LipSketch``
     is created for the first camera and ``FL_LipSketch.<camera name>`` for the
     others. The sketch records its camera in the custom property
-    :data:`.sketch_views.SKETCH_CAMERA_PROP`.
+    :data:`SKETCH_CAMERA_PROP`.
 
     Parameters
     ----------
@@ -252,8 +296,6 @@ def new_lip_sketch(scene, camera_obj=None, name: str | None = None, depth: float
             "add a camera and make it the scene camera."
         )
     if name is None:
-        from .sketch_views import sketch_name_for
-
         name = sketch_name_for(scene, cam)
     obj = bpy.data.objects.get(name)
     if obj is not None and obj.type != "GREASEPENCIL":
@@ -276,8 +318,6 @@ def new_lip_sketch(scene, camera_obj=None, name: str | None = None, depth: float
         obj.matrix_basis = offset @ Matrix.Rotation(math.pi / 2, 4, "X")
         obj.show_in_front = True
         obj.hide_render = True  # a drawing aid: never in the renders
-        from .sketch_views import SKETCH_CAMERA_PROP
-
         obj[SKETCH_CAMERA_PROP] = cam
     if scene.objects.get(obj.name) is None:
         scene.collection.objects.link(obj)
@@ -286,7 +326,7 @@ def new_lip_sketch(scene, camera_obj=None, name: str | None = None, depth: float
         gp.materials.append(_sketch_material())
 
     frame = scene.frame_current
-    lips = _lip_layers(gp.layers, lambda lay: lay.name)
+    lips = lip_layers(gp.layers, lambda lay: lay.name)
     for lab, layer_name in (("upper", UPPER_LAYER), ("lower", LOWER_LAYER)):
         layer = lips[lab][0] if lips[lab] else None
         if layer is None:
@@ -295,7 +335,7 @@ def new_lip_sketch(scene, camera_obj=None, name: str | None = None, depth: float
             layer.tint_factor = 1.0
         if not any(f.frame_number == frame for f in layer.frames):
             layer.frames.new(frame)
-    upper = _lip_layers(gp.layers, lambda lay: lay.name)["upper"]
+    upper = lip_layers(gp.layers, lambda lay: lay.name)["upper"]
     if upper:
         gp.layers.active = upper[0]
     return obj
@@ -303,7 +343,7 @@ def new_lip_sketch(scene, camera_obj=None, name: str | None = None, depth: float
 
 def set_lip_layer(gp_obj, lip: str) -> str:
     """Make the sketch's ``lip`` layer (``"upper"`` / ``"lower"``) the one drawn on; returns its name."""
-    layers = _lip_layers(gp_obj.data.layers, lambda lay: lay.name)[lip]
+    layers = lip_layers(gp_obj.data.layers, lambda lay: lay.name)[lip]
     if not layers:
         nice = UPPER_LAYER if lip == "upper" else LOWER_LAYER
         raise SketchError(f"Sketch '{gp_obj.name}' has no '{nice}' layer; press New Lip Sketch to add it.")
@@ -356,7 +396,7 @@ def write_stroke_pixels(gp_obj, layer_name: str, frame: int, polylines_px, camer
     if depsgraph is None:
         scenes = gp_obj.users_scene
         depsgraph = evaluated_depsgraph(scenes[0]) if scenes else bpy.context.evaluated_depsgraph_get()
-    to_world = _layer_to_world(layer, gp_obj, depsgraph)
+    to_world = layer_to_world(layer, gp_obj, depsgraph)
 
     if depth is None:
         depth = float(camera.depth(to_world[:3, 3][None])[0])
@@ -367,7 +407,7 @@ def write_stroke_pixels(gp_obj, layer_name: str, frame: int, polylines_px, camer
     x_cam = np.linalg.solve(camera.K, h.T).T * depth  # camera coordinates, z == depth
     X = (x_cam - camera.t) @ camera.R  # world: R^T (x_c - t)
     to_layer = np.linalg.inv(to_world)
-    P = _transform(to_layer, X)
+    P = transform_points(to_layer, X)
 
     n_old = len(drawing.attributes["position"].data)
     had_radius = drawing.attributes.get("radius") is not None
@@ -413,7 +453,7 @@ def find_sketch_object(scene, gp_obj=None):
                 f"Object '{gp_obj.name}' is a {gp_obj.type.lower()}, not a Grease Pencil sketch; {_HOWTO}."
             )
         return gp_obj
-    candidates = [o for o in scene.objects if o.type == "GREASEPENCIL" and _has_lip_layers(o.data)]
+    candidates = [o for o in scene.objects if o.type == "GREASEPENCIL" and has_lip_layers(o.data)]
     if not candidates:
         named = scene.objects.get(DEFAULT_SKETCH_NAME)
         return named if named is not None and named.type == "GREASEPENCIL" else None
@@ -432,7 +472,7 @@ def has_lip_sketch(scene, gp_obj=None) -> bool:
     with lip layers, or annotation layers named after the lips (cheap enough for ``poll``)."""
     if gp_obj is not None:
         return True
-    if any(o.type == "GREASEPENCIL" and _has_lip_layers(o.data) for o in scene.objects):
+    if any(o.type == "GREASEPENCIL" and has_lip_layers(o.data) for o in scene.objects):
         return True
     ann = compat.scene_annotation(scene)
     return ann is not None and any(_label(lay.info) for lay in ann.layers)
@@ -441,7 +481,7 @@ def has_lip_sketch(scene, gp_obj=None) -> bool:
 def sketch_keyframes(gp_obj) -> list:
     """Sorted scene frames holding a keyframe on the lip layers of the Grease Pencil sketch ``gp_obj``."""
     frames = set()
-    lips = _lip_layers(gp_obj.data.layers, lambda lay: lay.name)
+    lips = lip_layers(gp_obj.data.layers, lambda lay: lay.name)
     for layer in lips["upper"] + lips["lower"]:
         frames.update(int(fr.frame_number) for fr in layer.frames)
     return sorted(frames)
@@ -478,7 +518,7 @@ def require_sketch_keyed_on(scene, frame: int, gp_obj=None) -> None:
         if ann is None:
             return
         layers, name_of, what = ann.layers, (lambda lay: lay.info), f"The lip annotation '{ann.name}'"
-    lips = _lip_layers(layers, name_of)
+    lips = lip_layers(layers, name_of)
     keyed = {lab: sorted({int(fr.frame_number) for lay in lips[lab] for fr in lay.frames}) for lab in lips}
     for lab, nice in (("upper", UPPER_LAYER), ("lower", LOWER_LAYER)):
         if not lips[lab] or frame in keyed[lab]:
@@ -496,7 +536,7 @@ def require_sketch_keyed_on(scene, frame: int, gp_obj=None) -> None:
 
 
 def _read_gp_object(obj, camera: Camera, frame: int, depsgraph, snap=None) -> dict:
-    lips = _lip_layers(obj.data.layers, lambda lay: lay.name)
+    lips = lip_layers(obj.data.layers, lambda lay: lay.name)
     out = {}
     for lab, nice in (("upper", UPPER_LAYER), ("lower", LOWER_LAYER)):
         if not lips[lab]:
@@ -509,9 +549,9 @@ def _read_gp_object(obj, camera: Camera, frame: int, depsgraph, snap=None) -> di
             fr = layer.get_frame_at(frame)
             if fr is None or fr.drawing is None or fr.drawing.type != "DRAWING":
                 continue
-            M = _layer_to_world(layer, obj, depsgraph)
-            world = [_transform(M, P) for P in _drawing_polylines(fr.drawing)]
-            polys += _project_world(camera, world, f"Layer '{layer.name}' of '{obj.name}' on frame {frame}")
+            M = layer_to_world(layer, obj, depsgraph)
+            world = [transform_points(M, P) for P in drawing_polylines(fr.drawing)]
+            polys += project_world(camera, world, f"Layer '{layer.name}' of '{obj.name}' on frame {frame}")
         if not polys:
             raise SketchError(
                 f"The '{nice}' layer of '{obj.name}' has no strokes on frame {frame}; "
@@ -519,9 +559,8 @@ def _read_gp_object(obj, camera: Camera, frame: int, depsgraph, snap=None) -> di
             )
         out[lab] = polys
     if snap if snap is not None else bool(obj.get(SNAP_PROP, False)):
-        from .sketch_snap import snap_to_plate  # (it reads the sketch's camera: an import cycle)
-
-        out, report = snap_to_plate(obj, camera, frame, out)
+        cam_obj = sketch_camera(obj) or getattr(bpy.context.scene, "camera", None)
+        out, report = snap_to_plate(cam_obj, camera, frame, out)
         obj[SNAP_REPORT_PROP] = report
     return out
 
@@ -577,12 +616,12 @@ def annotation_frame_pixels(annotation_frame, camera: Camera, where: str) -> lis
         if _is_view_space(stroke, P, camera):
             polys.append(_view_percent_to_px(P, camera))
         else:
-            polys += _project_world(camera, [P], where)
+            polys += project_world(camera, [P], where)
     return polys
 
 
 def _read_annotation(ann, camera: Camera, frame: int) -> dict:
-    lips = _lip_layers(ann.layers, lambda lay: lay.info)
+    lips = lip_layers(ann.layers, lambda lay: lay.info)
     out = {}
     for lab, nice in (("upper", UPPER_LAYER), ("lower", LOWER_LAYER)):
         if not lips[lab]:

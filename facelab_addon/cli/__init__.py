@@ -15,7 +15,7 @@ found at run time: a new one is added by dropping in a module that defines
 The common options (inputs, ``--object``, ``--frames``, ``--out``, ``--json``, ``--quiet``,
 ``--verbose``) and the plumbing (opening inputs, finding the object, Blender's own output kept off
 the terminal, exit codes) are in ``_common.py``. The settings a command's steps store with the shot
-(:data:`facelab_addon.ui.scene_settings.SCENE_SETTINGS`) are flags too; without a flag the value
+(:data:`facelab_addon.pipeline.shot_settings.SCENE_SETTINGS`) are flags too; without a flag the value
 saved in the .blend is used. Progress goes to stderr, the JSON summary to stdout (or ``--json FILE``).
 
 Exit codes (also in docs/cli.md):

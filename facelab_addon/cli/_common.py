@@ -28,6 +28,7 @@ from ._errors import (  # noqa: F401  (the exit codes and CliError are imported 
     CliError,
 )
 from ._frames import MAX_FRAME, MAX_FRAME_COUNT, contiguous, parse_frames  # noqa: F401  (for the commands)
+from ._stdout import quiet_stdout
 from ._paths import (  # noqa: F401  (same_file for the commands)
     check_blend_caches,
     check_distinct_outputs,
@@ -462,25 +463,6 @@ def clean_report(e) -> str:
     return " ".join(lines)
 
 
-@contextlib.contextmanager
-def quiet_stdout():
-    """Send everything written to stdout (Python and Blender's C code) to stderr meanwhile."""
-    try:
-        fd = sys.stdout.fileno()
-    except (AttributeError, OSError, ValueError):  # no real stdout (some embeddings)
-        yield
-        return
-    sys.stdout.flush()
-    saved = os.dup(fd)
-    try:
-        os.dup2(sys.stderr.fileno(), fd)
-        yield
-    finally:
-        sys.stdout.flush()
-        os.dup2(saved, fd)
-        os.close(saved)
-
-
 def ensure_registered(bpy) -> str:
     """Register FaceLab's operators unless Blender already has them (an enabled extension)."""
     if hasattr(bpy.types, "FACELAB_OT_propagate"):
@@ -581,22 +563,22 @@ def execute(args) -> int:
 
 
 def add_settings_arguments(p, command: str) -> None:
-    """The flags of the settings stored with the shot that ``command`` uses (``ui.scene_settings``);
+    """The flags of the settings stored with the shot that ``command`` uses (``pipeline.shot_settings``);
     none when FaceLab's Blender side cannot be imported (no bpy: the run then exits with code 6)."""
     try:
-        from ..ui import scene_settings
+        from ..pipeline import shot_settings
     except ImportError:
         return
-    scene_settings.add_flags(p, command)
+    shot_settings.add_flags(p, command)
 
 
 def apply_settings(args, scene) -> dict:
     """Write the settings flags given into the scene (saved with ``--out``); ``{group: {field: value}}``
     of the settings the command uses."""
-    from ..ui import scene_settings
+    from ..pipeline import shot_settings
 
     try:
-        return scene_settings.apply_flags(args, scene, args.command)
+        return shot_settings.apply_flags(args, scene, args.command)
     except ValueError as e:
         raise CliError(str(e), EXIT_USAGE) from None
 

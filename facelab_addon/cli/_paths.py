@@ -7,6 +7,7 @@ import os
 from pathlib import Path
 
 from ._errors import EXIT_INPUT, EXIT_OUTPUT, EXIT_USAGE, CliError
+from ._stdout import quiet_stdout
 
 
 def same_file(a: Path, b: Path) -> bool:
@@ -130,7 +131,6 @@ def check_blend_caches(bpy, p: Path) -> None:
     aborts the whole process on a truncated file. The file's Cache Files are linked (not evaluated) to read
     their paths; a missing file is left to the checks after opening (Blender plays it as the static mesh)."""
     from ..blender.caches import alembic_file_problem
-    from ._common import quiet_stdout
 
     try:
         with quiet_stdout(), bpy.data.libraries.load(str(p.resolve()), link=True) as (src, dst):

@@ -91,7 +91,7 @@ def run(args, session) -> dict:
     from ..pipeline.bake import BakeSettings, bake
     from ..pipeline.propagate import PropagateSettings, propagate
     from ..pipeline.regions import RegionSettings, auto_regions
-    from ..ui.scene_settings import scene_settings
+    from ..pipeline.shot_settings import scene_settings
 
     scene = session.scene
     obj = session.face()

@@ -29,7 +29,7 @@ def run(args, session) -> dict:
     import time
 
     from ..pipeline.reconstruct import reconstruct_from_bundles
-    from ..ui.props_reconstruct import reconstruct_settings
+    from ..pipeline.shot_settings import reconstruct_settings
     from .solve import progress
 
     bpy = session.bpy

@@ -51,7 +51,7 @@ def run(args, session) -> dict:
     from ..blender.strokes import find_sketch_object, sketch_keyframes
     from ..core.errors import FaceLabError
     from ..pipeline.refine import refine
-    from ..ui.ops import refine_settings
+    from ..pipeline.shot_settings import refine_settings
 
     bpy = session.bpy
     scene = session.scene
@@ -93,7 +93,7 @@ def run(args, session) -> dict:
         frames = []
     if gp is not None:
         scene.facelab.sketch = gp
-    settings = refine_settings(bpy.context)
+    settings = refine_settings(scene)
     done = []
     t0 = time.perf_counter()
     for i, f in enumerate(frames):

@@ -58,7 +58,7 @@ def run(args, session) -> dict:
     from ..blender.rig import rig_shapes
     from ..core.errors import FaceLabError
     from ..pipeline.retarget import retarget
-    from ..ui.props_solve import retarget_settings
+    from ..pipeline.shot_settings import retarget_settings
 
     bpy = session.bpy
     scene = session.scene

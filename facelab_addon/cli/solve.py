@@ -67,8 +67,8 @@ def check_views(session) -> list:
     """Every view has a camera, a clip and a readable calibration; returns their descriptions."""
     from ..blender import tracking
     from ..core.errors import FaceLabError
+    from ..pipeline.shot_settings import scene_views
     from ..pipeline.solve import require_views
-    from ..ui.props_solve import scene_views
 
     scene = session.scene
     try:
@@ -100,8 +100,8 @@ def _stats(values, frames):
 # --------------------------------------------------------------------------- the command
 def bind(session, args, obj, frames) -> dict:
     """Bind Tracks when needed; returns the bind part of the summary."""
+    from ..pipeline.shot_settings import bind_settings
     from ..pipeline.solve import bind_tracks
-    from ..ui.props_solve import bind_settings
 
     scene = session.scene
     s = scene.facelab_solve
@@ -147,8 +147,8 @@ def run(args, session) -> dict:
     from ..blender.actions import curve_values
     from ..blender.rig import rig_shapes
     from ..core.errors import FaceLabError
+    from ..pipeline.shot_settings import solve_settings
     from ..pipeline.solve import solve_performance, summarise_skips
-    from ..ui.props_solve import solve_settings
 
     scene = session.scene
     s = scene.facelab_solve

@@ -31,9 +31,10 @@ import bpy
 import numpy as np
 
 from ..blender import bakes, cache_integrate, rest_space
+from ..blender.caches import input_positions
 from ..blender.capture_stream import CaptureReader
 from ..blender.objects import local_length
-from ..blender.shapekeys import add_keys_from_deltas, input_positions, key_values_bulk, remove_keys
+from ..blender.shapekeys import add_keys_from_deltas, key_values_bulk, remove_keys
 from ..core.capture.integrate import integrate_matrices
 from ..core.capture.pointcache_writer import PointCacheWriter
 from ..core.errors import FaceLabError, MeshError, OutputError

@@ -3,11 +3,11 @@
 A pipeline's settings dataclass declares each user-facing field with :func:`setting`::
 
     @dataclass
-    class RefineSettings:
-        lambda_pos: float = setting(0.1, label="Position Weight", min=0.0, soft_max=10.0,
-                                    description="How strongly vertices keep their captured position")
-        free_radius: float = setting(0.6, label="Free Region", min=0.0, unit="mouth",
-                                     description="How far from the sketch the lips may move, in mouth widths")
+    class ExampleSettings:  # an illustration, not one of FaceLab's settings classes
+        weight: float = setting(1.0, label="Weight", min=0.0, soft_max=10.0,
+                                description="How strongly the term pulls")
+        reach: float = setting(0.5, label="Reach", min=0.0, unit="mouth",
+                               description="How far from the sketch the mesh may move, in mouth widths")
 
 The metadata (label, description, bounds, unit) is what a generated Blender property, a panel
 row or a CLI flag needs; :func:`describe` lists it. Fields declared with plain defaults are internal

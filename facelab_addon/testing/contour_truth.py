@@ -20,8 +20,8 @@ import numpy as np
 from ..core.errors import FaceLabError, MeshError
 from ..core.geometry.polyline import resample_polyline
 from ..core.solve.contour_loops import ContourLoops, TrackedCurve, contour_loops
-from ..core.solve.matching import _eval_points
-from ..core.solve.occlusion import _envelope_counts
+from ..core.solve.matching import half_points
+from ..core.solve.occlusion import envelope_counts
 from .synthetic import ICT_MOUTH_LOOP
 
 __all__ = ["ict_contour_loops", "synthetic_tracked_curves"]
@@ -96,7 +96,7 @@ def synthetic_tracked_curves(
     rng = np.random.default_rng(seed)
     out = []
     for ci, cam in enumerate(cameras):
-        counts = _envelope_counts(V, cam, loops)
+        counts = envelope_counts(V, cam, loops)
         for name in names:
             if name not in loops.halves:
                 raise FaceLabError(f"The loops have no '{name}' candidates; use one of {loops.curve_names()}.")
@@ -104,7 +104,7 @@ def synthetic_tracked_curves(
             c = counts[lo:hi]
             best = np.flatnonzero(c == c.max())
             k = int(best[np.argmin(np.abs(best - loops.default_loop[name]))])
-            X = _eval_points(V, loops.halves[name][k])
+            X = half_points(V, loops.halves[name][k])
             if (cam.depth(X) <= 0).any():
                 continue
             P = resample_polyline(cam.project(X), spacing_px)

@@ -1,74 +1,27 @@
-"""Operators of the sketch step (New Lip Sketch, Refine Lips) and the helpers every operator shares:
-the face being worked on, the shared ``poll``, a progress callback. The work is in
-:mod:`facelab_addon.pipeline.refine`."""
-
-import sys
+"""Operators of the sketch step (New Lip Sketch, Refine Lips). The work is in
+:mod:`facelab_addon.pipeline.refine`; the helpers every operator shares are in :mod:`.common`."""
 
 import bpy
 
 from ..blender.sketch_mode import DRAW_MODE, SKETCH_MODES, start_drawing
 from ..blender.strokes import has_lip_sketch, new_lip_sketch, set_lip_layer
 from ..core.errors import FaceLabError
-from ..pipeline import wording
+from ..pipeline import shot_settings, wording
 from ..pipeline.propagate import record_training_frame  # noqa: F401  (re-exported for scripts)
 from ..pipeline.refine import RefineSettings, refine
-from .scene_settings import scene_settings
-
-
-def progress_callback(context, T, label="FaceLab"):
-    """A ``progress(done, n)`` callback (``done`` items of ``n`` finished): the window's progress
-    cursor, and in background mode (``blender -b``, the bpy module, the CLI) a line on stderr about
-    every 10 %. Callers end it with ``context.window_manager.progress_end()``."""
-    wm = context.window_manager
-    wm.progress_begin(0, max(T, 1))
-    last = [-1]
-
-    def update(done, n=T):
-        wm.progress_update(done)
-        if bpy.app.background and n:
-            pct = int(100 * done / n)
-            if pct // 10 != last[0] // 10 or done == n:
-                last[0] = pct
-                print(f"{label}: {done}/{n} frames ({pct} %)", file=sys.stderr, flush=True)
-
-    return update
-
-
-def operator_range(op) -> tuple:
-    """``(start, end)`` of an operator's ``frame_start`` / ``frame_end``: the values given (negative
-    frames included), None for one not given (the pipeline then takes the scene's)."""
-    return tuple(getattr(op, p) if op.properties.is_property_set(p) else None for p in ("frame_start", "frame_end"))
-
-
-def fill_scene_range(op, scene) -> None:
-    """Give an operator's unset ``frame_start`` / ``frame_end`` the scene's range, so its redo panel shows
-    the frames it works on (the properties are ``SKIP_SAVE``: the next run starts from the scene again)."""
-    for p, v in (("frame_start", scene.frame_start), ("frame_end", scene.frame_end)):
-        if not op.properties.is_property_set(p):
-            setattr(op, p, v)
-
-
-def face_object(context):
-    """The face to correct: FaceLab > Setup > Face, else the active mesh object."""
-    s = context.scene.facelab
-    if s.face is not None:
-        return s.face
-    ob = context.active_object
-    return ob if ob is not None and ob.type == "MESH" else None
-
-
-def poll_face(cls, context) -> bool:
-    """Shared ``poll``: a face mesh must be selected (or set in Setup); explains itself otherwise."""
-    if face_object(context) is None:
-        cls.poll_message_set("Select the captured face mesh (or set it in FaceLab > Setup)")
-        return False
-    return True
+from .common import (  # noqa: F401  (re-exported)
+    face_object,
+    fill_scene_range,
+    operator_range,
+    poll_face,
+    progress_callback,
+)
 
 
 def refine_settings(context) -> RefineSettings:
     """The Refine Lips settings saved with the shot (FaceLab > Sketch & Refine > Settings and its Advanced;
     the fixed group from Setup)."""
-    return scene_settings(context.scene, RefineSettings)
+    return shot_settings.refine_settings(context.scene)
 
 
 class FACELAB_OT_new_lip_sketch(bpy.types.Operator):

@@ -28,7 +28,7 @@ from ..pipeline.propagate import (
 )
 from ..pipeline.regions import RegionSettings, auto_regions
 from ..pipeline.steps import StepJob, run_steps
-from .ops import face_object, fill_scene_range, operator_range, poll_face, progress_callback
+from .common import face_object, fill_scene_range, operator_range, poll_face, progress_callback
 from .scene_settings import scene_settings
 
 

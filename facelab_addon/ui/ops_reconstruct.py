@@ -14,7 +14,7 @@ from ..pipeline.reconstruct import (
     reconstruct_from_bundles,
 )
 from . import props_reconstruct
-from .ops import face_object, fill_scene_range, operator_range, poll_face, progress_callback
+from .common import face_object, fill_scene_range, operator_range, poll_face, progress_callback
 from .props_reconstruct import corrective_settings, reconstruct_settings
 
 

@@ -10,9 +10,9 @@ from ..blender import review
 from ..blender.strokes import find_sketch_object
 from ..core.errors import FaceLabError
 from ..names import EXTRAPOLATION_PROP, SUGGEST_MARKER
-from ..pipeline import wording
+from ..pipeline import shot_settings, wording
 from . import scene_settings
-from .ops import face_object, poll_face
+from .common import face_object, poll_face
 
 
 def _has_corrections(obj) -> bool:
@@ -188,7 +188,7 @@ def _entry(op):
     e = scene_settings.entry_for(op.target)
     if e is None:
         op.report({"ERROR"}, f"No FaceLab settings called {op.target!r}: one of "
-                             f"{[x.attr for x in scene_settings.SCENE_SETTINGS]}")
+                             f"{[x.attr for x in shot_settings.SCENE_SETTINGS]}")
     return e
 
 
@@ -223,20 +223,16 @@ class FACELAB_OT_save_settings_defaults(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        from .prefs import preferences
-
-        if preferences(context) is None:
+        if shot_settings.preferences(context) is None:
             cls.poll_message_set("FaceLab is not enabled as an add-on here: no preferences to save to")
             return False
         return True
 
     def execute(self, context):
-        from .prefs import preferences
-
         e = _entry(self)
         if e is None:
             return {"CANCELLED"}
-        scene_settings.copy_values(getattr(context.scene, e.attr), getattr(preferences(context), e.attr), e)
+        scene_settings.copy_values(getattr(context.scene, e.attr), getattr(shot_settings.preferences(context), e.attr), e)
         context.preferences.is_dirty = True
         self.report({"INFO"}, f"{e.cls.__name__}: this shot's values are the defaults of new scenes")
         return {"FINISHED"}

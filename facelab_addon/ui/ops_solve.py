@@ -19,7 +19,7 @@ from ..pipeline.solve import (
     solve_performance,
     summarise_skips,
 )
-from .ops import face_object, poll_face, progress_callback
+from .common import face_object, poll_face, progress_callback
 from .props_solve import bind_settings, retarget_settings, solve_settings
 
 

@@ -17,7 +17,7 @@ from ..blender.review import keyed_extrapolation, showing_capture
 from ..names import CORRECTION_ATTR, CORRECTION_RANGE_PROP, EXTRAPOLATION_PROP, LIPS_GROUP, MOUTH_GROUP, SUGGEST_MARKER
 from ..pipeline.wording import EXTRAPOLATING, extrapolation_word
 from . import scene_settings
-from .ops import face_object
+from .common import face_object
 from .ops_live import draw_live
 from .ops_propagate import RUNNING
 from .panel_reconstruct import draw_reconstruct_section

@@ -5,7 +5,7 @@ the settings live in ``scene.facelab_recon`` (``ui/props_reconstruct.py``).
 """
 
 from ..names import BUNDLES_COLLECTION
-from .ops import face_object
+from .common import face_object
 
 
 def draw_reconstruct_section(layout, context):

@@ -8,7 +8,7 @@ whose ``-1`` means "the current / scene frame" are drawn as toggles, never as -1
 
 import bpy
 
-from .ops import face_object
+from .common import face_object
 
 
 class FACELAB_UL_solve_views(bpy.types.UIList):

@@ -2,7 +2,7 @@
 
 A shot's solver settings live in its scene (:mod:`.scene_settings`, saved with the .blend). The
 preferences hold one group of defaults per settings class of
-:data:`~facelab_addon.ui.scene_settings.SCENE_SETTINGS` (the same generated property groups), copied
+:data:`~facelab_addon.pipeline.shot_settings.SCENE_SETTINGS` (the same generated property groups), copied
 into a scene the first time FaceLab works on it; *Save as Defaults* in a step's Settings sub-panel
 copies a shot's values here. The built-in defaults come from the presets in ``assets/presets/``
 (``sketch_refine.json``, ``regions.json``) through the settings dataclasses.
@@ -13,12 +13,9 @@ from bpy.props import PointerProperty
 
 from ..pipeline.refine import REFINE_DEFAULTS
 from ..pipeline.regions import REGION_DEFAULTS  # noqa: F401  (the Auto Regions preset, re-exported)
+from ..pipeline import shot_settings
+from ..pipeline.shot_settings import ADDON_ID, preferences  # noqa: F401  (re-exported)
 from . import scene_settings
-
-# The add-on's module name: "facelab_addon" from a checkout, "bl_ext.<repo>.facelab" as an
-# extension (whose root __init__.py imports the facelab_addon sub-package).
-_parts = __package__.split(".")
-ADDON_ID = ".".join(_parts[: _parts.index("facelab_addon")]) or "facelab_addon"
 
 #: Refine Lips solver settings of the preset ``assets/presets/sketch_refine.json``.
 DEFAULTS = dict(REFINE_DEFAULTS)
@@ -26,18 +23,11 @@ DEFAULTS = dict(REFINE_DEFAULTS)
 _CLASSES: list = []
 
 
-def preferences(context=None):
-    """FaceLab's ``AddonPreferences`` when enabled as an add-on (None from the ``bpy`` module or a script)."""
-    context = context or bpy.context
-    addon = context.preferences.addons.get(ADDON_ID)
-    return None if addon is None else addon.preferences
-
-
 def _draw(self, context):
     col = self.layout.column()
     col.label(text="Defaults for new scenes (a shot's own settings are in the FaceLab tab, saved with it)",
               icon="INFO")
-    for e in scene_settings.SCENE_SETTINGS:
+    for e in shot_settings.SCENE_SETTINGS:
         box = col.box()
         box.label(text=e.cls.__name__.removesuffix("Settings"))
         grp = getattr(self, e.attr)
@@ -47,7 +37,7 @@ def _draw(self, context):
 
 def make_preferences_class():
     """The ``AddonPreferences`` class: a pointer to each registered settings group."""
-    ann = {e.attr: PointerProperty(type=scene_settings.group_class(e.attr)) for e in scene_settings.SCENE_SETTINGS}
+    ann = {e.attr: PointerProperty(type=scene_settings.group_class(e.attr)) for e in shot_settings.SCENE_SETTINGS}
     return type("FACELAB_AP_preferences", (bpy.types.AddonPreferences,),
                 {"bl_idname": ADDON_ID, "__annotations__": ann, "draw": _draw,
                  "__doc__": "FaceLab's defaults for new scenes"})

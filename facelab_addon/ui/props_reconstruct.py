@@ -3,16 +3,17 @@
 ``Scene.facelab_recon`` (:class:`FACELAB_PG_reconstruct`): the bundle source,
 bind frame, method and bundle noise, smoothing, jaw and the template rig with
 its combinations.
-:func:`reconstruct_settings` and :func:`corrective_settings` gather them into
-the pipeline's settings (:mod:`facelab_addon.pipeline.reconstruct`).
+:func:`facelab_addon.pipeline.shot_settings.reconstruct_settings` and ``corrective_settings``
+gather them into the pipeline's settings (:mod:`facelab_addon.pipeline.reconstruct`).
 """
 
 import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
 from ..names import BUNDLES_COLLECTION
-from ..pipeline.reconstruct import CorrectiveSettings, ReconstructSettings
+from ..pipeline.reconstruct import ReconstructSettings
 from ..pipeline.settings import describe
+from ..pipeline.shot_settings import corrective_settings, reconstruct_settings  # noqa: F401  (re-exported)
 
 _SETTINGS = {d["name"]: d for d in describe(ReconstructSettings)}
 METHODS = [tuple(c) for c in _SETTINGS["method"]["choices"]]
@@ -83,30 +84,6 @@ class FACELAB_PG_reconstruct(bpy.types.PropertyGroup):
     combinations: StringProperty(name="Combinations", default="",
                                  description="Rig-shape combinations, e.g. 'noseSneer_L+mouthUpperUp_L, "
                                              "mouthSmile_L+jawOpen'")
-
-
-def reconstruct_settings(scene, selected=(), *, frame_start: int | None = None, frame_end: int | None = None,
-                         bind_frame: int = -2,
-                         smooth: int = 0) -> ReconstructSettings:
-    """Reconstruct's settings from ``scene.facelab_recon``.
-
-    ``selected`` are the selected objects (the ``SELECTED`` bundle source);
-    ``bind_frame`` -2 and ``smooth`` 0 take the panel's values.
-    """
-    r = scene.facelab_recon
-    return ReconstructSettings(
-        frame_start=frame_start, frame_end=frame_end, bind_frame=bind_frame if bind_frame != -2 else r.bind_frame,
-        smooth=smooth or r.smooth, bundle_source=r.bundle_source, selected=tuple(selected),
-        method=r.method, noise=r.noise,
-        bundle_collection=r.bundle_collection, bundle_mesh=r.bundle_mesh, jaw_source=r.jaw_source,
-        jaw_armature=r.jaw_armature, jaw_bone=r.jaw_bone, jaw_object=r.jaw_object, jaw_group=r.jaw_group)
-
-
-def corrective_settings(scene, combinations: str = "", n_bundles: int = 100, drivers: bool = True):
-    """Generate Correctives' settings: the panel's rig, and its combinations unless ``combinations`` is given."""
-    r = scene.facelab_recon
-    return CorrectiveSettings(rig_object=r.rig_object, combinations=combinations or r.combinations,
-                              n_bundles=n_bundles, drivers=drivers)
 
 
 classes = (FACELAB_PG_reconstruct,)

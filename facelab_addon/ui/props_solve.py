@@ -9,12 +9,11 @@ the face mesh: one item per track (or bundle) name with the triangle vertex
 ids and barycentric weights of its surface point, written by Bind Tracks
 (read and written as arrays by :mod:`facelab_addon.blender.bindings`).
 
-:func:`bind_settings`, :func:`solve_settings` and :func:`retarget_settings`
-gather these properties into the pipelines' settings.
+:func:`facelab_addon.pipeline.shot_settings.bind_settings`, ``solve_settings`` and
+``retarget_settings`` gather these properties into the pipelines' settings.
 """
 
 import bpy
-import numpy as np
 from bpy.props import (
     BoolProperty,
     CollectionProperty,
@@ -26,11 +25,13 @@ from bpy.props import (
     PointerProperty,
 )
 
-from ..blender import tracking
-from ..blender.actions import scene_vector_values
 from ..names import BUNDLES_COLLECTION, SOLVE_ACTION, SOLVE_PREFIX
-from ..pipeline.retarget import RetargetSettings
-from ..pipeline.solve import BindSettings, SolveSettings
+from ..pipeline.shot_settings import (  # noqa: F401  (the readers of these properties, re-exported)
+    bind_settings,
+    retarget_settings,
+    scene_views,
+    solve_settings,
+)
 
 
 def _is_camera(self, obj):
@@ -209,21 +210,7 @@ def unregister():
         bpy.utils.unregister_class(c)
 
 
-# --------------------------------------------------------------------------- settings for the pipelines
-def scene_views(scene) -> list:
-    """The scene's solve views as :class:`facelab_addon.blender.tracking.View` (unchecked: the pipelines
-    name a view without camera or clip)."""
-    return [tracking.View(v.camera, v.clip, mask=v.mask, sketch=v.sketch, name=v.camera.name if v.camera else "")
-            for v in scene.facelab_solve.views]
-
-
-def bind_settings(scene) -> BindSettings:
-    """Bind Tracks' settings from ``scene.facelab_solve`` and FaceLab > Setup."""
-    s = scene.facelab_solve
-    return BindSettings(views=scene_views(scene), bundles=s.bundles, bundle_collection=s.bundle_collection,
-                        fixed_group=scene.facelab.fixed_group)
-
-
+# --------------------------------------------------------------------------- Start / End of the range
 def _range_get(s, end: int) -> int:
     """Start (``end`` 0) or End (1) of FaceLab > Solve: the scene's while Scene Range is on."""
     scene = s.id_data
@@ -239,32 +226,3 @@ def _range_set(s, end: int, value: int) -> None:
         s[("_frame_start", "_frame_end")[1 - end]] = _range_get(s, 1 - end)
     s[("_frame_start", "_frame_end")[end]] = int(value)
     s.use_scene_range = False
-
-
-def solve_settings(scene) -> SolveSettings:
-    """Solve Performance's settings from ``scene.facelab_solve`` and FaceLab > Setup."""
-    s = scene.facelab_solve
-    return SolveSettings(
-        views=scene_views(scene), frame_start=s.frame_start, frame_end=s.frame_end, bundles=s.bundles,
-        bundle_collection=s.bundle_collection, fixed_group=scene.facelab.fixed_group, use_contours=s.use_contours,
-        annotation_view=s.annotation_view, use_corrective=s.use_corrective, sliding=s.sliding,
-        weight_min=s.weight_min, weight_max=s.weight_max, marker_weight=s.marker_weight,
-        contour_weight=s.contour_weight, existing_animation=s.existing_animation, anchor_weight=s.anchor_weight,
-        contour_damping=s.contour_damping, lip_passes=s.lip_passes, lip_line_weight=s.lip_line_weight,
-        lip_damping=s.lip_damping)
-
-
-def retarget_settings(scene) -> RetargetSettings:
-    """Retarget's settings from ``scene.facelab_solve``; hand-set lip end points are read on every frame
-    of the range (they may be keyed on the timeline)."""
-    s = scene.facelab_solve
-    up = lo = None
-    f0, f1 = s.frame_start, s.frame_end
-    if s.lip_sync and s.use_end_points and f1 >= f0:  # (an empty range is the pipeline's to report)
-        frames = np.arange(f0, f1 + 1)
-        up = scene_vector_values(scene, "facelab_solve.end_points_upper", s.end_points_upper, frames)
-        lo = scene_vector_values(scene, "facelab_solve.end_points_lower", s.end_points_lower, frames)
-    return RetargetSettings(
-        frame_start=s.frame_start, frame_end=s.frame_end, correspondence=s.correspondence,
-        creature_markers=s.creature_markers, lip_sync=s.lip_sync, lip_threshold=s.lip_threshold,
-        end_points_upper=up, end_points_lower=lo, existing_animation=s.existing_animation, views=scene_views(scene))

@@ -57,6 +57,7 @@ def build(ict):
     return fs.scene, fs.obj, err, cap_w
 
 
+@pytest.mark.slow
 def test_propagate_end_to_end(ict, addon):
     scene, obj, err, cap_w = build(ict)
     artist_keys = {kb.name: np.array([d.co[:] for d in kb.data]) for kb in obj.data.shape_keys.key_blocks}

@@ -453,7 +453,7 @@ def test_panel_section_draws_existing_properties(addon):
 def test_method_and_noise_are_declared_settings_that_reach_the_pipeline(addon):
     from facelab_addon.pipeline.reconstruct import ReconstructSettings
     from facelab_addon.pipeline.settings import describe
-    from facelab_addon.ui.props_reconstruct import reconstruct_settings
+    from facelab_addon.pipeline.shot_settings import reconstruct_settings
 
     d = {x["name"]: x for x in describe(ReconstructSettings)}
     assert d["method"]["default"] == "FIT_RESIDUAL" and [c[0] for c in d["method"]["choices"]] == ["FIT_RESIDUAL",

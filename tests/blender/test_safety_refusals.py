@@ -182,7 +182,7 @@ def test_frame_ranges_are_checked_and_negative_frames_honoured(addon):
 
 
 def test_solve_panel_range_honours_negative_frames(addon):
-    from facelab_addon.ui.props_solve import retarget_settings, solve_settings
+    from facelab_addon.pipeline.shot_settings import retarget_settings, solve_settings
 
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene
@@ -267,7 +267,7 @@ def test_solve_panel_settings_default_to_the_pipeline_defaults(addon):
     from dataclasses import fields
 
     from facelab_addon.pipeline.solve import SolveSettings
-    from facelab_addon.ui.props_solve import solve_settings
+    from facelab_addon.pipeline.shot_settings import solve_settings
 
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene

@@ -13,9 +13,10 @@ import facelab_addon
 from facelab_addon.pipeline.propagate import PropagateSettings
 from facelab_addon.pipeline.refine import RefineSettings
 from facelab_addon.pipeline.regions import RegionSettings
+from facelab_addon.pipeline import shot_settings
 from facelab_addon.pipeline.settings import describe, setting
+from facelab_addon.pipeline.shot_settings import SCENE_SETTINGS, Entry
 from facelab_addon.ui import ops, prefs, scene_settings
-from facelab_addon.ui.scene_settings import SCENE_SETTINGS, Entry
 
 from .test_ui import RecordingLayout, empty_scene, small_face
 
@@ -76,7 +77,7 @@ def test_new_scenes_take_the_preferences_defaults(addon, monkeypatch):
     mine = dict(iterations=9, lambda_pos=0.2, lambda_reg=4.0, lambda_silh=1.5)
     stored = {d["name"]: d["default"] for d in scene_settings.fields(entry)} | mine
     fake = types.SimpleNamespace(facelab_refine=types.SimpleNamespace(**stored))
-    monkeypatch.setattr(prefs, "preferences", lambda context=None: fake)
+    monkeypatch.setattr(shot_settings, "preferences", lambda context=None: fake)
     assert scene_settings.preference_defaults(entry) == stored
     r = scene_settings.scene_settings(scene, RefineSettings)  # first use: filled from the preferences
     assert (r.iterations, r.lambda_reg) == (9, 4.0)
@@ -103,7 +104,7 @@ class _StorageSettings:
 
 def test_a_settings_class_is_added_with_one_line(addon, monkeypatch):
     facelab_addon.unregister()
-    monkeypatch.setattr(scene_settings, "SCENE_SETTINGS", SCENE_SETTINGS + (
+    monkeypatch.setattr(shot_settings, "SCENE_SETTINGS", SCENE_SETTINGS + (
         Entry("facelab_example", _StorageSettings, "FACELAB_PT_propagate", ("propagate",)),))
     facelab_addon.register()
     try:

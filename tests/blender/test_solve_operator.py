@@ -207,7 +207,7 @@ def test_solve_and_retarget_end_to_end(ict, addon, tmp_path):
     from facelab_addon.blender.actions import curve_values as _curve_values
     from facelab_addon.names import SOLVE_ACTION
     from facelab_addon.pipeline.solve import solve_performance
-    from facelab_addon.ui.props_solve import solve_settings
+    from facelab_addon.pipeline.shot_settings import solve_settings
 
     t0 = time.perf_counter()
     r = solve_performance(scene, obj, solve_settings(scene))
@@ -283,7 +283,7 @@ def test_solve_and_retarget_end_to_end(ict, addon, tmp_path):
     assert np.linalg.norm(d_cre - d_actor[chin]) < 0.2 * np.linalg.norm(d_actor[chin])
     # artist-set end points, keyed on the timeline (frame 4 differs), are used frame by frame
     from facelab_addon.pipeline.retarget import retarget
-    from facelab_addon.ui.props_solve import retarget_settings
+    from facelab_addon.pipeline.shot_settings import retarget_settings
 
     s.use_end_points = True
     s.end_points_upper, s.end_points_lower = (0.2, 0.8), (0.2, 0.8)
@@ -314,7 +314,7 @@ def test_bad_input_messages(ict, addon, tmp_path):
     assert "no track is bound" in run(bpy.ops.facelab.solve_performance)
     # a track whose marker in the second view belongs to another point is flagged when binding
     from facelab_addon.pipeline.solve import bind_tracks, solve_performance, summarise_skips
-    from facelab_addon.ui.props_solve import bind_settings, solve_settings
+    from facelab_addon.pipeline.shot_settings import bind_settings, solve_settings
 
     t2 = s.views[1].clip.tracking.tracks
     co = np.array(t2["M07"].markers.find_frame(1).co)
@@ -447,7 +447,7 @@ def test_retarget_with_marker_correspondence(ict, addon, tmp_path):
     from facelab_addon.core.capture.markers import SurfacePoints
     from facelab_addon.pipeline.retarget import retarget
     from facelab_addon.testing.creature import widen_mouth
-    from facelab_addon.ui.props_solve import retarget_settings
+    from facelab_addon.pipeline.shot_settings import retarget_settings
 
     scene, obj, cams, markers, truth, views = build(ict, tmp_path)
     bpy.context.view_layer.objects.active = obj

@@ -94,7 +94,7 @@ def test_panels_read_as_the_workflow(addon):
     assert bpy.types.FACELAB_PT_solve.poll(ctx) and bpy.types.FACELAB_PT_retarget.poll(ctx)
     # every step with settings has a closed settings sub-panel under it, the solver weights in a closed
     # Advanced sub-panel under that; no two sub-panels of one panel share a title
-    from facelab_addon.ui.scene_settings import SCENE_SETTINGS, panel_fields
+    from facelab_addon.pipeline.shot_settings import SCENE_SETTINGS, panel_fields
 
     for e in SCENE_SETTINGS:
         sub = getattr(bpy.types, f"FACELAB_PT_{e.attr}")

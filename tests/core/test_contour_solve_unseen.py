@@ -51,6 +51,7 @@ def test_held_out_cases_are_not_the_tuning_cases():
     assert not {c for _, _, c in HELD_OUT_CASES} & {c for _, _, c in TUNING_CASES}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("clean", [False, True], ids=["noise0.5px", "clean"])
 def test_contours_never_worsen_the_face_and_help_the_inner_lips_on_a_held_out_capture(held_out, clean):
     model, cap, loops, face, lip = held_out

@@ -29,13 +29,13 @@ from facelab_addon.core.geometry.sphere import fit_sphere, project_to_sphere, ra
 from facelab_addon.core.solve.contour_loops import TrackedCurve, contour_loops
 from facelab_addon.core.solve.matching import (
     CurveCorrespondence,
-    _eval_points,
+    half_points,
     contour_residuals,
     match_contours,
 )
 from facelab_addon.core.solve.occlusion import (
-    _envelope_counts,
-    _half_counts,
+    envelope_counts,
+    half_silhouette_counts,
     select_occluding_loop,
     silhouette_edge_counts,
 )
@@ -155,20 +155,20 @@ def test_only_silhouettes_bounding_the_opening_count():
     V, F, rings = torus_band(k_sil=3, phi_sil=phi_out)
     assert silhouette_edge_counts(V, F, cam, rings)[3] == 50
     loops = contour_loops(V, F, mouth_loop=rings[0], n_mouth_loops=len(rings))
-    assert _half_counts(V, cam, loops, inner=False).max() == 25  # each half of ring 3
-    assert _half_counts(V, cam, loops).max() == 0  # an outer outline, not an inner-lip line
+    assert half_silhouette_counts(V, cam, loops, inner=False).max() == 25  # each half of ring 3
+    assert half_silhouette_counts(V, cam, loops).max() == 0  # an outer outline, not an inner-lip line
     # the inner silhouette of the same torus counts fully
     V, F, rings = torus_band(k_sil=3)
     loops = contour_loops(V, F, mouth_loop=rings[0], n_mouth_loops=len(rings))
-    np.testing.assert_array_equal(_half_counts(V, cam, loops), _half_counts(V, cam, loops, inner=False))
-    assert _half_counts(V, cam, loops)[[3, 3 + len(rings)]].tolist() == [25, 25]
+    np.testing.assert_array_equal(half_silhouette_counts(V, cam, loops), half_silhouette_counts(V, cam, loops, inner=False))
+    assert half_silhouette_counts(V, cam, loops)[[3, 3 + len(rings)]].tolist() == [25, 25]
 
 
 def test_fast_counts_match_brute_force_silhouettes_on_ict(ict, ict_loops):
     V = ict.pose({"jawOpen": 0.4, "mouthFunnel": 0.6})
     cam = Camera.look_at(V[6632:6706].mean(0) + [3, -5, 30], V[6632:6706].mean(0), [0, 1, 0], 35, 36, 1920, 1080)
     E = {tuple(e) for e in silhouette_edges(V, ict.faces, cam)}
-    fast = _half_counts(V, cam, ict_loops, inner=False)
+    fast = half_silhouette_counts(V, cam, ict_loops, inner=False)
     for name in ict_loops.curve_names():
         lo, hi = ict_loops._pack[4][name]
         brute = [sum(tuple(sorted(e)) in E for e in zip(h.chain[:-1], h.chain[1:])) for h in ict_loops.halves[name]]
@@ -282,7 +282,7 @@ def test_previous_loop_wins_ties():
     prev = [CurveCorrespondence("mouth_upper", 0, np.zeros((1, 2), int), np.ones((1, 2)) / 2, loop=6,
                                    curve_t=np.zeros(1), source_camera=0)]
     out = match_contours(Vf, F, [cam], C[:1], loops, previous=prev)
-    assert _half_counts(Vf, cam, loops).max() == 0
+    assert half_silhouette_counts(Vf, cam, loops).max() == 0
     assert out[0].loop == 6
     # without previous: the loop closest to the curve
     out = match_contours(Vf, F, [cam], C[:1], loops)
@@ -514,11 +514,11 @@ def test_silhouettes_far_from_the_tracked_curve_do_not_count(ict, ict_loops):
     cams = helmet_cameras()  # 3 cm below the mouth, 19 cm away, 6 cm either side
     lo, hi = ict_loops._pack.offsets["mouth_lower"]
     for cam in cams:
-        c = _half_counts(X, cam, ict_loops)[lo:hi]
+        c = half_silhouette_counts(X, cam, ict_loops)[lo:hi]
         assert c[5] == c.max() and c[13] >= 0.5 * c[5]  # both are real silhouettes; the count alone says 5
     for k in (5, 13):
         for ci, cam in enumerate(cams):
-            P = resample_polyline(cam.project(_eval_points(X, ict_loops.halves["mouth_lower"][k])), 0.25)
+            P = resample_polyline(cam.project(half_points(X, ict_loops.halves["mouth_lower"][k])), 0.25)
             corr = match_contours(X, ict.faces, cams, [TrackedCurve("mouth_lower", ci, P)], ict_loops)[0]
             assert corr.loop == k
             assert contour_residuals(X, cams, [corr])[0].max() < 0.1
@@ -538,14 +538,14 @@ def test_synthetic_tracker_follows_the_opening_not_the_lip_front_outline(ict, ic
     lo, hi = ict_loops._pack.offsets["mouth_lower"]
     curves = synthetic_tracked_curves(X, ict.faces, cams, ict_loops, names=["mouth_lower"])
     for cam, cv in zip(cams, curves):
-        inner = _half_counts(X, cam, ict_loops)[lo:hi]
-        env = _envelope_counts(X, cam, ict_loops)[lo:hi]
+        inner = half_silhouette_counts(X, cam, ict_loops)[lo:hi]
+        env = envelope_counts(X, cam, ict_loops)[lo:hi]
         assert (env <= inner).all()
         assert inner[13] >= 0.75 * inner.max() and env[13] <= 0.5 * inner[13]
         # ring 13 lies below the chosen ring in the image, away from the opening
         k = int(np.argmax(env))
         assert k in (5, 6)
-        y = [cam.project(_eval_points(X, ict_loops.halves["mouth_lower"][j]))[:, 1].mean() for j in (k, 13)]
+        y = [cam.project(half_points(X, ict_loops.halves["mouth_lower"][j]))[:, 1].mean() for j in (k, 13)]
         assert y[1] > y[0]
         ends = cam.project(X[ict_loops.halves["mouth_lower"][k].chain[[0, -1]]])
         np.testing.assert_allclose(cv.pixels[[0, -1]], ends, atol=1e-9)

@@ -194,6 +194,7 @@ def _ratios_to_the_bounded_fit(rec, x0, shapes, truth, F, bf, bb, skin, lips):
     return out
 
 
+@pytest.mark.slow
 def test_ict_beats_the_bounded_fit_on_another_actor_and_layout(ict):
     # issue 15's targets on a case the method was not designed on: an ICT identity, 120 random bundles
     from facelab_addon.testing import datasets as ds
@@ -216,6 +217,7 @@ def test_ict_beats_the_bounded_fit_on_another_actor_and_layout(ict):
         assert lip_ratio <= 1.0, (sigma, lip_ratio)  # measured 0.82, 0.97 clean; 0.96, 0.99 with 0.2 mm
 
 
+@pytest.mark.slow
 def test_ict_inner_lips_never_worse_than_the_bounded_fit_with_sparse_bundles(ict):
     # issue 15: the sparse 60-bundle layout on another identity, where the inner lips (far from every bundle) were
     # 0.5 % above the bounded fit, clean (the residual leaked onto them through a gain learned by chance) and with

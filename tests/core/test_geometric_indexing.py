@@ -14,7 +14,7 @@ from facelab_addon.core.lgi.indexer import GeometricIndexer
 from facelab_addon.core.lgi.jaw import JawRig
 from facelab_addon.core.lgi.natural_neighbor import surface_points
 from facelab_addon.core.lgi.tets import (
-    _closest_point_triangles,
+    closest_point_triangles,
     barycentric_tetrahedron,
     closest_point_tetrahedron,
     tetrahedron_quality,
@@ -121,7 +121,7 @@ def test_closest_point_on_degenerate_tetrahedra_and_triangles():
     assert d[0] == pytest.approx(1.0) and w[0, 0] == pytest.approx(0.5)
     rng = np.random.default_rng(5)
     p, a, b, c = (rng.standard_normal((200, 3)) for _ in range(4))
-    d1, w1 = _closest_point_triangles(p, a, b, c)
+    d1, w1 = closest_point_triangles(p, a, b, c)
     d2, _ = closest_point_tetrahedron(p, np.stack([a, b, c, c], 1))
     np.testing.assert_allclose(d1, d2, atol=1e-12)
     np.testing.assert_allclose(np.linalg.norm(p - (w1[:, :1] * a + w1[:, 1:2] * b + w1[:, 2:] * c), axis=1), d1,

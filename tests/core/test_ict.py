@@ -38,6 +38,8 @@ def test_ict_missing_data_says_how_to_get_it(tmp_path, monkeypatch):
         load_ict(tmp_path / "also-nowhere")
 
 
+@pytest.mark.slow
+@pytest.mark.ict
 def test_ict_cache_is_outside_the_repo(tmp_path, monkeypatch):
     monkeypatch.setenv("FACELAB_CACHE_DIR", str(tmp_path / "cache"))
     m = load_ict(expressions=["jawOpen"])

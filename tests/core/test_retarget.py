@@ -198,6 +198,7 @@ def test_retargeter_copies_weights_transfers_correctives_and_applies_lip_sync():
         Retargeter(Va, F, np.zeros((0,) + Va.shape), Vc, F, lip_sync=False)
 
 
+@pytest.mark.ict
 def test_lip_sync_on_the_zigzag_ict_loop_keeps_the_creature_lips_smooth():
     """ICT's automatic inner-lip loop zigzags near the corners; the lip-sync offsets must stay smooth there.
 

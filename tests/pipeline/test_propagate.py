@@ -112,6 +112,7 @@ def test_propagate_reproduces_the_training_corrections_and_predicts(ict, addon):
     assert len(r.suggested) == 2 and sorted(markers) == sorted(r.suggested) and not set(r.suggested) & set(TRAIN)
 
 
+@pytest.mark.slow
 def test_auto_model_from_three_frames_on_a_wide_lip_band(ict, addon):
     """Three corrected frames recorded with their keys (as Refine Lips writes them) on a 0.2 mouth-width lip
     band: the whole-motion model cannot learn the band's expression motion from 3 frames (92 % of the capture's
@@ -146,6 +147,7 @@ def test_auto_model_from_three_frames_on_a_wide_lip_band(ict, addon):
         propagate_steps(scene, obj, FRAMES, PropagateSettings(model="correction"))
 
 
+@pytest.mark.slow
 def test_propagate_refits_from_the_scene_every_run(ict, addon):
     """Adding or removing a training frame gives the model fitted on exactly the frames now recorded."""
     scene, obj, err, cap_w = corrected_scene(ict)

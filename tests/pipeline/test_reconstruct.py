@@ -86,6 +86,7 @@ def test_lost_bundle_skips_its_frame_and_bad_input_writes_nothing(ict, addon):
     assert [kb.name for kb in obj.data.shape_keys.key_blocks] == before
 
 
+@pytest.mark.slow
 def test_noise_setting_in_millimetres_and_estimated_from_jitter(ict, addon):
     keys = EXPR[:6]
     T = 24
@@ -115,6 +116,7 @@ def test_noise_setting_in_millimetres_and_estimated_from_jitter(ict, addon):
     assert err["given"] < 0.9 * err["exact"] and err["estimated"] < 0.9 * err["exact"]
 
 
+@pytest.mark.slow
 def test_generate_correctives_matches_the_core_and_beats_the_linear_rig(ict, addon):
     from facelab_addon.blender.objects import triangle_uvs
     from facelab_addon.blender.rig import dataset_shapes

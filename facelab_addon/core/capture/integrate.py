@@ -15,9 +15,28 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..geometry.gradients import _inv3
+from ..geometry.inv3 import inv3
 
-__all__ = ["integrate_matrices", "integrate_offsets_to_key"]
+__all__ = ["corner_neighbours", "integrate_matrices", "integrate_offsets_to_key"]
+
+
+def corner_neighbours(face_offsets, corner_verts):
+    """``(prev, next)`` (C,) int64: the vertex of the corner before and after each polygon corner.
+
+    Parameters
+    ----------
+    face_offsets : (P+1,) array_like of int
+        Start of each polygon in ``corner_verts`` (plus the total corner count).
+    corner_verts : (C,) array_like of int
+        Vertex of every polygon corner.
+    """
+    off = np.asarray(face_offsets, dtype=np.int64)
+    cv = np.asarray(corner_verts, dtype=np.int64)
+    sizes = np.diff(off)
+    face_of = np.repeat(np.arange(len(sizes)), sizes)
+    local = np.arange(len(cv)) - off[face_of]
+    n = sizes[face_of]
+    return cv[off[face_of] + (local - 1) % n], cv[off[face_of] + (local + 1) % n]
 
 
 def integrate_matrices(rest, deformed, face_offsets, corner_verts) -> np.ndarray:
@@ -55,15 +74,8 @@ def integrate_matrices(rest, deformed, face_offsets, corner_verts) -> np.ndarray
     """
     S = np.asarray(rest, dtype=np.float64)
     O = np.asarray(deformed, dtype=np.float64)
-    off = np.asarray(face_offsets, dtype=np.int64)
-    cv = np.asarray(corner_verts, dtype=np.int64)
-    sizes = np.diff(off)
-    face_of = np.repeat(np.arange(len(sizes)), sizes)
-    local = np.arange(len(cv)) - off[face_of]
-    n = sizes[face_of]
-    prev = cv[off[face_of] + (local - 1) % n]
-    nxt = cv[off[face_of] + (local + 1) % n]
-    cur = cv
+    cur = np.asarray(corner_verts, dtype=np.int64)
+    prev, nxt = corner_neighbours(face_offsets, cur)
 
     def frame(P, scale_normal_by=None):
         e1 = P[prev] - P[cur]
@@ -79,9 +91,9 @@ def integrate_matrices(rest, deformed, face_offsets, corner_verts) -> np.ndarray
     Bs = np.stack([e1s, e2s, ns], axis=2)  # (C,3,3) columns
     Bo = np.stack([e1o, e2o, no * k[:, None]], axis=2)
     ok = As > 0
-    L = np.zeros((len(cv), 3, 3))
+    L = np.zeros((len(cur), 3, 3))
     if ok.any():
-        L[ok] = Bo[ok] @ _inv3(Bs[ok])  # closed form: no LAPACK call per corner
+        L[ok] = Bo[ok] @ inv3(Bs[ok])  # closed form: no LAPACK call per corner
     Vn = len(S)
     M = np.zeros((Vn, 3, 3))
     np.add.at(M, cur, L)

@@ -36,7 +36,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import FaceLabError
-from .pointcache import CacheInfo, _gather_f32
+from .pointcache import CacheInfo, gather_f32
 
 __all__ = ["mesh_cache_samples", "blend_samples", "axis_conversion_matrix"]
 
@@ -239,7 +239,7 @@ def blend_samples(samples, i0, i1, weight) -> np.ndarray:
     if callable(samples):
         block = np.asarray(samples(need), dtype=np.float32)
     else:
-        block = _gather_f32(samples if isinstance(samples, np.ndarray) else np.asarray(samples), need)
+        block = gather_f32(samples if isinstance(samples, np.ndarray) else np.asarray(samples), need)
     pos = {int(s): k for k, s in enumerate(need)}
     out = np.empty((len(i0),) + block.shape[1:], dtype=np.float32)
     for t in range(len(i0)):

@@ -62,8 +62,8 @@ __all__ = [
 ]
 
 PC2_MAGIC = b"POINTCACHE2\0"
-_PC2_HEADER_BYTES = 32
-_PC2_HEADER = np.dtype(
+PC2_HEADER_BYTES = 32
+PC2_HEADER = np.dtype(
     [
         ("magic", "S12"),
         ("version", "<i4"),
@@ -159,13 +159,13 @@ def pc2_info(path) -> CacheInfo:
         sample rate, or a file shorter than its header announces.
     """
     p, size = _open_size(path, "PC2")
-    if size < _PC2_HEADER_BYTES:
+    if size < PC2_HEADER_BYTES:
         raise CacheFileError(
             f"PC2 file '{p}' is truncated: {size} bytes, shorter than the 32-byte header. "
             "Re-export the cache."
         )
     with open(p, "rb") as f:
-        raw = f.read(_PC2_HEADER_BYTES)
+        raw = f.read(PC2_HEADER_BYTES)
     if raw[:12] != PC2_MAGIC:
         hint = ""
         if raw[:11] == PC2_MAGIC[:11]:
@@ -174,7 +174,7 @@ def pc2_info(path) -> CacheInfo:
             f"'{p}' is not a PC2 file: it starts with {raw[:12]!r} instead of {PC2_MAGIC!r}{hint}. "
             "Pick a .pc2 point cache, or set the Mesh Cache format to MDD if it is an MDD file."
         )
-    h = np.frombuffer(raw, dtype=_PC2_HEADER)[0]
+    h = np.frombuffer(raw, dtype=PC2_HEADER)[0]
     V, T = int(h["num_points"]), int(h["num_samples"])
     if V <= 0 or T <= 0:
         raise CacheFileError(
@@ -187,7 +187,7 @@ def pc2_info(path) -> CacheInfo:
             f"PC2 file '{p}' has start frame {start:g} and sample rate {rate:g} in its header; the start must "
             "be a finite frame and the sample rate a positive number of frames. Re-export the cache."
         )
-    _check_data_size(p, size, _PC2_HEADER_BYTES, T, V, "PC2")
+    _check_data_size(p, size, PC2_HEADER_BYTES, T, V, "PC2")
     return CacheInfo(
         path=str(p),
         format="PC2",
@@ -196,7 +196,7 @@ def pc2_info(path) -> CacheInfo:
         start_frame=start,
         sample_rate=rate,
         times=None,
-        data_offset=_PC2_HEADER_BYTES,
+        data_offset=PC2_HEADER_BYTES,
         dtype=np.dtype("<f4"),
     )
 
@@ -292,16 +292,16 @@ def detect_format(path) -> str:
     if ext == ".mdd":
         return "MDD"
     with open(p, "rb") as f:
-        raw = f.read(_PC2_HEADER_BYTES)
+        raw = f.read(PC2_HEADER_BYTES)
     head = raw[:12]
     if head == PC2_MAGIC:
         return "PC2"
     like_magic = sum(a == b for a, b in zip(head.upper(), PC2_MAGIC)) >= 6
     like_header = False
-    if len(raw) == _PC2_HEADER_BYTES:
-        h = np.frombuffer(raw, dtype=_PC2_HEADER)[0]
+    if len(raw) == PC2_HEADER_BYTES:
+        h = np.frombuffer(raw, dtype=PC2_HEADER)[0]
         V, T = int(h["num_points"]), int(h["num_samples"])
-        like_header = int(h["version"]) == 1 and V > 0 and T > 0 and _PC2_HEADER_BYTES + 12 * V * T == size
+        like_header = int(h["version"]) == 1 and V > 0 and T > 0 and PC2_HEADER_BYTES + 12 * V * T == size
     if like_magic or like_header:
         raise CacheFileError(
             f"'{p}' starts like a PC2 point cache but its magic is damaged ({head!r} instead of "
@@ -391,7 +391,7 @@ def _sample_index(frames, T, path):
     return np.where(idx < 0, idx + T, idx)
 
 
-def _gather_f32(source, idx=None) -> np.ndarray:
+def gather_f32(source, idx=None) -> np.ndarray:
     """Samples ``source[idx]`` (all when None) as a new native float32 (k,V,3) array.
 
     Copies one sample at a time, so a memmap (any byte order) is read once
@@ -435,11 +435,11 @@ def _read_samples(info: CacheInfo, frames, mmap: bool) -> np.ndarray:
     if frames is None:
         if mmap:
             return mm
-        out = _gather_f32(mm)
+        out = gather_f32(mm)
         check_finite_samples(info, out)
         return out
     idx = _sample_index(frames, info.num_samples, info.path)
-    out = _gather_f32(mm, idx)
+    out = gather_f32(mm, idx)
     check_finite_samples(info, out, idx)
     return out
 

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import CacheFileError, CacheVertexCountError, MeshError, OutputError
-from .pointcache import _PC2_HEADER, _PC2_HEADER_BYTES, PC2_MAGIC
+from .pointcache import PC2_HEADER, PC2_HEADER_BYTES, PC2_MAGIC
 
 __all__ = ["PointCacheWriter", "write_pc2", "write_mdd", "check_writable", "check_name_length", "output_error"]
 
@@ -198,7 +198,7 @@ class PointCacheWriter:
             )
         if self.format == "PC2":
             self._dtype = np.dtype("<f4")
-            header = np.zeros(1, dtype=_PC2_HEADER)
+            header = np.zeros(1, dtype=PC2_HEADER)
             header["magic"] = PC2_MAGIC
             header["version"] = 1
             header["num_points"] = self.num_points
@@ -206,7 +206,7 @@ class PointCacheWriter:
             header["sample_rate"] = sample_rate
             header["num_samples"] = self.num_samples
             head = header.tobytes()
-            assert len(head) == _PC2_HEADER_BYTES and head[:12] == PC2_MAGIC
+            assert len(head) == PC2_HEADER_BYTES and head[:12] == PC2_MAGIC
         elif self.format == "MDD":
             if times is None:
                 raise MeshError("MDD needs one time per sample (seconds); pass times=.")

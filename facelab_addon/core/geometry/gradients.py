@@ -19,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import MeshError
+from .inv3 import inv3
 
 __all__ = ["shape_matrices", "rest_inverse", "deformation_gradients"]
 
@@ -89,19 +90,7 @@ def rest_inverse(rest, faces, *, name: str = "rest mesh") -> np.ndarray:
             f"{name}: {len(idx)} degenerate (zero-area) triangles, first faces {idx[:5].tolist()}; "
             "run Mesh > Clean Up > Degenerate Dissolve or leave them out of the regions."
         )
-    return _inv3(Dr)
-
-
-def _inv3(A) -> np.ndarray:
-    """Inverses of (...,3,3) matrices in closed form (adjugate over determinant).
-
-    Equal to ``np.linalg.inv`` to round-off for the well-conditioned shape matrices used here, and
-    far cheaper on many small matrices (no LAPACK call per matrix). Singular matrices give inf/NaN.
-    """
-    r0, r1, r2 = A[..., 0, :], A[..., 1, :], A[..., 2, :]
-    cols = np.stack([np.cross(r1, r2), np.cross(r2, r0), np.cross(r0, r1)], axis=-1)
-    det = np.sum(r0 * cols[..., :, 0], axis=-1)
-    return cols / det[..., None, None]
+    return inv3(Dr)
 
 
 def deformation_gradients(rest, deformed, faces, *, rest_inv=None) -> np.ndarray:

@@ -92,7 +92,7 @@ def small_dense_threads(n: int = 1):
 
     The dense systems of the Woodbury updates are a few hundred unknowns; on a
     busy machine multithreaded BLAS spends more time waiting for its threads
-    than computing (measured: 0.19 s -> 0.4-2 s for a sketch solve).
+    than computing.
     """
     try:
         from threadpoolctl import threadpool_limits
@@ -107,8 +107,8 @@ _BLAS = []
 
 
 def one_blas_thread():
-    """Context limiting BLAS to one thread: per frame, multithreaded BLAS only spins (measured: frames 2x
-    slower on a busy machine). A cached threadpoolctl controller (0.01 ms a call); no-op without it."""
+    """Context limiting BLAS to one thread: on per-frame work multithreaded BLAS only spins on a busy
+    machine. A cached threadpoolctl controller (cheap to enter per frame); no-op without it."""
     if not _BLAS:
         try:
             from threadpoolctl import ThreadpoolController

@@ -2,7 +2,7 @@
 
 Every bundle is tied to a triangle of the neutral mesh and barycentric
 coordinates in it (:func:`bind_points`); the indexer reads the bundle's
-position on every dataset shape at that surface point. ``_labels`` names
+position on every dataset shape at that surface point. ``bundle_labels`` names
 bundles in error messages.
 
 Shapes: bundle positions (B,3), bound triangles (B,) int64, barycentric
@@ -61,7 +61,7 @@ def bind_points(neutral, faces, points, *, max_distance=None, bundle_names=None)
     bad = ~np.isfinite(P).all(axis=1)
     if bad.any():
         raise BundleError(
-            f"{int(bad.sum())} bundles have NaN rest positions ({_labels(bundle_names, np.flatnonzero(bad))}); "
+            f"{int(bad.sum())} bundles have NaN rest positions ({bundle_labels(bundle_names, np.flatnonzero(bad))}); "
             "bind bundles on a frame where all of them are tracked."
         )
     diag = float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
@@ -74,7 +74,7 @@ def bind_points(neutral, faces, points, *, max_distance=None, bundle_names=None)
     if far.any():
         idx = np.flatnonzero(far)
         raise BundleError(
-            f"{len(idx)} bundles are off the mesh: {_labels(bundle_names, idx)} lie "
+            f"{len(idx)} bundles are off the mesh: {bundle_labels(bundle_names, idx)} lie "
             f"{np.round(dist[idx[:5]], 4).tolist()} scene units from the neutral surface (allowed "
             f"{max_distance:.4g}). Align the bundles rigidly to the neutral face (same units, same rest "
             "frame) or raise max_distance."
@@ -84,7 +84,7 @@ def bind_points(neutral, faces, points, *, max_distance=None, bundle_names=None)
     return fi, bary, dist
 
 
-def _labels(names, idx, n: int = 5):
+def bundle_labels(names, idx, n: int = 5):
     """'bundle [3, 7]' or "'B03', 'B07'" for messages (the first ``n``)."""
     idx = [int(i) for i in np.asarray(idx).ravel()[:n]]
     if names is None:

@@ -41,9 +41,10 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..errors import BundleError, DatasetError
-from .binding import _labels
+from .binding import bundle_labels
+from .inputs import check_bundles_move
 from .natural_neighbor import surface_points
-from .tets import _EDGES, _tet_inverse, tetrahedron_quality
+from .tets import TET_EDGES, tet_inverse, tetrahedron_quality
 
 __all__ = ["IndexerClouds"]
 
@@ -73,14 +74,7 @@ class IndexerClouds:
             P[1:] = surface_points(X, F, bf, bb)
         self.points_all = P
         move = np.linalg.norm(P[1:] - P[0], axis=2)  # (S,B)
-        moved = move.max(axis=0)
-        still_b = np.flatnonzero(moved <= dup_tol)
-        if len(still_b):
-            raise BundleError(
-                f"{len(still_b)} bundles are not moved by any dataset shape ({_labels(self.bundle_names, still_b)}, for "
-                "example on the back of the head or a rigid part); remove them, bind them on the moving face, or "
-                "add shapes that move them."
-            )
+        check_bundles_move(move.max(axis=0), dup_tol, self.bundle_names)
         return P, move
 
     def _prune(self, W, mags, move, forbidden):
@@ -125,7 +119,7 @@ class IndexerClouds:
                     mem_list.append(mem)
             if len(reps) < 2:
                 raise BundleError(
-                    f"{_labels(self.bundle_names, [i])} is not moved by any dataset shape by more than "
+                    f"{bundle_labels(self.bundle_names, [i])} is not moved by any dataset shape by more than "
                     f"{self.merge_tolerance:.3g} scene "
                     "units; remove it, bind it on the moving face, or add shapes that move it."
                 )
@@ -180,7 +174,7 @@ class IndexerClouds:
         self.tet_offsets = np.r_[0, np.cumsum(counts)].astype(np.int64)
         self.tet_bundle = np.repeat(np.arange(B), counts).astype(np.int32)
         Xt = P[self.tets, self.tet_bundle[:, None]]  # (N,4,3)
-        inv = _tet_inverse(Xt)
+        inv = tet_inverse(Xt)
         # float64 affine maps q -> (w1, w2, w3) (w0 = 1 - sum); NaN rows for flat tetrahedra
         self._tet_aff = np.concatenate([inv, -np.einsum("nij,nj->ni", inv, Xt[:, 0])[:, :, None]], axis=2)
         self._tet_flat = ~np.isfinite(inv).all(axis=(1, 2))
@@ -283,7 +277,7 @@ class IndexerClouds:
         st["thin"] += int((~keep).sum())
         if max_edge is not None:
             Xc = pts[cand]
-            L = np.max([np.linalg.norm(Xc[:, a] - Xc[:, b], axis=1) for a, b in _EDGES], axis=0)
+            L = np.max([np.linalg.norm(Xc[:, a] - Xc[:, b], axis=1) for a, b in TET_EDGES], axis=0)
             large = keep & (L > float(max_edge))
             st["large"] += int(large.sum())
             keep &= ~large

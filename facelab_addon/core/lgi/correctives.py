@@ -103,7 +103,7 @@ class RigCorrectives:
     actor's dataset. Indexing the actor's *shapes* with those bundles puts
     the result through the linear combination's bundles and leaves it in the
     convex hull of the dataset, so a combination that the dataset does not
-    hold comes out worse than the plain linear combination (measured in
+    hold comes out worse than the plain linear combination (docs/benchmarks.md,
     ``benchmarks/geometric_indexing.py``). So the same machinery indexes the
     dataset's *nonlinear residuals* instead:
 

@@ -54,10 +54,9 @@ __all__ = ["GeometricIndexer"]
 class GeometricIndexer(IndexerClouds, IndexerLocate, IndexerStitch):
     """Local geometric indexing of a shape dataset by surface-bound bundles.
 
-    Build once per (mesh, dataset, bundle binding; about 3 s for 110 shapes
-    and 100 bundles on the 26,719-vertex ICT face); :meth:`reconstruct` and
-    :meth:`reconstruct_sequence` are then cheap (about 20 ms a frame on one
-    core, about 11 ms in a sequence on two; see ``benchmarks/geometric_indexing.py``).
+    Build once per (mesh, dataset, bundle binding); :meth:`reconstruct` and
+    :meth:`reconstruct_sequence` are then cheap per frame (timings: docs/benchmarks.md,
+    ``benchmarks/geometric_indexing.py``).
 
     Parameters
     ----------

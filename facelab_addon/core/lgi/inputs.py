@@ -11,9 +11,9 @@ import numpy as np
 
 from ..errors import BundleError, DatasetError
 from ..geometry.mesh import validate_mesh
-from .binding import _labels
+from .binding import bundle_labels
 
-__all__ = ["check_reconstruction_inputs", "check_bundle_frame", "check_bundle_sequence"]
+__all__ = ["check_reconstruction_inputs", "check_bundles_move", "check_bundle_frame", "check_bundle_sequence"]
 
 
 def check_reconstruction_inputs(neutral, faces, shapes, names, bundle_faces, bundle_bary, *,
@@ -89,6 +89,27 @@ def check_reconstruction_inputs(neutral, faces, shapes, names, bundle_faces, bun
     return x0, F, X, names, bf, bb
 
 
+def check_bundles_move(moved, tol: float, bundle_names=None) -> None:
+    """Raise a BundleError naming the bundles that no dataset shape moves.
+
+    Parameters
+    ----------
+    moved : (B,) array_like of float
+        Largest motion of each bundle over the dataset shapes, scene units.
+    tol : float
+        A bundle moved by no more than this (scene units) is still.
+    bundle_names : list of str, optional
+        Bundle names for the message (default their indices).
+    """
+    still = np.flatnonzero(np.asarray(moved) <= tol)
+    if len(still):
+        raise BundleError(
+            f"{len(still)} bundles are not moved by any dataset shape ({bundle_labels(bundle_names, still)}, for "
+            "example on the back of the head or a rigid part); remove them, bind them on the moving face, or "
+            "add shapes that move them."
+        )
+
+
 def check_bundle_frame(q, count: int, bundle_names=None, what: str = "bundles"):
     """One frame of bundle positions as a finite (B,3) float64 array, or a message naming the bad bundles.
 
@@ -118,7 +139,7 @@ def check_bundle_frame(q, count: int, bundle_names=None, what: str = "bundles"):
     bad = ~np.isfinite(q).all(axis=1)
     if bad.any():
         raise BundleError(
-            f"{int(bad.sum())} bundles have NaN positions ({_labels(bundle_names, np.flatnonzero(bad))}); "
+            f"{int(bad.sum())} bundles have NaN positions ({bundle_labels(bundle_names, np.flatnonzero(bad))}); "
             "skip the frame or fill the track gaps."
         )
     return q

@@ -20,8 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import DatasetError
+from ..geometry.inv3 import inv3
 from ..geometry.rigid import rigid_fit
-from .tets import _inv3
 
 __all__ = ["JawRig"]
 
@@ -135,7 +135,7 @@ class JawRig:
         X = np.asarray(X, dtype=np.float64)
         w = self.weights if weights is None else np.asarray(weights, dtype=np.float64)
         A, b = self._affine(theta, w)
-        inv, _ = _inv3(A)
+        inv = inv3(A)
         return np.einsum("nij,nj->ni", inv, X - b)
 
     def fit_pose(self, shape, neutral, *, min_weight: float = 0.99):

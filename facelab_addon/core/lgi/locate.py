@@ -28,7 +28,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from .tets import _closest_point_triangles, closest_point_tetrahedron
+from .tets import closest_point_triangles, closest_point_tetrahedron
 
 __all__ = ["IndexerLocate"]
 
@@ -257,7 +257,7 @@ class IndexerLocate:
         np.maximum.at(out, grp, (eq[:, :3] * qq).sum(1) + eq[:, 3])
         tri = self._hull_tri[pos]
         X = self.points_all[tri, bm[:, None]]
-        d, w3 = _closest_point_triangles(qq, X[:, 0], X[:, 1], X[:, 2])
+        d, w3 = closest_point_triangles(qq, X[:, 0], X[:, 1], X[:, 2])
         dmin = np.full(len(miss), np.inf)
         np.minimum.at(dmin, grp, d)
         use = (b > a) & (out > 1e-12 * self.face_size)

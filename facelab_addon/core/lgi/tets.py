@@ -4,7 +4,7 @@ Cong, Lan and Fedkiw 2019, §4 and §4.1: every bundle's point cloud is covered
 by overlapping tetrahedra. A bundle inside a tetrahedron is blended with its
 barycentric weights (Eq. 1); a bundle outside every tetrahedron is projected to
 the closest point of the tetrahedralized volume (:func:`closest_point_tetrahedron`)
-or of the cloud's convex hull (:func:`_closest_point_triangles`). Too thin
+or of the cloud's convex hull (:func:`closest_point_triangles`). Too thin
 tetrahedra are found by their mean-ratio quality (:func:`tetrahedron_quality`).
 
 Everything is vectorised over ``n`` tetrahedra given by their corners ``X``
@@ -20,6 +20,8 @@ from __future__ import annotations
 import itertools
 
 import numpy as np
+
+from ..geometry.inv3 import inv3
 
 __all__ = ["tetrahedron_quality", "barycentric_tetrahedron", "closest_point_tetrahedron"]
 
@@ -39,33 +41,17 @@ def tetrahedron_quality(X):
     """
     X = np.asarray(X, dtype=np.float64)
     e = X[:, 1:] - X[:, :1]
-    vol = np.abs(_inv3(e)[1]) / 6.0
+    vol = np.abs(inv3(e, return_det=True)[1]) / 6.0
     l2 = sum(((X[:, i] - X[:, j]) ** 2).sum(1) for i, j in itertools.combinations(range(4), 2))
     with np.errstate(divide="ignore", invalid="ignore"):
         q = 12.0 * np.cbrt(3.0 * vol) ** 2 / l2
     return np.nan_to_num(q, nan=0.0)
 
 
-def _inv3(E):
-    """Closed-form inverses and determinants of (n,3,3) matrices (no per-matrix LAPACK calls)."""
-    a, b, c = E[:, 0, 0], E[:, 0, 1], E[:, 0, 2]
-    d, e, f = E[:, 1, 0], E[:, 1, 1], E[:, 1, 2]
-    g, h, i = E[:, 2, 0], E[:, 2, 1], E[:, 2, 2]
-    A, Bc, C = e * i - f * h, f * g - d * i, d * h - e * g
-    det = a * A + b * Bc + c * C
-    adj = np.stack([
-        np.stack([A, c * h - b * i, b * f - c * e], axis=1),
-        np.stack([Bc, a * i - c * g, c * d - a * f], axis=1),
-        np.stack([C, b * g - a * h, a * e - b * d], axis=1),
-    ], axis=1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return adj / det[:, None, None], det
-
-
-def _tet_inverse(X, rel_eps=1e-10):
+def tet_inverse(X, rel_eps=1e-10):
     """(n,3,3) inverse edge matrices ``[x1-x0, x2-x0, x3-x0]^-1``; NaN for flat tetrahedra."""
     E = np.transpose(X[:, 1:] - X[:, :1], (0, 2, 1))  # columns = edges
-    inv, det = _inv3(E)
+    inv, det = inv3(E, return_det=True)
     L = np.linalg.norm(X[:, 1:] - X[:, :1], axis=2).max(axis=1)
     ok = np.abs(det) > rel_eps * np.maximum(L, 1e-300) ** 3
     inv[~ok] = np.nan
@@ -90,12 +76,12 @@ def barycentric_tetrahedron(p, X):
     """
     p = np.asarray(p, dtype=np.float64).reshape(-1, 3)
     X = np.asarray(X, dtype=np.float64).reshape(-1, 4, 3)
-    inv = _tet_inverse(X)
+    inv = tet_inverse(X)
     w = np.einsum("nij,nj->ni", inv, p - X[:, 0])
     return np.column_stack([1 - w.sum(1), w])
 
 
-_EDGES = list(itertools.combinations(range(4), 2))
+TET_EDGES = list(itertools.combinations(range(4), 2))
 _FACES = list(itertools.combinations(range(4), 3))
 
 
@@ -113,7 +99,7 @@ def closest_point_tetrahedron(p, X, inv=None):
     X : (n,4,3) array_like
         Tetrahedron corners, scene units.
     inv : (n,3,3) array_like, optional
-        Precomputed inverse edge matrices (:func:`_tet_inverse`).
+        Precomputed inverse edge matrices (:func:`tet_inverse`).
 
     Returns
     -------
@@ -126,7 +112,7 @@ def closest_point_tetrahedron(p, X, inv=None):
     X = np.asarray(X, dtype=np.float64).reshape(-1, 4, 3)
     n = len(p)
     if inv is None:
-        inv = _tet_inverse(X)
+        inv = tet_inverse(X)
     cands_d, cands_w = [], []
     # interior
     w = np.einsum("nij,nj->ni", inv, p - X[:, 0])
@@ -136,7 +122,7 @@ def closest_point_tetrahedron(p, X, inv=None):
     cands_d.append(d)
     cands_w.append(np.where(ok[:, None], np.clip(np.nan_to_num(w), 0, None), 0.0))
     # edges
-    for i, j in _EDGES:
+    for i, j in TET_EDGES:
         a, e = X[:, i], X[:, j] - X[:, i]
         ee = (e * e).sum(1)
         t = np.where(ee > 0, ((p - a) * e).sum(1) / np.where(ee > 0, ee, 1.0), 0.0)
@@ -172,7 +158,7 @@ def closest_point_tetrahedron(p, X, inv=None):
     return Dm[np.arange(n), best], Wm[np.arange(n), best]
 
 
-def _closest_point_triangles(p, a, b, c):
+def closest_point_triangles(p, a, b, c):
     """Closest points on triangles (Ericson, "Real-Time Collision Detection", 5.1.5), vectorized.
 
     Parameters

@@ -6,7 +6,7 @@ gradients of the trusted mouth triangles. This module holds the helpers that
 :mod:`.propagate` (the regression) and :mod:`.suggest` (training-frame
 suggestion) share for it: validating a (T,V,3) sequence without copying it,
 the shape-matrix columns of a block of frames (vertex-major), the dense coefficient operators of a fit, and the whole-mouth feature
-rows ``vec(F_t - I)``, all computed a block of ``_BLOCK`` frames at a time so
+rows ``vec(F_t - I)``, all computed a block of ``BLOCK`` frames at a time so
 a long float32 sequence is never converted whole; the per-triangle columns
 are computed coordinate-major in cache-sized blocks of frames, and the
 Poisson solve of a prediction is folded into dense maps while they are small. Positions are scene units;
@@ -23,8 +23,18 @@ import numpy as np
 from ..errors import FaceLabError, MeshError
 from ..geometry.gradients import rest_inverse, shape_matrices
 from ..geometry.linsolve import idle_core, one_blas_thread
-from .guards import _check_prediction, _checked_out, _same_array
-from .predict32 import _F32_BLOCK, _check_moves, _Float32Prediction, _put_rows, _Work
+from .guards import (
+    check_prediction as _check_prediction,
+    checked_out as _checked_out,
+    same_array as _same_array,
+)
+from .predict32 import (
+    F32_BLOCK as _F32_BLOCK,
+    check_moves as _check_moves,
+    Float32Prediction as _Float32Prediction,
+    put_rows as _put_rows,
+    PredictionWork as _Work,
+)
 
 __all__: list[str] = []
 
@@ -36,11 +46,11 @@ def _blas_threads():
     return contextlib.nullcontext() if idle_core() else one_blas_thread()
 
 
-_DENSE_MAX = 20_000_000  # numbers in the dense Poisson maps of _StreamingPrediction._dense_solution (160 MB)
-_BLOCK = 64  # frames per block of the per-frame loops (working memory ~ block x region size)
+_DENSE_MAX = 20_000_000  # numbers in the dense Poisson maps of StreamingPrediction._dense_solution (160 MB)
+BLOCK = 64  # frames per block of the per-frame loops (working memory ~ block x region size)
 
 
-def _as_frames(a, n_vertices, what, used=None, check_finite=True):
+def as_frames(a, n_vertices, what, used=None, check_finite=True):
     """Validate frames as a (T,V,3) float32 or float64 array, without copying them.
 
     float32 and float64 arrays are returned as they are (a (V,3) frame as a
@@ -63,8 +73,8 @@ def _as_frames(a, n_vertices, what, used=None, check_finite=True):
     if A.shape[0] == 0:
         raise FaceLabError(f"No {what} given (0 frames); pass at least one frame.")
     bad = []
-    for s in range(0, len(A) if check_finite else 0, _BLOCK):
-        blk = A[s : s + _BLOCK] if used is None else A[s : s + _BLOCK, used]
+    for s in range(0, len(A) if check_finite else 0, BLOCK):
+        blk = A[s : s + BLOCK] if used is None else A[s : s + BLOCK, used]
         fin = np.isfinite(blk).reshape(len(blk), -1).all(axis=1)
         bad.extend((s + np.flatnonzero(~fin)).tolist())
         if len(bad) >= 5:
@@ -77,7 +87,7 @@ def _as_frames(a, n_vertices, what, used=None, check_finite=True):
     return A
 
 
-def _mouth_features(frames, rest_vertices, faces, mouth_faces, chunk=_BLOCK):
+def mouth_feature_matrix(frames, rest_vertices, faces, mouth_faces, chunk=BLOCK):
     """(T, 9m) mouth gradients minus the identity of validated frames (any float dtype), float64."""
     F = np.asarray(faces, dtype=np.int64)[np.asarray(mouth_faces, dtype=np.int64)]
     verts, inv = np.unique(F, return_inverse=True)
@@ -126,7 +136,7 @@ def _columns(Xr, local):
     return e1, e2, c
 
 
-def _fold_coefficients(local, n_verts, sels, Ws, m):
+def fold_coefficients(local, n_verts, sels, Ws, m):
     """Fold the per-patch coefficient maps into two dense operators, once per fit.
 
     The reduced mouth coefficients of patch ``p`` are ``z_p = Σ_ik D[i,k] W_p[i,k]`` over the
@@ -174,7 +184,7 @@ _CACHE_BLOCK = 32  # frames per pass over the mouth triangles: the (m,3,t) tempo
 _SUB_BLOCK = 8  # frames per coordinate-major column pass: its (3,m,t) buffers stay in a 2 MB L2 at m ~ 6k
 
 
-def _coordinate_major(M, n):
+def coordinate_major(M, n):
     """``Mᵀ`` (R, 3n) contiguous, its columns reordered from (n,3) (vertex-major) to (3,n) (coordinate-major)."""
     return np.ascontiguousarray(M.reshape(n, 3, -1).transpose(2, 1, 0).reshape(M.shape[1], 3 * n))
 
@@ -208,11 +218,11 @@ def _columns_cm(Xc, l0, l1, l2, edges=False):
     return (e1, e2, c) if edges else c
 
 
-def _mouth_coefficients(frames, verts, local, MxT, McT):
+def mouth_coefficients(frames, verts, local, MxT, McT):
     """(T, R) reduced mouth coefficients (without the identity's) of frames (T,*,3), float64.
 
     ``verts`` are the mouth vertices' indices in ``frames``; ``local`` the triangles over them;
-    ``MxT``, ``McT`` the folded maps of :func:`_fold_coefficients` in :func:`_coordinate_major`
+    ``MxT``, ``McT`` the folded maps of :func:`fold_coefficients` in :func:`coordinate_major`
     order. ``z = Mxᵀ X + Mcᵀ c``: the phantom columns ``c`` are computed :data:`_SUB_BLOCK`
     frames at a time (cache-resident), the products :data:`_CACHE_BLOCK` frames at a time.
     """
@@ -232,7 +242,7 @@ def _mouth_coefficients(frames, verts, local, MxT, McT):
     return z
 
 
-def _gradient_features(frames, verts, local, rinv, center):
+def gradient_features(frames, verts, local, rinv, center):
     """(T, 9m) mouth gradients ``D D_r^-1`` (minus the identity when ``center``) of frames (T,*,3), float64.
 
     Row-major 3×3 per triangle, the layout of ``LipRegressor.mouth_features``; computed from the
@@ -252,7 +262,7 @@ def _gradient_features(frames, verts, local, rinv, center):
     return np.ascontiguousarray(Y.transpose(3, 0, 1, 2)).reshape(T, 9 * m)
 
 
-def _patch_operators(nI, rinv, lip_sel, w, Dp, UY, UX, th, center):
+def patch_operators(nI, rinv, lip_sel, w, Dp, UY, UX, th, center):
     """A fitted patch of ``LipRegressor`` folded into the prediction: ``(Z, W, z_ident)``.
 
     ``rinv`` (m_p,3,3) are the inverse rest shape matrices of the patch's mouth triangles,
@@ -277,17 +287,17 @@ def _patch_operators(nI, rinv, lip_sel, w, Dp, UY, UX, th, center):
     return Z, W, z0
 
 
-def _fold_directions(A, rinv, local, n_verts):
-    """(Mx, Mc) of :func:`_fold_coefficients` giving ``Aᵀ vec(D D_r^-1)`` for feature-space directions A (9m, c)."""
+def fold_directions(A, rinv, local, n_verts):
+    """(Mx, Mc) of :func:`fold_coefficients` giving ``Aᵀ vec(D D_r^-1)`` for feature-space directions A (9m, c)."""
     m = len(local)
     W = np.einsum("fijc,fkj->ikfc", A.reshape(m, 3, 3, -1), rinv)  # W[i,k,f,c] = Σ_j A[f,i,j,c] Ri[f,k,j]
-    return _fold_coefficients(local, n_verts, [np.arange(m)], [W], m)
+    return fold_coefficients(local, n_verts, [np.arange(m)], [W], m)
 
 
 def _mouth_terms(frames, verts, local, MxT, McT, P):
     """Folded projections and squared norms of the mouth gradients of frames (T,*,3), without forming them.
 
-    ``MxT``, ``McT``: folded maps (:func:`_fold_coefficients`) in :func:`_coordinate_major` order.
+    ``MxT``, ``McT``: folded maps (:func:`fold_coefficients`) in :func:`coordinate_major` order.
     Returns ``(Z, sq)``: ``Z`` (T, c) the products ``Mxᵀ X + Mcᵀ c`` (projections of
     ``vec(D D_r^-1)`` on the folded directions), ``sq`` (T,) ``Σ_f ||D_f D_r,f^-1||²`` computed
     as ``Σ_f <D_fᵀ D_f, P_f>`` with ``P = D_r^-1 D_r^-T`` (m,3,3): six dot products per triangle.
@@ -315,7 +325,7 @@ def _mouth_terms(frames, verts, local, MxT, McT, P):
     return Z, sq
 
 
-class _StreamingPrediction:
+class StreamingPrediction:
     """The per-chunk entry points of :class:`.propagate.LipRegressor` for long shots (mixed into it).
 
     They take a chunk of frames (or only its :attr:`used_vertices`) and return what a streaming
@@ -372,7 +382,7 @@ class _StreamingPrediction:
         verts = self._mouth_u if used_only else self._mouth_verts
         if getattr(self, "_cm_all", (None,))[0] is not self._Mx_all:
             nv, m = len(self._mouth_verts), len(self.mouth_faces)
-            self._cm_all = (self._Mx_all, _coordinate_major(self._Mx_all, nv), _coordinate_major(self._Mc_all, m))
+            self._cm_all = (self._Mx_all, coordinate_major(self._Mx_all, nv), coordinate_major(self._Mc_all, m))
         with _blas_threads():
             Z, sq = _mouth_terms(A, verts, self._mouth_local, *self._cm_all[1:], self._mouth_P)
             R = self._Mx.shape[1]
@@ -392,8 +402,8 @@ class _StreamingPrediction:
             ident = np.tile(np.eye(3).ravel(), len(self.mouth_faces))[:, None]
             ext = np.hstack([D, ident])
             nv, m = len(self._mouth_verts), len(self.mouth_faces)
-            Mx, Mc = _fold_directions(ext, self._mouth_rinv, self._mouth_local, nv)
-            self._dir_fold = (D, (_coordinate_major(Mx, nv), _coordinate_major(Mc, m)),
+            Mx, Mc = fold_directions(ext, self._mouth_rinv, self._mouth_local, nv)
+            self._dir_fold = (D, (coordinate_major(Mx, nv), coordinate_major(Mc, m)),
                               (ident.T @ D).ravel() if self.center == "rest" else np.zeros(D.shape[1]))
         _, (Mx, Mc), d_ident = self._dir_fold
         verts = self._mouth_u if used_only else self._mouth_verts
@@ -441,7 +451,7 @@ class _StreamingPrediction:
         ends as it was.
         """
         self._require_fit()
-        A = _as_frames(captured, self.n_vertices, "captured frames", self._used, check_finite=False)
+        A = as_frames(captured, self.n_vertices, "captured frames", self._used, check_finite=False)
         T, chunk = len(A), int(chunk)
         if chunk < 1:
             raise FaceLabError(f"chunk must be at least 1 frame, got {chunk}; use the default 256.")
@@ -484,7 +494,7 @@ class _StreamingPrediction:
         if bad:  # raises MeshError naming the frames with NaNs (the whole shot is scanned for them)
             if done:
                 _put_rows(A[:done], iv, keep[:done])
-            _as_frames(captured, self.n_vertices, "captured frames", self._used)
+            as_frames(captured, self.n_vertices, "captured frames", self._used)
         if in_place:
             return out
         if out is None:

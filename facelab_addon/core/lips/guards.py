@@ -21,7 +21,7 @@ from ..errors import FaceLabError, MeshError, PredictionError
 __all__: list[str] = []
 
 
-def _check_settings(ridge, rtol, atol, patches, input_radius):
+def check_settings(ridge, rtol, atol, patches, input_radius):
     """Refuse regression settings out of range (FaceLabError naming the setting and a usable value)."""
     if not (ridge == "loo" or (_is_number(ridge) and float(ridge) >= 0)):
         raise FaceLabError(f"ridge must be a non-negative number or 'loo', got {ridge!r}; use 0 (the paper).")
@@ -38,7 +38,7 @@ def _is_number(v):
     return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool) and bool(np.isfinite(v))
 
 
-def _same_array(a, b):
+def same_array(a, b):
     """True when ``a`` and ``b`` are the same elements of the same buffer (e.g. ``out`` is the input)."""
     return a is b or (
         isinstance(a, np.ndarray) and a.shape == b.shape and a.dtype == b.dtype and a.strides == b.strides
@@ -46,7 +46,7 @@ def _same_array(a, b):
     )
 
 
-def _checked_mesh(rest_vertices, faces):
+def checked_mesh(rest_vertices, faces):
     """``(R, F)``: the rest positions as (V,3) float64 and the triangles as (F,3) int64, validated."""
     R = np.asarray(rest_vertices, dtype=np.float64)
     F = np.asarray(faces)
@@ -62,7 +62,7 @@ def _checked_mesh(rest_vertices, faces):
     return R, F
 
 
-def _checked_out(out, A):
+def checked_out(out, A):
     """``out`` as a (T,V,3) view after checking it is a writeable float32/float64 array like ``A``."""
     if not isinstance(out, np.ndarray):
         raise FaceLabError(f"out must be a NumPy array, got {type(out).__name__}; pass an array like the frames.")
@@ -80,7 +80,7 @@ def _checked_out(out, A):
     return out
 
 
-def _check_prediction(xi, captured_interior, first, mouth_size):
+def check_prediction(xi, captured_interior, first, mouth_size):
     """Refuse non-finite results and corrections larger than the mouth (PredictionError naming frame indices)."""
     d = xi - captured_interior
     size = np.sqrt(np.max(np.sum(d * d, axis=2), axis=1))  # (t,) largest vertex move per frame; NaN if any

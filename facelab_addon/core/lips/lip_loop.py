@@ -134,7 +134,7 @@ def _region_faces(faces):
     return F
 
 
-def _region_mesh(vertices, faces):
+def region_mesh(vertices, faces):
     """``(V, F)`` float64 (V,3) and int64 (F,3), checked: finite positions, indices in range (RegionMeshError)."""
     V = np.asarray(vertices)
     if V.ndim != 2 or V.shape[1] != 3 or len(V) == 0 or not np.issubdtype(V.dtype, np.number):
@@ -420,7 +420,7 @@ def inner_lip_loop(vertices, faces, loop=None, *, max_gap=None, detour: float = 
     the lips, not of the contact (module docstring): the same on a fine and
     on a coarse mesh of the same mouth.
     """
-    V, F = _region_mesh(vertices, faces)
+    V, F = region_mesh(vertices, faces)
     nv = len(V)
     if loop is not None:
         return order_edge_loop(F, loop, nv)

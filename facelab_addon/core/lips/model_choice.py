@@ -33,17 +33,15 @@ The same error model damps the prediction frame by frame when asked (``LipRegres
 Damp Uncertain Frames): :func:`expected_error` is its part that grows with a frame's distance from the training
 span, and :func:`damping_weights` the Wiener factor ``|c|² / (|c|² + S)`` of a predicted correction ``c``.
 
-Measured (``benchmarks/lip_band.py``, held-out inner-lip error, % of the capture's): the 3-frame
-scene of ``tests/pipeline/test_propagate.py`` with a 0.2 mouth-width band: whole 85.9, correction
-5.7, auto 6.7; ``benchmarks/propagate.py``'s non-linear error at k = 10, 0.12 band: whole 15.3,
-correction 63.4, auto 16.0.
+How the three compare on held-out frames: docs/benchmarks.md (``benchmarks/lip_band.py``,
+``benchmarks/propagate.py``).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from .features import _gradient_features
+from .features import gradient_features
 from .reduced import loo_span_residuals
 
 __all__: list[str] = []
@@ -70,8 +68,8 @@ def shot_features(reg, frames, used_only):
     mouth = reg._mouth_u if used_only else reg._mouth_verts
     lips = np.searchsorted(reg._used, reg._lip_verts_all) if used_only else reg._lip_verts_all
     center = reg.center == "rest"
-    Ys = _gradient_features(frames, mouth, reg._mouth_local, reg._mouth_rinv, center)
-    Xs = _gradient_features(frames, lips, reg._lip_local, reg._lip_rinv, center)
+    Ys = gradient_features(frames, mouth, reg._mouth_local, reg._mouth_rinv, center)
+    Xs = gradient_features(frames, lips, reg._lip_local, reg._lip_rinv, center)
     return Ys, Xs
 
 

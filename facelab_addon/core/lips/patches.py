@@ -24,7 +24,7 @@ __all__: list[str] = []
 _OVERLAP = 1.0
 
 
-def _lip_patches(rest, faces, mouth_faces, lip_faces, count, input_radius):
+def lip_patches(rest, faces, mouth_faces, lip_faces, count, input_radius):
     """Overlapping local patches of the lip region and the mouth triangles that feed each one.
 
     Returns a list of ``(mouth_sel, lip_sel, lip_weight)``: indices into

@@ -15,12 +15,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from .guards import _check_prediction
+from .guards import check_prediction as _check_prediction
 
 __all__: list[str] = []
 
 
-def _check_moves(xi, xc, first, mouth_size, work=None):
+def check_moves(xi, xc, first, mouth_size, work=None):
     """:func:`.guards._check_prediction` of predicted and captured positions (t, n, 3), from each frame's largest
     coordinate change (a lower bound of its largest move, within sqrt 3): the exact check runs on a block only
     when one of its frames comes near the limit or is not finite. ``work``: a buffer for the changes."""
@@ -30,7 +30,7 @@ def _check_moves(xi, xc, first, mouth_size, work=None):
         _check_prediction(xi, xc, first, mouth_size)
 
 
-_F32_BLOCK = 128  # frames per float32 prediction block (products of 128 rows run near the BLAS peak)
+F32_BLOCK = 128  # frames per float32 prediction block (products of 128 rows run near the BLAS peak)
 _F32_SUB = 8  # frames per pass of the phantom columns: the (3, t, m) float32 temporaries stay in L2
 
 
@@ -49,7 +49,7 @@ def _rows(A, idx, flat=None, out=None):
     return out
 
 
-def _put_rows(A, idx, X):
+def put_rows(A, idx, X):
     """``A[:, idx] = X`` (X (t, len(idx), 3), cast to A's dtype), written one 3-number record per vertex
     (1.5-2.5x faster than ``A[:, idx] = X``)."""
     if A.strides[2] != A.itemsize:
@@ -59,7 +59,7 @@ def _put_rows(A, idx, X):
     A.view(vd)[..., 0][:, idx] = np.ascontiguousarray(X, dtype=A.dtype).view(vd)[..., 0]
 
 
-class _Float32Prediction:
+class Float32Prediction:
     """The fitted prediction of ``LipRegressor`` folded into float32 maps of displacements from the rest pose.
 
     ``x_I = K z + x0 - H x_B`` (:meth:`.features._StreamingPrediction._dense_solution`) with the coefficients
@@ -95,7 +95,7 @@ class _Float32Prediction:
         # so the rest pose gives c - c_rest = 0 exactly
         self.rest_local = np.ascontiguousarray((Rm - Rm.mean(axis=0)).T[:, None, :], dtype=f32)  # (3, 1, nv)
         self.rest_c = 0.0
-        self.rest_c = self._phantom(self.rest_local, np.empty((3, 1, m), f32), _Work())
+        self.rest_c = self._phantom(self.rest_local, np.empty((3, 1, m), f32), PredictionWork())
         self.Mx = reg._Mx.astype(f32)  # (3nv, R), rows (vertex, coordinate)
         self.Mc = np.ascontiguousarray(reg._Mc.reshape(m, 3, R).transpose(1, 0, 2), dtype=f32)  # (3, m, R)
         z_ref = reg._Mx.T @ Rm.ravel() + reg._Mc.T @ c.ravel() - reg._z_ident  # (R,) coefficients of X_rest
@@ -110,7 +110,7 @@ class _Float32Prediction:
 
     def _phantom(self, Xc, out, w):
         """``c - c_rest`` (3, t, m) float32 into ``out`` from coordinate-major mouth positions Xc (3, t, nv)
-        (``rest_local`` frame), with work buffers ``w`` (:class:`_Work`). Indices are valid, so the gathers use
+        (``rest_local`` frame), with work buffers ``w`` (:class:`PredictionWork`). Indices are valid, so the gathers use
         ``mode="clip"`` (unbuffered); contiguous corner arrays, no masked division and no fresh temporaries
         (each would be page-faulted in anew): measured about 2x faster per pass than without.
         """
@@ -140,9 +140,9 @@ class _Float32Prediction:
     def interior(self, Ab, xi, xc=None, w=None):
         """``(xi, xc)``: predicted and captured interior lip positions (t,nI,3) of frames Ab (t,V,3), written into
         ``xi`` (any float dtype) and ``xc`` (Ab's dtype; a new array if None); None when a row read (mouth,
-        border or interior lip vertex) is not finite. ``w``: work buffers (:class:`_Work`) kept across blocks."""
+        border or interior lip vertex) is not finite. ``w``: work buffers (:class:`PredictionWork`) kept across blocks."""
         mv, bv, iv = self.idx
-        t, f32, w = len(Ab), np.float32, _Work() if w is None else w
+        t, f32, w = len(Ab), np.float32, PredictionWork() if w is None else w
         nv, nB, m, R = len(mv), len(bv), self.Mc.shape[1], self.Mx.shape[1]
         G = _rows(Ab, mv, self.flat[0], w.get("G", (t, nv, 3), Ab.dtype)[:t])
         GB = _rows(Ab, bv, self.flat[1], w.get("GB", (t, nB, 3), Ab.dtype)[:t])
@@ -172,7 +172,7 @@ class _Float32Prediction:
         return xi, xc
 
 
-class _Work(dict):
+class PredictionWork(dict):
     """Work buffers kept across the blocks of one prediction: a fresh large temporary is page-faulted in anew on
     every block (measured: about 20% of the CPU time of ``predict`` at 105k vertices)."""
 

@@ -72,18 +72,18 @@ from ..geometry.gradients import rest_inverse, shape_matrices
 from ..geometry.laplacian import poisson_operator
 from ..geometry.linsolve import SPDFactor
 from .features import (
-    _BLOCK,
-    _as_frames,
-    _coordinate_major,
-    _gradient_features,
-    _mouth_coefficients,
-    _StreamingPrediction,
+    BLOCK as _BLOCK,
+    as_frames as _as_frames,
+    coordinate_major as _coordinate_major,
+    gradient_features as _gradient_features,
+    mouth_coefficients as _mouth_coefficients,
+    StreamingPrediction as _StreamingPrediction,
 )
-from .guards import _check_settings, _checked_mesh
-from .patches import _lip_patches
+from .guards import check_settings as _check_settings, checked_mesh as _checked_mesh
+from .patches import lip_patches as _lip_patches
 from .reduced import MODELS
 from .regions import region_border, validate_regions
-from .training import _Training
+from .training import RegressorTraining as _Training
 
 __all__ = ["LipRegressor"]
 

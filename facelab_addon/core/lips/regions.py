@@ -25,7 +25,7 @@ from scipy.sparse.csgraph import connected_components as _cc
 from ..errors import MeshError, RegionError
 from ..geometry.geodesic import geodesic_distance
 from ..geometry.mesh import vertex_adjacency
-from .lip_loop import _region_mesh, inner_lip_loop, loop_width
+from .lip_loop import region_mesh, inner_lip_loop, loop_width
 
 __all__ = [
     "RegionError",
@@ -41,10 +41,10 @@ __all__ = [
 ]
 
 #: Default inner-lip band half-width, as a fraction of the mouth width (corner
-#: to corner distance of the contact loop). About 5.5 mm on ICT-FaceKit. (0.2, each
-#: lip's height, lets Refine remove more of an error spread 8 mm across the lips, but
-#: Propagate, which regresses the whole deformation of the band and holds only its border,
-#: then needs more training frames: see docs/sketch-refine.md and benchmarks/lip_band.py.)
+#: to corner distance of the contact loop). A wider band (about each lip's height) lets
+#: Refine remove an error spread further across the lips, but Propagate, which regresses
+#: the whole deformation of the band and holds only its border, then needs more training
+#: frames: see docs/sketch-refine.md and docs/benchmarks.md (``benchmarks/lip_band.py``).
 DEFAULT_LIP_WIDTH = 0.12
 #: The lip band is at least this many edge lengths (median at the contact loop) wide, so
 #: on a coarse mesh its interior, which Refine moves, is still two edge rings deep.
@@ -258,7 +258,7 @@ def auto_regions(vertices, faces, loop=None, lip_width=None, mouth_width=None, *
     RegionError
         If the loop cannot be found or the widths are not positive.
     """
-    V, F = _region_mesh(vertices, faces)
+    V, F = region_mesh(vertices, faces)
     nv = len(V)
     loop = inner_lip_loop(V, F, loop, **find)
     W = loop_width(V, loop)
@@ -350,7 +350,7 @@ def inner_lip_vertices(vertices, faces, loop=None, lip_width=None) -> np.ndarray
     -------
     (V,) bool ndarray
     """
-    V, F = _region_mesh(vertices, faces)
+    V, F = region_mesh(vertices, faces)
     loop = inner_lip_loop(V, F, loop)
     lw = DEFAULT_LIP_WIDTH * loop_width(V, loop) if lip_width is None else _width(lip_width, "lip")
     if not (lw > 0 and np.isfinite(lw)):

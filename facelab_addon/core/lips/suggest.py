@@ -15,13 +15,13 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import FaceLabError, UsageError
-from .features import _BLOCK, _as_frames, _mouth_features
+from .features import BLOCK, as_frames, mouth_feature_matrix
 from .propagate import LipRegressor
 
 __all__ = ["suggest_frames", "SuggestScreen"]
 
 
-def _deflate(R, q, block=_BLOCK):
+def _deflate(R, q, block=BLOCK):
     """``R -= (R q) qᵀ`` in place, a block of rows at a time (no full-size temporary)."""
     for s in range(0, len(R), block):
         b = R[s : s + block]
@@ -109,15 +109,15 @@ def suggest_frames(captured=None, count: int = 1, *, regressor: LipRegressor | N
                 "suggest_frames needs either a fitted regressor or rest_vertices, faces and mouth_faces; pass them."
             )
         R = np.asarray(rest_vertices, dtype=np.float64)
-        A = _as_frames(captured, len(R), "captured frames")
-        Rz = _mouth_features(A, R, faces, mouth_faces)
+        A = as_frames(captured, len(R), "captured frames")
+        Rz = mouth_feature_matrix(A, R, faces, mouth_faces)
     Q = regressor._UY if regressor is not None and regressor._Y is not None else None
     T = len(Rz)
     # feature scale (threshold of "already in the span"), then residuals after projecting on Q, in place
     sq = np.empty(T)
-    for s in range(0, T, _BLOCK):
-        b = Rz[s : s + _BLOCK]
-        sq[s : s + _BLOCK] = np.sum(b * b, axis=1)
+    for s in range(0, T, BLOCK):
+        b = Rz[s : s + BLOCK]
+        sq[s : s + BLOCK] = np.sum(b * b, axis=1)
         if Q is not None and Q.shape[1]:
             b -= (b @ Q) @ Q.T
     scale = max(float(np.sqrt(np.mean(sq))), 1e-300)
@@ -133,8 +133,8 @@ def suggest_frames(captured=None, count: int = 1, *, regressor: LipRegressor | N
     picks = []
     norms = np.empty(T)
     for _ in range(int(count)):
-        for s in range(0, T, _BLOCK):
-            norms[s : s + _BLOCK] = np.linalg.norm(Rz[s : s + _BLOCK], axis=1)
+        for s in range(0, T, BLOCK):
+            norms[s : s + BLOCK] = np.linalg.norm(Rz[s : s + BLOCK], axis=1)
         norms[excl] = -1.0
         if picks:
             norms[picks] = -1.0

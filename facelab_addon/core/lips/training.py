@@ -16,14 +16,19 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import FaceLabError, FrameError, UsageError
-from .features import _as_frames, _fold_coefficients, _fold_directions, _patch_operators
+from .features import (
+    as_frames as _as_frames,
+    fold_coefficients as _fold_coefficients,
+    fold_directions as _fold_directions,
+    patch_operators as _patch_operators,
+)
 from .model_choice import choose_blend, error_model, shot_features
 from .reduced import choose_ridge, loo_residuals, solve_theta, thin_svd
 
 __all__: list[str] = []
 
 
-class _Training:
+class RegressorTraining:
     """The training methods of :class:`.propagate.LipRegressor` (mixed into it)."""
 
     # ------------------------------------------------------------------ training

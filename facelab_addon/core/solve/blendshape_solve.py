@@ -134,7 +134,7 @@ def _collect_ints(obj, out, depth=0):
             _collect_ints(v, out, depth + 1)
 
 
-def _check_cameras(cameras):
+def check_cameras(cameras):
     cams = list(cameras or [])
     for i, c in enumerate(cams):
         if not isinstance(c, Camera):
@@ -229,7 +229,7 @@ class BlendshapeSolver:
             )
         self.neutral, self.faces, self.deltas = V0, F, D
         self.S = D.shape[0]
-        self.cameras = _check_cameras(cameras)
+        self.cameras = check_cameras(cameras)
         self.loops = loops
         lo, hi = bounds
         self.lo = np.broadcast_to(np.asarray(lo, float), (self.S,)).copy()

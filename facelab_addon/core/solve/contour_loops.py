@@ -43,7 +43,7 @@ from ..geometry.axes import Y_UP, Z_FORWARD, unit_axis
 from ..geometry.mesh import edge_faces, validate_mesh, vertex_adjacency
 from ..geometry.sphere import fit_sphere
 from ..lips.mouth import find_mouth
-from .occlusion import _edge_lookup, _half_counts, _Pack, _pack
+from .occlusion import edge_lookup, half_silhouette_counts, CandidatePack, pack_candidates
 
 __all__ = [
     "MOUTH_CURVES",
@@ -85,7 +85,7 @@ class TrackedCurve:
 
 
 @dataclass
-class _Half:
+class LoopHalf:
     """One half of a candidate loop, corner to corner, as surface points."""
 
     vertices: np.ndarray  # (c,2) int64 edge end points of each surface point
@@ -149,9 +149,9 @@ class ContourLoops:
     forward: np.ndarray
     lateral: np.ndarray
     n_vertices: int
-    halves: dict = field(default_factory=dict, repr=False)  # curve name -> list[_Half], one per loop
+    halves: dict = field(default_factory=dict, repr=False)  # curve name -> list[LoopHalf], one per loop
     info: dict = field(default_factory=dict)
-    _pack: _Pack | None = field(default=None, repr=False)
+    pack_candidates: CandidatePack | None = field(default=None, repr=False)
     _sphere_cache: dict = field(default_factory=dict, repr=False)
 
     def needed_vertices(self) -> np.ndarray:
@@ -354,7 +354,7 @@ def _ring_corners(V, F, rings, lateral, up):
 
 
 def _halves_of_loop(V, F_all, edge_index, loop, corners, up, lateral, with_mid):
-    """(upper _Half, lower _Half) of one closed loop split at its two corner vertices."""
+    """(upper LoopHalf, lower LoopHalf) of one closed loop split at its two corner vertices."""
     n = len(loop)
     pos = {int(v): i for i, v in enumerate(loop)}
     i0, i1 = pos[int(corners[0])], pos[int(corners[1])]
@@ -371,7 +371,7 @@ def _halves_of_loop(V, F_all, edge_index, loop, corners, up, lateral, with_mid):
         ef = edge_index(E)
         tris = np.where(ef[..., None] >= 0, F_all[np.maximum(ef, 0)], -1)
         pv, pb, splits = _split_half_points(V, chain, lateral, with_mid)
-        out.append(_Half(vertices=pv, bary=pb, splits=splits, chain=chain.astype(np.int64), edge_tris=tris))
+        out.append(LoopHalf(vertices=pv, bary=pb, splits=splits, chain=chain.astype(np.int64), edge_tris=tris))
     return out[0], out[1]
 
 
@@ -488,7 +488,7 @@ def contour_loops(
                 offset[lp] = np.linalg.norm(V[lp] - c, axis=1) - r
             info[f"eye_{side}_ring_sizes"] = [len(x) for x in rings]
 
-    lookup = _edge_lookup(F)
+    lookup = edge_lookup(F)
     halves = {"mouth_upper": [], "mouth_lower": []}
     mouth_corners = _ring_corners(V, F, mouth, lateral, up)
     for lp, cor in zip(mouth, mouth_corners):
@@ -520,7 +520,7 @@ def contour_loops(
         halves=halves,
         info=info,
     )
-    out._pack = _pack(out)
+    out._pack = pack_candidates(out)
     # default halves: the rest pose seen from the front of each region
     for name in out.halves:
         region = out.loops_for(name)
@@ -528,7 +528,7 @@ def contour_loops(
         ctr = P.mean(axis=0)
         ext = float(np.ptp(P, axis=0).max())
         cam = Camera.look_at(ctr + 20.0 * ext * forward, ctr, up, 50.0, 36.0, 1920, 1080)
-        counts = _half_counts(V, cam, out)[slice(*out._pack.offsets[name])]
+        counts = half_silhouette_counts(V, cam, out)[slice(*out._pack.offsets[name])]
         best = np.flatnonzero(counts == counts.max())
         out.default_loop[name] = int(best[len(best) // 2])
     return out

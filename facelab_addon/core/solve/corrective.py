@@ -34,7 +34,7 @@ from ..geometry.deform import LaplacianDeformer, PointConstraints
 from ..geometry.laplacian import cotangent_laplacian
 from ..geometry.linsolve import small_dense_threads
 from ..geometry.mesh import edge_faces, grow_region, validate_mesh, vertex_adjacency
-from .blendshape_solve import _check_cameras
+from .blendshape_solve import check_cameras
 
 __all__ = ["OutOfSubspaceCorrective", "lip_band", "LIP_BAND_RINGS"]
 
@@ -99,10 +99,9 @@ class OutOfSubspaceCorrective:
         Laplacian): keeps the corrective local. With the Laplacian alone a
         constraint that the rig cannot meet (an eyelid target, a lip
         silhouette) bends the whole free surface, since the 80 or so marker
-        rays pin it only sideways; on ICT-FaceKit (benchmark) that doubled
-        the error away from the eyes and mouth. 0.01 (default) keeps the
-        correction within about a centimetre of its constraints on ICT; 0
-        is the paper's energy. Inside ``region``: ``region_damping``.
+        rays pin it only sideways, and the error grows away from the eyes
+        and mouth. The default keeps the correction near its constraints
+        (docs/benchmarks.md); 0 is the paper's energy. Inside ``region``: ``region_damping``.
     contour_metric : {'plane', 'ray'}
         How a 2D contour point is tied to its tracked pixel. ``'ray'``: the
         distance to the pixel's camera ray (the paper's Eq. 1 in 3D).
@@ -113,7 +112,6 @@ class OutOfSubspaceCorrective:
         sits on a neighbouring edge ring or at another depth, where pulling
         the rig's ring point onto the ray (from two cameras: onto the rays'
         intersection, off the surface) bends the lip.
-        (ICT benchmark: inner-lip error 0.30 mm vs 0.32 with rays.)
     warm_vertices : (k,) int, optional
         Vertices whose Woodbury columns are computed up front (e.g. all
         candidate contour-loop vertices), so the first frames are not slower.
@@ -121,11 +119,10 @@ class OutOfSubspaceCorrective:
         Where the curves inform the face (the mouth and the eyes:
         ``blendshape_solve.contour_region``); None: ``damping`` everywhere.
     region_damping : float
-        Damping inside ``region`` (not in the paper). 0.03 (default, chosen
-        with the fit's markers anchor on the tuning captures): the lip and
-        lid corrections stay nearer the contours, where 0.01 let them spill
-        onto the outer lips (clean held-out capture: face error 1.06x the
-        markers-only one with 0.01, 0.88x with 0.03). Outside, ``damping``
+        Damping inside ``region`` (not in the paper; the default is chosen
+        on the tuning captures): stronger than ``damping`` so the lip and
+        lid corrections stay near the contours instead of spilling onto the
+        outer lips. Outside, ``damping``
         stays low so that what the markers see beyond the rig (a cheek puff
         the rig lacks) is still corrected.
     pixel_units : bool
@@ -158,7 +155,7 @@ class OutOfSubspaceCorrective:
                  lip_contour_weight: float = 8.0, lip_damping: float = 0.3):
         V0, F = validate_mesh(neutral, faces, name="neutral mesh")
         self.neutral, self.faces = V0, F
-        self.cameras = _check_cameras(cameras)
+        self.cameras = check_cameras(cameras)
         self.markers, self.bundles = markers, bundles
         self.marker_weight = float(marker_weight)
         self.bundle_weight = float(bundle_weight)

@@ -44,6 +44,7 @@ import scipy.sparse as sp
 from ..errors import FaceLabError, MeshError
 from ..geometry.deform import LaplacianDeformer, PointConstraints
 from ..geometry.gradients import shape_matrices
+from ..geometry.inv3 import inv3
 from ..geometry.laplacian import poisson_operator, uniform_laplacian
 from ..geometry.linsolve import SPDFactor
 from ..geometry.mesh import connected_components, face_normals, vertex_normals
@@ -66,14 +67,6 @@ def _check_mesh(V, F, name):
     if not np.isfinite(V).all():
         raise MeshError(f"The {name} has NaN or infinite coordinates; fix the mesh first.")
     return V, F
-
-
-def _inv3(M):
-    """Inverses of a stack of 3x3 matrices by cofactors (batched LAPACK calls can crawl on a busy machine)."""
-    a, b, c = M[:, 0], M[:, 1], M[:, 2]  # rows
-    r0, r1, r2 = np.cross(b, c), np.cross(c, a), np.cross(a, b)
-    det = np.einsum("ij,ij->i", a, r0)
-    return np.stack([r0, r1, r2], axis=2) / det[:, None, None]
 
 
 def _nondegenerate(V, F, rel=1e-12):
@@ -162,7 +155,7 @@ class DeformationTransfer:
         Dr = shape_matrices(Vs, Fs[used])
         ok = _nondegenerate(Vs, Fs[used])
         inv = np.zeros_like(Dr)
-        inv[ok] = _inv3(Dr[ok])
+        inv[ok] = inv3(Dr[ok])
         self._src_inv = inv
         self._src_ok = ok
         pos = -np.ones(len(Fs), np.int64)

@@ -4,7 +4,7 @@
 eyelid curves are fitted as 3D targets on the cornea. With ``eyelids='3d'``
 or ``'both'``, :func:`~facelab_addon.core.solve.matching.match_contours`
 hands its eyelid correspondences (pixel targets on mesh-edge points) to
-``_lift_eyelids``, which projects each target from its camera onto the
+``lift_eyelids``, which projects each target from its camera onto the
 eyeball sphere (:mod:`facelab_addon.core.geometry.sphere`, fitted to the
 eyeball vertices of the mesh being matched, refitted only when they move)
 grown by the lid point's height over it: the current height on that mesh (so
@@ -37,7 +37,7 @@ def _eyeball_sphere(V, loops, side):
     return cr
 
 
-def _lift_eyelids(V, cameras, loops, out, lift, min_cos, height="current"):
+def lift_eyelids(V, cameras, loops, out, lift, min_cos, height="current"):
     """Project the 2D targets of the 3D eyelid correspondences onto the eyeball (batched per eye and camera).
 
     Each target lies on the camera ray of its curve pixel, on the eyeball sphere

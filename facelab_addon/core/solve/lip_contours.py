@@ -281,7 +281,7 @@ def end_points_from_vertices(creature_vertices, creature_contours: LipContours, 
     return EndPoints(np.array([fl, fr]), np.array([fl, fr]))
 
 
-def _resolve_end_points(end_points):
+def resolve_end_points(end_points):
     if end_points is None or isinstance(end_points, EndPoints):
         return end_points
     v = np.asarray(end_points, dtype=np.float64).ravel()

@@ -51,7 +51,7 @@ from ..geometry.polyline import arc_length
 from .lip_contours import (
     EndPoints,
     LipContours,
-    _resolve_end_points,
+    resolve_end_points,
     contour_points,
     lip_sync_end_points,
 )
@@ -79,11 +79,9 @@ class LipSync:
     strength : float
         Weight of the talking-portion constraints against the
         cotangent-Laplacian term (weight ``lambda_reg``); unitless (both terms
-        are squared lengths). Soft by default (10): the pairs over-determine
-        the lips, and the former 1000 on the raw targets tore the creature's
-        lip corners (operator demo frame 3: 1.49 -> 0.76 mm largest umbrella
-        roughness, mean lip-distance error 1.08 -> 0.70 mm; the benchmark
-        fits its clean case 0.04 -> 0.13 mm less closely).
+        are squared lengths). Soft by default: the pairs over-determine the
+        lips, and near-hard constraints on the raw targets tear the
+        creature's lip corners where the contours zigzag.
     seal_strength : float
         Weight of the sealing (zero-distance) constraints between each
         original corner and its new end point; unitless.
@@ -126,7 +124,7 @@ class LipSync:
 
     def end_points(self, actor_frame, creature_frame, *, end_points=None, threshold: float = 0.0) -> EndPoints:
         """The artist's end points if given, else :func:`lip_sync_end_points`."""
-        ep = _resolve_end_points(end_points)
+        ep = resolve_end_points(end_points)
         if ep is None:
             ep = lip_sync_end_points(actor_frame, self.actor_contours, creature_frame, self.creature_contours,
                                      threshold=threshold)

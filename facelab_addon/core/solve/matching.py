@@ -56,9 +56,9 @@ from ..geometry.polyline import (
     point_to_polyline_distance,
     points_at_arc_length,
 )
-from .contour_loops import CURVE_NAMES, ContourLoops, _Half
-from .eyelids import _lift_eyelids
-from .occlusion import _gather, _near_curve_counts, _silhouettes
+from .contour_loops import CURVE_NAMES, ContourLoops, LoopHalf
+from .eyelids import lift_eyelids
+from .occlusion import gather_corners, near_curve_counts, candidate_silhouettes
 
 __all__ = [
     "CurveCorrespondence",
@@ -150,7 +150,7 @@ def _canonical(pixels, name):
     return C, S
 
 
-def _match_half(half: _Half, P, C, S):
+def _match_half(half: LoopHalf, P, C, S):
     """Targets (arc-length params on C) of the half's points given their projections P (c,2)."""
     sp_ = half.splits
     s_split = closest_arc_length(P[sp_], C, S)
@@ -334,8 +334,8 @@ def match_contours(
             lo, hi = loops._pack.offsets[name]
             if ci not in counts_cache:
                 if G is None:
-                    G = _gather(V, loops)
-                sil = _silhouettes(V, cam, loops, G)
+                    G = gather_corners(V, loops)
+                sil = candidate_silhouettes(V, cam, loops, G)
                 n_all = np.bincount(loops._pack.hid[sil[0]], minlength=loops._pack.n_halves)
                 counts_cache[ci] = (sil[0], sil[1], n_all)
             sil_idx, sil_mid, all_counts = counts_cache[ci]
@@ -347,22 +347,22 @@ def match_contours(
             k = int(np.argmax(ic))
             s = None
             if ic[k] > 0 and len(_candidates(ic, near_tie)) == 1:
-                P = _project(Pm, _eval_points(V, halves[k]), name)
+                P = _project(Pm, half_points(V, halves[k]), name)
                 s = _match_half(halves[k], P, C, S)
                 d = P - points_at_arc_length(C, S, s)
                 if np.median(d[:, 0] ** 2 + d[:, 1] ** 2) > tol * tol:
                     s = None
             if s is None:
-                counts = _near_curve_counts(sil_idx, sil_mid, loops, lo, hi, Cs, tol)
+                counts = near_curve_counts(sil_idx, sil_mid, loops, lo, hi, Cs, tol)
                 best = _candidates(counts, near_tie)
                 proj = {}
                 if len(best) > 1:
                     for kk in best:
-                        proj[int(kk)] = _project(Pm, _eval_points(V, halves[kk]), name)
+                        proj[int(kk)] = _project(Pm, half_points(V, halves[kk]), name)
                 k = _choose(counts, proj, Cs, p0.loop if p0 is not None else None, loops.default_loop[name], near_tie)
                 P = proj.get(k)
                 if P is None:
-                    P = _project(Pm, _eval_points(V, halves[k]), name)
+                    P = _project(Pm, half_points(V, halves[k]), name)
                 s = _match_half(halves[k], P, C, S)
             half = halves[k]
             pv, pb = half.vertices, half.bary
@@ -376,12 +376,12 @@ def match_contours(
                 out.append(CurveCorrespondence(name, -1, pv, pb, targets=None, loop=k, curve_t=t, source_camera=ci,
                                                pixels=px))
     if lift:
-        _lift_eyelids(V, cameras, loops, out, lift, eyelid_min_cos, eyelid_height)
+        lift_eyelids(V, cameras, loops, out, lift, eyelid_min_cos, eyelid_height)
         out = [c for c in out if not (c.camera < 0 and c.targets is None)]
     return out
 
 
-def _eval_points(V, half: _Half):
+def half_points(V, half: LoopHalf):
     b = half.bary
     return b[:, 0, None] * V[half.vertices[:, 0]] + b[:, 1, None] * V[half.vertices[:, 1]]
 

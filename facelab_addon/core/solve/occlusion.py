@@ -10,7 +10,7 @@ edges*: edges shared by a triangle facing the camera and one facing away
   for whole loops given as vertex chains.
 * The private helpers count them for every candidate half of a
   :class:`~facelab_addon.core.solve.contour_loops.ContourLoops` at once. All
-  candidate edges are stacked once (``_Pack``, kept as ``loops._pack``) and
+  candidate edges are stacked once (``CandidatePack``, kept as ``loops._pack``) and
   only the triangles next to them are evaluated (about 3,300 of ICT-FaceKit's
   26,719 vertices). Counted edges can be restricted to those bounding the
   opening (the lip or lid lies on the far side of the edge from the opening
@@ -41,7 +41,7 @@ __all__ = ["silhouette_edge_counts", "select_occluding_loop"]
 
 
 @dataclass
-class _Pack:
+class CandidatePack:
     """Every candidate half's edges stacked, for one-shot silhouette tests of all candidates."""
 
     tri: np.ndarray  # (u,3) unique triangles next to candidate edges
@@ -59,7 +59,7 @@ class _Pack:
         return ((self.tri, self.inv), self.ok, self.hid, self.n_halves, self.offsets, self.flat)[i]
 
 
-def _pack(loops) -> _Pack:
+def pack_candidates(loops) -> CandidatePack:
     """Stack the triangles next to every candidate half's edges for one-shot facing tests."""
     tris, half_of, edges, upper = [], [], [], []
     offsets = {}
@@ -83,12 +83,12 @@ def _pack(loops) -> _Pack:
     T0 = np.maximum(T[:, 0], 0)
     not_edge = (T0 != E[:, :1]) & (T0 != E[:, 1:])
     third = T0[np.arange(len(T0)), np.argmax(not_edge, axis=1)]
-    return _Pack(tri=np.ascontiguousarray(tri), inv=inv.reshape(-1, 2), ok=ok, hid=hid, n_halves=k, offsets=offsets,
+    return CandidatePack(tri=np.ascontiguousarray(tri), inv=inv.reshape(-1, 2), ok=ok, hid=hid, n_halves=k, offsets=offsets,
                  flat=flat, edges=E, third=third,
                  upper=np.concatenate(upper) if upper else np.zeros(0, bool))
 
 
-def _edge_lookup(F):
+def edge_lookup(F):
     """Function mapping sorted vertex pairs (k,2) to their two adjacent triangles (k,2) (-1 if none)."""
     e, ef = edge_faces(F)
     base = np.int64(F.max() + 1)
@@ -125,12 +125,12 @@ def _facing_sign(V, tris, camera):
     return _facing_from_coords(G, camera.center)
 
 
-def _gather(V, loops):
+def gather_corners(V, loops):
     """(9,k) corner coordinates of the candidate triangles (one gather for all cameras)."""
     return np.ascontiguousarray(V).reshape(-1)[loops._pack.flat]
 
 
-def _silhouettes(V, camera, loops, G=None, inner: bool = True):
+def candidate_silhouettes(V, camera, loops, G=None, inner: bool = True):
     """Silhouette edges of all candidate halves seen from ``camera``.
 
     With ``inner`` only silhouette edges that bound the opening are kept: the
@@ -154,7 +154,7 @@ def _silhouettes(V, camera, loops, G=None, inner: bool = True):
     """
     pk = loops._pack
     if G is None:
-        G = _gather(V, loops)
+        G = gather_corners(V, loops)
     s = _facing_from_coords(G, camera.center)[pk.inv]
     idx = np.flatnonzero(pk.ok & (s[:, 0] != s[:, 1]))
     e = pk.edges[idx]
@@ -175,13 +175,13 @@ def _silhouettes(V, camera, loops, G=None, inner: bool = True):
     return idx, q[3], np.stack([q[0], q[1]], axis=1), up
 
 
-def _half_counts(V, camera, loops, G=None, inner: bool = True):
-    """(H,) silhouette-edge count of every candidate half (all curve names packed); see :func:`_silhouettes`."""
-    idx = _silhouettes(V, camera, loops, G, inner)[0]
+def half_silhouette_counts(V, camera, loops, G=None, inner: bool = True):
+    """(H,) silhouette-edge count of every candidate half (all curve names packed); see :func:`candidate_silhouettes`."""
+    idx = candidate_silhouettes(V, camera, loops, G, inner)[0]
     return np.bincount(loops._pack.hid[idx], minlength=loops._pack.n_halves)
 
 
-def _envelope_counts(V, camera, loops, G=None):
+def envelope_counts(V, camera, loops, G=None):
     """(H,) per half, its inner silhouette edges that bound the opening in the image (nothing nearer to it).
 
     For the lower lip (lid) an edge counts when no silhouette edge of another
@@ -190,7 +190,7 @@ def _envelope_counts(V, camera, loops, G=None):
     along the dark opening (ignoring occlusion by other parts).
     """
     pk = loops._pack
-    idx, mid, ends, up = _silhouettes(V, camera, loops, G)
+    idx, mid, ends, up = candidate_silhouettes(V, camera, loops, G)
     counts = np.zeros(pk.n_halves, dtype=np.int64)
     if len(idx) == 0:
         return counts
@@ -216,7 +216,7 @@ def _envelope_counts(V, camera, loops, G=None):
     return counts
 
 
-def _near_curve_counts(idx, mid, loops, lo, hi, C, tol):
+def near_curve_counts(idx, mid, loops, lo, hi, C, tol):
     """(hi-lo,) per candidate half, its silhouette edges whose projection lies within ``tol`` px of curve C."""
     hid = loops._pack.hid[idx]
     sel = (hid >= lo) & (hid < hi)
@@ -257,7 +257,7 @@ def silhouette_edge_counts(vertices, faces, camera, loops, *, closed: bool = Tru
     F = np.asarray(faces, dtype=np.int64)
     if len(loops) == 0:
         return np.zeros(0, np.int64)
-    lookup = _edge_lookup(F)
+    lookup = edge_lookup(F)
     out = []
     for lp in loops:
         lp = np.asarray(lp, dtype=np.int64)

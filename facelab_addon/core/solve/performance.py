@@ -100,7 +100,7 @@ def solve_performance(solver: BlendshapeSolver, corrective: OutOfSubspaceCorrect
         take the rim onto the line. Needs a corrective built with a
         ``lip_band`` (skipped without one: a whole-surface re-solve is
         ``corrective_iterations``); each pass costs a contour match and a
-        solve on the band's ~1,200 vertices (15-25 ms CPU on ICT-FaceKit).
+        solve on the band's vertices only.
     lip_line_pass : bool
         After the corrective and the lip passes, re-match the contours on ``V_blend + ΔV`` and
         run :meth:`OutOfSubspaceCorrective.lip_line_pass` on the contour

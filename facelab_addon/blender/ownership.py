@@ -1,0 +1,182 @@
+"""What FaceLab owns in a scene: its ``FL_*`` shape keys and its correction caches.
+
+FaceLab replaces or removes only what it recorded as its own, so an artist's key named
+``FL_Prop_MyFix`` or an artist's Mesh Cache is never touched:
+
+- shape keys: the names listed in the Key datablock's
+  :data:`facelab_addon.names.OWNED_KEYS_PROP` (:func:`owned_key_names`, :func:`key_matches`);
+- correction caches: per key prefix, the modifier and the files recorded in the object's
+  :data:`facelab_addon.names.CORRECTION_CACHES_PROP` (:func:`correction_cache_record`,
+  :func:`correction_cache`).
+
+Reading the capture mutes both (:func:`muted_shape_keys`, :func:`muted_correction_caches`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import re
+
+from ..names import CORRECTION_CACHES_PROP, LEGACY_KEY_PATTERNS, LIVE_PREVIEW_KEY, OWNED_KEYS_PROP, PREFIX
+
+__all__ = ["as_prefixes", "owned_key_names", "own_key", "key_matches", "owned_keys", "muted_shape_keys",
+           "CORRECTION_TYPES", "correction_cache_record", "correction_cache", "is_correction_cache",
+           "correction_cache_prefix", "muted_correction_caches"]
+
+
+def as_prefixes(p) -> tuple:
+    """``p`` as a tuple of name prefixes: None -> ``()``, a string -> ``(p,)``, else ``tuple(p)``."""
+    if p is None:
+        return ()
+    if isinstance(p, str):
+        return (p,)
+    return tuple(p)
+
+
+# --------------------------------------------------------------------------- shape keys
+def owned_key_names(key, create: bool) -> list:
+    """The names listed in ``key[OWNED_KEYS_PROP]`` (a list, pruned to existing keys).
+
+    ``key`` is a Key datablock (``mesh.shape_keys``). A datablock without a registry (a file
+    from before it) adopts the keys whose names match
+    :data:`facelab_addon.names.LEGACY_KEY_PATTERNS`; with ``create`` the returned list is the one
+    to store back (``key[OWNED_KEYS_PROP] = names``)."""
+    names = set(key.key_blocks.keys())
+    reg = key.get(OWNED_KEYS_PROP)
+    if reg is None:
+        if not create:
+            return [n for n in names if _legacy(n)]
+        reg = sorted(n for n in names if _legacy(n))
+    return [str(n) for n in reg if str(n) in names]
+
+
+def _legacy(name: str) -> bool:
+    return any(re.fullmatch(p, name) for p in LEGACY_KEY_PATTERNS)
+
+
+def own_key(key_block) -> None:
+    """Record ``key_block`` as created by FaceLab (:data:`facelab_addon.names.OWNED_KEYS_PROP`)."""
+    key = key_block.id_data
+    reg = owned_key_names(key, create=True)
+    if key_block.name not in reg:
+        reg.append(key_block.name)
+    key[OWNED_KEYS_PROP] = reg
+
+
+def key_matches(key, name: str, prefixes, owned=None) -> bool:
+    """Whether the shape key ``name`` of the Key datablock ``key`` is one ``prefixes`` select.
+
+    A prefix under FaceLab's own (:data:`facelab_addon.names.PREFIX`, ``FL_``) selects only keys
+    FaceLab recorded as its own, so an artist's ``FL_Prop_MyFix`` is never taken for FaceLab's output;
+    any other prefix (``"CaptureError"``) selects by name.
+
+    Parameters
+    ----------
+    key : bpy.types.Key
+    name : str
+    prefixes : tuple of str
+    owned : collection of str, optional
+        FaceLab's recorded keys of ``key`` (computed when omitted; pass it in loops).
+    """
+    for p in prefixes:
+        if name.startswith(p):
+            if not p.startswith(PREFIX) or name == LIVE_PREVIEW_KEY:  # Live Refine's preview is never the capture
+                return True
+            if owned is None:
+                owned = set(owned_key_names(key, create=False))
+            if name in owned:
+                return True
+    return False
+
+
+def owned_keys(obj, prefix: str = "") -> list:
+    """Names of the shape keys of ``obj`` FaceLab created (recorded in the registry), starting with ``prefix``.
+
+    A key the artist made is never listed, whatever its name (an ``FL_Prop_MyFix`` sculpted by hand
+    stays the artist's). In a file from before the registry, keys named exactly as FaceLab named
+    them (``FL_Prop_00``, ``FL_Refine_0012``..., :data:`facelab_addon.names.LEGACY_KEY_PATTERNS`)
+    count as FaceLab's.
+    """
+    key = obj.data.shape_keys
+    if key is None:
+        return []
+    return [n for n in owned_key_names(key, create=False) if n.startswith(prefix)]
+
+
+@contextlib.contextmanager
+def muted_shape_keys(obj, prefixes):
+    """Mute the shape keys ``prefixes`` select (:func:`key_matches`: under ``FL_`` only FaceLab's
+    recorded keys); restore on exit."""
+    pref = as_prefixes(prefixes)
+    keys = obj.data.shape_keys if obj.type == "MESH" else None
+    saved = []
+    try:
+        if keys is not None and pref:
+            owned = set(owned_key_names(keys, create=False))
+            for kb in keys.key_blocks:
+                if key_matches(keys, kb.name, pref, owned) and kb != keys.reference_key:
+                    saved.append((kb, kb.mute))
+                    kb.mute = True
+        yield
+    finally:
+        for kb, mute in saved:
+            kb.mute = mute
+
+
+# --------------------------------------------------------------------------- correction caches
+#: Modifier types a correction cache can be: a Mesh Cache, or the Geometry Nodes modifier of a patch cache.
+CORRECTION_TYPES = ("MESH_CACHE", "NODES")
+
+
+def correction_cache_record(obj) -> dict:
+    """``{prefix: entry}``: a copy of the correction caches recorded on ``obj``
+    (:data:`facelab_addon.names.CORRECTION_CACHES_PROP`); each entry names the ``modifier``, the
+    ``files`` FaceLab wrote and, for a patch cache, its ``patch`` object, ``node_group`` and
+    ``attribute``."""
+    rec = obj.get(CORRECTION_CACHES_PROP)
+    return rec.to_dict() if rec is not None and hasattr(rec, "to_dict") else {}
+
+
+def correction_cache(obj, prefix: str):
+    """``(modifier or None, files)``: the correction cache FaceLab recorded on ``obj`` for ``prefix``.
+
+    ``files`` are the absolute paths FaceLab wrote for it, oldest first (the last is the one the
+    modifier plays).
+    """
+    entry = correction_cache_record(obj).get(prefix, {})
+    md = obj.modifiers.get(entry.get("modifier", "")) if entry.get("modifier") else None
+    if md is not None and md.type not in CORRECTION_TYPES:
+        md = None
+    return md, [str(f) for f in entry.get("files", [])]
+
+
+def is_correction_cache(obj, md) -> bool:
+    """Whether the modifier ``md`` of ``obj`` is a correction cache FaceLab added (not a capture)."""
+    return correction_cache_prefix(obj, md) is not None
+
+
+def correction_cache_prefix(obj, md):
+    """The key prefix whose correction cache the modifier ``md`` of ``obj`` plays, or None (not FaceLab's)."""
+    if md.type not in CORRECTION_TYPES:
+        return None
+    return next((p for p, e in correction_cache_record(obj).items() if e.get("modifier") == md.name), None)
+
+
+@contextlib.contextmanager
+def muted_correction_caches(obj, prefixes):
+    """Turn off FaceLab's correction-cache modifiers whose key prefix ``prefixes`` select (as FaceLab's
+    keys are muted when the capture is read); restore on exit."""
+    pref = as_prefixes(prefixes)
+    mods = []
+    if obj.type == "MESH" and pref:
+        for p in correction_cache_record(obj):
+            md = correction_cache(obj, p)[0]
+            if md is not None and md.show_viewport and any(p.startswith(q) for q in pref):
+                mods.append(md)
+    try:
+        for m in mods:
+            m.show_viewport = False
+        yield
+    finally:
+        for m in mods:
+            m.show_viewport = True
