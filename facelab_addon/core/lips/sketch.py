@@ -82,6 +82,7 @@ from .sketch_prior import (
     separate_parts,
     sketch_scale,
 )
+from .contact import CONTACT_WEIGHT
 from .views import SketchView, ViewMatcher, prepare_sketch, press_lips
 
 __all__ = ["refine_lips", "refine_lips_views", "press_lips", "prepare_sketch", "SketchView", "CROSSINGS"]
@@ -112,6 +113,7 @@ def refine_lips(
     crossings: str = "follow",
     rest_vertices=None,
     rest_depth_reg: float = 10.0,
+    contact: float = CONTACT_WEIGHT,
     return_info: bool = False,
 ):
     """Deform a face mesh so its inner-lip silhouettes match sketched contours (one camera).
@@ -173,6 +175,10 @@ def refine_lips(
     rest_vertices, rest_depth_reg
         The face at rest and how strongly the depth the camera cannot see follows it, turned with the
         head (see :func:`refine_lips_views`).
+    contact : float
+        Sealed lips: where the upper and lower contours are drawn on one line, the lips' matched silhouette
+        vertices are pulled together in 3D with this weight per sketch sample, in units of ``lambda_silh``
+        (:mod:`~facelab_addon.core.lips.contact`); 0 (default): the lips meet in the image only.
     return_info : bool
         Also return a dict of diagnostics.
 
@@ -198,7 +204,7 @@ def refine_lips(
         iterations=iterations, lambda_pos=lambda_pos, lambda_reg=lambda_reg, lambda_silh=lambda_silh,
         smooth_reach=smooth_reach, free_radius=free_radius, laplacian=laplacian, reach_px=reach_px,
         silhouette_rays=silhouette_rays, crossings=crossings, rest_vertices=rest_vertices,
-        rest_depth_reg=rest_depth_reg, return_info=return_info)
+        rest_depth_reg=rest_depth_reg, contact=contact, return_info=return_info)
 
 
 def refine_lips_views(
@@ -224,6 +230,7 @@ def refine_lips_views(
     depth_reg: float = 3.0,
     rest_vertices=None,
     rest_depth_reg: float = 10.0,
+    contact: float = CONTACT_WEIGHT,
     return_info: bool = False,
 ):
     """Refine the lips to sketches drawn through one or several cameras, in one solve.
@@ -236,7 +243,7 @@ def refine_lips_views(
     views : sequence of SketchView
         One camera and its upper/lower strokes each (pixels of that camera).
     fixed, lips, prior, iterations, lambda_pos, lambda_reg, lambda_silh, smooth_reach, free_radius,
-    laplacian, reach_px, silhouette_rays, crossings, return_info
+    laplacian, reach_px, silhouette_rays, crossings, contact, return_info
         As in :func:`refine_lips`; ``silhouette_px`` in the info is over all views, and
         ``views`` lists per view its ``name``, ``silhouette_px`` (mean, last) and matched vertices.
     main_view_iterations : int
@@ -297,6 +304,9 @@ def refine_lips_views(
                            "default 10.")
     if prior not in PRIORS:
         raise UsageError(f"prior must be one of {PRIORS}, got {prior!r}")
+    if not (np.isfinite(contact) and contact >= 0):
+        raise FaceLabError(f"contact must be a non-negative number, got {contact!r}; use the default "
+                           f"{CONTACT_WEIGHT} (0: off).")
     for nm, val in (("smooth_reach", smooth_reach), ("free_radius", free_radius)):
         if not (np.isfinite(val) and val > 0):
             raise FaceLabError(f"{nm} must be a positive number of mouth widths, got {val!r}; use the default.")
@@ -312,7 +322,8 @@ def refine_lips_views(
     matchers = []
     for k, v in enumerate(views):
         where = f" in view '{v.name or k + 1}'" if multi else ""
-        matchers.append(ViewMatcher(v, V0, F, fixed, reach_px=reach_px, where=where, press=crossings == "press"))
+        matchers.append(ViewMatcher(v, V0, F, fixed, reach_px=reach_px, where=where, press=crossings == "press",
+                                    contact=contact))
     near = np.zeros(n, bool)
     for m in matchers:
         near |= m.near
@@ -401,5 +412,6 @@ def refine_lips_views(
         lower_samples=matchers[0].lower,
         views=[dict(name=v.name, silhouette_px=float(d.mean()), matched_upper=mt.get("upper"),
                     matched_lower=mt.get("lower")) for v, d, mt in zip(views, dists, matched)],
+        one_line_samples=[int((m.partner >= 0).sum()) for m in matchers],
     )
     return X, info
