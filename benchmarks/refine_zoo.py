@@ -28,6 +28,7 @@ cache, or built with ``bpy``).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -95,6 +96,11 @@ def run_case(zf, case, methods):
     for nv in (1, 2):
         views = [SketchView(c, *s, name=f"cam{k}") for k, (c, s) in enumerate(zip(mc.cameras[:nv], mc.strokes[:nv]))]
         for name, kw in methods.items():
+            kw = dict(kw)
+            if kw.get("basis") == "expressions":  # the face's own expression shapes
+                kw["basis"] = mc.basis(zf)
+            elif kw.get("basis") == "other-expressions":  # those the truth's pose is not made of
+                kw["basis"] = mc.basis(zf, exclude=Z.POSES[case.pose])
             t0 = time.process_time()
             try:
                 X = refine_lips_views(mc.capture, zf.faces, views, fixed=zf.fixed, lips=zf.lips, rest_vertices=mc.rest,
@@ -211,6 +217,8 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--variant", action="append", default=[],
                     help="name=JSON keyword arguments of refine_lips_views, compared besides default and paper")
+    ap.add_argument("--clean", action="store_true",
+                    help="diagnosis: sketches without a hand's noise (exact truth contours, whole strokes)")
     ap.add_argument("--png", default=None)
     args = ap.parse_args(argv)
     out_json = json_stdout()
@@ -227,6 +235,8 @@ def main(argv=None):
     rows = []
     for k, (key, zf) in enumerate(faces.items()):
         for case in Z.sample_cases(fams, args.per_family, seed=args.seed * 100 + k):
+            if args.clean:
+                case = dataclasses.replace(case, noise_px=0.0, end_px=(0.0, 0.0, 0.0, 0.0), pieces=1)
             try:
                 row = run_case(zf, case, methods)
             except Exception as e:  # a case the sketcher cannot draw (no silhouette in view): reported
@@ -241,7 +251,7 @@ def main(argv=None):
              and "cpu_s" in r["runs"]["1v_default"]]
     out = dict(faces={k: dict(name=f.name, vertices=len(f.neutral)) for k, f in faces.items()},
                families=Z.FAMILIES, tuning=list(Z.TUNING), held_out=list(Z.HELD_OUT), methods=methods,
-               per_family=args.per_family, seed=args.seed, cases_total=len(rows), cases_failed=len(rows) - len(ok),
+               per_family=args.per_family, seed=args.seed, clean_sketches=bool(args.clean), cases_total=len(rows), cases_failed=len(rows) - len(ok),
                targets=TARGETS, summary=summarize(ok, methods), per_face=per_face(ok, methods),
                refine_cpu_s_26k_median=round(float(np.median(cpu26)), 3) if cpu26 else None,
                cases=rows)

@@ -158,7 +158,7 @@ def zoo_face(face, name: str, identity_offset=None, unit_mm: float | None = None
     skin = np.asarray(face.part_vertex_mask("M_Face"), bool)
     _, lips = auto_regions(V, F)
     return ZooFace(name=name, neutral=V, faces=F,
-                   expressions={n: np.asarray(face.expressions[n], dtype=np.float64) + off for n in _pose_names()},
+                   expressions={n: np.asarray(face.expressions[n], dtype=np.float64) + off for n in face.expression_names},
                    skin=skin, fixed=~skin, lips=lips,
                    unit_mm=float(unit_mm) if unit_mm else 0.1 * float(getattr(face, "scale", 1.0)),
                    side=lip_labels(V, F, line), upper=line.upper, lower=line.lower, corners=line.corners)
@@ -302,6 +302,12 @@ class MadeCase:
     cameras: list
     strokes: list  # per camera: (upper pieces, lower pieces)
     one_line_px: list  # per camera: how many pixels of the sketch are drawn on one line
+    head: np.ndarray = None  # (3,3) the head's nod (rotation about the mouth)
+
+    def basis(self, zf: ZooFace, exclude=()) -> np.ndarray:
+        """(K,V,3) the face's expression offsets as the nodded head carries them (``exclude``: names left out)."""
+        names = [n for n in zf.expressions if n not in exclude]
+        return np.stack([(zf.expressions[n] - zf.neutral) @ self.head.T for n in names])
 
 
 def make_case(zf: ZooFace, case: ZooCase) -> MadeCase:
@@ -320,7 +326,8 @@ def make_case(zf: ZooFace, case: ZooCase) -> MadeCase:
         up, lo, n1 = truth_sketch(zf, T, cam)
         strokes.append(hand_sketch(up, lo, case, rng))
         one.append(n1)
-    return MadeCase(case=case, truth=T, capture=C, rest=zf.neutral, cameras=cams, strokes=strokes, one_line_px=one)
+    return MadeCase(case=case, truth=T, capture=C, rest=zf.neutral, cameras=cams, strokes=strokes, one_line_px=one,
+                    head=R)
 
 
 def _envelope(xs, a, b, upper):
@@ -339,7 +346,8 @@ def truth_sketch(zf: ZooFace, T, cam, band_mm: float = 4.0):
 
     Each lip's envelope of its silhouette edges within ``band_mm`` of the contact line (the lowest upper-lip and the
     highest lower-lip silhouette at each pixel column, 1 px apart); where the two lie within :data:`ONE_LINE_PX` of
-    each other (or cross), both are drawn on their mid-line (the lips touch: one line).
+    each other, both are drawn on their mid-line (the lips touch: one line); where the lower lip's lies farther above
+    the upper lip's (lips overlapping in the image), they are drawn crossing, as they are (Refine's ``"follow"``).
 
     Returns
     -------
@@ -368,7 +376,7 @@ def truth_sketch(zf: ZooFace, T, cam, band_mm: float = 4.0):
     yl = _envelope(xs, *env[1], upper=False)
     ok = np.isfinite(yu) & np.isfinite(yl)
     xs, yu, yl = xs[ok], yu[ok], yl[ok]
-    one = (yl - yu) <= ONE_LINE_PX
+    one = np.abs(yl - yu) <= ONE_LINE_PX
     m = 0.5 * (yu + yl)
     yu, yl = np.where(one, m, yu), np.where(one, m, yl)
     return np.c_[xs, yu], np.c_[xs, yl], int(one.sum())

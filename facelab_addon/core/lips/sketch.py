@@ -83,6 +83,7 @@ from .sketch_prior import (
     sketch_scale,
 )
 from .contact import CONTACT_WEIGHT
+from .span_prior import SPAN_REG, fit_span, span_columns, taper
 from .views import SketchView, ViewMatcher, prepare_sketch, press_lips
 
 __all__ = ["refine_lips", "refine_lips_views", "press_lips", "prepare_sketch", "SketchView", "CROSSINGS"]
@@ -114,6 +115,8 @@ def refine_lips(
     rest_vertices=None,
     rest_depth_reg: float = 10.0,
     contact: float = CONTACT_WEIGHT,
+    basis=None,
+    basis_reg: float = SPAN_REG,
     return_info: bool = False,
 ):
     """Deform a face mesh so its inner-lip silhouettes match sketched contours (one camera).
@@ -179,6 +182,9 @@ def refine_lips(
         Sealed lips: where the upper and lower contours are drawn on one line, the lips' matched silhouette
         vertices are pulled together in 3D with this weight per sketch sample, in units of ``lambda_silh``
         (:mod:`~facelab_addon.core.lips.contact`); 0 (default): the lips meet in the image only.
+    basis, basis_reg
+        The face's own shape offsets the correction starts from, and the ridge on their mix (see
+        :func:`refine_lips_views`).
     return_info : bool
         Also return a dict of diagnostics.
 
@@ -204,7 +210,7 @@ def refine_lips(
         iterations=iterations, lambda_pos=lambda_pos, lambda_reg=lambda_reg, lambda_silh=lambda_silh,
         smooth_reach=smooth_reach, free_radius=free_radius, laplacian=laplacian, reach_px=reach_px,
         silhouette_rays=silhouette_rays, crossings=crossings, rest_vertices=rest_vertices,
-        rest_depth_reg=rest_depth_reg, contact=contact, return_info=return_info)
+        rest_depth_reg=rest_depth_reg, contact=contact, basis=basis, basis_reg=basis_reg, return_info=return_info)
 
 
 def refine_lips_views(
@@ -231,6 +237,8 @@ def refine_lips_views(
     rest_vertices=None,
     rest_depth_reg: float = 10.0,
     contact: float = CONTACT_WEIGHT,
+    basis=None,
+    basis_reg: float = SPAN_REG,
     return_info: bool = False,
 ):
     """Refine the lips to sketches drawn through one or several cameras, in one solve.
@@ -275,6 +283,13 @@ def refine_lips_views(
         along the rays. Several views: no effect (they see the depth).
     rest_depth_reg : float
         The strength of that hold (``E_pos`` units; 0: off).
+    basis : (K,V,3) float, optional
+        The face's own shape offsets (its expression shapes minus its rest shape, scene units, in the space of
+        ``vertices``). Given, the correction starts as the mix of them (tapered to zero at the free region's
+        border) whose silhouettes best match the sketch (:mod:`~facelab_addon.core.lips.span_prior`): the lip
+        band and its depth follow as this face's lips move; ``E_pos`` and ``E_reg`` then refer to that shape.
+    basis_reg : float
+        Ridge on the mix, relative to the sketch terms (dimensionless).
 
     Returns
     -------
@@ -346,13 +361,6 @@ def refine_lips_views(
         # reproduces it), instead of flattening out before it
         L = sp.diags((~(lips & ~region & ~fixed)).astype(np.float64)) @ L
     solver = LaplacianDeformer(L, lambda_reg=lambda_reg, pos_weights=w, pinned=~region)
-    turn = None
-    if not multi and rest_vertices is not None and rest_depth_reg > 0:
-        # one view: the depth it cannot see follows the face's rest pose, turned with the head
-        terms, turn = rest_depth_terms(V0, rest_vertices, matchers[0].camera, region, rest_depth_reg,
-                                       mouth_width=W)
-        if terms is not None:
-            solver = solver.with_terms(terms, V0)
     # silhouettes: on triangles of the region and its held ring (a border vertex may be on the silhouette)
     around = region | (adj @ region.astype(np.float64) > 0)
     for m in matchers:
@@ -368,6 +376,20 @@ def refine_lips_views(
             matched.append(mt)
         return cons, dists, matched
 
+    ref = V0  # the shape E_pos and E_reg refer to: the capture, or its best mix of the face's own shapes
+    span_weights = None
+    if basis is not None and len(basis):
+        # the face's own expression offsets, tapered to zero at the free region's border, mixed to match the sketch
+        U = span_columns(basis, taper(V0, Fl, region), W)
+        ref, span_weights = fit_span(V0, U, lambda X: correspondences(X)[0], iterations, basis_reg)
+    turn = None
+    if not multi and rest_vertices is not None and rest_depth_reg > 0:
+        # one view: the depth it cannot see follows the face's rest pose, turned with the head
+        terms, turn = rest_depth_terms(ref, rest_vertices, matchers[0].camera, region, rest_depth_reg,
+                                       mouth_width=W)
+        if terms is not None:
+            solver = solver.with_terms(terms, ref)
+    V0 = ref
     X = V0
     hist = []
     with small_dense_threads(1):
@@ -407,6 +429,7 @@ def refine_lips_views(
         mouth_width=W,
         prior=prior,
         head_turn_deg=turn,
+        span_weights=span_weights,
         seconds=time.perf_counter() - t0,
         upper_samples=matchers[0].upper,
         lower_samples=matchers[0].lower,
