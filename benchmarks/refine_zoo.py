@@ -19,9 +19,15 @@ on sealed lips drawn on one line, how much of the capture's extra 3D gap between
 ``error_zoo.contact_gap``) each run closes. ``summary``: per split (tuning / held out), views and method, the median
 cut, each family's median, the worst family, the median limit and the sealed gap closure; per face too.
 
+``--oracle`` adds, per case, the default Refine from five clean sketches (the main camera and 30 degrees above,
+below and to either side; no hand noise): what silhouettes can tell this energy at best. ``--clean`` draws every
+sketch without a hand's noise. ``--variant name=JSON`` compares more settings (``{"basis": "expressions"}``: the
+face's own expression shapes as :mod:`~facelab_addon.core.lips.span_prior`'s basis; ``"other-expressions"``: those
+the truth's pose is not made of).
+
 Usage: ``PYTHONPATH=. python benchmarks/refine_zoo.py [--per-family 3] [--faces ict,ict-s1,ict-s2,remeshed]
-[--png docs/images/refine_zoo.png] > benchmarks/results/refine_zoo.json``. About 3 minutes of CPU at the defaults
-(4 faces x 6 families x 3 cases = 72 cases, 4 solves each). No Blender needed (the remeshed face is read from its
+[--oracle] [--png docs/images/refine_zoo.png] > benchmarks/results/refine_zoo.json``. About 2 minutes of CPU at
+the defaults with ``--oracle`` (4 faces x 6 families x 3 cases = 72 cases, 4 solves each and the oracle). No Blender needed (the remeshed face is read from its
 cache, or built with ``bpy``).
 """
 
@@ -72,7 +78,23 @@ def load_faces(keys):
     return out
 
 
-def run_case(zf, case, methods):
+def oracle_cut(zf, mc, case, e0, band):
+    """The default Refine's cut from five clean sketches (the main camera, and 30 degrees above, below and to either
+    side of it): what the silhouettes can tell at best, with this prior."""
+    from facelab_addon.core.lips.sketch import SketchView, refine_lips_views
+    from facelab_addon.testing import error_zoo as Z
+
+    c = mc.truth[zf.loop].mean(axis=0)
+    views = []
+    for da, de in ((0, 0), (0, 30), (0, -30), (30, 0), (-30, 0)):
+        cam = Z.zoo_camera(zf, c, case.azim + da, case.elev + de, case.lens_mm, case.distance_cm)
+        up, lo, _ = Z.truth_sketch(zf, mc.truth, cam)
+        views.append(SketchView(cam, up, lo))
+    X = refine_lips_views(mc.capture, zf.faces, views, fixed=zf.fixed, lips=zf.lips, rest_vertices=mc.rest)
+    return 100.0 * (1.0 - Z.rms_mm(X, mc.truth, band, zf.unit_mm) / e0)
+
+
+def run_case(zf, case, methods, oracle=False):
     from facelab_addon.core.lips.sketch import SketchView, refine_lips_views
     from facelab_addon.testing import error_zoo as Z
 
@@ -93,6 +115,11 @@ def run_case(zf, case, methods):
     sealed &= abs(gap0) > 0.2 * zf.unit_mm  # the capture's lips at least 0.2 mm too far apart (or into each other)
     if sealed:
         row["sealed_gap_mm_capture"] = round(gap0 / zf.unit_mm, 3)
+    if oracle:
+        try:
+            row["oracle_5views_clean_cut_pct"] = round(oracle_cut(zf, mc, case, e0, band), 1)
+        except Exception as e:  # noqa: BLE001  (a view without a lip silhouette)
+            row["oracle_exception"] = f"{type(e).__name__}: {e}"
     for nv in (1, 2):
         views = [SketchView(c, *s, name=f"cam{k}") for k, (c, s) in enumerate(zip(mc.cameras[:nv], mc.strokes[:nv]))]
         for name, kw in methods.items():
@@ -140,10 +167,14 @@ def summarize(rows, methods):
                     fam[f] = dict(median_cut_pct=_med([r["runs"][key]["cut_pct"] for r in fr]),
                                   median_limit_pct=_med([r["limit_pct"] for r in fr]),
                                   median_of_limit=_med([100 * r["runs"][key]["of_limit"] for r in fr]), cases=len(fr))
+                for f in fam:
+                    fam[f]["median_oracle_pct"] = _med([r.get("oracle_5views_clean_cut_pct") for r in rs
+                                                        if r["family"] == f])
                 sealed = [r["runs"][key]["gap_closed_pct"] for r in rs if "gap_closed_pct" in r["runs"][key]]
                 out[f"{split}.{key}"] = dict(
                     median_cut_pct=_med([r["runs"][key]["cut_pct"] for r in rs]),
                     median_limit_pct=_med([r["limit_pct"] for r in rs]),
+                    median_oracle_pct=_med([r.get("oracle_5views_clean_cut_pct") for r in rs]),
                     median_of_limit_pct=_med([100 * r["runs"][key]["of_limit"] for r in rs]),
                     worst_family=min(fam, key=lambda f: fam[f]["median_cut_pct"]),
                     worst_family_median_cut_pct=min(v["median_cut_pct"] for v in fam.values()),
@@ -192,6 +223,10 @@ def picture(path, rows, methods):
                 lim = _med([r["limit_pct"] for r in fr])
                 ax.plot([x - 0.45, x + 0.45], [lim, lim], "k-", lw=1.5,
                         label="limit (FL_lips, border held)" if (f, face) == (fams[0], faces[0]) else None)
+                orc = _med([r.get("oracle_5views_clean_cut_pct") for r in fr])
+                if orc is not None:
+                    ax.plot([x], [orc], "kx", ms=7, mew=1.5,
+                            label="default from 5 clean views" if (f, face) == (fams[0], faces[0]) else None)
                 ticks.append(x)
                 labels.append(f"{f}{'*' if f in HELD_OUT else ''}\n{face}")
                 x += 1
@@ -219,6 +254,9 @@ def main(argv=None):
                     help="name=JSON keyword arguments of refine_lips_views, compared besides default and paper")
     ap.add_argument("--clean", action="store_true",
                     help="diagnosis: sketches without a hand's noise (exact truth contours, whole strokes)")
+    ap.add_argument("--oracle", action="store_true",
+                    help="also Refine from five clean sketches (main camera and 30 degrees above / below / to the "
+                         "sides): what the silhouettes can tell at best")
     ap.add_argument("--png", default=None)
     args = ap.parse_args(argv)
     out_json = json_stdout()
@@ -238,7 +276,7 @@ def main(argv=None):
             if args.clean:
                 case = dataclasses.replace(case, noise_px=0.0, end_px=(0.0, 0.0, 0.0, 0.0), pieces=1)
             try:
-                row = run_case(zf, case, methods)
+                row = run_case(zf, case, methods, oracle=args.oracle)
             except Exception as e:  # a case the sketcher cannot draw (no silhouette in view): reported
                 row = dict(family=case.family, split=case.split, pose=case.pose, runs={},
                            exception=f"{type(e).__name__}: {e}")

@@ -49,6 +49,11 @@ Three priors (``prior``):
   benchmark (one view, a quad remesh of ICT) the band prior removes 60.2 % of the 3D error where
   the smooth one removes 51.1 %. Without ``lips`` it is the smooth prior.
 
+Two options go beyond the paper's energy, both off by default: ``contact`` (sealed lips drawn on one line: the
+lips' silhouette vertices matched along the shared stretch are pulled together in 3D,
+:mod:`~facelab_addon.core.lips.contact`) and ``basis`` (the face's own expression offsets: the correction starts
+as their mix whose silhouettes match the sketch, :mod:`~facelab_addon.core.lips.span_prior`).
+
 Only the vertices within ``free_radius`` mouth widths (geodesic) of the lip area near
 the sketch are solved for (or, given a painted lip region ``lips`` such as ``FL_lips``,
 that region's interior, its border held in place but free to bend: ``E_reg`` has no rows for
