@@ -140,3 +140,20 @@ def test_basis_start_moves_only_the_inside_of_the_lip_region(ict_zoo):
     assert np.linalg.norm(X - mc.capture, axis=1)[~zf.lips].max() == 0.0
     w = taper(mc.capture, zf.faces, info["region"])
     assert w[~info["region"]].max() == 0.0 and w.max() == pytest.approx(1.0)
+
+
+def test_refine_keeps_the_truth_under_its_own_clean_sketch(ict_zoo):
+    """The zoo's sketch is the truth's silhouettes as Refine reads them: refined from the truth, the lips stay."""
+    import dataclasses
+
+    from facelab_addon.core.lips.sketch import SketchView, refine_lips_views
+    from facelab_addon.testing import error_zoo as Z
+
+    zf = ict_zoo
+    for case in Z.sample_cases(["roll"], 1, seed=0) + Z.sample_cases(["gap"], 1, seed=0):
+        case = dataclasses.replace(case, noise_px=0.0, end_px=(0.0, 0.0, 0.0, 0.0), pieces=1)
+        mc = Z.make_case(zf, case)
+        band = Z.lip_band(zf, mc.truth)
+        X = refine_lips_views(mc.truth, zf.faces, [SketchView(mc.cameras[0], *mc.strokes[0])], fixed=zf.fixed,
+                              lips=zf.lips, rest_vertices=mc.rest)
+        assert Z.rms_mm(X, mc.truth, band, zf.unit_mm) < 0.08, case.pose

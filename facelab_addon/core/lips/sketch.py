@@ -77,6 +77,7 @@ from ..geometry.laplacian import laplacian as make_laplacian
 from ..geometry.linsolve import small_dense_threads
 from ..geometry.mesh import validate_mesh, vertex_adjacency
 from ..geometry.polyline import resample_polyline  # noqa: F401  (re-exported for the benchmark)
+from .contact import CONTACT_WEIGHT
 from .sketch_prior import (
     PRIORS,
     anchor_weights,
@@ -87,7 +88,6 @@ from .sketch_prior import (
     separate_parts,
     sketch_scale,
 )
-from .contact import CONTACT_WEIGHT
 from .span_prior import SPAN_REG, fit_span, span_columns, taper
 from .views import SketchView, ViewMatcher, prepare_sketch, press_lips
 
@@ -327,6 +327,8 @@ def refine_lips_views(
     if not (np.isfinite(contact) and contact >= 0):
         raise FaceLabError(f"contact must be a non-negative number, got {contact!r}; use the default "
                            f"{CONTACT_WEIGHT} (0: off).")
+    if not (np.isfinite(basis_reg) and basis_reg >= 0):
+        raise FaceLabError(f"basis_reg must be a non-negative number, got {basis_reg!r}; use the default {SPAN_REG}.")
     for nm, val in (("smooth_reach", smooth_reach), ("free_radius", free_radius)):
         if not (np.isfinite(val) and val > 0):
             raise FaceLabError(f"{nm} must be a positive number of mouth widths, got {val!r}; use the default.")
@@ -398,7 +400,7 @@ def refine_lips_views(
     X = V0
     hist = []
     with small_dense_threads(1):
-        base = solver.unconstrained(V0, V0)  # E_pos and E_reg refer to the capture: the same every iteration
+        base = solver.unconstrained(V0, V0)  # E_pos and E_reg refer to V0 (``ref``): the same every iteration
         if multi:
             # the main (first) view alone first; its result is where the other views are matched from
             for _ in range(int(main_view_iterations)):
