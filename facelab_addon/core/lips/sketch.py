@@ -49,6 +49,11 @@ Three priors (``prior``):
   benchmark (one view, a quad remesh of ICT) the band prior removes 60.2 % of the 3D error where
   the smooth one removes 51.1 %. Without ``lips`` it is the smooth prior.
 
+Two options go beyond the paper's energy, both off by default: ``contact`` (sealed lips drawn on one line: the
+lips' silhouette vertices matched along the shared stretch are pulled together in 3D,
+:mod:`~facelab_addon.core.lips.contact`) and ``basis`` (the face's own expression offsets: the correction starts
+as their mix whose silhouettes match the sketch, :mod:`~facelab_addon.core.lips.span_prior`).
+
 Only the vertices within ``free_radius`` mouth widths (geodesic) of the lip area near
 the sketch are solved for (or, given a painted lip region ``lips`` such as ``FL_lips``,
 that region's interior, its border held in place but free to bend: ``E_reg`` has no rows for
@@ -72,6 +77,7 @@ from ..geometry.laplacian import laplacian as make_laplacian
 from ..geometry.linsolve import small_dense_threads
 from ..geometry.mesh import validate_mesh, vertex_adjacency
 from ..geometry.polyline import resample_polyline  # noqa: F401  (re-exported for the benchmark)
+from .contact import CONTACT_WEIGHT
 from .sketch_prior import (
     PRIORS,
     anchor_weights,
@@ -82,6 +88,7 @@ from .sketch_prior import (
     separate_parts,
     sketch_scale,
 )
+from .span_prior import SPAN_REG, fit_span, span_columns, taper
 from .views import SketchView, ViewMatcher, prepare_sketch, press_lips
 
 __all__ = ["refine_lips", "refine_lips_views", "press_lips", "prepare_sketch", "SketchView", "CROSSINGS"]
@@ -112,6 +119,9 @@ def refine_lips(
     crossings: str = "follow",
     rest_vertices=None,
     rest_depth_reg: float = 10.0,
+    contact: float = CONTACT_WEIGHT,
+    basis=None,
+    basis_reg: float = SPAN_REG,
     return_info: bool = False,
 ):
     """Deform a face mesh so its inner-lip silhouettes match sketched contours (one camera).
@@ -173,6 +183,13 @@ def refine_lips(
     rest_vertices, rest_depth_reg
         The face at rest and how strongly the depth the camera cannot see follows it, turned with the
         head (see :func:`refine_lips_views`).
+    contact : float
+        Sealed lips: where the upper and lower contours are drawn on one line, the lips' matched silhouette
+        vertices are pulled together in 3D with this weight per sketch sample, in units of ``lambda_silh``
+        (:mod:`~facelab_addon.core.lips.contact`); 0 (default): the lips meet in the image only.
+    basis, basis_reg
+        The face's own shape offsets the correction starts from, and the ridge on their mix (see
+        :func:`refine_lips_views`).
     return_info : bool
         Also return a dict of diagnostics.
 
@@ -198,7 +215,7 @@ def refine_lips(
         iterations=iterations, lambda_pos=lambda_pos, lambda_reg=lambda_reg, lambda_silh=lambda_silh,
         smooth_reach=smooth_reach, free_radius=free_radius, laplacian=laplacian, reach_px=reach_px,
         silhouette_rays=silhouette_rays, crossings=crossings, rest_vertices=rest_vertices,
-        rest_depth_reg=rest_depth_reg, return_info=return_info)
+        rest_depth_reg=rest_depth_reg, contact=contact, basis=basis, basis_reg=basis_reg, return_info=return_info)
 
 
 def refine_lips_views(
@@ -224,6 +241,9 @@ def refine_lips_views(
     depth_reg: float = 3.0,
     rest_vertices=None,
     rest_depth_reg: float = 10.0,
+    contact: float = CONTACT_WEIGHT,
+    basis=None,
+    basis_reg: float = SPAN_REG,
     return_info: bool = False,
 ):
     """Refine the lips to sketches drawn through one or several cameras, in one solve.
@@ -236,7 +256,7 @@ def refine_lips_views(
     views : sequence of SketchView
         One camera and its upper/lower strokes each (pixels of that camera).
     fixed, lips, prior, iterations, lambda_pos, lambda_reg, lambda_silh, smooth_reach, free_radius,
-    laplacian, reach_px, silhouette_rays, crossings, return_info
+    laplacian, reach_px, silhouette_rays, crossings, contact, return_info
         As in :func:`refine_lips`; ``silhouette_px`` in the info is over all views, and
         ``views`` lists per view its ``name``, ``silhouette_px`` (mean, last) and matched vertices.
     main_view_iterations : int
@@ -268,6 +288,13 @@ def refine_lips_views(
         along the rays. Several views: no effect (they see the depth).
     rest_depth_reg : float
         The strength of that hold (``E_pos`` units; 0: off).
+    basis : (K,V,3) float, optional
+        The face's own shape offsets (its expression shapes minus its rest shape, scene units, in the space of
+        ``vertices``). Given, the correction starts as the mix of them (tapered to zero at the free region's
+        border) whose silhouettes best match the sketch (:mod:`~facelab_addon.core.lips.span_prior`): the lip
+        band and its depth follow as this face's lips move; ``E_pos`` and ``E_reg`` then refer to that shape.
+    basis_reg : float
+        Ridge on the mix, relative to the sketch terms (dimensionless).
 
     Returns
     -------
@@ -297,6 +324,11 @@ def refine_lips_views(
                            "default 10.")
     if prior not in PRIORS:
         raise UsageError(f"prior must be one of {PRIORS}, got {prior!r}")
+    if not (np.isfinite(contact) and contact >= 0):
+        raise FaceLabError(f"contact must be a non-negative number, got {contact!r}; use the default "
+                           f"{CONTACT_WEIGHT} (0: off).")
+    if not (np.isfinite(basis_reg) and basis_reg >= 0):
+        raise FaceLabError(f"basis_reg must be a non-negative number, got {basis_reg!r}; use the default {SPAN_REG}.")
     for nm, val in (("smooth_reach", smooth_reach), ("free_radius", free_radius)):
         if not (np.isfinite(val) and val > 0):
             raise FaceLabError(f"{nm} must be a positive number of mouth widths, got {val!r}; use the default.")
@@ -312,7 +344,8 @@ def refine_lips_views(
     matchers = []
     for k, v in enumerate(views):
         where = f" in view '{v.name or k + 1}'" if multi else ""
-        matchers.append(ViewMatcher(v, V0, F, fixed, reach_px=reach_px, where=where, press=crossings == "press"))
+        matchers.append(ViewMatcher(v, V0, F, fixed, reach_px=reach_px, where=where, press=crossings == "press",
+                                    contact=contact))
     near = np.zeros(n, bool)
     for m in matchers:
         near |= m.near
@@ -335,13 +368,6 @@ def refine_lips_views(
         # reproduces it), instead of flattening out before it
         L = sp.diags((~(lips & ~region & ~fixed)).astype(np.float64)) @ L
     solver = LaplacianDeformer(L, lambda_reg=lambda_reg, pos_weights=w, pinned=~region)
-    turn = None
-    if not multi and rest_vertices is not None and rest_depth_reg > 0:
-        # one view: the depth it cannot see follows the face's rest pose, turned with the head
-        terms, turn = rest_depth_terms(V0, rest_vertices, matchers[0].camera, region, rest_depth_reg,
-                                       mouth_width=W)
-        if terms is not None:
-            solver = solver.with_terms(terms, V0)
     # silhouettes: on triangles of the region and its held ring (a border vertex may be on the silhouette)
     around = region | (adj @ region.astype(np.float64) > 0)
     for m in matchers:
@@ -357,10 +383,24 @@ def refine_lips_views(
             matched.append(mt)
         return cons, dists, matched
 
+    ref = V0  # the shape E_pos and E_reg refer to: the capture, or its best mix of the face's own shapes
+    span_weights = None
+    if basis is not None and len(basis):
+        # the face's own expression offsets, tapered to zero at the free region's border, mixed to match the sketch
+        U = span_columns(basis, taper(V0, Fl, region), W)
+        ref, span_weights = fit_span(V0, U, lambda X: correspondences(X)[0], iterations, basis_reg)
+    turn = None
+    if not multi and rest_vertices is not None and rest_depth_reg > 0:
+        # one view: the depth it cannot see follows the face's rest pose, turned with the head
+        terms, turn = rest_depth_terms(ref, rest_vertices, matchers[0].camera, region, rest_depth_reg,
+                                       mouth_width=W)
+        if terms is not None:
+            solver = solver.with_terms(terms, ref)
+    V0 = ref
     X = V0
     hist = []
     with small_dense_threads(1):
-        base = solver.unconstrained(V0, V0)  # E_pos and E_reg refer to the capture: the same every iteration
+        base = solver.unconstrained(V0, V0)  # E_pos and E_reg refer to V0 (``ref``): the same every iteration
         if multi:
             # the main (first) view alone first; its result is where the other views are matched from
             for _ in range(int(main_view_iterations)):
@@ -396,10 +436,12 @@ def refine_lips_views(
         mouth_width=W,
         prior=prior,
         head_turn_deg=turn,
+        span_weights=span_weights,
         seconds=time.perf_counter() - t0,
         upper_samples=matchers[0].upper,
         lower_samples=matchers[0].lower,
         views=[dict(name=v.name, silhouette_px=float(d.mean()), matched_upper=mt.get("upper"),
                     matched_lower=mt.get("lower")) for v, d, mt in zip(views, dists, matched)],
+        one_line_samples=[int((m.partner >= 0).sum()) for m in matchers],
     )
     return X, info

@@ -23,6 +23,7 @@ from ..geometry.deform import PointConstraints
 from ..geometry.mesh import edge_faces
 from ..geometry.polyline import resample_polyline
 from ..geometry.silhouette import facing, projected_normals
+from .contact import contact_terms, one_line
 
 __all__ = ["SketchView", "ViewMatcher", "press_lips", "prepare_sketch"]
 
@@ -382,6 +383,10 @@ class ViewMatcher:
     press : bool
         Press crossing contours (:func:`press_lips`, by what they add to the captured overlap); False:
         follow them as drawn (a crossing is one lip in front of the other).
+    contact : float
+        Where the two contours are drawn on one line (:func:`~facelab_addon.core.lips.contact.one_line`), the
+        lips' silhouette vertices matched there are pulled together in 3D with this weight per sample (times
+        ``lambda_silh``; :func:`~facelab_addon.core.lips.contact.contact_terms`); 0: off.
 
     Attributes
     ----------
@@ -405,8 +410,9 @@ class ViewMatcher:
     in_lip_region = False  # set by restrict(): the search is limited to a painted lip region's inside
 
     def __init__(self, view: SketchView, vertices, faces, fixed, reach_px=None, where: str = "",
-                 envelope: bool = True, press: bool = True):
+                 envelope: bool = True, press: bool = True, contact: float = 0.0):
         self.envelope = bool(envelope)
+        self.contact = float(contact)
         cam = view.camera
         if not isinstance(cam, Camera):
             raise CameraError("No camera given: set the scene camera (the one the backplate belongs to).")
@@ -464,6 +470,8 @@ class ViewMatcher:
         else:
             self.upper, self.lower = up_raw, lo_raw
         self.sketch = np.concatenate([self.upper, self.lower])
+        # (N,) the lower sample each upper sample shares a line with (sealed lips), -1 elsewhere
+        self.partner = one_line(self.upper, self.lower, width) if self.contact > 0 else np.full(len(self.upper), -1)
         self.o_u, self.d_u = cam.rays(self.upper)
         self.o_l, self.d_l = cam.rays(self.lower)
         self.n_u = _contour_planes(cam, self.upper)
@@ -521,7 +529,7 @@ class ViewMatcher:
         normals = _vertex_normals_subset(X, self.Fr, sil)
         sil_uv = cam.project(X[sil]) if self.envelope else None
         side = projected_normals(X[sil], normals, cam)[:, 1] > 0  # True: upper lip (image y down)
-        cons, dist_px, matched = [], [], {}
+        cons, dist_px, matched, per_sample = [], [], {}, {}
         nu = len(self.upper)
         sw = None if sample_weights is None else np.asarray(sample_weights, dtype=np.float64)
         for name, lipmask, samples, o, d, pn, out in (
@@ -542,6 +550,7 @@ class ViewMatcher:
                 )
             j, dist = _closest_to_rays(X, ids, o, d)
             vid = ids[j]
+            per_sample[name] = vid
             matched[name] = np.unique(vid)
             dist_px.append(dist * cam.K[0, 0] / np.maximum(cam.depth(X[vid]), 1e-12))
             if ws is not None:
@@ -579,6 +588,12 @@ class ViewMatcher:
                 cons.append(PointConstraints.rays(vid, o, d, strength=lambda_silh * (1.0 if ws is None else ws)))
         if self.corners and silhouette_rays == "nearest" and len(matched) == 2:
             cons += self._corner_constraints(X, matched, lambda_silh, sw, nu)
+        if self.contact > 0 and (self.partner >= 0).any():
+            # sealed lips drawn on one line: the lips' silhouettes there meet in 3D, not only on the same rays
+            c = contact_terms(per_sample["upper"], per_sample["lower"], self.partner, self.contact * lambda_silh,
+                              None if sw is None else sw[:nu])
+            if c is not None:
+                cons.append(c)
         return cons, np.concatenate(dist_px), matched
 
     def _corner_constraints(self, X, matched, lambda_silh, sw, nu):
