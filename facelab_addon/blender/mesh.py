@@ -29,6 +29,7 @@ __all__ = [
     "spread_key_offsets",
     "evaluated_vertices",
     "world_to_local_deltas",
+    "world_winding",
     "vertex_group_mask",
     "set_vertex_group",
     "selected_vertices",
@@ -171,6 +172,21 @@ def evaluated_vertices(obj, depsgraph, *, world: bool = True) -> np.ndarray:
         M = np.array(ev.matrix_world, dtype=np.float64)
         co = co @ M[:3, :3].T + M[:3, 3]
     return co
+
+
+def world_winding(tris, A) -> np.ndarray:
+    """(F,3) triangles ``tris`` wound for world-space positions of an object whose world matrix is ``A`` (3,3).
+
+    A mirroring world matrix (negative determinant: a scale of -1 on the object, a parent or an Armature
+    parent) turns every triangle's corner order over, so normals computed from world positions with the
+    mesh's own triangles point into the face: silhouettes would face away from the camera and the upper
+    and lower lip (told apart by their normals) swap. Then the corners' order is reversed (a new array);
+    otherwise ``tris`` itself is returned.
+    """
+    A = np.asarray(A, dtype=np.float64)
+    if np.linalg.det(A[:3, :3]) < 0:
+        return np.ascontiguousarray(np.asarray(tris)[:, ::-1])
+    return tris
 
 
 def world_to_local_deltas(obj, deltas_world) -> np.ndarray:

@@ -81,13 +81,30 @@ def _registry(key, create: bool):
     reg = key.get(OWNED_KEYS_PROP)
     if reg is None:
         if not create:
-            return [n for n in names if _legacy(n)]
-        reg = sorted(n for n in names if _legacy(n))
+            return [n for n in names if _legacy(key, n)]
+        reg = sorted(n for n in names if _legacy(key, n))
     return [str(n) for n in reg if str(n) in names]
 
 
-def _legacy(name: str) -> bool:
-    return any(re.fullmatch(p, name) for p in LEGACY_KEY_PATTERNS)
+def _legacy(key, name: str) -> bool:
+    """Whether the key ``name`` of ``key`` is one FaceLab made before the registry: its exact FaceLab name
+    (:data:`facelab_addon.names.LEGACY_KEY_PATTERNS`) *and* what FaceLab always gave such a key, so an
+    artist's own key of that name (in a file FaceLab never touched) is never taken over. A numbered key
+    (``FL_Prop_00``, ``FL_Solve_03``...) had the slider range -10..10; a frame key (``FL_Refine_0012``,
+    ``FL_Corrected_0012``) was keyed 0, 1, 0 on the frames around the one in its name."""
+    m = re.fullmatch(LEGACY_KEY_PATTERNS[0], name)
+    if m is not None:
+        kb = key.key_blocks[name]
+        return kb.slider_min == -10.0 and kb.slider_max == 10.0
+    m = re.fullmatch(LEGACY_KEY_PATTERNS[1], name)
+    if m is None:
+        return False
+    frame = int(re.search(r"-?\d{4,}", name[len(PREFIX):]).group())
+    fc = find_fcurve(key, f'key_blocks["{bpy.utils.escape_identifier(name)}"].value')
+    if fc is None:
+        return False
+    keyed = {round(kp.co[0]): kp.co[1] for kp in fc.keyframe_points}
+    return keyed.get(frame - 1) == 0.0 and keyed.get(frame) == 1.0 and keyed.get(frame + 1) == 0.0
 
 
 def own_key(key_block) -> None:
@@ -131,7 +148,8 @@ def owned_keys(obj, prefix: str = "") -> list:
     A key the artist made is never listed, whatever its name (an ``FL_Prop_MyFix`` sculpted by hand
     stays the artist's). In a file from before the registry, keys named exactly as FaceLab named
     them (``FL_Prop_00``, ``FL_Refine_0012``..., :data:`facelab_addon.names.LEGACY_KEY_PATTERNS`)
-    count as FaceLab's.
+    and set up as FaceLab set them up (slider range -10..10; keyed 0, 1, 0 around their frame) count
+    as FaceLab's; an artist's key of such a name in a file FaceLab never touched does not.
     """
     key = obj.data.shape_keys
     if key is None:
