@@ -25,6 +25,7 @@ import numpy as np
 
 from ..core.capture import meshcache, pointcache
 from . import caches
+from .scene_time import require_scene_time
 from .shapekeys import _fcurve_for_key, _registry, key_matches, values_from_action_only
 
 __all__ = ["CaptureReader"]
@@ -58,6 +59,7 @@ class CaptureReader:
 
     def __init__(self, obj, vertices=None, *, mute_shape_keys_prefix=caches.FACELAB_PREFIXES, cache_samples=False):
         caches.require_mesh_object(obj)
+        require_scene_time(None, "Reading the capture", obj)  # the F-curves are read at the frames' own time
         self.obj, self.mute = obj, tuple(mute_shape_keys_prefix)
         n = len(obj.data.vertices)
         self.vertices = np.arange(n) if vertices is None else np.asarray(vertices, dtype=np.int64)

@@ -159,6 +159,9 @@ def owned_keys(obj, prefix: str = "") -> list:
 
 def key_spike(key_block, frame: int) -> None:
     """Key ``value`` 1 on ``frame`` and 0 on its neighbours (linear interpolation)."""
+    from .scene_time import require_scene_time
+
+    require_scene_time(None, "Keying")
     for f, v in ((frame - 1, 0.0), (frame, 1.0), (frame + 1, 0.0)):
         key_block.value = v
         key_block.keyframe_insert("value", frame=f)
@@ -322,7 +325,13 @@ def key_property_bulk(id_data, data_path: str, frames, values, action_name: str 
     ``foreach_set``) with linear interpolation. An existing action (the
     artist's animation) is kept; only this one F-curve is (re)written.
     """
+    from .scene_time import SceneTimeError, require_scene_time
+
+    require_scene_time(None, "Keying")  # keys on scene frames play at those frames only without Time Stretching
     ad = id_data.animation_data or id_data.animation_data_create()
+    if ad.use_tweak_mode:
+        raise SceneTimeError(f"Keying '{id_data.name}': its animation is in NLA tweak mode (the strip's action plays "
+                             "in the strip's time); leave tweak mode (Tab in the NLA editor) and run again.")
     if ad.action is None:
         ad.action = bpy.data.actions.new(action_name)
     cb = _channelbag(ad, create=True)

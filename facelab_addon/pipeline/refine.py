@@ -35,6 +35,7 @@ from ..blender.mesh import (
 )
 from ..blender.objects import ModifierState, require_editable, world_affine
 from ..blender.rest_space import to_rest_space
+from ..blender.scene_time import require_scene_time
 from ..blender.shapekeys import add_corrective_key, key_spike, rest_vertices
 from ..blender.sketch_views import sketch_camera, sketch_views
 from ..blender.strokes import read_lip_strokes, require_sketch_keyed_on
@@ -228,10 +229,11 @@ def refine(scene, obj, frame: int, settings: RefineSettings | None = None, *, ca
     pairs = _view_sources(scene, frame, sketch, camera_obj, settings.all_views)
     for gp, _ in pairs:
         require_sketch_keyed_on(scene, frame, gp)  # never a drawing held from an earlier frame
-    if scene.frame_current != frame:
+    if scene.frame_current != frame or scene.frame_subframe:  # a subframe left on would be read as the frame
         scene.frame_set(frame)
     obj = require_mesh(obj)
     require_editable(obj, "Refine Lips")
+    require_scene_time(scene, "Refine Lips", obj)
     caches.check_capture_files(obj)  # never the static mesh in place of a broken cache
     dg = evaluated_depsgraph(scene)
     views = []

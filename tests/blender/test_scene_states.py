@@ -120,3 +120,143 @@ def test_an_artists_key_named_like_facelabs_is_left_alone(ict, addon):
     assert find_fcurve(key, 'key_blocks["FL_Prop_00"].value') is None
     ours = owned_keys(obj, PROPAGATE_PREFIX)
     assert ours and "FL_Prop_00" not in ours and "FL_Prop_00.001" in ours
+
+
+# --------------------------------------------------------------------------- which lip layers are live
+def redraw_on_a_copy(rs, up, lo, cam, stale_px=40.0):
+    """The artist's sketch, an 'Upper lip' layer with a stale stroke (``stale_px`` too high), hidden, and its copy
+    'Upper lip.001' with the right one, shown (as Duplicate Layer and the eye icon leave them)."""
+    gp = new_lip_sketch(rs.scene, rs.scene.camera)
+    write_stroke_pixels(gp, "Upper lip", FRAME, [up - [0.0, stale_px]], cam)
+    write_stroke_pixels(gp, "Lower lip", FRAME, [lo], cam)
+    copy = gp.data.layers.new("Upper lip.001", set_active=True)
+    copy.frames.new(FRAME)
+    write_stroke_pixels(gp, "Upper lip.001", FRAME, [up], cam)
+    return gp
+
+
+def test_a_hidden_stale_layer_is_not_read_and_two_shown_copies_are_refused(ict, addon):
+    """Refine read the hidden 'Upper lip' (its stale stroke 40 px too high) and not the shown copy the artist
+    redrew on. Now it reads what is shown; with both shown, it names both layers and the fix; with only the
+    stale one, hidden, it says the layer is hidden."""
+    from facelab_addon.blender.strokes import read_lip_strokes, sketch_keyframes
+    from facelab_addon.blender.sketch_views import sketch_views
+
+    rs = route(ict)
+    up, lo, cam = truth_pixels(rs, FRAME)
+    gp = redraw_on_a_copy(rs, up, lo, cam)
+    layers = gp.data.layers
+    with pytest.raises(SketchError, match=r"2 visible upper lip layers \('Upper lip', 'Upper lip.001'\).*Delete"):
+        read_lip_strokes(rs.scene, cam, FRAME, gp_obj=gp)
+    with pytest.raises(SketchError, match="'Upper lip', 'Upper lip.001'"):
+        sketch_views(rs.scene, FRAME)
+    layers["Upper lip"].hide = True
+    strokes = read_lip_strokes(rs.scene, cam, FRAME, gp_obj=gp)
+    np.testing.assert_allclose(np.vstack(strokes["upper"]), up, atol=1e-2)  # the shown copy, not the stale one
+    assert sketch_keyframes(gp) == [FRAME] and [s for s, _ in sketch_views(rs.scene, FRAME)] == [gp]
+    before, after = refine_error(rs, FRAME, gp)
+    assert after < 0.55 * before, (before, after)
+    layers.remove(layers["Upper lip.001"])
+    with pytest.raises(SketchError, match=r"upper lip layer hidden \('Upper lip'\).*Show the layer"):
+        read_lip_strokes(rs.scene, cam, FRAME, gp_obj=gp)
+
+
+def test_two_shown_sketches_of_one_camera_are_refused_and_a_hidden_one_is_skipped(ict, addon):
+    from facelab_addon.blender.sketch_views import sketch_views
+
+    rs = route(ict)
+    up, lo, cam = truth_pixels(rs, FRAME)
+    gp = new_lip_sketch(rs.scene, rs.scene.camera)
+    old = new_lip_sketch(rs.scene, rs.scene.camera, name="FL_LipSketch.old")
+    for g in (gp, old):
+        write_stroke_pixels(g, "Upper lip", FRAME, [up], cam)
+        write_stroke_pixels(g, "Lower lip", FRAME, [lo], cam)
+    with pytest.raises(SketchError, match=r"'FL_LipSketch' and 'FL_LipSketch.old' are both drawn through camera"):
+        sketch_views(rs.scene, FRAME)
+    old.hide_set(True)
+    assert [s.name for s, _ in sketch_views(rs.scene, FRAME)] == ["FL_LipSketch"]
+
+
+# --------------------------------------------------------------------------- scene time
+def test_time_stretching_is_refused_by_every_reader_and_writer(ict, addon):
+    """Time Stretching 100 -> 50: Blender shows on frame F the animation of frame 2F, the shape keys' F-curves
+    read directly give frame F (measured 9.1 mm apart on this shot), and keys written on frame F play on F/2.
+    Refused before anything is read or written; Old == New (any value) is no stretch."""
+    from facelab_addon.blender.scene_time import SceneTimeError
+    from facelab_addon.blender.shapekeys import key_values_bulk, shape_key_sequence
+    from facelab_addon.pipeline.propagate import propagate_steps
+
+    rs = route(ict, frames=range(1, 11))
+    scene, obj = rs.scene, rs.obj
+    auto_regions(obj, scene=scene)
+    gp, _, _ = sketch_truth(rs, FRAME, rs.cameras[0])
+    refine(scene, obj, FRAME, RefineSettings(), sketch=gp)  # a training frame, before the stretch
+    scene.render.frame_map_old, scene.render.frame_map_new = 100, 50
+    frames = np.arange(1, 11)
+    shown = caches.evaluate_frames(obj, frames, mute_shape_keys_prefix=())
+    direct = shape_key_sequence(obj, frames.astype(float), skip_prefixes=())
+    assert np.abs(shown - direct).max() * rs.mm_per_unit > 5.0  # what the readers disagreed by
+    keys = list(obj.data.shape_keys.key_blocks.keys())
+    message = r".*Time Stretching.*Old 100 / New 50.*Set Old and New to the same value"
+    with pytest.raises(SceneTimeError, match="Refine Lips: " + message):
+        refine(scene, obj, FRAME, RefineSettings(), sketch=gp)
+    with pytest.raises(SceneTimeError, match="Propagate: " + message):
+        next(propagate_steps(scene, obj, frames))
+    with pytest.raises(SceneTimeError, match=message):
+        caches.read_captured_frames(obj, frames)
+    with pytest.raises(SceneTimeError, match=message):
+        key_values_bulk(obj, ["CaptureError"], [1], [[0.0]])
+    assert list(obj.data.shape_keys.key_blocks.keys()) == keys
+    bpy.context.view_layer.objects.active = obj
+    with pytest.raises(RuntimeError, match="Time Stretching"):
+        bpy.ops.facelab.propagate(suggestions=0)
+    assert list(obj.data.shape_keys.key_blocks.keys()) == keys and "FL_Prop_00" not in keys
+    scene.render.frame_map_old = 50  # Old == New: frames play at their own time
+    assert bpy.ops.facelab.propagate(suggestions=0) == {"FINISHED"}
+
+
+def test_a_subframe_left_on_is_not_read_as_the_frame(ict, addon):
+    """The scene left on frame 2 + 0.5 subframe (scrubbing with subframes): Refine of frame 2 read the face of
+    frame 2.5; now it sets the whole frame, and the key is the one refined from frame 2 itself."""
+    rs = route(ict)
+    gp, _, _ = sketch_truth(rs, FRAME, rs.cameras[0])
+    key = obj_key = rs.obj.data.shape_keys
+    rs.scene.frame_set(FRAME)
+    a = refine(rs.scene, rs.obj, FRAME, RefineSettings(), sketch=gp).shape_key
+    key.key_blocks[a].mute = True  # the second run starts from the capture again
+    rs.scene.frame_set(FRAME, subframe=0.5)
+    b = refine(rs.scene, rs.obj, FRAME, RefineSettings(), sketch=gp).shape_key
+    n = len(rs.obj.data.vertices)
+    co = {k: np.empty(n * 3, np.float32) for k in (a, b)}
+    for k in co:
+        key.key_blocks[k].data.foreach_get("co", co[k])
+    assert obj_key is key and np.abs(co[a] - co[b]).max() < 1e-6
+
+
+# --------------------------------------------------------------------------- scale
+@pytest.mark.parametrize("scale", [1e-3, 1e3])
+def test_a_face_at_a_thousandth_or_a_thousand_times_its_size_is_corrected(ict, addon, scale):
+    """The face and its cameras scaled 1/1000 (0.2 mm wide in a metre scene) or 1000x: Auto Regions, Refine and
+    Propagate work as at life size. At 1/1000 Propagate raised ``ValueError: cannot reshape array of size 0``:
+    its storage tolerance (0.01 mm of the world) was larger than the whole correction; it is now never coarser
+    than 1e-4 of the face's size (``blender.objects.tolerance_length``)."""
+    from facelab_addon.pipeline.propagate import propagate
+
+    frames = np.arange(1, 21)
+    rs = route(ict, frames=frames)
+    obj, scene = rs.obj, rs.scene
+    obj.scale = [s * scale for s in obj.scale]
+    for cam in rs.cameras:
+        cam.location = np.array(cam.location) * scale
+    bpy.context.view_layer.update()
+    auto_regions(obj, scene=scene)
+    captured = caches.evaluate_frames(obj, frames).astype(np.float64)
+    for f in (5, 15):
+        gp, _, _ = sketch_truth(rs, f, rs.cameras[0])
+        refine(scene, obj, f, RefineSettings(), sketch=gp)
+    r = propagate(scene, obj, frames)
+    assert r.keys and all(k.startswith(PROPAGATE_PREFIX) for k in r.keys)
+    out = caches.evaluate_frames(obj, frames, mute_shape_keys_prefix=()).astype(np.float64)
+    held = ~np.isin(frames, (5, 15))
+    before, after = lip_errors(rs, captured, frames)[held], lip_errors(rs, out, frames)[held]
+    assert after.mean() < 0.8 * before.mean(), (before.mean(), after.mean())
