@@ -260,3 +260,31 @@ def test_a_face_at_a_thousandth_or_a_thousand_times_its_size_is_corrected(ict, a
     held = ~np.isin(frames, (5, 15))
     before, after = lip_errors(rs, captured, frames)[held], lip_errors(rs, out, frames)[held]
     assert after.mean() < 0.8 * before.mean(), (before.mean(), after.mean())
+
+
+# --------------------------------------------------------------------------- far from the origin
+def test_a_mesh_far_from_its_origin_is_refused_with_the_fix(ict, addon):
+    """The face's data 1e6 units from its object's origin (the object moved back, so it sits where it did): float32
+    keeps its coordinates 0.06 units apart, so Refine's correction was off; refused naming the distance and
+    Origin to Geometry, after which the same sketch refines as before."""
+    from facelab_addon.core.errors import MeshError
+
+    rs = route(ict)
+    gp, _, _ = sketch_truth(rs, FRAME, rs.cameras[0])
+    obj = rs.obj
+    shift = np.array([1e6, 0.0, 0.0])
+    for kb in obj.data.shape_keys.key_blocks:
+        co = np.empty(len(obj.data.vertices) * 3, np.float64)
+        kb.data.foreach_get("co", co)
+        kb.data.foreach_set("co", (co.reshape(-1, 3) + shift).ravel())
+    co = np.empty(len(obj.data.vertices) * 3, np.float64)
+    obj.data.vertices.foreach_get("co", co)
+    obj.data.vertices.foreach_set("co", (co.reshape(-1, 3) + shift).ravel())
+    obj.location = -shift
+    obj.data.update()
+    bpy.context.view_layer.update()
+    keys = list(obj.data.shape_keys.key_blocks.keys())
+    with pytest.raises(MeshError, match=r"lies 1e\+06 units from its object's origin.*0.0625 units apart.*"
+                                         r"Origin to Geometry"):
+        refine(rs.scene, obj, FRAME, RefineSettings(), sketch=gp)
+    assert list(obj.data.shape_keys.key_blocks.keys()) == keys
