@@ -26,7 +26,7 @@ import numpy as np
 from ..core.capture import meshcache, pointcache
 from . import caches
 from .scene_time import require_scene_time
-from .shapekeys import _fcurve_for_key, _registry, key_matches, values_from_action_only
+from .shapekeys import _fcurve_for_key, _registry, finite_key_offsets, key_matches, values_from_action_only
 
 __all__ = ["CaptureReader"]
 
@@ -107,6 +107,7 @@ class CaptureReader:
         basis = key.reference_key
         skip, owned = caches._prefixes(self.mute), set(_registry(key, create=False))
         curves, deltas = [], []
+        self._bad_keys = []
         for kb in key.key_blocks:
             if kb == basis or kb.mute or key_matches(key, kb.name, skip, owned):
                 continue
@@ -115,6 +116,9 @@ class CaptureReader:
             fc = _fcurve_for_key(key, kb)
             curves.append((fc if fc is not None and not fc.mute else None, kb.value, kb.slider_min, kb.slider_max))
             deltas.append((coords(kb.data) - coords(kb.relative_key.data)).ravel())
+            if not np.isfinite(deltas[-1]).all():  # checked against the values read (:meth:`_read_keys`)
+                self._bad_keys.append((len(curves) - 1, kb, deltas[-1]))
+                deltas[-1] = np.nan_to_num(deltas[-1], nan=0.0, posinf=0.0, neginf=0.0)
         self._basis = coords(basis.data)
         self._curves = curves
         self._deltas = np.stack(deltas) if deltas else np.zeros((0, len(v) * 3), np.float32)
@@ -141,6 +145,8 @@ class CaptureReader:
             for k, (fc, value, lo, hi) in enumerate(self._curves):
                 w = np.array([fc.evaluate(f) for f in frames]) if fc is not None else np.full(t, value)
                 W[:, k] = np.clip(w, lo, hi)
+            for k, kb, offsets in getattr(self, "_bad_keys", ()):  # a key with NaN / inf: refused where it is on
+                finite_key_offsets(self.obj, kb, offsets, frames, W[:, k], self.vertices)
             np.matmul(W, self._deltas, out=out)
             out += self._basis.ravel()
         else:

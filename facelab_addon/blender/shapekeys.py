@@ -27,6 +27,7 @@ __all__ = [
     "rest_vertices",
     "remove_fcurve",
     "input_positions",
+    "finite_key_offsets",
 ]
 
 
@@ -234,6 +235,39 @@ def key_values(key, kb, frames) -> np.ndarray:
     return np.clip(w, kb.slider_min, kb.slider_max)
 
 
+def finite_key_offsets(obj, kb, offsets, frames, weights, vertices=None):
+    """A key's flat offsets ``offsets`` (3V,) with non-finite entries zeroed where the key is off, or refused.
+
+    A key with a NaN or infinite position shows it only on the frames where its value is not 0 (Blender skips a
+    key of value 0); mixed as ``value * offset`` it would give NaN (0 x inf) on every frame. ``weights`` (T,)
+    are its values on ``frames`` (T,); ``vertices`` (n,) the vertex ids of the offsets when they are a subset.
+
+    Raises
+    ------
+    MeshError
+        The key is on (value not 0) on some of ``frames``: naming the key, its first bad vertex and those frames
+        (the scene frames, not list positions).
+    """
+    bad = ~np.isfinite(offsets)
+    if not bad.any():
+        return offsets
+    on = np.asarray(frames)[np.asarray(weights) != 0]
+    if len(on):
+        first = int(np.flatnonzero(bad)[0]) // 3
+        first = first if vertices is None else int(vertices[first])
+        from ..core.errors import MeshError
+
+        shown = ", ".join(f"{f:g}" for f in on[:5]) + (f" and {len(on) - 5} more" if len(on) > 5 else "")
+        raise MeshError(
+            f"The shape key '{kb.name}' of '{obj.name}' has NaN or infinite positions "
+            f"({int(bad.reshape(-1, 3).any(axis=1).sum())} vertices, the first {first}) and "
+            f"is on (value not 0) on frame {shown}: those frames would be broken. Fix or delete the key (or key it "
+            "to 0 there), then run again.")
+    out = offsets.copy()
+    out[bad] = 0.0
+    return out
+
+
 def shape_key_sequence(obj, frames, *, skip_prefixes=(PREFIX,), ignore_modifiers: bool = False):
     """(T,V,3) float32 object-local positions of a shape-key-animated mesh, without frame_set.
 
@@ -277,7 +311,7 @@ def shape_key_sequence(obj, frames, *, skip_prefixes=(PREFIX,), ignore_modifiers
         w = key_values(key, kb, frames)
         if not np.any(w):
             continue
-        deltas.append(coords(kb) - coords(kb.relative_key))
+        deltas.append(finite_key_offsets(obj, kb, coords(kb) - coords(kb.relative_key), frames, w))
         weights.append(w)
     out = np.empty((len(frames), n * 3), np.float32)
     if deltas:

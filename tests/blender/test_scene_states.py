@@ -288,3 +288,29 @@ def test_a_mesh_far_from_its_origin_is_refused_with_the_fix(ict, addon):
                                          r"Origin to Geometry"):
         refine(rs.scene, obj, FRAME, RefineSettings(), sketch=gp)
     assert list(obj.data.shape_keys.key_blocks.keys()) == keys
+
+
+# --------------------------------------------------------------------------- messages that point the right way
+def test_an_infinite_key_is_named_with_the_frame_it_is_on(ict, addon):
+    """+inf in one vertex of a key keyed to 1 only on frame 20: the reader mixed 0 x inf = NaN into every frame
+    and the message named frames 1-5. Now the frames where the key is 0 read as Blender shows them, and the
+    refusal names the key and frame 20."""
+    from facelab_addon.blender.shapekeys import add_corrective_key, key_values_bulk
+    from facelab_addon.core.errors import MeshError
+    from facelab_addon.pipeline.propagate import propagate
+
+    from ..pipeline.test_propagate import corrected_scene
+
+    scene, obj, _, _ = corrected_scene(ict)
+    d = np.zeros((len(obj.data.vertices), 3))
+    d[7, 2] = np.inf
+    spike = add_corrective_key(obj, "Spike", d).name
+    frames = np.arange(1, 41)
+    key_values_bulk(obj, [spike], frames, (frames == 20).astype(float)[:, None])
+    calm = caches.read_captured_frames(obj, np.arange(1, 11))
+    assert np.isfinite(calm).all()  # off on frames 1-10: read as Blender shows them
+    with pytest.raises(MeshError, match=r"shape key 'Spike' of 'Face' has NaN or infinite positions \(1 vertices, "
+                                        r"the first 7\) and is on \(value not 0\) on frame 20:"):
+        propagate(scene, obj, frames)
+    with pytest.raises(MeshError, match="on frame 20:"):
+        caches.read_captured_frames(obj, frames)
