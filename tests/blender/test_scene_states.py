@@ -314,3 +314,19 @@ def test_an_infinite_key_is_named_with_the_frame_it_is_on(ict, addon):
         propagate(scene, obj, frames)
     with pytest.raises(MeshError, match="on frame 20:"):
         caches.read_captured_frames(obj, frames)
+
+
+def test_a_camera_inside_the_head_is_named_as_the_problem(ict, addon):
+    """The scene camera moved into the head (its sketch moves with it): "draw them over the mouth" blamed the
+    strokes; the message now says the camera is inside the head."""
+    from facelab_addon.core.errors import CameraError
+
+    rs = route(ict)
+    gp, _, _ = sketch_truth(rs, FRAME, rs.cameras[0])
+    M = np.array(rs.obj.matrix_world)
+    mouth = (rs.neutral[rs.loop].mean(axis=0) @ M[:3, :3].T) + M[:3, 3]
+    cam = rs.cameras[0]
+    cam.location = mouth + np.array([0.0, 0.06, 0.0])  # 6 cm behind the lips (-y is the face's forward)
+    bpy.context.view_layer.update()
+    with pytest.raises(CameraError, match=r"camera is inside the head.*Move the camera in front of the face"):
+        refine(rs.scene, rs.obj, FRAME, RefineSettings(), sketch=gp)

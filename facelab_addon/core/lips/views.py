@@ -23,6 +23,7 @@ from ..geometry.deform import PointConstraints
 from ..geometry.mesh import edge_faces
 from ..geometry.polyline import resample_polyline
 from ..geometry.silhouette import facing, projected_normals
+from .camera_checks import require_camera_outside
 from .swapped_strokes import check_swapped_strokes
 
 __all__ = ["SketchView", "ViewMatcher", "press_lips", "prepare_sketch"]
@@ -443,6 +444,7 @@ class ViewMatcher:
             d_sk, _ = cKDTree(sketch).query(uv[cand], distance_upper_bound=reach_px)
             near[np.flatnonzero(cand)[np.isfinite(d_sk)]] = True
         if not near.any():
+            require_camera_outside(cam, V0, F, fixed, depth, where)
             if (depth[~fixed] <= 0).mean() > 0.5:
                 raise CameraError(
                     f"The face is behind the camera{where}; select the camera that looks at the face (the one the "
