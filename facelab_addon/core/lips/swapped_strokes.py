@@ -11,23 +11,15 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import SketchError
+from ..geometry.polyline import y_at
 
 __all__ = ["SWAP_SHARE", "check_swapped_strokes"]
-
-
-def _y_at(x, curve):
-    """Interpolate a roughly x-monotonic curve's y at ``x`` (NaN outside its span)."""
-    o = np.argsort(curve[:, 0], kind="stable")
-    cx, cy = curve[o, 0], curve[o, 1]
-    y = np.interp(x, cx, cy)
-    y[(x < cx[0]) | (x > cx[-1])] = np.nan
-    return y
 
 
 def _sag(P) -> float:
     """How far (pixels, image y down) a stroke's middle column lies below the line between its two ends."""
     ends = P[[int(np.argmin(P[:, 0])), int(np.argmax(P[:, 0]))]]
-    return float(_y_at(np.array([ends[:, 0].mean()]), P)[0] - ends[:, 1].mean())
+    return float(y_at(np.array([ends[:, 0].mean()]), P)[0] - ends[:, 1].mean())
 
 
 #: Share of the mouth's width over which the upper stroke must lie below the lower one (by at least a quarter of
@@ -62,7 +54,7 @@ def check_swapped_strokes(upper, lower, yu, yl, x, where: str = "") -> None:
         sketch on swapped layers looks like. A crossing drawn on purpose (one lip in front of the other)
         keeps the lens's orientation, so it is read as drawn.
     """
-    su, sl = _y_at(x, upper), _y_at(x, lower)
+    su, sl = y_at(x, upper), y_at(x, lower)
     ok = np.isfinite(su) & np.isfinite(sl) & np.isfinite(yu) & np.isfinite(yl)
     if ok.sum() < 10:
         return

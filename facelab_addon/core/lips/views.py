@@ -21,7 +21,7 @@ from ..capture.camera import Camera
 from ..errors import CameraError, SketchError
 from ..geometry.deform import PointConstraints
 from ..geometry.mesh import edge_faces
-from ..geometry.polyline import resample_polyline
+from ..geometry.polyline import resample_polyline, y_at
 from ..geometry.silhouette import facing, projected_normals
 from .camera_checks import require_camera_outside
 from .swapped_strokes import check_swapped_strokes
@@ -46,15 +46,6 @@ class SketchView:
     upper: object
     lower: object
     name: str = ""
-
-
-def _y_at(x, curve):
-    """Interpolate a roughly x-monotonic curve's y at ``x`` (NaN outside its span)."""
-    o = np.argsort(curve[:, 0], kind="stable")
-    cx, cy = curve[o, 0], curve[o, 1]
-    y = np.interp(x, cx, cy)
-    y[(x < cx[0]) | (x > cx[-1])] = np.nan
-    return y
 
 
 def press_lips(upper, lower, overlap_upper=None, overlap_lower=None):
@@ -82,7 +73,7 @@ def press_lips(upper, lower, overlap_upper=None, overlap_lower=None):
     Lw = np.array(lower, dtype=np.float64)
     out = []
     for P, Q, ov, sign in ((U, Lw, overlap_upper, 1.0), (Lw, U, overlap_lower, -1.0)):
-        qy = _y_at(P[:, 0], Q)  # the other contour's y at each sample's column
+        qy = y_at(P[:, 0], Q)  # the other contour's y at each sample's column
         cross = np.where(np.isfinite(qy), sign * (P[:, 1] - qy), 0.0)  # > 0: lower drawn above upper
         o = np.zeros(len(P)) if ov is None else np.nan_to_num(np.maximum(np.asarray(ov, float), 0.0))
         move = np.maximum(cross - o, 0.0)
