@@ -37,7 +37,8 @@ from .caches import (
 
 __all__ = ["bake_point_cache_steps", "bake_pc2", "bake_mdd", "bake_alembic", "bake_destination",
            "correction_cache_path", "correction_cache", "is_correction_cache", "correction_cache_prefix",
-           "add_correction_cache", "add_correction_patch", "remove_correction_cache", "muted_correction_caches"]
+           "add_correction_cache", "add_correction_patch", "remove_correction_cache", "muted_correction_caches",
+           "correction_cache_factor"]
 
 
 def bake_destination(path) -> Path:
@@ -319,6 +320,21 @@ def correction_cache(obj, prefix: str):
     if md is not None and md.type not in _CORRECTION_TYPES:
         md = None
     return md, [str(f) for f in entry.get("files", [])]
+
+
+def correction_cache_factor(obj, prefix: str):
+    """``(id, data_path)`` of the keyed factor that turns ``obj``'s correction cache for ``prefix`` on (1) and off
+    (0) per frame (the Mesh Cache's own, or the patch object's for a patch cache), or None without one."""
+    md = correction_cache(obj, prefix)[0]
+    if md is None:
+        return None
+    owner = obj
+    if md.type == "NODES":
+        owner = bpy.data.objects.get(_record(obj).get(prefix, {}).get("patch", ""))
+        md = next((m for m in owner.modifiers if m.type == "MESH_CACHE"), None) if owner is not None else None
+        if md is None:
+            return None
+    return owner, f'modifiers["{bpy.utils.escape_identifier(md.name)}"].factor'
 
 
 def is_correction_cache(obj, md) -> bool:

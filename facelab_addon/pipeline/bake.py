@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..blender import bakes, caches
+from ..blender import bakes, caches, review
 from ..core.errors import FaceLabError
 from .settings import setting
 from .steps import run_steps
@@ -94,7 +94,7 @@ def bake_steps(obj, frames, path, settings: BakeSettings | None = None):
     Raises
     ------
     FaceLabError
-        No destination, the file exists and ``settings.overwrite`` is off, an
+        Review shows the capture on ``obj`` (*Show Capture*), no destination, the file exists and ``settings.overwrite`` is off, an
         unknown format, frames unfit for the format; ``MeshError`` when ``obj``
         is not a mesh object.
     OutputError
@@ -112,6 +112,9 @@ def bake_steps(obj, frames, path, settings: BakeSettings | None = None):
         raise FaceLabError(f"{path} exists; enable Overwrite or choose another file.")
     frames = np.asarray(frames)
     caches.require_mesh_object(obj)
+    if review.showing_capture(obj):
+        raise FaceLabError(f"Review shows the capture on '{obj.name}' (Show Capture), so the bake would hold the "
+                           "capture, not the corrected performance; click Show Corrected first.")
     if settings.format == "ABC":
         return _alembic_step(obj, frames, path, t0)
     steps = bakes.bake_point_cache_steps(obj, frames, path, settings.format)

@@ -2,8 +2,12 @@
 (Dinev et al. 2018 §4).
 
 Training data is scene data: every corrected frame is recorded on the face object
-(``obj.facelab.training_frames``, written by :func:`record_training_frame`, also by Refine
-Lips and :func:`add_corrected_frame`) and marked on the timeline. :func:`propagate_steps`
+(``obj.facelab.training_frames``) and marked on the timeline. A training frame is one definition,
+written by one function (:func:`store_training_frame`, for Refine Lips, :func:`add_corrected_frame`
+and :func:`mark_training_frame`) and read by one (:func:`read_training_frames`): the corrected shape
+relative to the frame without FaceLab's lip corrections (:func:`uncorrected_frame`), as a key keyed
+on the frame alone, with Propagate's correction off there; so a frame keeps what the viewport
+showed after Refine (or the sculpt) through every later Propagate. :func:`propagate_steps`
 reads the captured sequence, fits a :class:`~facelab_addon.core.lips.propagate.LipRegressor`
 on the training frames, predicts the inner lips of every frame and writes the per-frame
 correction as a few compressed corrective keys ``FL_Prop_NN``
@@ -24,12 +28,14 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 
+import bpy
 import numpy as np
 
-from ..blender import bakes, cache_integrate, caches
+from ..blender import bakes, cache_integrate, caches, review
 from ..blender.capture_stream import CaptureReader
 from ..blender.mesh import face_topology, require_mesh, spread_key_offsets
 from ..blender.objects import ModifierState, local_length, require_editable
+from ..blender.rest_space import to_rest_space
 from ..blender.shapekeys import (
     add_corrective_key,
     key_matches,
@@ -37,6 +43,7 @@ from ..blender.shapekeys import (
     key_spike,
     owned_keys,
     rest_vertices,
+    zero_on_frame,
 )
 from ..core.errors import FaceLabError, FrameError, MeshError
 from ..core.lips.propagate import LipRegressor
@@ -47,11 +54,12 @@ from ..names import (
     EXTRAPOLATION_ACTION,
     EXTRAPOLATION_PROP,
     PROPAGATE_PREFIX,
+    REFINE_PREFIX,
     STORE_SETTINGS_ATTR,
     SUGGEST_MARKER,
     TRAIN_MARKER,
 )
-from .correctives import CorrectionWriter, StorageSettings, StoredKeys
+from .correctives import CorrectionWriter, StorageSettings, StoredKeys, silence_correction
 from .frames import check_frames
 from .regions import region_faces
 from .settings import setting, stored
@@ -65,6 +73,11 @@ __all__ = [
     "record_training_frame",
     "remove_training_frame",
     "add_corrected_frame",
+    "mark_training_frame",
+    "store_training_frame",
+    "uncorrected_frame",
+    "read_training_frames",
+    "TRAINING_KEY_PREFIXES",
     "propagate_steps",
     "propagate",
     "training_input",
@@ -73,6 +86,8 @@ __all__ = [
 ]
 
 _CACHE_SOURCES = ("mesh_cache", "mesh_sequence_cache")
+#: A frame is reported as expected worse than its capture past this expected RMS increase, world mm.
+WORSE_MM = 0.01
 _CHUNK = 256  # frames per streamed chunk: working memory ~ chunk x (mouth + lip vertices), not the shot
 _SHOT_SAMPLE = 64  # frames of the shot read before the fit for the "auto" model choice
 _WELD_SAMPLE = 16  # frames of the shot (besides the training frames) on which split-seam twins must coincide
@@ -97,6 +112,9 @@ class PropagateSettings:
         ``damping``): a frame where the prediction is no more certain than it is large keeps most of its
         capture. Off (default): every frame gets the full prediction. On roughly halves the damage to frames
         the prediction makes worse, at a held-out error that is not lower on every scene (docs/propagate.md).
+    ridge : {"loo", "none"}
+        ``LipRegressor`` ``ridge``: ``"loo"`` (each local map's ridge weight by leave-one-out over the training
+        frames) or ``"none"`` (0, the paper).
     """
 
     suggestions: int = setting(3, label="Suggestions", min=0, max=50,
@@ -110,7 +128,13 @@ class PropagateSettings:
                                      "few frames, keeps capture errors that do not follow the mouth")),
         description="What Propagate learns from the training frames: the lips' whole motion, only the "
                     "correction, or an automatic blend")
-    damping: bool = setting(False, label="Damp Uncertain Frames",
+    ridge: str = setting("loo", label="Regularization", choices=(
+        ("loo", "Leave-One-Out", "Shrink each local map toward zero by the ridge weight whose leave-one-out error over "
+                                 "the training frames is smallest: near-duplicate training poses with different "
+                                 "corrections no longer make the model extrapolate wildly"),
+        ("none", "None", "The least-squares maps of the paper")),
+        description="How the regression is regularized (LipRegressor ridge)")
+    damping: bool = setting(True, label="Damp Uncertain Frames",
                             description="Shrink each frame's correction toward the capture by how uncertain the "
                                         "model is there (its expected error, from the training frames and the "
                                         "frame's distance from them): well-captured frames far from the training "
@@ -135,6 +159,10 @@ class PropagateResult:
         Frames suggested for correction next (also timeline markers), best first.
     extrapolation : (T,) float ndarray
         How far each frame's mouth lies outside the training poses (also keyed on the object).
+    expected_worse : list of int
+        Frames whose inner lips the correction is expected to leave worse than captured by more than
+        :data:`WORSE_MM` (``LipRegressor.expected_change``), the worst first: the frames to check, or to
+        correct next.
     note : str
         What was changed so the keys show over a cache (empty for shape-key animation).
     model : str
@@ -151,6 +179,7 @@ class PropagateResult:
     training: list = field(default_factory=list)
     suggested: list = field(default_factory=list)
     extrapolation: np.ndarray = None
+    expected_worse: list = field(default_factory=list)
     note: str = ""
     model: str = ""
     whole_weight: float = 1.0
@@ -172,6 +201,16 @@ class CorrectedFrame:
 
 
 # --------------------------------------------------------------------------- training frames
+#: Prefixes of the keys that hold a training frame's correction (Refine Lips, Add Corrected Frame, Mark
+#: Training Frame): each is keyed 1 on its frame alone.
+TRAINING_KEY_PREFIXES = (REFINE_PREFIX, CORRECTED_PREFIX)
+#: What a training frame's correction is measured against: the frame with Propagate's output and the training
+#: keys muted (the capture as Propagate reads it, plus whatever else the artist animates).
+_LOOP_PREFIXES = (PROPAGATE_PREFIX, *TRAINING_KEY_PREFIXES)
+#: Source of a frame sculpted in place and marked (Mark Training Frame): its capture is unknown.
+MARKED = "marked"
+
+
 def training_frames(obj) -> list:
     """Sorted unique training frames of ``obj`` whose correction still exists (a sketch's key not deleted)."""
     key = obj.data.shape_keys
@@ -183,6 +222,8 @@ def training_frames(obj) -> list:
 def record_training_frame(scene, obj, frame: int, shape_key: str, source: str) -> None:
     """Remember ``frame`` as a corrected (training) frame of ``obj`` and mark it on the timeline.
 
+    The low-level record only: a correction is stored by :func:`store_training_frame`.
+
     Parameters
     ----------
     scene : bpy.types.Scene
@@ -190,7 +231,8 @@ def record_training_frame(scene, obj, frame: int, shape_key: str, source: str) -
     frame : int
     shape_key : str
         The corrective key holding the correction ("" for a sculpted mesh).
-    source : {"sketch", "sculpt"}
+    source : {"sketch", "sculpt", "marked"}
+        Refine Lips, Add Corrected Frame, or a frame sculpted in place (Mark Training Frame).
     """
     item = obj.facelab.training_frames.add()
     item.frame, item.shape_key, item.source = frame, shape_key, source
@@ -219,15 +261,79 @@ def remove_training_frame(scene, obj, index: int) -> tuple:
     return frame, shape_key
 
 
+def uncorrected_frame(obj, frame: int) -> np.ndarray:
+    """(V,3) float64 evaluated ``obj`` on ``frame`` with Propagate's output and the training keys muted.
+
+    A training frame's correction is this frame's shape subtracted from what the artist made (the
+    corrected shape relative to the capture), so it is the same whatever Propagate showed on the frame
+    when the artist refined or sculpted it. Object-local scene units, after the modifiers (as
+    :func:`facelab_addon.blender.caches.evaluate_frames`).
+    """
+    return caches.evaluate_frames(obj, [frame], mute_shape_keys_prefix=_LOOP_PREFIXES)[0].astype(np.float64)
+
+
+def _supersede(scene, obj, frame: int) -> list:
+    """Make room for a new correction of ``frame``: FaceLab's earlier training keys of the frame are keyed 0
+    there (kept, never deleted) and their records dropped; Propagate's correction is keyed off on the frame.
+    Returns the superseded keys."""
+    key = obj.data.shape_keys
+    owned = set(owned_keys(obj)) if key is not None else set()
+    gone = []
+    tf = obj.facelab.training_frames
+    for i in reversed(range(len(tf))):
+        t = tf[i]
+        if t.frame != frame:
+            continue
+        if t.shape_key and t.shape_key in owned and t.shape_key in key.key_blocks:
+            zero_on_frame(key, f'key_blocks["{bpy.utils.escape_identifier(t.shape_key)}"].value', frame)
+            key.key_blocks[t.shape_key].value = 0.0
+            gone.append(t.shape_key)
+        remove_training_frame(scene, obj, i)
+    silence_correction(obj, PROPAGATE_PREFIX, frame)
+    return gone
+
+
+def store_training_frame(scene, obj, frame: int, offsets, prefix: str, source: str):
+    """Write ``frame``'s correction as a new key ``<prefix><frame>`` keyed 1 on the frame (0 on its neighbours),
+    make it the frame's one training record and turn Propagate's correction off on the frame.
+
+    The one writer of training frames (Refine Lips, Add Corrected Frame, Mark Training Frame): afterwards the
+    frame shows :func:`uncorrected_frame` + ``offsets``, now and after any later Propagate (which keeps its
+    correction zero on training frames). An earlier correction of the frame by FaceLab is superseded (its key
+    keyed 0 on the frame, its record dropped), so it no longer adds.
+
+    Parameters
+    ----------
+    scene, obj
+    frame : int
+    offsets : (V,3) float array_like
+        Shape-key offsets (rest space, object-local scene units) relative to :func:`uncorrected_frame`.
+    prefix : str
+        :data:`~facelab_addon.names.REFINE_PREFIX` or :data:`~facelab_addon.names.CORRECTED_PREFIX`.
+    source : {"sketch", "sculpt", "marked"}
+
+    Returns
+    -------
+    bpy.types.ShapeKey
+    """
+    kb = add_corrective_key(obj, f"{prefix}{frame:04d}", offsets)
+    key_spike(kb, frame)
+    _supersede(scene, obj, frame)
+    record_training_frame(scene, obj, frame, kb.name, source)
+    if scene.frame_current == frame:
+        scene.frame_set(frame)  # the keys' animated values on this frame as they are now keyed
+    obj.data.update()
+    return kb
+
+
 def add_corrected_frame(scene, obj, frame: int, vertices) -> CorrectedFrame:
     """Make the face corrected by hand on ``frame`` a training frame.
 
-    The difference to the captured frame becomes a corrective key
-    ``FL_Corrected_<frame>`` (:data:`~facelab_addon.names.CORRECTED_PREFIX`) keyed 1 on the
-    frame and 0 on its neighbours, and the frame is recorded (source "sculpt"). Over a
-    cache, the cache is first made ready to carry keys
-    (:func:`facelab_addon.blender.cache_integrate.cache_to_shape_key_ready`) and the offsets are
-    mapped through its surface so the frame shows ``vertices`` exactly.
+    The difference to the frame without FaceLab's lip corrections (:func:`uncorrected_frame`) becomes a
+    corrective key ``FL_Corrected_<frame>`` (:data:`~facelab_addon.names.CORRECTED_PREFIX`) stored by
+    :func:`store_training_frame` (source "sculpt"). Over a cache, the cache is first made ready to carry keys
+    (:func:`facelab_addon.blender.cache_integrate.cache_to_shape_key_ready`) and the offsets are mapped through
+    its surface so the frame shows ``vertices`` exactly.
 
     Parameters
     ----------
@@ -256,22 +362,80 @@ def add_corrected_frame(scene, obj, frame: int, vertices) -> CorrectedFrame:
     if not np.all(np.isfinite(V)):
         raise MeshError(f"The corrected face for frame {frame} has NaN or infinite coordinates; fix the file and "
                         "export it again.")
+    d = _frame_offsets(obj, frame, lambda base: V - base)
+    kb = store_training_frame(scene, obj, frame, d, CORRECTED_PREFIX, "sculpt")
+    return CorrectedFrame(frame=frame, shape_key=kb.name, max_offset=float(np.linalg.norm(d, axis=1).max()))
+
+
+def mark_training_frame(scene, obj, frame: int) -> CorrectedFrame:
+    """Make ``frame`` as the viewport shows it (for example sculpted in place) a training frame.
+
+    What FaceLab's lip corrections add on the frame (Propagate's output, an earlier Refine) is kept as a key
+    ``FL_Corrected_<frame>`` stored by :func:`store_training_frame`, so the frame keeps the shape the artist
+    marked through later Propagate runs; without such a correction only the record is written. Either way
+    the record's source is "marked": the frame was sculpted in place, so its capture is unknown
+    (:func:`captured_unknown`).
+
+    Returns
+    -------
+    CorrectedFrame
+        ``shape_key`` "" when the frame showed no correction of FaceLab's.
+    """
+    require_mesh(obj)
+    require_editable(obj, "Mark Training Frame")
+    shown = caches.evaluate_frames(obj, [frame], mute_shape_keys_prefix=())[0].astype(np.float64)
+    shown_rel = shown - uncorrected_frame(obj, frame)
+    if float(np.abs(shown_rel).max(initial=0.0)) <= 1e-7 * max(1.0, float(np.abs(shown).max(initial=0.0))):
+        _supersede(scene, obj, frame)
+        record_training_frame(scene, obj, frame, "", MARKED)
+        return CorrectedFrame(frame=frame, shape_key="", max_offset=0.0)
+    d = _frame_offsets(obj, frame, lambda base: shown)
+    kb = store_training_frame(scene, obj, frame, d, CORRECTED_PREFIX, MARKED)
+    return CorrectedFrame(frame=frame, shape_key=kb.name, max_offset=float(np.linalg.norm(d, axis=1).max()))
+
+
+def _frame_offsets(obj, frame, target) -> np.ndarray:
+    """(V,3) key offsets (rest space) that make ``frame`` show ``target(base)`` over :func:`uncorrected_frame`
+    ``base`` (both (V,3), object-local, evaluated); over a cache mapped through its surface."""
+    on_cache = caches.sequence_source(obj) in _CACHE_SOURCES
     state = ModifierState(obj)
     try:
-        if caches.sequence_source(obj) in _CACHE_SOURCES:
+        if on_cache:
             cache_integrate.cache_to_shape_key_ready(obj)
-        captured = caches.read_captured_frames(obj, [frame])[0].astype(np.float64)
-        _require_finite(captured[None], [frame], "captured")
-        d = V - captured
-        if caches.sequence_source(obj) in _CACHE_SOURCES:
+        base = uncorrected_frame(obj, frame)
+        _require_finite(base[None], [frame], "captured")
+        d = np.asarray(target(base), dtype=np.float64) - base
+        if on_cache:
+            captured = caches.read_captured_frames(obj, [frame])[0].astype(np.float64)
             d = cache_integrate.correction_to_key_offsets(obj, captured, d)
     except BaseException:
         state.restore()
         raise
-    kb = add_corrective_key(obj, f"{CORRECTED_PREFIX}{frame:04d}", d)
-    key_spike(kb, frame)
-    record_training_frame(scene, obj, frame, kb.name, "sculpt")
-    return CorrectedFrame(frame=frame, shape_key=kb.name, max_offset=float(np.linalg.norm(d, axis=1).max()))
+    return to_rest_space(obj, [frame], d[None])[0]
+
+
+def read_training_frames(obj, train) -> np.ndarray:
+    """(k,V,3) float32 training frames as Propagate learns them: each frame with its training correction and
+    without Propagate's, object-local, as the artist set the mutes (Review's *Show Capture* lifted).
+
+    Raises
+    ------
+    FaceLabError
+        A training frame's key is muted (by hand): the frame would train as its capture.
+    """
+    key = obj.data.shape_keys
+    with review.corrections_as_set(obj):
+        if key is not None:
+            muted = sorted({(t.frame, t.shape_key) for t in obj.facelab.training_frames
+                            if t.frame in set(train) and t.shape_key in key.key_blocks
+                            and key.key_blocks[t.shape_key].mute})
+            if muted:
+                named = ", ".join(f"{k} (frame {f})" for f, k in muted[:5])
+                raise FaceLabError(f"The training key{'s' if len(muted) > 1 else ''} {named} "
+                                   f"{'are' if len(muted) > 1 else 'is'} muted, so Propagate would learn the "
+                                   "capture there; unmute it in the Shape Keys panel, or remove the frame from "
+                                   "the training frames (Remove Training Frame).")
+        return caches.evaluate_frames(obj, train, mute_shape_keys_prefix=(PROPAGATE_PREFIX,))
 
 
 # --------------------------------------------------------------------------- propagate
@@ -424,11 +588,12 @@ def _propagate_work(scene, obj, frames, settings, t0, topo, mouth_faces, lip_fac
     # a mesh split along seams: the regression sees the welded surface alone (no duplicates), ``kept`` its vertices
     kept = topo.weld.kept if topo.n_duplicates else None
     rest_w, tris_w = (rest, topo.tris) if kept is None else topo.weld.compact(rest)
-    corrected = caches.evaluate_frames(obj, train, mute_shape_keys_prefix=(PROPAGATE_PREFIX,))
+    corrected = read_training_frames(obj, train)
     _require_finite(corrected, train, "corrected (training)")
     unknown = captured_unknown(obj, train)
     model = "whole" if unknown and settings.model == "auto" else settings.model
-    reg = LipRegressor(rest_w, tris_w, mouth_faces, lip_faces, model=model, damping=bool(settings.damping))
+    reg = LipRegressor(rest_w, tris_w, mouth_faces, lip_faces, model=model, damping=bool(settings.damping),
+                       ridge="loo" if settings.ridge == "loo" else 0.0)
     captured_train = caches.read_captured_frames(obj, list(train)).astype(np.float64)  # FaceLab keys muted
     _require_finite(captured_train, train, "captured (training)")
     if kept is not None:
@@ -469,7 +634,7 @@ def _propagate_work(scene, obj, frames, settings, t0, topo, mouth_faces, lip_fac
     try:
         is_train = np.isin(frames, train)
         screen = SuggestScreen(reg, T, exclude=np.flatnonzero(is_train)) if settings.suggestions else None
-        score = np.empty(T)
+        score, change = np.empty(T), np.empty(T)
         for i, j in _chunks(T, chunk):
             yield "correcting the frames", 1 + i, total
             X = reader.read(frames[i:j])  # FaceLab keys muted
@@ -481,6 +646,7 @@ def _propagate_work(scene, obj, frames, settings, t0, topo, mouth_faces, lip_fac
                 raise e.for_frames([int(f) for f in frames]) from None
             if screen is not None:
                 screen.add_scores(i, feature_sq, score[i:j])
+            change[i:j] = reg.expected_change(corr, score[i:j])
             corr[is_train[i:j]] = 0.0  # training frames keep the artist's own correction
             if take is not None and on_cache:  # every twin moves with its representative: the seams stay closed
                 corr = corr[:, take]
@@ -512,6 +678,9 @@ def _propagate_work(scene, obj, frames, settings, t0, topo, mouth_faces, lip_fac
     if names.storage.mode == "cache" or "more than the budget" in names.storage.note:  # say where it went
         note = f"{note} {names.storage.note}".strip()
     score[is_train] = 0.0
+    change[is_train] = 0.0
+    flagged = np.flatnonzero(change > local_length(scene, obj, 1e-3 * WORSE_MM))
+    worse = [int(frames[i]) for i in flagged[np.argsort(-change[flagged], kind="stable")]]  # the worst first
     obj[EXTRAPOLATION_PROP] = 0.0
     key_property_bulk(obj, f'["{EXTRAPOLATION_PROP}"]', frames, score, action_name=EXTRAPOLATION_ACTION)
     for m in [m for m in scene.timeline_markers if m.name.startswith(SUGGEST_MARKER)]:
@@ -524,7 +693,7 @@ def _propagate_work(scene, obj, frames, settings, t0, topo, mouth_faces, lip_fac
             scene.timeline_markers.new(f"{SUGGEST_MARKER} {f}", frame=f)
     obj.data.update()
     return PropagateResult(object=obj.name, frames=frames, keys=names, training=list(train), suggested=suggested,
-                           extrapolation=score, note=note, model=model_summary(reg, unknown),
+                           extrapolation=score, expected_worse=worse, note=note, model=model_summary(reg, unknown),
                            whole_weight=reg.whole_weight, seconds=time.perf_counter() - t0)
 
 
@@ -546,7 +715,7 @@ def captured_unknown(obj, train) -> list:
     The correction model learns corrected minus captured lips, so it needs each training frame as
     captured: the frame with its correction's key muted. Refine Lips and Add Corrected Frame record
     FaceLab's own keys, which the capture reads leave out; a frame sculpted in place and marked with
-    Mark Training Frame records no key, so its capture is unknown.
+    Mark Training Frame (source "marked") is its capture plus the sculpt, so its capture is unknown.
 
     Returns
     -------
@@ -556,7 +725,7 @@ def captured_unknown(obj, train) -> list:
     key = obj.data.shape_keys
     owned = set(owned_keys(obj)) if key else set()
     known = {t.frame for t in obj.facelab.training_frames
-             if t.shape_key and key is not None and t.shape_key in key.key_blocks
+             if t.source != MARKED and t.shape_key and key is not None and t.shape_key in key.key_blocks
              and key_matches(key, t.shape_key, caches.FACELAB_PREFIXES, owned)}
     return [int(f) for f in train if f not in known]
 

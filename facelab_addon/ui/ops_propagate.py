@@ -21,8 +21,8 @@ from ..pipeline.frames import frame_range
 from ..pipeline.propagate import (
     PropagateSettings,
     propagate,
+    mark_training_frame,
     propagate_steps,
-    record_training_frame,
     remove_training_frame,
 )
 from ..pipeline.regions import RegionSettings, auto_regions
@@ -81,8 +81,15 @@ class FACELAB_OT_mark_training_frame(bpy.types.Operator):
 
     def execute(self, context):
         obj, f = face_object(context), context.scene.frame_current
-        record_training_frame(context.scene, obj, f, "", "sculpt")
-        self.report({"INFO"}, f"Frame {f} marked as a training frame of '{obj.name}'")
+        if context.mode != "OBJECT":  # a sculpt or edit in progress is flushed to the mesh first
+            bpy.ops.object.mode_set(mode="OBJECT")
+        try:
+            r = mark_training_frame(context.scene, obj, f)
+        except FaceLabError as e:
+            self.report({"ERROR"}, str(e))
+            return {"CANCELLED"}
+        kept = f"; FaceLab's correction it showed is kept in '{r.shape_key}'" if r.shape_key else ""
+        self.report({"INFO"}, f"Frame {f} marked as a training frame of '{obj.name}'{kept}")
         return {"FINISHED"}
 
 
@@ -231,6 +238,11 @@ def stage_progress(context, label):
     return update
 
 
+def _frame_list(frames, most: int = 12) -> str:
+    """``"3, 4, 9"`` (``", ..."`` past ``most``)."""
+    return ", ".join(map(str, frames[:most])) + (", ..." if len(frames) > most else "")
+
+
 class FACELAB_OT_propagate(_ModalJob, bpy.types.Operator):
     """Learn how the inner lips follow the mouth from the training frames (Dinev et al. 2018 §4) and correct every frame; the result is a small set of corrective shape keys keyed on the timeline. Esc cancels while it reads the frames"""
 
@@ -271,7 +283,10 @@ class FACELAB_OT_propagate(_ModalJob, bpy.types.Operator):
             f"shapes from {len(r.training)} training frames"
             + (f" ({r.model})" if r.model else "")
             + (f"; {r.note}" if r.note else "")
-            + (f"; suggested next: {', '.join(map(str, r.suggested))}" if r.suggested else ""),
+            + (f"; suggested next: {', '.join(map(str, r.suggested))}" if r.suggested else "")
+            + (f"; {len(r.expected_worse)} frame{'s' if len(r.expected_worse) > 1 else ''} expected worse than "
+               f"the capture: {_frame_list(r.expected_worse)} (check them, or correct one)"
+               if r.expected_worse else "; no frame expected worse than the capture"),
         )
 
     def execute(self, context):

@@ -230,13 +230,12 @@ class _Training:
     def _choose_blend(self, fits, shot):
         """``α`` of the model (1: whole, 0: correction; "auto": :func:`.model_choice.choose_blend`), and with
         ``damping`` the expected-error model of the prediction (:func:`.model_choice.error_model`)."""
-        self.model_errors, self._error_model = {}, None
+        self.model_errors = {}
         if self.model == "auto" and fits[0][6] is not None:
-            a, self.model_errors, self._error_model = choose_blend(self, fits, shot)
+            a, self.model_errors, em = choose_blend(self, fits, shot)
         else:
             a = 0.0 if self.model == "correction" else 1.0
-            if self.damping:
-                self._error_model = error_model(self, fits, shot if a == 0.0 else None)
-        if not self.damping:
-            self._error_model = None
+            em = error_model(self, fits, shot if a == 0.0 else None)
+        self._expected_model = em  # the expected error of every prediction (LipRegressor.expected_change)
+        self._error_model = em if self.damping else None
         return a
