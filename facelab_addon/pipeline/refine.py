@@ -44,7 +44,7 @@ from ..blender.strokes import read_lip_strokes, require_sketch_keyed_on
 from ..core.errors import CameraError
 from ..core.lips.sketch import SketchView, refine_lips_views
 from ..names import FIXED_GROUP, LIPS_GROUP, MOUTH_GROUP, REFINE_PREFIX
-from .propagate import store_training_frame, uncorrected_frame
+from .training import store_training_frame, uncorrected_frame
 from .settings import setting
 
 __all__ = ["REFINE_DEFAULTS", "RefineSettings", "RefineResult", "refine"]
