@@ -103,6 +103,9 @@ def bake_steps(obj, frames, path, settings: BakeSettings | None = None):
     """
     settings = settings or BakeSettings()
     t0 = time.perf_counter()
+    if review.showing_capture(obj):
+        raise FaceLabError(f"Review shows the capture on '{obj.name}' (Show Capture), so the bake would hold the "
+                           "capture, not the corrected performance; click Show Corrected first.")
     if not path:
         raise FaceLabError("Choose a file to bake to.")
     if settings.format not in FORMATS:
@@ -112,9 +115,6 @@ def bake_steps(obj, frames, path, settings: BakeSettings | None = None):
         raise FaceLabError(f"{path} exists; enable Overwrite or choose another file.")
     frames = np.asarray(frames)
     caches.require_mesh_object(obj)
-    if review.showing_capture(obj):
-        raise FaceLabError(f"Review shows the capture on '{obj.name}' (Show Capture), so the bake would hold the "
-                           "capture, not the corrected performance; click Show Corrected first.")
     if settings.format == "ABC":
         return _alembic_step(obj, frames, path, t0)
     steps = bakes.bake_point_cache_steps(obj, frames, path, settings.format)

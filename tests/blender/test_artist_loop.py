@@ -110,7 +110,7 @@ def test_sculpt_on_a_propagated_frame_then_mark_training_frame(addon):
     assert _mm(shown_frames(face, [f])[0], seen) < TOL_MM
 
 
-def test_show_capture_during_refine_and_propagate(addon, solved):
+def test_show_capture_during_refine_and_propagate(addon, solved, tmp_path):
     # reference: Refine 41 with Review showing the capture, Propagate with Review off
     ref = sample_face()
     _round_one(ref)
@@ -127,7 +127,7 @@ def test_show_capture_during_refine_and_propagate(addon, solved):
     assert _mm(_world(face, shown), solved[-1]) < TOL_MM  # the viewport (Review on) shows the refined shape
     propagate(face.scene, face.obj, face.frames, PropagateSettings())  # Review still on
     with pytest.raises(FaceLabError, match="Show Corrected"):  # never a bake of the capture reported as done
-        bake(face.obj, face.frames, "/tmp/facelab_never_written.pc2")
+        bake(face.obj, face.frames, tmp_path / "never_written.pc2")
     review.show_corrected(face.obj)
     got = shown_frames(face)
     assert _mm(got[40], shown) < TOL_MM
