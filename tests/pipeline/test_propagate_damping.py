@@ -42,4 +42,6 @@ def test_damped_propagate_is_the_damped_regressor(ict, addon):
     assert 0 < s.min() < 1 and s.max() <= 1
     size = {d: np.linalg.norm(got[d] - captured, axis=2).max(axis=1) for d in got}
     assert (size[True] <= size[False] + 2e-5).all()
-    assert (size[True] < 0.95 * size[False]).any()  # some frame is really damped (measured: to 0.91)
+    # some frame is really damped (measured: to 0.91 with the slopes through the origin; the slopes fitted with an
+    # intercept, model_choice.error_model's a_*_growth, damp this scene's extrapolated frames by under 1 %)
+    assert (size[True] < size[False] - 1e-6).any()
