@@ -135,6 +135,9 @@ def error_model(reg, fits, shot=None):
     # near-duplicate training poses corrected a little differently) is not read as a steep growth
     out["a_w_growth"] = _growth(r2, ew)
     out["a_c_growth"] = _growth(r2, ec - floor) if has_c else 0.0
+    # and never more than the worst leave-one-out miss: a far frame's expected error is capped there, so a slope
+    # read from a few close poses cannot switch every correction off
+    out["worst_w"], out["worst_c"] = float(np.max(ew)), float(np.max(ec)) if has_c else 0.0
     return out
 
 
@@ -153,7 +156,8 @@ def expected_error(model, alpha, r2):
     """(T,) the part of the blend's expected squared interior lip error that grows with ``r2`` (T,).
 
     ``(α² a_w + (1 - α)² a_c) r²``, with the slopes fitted with an intercept (``a_w_growth``, ``a_c_growth`` of
-    :func:`error_model`) (scene units², summed over the interior lip vertices; the two models'
+    :func:`error_model`) and capped at the worst leave-one-out miss of the training frames (``worst_w``,
+    ``worst_c``) (scene units², summed over the interior lip vertices; the two models'
     errors taken as independent, :func:`error_model`): the error of extrapolating beyond the training
     frames. The correction model's floor is left out: it is the same on every frame, training frames and
     frames in their span included, where the prediction is as good as the training frames make it; so ``S``
@@ -161,7 +165,10 @@ def expected_error(model, alpha, r2):
     """
     r2 = np.asarray(r2, dtype=np.float64)
     a_w, a_c = model.get("a_w_growth", model["a_w"]), model.get("a_c_growth", model["a_c"])
-    return (alpha * alpha * a_w + (1.0 - alpha) ** 2 * a_c) * r2
+    S = (alpha * alpha * a_w + (1.0 - alpha) ** 2 * a_c) * r2
+    if "worst_w" in model:
+        S = np.minimum(S, alpha * alpha * model["worst_w"] + (1.0 - alpha) ** 2 * model["worst_c"])
+    return S
 
 
 def damping_weights(c2, S):
