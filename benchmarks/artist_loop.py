@@ -20,7 +20,8 @@ Per round: held-out inner-lip RMS (mm, over the frames the loop never refined) a
 frames worse than their capture by more than 0.01 mm (and those Propagate's report did not name), and how far
 each training frame has moved from what Refine gave it (largest vertex distance, mm).
 
-Usage: ``PYTHONPATH=. python benchmarks/artist_loop.py [--faces sample,ict,remeshed] [--png docs/images/artist_loop.png]``
+Usage: ``PYTHONPATH=. python benchmarks/artist_loop.py [--faces sample,ict,remeshed]
+[--png docs/images/artist_loop.png]``
 Prints one JSON object (save as ``benchmarks/results/artist_loop.json``); progress on stderr.
 """
 

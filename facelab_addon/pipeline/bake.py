@@ -94,8 +94,8 @@ def bake_steps(obj, frames, path, settings: BakeSettings | None = None):
     Raises
     ------
     FaceLabError
-        Review shows the capture on ``obj`` (*Show Capture*), no destination, the file exists and ``settings.overwrite`` is off, an
-        unknown format, frames unfit for the format; ``MeshError`` when ``obj``
+        Review shows the capture on ``obj`` (*Show Capture*), no destination, the file exists and
+        ``settings.overwrite`` is off, an unknown format, frames unfit for the format; ``MeshError`` when ``obj``
         is not a mesh object.
     OutputError
         A relative path, or a destination that cannot be written (a read-only

@@ -6,7 +6,7 @@
 stores the refined shape, relative to the frame without FaceLab's lip corrections, as a new
 corrective key ``FL_Refine_<frame>`` (:data:`~facelab_addon.names.REFINE_PREFIX`) keyed 1 on
 the frame and 0 on its neighbours
-(:func:`~facelab_addon.pipeline.propagate.store_training_frame`): the frame becomes a training
+(:func:`~facelab_addon.pipeline.training.store_training_frame`): the frame becomes a training
 frame of Propagate, an earlier correction of the frame no longer adds there, and the frame shows
 the refined shape now and after every later Propagate.
 

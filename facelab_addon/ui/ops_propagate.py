@@ -20,8 +20,8 @@ from ..pipeline import bake as bake_pipeline
 from ..pipeline.frames import frame_range
 from ..pipeline.propagate import (
     PropagateSettings,
-    propagate,
     mark_training_frame,
+    propagate,
     propagate_steps,
     remove_training_frame,
 )
@@ -286,7 +286,7 @@ class FACELAB_OT_propagate(_ModalJob, bpy.types.Operator):
             + (f"; suggested next: {', '.join(map(str, r.suggested))}" if r.suggested else "")
             + (f"; {len(r.expected_worse)} frame{'s' if len(r.expected_worse) > 1 else ''} expected worse than "
                f"the capture: {_frame_list(r.expected_worse)} (check them, or correct one)"
-               if r.expected_worse else "; no frame expected worse than the capture"),
+               if r.expected_worse else "; the model expects no frame worse than the capture"),
         )
 
     def execute(self, context):
