@@ -108,8 +108,7 @@ class PropagateSettings:
         Scale each frame's predicted correction by ``|c|² / (|c|² + S)``, ``S`` the error the fitted model is
         expected to make on that frame by extrapolating beyond the training frames (``LipRegressor``
         ``damping``): a frame where the prediction is no more certain than it is large keeps most of its
-        capture. Off (default): every frame gets the full prediction. On roughly halves the damage to frames
-        the prediction makes worse, at a held-out error that is not lower on every scene (docs/propagate.md).
+        capture. On (default); off: every frame gets the full prediction (the paper).
     ridge : {"loo", "none"}
         ``LipRegressor`` ``ridge``: ``"loo"`` (each local map's ridge weight by leave-one-out over the training
         frames, from :data:`LOO_MIN_FRAMES` training frames on; 0 with fewer) or ``"none"`` (0, the paper).
