@@ -3,6 +3,8 @@ again): a training frame keeps exactly what the viewport showed after Refine Lip
 Training Frame) through later Propagate runs, Refine twice, Review's Show Capture and a save and reload; each
 round of the README loop lowers the held-out error. Sketches trace the sample's truth (``testing.loop``)."""
 
+import dataclasses
+
 import bpy
 import numpy as np
 import pytest
@@ -167,3 +169,22 @@ def test_save_and_reload_between_rounds_changes_nothing(addon, tmp_path):
     Y = shown_frames(reloaded["face"])
     assert max(_mm(a, b) for a, b in zip(X, Y)) < 1e-3
     assert reloaded["rounds"][-1]["max_training_drift_mm"] < TOL_MM
+
+
+def test_undo_of_a_refine_after_propagate_gives_the_propagated_frame_back(addon):
+    face = sample_face()
+    _round_one(face)
+    f = 41
+    propagated = shown_frames(face, [f])[0]
+    bpy.ops.ed.undo_push(message="before Refine")
+    shown = refine_frame(face, f)
+    bpy.ops.ed.undo_push(message="Refine Lips")  # headless: the UI would push it
+    assert _mm(shown, propagated) > 0.05
+    bpy.ops.ed.undo()
+    face = dataclasses.replace(face, scene=bpy.context.scene, obj=bpy.context.scene.facelab.face)
+    face.scene.frame_set(f)
+    assert _mm(shown_frames(face, [f])[0], propagated) < 1e-3  # Propagate's correction is back on the frame
+    assert f not in {t.frame for t in face.obj.facelab.training_frames}
+    shown = refine_frame(face, f)  # and the loop goes on from there
+    propagate(face.scene, face.obj, face.frames, PropagateSettings())
+    assert _mm(shown_frames(face, [f])[0], shown) < TOL_MM
