@@ -110,7 +110,7 @@ def test_output_once_in_one_format_and_settings_flags(shot, tmp_path):
     msgs = [ln.split("] ", 1)[1] for ln in lines]
     assert len(msgs) == len(set(msgs)), log
     assert not re.search(r"Read blend|Saved as|Info:|EGL|Deprecat", log)
-    assert s["settings"]["facelab_propagate"] == {"suggestions": 4, "model": "auto", "damping": False}
+    assert s["settings"]["facelab_propagate"] == {"suggestions": 4, "model": "auto", "damping": True, "ridge": "loo"}
     assert s["model"].startswith(("auto: ", "whole motion"))  # the model Propagate used
     assert s["settings"]["facelab_regions"]["lip_width"] == 0.12 and len(s["suggested_frames"]) == 4
     bpy.ops.wm.open_mainfile(filepath=str(out))
