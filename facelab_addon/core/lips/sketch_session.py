@@ -15,9 +15,12 @@ pose) and the refinement's settings, and solves any number of stroke sets on it:
   ``iterations`` steps is known);
 * ``start`` warm-starts the iterations from an earlier result (the last preview) instead of the capture.
 
-Without ``start`` a solve is :func:`refine_lips_views`' (which calls this class); with it, the result is
-the iteration's end state reached from ``start``, which is near but not always equal to the one reached
-from the capture.
+Without ``start`` and with ``width_tol=0`` a solve is :func:`refine_lips_views`' (which calls this
+class). With ``width_tol > 0`` the system is also kept for strokes that leave the free region as it was
+and move the mouth width by less than that fraction (a point edited inside the sketch), solved with the
+kept width. With ``start`` the result is the iterations' end state reached from ``start``, which can be
+another state than the one reached from the capture (the iterations do not always settle on one
+matching: they may alternate between two).
 
 Shapes: vertices (V,3) float64 scene units, triangles (F,3) int64, masks (V,) bool.
 """
@@ -72,8 +75,9 @@ def _same(a, b) -> bool:
 class _System:
     """The stroke-independent part of a solve for one free region, mouth width and main camera."""
 
-    def __init__(self, key, region, Fl, adj, L, solver, around):
-        self.key, self.region, self.Fl, self.adj, self.L, self.solver, self.around = key, region, Fl, adj, L, solver, around
+    def __init__(self, key, W, region, Fl, adj, L, solver, around):
+        self.key, self.W, self.region, self.Fl, self.adj = key, W, region, Fl, adj
+        self.L, self.solver, self.around = L, solver, around
         self.single = None  # (solver, base, turn) of one view with the rest-depth terms (no basis)
         self.multi = None  # (base, depth solver, its base) of several views (no basis)
 
@@ -90,6 +94,13 @@ class SketchSolver:
     reach_px, silhouette_rays, crossings, main_view_iterations, views_keep, depth_reg, rest_vertices,
     rest_depth_reg, contact, basis, basis_reg
         As in :func:`~facelab_addon.core.lips.sketch.refine_lips_views`.
+    width_tol : float
+        Keep the system for strokes whose free region is the same and whose mouth width (the unit of the
+        anchor weights' reach and of the rest-depth fit) is within this fraction of the one it was made for,
+        solving with that width. 0 (default): only for the very same width, so a solve is
+        :func:`refine_lips_views`'. A stroke edited inside the sketch's extent moves the width by about
+        ``1e-5`` of itself (the median depth of the lip vertices near the strokes); a Live Refine preview
+        keeps its system through such edits.
 
     Raises
     ------
@@ -103,7 +114,7 @@ class SketchSolver:
                  reach_px: float | None = None, silhouette_rays: str = "nearest", crossings: str = "follow",
                  main_view_iterations: int = 1, views_keep: float = 1.5, depth_reg: float = 3.0,
                  rest_vertices=None, rest_depth_reg: float = 10.0, contact: float = CONTACT_WEIGHT, basis=None,
-                 basis_reg: float = SPAN_REG):
+                 basis_reg: float = SPAN_REG, width_tol: float = 0.0):
         V0, F = validate_mesh(vertices, faces)
         n = len(V0)
         if iterations < 1:
@@ -125,6 +136,8 @@ class SketchSolver:
         if not (np.isfinite(basis_reg) and basis_reg >= 0):
             raise FaceLabError(f"basis_reg must be a non-negative number, got {basis_reg!r}; use the default "
                                f"{SPAN_REG}.")
+        if not (np.isfinite(width_tol) and width_tol >= 0):
+            raise UsageError(f"width_tol must be a non-negative fraction, got {width_tol!r}; use 0 (exact).")
         for nm, val in (("smooth_reach", smooth_reach), ("free_radius", free_radius)):
             if not (np.isfinite(val) and val > 0):
                 raise FaceLabError(f"{nm} must be a positive number of mouth widths, got {val!r}; use the default.")
@@ -144,6 +157,7 @@ class SketchSolver:
         self.main_view_iterations, self.views_keep, self.depth_reg = main_view_iterations, views_keep, depth_reg
         self.rest_vertices, self.rest_depth_reg = rest_vertices, rest_depth_reg
         self.contact, self.basis, self.basis_reg = contact, basis, basis_reg
+        self.width_tol = float(width_tol)
         self._system = None
         #: How many systems (free region, operators, factorisation) this solver has made.
         self.builds = 0
@@ -170,12 +184,15 @@ class SketchSolver:
         return float(np.median([sketch_scale(m.camera, m.sketch, self.V0[m.near]) for m in ms]))
 
     # ------------------------------------------------------------------ system
-    def _build(self, key, near, W, free_radius):
-        V0, F, n = self.V0, self.F, self.n
-        region = free_region(V0, F, near, free_radius * W, fixed=self.fixed, lips=self.lips)
+    def _region(self, near, radius):
+        region = free_region(self.V0, self.F, near, radius, fixed=self.fixed, lips=self.lips)
         if not region.any():
             raise FaceLabError("No vertex near the sketch is free to move (all fixed, or outside the lip region "
                                "'lips'); check the FL_fixed / FL_lips groups.")
+        return region
+
+    def _build(self, key, region, W):
+        V0, F, n = self.V0, self.F, self.n
         # everything below needs only the triangles near the free region (its rows of L are exact there)
         Fl = F[local_faces(F, region, rings=2)]
         adj = vertex_adjacency(Fl, n)
@@ -191,18 +208,28 @@ class SketchSolver:
         # silhouettes: on triangles of the region and its held ring (a border vertex may be on the silhouette)
         around = region | (adj @ region.astype(np.float64) > 0)
         self.builds += 1
-        return _System(key, region, Fl, adj, L, solver, around)
+        return _System(key, W, region, Fl, adj, L, solver, around)
 
     def _system_for(self, matchers, free_radius):
         near = np.zeros(self.n, bool)
         for m in matchers:
             near |= m.near
         W = self.mouth_width(matchers=matchers)
+        fr = float(free_radius(W)) if callable(free_radius) else float(free_radius)
+        if not (np.isfinite(fr) and fr > 0):
+            raise FaceLabError(f"free_radius must be a positive number of mouth widths, got {fr!r}; use the default.")
         # the free region is a function of (near, radius): keep the system while both are as they were
-        key = (near.tobytes(), W, float(free_radius), len(matchers) > 1, _camera_key(matchers[0].camera))
-        if self._system is None or self._system.key != key:
-            self._system = None  # free the old factor before making the new one
-            self._system = self._build(key, near, W, free_radius)
+        key = (near.tobytes(), W, fr * W, len(matchers) > 1, _camera_key(matchers[0].camera))
+        old = self._system
+        if old is not None and old.key == key:
+            return old, W
+        region = self._region(near, fr * W)
+        tol = self.width_tol
+        if (old is not None and tol > 0 and old.key[3:] == key[3:] and abs(W / old.W - 1.0) <= tol
+                and abs(fr * W / old.key[2] - 1.0) <= tol and np.array_equal(region, old.region)):
+            return old, old.W  # the same free region, a mouth width within width_tol: solve as before
+        self._system = None  # free the old factor before making the new one
+        self._system = self._build(key, region, W)
         return self._system, W
 
     # ------------------------------------------------------------------ solve
@@ -215,8 +242,10 @@ class SketchSolver:
         start : (V,3) float, optional
             Where the solve/re-match iterations start (an earlier result of this solver, such as the last
             preview); default the capture (the result is then :func:`refine_lips_views`').
-        free_radius : float, optional
-            The free region's reach in mouth widths for this solve (default the solver's).
+        free_radius : float or callable, optional
+            The free region's reach in mouth widths for this solve (default the solver's), or a function
+            of the sketched mouth's width (scene units) giving it (a reach in scene units divided by the
+            width).
         return_info : bool
             Also return the dict of :func:`refine_lips_views`, with ``rebuilt`` (whether this solve made
             its system) and ``solves`` (linear solves done).
@@ -234,9 +263,7 @@ class SketchSolver:
         views = list(views) if views is not None else []
         matchers = self.matchers(views)
         multi = len(matchers) > 1
-        fr = self.free_radius if free_radius is None else float(free_radius)
-        if not (np.isfinite(fr) and fr > 0):
-            raise FaceLabError(f"free_radius must be a positive number of mouth widths, got {fr!r}; use the default.")
+        fr = self.free_radius if free_radius is None else free_radius
         builds = self.builds
         sysm, W = self._system_for(matchers, fr)
         region, Fl, L, solver = sysm.region, sysm.Fl, sysm.L, sysm.solver
