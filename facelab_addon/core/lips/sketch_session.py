@@ -32,6 +32,7 @@ import time
 import numpy as np
 import scipy.sparse as sp
 
+from ..capture.camera import Camera
 from ..errors import FaceLabError, UsageError
 from ..geometry.deform import LaplacianDeformer, PointConstraints
 from ..geometry.laplacian import laplacian as make_laplacian
@@ -45,6 +46,7 @@ from .sketch_prior import (
     free_region,
     local_faces,
     rest_depth_terms,
+    seed_distances,
     separate_parts,
     sketch_scale,
 )
@@ -159,6 +161,8 @@ class SketchSolver:
         self.contact, self.basis, self.basis_reg = contact, basis, basis_reg
         self.width_tol = float(width_tol)
         self._system = None
+        self._distances = None  # (near bytes, limit, (V,) seed distances) of the last free region
+        self._projections = {}  # camera key -> (depth, pixels) of the captured mesh
         #: How many systems (free region, operators, factorisation) this solver has made.
         self.builds = 0
 
@@ -174,8 +178,21 @@ class SketchSolver:
         for k, v in enumerate(views):
             where = f" in view '{v.name or k + 1}'" if multi else ""
             out.append(ViewMatcher(v, self.V0, self.F, self.fixed, reach_px=self.reach_px, where=where,
-                                   press=self.crossings == "press", contact=self.contact))
+                                   press=self.crossings == "press", contact=self.contact,
+                                   projection=self._projection(v.camera)))
         return out
+
+    def _projection(self, cam):
+        """``(depth (V,), pixels (V,2))`` of the captured mesh in ``cam``, kept per camera; None for a non-camera
+        (the matcher names the problem)."""
+        if not isinstance(cam, Camera):
+            return None
+        key = _camera_key(cam)
+        if key not in self._projections:
+            if len(self._projections) >= 4:
+                self._projections.clear()
+            self._projections[key] = (cam.depth(self.V0), cam.project(self.V0))
+        return self._projections[key]
 
     def mouth_width(self, views=None, matchers=None) -> float:
         """The sketched mouth's width, scene units (the median over the views of
@@ -185,7 +202,13 @@ class SketchSolver:
 
     # ------------------------------------------------------------------ system
     def _region(self, near, radius):
-        region = free_region(self.V0, self.F, near, radius, fixed=self.fixed, lips=self.lips)
+        # the seeds' geodesic distances, kept for the same seeds up to radius (1 + width_tol)
+        nb = near.tobytes()
+        if self._distances is None or self._distances[0] != nb or radius > self._distances[1]:
+            limit = radius * (1.0 + self.width_tol)
+            self._distances = (nb, limit, seed_distances(self.V0, self.F, near, limit))
+        region = free_region(self.V0, self.F, near, radius, fixed=self.fixed, lips=self.lips,
+                             distances=self._distances[2])
         if not region.any():
             raise FaceLabError("No vertex near the sketch is free to move (all fixed, or outside the lip region "
                                "'lips'); check the FL_fixed / FL_lips groups.")
