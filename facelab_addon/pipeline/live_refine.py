@@ -52,8 +52,8 @@ __all__ = ["PREVIEW_KEY", "LiveUpdate", "LiveRefine", "remove_preview", "influen
 #: The preview's shape key (on the face, value 1 while a session is open).
 PREVIEW_KEY = LIVE_PREVIEW_KEY
 #: The preview keeps its solve's system for strokes that leave the free region as it was and move the sketched
-#: mouth's width by at most this fraction (``SketchSolver``'s ``width_tol``): a point edited inside the sketch
-#: moves it by about 1e-5 of itself.
+#: mouth's width by at most this fraction (``SketchSolver``'s ``width_tol``), as a point edited inside the sketch
+#: does.
 WIDTH_TOL = 1e-3
 
 

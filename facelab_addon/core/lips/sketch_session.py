@@ -4,7 +4,8 @@
 :class:`SketchSolver` holds a face (its captured vertices, triangles, hidden and lip-region masks, rest
 pose) and the refinement's settings, and solves any number of stroke sets on it:
 
-* what depends on the face only (the validated mesh) is made once;
+* what depends on the face only (the validated mesh, its depth and pixels in each camera) is made once,
+  and the geodesic distances from the lip area near the strokes are kept while that area is the same;
 * the solve's system (the free region, the Laplacian and the anchor weights of ``E_pos`` / ``E_reg``,
   the fixed depth terms, their factorisation and the Woodbury columns of the constrained vertices) is
   kept for the free region, mouth width and main camera it was made for, and made again only when the
@@ -100,9 +101,9 @@ class SketchSolver:
         Keep the system for strokes whose free region is the same and whose mouth width (the unit of the
         anchor weights' reach and of the rest-depth fit) is within this fraction of the one it was made for,
         solving with that width. 0 (default): only for the very same width, so a solve is
-        :func:`refine_lips_views`'. A stroke edited inside the sketch's extent moves the width by about
-        ``1e-5`` of itself (the median depth of the lip vertices near the strokes); a Live Refine preview
-        keeps its system through such edits.
+        :func:`refine_lips_views`'. A point edited inside the sketch moves the width a little (the sketch's
+        extent, the median depth of the lip vertices near the strokes); a Live Refine preview keeps its
+        system through such edits.
 
     Raises
     ------
