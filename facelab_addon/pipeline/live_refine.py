@@ -3,7 +3,9 @@
 :class:`LiveRefine` is a synchronous session on one frame of one face. It reads the face, its fixed
 and lip regions and its rest pose once; :meth:`LiveRefine.update` (after each stroke, or each edited
 point) reads the lip sketch(es) of the frame as Refine Lips reads them (snapped to the plate when the
-sketch asks for it), solves with :func:`facelab_addon.core.lips.sketch.refine_lips_views` and shows
+sketch asks for it), solves with one :class:`facelab_addon.core.lips.sketch_session.SketchSolver` kept
+for the session (its free region, operators and factorisation are made again only when the strokes
+change the free region or the mouth's width, or the settings change; see :data:`WIDTH_TOL`) and shows
 the result on the face as the shape key :data:`PREVIEW_KEY`, which nothing else reads: it is not one
 of FaceLab's recorded keys (:func:`facelab_addon.blender.shapekeys.owned_keys`), no training frame
 points to it, and the capture readers leave it out (``shapekeys.key_matches``).
@@ -41,7 +43,7 @@ from ..blender.shapekeys import rest_vertices
 from ..blender.sketch_views import sketch_camera, sketch_views
 from ..blender.strokes import read_lip_strokes, require_sketch_keyed_on
 from ..core.errors import CameraError, FaceLabError
-from ..core.lips.sketch import SketchView, refine_lips_views
+from ..core.lips.sketch import SketchView, SketchSolver
 from ..names import LIPS_GROUP, LIVE_PREVIEW_KEY, MOUTH_GROUP
 from .refine import RefineResult, RefineSettings, refine
 
@@ -49,6 +51,10 @@ __all__ = ["PREVIEW_KEY", "LiveUpdate", "LiveRefine", "remove_preview", "influen
 
 #: The preview's shape key (on the face, value 1 while a session is open).
 PREVIEW_KEY = LIVE_PREVIEW_KEY
+#: The preview keeps its solve's system for strokes that leave the free region as it was and move the sketched
+#: mouth's width by at most this fraction (``SketchSolver``'s ``width_tol``), as a point edited inside the sketch
+#: does.
+WIDTH_TOL = 1e-3
 
 
 @dataclass
@@ -62,7 +68,11 @@ class LiveUpdate:
     solve_seconds : float
         Of which the solve(s).
     solves : int
-        Solver calls (2 when the Influence's mouth width had to be found first).
+        Linear solves of the solve/re-match iterations (fewer than the iterations once a matching repeats).
+    rebuilt : bool
+        Whether the solve made its system (free region, operators, factorisation) anew: the first update,
+        new settings, or strokes that changed the free region or the mouth width by more than
+        :data:`WIDTH_TOL`.
     free_radius : float
         The free region's reach used, mouth widths.
     influence_mm : float
@@ -78,6 +88,7 @@ class LiveUpdate:
     seconds: float
     solve_seconds: float
     solves: int
+    rebuilt: bool
     free_radius: float
     influence_mm: float
     n_free: int
@@ -172,6 +183,8 @@ class LiveRefine:
         self.rest = rest_vertices(self.obj) @ A.T + b
         self.X = None
         self.info = None
+        self._solver = None  # the frame's SketchSolver, kept between updates (see _session)
+        self._solver_key = None
         self.mouth_width = None
         self.closed = False
 
@@ -222,17 +235,32 @@ class LiveRefine:
         """The settings a Refine of the current strokes uses: ``settings`` with the Influence's ``free_radius``."""
         return replace(self.settings, free_radius=self.free_radius())
 
-    def _solve(self, views, free_radius):
-        kw = replace(self.settings, free_radius=free_radius).solver_weights()
+    def _session(self) -> SketchSolver:
+        """The frame's :class:`~facelab_addon.core.lips.sketch_session.SketchSolver`, kept while the settings are
+        unchanged (the face, its regions and the frame are the session's own)."""
+        kw = self.settings.solver_weights()
+        kw.pop("free_radius")
+        if self._solver is None or self._solver_key != kw:
+            self._solver = None
+            w = self.topo.weld if self.topo.n_duplicates else None
+            V, tris, fixed, lips, rest = self.V, self.topo.tris, self.fixed, self.lips, self.rest
+            if w is not None:
+                V, tris = w.compact(self.V)
+                fixed, rest = fixed[w.kept], rest[w.kept]
+                lips = None if lips is None else lips[w.kept]
+            self._solver = SketchSolver(V, tris, fixed=fixed, lips=lips, rest_vertices=rest, width_tol=WIDTH_TOL,
+                                        **kw)
+            self._solver_key = kw
+        return self._solver
+
+    def _solve(self, views):
+        solver = self._session()
+        X, info = solver.solve(views, free_radius=self.free_radius, return_info=True)
         w = self.topo.weld if self.topo.n_duplicates else None
         if w is not None:
-            Vc, tris_c = w.compact(self.V)
-            Xc, info = refine_lips_views(Vc, tris_c, views, fixed=self.fixed[w.kept], rest_vertices=self.rest[w.kept],
-                                         lips=None if self.lips is None else self.lips[w.kept], return_info=True, **kw)
             info["region"] = w.uncompact(np.asarray(info["region"], bool))  # a duplicate moves with its twin
-            return self.V + w.uncompact(Xc - Vc), info
-        return refine_lips_views(self.V, self.topo.tris, views, fixed=self.fixed, lips=self.lips,
-                                 rest_vertices=self.rest, return_info=True, **kw)
+            return self.V + w.uncompact(X - solver.V0), info
+        return X, info
 
     def update(self) -> LiveUpdate:
         """Re-solve the frame from the strokes drawn now and show the result as the preview key.
@@ -247,19 +275,14 @@ class LiveRefine:
         t0 = time.perf_counter()
         views = self.views()
         ts = time.perf_counter()
-        X, info = self._solve(views, self.free_radius())
-        solves = 1
-        if self.influence_mm > 0:
-            r_now = self.free_radius(info["mouth_width"])
-            if abs(r_now - self.free_radius()) > 1e-9 * max(r_now, 1.0):  # the mouth's width changed: its reach too
-                X, info = self._solve(views, r_now)
-                solves = 2
+        X, info = self._solve(views)
         solve_s = time.perf_counter() - ts
         self.X, self.info, self.mouth_width = X, info, float(info["mouth_width"])
         self._write_preview(X - self.V)
         d = np.linalg.norm(X - self.V, axis=1)
         r = self.free_radius()
-        return LiveUpdate(seconds=time.perf_counter() - t0, solve_seconds=solve_s, solves=solves, free_radius=r,
+        return LiveUpdate(seconds=time.perf_counter() - t0, solve_seconds=solve_s, solves=int(info["solves"]),
+                          rebuilt=bool(info["rebuilt"]), free_radius=r,
                           influence_mm=r * self.mouth_width * self.mm_per_unit, n_free=int(info["n_free"]),
                           max_move=float(d.max()), silhouette_px=float(info["silhouette_px"][-1]))
 

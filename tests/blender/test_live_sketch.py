@@ -246,6 +246,39 @@ def test_live_refine_stroke_by_stroke_then_accept_is_a_refine(sample):
     np.testing.assert_allclose(evaluated_vertices(face, bpy.context.evaluated_depsgraph_get()), X0, atol=1e-7)
 
 
+def test_live_refine_keeps_its_solver_between_strokes_and_rebuilds_for_new_settings(sample):
+    from dataclasses import replace
+
+    from facelab_addon.core.lips.sketch import refine_lips_views
+    from facelab_addon.pipeline.live_refine import LiveRefine
+
+    data, scene, face, gp, cam, (up, lo) = _sketch(sample, draw=True)
+    live = LiveRefine(scene, face, sketch=gp)
+
+    def full_refine():  # the same strokes and settings solved from scratch, as Accept's Refine solves them
+        w = live.topo.weld if live.topo.n_duplicates else None
+        V, tris, fixed, rest = live.V, live.topo.tris, live.fixed, live.rest
+        lips = live.lips
+        if w is not None:
+            V, tris = w.compact(V)
+            fixed, rest, lips = fixed[w.kept], rest[w.kept], None if lips is None else lips[w.kept]
+        X = refine_lips_views(V, tris, live.views(), fixed=fixed, lips=lips, rest_vertices=rest,
+                              **live.refine_settings().solver_weights())
+        return X if w is None else live.V + w.uncompact(X - V)
+
+    u1 = live.update()
+    X1 = live.preview_vertices()
+    assert u1.rebuilt and np.abs(X1 - full_refine()).max() <= 1e-9 * np.abs(X1).max()
+    u2 = live.update()  # nothing the solve reads changed: the kept system, the same preview
+    assert not u2.rebuilt and np.abs(live.preview_vertices() - X1).max() <= 1e-9 * np.abs(X1).max()
+    live.settings = replace(live.settings, smooth_reach=0.2)  # new settings: a new solver
+    u3 = live.update()
+    X3 = live.preview_vertices()
+    assert u3.rebuilt and np.abs(X3 - X1).max() > 1e-6
+    assert np.abs(X3 - full_refine()).max() <= 1e-9 * np.abs(X3).max()
+    live.discard()
+
+
 def test_live_refine_discard_leaves_nothing(sample):
     from facelab_addon.blender.mesh import evaluated_vertices
     from facelab_addon.pipeline.live_refine import LiveRefine

@@ -61,40 +61,23 @@ the border vertices); everything else is held exactly. The mouth
 width is measured on the sketch (:func:`~facelab_addon.core.lips.sketch_prior.sketch_scale`),
 so the settings mean the same on any mesh, in any units. The system matrix does not change
 between iterations, so it is factored once, and the moving silhouette constraints are
-added exactly with the Woodbury identity (``deform.LaplacianDeformer``).
+added exactly with the Woodbury identity (``deform.LaplacianDeformer``). To re-solve one face as its
+strokes change (Live Refine), :class:`~facelab_addon.core.lips.sketch_session.SketchSolver` keeps that
+system between solves.
 """
 
 from __future__ import annotations
 
-import time
-
-import numpy as np
-import scipy.sparse as sp
-
-from ..errors import FaceLabError, UsageError
-from ..geometry.deform import LaplacianDeformer
-from ..geometry.laplacian import laplacian as make_laplacian
-from ..geometry.linsolve import small_dense_threads
-from ..geometry.mesh import validate_mesh, vertex_adjacency
+from ..errors import UsageError
+from ..geometry.mesh import validate_mesh
 from ..geometry.polyline import resample_polyline  # noqa: F401  (re-exported for the benchmark)
 from .contact import CONTACT_WEIGHT
-from .sketch_prior import (
-    PRIORS,
-    anchor_weights,
-    depth_terms,
-    free_region,
-    local_faces,
-    rest_depth_terms,
-    separate_parts,
-    sketch_scale,
-)
-from .span_prior import SPAN_REG, fit_span, span_columns, taper
-from .views import SketchView, ViewMatcher, prepare_sketch, press_lips
+from .sketch_session import CROSSINGS, SketchSolver
+from .span_prior import SPAN_REG
+from .views import SketchView, prepare_sketch, press_lips
 
-__all__ = ["refine_lips", "refine_lips_views", "press_lips", "prepare_sketch", "SketchView", "CROSSINGS"]
-
-#: How a crossing drawing (lower contour above the upper one) is read: as drawn, or as a request to press.
-CROSSINGS = ("follow", "press")
+__all__ = ["refine_lips", "refine_lips_views", "press_lips", "prepare_sketch", "SketchView", "SketchSolver",
+           "CROSSINGS"]
 
 
 def refine_lips(
@@ -305,143 +288,14 @@ def refine_lips_views(
     MeshError, CameraError, SketchError
         With a message naming the fix (and the view, with several).
     """
-    t0 = time.perf_counter()
     V0, F = validate_mesh(vertices, faces)
-    n = len(V0)
     views = list(views) if views is not None else []
     if not views:
         raise UsageError("refine_lips_views needs at least one SketchView (a camera and its two lip strokes).")
-    if iterations < 1:
-        raise FaceLabError("iterations must be at least 1.")
-    if silhouette_rays not in ("nearest", "pixel", "normal"):
-        raise UsageError(f"silhouette_rays must be 'nearest', 'normal' or 'pixel', got {silhouette_rays!r}")
-    if crossings not in CROSSINGS:
-        raise UsageError(f"crossings must be one of {CROSSINGS}, got {crossings!r}")
-    if not (np.isfinite(depth_reg) and depth_reg >= 0):
-        raise FaceLabError(f"depth_reg must be a non-negative number, got {depth_reg!r}; use the default 3.")
-    if not (np.isfinite(rest_depth_reg) and rest_depth_reg >= 0):
-        raise FaceLabError(f"rest_depth_reg must be a non-negative number, got {rest_depth_reg!r}; use the "
-                           "default 10.")
-    if prior not in PRIORS:
-        raise UsageError(f"prior must be one of {PRIORS}, got {prior!r}")
-    if not (np.isfinite(contact) and contact >= 0):
-        raise FaceLabError(f"contact must be a non-negative number, got {contact!r}; use the default "
-                           f"{CONTACT_WEIGHT} (0: off).")
-    if not (np.isfinite(basis_reg) and basis_reg >= 0):
-        raise FaceLabError(f"basis_reg must be a non-negative number, got {basis_reg!r}; use the default {SPAN_REG}.")
-    for nm, val in (("smooth_reach", smooth_reach), ("free_radius", free_radius)):
-        if not (np.isfinite(val) and val > 0):
-            raise FaceLabError(f"{nm} must be a positive number of mouth widths, got {val!r}; use the default.")
-    fixed = separate_parts(F, n) if fixed is None else np.asarray(fixed, dtype=bool)
-    if fixed.shape != (n,):
-        raise FaceLabError(f"'fixed' must be a mask of {n} vertices, got {fixed.shape}.")
-    if lips is not None:
-        lips = np.asarray(lips, dtype=bool)
-        if lips.shape != (n,):
-            raise FaceLabError(f"'lips' must be a mask of {n} vertices, got {lips.shape}; rebuild the regions.")
-
-    multi = len(views) > 1
-    matchers = []
-    for k, v in enumerate(views):
-        where = f" in view '{v.name or k + 1}'" if multi else ""
-        matchers.append(ViewMatcher(v, V0, F, fixed, reach_px=reach_px, where=where, press=crossings == "press",
-                                    contact=contact))
-    near = np.zeros(n, bool)
-    for m in matchers:
-        near |= m.near
-    widths = [sketch_scale(m.camera, m.sketch, V0[m.near]) for m in matchers]
-    W = float(np.median(widths))
-
-    region = free_region(V0, F, near, free_radius * W, fixed=fixed, lips=lips)
-    if not region.any():
-        raise FaceLabError("No vertex near the sketch is free to move (all fixed, or outside the lip region "
-                           "'lips'); check the FL_fixed / FL_lips groups.")
-    # everything below needs only the triangles near the free region (its rows of L are exact there)
-    Fl = F[local_faces(F, region, rings=2)]
-    adj = vertex_adjacency(Fl, n)
-    w = anchor_weights(V0, Fl, region, prior=prior, lambda_pos=lambda_pos, lambda_reg=lambda_reg,
-                       reach=smooth_reach * W, fixed=fixed, lips=lips)
-    L = make_laplacian(V0, Fl, laplacian, adjacency=adj)
-    if lips is not None:
-        # the held border of the lip region keeps its position, not its Laplacian coordinates: the
-        # correction may meet it at an angle (as Propagate's Poisson solve, which holds the same border,
-        # reproduces it), instead of flattening out before it
-        L = sp.diags((~(lips & ~region & ~fixed)).astype(np.float64)) @ L
-    solver = LaplacianDeformer(L, lambda_reg=lambda_reg, pos_weights=w, pinned=~region)
-    # silhouettes: on triangles of the region and its held ring (a border vertex may be on the silhouette)
-    around = region | (adj @ region.astype(np.float64) > 0)
-    for m in matchers:
-        m.restrict(Fl, around & ~fixed, in_lip_region=lips is not None)
-
-    def correspondences(X, gates=None, upto=None):  # gates: per view, (N+M,) sample weights or None
-        cons, dists, matched = [], [], []
-        for k, m in enumerate(matchers[:upto]):
-            c, d, mt = m.correspondences(X, lambda_silh, silhouette_rays,
-                                         sample_weights=None if gates is None else gates[k])
-            cons += c
-            dists.append(d)
-            matched.append(mt)
-        return cons, dists, matched
-
-    ref = V0  # the shape E_pos and E_reg refer to: the capture, or its best mix of the face's own shapes
-    span_weights = None
-    if basis is not None and len(basis):
-        # the face's own expression offsets, tapered to zero at the free region's border, mixed to match the sketch
-        U = span_columns(basis, taper(V0, Fl, region), W)
-        ref, span_weights = fit_span(V0, U, lambda X: correspondences(X)[0], iterations, basis_reg)
-    turn = None
-    if not multi and rest_vertices is not None and rest_depth_reg > 0:
-        # one view: the depth it cannot see follows the face's rest pose, turned with the head
-        terms, turn = rest_depth_terms(ref, rest_vertices, matchers[0].camera, region, rest_depth_reg,
-                                       mouth_width=W)
-        if terms is not None:
-            solver = solver.with_terms(terms, ref)
-    V0 = ref
-    X = V0
-    hist = []
-    with small_dense_threads(1):
-        base = solver.unconstrained(V0, V0)  # E_pos and E_reg refer to V0 (``ref``): the same every iteration
-        if multi:
-            # the main (first) view alone first; its result is where the other views are matched from
-            for _ in range(int(main_view_iterations)):
-                cons, dists, matched = correspondences(X, upto=1)
-                hist.append(float(np.mean(np.concatenate(dists))))
-                X = solver.constrain(base, V0, cons)
-        if multi and depth_reg > 0:
-            # the depth along the main camera's rays bends stiffer (a fixed, coordinate-coupling term:
-            # factored once into the solver the other views join)
-            solver = solver.with_terms(depth_terms(L, V0, matchers[0].camera, region, depth_reg * lambda_reg), V0)
-            base = solver.unconstrained(V0, V0)
-        for _ in range(int(iterations)):
-            g = None
-            if multi and np.isfinite(views_keep):
-                # the added views' sketch samples matched farther than views_keep x their median are left out
-                d0 = [m.correspondences(X, lambda_silh, silhouette_rays)[1] for m in matchers[1:]]
-                g = [None] + [(d <= views_keep * np.median(d)).astype(np.float64) for d in d0]
-            cons, dists, matched = correspondences(X, g)
-            hist.append(float(np.mean(np.concatenate(dists))))
-            X = solver.constrain(base, V0, cons)
-    if not np.isfinite(X).all():
-        raise FaceLabError("The lip solve diverged (non-finite result); check the strokes and the camera.")
-    if not return_info:
-        return X
-    _, dists, _ = correspondences(X)  # residual of the result itself
-    hist.append(float(np.mean(np.concatenate(dists))))
-    info = dict(
-        region=region,
-        silhouette_px=hist,
-        matched_upper=matched[0].get("upper"),
-        matched_lower=matched[0].get("lower"),
-        n_free=int(region.sum()),
-        mouth_width=W,
-        prior=prior,
-        head_turn_deg=turn,
-        span_weights=span_weights,
-        seconds=time.perf_counter() - t0,
-        upper_samples=matchers[0].upper,
-        lower_samples=matchers[0].lower,
-        views=[dict(name=v.name, silhouette_px=float(d.mean()), matched_upper=mt.get("upper"),
-                    matched_lower=mt.get("lower")) for v, d, mt in zip(views, dists, matched)],
-        one_line_samples=[int((m.partner >= 0).sum()) for m in matchers],
-    )
-    return X, info
+    solver = SketchSolver(
+        V0, F, fixed=fixed, lips=lips, prior=prior, iterations=iterations, lambda_pos=lambda_pos,
+        lambda_reg=lambda_reg, lambda_silh=lambda_silh, smooth_reach=smooth_reach, free_radius=free_radius,
+        laplacian=laplacian, reach_px=reach_px, silhouette_rays=silhouette_rays, crossings=crossings,
+        main_view_iterations=main_view_iterations, views_keep=views_keep, depth_reg=depth_reg,
+        rest_vertices=rest_vertices, rest_depth_reg=rest_depth_reg, contact=contact, basis=basis, basis_reg=basis_reg)
+    return solver.solve(views, return_info=return_info)

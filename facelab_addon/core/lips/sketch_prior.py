@@ -44,6 +44,7 @@ from ..geometry.mesh import connected_components, edge_length_graph
 from ..geometry.rigid import rigid_fit
 
 __all__ = ["PRIORS", "BAND_RINGS", "separate_parts", "sketch_scale", "crop_faces", "local_faces", "free_region",
+           "seed_distances",
            "anchor_weights", "mean_edge_length", "depth_terms", "rest_depth_terms", "REST_KEEP", "HEAD_RADIUS"]
 
 #: The energies :func:`anchor_weights` offers: Dinev et al.'s Eq. 1 as written, the smooth prior, or the band prior.
@@ -141,7 +142,23 @@ def mean_edge_length(vertices, faces, n_vertices: int | None = None) -> np.ndarr
     return np.divide(s, c, out=np.zeros(n), where=c > 0)
 
 
-def free_region(vertices, faces, seeds, radius: float, *, fixed=None, lips=None):
+def seed_distances(vertices, faces, seeds, limit: float) -> np.ndarray:
+    """(V,) geodesic distance (along edges, scene units) of every vertex from the vertices ``seeds`` (V,) bool,
+    ``inf`` beyond ``limit`` (only the triangles in the seeds' box grown by ``limit`` are searched)."""
+    V = np.asarray(vertices, dtype=np.float64)
+    F = np.asarray(faces, dtype=np.int64)
+    n = len(V)
+    seeds = np.asarray(seeds, bool)
+    src = np.flatnonzero(seeds)
+    if len(src) == 0:
+        return np.full(n, np.inf)
+    # a geodesic ball lies inside the Euclidean one: search only the triangles in the seeds' box + limit
+    Fc = F[crop_faces(V, F, seeds, limit)]
+    G = edge_length_graph(V, Fc, n, min_length=1e-12)[0]
+    return dijkstra(G, directed=False, indices=src, min_only=True, limit=float(limit))
+
+
+def free_region(vertices, faces, seeds, radius: float, *, fixed=None, lips=None, distances=None):
     """The vertices the refinement solves for; every other vertex is held exactly.
 
     Parameters
@@ -159,6 +176,9 @@ def free_region(vertices, faces, seeds, radius: float, *, fixed=None, lips=None)
         A painted inner-lip region (``FL_lips``). When given, the free vertices are those of its
         triangles except its border (the vertices it shares with outside triangles, held as the
         Poisson solve of Propagate holds them); ``radius`` still bounds them.
+    distances : (V,) float, optional
+        :func:`seed_distances` of ``seeds`` with a ``limit`` of at least ``radius`` (kept by a caller
+        that asks for the region of the same seeds at several radii); default computed here.
 
     Returns
     -------
@@ -169,14 +189,10 @@ def free_region(vertices, faces, seeds, radius: float, *, fixed=None, lips=None)
     n = len(V)
     seeds = np.asarray(seeds, bool)
     fixed = np.zeros(n, bool) if fixed is None else np.asarray(fixed, bool)
-    src = np.flatnonzero(seeds)
-    if len(src) == 0:
+    if not seeds.any():
         return np.zeros(n, bool)
-    # a geodesic ball lies inside the Euclidean one: search only the triangles in the seeds' box + radius
-    Fc = F[crop_faces(V, F, seeds, radius)]
-    G = edge_length_graph(V, Fc, n, min_length=1e-12)[0]
-    d = dijkstra(G, directed=False, indices=src, min_only=True, limit=float(radius))
-    region = np.isfinite(d) & ~fixed
+    d = seed_distances(V, F, seeds, radius) if distances is None else np.asarray(distances)
+    region = (d <= float(radius)) & ~fixed
     if lips is not None:
         lips = np.asarray(lips, bool)
         inside = lips[F].all(axis=1)

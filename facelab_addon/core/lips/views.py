@@ -389,6 +389,9 @@ class ViewMatcher:
         Where the two contours are drawn on one line (:func:`~facelab_addon.core.lips.contact.one_line`), the
         lips' silhouette vertices matched there are pulled together in 3D with this weight per sample (times
         ``lambda_silh``; :func:`~facelab_addon.core.lips.contact.contact_terms`); 0: off.
+    projection : ((V,) float, (V,2) float), optional
+        ``camera.depth(vertices)`` and ``camera.project(vertices)`` when already known (a solver that
+        matches many sketches on one mesh keeps them); default computed here.
 
     Attributes
     ----------
@@ -412,7 +415,7 @@ class ViewMatcher:
     in_lip_region = False  # set by restrict(): the search is limited to a painted lip region's inside
 
     def __init__(self, view: SketchView, vertices, faces, fixed, reach_px=None, where: str = "",
-                 envelope: bool = True, press: bool = True, contact: float = 0.0):
+                 envelope: bool = True, press: bool = True, contact: float = 0.0, projection=None):
         self.envelope = bool(envelope)
         self.contact = float(contact)
         cam = view.camera
@@ -423,8 +426,7 @@ class ViewMatcher:
         sketch = np.concatenate([up_raw, lo_raw])
         V0, F = vertices, faces
         n = len(V0)
-        depth = cam.depth(V0)
-        uv = cam.project(V0)
+        depth, uv = (cam.depth(V0), cam.project(V0)) if projection is None else projection
         width = float(np.ptp(sketch[:, 0]))
         self.width = width
         if reach_px is None:
