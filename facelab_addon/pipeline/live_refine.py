@@ -34,18 +34,18 @@ from ..blender.mesh import (
     evaluated_vertices,
     face_topology,
     require_mesh,
-    vertex_group_mask,
     world_to_local_deltas,
+    world_winding,
 )
 from ..blender.objects import require_editable, world_affine
 from ..blender.rest_space import to_rest_space
+from ..blender.scene_time import require_scene_time
 from ..blender.shapekeys import rest_vertices
-from ..blender.sketch_views import sketch_camera, sketch_views
 from ..blender.strokes import read_lip_strokes, require_sketch_keyed_on
-from ..core.errors import CameraError, FaceLabError
+from ..core.errors import FaceLabError
 from ..core.lips.sketch import SketchView, SketchSolver
-from ..names import LIPS_GROUP, LIVE_PREVIEW_KEY, MOUTH_GROUP
-from .refine import RefineResult, RefineSettings, refine
+from ..names import LIVE_PREVIEW_KEY
+from .refine import RefineResult, RefineSettings, lip_region, refine, view_sources
 
 __all__ = ["PREVIEW_KEY", "LiveUpdate", "LiveRefine", "remove_preview", "influence_to_mouth_widths"]
 
@@ -161,6 +161,7 @@ class LiveRefine:
         self.scene = scene
         self.obj = require_mesh(obj)
         require_editable(self.obj, "Live Refine")
+        require_scene_time(scene, "Live Refine", self.obj)
         if caches.sequence_source(self.obj) in ("mesh_cache", "mesh_sequence_cache"):
             raise FaceLabError(f"'{self.obj.name}' plays a mesh cache, which a preview key does not show over; "
                                "use Refine Lips (it prepares the cache) instead of Live Refine.")
@@ -178,8 +179,10 @@ class LiveRefine:
         A, b = world_affine(self.obj, dg)
         local = np.linalg.solve(A, (self.V - b).T).T
         self.topo = face_topology(self.obj, iter([local]))
+        self.tris = world_winding(self.topo.tris, A)  # world positions: a mirrored face keeps its normals outward
+        self.A = A
         self.fixed, self.fixed_source = default_fixed_mask(self.obj, self.topo, self.settings.fixed_group)
-        self.lips = self._lip_region() if self.settings.use_regions else None
+        self.lips = lip_region(self.obj) if self.settings.use_regions else None
         self.rest = rest_vertices(self.obj) @ A.T + b
         self.X = None
         self.info = None
@@ -189,29 +192,9 @@ class LiveRefine:
         self.closed = False
 
     # ------------------------------------------------------------------ reading
-    def _lip_region(self):
-        lips = vertex_group_mask(self.obj, LIPS_GROUP)
-        if lips is None or vertex_group_mask(self.obj, MOUTH_GROUP) is None or not lips.any():
-            return None
-        return lips
-
-    def _pairs(self) -> list:
-        """``[(sketch, camera object), ...]`` as Refine Lips takes them (one per camera sketched on the frame)."""
-        found = sketch_views(self.scene, self.frame) if self.settings.all_views else []
-        if self.sketch is not None and found:
-            own = self.camera_obj or sketch_camera(self.sketch) or self.scene.camera
-            found = [(gp, cam) for gp, cam in found if gp != self.sketch and cam != own]
-            found.insert(0, (self.sketch, own))
-        if len(found) >= 2:
-            return found
-        cam = self.camera_obj if self.camera_obj is not None else self.scene.camera
-        if cam is None:
-            raise CameraError(f"Scene '{self.scene.name}' has no camera; set the camera the sketch is drawn in.")
-        return [(self.sketch, cam)]
-
     def views(self) -> list:
         """The :class:`~facelab_addon.core.lips.sketch.SketchView` s of the frame's strokes, read now."""
-        pairs = self._pairs()
+        pairs = view_sources(self.scene, self.frame, self.sketch, self.camera_obj, self.settings.all_views)
         for gp, _ in pairs:
             require_sketch_keyed_on(self.scene, self.frame, gp)
         dg = evaluated_depsgraph(self.scene)
@@ -243,9 +226,10 @@ class LiveRefine:
         if self._solver is None or self._solver_key != kw:
             self._solver = None
             w = self.topo.weld if self.topo.n_duplicates else None
-            V, tris, fixed, lips, rest = self.V, self.topo.tris, self.fixed, self.lips, self.rest
+            V, tris, fixed, lips, rest = self.V, self.tris, self.fixed, self.lips, self.rest
             if w is not None:
                 V, tris = w.compact(self.V)
+                tris = world_winding(tris, self.A)
                 fixed, rest = fixed[w.kept], rest[w.kept]
                 lips = None if lips is None else lips[w.kept]
             self._solver = SketchSolver(V, tris, fixed=fixed, lips=lips, rest_vertices=rest, width_tol=WIDTH_TOL,

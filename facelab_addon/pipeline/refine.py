@@ -49,7 +49,7 @@ from ..names import FIXED_GROUP, LIPS_GROUP, MOUTH_GROUP, REFINE_PREFIX
 from .training import store_training_frame, uncorrected_frame
 from .settings import setting
 
-__all__ = ["REFINE_DEFAULTS", "RefineSettings", "RefineResult", "refine"]
+__all__ = ["REFINE_DEFAULTS", "RefineSettings", "RefineResult", "refine", "view_sources", "lip_region"]
 
 _CACHE_SOURCES = ("mesh_cache", "mesh_sequence_cache")
 
@@ -236,7 +236,7 @@ def refine(scene, obj, frame: int, settings: RefineSettings | None = None, *, ca
     """
     settings = settings or RefineSettings()
     t0 = time.perf_counter()
-    pairs = _view_sources(scene, frame, sketch, camera_obj, settings.all_views)
+    pairs = view_sources(scene, frame, sketch, camera_obj, settings.all_views)
     for gp, _ in pairs:
         require_sketch_keyed_on(scene, frame, gp)  # never a drawing held from an earlier frame
     if scene.frame_current != frame or scene.frame_subframe:  # a subframe left on would be read as the frame
@@ -257,7 +257,7 @@ def refine(scene, obj, frame: int, settings: RefineSettings | None = None, *, ca
     topo = face_topology(obj, _local_frame(V, A, b))
     tris = world_winding(topo.tris, A)  # V is in world space: a mirrored object keeps its normals outward
     fixed, fixed_src = default_fixed_mask(obj, topo, settings.fixed_group)
-    lips = _lip_region(obj) if settings.use_regions else None
+    lips = lip_region(obj) if settings.use_regions else None
     rest = rest_vertices(obj) @ A.T + b  # the Basis, where the object is: the head unturned
     if topo.n_duplicates:  # the solver sees the welded surface alone (no duplicate weighs in a fit twice)
         w = topo.weld
@@ -301,7 +301,7 @@ def _local_frame(V, A, b):
     yield np.linalg.solve(A, (V - b).T).T
 
 
-def _view_sources(scene, frame, sketch, camera_obj, all_views) -> list:
+def view_sources(scene, frame, sketch, camera_obj, all_views) -> list:
     """``[(sketch or None, camera object), ...]``: one view per camera with a sketch on ``frame``.
 
     With ``all_views`` and two or more cameras sketched on the frame (the given ``sketch`` among
@@ -322,7 +322,7 @@ def _view_sources(scene, frame, sketch, camera_obj, all_views) -> list:
     return [(sketch, cam_obj)]
 
 
-def _lip_region(obj):
+def lip_region(obj):
     """(V,) bool ``FL_lips`` when both ``FL_lips`` and ``FL_mouth`` exist, else None.
 
     Only the inside of ``FL_lips`` moves (:func:`~facelab_addon.core.lips.sketch_prior.free_region`):

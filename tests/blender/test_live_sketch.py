@@ -432,3 +432,31 @@ def test_plate_file_follows_the_clip_and_image_sequences_frame_by_frame(sample):
     assert plate_file(other, 7).name == "plate_0001.jpg"  # a still is the plate of every frame
     assert plate_file(face, 7) is None  # not a camera
     bpy.data.objects.remove(other)
+
+
+def test_live_refine_on_a_mirrored_face_previews_what_accept_writes(sample):
+    """A face mirrored by its object scale (-1 in x, as an artist flips an import): the preview solves on the
+    world winding Refine uses, so Accept writes what the preview showed."""
+    from facelab_addon.blender.mesh import evaluated_vertices
+    from facelab_addon.pipeline.live_refine import LiveRefine
+
+    data, scene, face = _fresh(sample)
+    face.scale.x = -face.scale.x
+    try:
+        bpy.context.view_layer.update()
+        bpy.ops.facelab.new_lip_sketch()
+        gp = scene.facelab.sketch
+        cam = camera_from_blender(scene)
+        up, lo = sample[2][FRAME]  # the sample's face is symmetric: its mirror image keeps these lip lines
+        write_stroke_pixels(gp, "Upper lip", FRAME, [up], cam)
+        write_stroke_pixels(gp, "Lower lip", FRAME, [lo], cam)
+        live = LiveRefine(scene, face, sketch=gp)
+        u = live.update()
+        assert u.max_move > 1e-5
+        X_preview = live.preview_vertices()
+        live.accept()
+        X = evaluated_vertices(face, bpy.context.evaluated_depsgraph_get())
+        d_px = np.abs(cam.project(X) - cam.project(X_preview)).max()
+        assert d_px < 0.05, d_px
+    finally:
+        face.scale.x = -face.scale.x
