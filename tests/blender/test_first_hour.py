@@ -6,7 +6,7 @@ bake holds the corrected shot."""
 import numpy as np
 import pytest
 
-pytestmark = [pytest.mark.blender, pytest.mark.slow]
+pytestmark = pytest.mark.blender
 
 
 def test_first_hour_on_the_sample(addon, tmp_path):
