@@ -36,7 +36,9 @@ RIG_CORRECTIVE_PREFIX = "FL_Corr_"
 #: keys FaceLab created there: only these are ever replaced or removed by FaceLab.
 OWNED_KEYS_PROP = "facelab_owned"
 #: Key names FaceLab generated before :data:`OWNED_KEYS_PROP` existed (regular expressions): such
-#: keys are adopted into the registry when it is first created on a datablock (older files).
+#: keys are adopted into the registry when it is first created on a datablock (older files), when
+#: they also carry FaceLab's set-up (``blender.shapekeys``: slider range -10..10 for the numbered
+#: keys, keyed 0, 1, 0 around the frame for the frame keys); an artist's key of the name is not.
 LEGACY_KEY_PATTERNS = (
     r"FL_(Prop|Solve|Retarget|Recon)_\d{2}(\.\d{3})?",
     r"FL_(Refine|Corrected)_-?\d{4,}(\.\d{3})?",

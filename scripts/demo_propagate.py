@@ -27,9 +27,9 @@ def _drawable(upper, lower, tol_px=2.0):
     """True if an artist would draw these truth contours as they are: the upper one above
     the lower one everywhere (the truth's silhouettes cross where ICT's lips overlap; there
     an artist draws the line where the lips meet instead, which the truth does not give us)."""
-    from facelab_addon.core.lips.views import _y_at
+    from facelab_addon.core.geometry.polyline import y_at
 
-    ly = _y_at(upper[:, 0], lower)
+    ly = y_at(upper[:, 0], lower)
     ok = np.isfinite(ly)
     return ok.any() and bool((ly[ok] >= upper[ok, 1] - tol_px).all())
 

@@ -181,11 +181,11 @@ def figure(path: Path, n: int = 3) -> None:
     truth = V[None] + np.einsum("tk,kvd->tvd", a["weights"].astype(float), a["expression_deltas"].astype(float))
     captured = truth + a["capture_error_weights"][:, None, None] * a["capture_error"][None].astype(float)
     mouth = syn.find_mouth(V, F, None, near=V[a["inner_lip_loop"]].mean(0), units_per_mm=UNITS_PER_MM)
-    from facelab_addon.core.lips.views import _y_at
+    from facelab_addon.core.geometry.polyline import y_at
 
     def drawable(t):  # the plate's upper lip above its lower lip (frames where the lips overlap are skipped)
         up, low = syn.lip_contours(truth[t], F, cam, mouth=mouth)
-        ly = _y_at(up[:, 0], low)
+        ly = y_at(up[:, 0], low)
         ok = np.isfinite(ly)
         return ok.any() and bool((ly[ok] >= up[ok, 1] - 2.0).all())
 

@@ -595,6 +595,9 @@ def read_captured_frames(obj, scene_frames, *, mute_shape_keys_prefix=FACELAB_PR
     CacheFileError
         A cache file is missing or broken (:func:`check_capture_files`).
     """
+    from .scene_time import require_scene_time
+
+    require_scene_time(None, "Reading the capture", obj)  # the F-curves below are read at the frames' own time
     source = sequence_source(obj, ignore_prefixes=mute_shape_keys_prefix)
     check_capture_files(obj)
     if source == "mesh_cache":

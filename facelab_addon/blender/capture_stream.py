@@ -26,7 +26,8 @@ import numpy as np
 from ..core.capture import meshcache, pointcache
 from . import caches
 from .ownership import as_prefixes, key_matches, owned_key_names
-from .shapekeys import fcurve_for_key, values_from_action_only
+from .scene_time import require_scene_time
+from .shapekeys import fcurve_for_key, finite_key_offsets, values_from_action_only
 
 __all__ = ["CaptureReader"]
 
@@ -59,6 +60,7 @@ class CaptureReader:
 
     def __init__(self, obj, vertices=None, *, mute_shape_keys_prefix=caches.FACELAB_PREFIXES, cache_samples=False):
         caches.require_mesh_object(obj)
+        require_scene_time(None, "Reading the capture", obj)  # the F-curves are read at the frames' own time
         self.obj, self.mute = obj, tuple(mute_shape_keys_prefix)
         n = len(obj.data.vertices)
         self.vertices = np.arange(n) if vertices is None else np.asarray(vertices, dtype=np.int64)
@@ -106,6 +108,7 @@ class CaptureReader:
         basis = key.reference_key
         skip, owned = as_prefixes(self.mute), set(owned_key_names(key, create=False))
         curves, deltas = [], []
+        self._bad_keys = []
         for kb in key.key_blocks:
             if kb == basis or kb.mute or key_matches(key, kb.name, skip, owned):
                 continue
@@ -114,6 +117,9 @@ class CaptureReader:
             fc = fcurve_for_key(key, kb)
             curves.append((fc if fc is not None and not fc.mute else None, kb.value, kb.slider_min, kb.slider_max))
             deltas.append((coords(kb.data) - coords(kb.relative_key.data)).ravel())
+            if not np.isfinite(deltas[-1]).all():  # checked against the values read (:meth:`_read_keys`)
+                self._bad_keys.append((len(curves) - 1, kb, deltas[-1]))
+                deltas[-1] = np.nan_to_num(deltas[-1], nan=0.0, posinf=0.0, neginf=0.0)
         self._basis = coords(basis.data)
         self._curves = curves
         self._deltas = np.stack(deltas) if deltas else np.zeros((0, len(v) * 3), np.float32)
@@ -140,6 +146,8 @@ class CaptureReader:
             for k, (fc, value, lo, hi) in enumerate(self._curves):
                 w = np.array([fc.evaluate(f) for f in frames]) if fc is not None else np.full(t, value)
                 W[:, k] = np.clip(w, lo, hi)
+            for k, kb, offsets in getattr(self, "_bad_keys", ()):  # a key with NaN / inf: refused where it is on
+                finite_key_offsets(self.obj, kb, offsets, frames, W[:, k], self.vertices)
             np.matmul(W, self._deltas, out=out)
             out += self._basis.ravel()
         else:

@@ -60,6 +60,21 @@ def action_channelbag(action, slot, create: bool = False):
     return strip.channelbag(slot, ensure=True)
 
 
+def anim_fcurve(anim_data, data_path: str):
+    """The F-curve animating ``data_path`` in ``anim_data``'s action, or None: in the channelbag of the
+    assigned slot (layered actions, Blender 4.4+), else ``Action.fcurves`` (removed in 5.0)."""
+    action = anim_data.action
+    slot = getattr(anim_data, "action_slot", None)
+    try:
+        cb = action_channelbag(action, slot)
+        if cb is not None:
+            return cb.fcurves.find(data_path)
+    except Exception:
+        pass
+    fcurves = getattr(action, "fcurves", None)  # Blender < 5.0
+    return fcurves.find(data_path) if fcurves is not None else None
+
+
 def anim_data_channelbag(anim_data, create: bool = False):
     """The channelbag of the action slot assigned in ``anim_data`` (``bpy.types.AnimData``), or None.
 

@@ -29,6 +29,7 @@ __all__ = [
     "spread_key_offsets",
     "evaluated_vertices",
     "world_to_local_deltas",
+    "world_winding",
     "vertex_group_mask",
     "set_vertex_group",
     "selected_vertices",
@@ -37,12 +38,37 @@ __all__ = [
 ]
 
 
+#: The coarsest spacing of float32 coordinates accepted, as a share of the mesh's size (:func:`require_mesh`).
+FLOAT32_SHARE = 1e-4
+
+
 def require_mesh(obj):
-    """Raise ``MeshError`` unless ``obj`` is a mesh object with faces."""
+    """Raise ``MeshError`` unless ``obj`` is a mesh object with faces whose coordinates float32 holds finely.
+
+    Blender stores vertex and shape-key positions in float32, whose steps grow with the distance from the
+    object's origin (about 1.2e-7 of it): a face modelled 1e6 units from its origin is quantised to
+    about 0.1 unit, and a correction there would be off by a good share of itself. Refused when the step
+    at the mesh's farthest coordinate exceeds :data:`FLOAT32_SHARE` of the mesh's size (its bounding box's
+    diagonal), naming the distance and the fix (set the origin to the geometry).
+    """
     if obj is None or obj.type != "MESH":
         raise MeshError("No face mesh: select the captured face mesh (or set it in FaceLab > Setup).")
     if len(obj.data.polygons) == 0:
         raise MeshError(f"'{obj.name}' has no faces; FaceLab needs the captured face surface.")
+    n = len(obj.data.vertices)
+    co = np.empty(n * 3, np.float32)
+    obj.data.vertices.foreach_get("co", co)
+    co = co.reshape(n, 3).astype(np.float64)
+    if np.isfinite(co).all():
+        far = float(np.abs(co).max())
+        size = float(np.linalg.norm(co.max(axis=0) - co.min(axis=0)))
+        step = float(np.spacing(np.float32(far)))
+        if size > 0 and step > FLOAT32_SHARE * size:
+            raise MeshError(
+                f"The mesh of '{obj.name}' lies {far:.4g} units from its object's origin, where Blender's float32 "
+                f"coordinates are {step:.3g} units apart ({100 * step / size:.2g} % of the face's size), so a "
+                "correction there would be off by that much. Move the origin onto the face (Object > Set Origin > "
+                "Origin to Geometry, which keeps it where it is in the scene) and run again.")
     return obj
 
 
@@ -171,6 +197,21 @@ def evaluated_vertices(obj, depsgraph, *, world: bool = True) -> np.ndarray:
         M = np.array(ev.matrix_world, dtype=np.float64)
         co = co @ M[:3, :3].T + M[:3, 3]
     return co
+
+
+def world_winding(tris, A) -> np.ndarray:
+    """(F,3) triangles ``tris`` wound for world-space positions of an object whose world matrix is ``A`` (3,3).
+
+    A mirroring world matrix (negative determinant: a scale of -1 on the object, a parent or an Armature
+    parent) turns every triangle's corner order over, so normals computed from world positions with the
+    mesh's own triangles point into the face: silhouettes would face away from the camera and the upper
+    and lower lip (told apart by their normals) swap. Then the corners' order is reversed (a new array);
+    otherwise ``tris`` itself is returned.
+    """
+    A = np.asarray(A, dtype=np.float64)
+    if np.linalg.det(A[:3, :3]) < 0:
+        return np.ascontiguousarray(np.asarray(tris)[:, ::-1])
+    return tris
 
 
 def world_to_local_deltas(obj, deltas_world) -> np.ndarray:

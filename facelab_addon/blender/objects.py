@@ -15,7 +15,8 @@ from ..core.errors import FaceLabError
 from .camera import evaluated_depsgraph
 
 __all__ = ["NotEditableError", "require_editable", "ModifierState", "modifier_enabled", "disabled_modifiers",
-           "world_affine", "world_matrices", "local_length", "points_to_local", "triangle_uvs", "same_polygons"]
+           "world_affine", "world_matrices", "local_length", "tolerance_length", "RELATIVE_TOLERANCE",
+           "points_to_local", "triangle_uvs", "same_polygons"]
 
 
 class NotEditableError(FaceLabError):
@@ -161,6 +162,34 @@ def local_length(scene, obj, metres: float) -> float:
     A = world_affine(obj, evaluated_depsgraph(scene))[0]  # evaluated: a scale just set counts
     stretch = float(np.linalg.svd(A, compute_uv=False)[0]) if np.isfinite(A).all() else 1.0
     return float(metres) / mpu / (stretch if stretch > 0 else 1.0)
+
+
+#: The finest a storage tolerance gets relative to the face: its bounding box's diagonal times this.
+RELATIVE_TOLERANCE = 1e-4
+
+
+def tolerance_length(scene, obj, metres: float) -> float:
+    """A storage tolerance of ``metres`` of world space in ``obj``'s local units, never coarser than
+    :data:`RELATIVE_TOLERANCE` of the mesh's own size (the diagonal of its rest bounding box).
+
+    A physical tolerance (0.01 mm) suits a face of its real size; on a face far smaller in the world (a head
+    imported at 1/1000, a miniature) it would be larger than the whole correction, which would then be
+    dropped as noise. The relative bound keeps the correction to the same share of the face at any scale.
+
+    Returns
+    -------
+    float
+        Object-local units; :func:`local_length` itself on a face of ordinary size.
+    """
+    tol = local_length(scene, obj, metres)
+    n = len(obj.data.vertices)
+    if n == 0:
+        return tol
+    co = np.empty(n * 3, np.float64)
+    obj.data.vertices.foreach_get("co", co)
+    co = co.reshape(n, 3)
+    size = float(np.linalg.norm(co.max(axis=0) - co.min(axis=0))) if np.isfinite(co).all() else 0.0
+    return min(tol, RELATIVE_TOLERANCE * size) if size > 0 else tol
 
 
 def world_matrices(scene, obj, frames) -> np.ndarray:

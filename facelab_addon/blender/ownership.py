@@ -17,7 +17,10 @@ from __future__ import annotations
 import contextlib
 import re
 
+import bpy
+
 from ..names import CORRECTION_CACHES_PROP, LEGACY_KEY_PATTERNS, LIVE_PREVIEW_KEY, OWNED_KEYS_PROP, PREFIX
+from . import compat
 
 __all__ = ["as_prefixes", "owned_key_names", "own_key", "key_matches", "owned_keys", "muted_shape_keys",
            "CORRECTION_TYPES", "correction_cache_record", "correction_cache", "is_correction_cache",
@@ -45,13 +48,30 @@ def owned_key_names(key, create: bool) -> list:
     reg = key.get(OWNED_KEYS_PROP)
     if reg is None:
         if not create:
-            return [n for n in names if _legacy(n)]
-        reg = sorted(n for n in names if _legacy(n))
+            return [n for n in names if _legacy(key, n)]
+        reg = sorted(n for n in names if _legacy(key, n))
     return [str(n) for n in reg if str(n) in names]
 
 
-def _legacy(name: str) -> bool:
-    return any(re.fullmatch(p, name) for p in LEGACY_KEY_PATTERNS)
+def _legacy(key, name: str) -> bool:
+    """Whether the key ``name`` of ``key`` is one FaceLab made before the registry: its exact FaceLab name
+    (:data:`facelab_addon.names.LEGACY_KEY_PATTERNS`) *and* what FaceLab always gave such a key, so an
+    artist's own key of that name (in a file FaceLab never touched) is never taken over. A numbered key
+    (``FL_Prop_00``, ``FL_Solve_03``...) had the slider range -10..10; a frame key (``FL_Refine_0012``,
+    ``FL_Corrected_0012``) was keyed 0, 1, 0 on the frames around the one in its name."""
+    if re.fullmatch(LEGACY_KEY_PATTERNS[0], name) is not None:
+        kb = key.key_blocks[name]
+        return kb.slider_min == -10.0 and kb.slider_max == 10.0
+    if re.fullmatch(LEGACY_KEY_PATTERNS[1], name) is None:
+        return False
+    frame = int(re.search(r"-?\d{4,}", name[len(PREFIX):]).group())
+    ad = key.animation_data
+    fc = None if ad is None or ad.action is None else compat.anim_fcurve(
+        ad, f'key_blocks["{bpy.utils.escape_identifier(name)}"].value')
+    if fc is None:
+        return False
+    keyed = {round(kp.co[0]): kp.co[1] for kp in fc.keyframe_points}
+    return keyed.get(frame - 1) == 0.0 and keyed.get(frame) == 1.0 and keyed.get(frame + 1) == 0.0
 
 
 def own_key(key_block) -> None:
@@ -95,7 +115,8 @@ def owned_keys(obj, prefix: str = "") -> list:
     A key the artist made is never listed, whatever its name (an ``FL_Prop_MyFix`` sculpted by hand
     stays the artist's). In a file from before the registry, keys named exactly as FaceLab named
     them (``FL_Prop_00``, ``FL_Refine_0012``..., :data:`facelab_addon.names.LEGACY_KEY_PATTERNS`)
-    count as FaceLab's.
+    and set up as FaceLab set them up (slider range -10..10; keyed 0, 1, 0 around their frame) count
+    as FaceLab's; an artist's key of such a name in a file FaceLab never touched does not.
     """
     key = obj.data.shape_keys
     if key is None:

@@ -27,6 +27,7 @@ __all__ = [
     "rest_vertices",
     "remove_fcurve",
     "fcurve_for_key",
+    "finite_key_offsets",
 ]
 
 
@@ -73,6 +74,9 @@ def add_corrective_key(obj, name: str, deltas_local) -> "bpy.types.ShapeKey":
 
 def key_spike(key_block, frame: int) -> None:
     """Key ``value`` 1 on ``frame`` and 0 on its neighbours (linear interpolation)."""
+    from .scene_time import require_scene_time
+
+    require_scene_time(None, "Keying")
     for f, v in ((frame - 1, 0.0), (frame, 1.0), (frame + 1, 0.0)):
         key_block.value = v
         key_block.keyframe_insert("value", frame=f)
@@ -80,7 +84,7 @@ def key_spike(key_block, frame: int) -> None:
     path = f'key_blocks["{bpy.utils.escape_identifier(key_block.name)}"].value'
     ad = key.animation_data
     if ad and ad.action:
-        fc = _find_fcurve(ad, path)
+        fc = compat.anim_fcurve(ad, path)
         if fc is not None:
             for kp in fc.keyframe_points:
                 kp.interpolation = "LINEAR"
@@ -100,21 +104,7 @@ def find_fcurve(id_data, data_path: str):
     ad = getattr(id_data, "animation_data", None)
     if ad is None or ad.action is None:
         return None
-    return _find_fcurve(ad, data_path)
-
-
-def _find_fcurve(anim_data, data_path):
-    """F-curve by data path in the channelbag of the assigned action slot (layered actions)."""
-    action = anim_data.action
-    slot = getattr(anim_data, "action_slot", None)
-    try:
-        cb = compat.action_channelbag(action, slot)
-        if cb is not None:
-            return cb.fcurves.find(data_path)
-    except Exception:
-        pass
-    fcurves = getattr(action, "fcurves", None)  # Blender < 5.0
-    return fcurves.find(data_path) if fcurves is not None else None
+    return compat.anim_fcurve(ad, data_path)
 
 
 # --------------------------------------------------------------------------- sequences
@@ -123,7 +113,7 @@ def fcurve_for_key(key, kb):
     ad = key.animation_data
     if ad is None or ad.action is None:
         return None
-    return _find_fcurve(ad, f'key_blocks["{bpy.utils.escape_identifier(kb.name)}"].value')
+    return compat.anim_fcurve(ad, f'key_blocks["{bpy.utils.escape_identifier(kb.name)}"].value')
 
 
 def values_from_action_only(key) -> bool:
@@ -144,6 +134,39 @@ def key_values(key, kb, frames) -> np.ndarray:
     else:
         w = np.full(len(frames), kb.value)
     return np.clip(w, kb.slider_min, kb.slider_max)
+
+
+def finite_key_offsets(obj, kb, offsets, frames, weights, vertices=None):
+    """A key's flat offsets ``offsets`` (3V,) with non-finite entries zeroed where the key is off, or refused.
+
+    A key with a NaN or infinite position shows it only on the frames where its value is not 0 (Blender skips a
+    key of value 0); mixed as ``value * offset`` it would give NaN (0 x inf) on every frame. ``weights`` (T,)
+    are its values on ``frames`` (T,); ``vertices`` (n,) the vertex ids of the offsets when they are a subset.
+
+    Raises
+    ------
+    MeshError
+        The key is on (value not 0) on some of ``frames``: naming the key, its first bad vertex and those frames
+        (the scene frames, not list positions).
+    """
+    bad = ~np.isfinite(offsets)
+    if not bad.any():
+        return offsets
+    on = np.asarray(frames)[np.asarray(weights) != 0]
+    if len(on):
+        first = int(np.flatnonzero(bad)[0]) // 3
+        first = first if vertices is None else int(vertices[first])
+        from ..core.errors import MeshError
+
+        shown = ", ".join(f"{f:g}" for f in on[:5]) + (f" and {len(on) - 5} more" if len(on) > 5 else "")
+        raise MeshError(
+            f"The shape key '{kb.name}' of '{obj.name}' has NaN or infinite positions "
+            f"({int(bad.reshape(-1, 3).any(axis=1).sum())} vertices, the first {first}) and "
+            f"is on (value not 0) on frame {shown}: those frames would be broken. Fix or delete the key (or key it "
+            "to 0 there), then run again.")
+    out = offsets.copy()
+    out[bad] = 0.0
+    return out
 
 
 def shape_key_sequence(obj, frames, *, skip_prefixes=(PREFIX,), ignore_modifiers: bool = False):
@@ -189,7 +212,7 @@ def shape_key_sequence(obj, frames, *, skip_prefixes=(PREFIX,), ignore_modifiers
         w = key_values(key, kb, frames)
         if not np.any(w):
             continue
-        deltas.append(coords(kb) - coords(kb.relative_key))
+        deltas.append(finite_key_offsets(obj, kb, coords(kb) - coords(kb.relative_key), frames, w))
         weights.append(w)
     out = np.empty((len(frames), n * 3), np.float32)
     if deltas:
@@ -237,7 +260,13 @@ def key_property_bulk(id_data, data_path: str, frames, values, action_name: str 
     ``foreach_set``) with linear interpolation. An existing action (the
     artist's animation) is kept; only this one F-curve is (re)written.
     """
+    from .scene_time import SceneTimeError, require_scene_time
+
+    require_scene_time(None, "Keying")  # keys on scene frames play at those frames only without Time Stretching
     ad = id_data.animation_data or id_data.animation_data_create()
+    if ad.use_tweak_mode:
+        raise SceneTimeError(f"Keying '{id_data.name}': its animation is in NLA tweak mode (the strip's action plays "
+                             "in the strip's time); leave tweak mode (Tab in the NLA editor) and run again.")
     if ad.action is None:
         ad.action = bpy.data.actions.new(action_name)
     cb = _channelbag(ad, create=True)

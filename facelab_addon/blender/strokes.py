@@ -38,8 +38,12 @@ Sources, in order of preference
    front of the camera and near the frame.
 
 Labels: a layer whose name contains "upper" (case-insensitive) is an upper
-lip layer, "lower" a lower lip layer; an exact "upper lip" / "lower lip"
-name wins over partial matches, several partial matches are concatenated.
+lip layer, "lower" a lower lip layer. Which layers are read is decided in one
+place, :func:`live_lip_layers`, for every reader: only shown layers (a hidden
+one is stale to the artist), an exact "upper lip" / "lower lip" name wins over
+partial matches, several partial matches are concatenated, and two shown
+layers among the exact name and its copies ("Upper lip.001") are refused as
+ambiguous. Hidden sketch objects are not read either.
 
 The sketch object (``new_lip_sketch``) is a child of the camera with origin
 on the optical axis, ``depth`` in front of the camera (just past the near
@@ -64,13 +68,22 @@ from ..core.errors import CameraError, SketchError
 from ..names import SKETCH_OBJECT, SNAP_PROP, SNAP_REPORT_PROP
 from . import compat
 from .camera import evaluated_depsgraph
+from .lip_layers import (
+    LOWER_LAYER,
+    UPPER_LAYER,
+    has_lip_layers,
+    hidden_object,
+    labelled_lip_layers,
+    lip_label,
+    live_lip_layers,
+    missing_layer_error,
+)
 from .sketch_snap import snap_to_plate
 
 __all__ = [
     "SKETCH_CAMERA_PROP",
     "sketch_camera",
     "sketch_name_for",
-    "lip_layers",
     "has_lip_layers",
     "layer_to_world",
     "transform_points",
@@ -88,10 +101,6 @@ __all__ = [
     "set_lip_layer",
 ]
 
-
-
-UPPER_LAYER = "Upper lip"
-LOWER_LAYER = "Lower lip"
 DEFAULT_SKETCH_NAME = SKETCH_OBJECT
 _LAYER_TINT = {UPPER_LAYER: (1.0, 0.15, 0.1), LOWER_LAYER: (0.1, 0.35, 1.0)}
 _DEFAULT_GP_RADIUS = 0.01  # Blender's implicit point radius when no "radius" attribute exists
@@ -102,37 +111,6 @@ _HOWTO = (
 
 
 # --------------------------------------------------------------------------- helpers
-def _label(name: str):
-    """'upper', 'lower' or None for a layer name."""
-    n = name.lower()
-    up, lo = "upper" in n, "lower" in n
-    if up and not lo:
-        return "upper"
-    if lo and not up:
-        return "lower"
-    return None
-
-
-def lip_layers(layers, name_of):
-    """{'upper': [layers], 'lower': [layers]}; an exact name wins over partial matches."""
-    out = {"upper": [], "lower": []}
-    for layer in layers:
-        lab = _label(name_of(layer))
-        if lab is not None:
-            out[lab].append(layer)
-    for lab, exact in (("upper", UPPER_LAYER.lower()), ("lower", LOWER_LAYER.lower())):
-        hits = [lay for lay in out[lab] if name_of(lay).strip().lower() == exact]
-        if hits:
-            out[lab] = hits[:1]
-    return out
-
-
-def has_lip_layers(gp_data) -> bool:
-    """Whether the Grease Pencil data ``gp_data`` has an upper or a lower lip layer (:func:`lip_layers`)."""
-    lips = lip_layers(gp_data.layers, lambda lay: lay.name)
-    return bool(lips["upper"] or lips["lower"])
-
-
 def _find_layer(gp_data, name):
     for layer in gp_data.layers:
         if layer.name.lower() == name.lower():
@@ -326,7 +304,7 @@ def new_lip_sketch(scene, camera_obj=None, name: str | None = None, depth: float
         gp.materials.append(_sketch_material())
 
     frame = scene.frame_current
-    lips = lip_layers(gp.layers, lambda lay: lay.name)
+    lips = labelled_lip_layers(gp.layers, lambda lay: lay.name)
     for lab, layer_name in (("upper", UPPER_LAYER), ("lower", LOWER_LAYER)):
         layer = lips[lab][0] if lips[lab] else None
         if layer is None:
@@ -335,7 +313,7 @@ def new_lip_sketch(scene, camera_obj=None, name: str | None = None, depth: float
             layer.tint_factor = 1.0
         if not any(f.frame_number == frame for f in layer.frames):
             layer.frames.new(frame)
-    upper = lip_layers(gp.layers, lambda lay: lay.name)["upper"]
+    upper = labelled_lip_layers(gp.layers, lambda lay: lay.name)["upper"]
     if upper:
         gp.layers.active = upper[0]
     return obj
@@ -343,7 +321,7 @@ def new_lip_sketch(scene, camera_obj=None, name: str | None = None, depth: float
 
 def set_lip_layer(gp_obj, lip: str) -> str:
     """Make the sketch's ``lip`` layer (``"upper"`` / ``"lower"``) the one drawn on; returns its name."""
-    layers = lip_layers(gp_obj.data.layers, lambda lay: lay.name)[lip]
+    layers = labelled_lip_layers(gp_obj.data.layers, lambda lay: lay.name)[lip]
     if not layers:
         nice = UPPER_LAYER if lip == "upper" else LOWER_LAYER
         raise SketchError(f"Sketch '{gp_obj.name}' has no '{nice}' layer; press New Lip Sketch to add it.")
@@ -437,8 +415,8 @@ def write_stroke_pixels(gp_obj, layer_name: str, frame: int, polylines_px, camer
 def find_sketch_object(scene, gp_obj=None):
     """The Grease Pencil lip sketch of ``scene``, or None (the scene annotation may still hold one).
 
-    ``gp_obj`` if given (it must be Grease Pencil), else the active object if
-    it has lip layers, else the one named ``FL_LipSketch``
+    ``gp_obj`` if given (it must be Grease Pencil), else, among the shown objects with lip layers
+    (hidden ones only when no other has lip layers), the active object, else the one named ``FL_LipSketch``
     (:data:`facelab_addon.names.SKETCH_OBJECT`), else the first by name with
     lip layers; without lip layers anywhere, an object of the default name.
 
@@ -454,6 +432,8 @@ def find_sketch_object(scene, gp_obj=None):
             )
         return gp_obj
     candidates = [o for o in scene.objects if o.type == "GREASEPENCIL" and has_lip_layers(o.data)]
+    shown = [o for o in candidates if not hidden_object(o)]
+    candidates = shown or candidates  # only hidden sketches: read one, its layers' messages say what is hidden
     if not candidates:
         named = scene.objects.get(DEFAULT_SKETCH_NAME)
         return named if named is not None and named.type == "GREASEPENCIL" else None
@@ -475,13 +455,13 @@ def has_lip_sketch(scene, gp_obj=None) -> bool:
     if any(o.type == "GREASEPENCIL" and has_lip_layers(o.data) for o in scene.objects):
         return True
     ann = compat.scene_annotation(scene)
-    return ann is not None and any(_label(lay.info) for lay in ann.layers)
+    return ann is not None and any(lip_label(lay.info) for lay in ann.layers)
 
 
 def sketch_keyframes(gp_obj) -> list:
     """Sorted scene frames holding a keyframe on the lip layers of the Grease Pencil sketch ``gp_obj``."""
     frames = set()
-    lips = lip_layers(gp_obj.data.layers, lambda lay: lay.name)
+    lips = live_lip_layers(gp_obj.data.layers, lambda lay: lay.name, f"The lip sketch '{gp_obj.name}'")
     for layer in lips["upper"] + lips["lower"]:
         frames.update(int(fr.frame_number) for fr in layer.frames)
     return sorted(frames)
@@ -514,11 +494,11 @@ def require_sketch_keyed_on(scene, frame: int, gp_obj=None) -> None:
     if obj is not None:
         layers, name_of, what = obj.data.layers, (lambda lay: lay.name), f"The lip sketch '{obj.name}'"
     else:
-        ann = getattr(scene, "annotation", None)
+        ann = compat.scene_annotation(scene)
         if ann is None:
             return
         layers, name_of, what = ann.layers, (lambda lay: lay.info), f"The lip annotation '{ann.name}'"
-    lips = lip_layers(layers, name_of)
+    lips = live_lip_layers(layers, name_of, what)
     keyed = {lab: sorted({int(fr.frame_number) for lay in lips[lab] for fr in lay.frames}) for lab in lips}
     for lab, nice in (("upper", UPPER_LAYER), ("lower", LOWER_LAYER)):
         if not lips[lab] or frame in keyed[lab]:
@@ -536,14 +516,15 @@ def require_sketch_keyed_on(scene, frame: int, gp_obj=None) -> None:
 
 
 def _read_gp_object(obj, camera: Camera, frame: int, depsgraph, snap=None) -> dict:
-    lips = lip_layers(obj.data.layers, lambda lay: lay.name)
+    name_of = (lambda lay: lay.name)
+    lips = live_lip_layers(obj.data.layers, name_of, f"Sketch '{obj.name}'")
     out = {}
     for lab, nice in (("upper", UPPER_LAYER), ("lower", LOWER_LAYER)):
         if not lips[lab]:
-            raise SketchError(
-                f"Sketch '{obj.name}' has no '{nice}' layer; add a layer named '{nice}' "
-                f"(or press New Lip Sketch) and draw the {nice.lower()} on it in camera view."
-            )
+            raise missing_layer_error(
+                obj.data.layers, name_of, lab, f"Sketch '{obj.name}'",
+                f"add a layer named '{nice}' (or press New Lip Sketch) and draw the {nice.lower()} on it in camera "
+                "view.")
         polys = []
         for layer in lips[lab]:
             fr = layer.get_frame_at(frame)
@@ -621,14 +602,15 @@ def annotation_frame_pixels(annotation_frame, camera: Camera, where: str) -> lis
 
 
 def _read_annotation(ann, camera: Camera, frame: int) -> dict:
-    lips = lip_layers(ann.layers, lambda lay: lay.info)
+    name_of = (lambda lay: lay.info)
+    lips = live_lip_layers(ann.layers, name_of, f"Annotation '{ann.name}'")
     out = {}
     for lab, nice in (("upper", UPPER_LAYER), ("lower", LOWER_LAYER)):
         if not lips[lab]:
-            raise SketchError(
-                f"Annotation '{ann.name}' has no '{nice}' layer; add an annotation layer named '{nice}' "
-                f"and draw the {nice.lower()} on it in camera view, or {_HOWTO}."
-            )
+            raise missing_layer_error(
+                ann.layers, name_of, lab, f"Annotation '{ann.name}'",
+                f"add an annotation layer named '{nice}' and draw the {nice.lower()} on it in camera view, or "
+                f"{_HOWTO}.")
         polys = []
         for layer in lips[lab]:
             fr = _annotation_frame_at(layer, frame)
@@ -682,6 +664,6 @@ def read_lip_strokes(scene, camera: Camera, frame: int, gp_obj=None, depsgraph=N
             depsgraph = evaluated_depsgraph(scene)
         return _read_gp_object(obj, camera, int(frame), depsgraph, snap)
     ann = compat.scene_annotation(scene)
-    if ann is not None and any(_label(lay.info) for lay in ann.layers):
+    if ann is not None and any(lip_label(lay.info) for lay in ann.layers):
         return _read_annotation(ann, camera, int(frame))
     raise SketchError(f"No lip sketch found in scene '{scene.name}': {_HOWTO}.")

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from ..blender import bakes, caches, correction_files
+from ..blender.scene_time import require_scene_time
 from ..core.errors import FaceLabError
 from .settings import setting
 from .steps import run_steps
@@ -115,6 +116,7 @@ def bake_steps(obj, frames, path, settings: BakeSettings | None = None):
         raise FaceLabError(f"{path} exists; enable Overwrite or choose another file.")
     frames = np.asarray(frames)
     caches.require_mesh_object(obj)
+    require_scene_time(None, "Bake", obj)  # a baked cache would be played stretched again
     correction_files.require_correction_caches(obj, "Bake Corrected Sequence")  # never the capture baked as corrected
     if settings.format == "ABC":
         return _alembic_step(obj, frames, path, t0)

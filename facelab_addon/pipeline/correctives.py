@@ -33,7 +33,7 @@ import numpy as np
 from ..blender import bakes, cache_integrate, rest_space
 from ..blender.caches import input_positions
 from ..blender.capture_stream import CaptureReader
-from ..blender.objects import local_length
+from ..blender.objects import local_length, tolerance_length
 from ..blender.shapekeys import add_keys_from_deltas, key_values_bulk, remove_keys
 from ..core.capture.integrate import integrate_matrices
 from ..core.capture.pointcache_writer import PointCacheWriter
@@ -192,8 +192,9 @@ class CorrectionWriter:
             and bool(rest_space.deforming_modifiers(obj))
         if self.map_to_rest:
             rest_space.require_same_vertex_count(obj)
-        self.tol = local_length(scene, obj, self.settings.tolerance_mm * 1e-3)  # object-local units
-        self._to_mm = self.settings.tolerance_mm / self.tol
+        # object-local units; on a face far smaller than life, a share of its size (blender.objects.tolerance_length)
+        self.tol = tolerance_length(scene, obj, self.settings.tolerance_mm * 1e-3)
+        self._to_mm = self.settings.tolerance_mm / local_length(scene, obj, self.settings.tolerance_mm * 1e-3)
         self._frames: list = []
         self._low = None
         self._dir = tempfile.mkdtemp(prefix="facelab-spool-")

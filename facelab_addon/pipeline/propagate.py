@@ -29,7 +29,8 @@ import numpy as np
 from ..blender import bakes, cache_integrate, caches
 from ..blender.capture_stream import CaptureReader
 from ..blender.mesh import face_topology, require_mesh, spread_key_offsets
-from ..blender.objects import ModifierState, local_length, require_editable
+from ..blender.objects import ModifierState, require_editable, tolerance_length
+from ..blender.scene_time import require_scene_time
 from ..blender.shapekeys import (
     add_corrective_key,
     key_matches,
@@ -248,6 +249,7 @@ def add_corrected_frame(scene, obj, frame: int, vertices) -> CorrectedFrame:
     """
     require_mesh(obj)
     require_editable(obj, "Mark Corrected Frame")
+    require_scene_time(scene, "Mark Corrected Frame", obj)
     V = np.asarray(vertices, dtype=np.float64)
     n = len(obj.data.vertices)
     if V.shape != (n, 3):
@@ -345,6 +347,7 @@ def propagate_steps(scene, obj, frames, settings: PropagateSettings | None = Non
     frames = check_frames(frames, "Propagate", consecutive=True)
     require_mesh(obj)
     require_editable(obj, "Propagate")
+    require_scene_time(scene, "Propagate", obj)
     train = training_frames(obj)
     # a mesh split along its UV seams is one surface: twins that coincide at rest, in every key and on the training
     # frames and a sample of the shot (read only when the mesh has coincident vertices) are welded
@@ -458,7 +461,7 @@ def _propagate_work(scene, obj, frames, settings, t0, topo, mouth_faces, lip_fac
         raise e.for_frames(list(train)) from None
     del corrected, captured_train, shot
     # half the storage tolerance here, half for the writer's own compression (the shot's setting, world mm)
-    tol = local_length(scene, obj, 0.5e-3 * storage.tolerance_mm)
+    tol = tolerance_length(scene, obj, 0.5e-3 * storage.tolerance_mm)
     # Over a cache the keys ride on its surface, so a correction that is a few shapes on the mesh is, as key
     # offsets, a new shape on every frame. The shown correction is spooled as it comes (the patch cache after the
     # capture, blender.bakes.add_correction_patch); the key offsets are compressed only until they clearly need

@@ -39,6 +39,7 @@ from ..blender.bundles import (
 )
 from ..blender.mesh import mesh_triangles, require_mesh
 from ..blender.objects import points_to_local, require_editable, triangle_uvs
+from ..blender.scene_time import require_scene_time
 from ..blender.rig import add_product_driver, dataset_shapes, template_shapes
 from ..blender.shapekeys import add_corrective_key, rest_vertices
 from ..core.errors import FaceLabError
@@ -216,6 +217,7 @@ def reconstruct_from_bundles(scene, obj, settings: ReconstructSettings, progress
     smooth = settings.smooth
     require_mesh(obj)
     require_editable(obj, "Reconstruct")
+    require_scene_time(scene, "Reconstruct", obj)
     tris = mesh_triangles(obj.data)
     neutral = rest_vertices(obj)
     names, shapes = dataset_shapes(obj)

@@ -31,9 +31,11 @@ from ..blender.mesh import (
     require_mesh,
     vertex_group_mask,
     world_to_local_deltas,
+    world_winding,
 )
 from ..blender.objects import ModifierState, require_editable, world_affine
 from ..blender.rest_space import to_rest_space
+from ..blender.scene_time import require_scene_time
 from ..blender.shapekeys import add_corrective_key, key_spike, rest_vertices
 from ..blender.sketch_views import sketch_camera, sketch_views
 from ..blender.strokes import read_lip_strokes, require_sketch_keyed_on
@@ -233,10 +235,11 @@ def refine(scene, obj, frame: int, settings: RefineSettings | None = None, *, ca
     pairs = _view_sources(scene, frame, sketch, camera_obj, settings.all_views)
     for gp, _ in pairs:
         require_sketch_keyed_on(scene, frame, gp)  # never a drawing held from an earlier frame
-    if scene.frame_current != frame:
+    if scene.frame_current != frame or scene.frame_subframe:  # a subframe left on would be read as the frame
         scene.frame_set(frame)
     obj = require_mesh(obj)
     require_editable(obj, "Refine Lips")
+    require_scene_time(scene, "Refine Lips", obj)
     caches.check_capture_files(obj)  # never the static mesh in place of a broken cache
     dg = evaluated_depsgraph(scene)
     views = []
@@ -248,13 +251,14 @@ def refine(scene, obj, frame: int, settings: RefineSettings | None = None, *, ca
     A, b = world_affine(obj, dg)
     # split seams welded where the twins coincide at rest, in every key and on this frame (a lip cut stays cut)
     topo = face_topology(obj, _local_frame(V, A, b))
-    tris = topo.tris
+    tris = world_winding(topo.tris, A)  # V is in world space: a mirrored object keeps its normals outward
     fixed, fixed_src = default_fixed_mask(obj, topo, settings.fixed_group)
     lips = _lip_region(obj) if settings.use_regions else None
     rest = rest_vertices(obj) @ A.T + b  # the Basis, where the object is: the head unturned
     if topo.n_duplicates:  # the solver sees the welded surface alone (no duplicate weighs in a fit twice)
         w = topo.weld
         Vc, tris_c = w.compact(V)
+        tris_c = world_winding(tris_c, A)
         Xc, info = refine_lips_views(Vc, tris_c, views, fixed=fixed[w.kept], rest_vertices=rest[w.kept],
                                      lips=None if lips is None else lips[w.kept], return_info=True,
                                      **settings.solver_weights())

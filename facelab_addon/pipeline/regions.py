@@ -249,5 +249,5 @@ def region_faces(obj, tris) -> tuple:
         )
     mf = core_regions.faces_in_region(tris, mouth)
     lf = core_regions.faces_in_region(tris, lips)
-    core_regions.validate_regions(tris, mf, lf, len(obj.data.vertices))
+    core_regions.validate_regions(tris, mf, lf, len(obj.data.vertices), rest_vertices(obj))
     return mf, lf

@@ -30,6 +30,7 @@ from ..blender.actions import prepare_action
 from ..blender.bindings import read_bindings
 from ..blender.mesh import mesh_triangles, require_mesh
 from ..blender.objects import require_editable, same_polygons
+from ..blender.scene_time import require_scene_time
 from ..blender.rig import rig_animation
 from ..blender.shapekeys import (
     add_corrective_key,
@@ -173,6 +174,7 @@ def retarget(scene, actor, creature, settings: RetargetSettings, progress=None) 
     if creature == actor:
         raise FaceLabError("The creature is the face itself; pick another mesh to retarget to.")
     require_editable(creature, "Retarget")
+    require_scene_time(scene, "Retarget", creature)
     frames = frame_range(scene, settings.frame_start, settings.frame_end, "Retarget")
     names, a_rest, a_deltas, W, C = rig_animation(actor, frames, fl.SOLVE_PREFIX, factored=True)
     ta = mesh_triangles(actor.data)

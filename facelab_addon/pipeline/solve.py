@@ -43,6 +43,7 @@ from ..blender.mesh import (
     vertex_group_mask,
 )
 from ..blender.objects import require_editable, world_affine, world_matrices
+from ..blender.scene_time import require_scene_time
 from ..blender.rig import rig_shapes
 from ..blender.shapekeys import key_values_bulk, remove_keys
 from ..core.errors import BundleError, CameraError, FaceLabError
@@ -263,6 +264,7 @@ def bind_tracks(scene, obj, frame: int, settings: BindSettings) -> BindResult:
     t0 = time.perf_counter()
     require_mesh(obj)
     require_editable(obj, "Bind Tracks")
+    require_scene_time(scene, "Bind Tracks", obj)
     views = require_views(settings.views)
     keep = scene.frame_current
     scene.frame_set(int(frame))
@@ -349,6 +351,7 @@ def _gather(scene, obj, settings: SolveSettings) -> _SolveInputs:
 
     require_mesh(obj)
     require_editable(obj, "Solve")
+    require_scene_time(scene, "Solve", obj)
     frames = frame_range(scene, settings.frame_start, settings.frame_end, "Solve")
     views = require_views(settings.views)
     notes = []

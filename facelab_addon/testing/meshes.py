@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["grid_triangles", "grid_mesh"]
+__all__ = ["grid_triangles", "grid_mesh", "malformed_grid", "MALFORMATIONS"]
 
 
 def grid_triangles(n: int, m: int | None = None):
@@ -55,3 +55,45 @@ def grid_mesh(xs, ys, z=None):
     X, Y = np.meshgrid(np.asarray(xs, dtype=np.float64), np.asarray(ys, dtype=np.float64), indexing="ij")
     Z = np.zeros_like(X) if z is None else z(X, Y)
     return np.stack([X, Y, Z], -1).reshape(-1, 3), grid_triangles(len(xs), len(ys))
+
+
+#: What :func:`malformed_grid` may do to a grid: reverse some triangles, cut holes, add an edge shared by three
+#: triangles, repeat triangles, squash triangles into slivers, merge two corners of a triangle into one position.
+MALFORMATIONS = ("flip", "hole", "nonmanifold", "duplicate", "sliver", "coincident")
+
+
+def malformed_grid(seed: int):
+    """A randomly perturbed grid with one to three :data:`MALFORMATIONS` (the meshes artists' scans and
+    broken exports give), deterministic in ``seed``.
+
+    Returns
+    -------
+    vertices : (V,3) float64
+        Grid of 3 to 19 vertices a side, unit spacing, perturbed by Gaussian noise (sigma 0 to 3).
+    faces : (F,3) int64
+    kinds : list of str
+        The malformations applied.
+    """
+    rng = np.random.default_rng(seed)
+    kinds = sorted(str(k) for k in rng.choice(MALFORMATIONS, rng.integers(1, 4), replace=False))
+    n, m = rng.integers(3, 20, 2)
+    V, F = grid_mesh(np.arange(n, dtype=float), np.arange(m, dtype=float))
+    V = V + rng.normal(0, rng.choice([0.0, 0.05, 0.3, 1.0, 3.0]), V.shape)
+    if "flip" in kinds:
+        idx = rng.choice(len(F), rng.integers(1, max(2, len(F) // 3)), replace=False)
+        F[idx] = F[idx][:, ::-1]
+    if "hole" in kinds:
+        F = F[rng.random(len(F)) > rng.uniform(0.05, 0.5)]
+    if "nonmanifold" in kinds and len(F):
+        f = F[rng.integers(len(F))]
+        V = np.vstack([V, V[f].mean(0) + rng.normal(0, 0.3, 3)])
+        F = np.vstack([F, [f[0], f[1], len(V) - 1]])
+    if "duplicate" in kinds and len(F):
+        F = np.vstack([F, F[rng.integers(len(F), size=3)]])
+    if "sliver" in kinds and len(F):
+        for f in F[rng.integers(len(F), size=3)]:
+            V[f[2]] = V[f[0]] + (V[f[1]] - V[f[0]]) * rng.random() + rng.normal(0, 1e-9, 3)
+    if "coincident" in kinds and len(F):
+        for f in F[rng.integers(len(F), size=3)]:
+            V[f[1]] = V[f[0]]
+    return V, F, kinds

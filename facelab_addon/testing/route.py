@@ -491,7 +491,9 @@ def truth_contours(rs: RouteScene, Vw, cam):
     """Upper and lower inner-lip silhouette pixels of world positions ``Vw`` (left to right)."""
     from ..core.geometry.silhouette import lip_side, silhouette_edges
 
-    F = _tris(rs.obj)
+    from ..blender.mesh import world_winding
+
+    F = world_winding(_tris(rs.obj), np.array(rs.obj.matrix_world)[:3, :3])  # a mirrored object: normals outward
     E = silhouette_edges(Vw, F, cam)
     E = E[rs.inner_lips[E].all(1)]
     side = lip_side(Vw, F, cam, E.ravel()).reshape(-1, 2)

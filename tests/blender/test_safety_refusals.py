@@ -13,7 +13,7 @@ import pytest
 
 from facelab_addon.blender.bakes import bake_destination
 from facelab_addon.blender.objects import ModifierState, NotEditableError, require_editable
-from facelab_addon.blender.shapekeys import add_corrective_key, add_keys_from_deltas, owned_keys, remove_keys
+from facelab_addon.blender.shapekeys import add_corrective_key, add_keys_from_deltas, key_spike, owned_keys, remove_keys
 from facelab_addon.core.errors import FaceLabError, OutputError
 from facelab_addon.names import OWNED_KEYS_PROP, PROPAGATE_PREFIX, SOLVE_PREFIX
 from facelab_addon.pipeline.bake import BakeSettings, bake
@@ -149,7 +149,10 @@ def test_keys_of_older_files_are_adopted_by_their_exact_names(addon):
     bpy.ops.wm.read_factory_settings(use_empty=True)
     obj = grid()
     for name in ("Basis", "FL_Prop_00", "FL_Prop_01.001", "FL_Prop_MyFix", "FL_Refine_0012"):
-        obj.shape_key_add(name=name)
+        kb = obj.shape_key_add(name=name)
+        if name.startswith("FL_Prop_0"):  # as FaceLab set them up (an artist's FL_Prop_00 is not adopted)
+            kb.slider_min, kb.slider_max = -10.0, 10.0
+    key_spike(obj.data.shape_keys.key_blocks["FL_Refine_0012"], 12)
     assert obj.data.shape_keys.get(OWNED_KEYS_PROP) is None
     assert sorted(owned_keys(obj)) == ["FL_Prop_00", "FL_Prop_01.001", "FL_Refine_0012"]
     n = len(obj.data.vertices)
@@ -158,6 +161,24 @@ def test_keys_of_older_files_are_adopted_by_their_exact_names(addon):
                                                              "FL_Solve_00"] and names == ["FL_Solve_00"]
     assert remove_keys(obj, PROPAGATE_PREFIX) == 2
     assert list(obj.data.shape_keys.key_blocks.keys()) == ["Basis", "FL_Prop_MyFix", "FL_Refine_0012", "FL_Solve_00"]
+
+
+def test_an_artists_key_of_a_legacy_name_is_not_adopted(addon):
+    """A file FaceLab never touched: the artist's FL_Prop_00 (slider 0..1) and FL_Refine_0012 (not keyed
+    0, 1, 0 around frame 12) keep their names and stay the artist's; FaceLab writes under free names."""
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    obj = grid()
+    for name in ("Basis", "FL_Prop_00", "FL_Refine_0012"):
+        obj.shape_key_add(name=name)
+    kb = obj.data.shape_keys.key_blocks["FL_Refine_0012"]
+    kb.value = 0.5
+    kb.keyframe_insert("value", frame=12)
+    assert owned_keys(obj) == []
+    names = add_keys_from_deltas(obj, PROPAGATE_PREFIX, np.ones((2, len(obj.data.vertices), 3)))
+    assert names == ["FL_Prop_00.001", "FL_Prop_01"]
+    assert sorted(owned_keys(obj)) == names
+    assert remove_keys(obj, PROPAGATE_PREFIX) == 2 and remove_keys(obj, "FL_Refine_") == 0
+    assert list(obj.data.shape_keys.key_blocks.keys()) == ["Basis", "FL_Prop_00", "FL_Refine_0012"]
 
 
 # --------------------------------------------------------------------------- frame ranges

@@ -22,9 +22,9 @@ N_TRAIN = 8
 def _drawable(upper, lower, tol_px=2.0):
     """An artist would draw these truth contours as they are: the upper one above the lower one (where
     the truth's silhouettes cross, an artist draws where the lips meet, which the truth does not give)."""
-    from facelab_addon.core.lips.views import _y_at
+    from facelab_addon.core.geometry.polyline import y_at
 
-    ly = _y_at(upper[:, 0], lower)
+    ly = y_at(upper[:, 0], lower)
     ok = np.isfinite(ly)
     return ok.any() and bool((ly[ok] >= upper[ok, 1] - tol_px).all())
 

@@ -429,3 +429,45 @@ def test_fuzz_module_uses_only_facelab_errors(seed):
     with pytest.raises(IndexError):
         outcome(lambda: np.zeros(1)[3])
     assert outcome(lambda: (_ for _ in ()).throw(FaceLabError("x; fix"))) is None
+
+
+# ---------------------------------------------------------------- the process itself (libigl)
+_CHILD = """
+import sys
+from facelab_addon.core.errors import FaceLabError
+from facelab_addon.core.geometry.geodesic import geodesic_distance
+from facelab_addon.core.lips.regions import auto_regions
+from facelab_addon.testing.meshes import malformed_grid
+for seed in range(int(sys.argv[1]), int(sys.argv[2])):
+    V, F, kinds = malformed_grid(seed)
+    print(seed, kinds, flush=True)
+    for call in (lambda: auto_regions(V, F, None), lambda: geodesic_distance(V, F, [0, len(V) // 2], 3.0)):
+        try:
+            call()
+        except FaceLabError:
+            pass
+print("done", flush=True)
+"""
+
+
+def test_malformed_meshes_never_kill_the_process():
+    """Auto Regions and geodesic distances on perturbed grids with flipped, repeated, non-manifold or sliver
+    triangles, holes and merged corners, run in a child process: a crash inside libigl (it segfaulted on seed 35
+    and looped for ever on seed 61) fails this test, naming the mesh, instead of killing the test run. Every
+    call must return or raise a FaceLabError."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = str(Path(__file__).resolve().parents[2])
+    env = dict(os.environ, PYTHONPATH=root + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    try:
+        run = subprocess.run([sys.executable, "-c", _CHILD, "0", "200"], capture_output=True, text=True, env=env,
+                             timeout=240)
+    except subprocess.TimeoutExpired as e:
+        last = (e.stdout or b"").decode(errors="replace").strip().splitlines()[-1:]
+        pytest.fail(f"a call hung on the malformed mesh {last}")
+    lines = run.stdout.strip().splitlines()
+    assert run.returncode == 0 and lines[-1:] == ["done"], \
+        f"the process died (code {run.returncode}) on the malformed mesh {lines[-1:]}: {run.stderr[-2000:]}"

@@ -213,3 +213,32 @@ def test_ict_wider_lip_band_pushes_the_mouth_band_outward(ict_regions):
     assert d[band].min() < lw + 0.1 * W  # starts at the lip border, no gap of ignored skin
     assert band.sum() > 0.8 * (mouth0 & ~regions.auto_regions(V, F, loop=loop)[1]).sum()
     regions.validate_regions(F, regions.faces_in_region(F, mouth), regions.faces_in_region(F, lip), len(V))
+
+
+def test_lip_faces_duplicated_in_place_are_named_as_duplicates():
+    """Lip faces duplicated in place (Shift+D, move cancelled: new vertices on the old ones, in the same groups)
+    make a borderless piece of the inner-lip region. The message named the new vertices only; it now says they
+    are duplicates lying on other vertices and how to remove them (Propagate's regressor says the same)."""
+    from facelab_addon.core.errors import RegionError
+    from facelab_addon.core.lips.propagate import LipRegressor
+    from facelab_addon.testing.meshes import grid_mesh
+
+    V, F = grid_mesh(np.arange(12, dtype=float), np.arange(10, dtype=float), lambda x, y: 0.3 * np.sin(0.5 * x))
+    y = V[:, 1]
+    mouth, lips = regions.faces_in_region(F, (y <= 3) | (y >= 6)), regions.faces_in_region(F, (y >= 3) & (y <= 6))
+    dup_faces = lips[:6]
+    used = np.unique(F[dup_faces])
+    new = len(V) + np.arange(len(used))
+    V2 = np.vstack([V, V[used]])  # the copies, exactly on the originals
+    remap = np.arange(len(V))
+    remap[used] = new
+    F2 = np.vstack([F, remap[F[dup_faces]]])
+    lips2 = np.r_[lips, len(F) + np.arange(len(dup_faces))]
+    with pytest.raises(RegionError, match=r"no border vertex \(first vertices \["):  # without positions, as before
+        regions.validate_regions(F2, mouth, lips2, len(V2))
+    msg = (rf"their {len(used)} vertices \(first \[{new[0]}, .*are duplicates lying exactly on other vertices "
+           rf"\(first \[{used[0]}, .*Merge by Distance")
+    with pytest.raises(RegionError, match=msg):
+        regions.validate_regions(F2, mouth, lips2, len(V2), V2)
+    with pytest.raises(RegionError, match=msg):
+        LipRegressor(V2, F2, mouth, lips2)

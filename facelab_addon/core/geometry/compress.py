@@ -249,7 +249,7 @@ def low_rank_reader(basis, weights):
     W = np.asarray(weights, dtype=np.float64)
     if B.ndim != 3 or B.shape[-1] != 3 or W.ndim != 2 or W.shape[1] != B.shape[0]:
         raise MeshError(f"A low-rank correction needs basis (r,n,3) and weights (T,r); got {B.shape} and {W.shape}.")
-    Bf = B.reshape(len(B), -1)
+    Bf = B.reshape(len(B), B.shape[1] * 3)  # explicit: a rank-0 basis (no correction) reads zeros
 
     def read(i, j):
         return (W[i:j] @ Bf).reshape(j - i, B.shape[1], 3)

@@ -19,7 +19,54 @@ from scipy.sparse.csgraph import dijkstra as _dijkstra
 from ..errors import MeshError
 from .mesh import edge_length_graph, face_areas
 
-__all__ = ["geodesic_distance"]
+__all__ = ["geodesic_distance", "exact_geodesic_safe"]
+
+
+#: A triangle whose smallest height is below this share of the mesh's mean edge length is a sliver.
+SLIVER = 1e-6
+
+
+def exact_geodesic_safe(vertices, faces) -> bool:
+    """Whether libigl's ``exact_geodesic`` can be run on this triangle mesh without crashing the process.
+
+    libigl (MMP) assumes an oriented 2-manifold of proper triangles; on other input it can end in a
+    segmentation fault (a perturbed grid with holes, flipped or duplicated triangles, an edge shared by
+    three triangles, slivers). The mesh must have: finite positions; no triangle with a repeated corner
+    or a height below :data:`SLIVER` of the mean edge length; every edge in at most two triangles, which
+    run along it in opposite directions (consistent orientation, no duplicate triangles); and no vertex
+    where two fans of triangles meet (a bow tie: more than two boundary edges at a vertex).
+
+    Parameters
+    ----------
+    vertices : (V,3) float
+    faces : (F,3) int
+        Indices into ``vertices``.
+    """
+    V = np.asarray(vertices, dtype=np.float64)
+    F = np.asarray(faces, dtype=np.int64)
+    if len(F) == 0:
+        return True
+    if not np.isfinite(V[np.unique(F)]).all():
+        return False
+    if ((F[:, 0] == F[:, 1]) | (F[:, 1] == F[:, 2]) | (F[:, 2] == F[:, 0])).any():
+        return False
+    e = np.stack([V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 1]], V[F[:, 0]] - V[F[:, 2]]], axis=1)
+    length = np.linalg.norm(e, axis=2)  # (F,3)
+    mean = float(length.mean())
+    if not mean > 0:
+        return False
+    height = 2.0 * face_areas(V, F) / np.maximum(length.max(axis=1), 1e-300)
+    if (height < SLIVER * mean).any():
+        return False
+    half = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])  # directed edges
+    if len(np.unique(half, axis=0)) != len(half):  # an edge run twice the same way: flipped or duplicated
+        return False
+    und, count = np.unique(np.sort(half, axis=1), axis=0, return_counts=True)
+    if (count > 2).any():  # non-manifold edge
+        return False
+    boundary = und[count == 1]
+    per_vertex = np.bincount(boundary.ravel(), minlength=len(V))
+    return bool((per_vertex <= 2).all())
 
 
 def geodesic_distance(vertices, faces, sources, limit=np.inf, *, exact: bool = True) -> np.ndarray:
@@ -42,7 +89,9 @@ def geodesic_distance(vertices, faces, sources, limit=np.inf, *, exact: bool = T
         reported as ``inf``.
     exact : bool
         Use libigl's exact geodesics (default); ``False`` returns the
-        edge-path distance, an overestimate of up to about 15 percent.
+        edge-path distance, an overestimate of up to about 15 percent. The
+        edge-path distance is also what a mesh libigl cannot take gives
+        (:func:`exact_geodesic_safe`: slivers, flipped or non-manifold triangles).
 
     Returns
     -------
@@ -80,6 +129,8 @@ def geodesic_distance(vertices, faces, sources, limit=np.inf, *, exact: bool = T
             sub = np.isfinite(dg)
             fsel = sub[F].all(axis=1) & (face_areas(V, F) > 0)  # exact geodesics need proper triangles
             SF = F[fsel]
+            if not exact_geodesic_safe(V, SF):  # libigl would crash the process (segfault): edge paths instead
+                SF = SF[:0]
             used = np.unique(SF)
             remap = -np.ones(nv, dtype=np.int64)
             remap[used] = np.arange(len(used))

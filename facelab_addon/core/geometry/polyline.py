@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = [
+    "y_at",
     "arc_length",
     "resample_polyline",
     "closest_arc_length",
@@ -145,3 +146,17 @@ def point_to_polyline_distance(Q, C) -> np.ndarray:
     ex = qx - t * bx
     ey = qy - t * by
     return np.sqrt((ex * ex + ey * ey).min(axis=1))
+
+
+def y_at(x, curve) -> np.ndarray:
+    """(N,) a roughly x-monotonic 2D curve's y at ``x`` (N,), linearly interpolated; NaN outside its span.
+
+    ``curve`` (M,2): points in any order along x (pixels, or any units).
+    """
+    curve = np.asarray(curve, dtype=np.float64)
+    x = np.asarray(x, dtype=np.float64)
+    o = np.argsort(curve[:, 0], kind="stable")
+    cx, cy = curve[o, 0], curve[o, 1]
+    y = np.interp(x, cx, cy)
+    y[(x < cx[0]) | (x > cx[-1])] = np.nan
+    return y

@@ -207,7 +207,7 @@ class LipRegressor(_Training, _StreamingPrediction):
     def _setup_regions(self, mouth_faces, lip_faces):
         """Validated regions, their rest-pose inverse shape matrices and local vertex indexing."""
         R, F = self.rest, self.faces
-        self.mouth_faces, self.lip_faces = validate_regions(F, mouth_faces, lip_faces, len(R))
+        self.mouth_faces, self.lip_faces = validate_regions(F, mouth_faces, lip_faces, len(R), R)
         self._mouth_tris = F[self.mouth_faces]
         self._lip_tris = F[self.lip_faces]
         self._mouth_rinv = rest_inverse(R, self._mouth_tris, name="mouth region")

@@ -132,7 +132,7 @@ def region_border(faces, region_faces, n_vertices: int | None = None) -> np.ndar
     return np.flatnonzero(a & b).astype(np.int64)
 
 
-def validate_regions(faces, mouth_faces, lip_faces, n_vertices: int):
+def validate_regions(faces, mouth_faces, lip_faces, n_vertices: int, vertices=None):
     """Check a mouth/lip region pair and return both as sorted unique int64 arrays.
 
     Parameters
@@ -143,6 +143,9 @@ def validate_regions(faces, mouth_faces, lip_faces, n_vertices: int):
         Triangle indices of the mouth (trusted) and inner-lip (predicted) regions.
     n_vertices : int
         Vertex count ``V``.
+    vertices : (V,3) float, optional
+        Rest positions: a borderless piece whose vertices all sit on other vertices is then named as a
+        duplicate made in place (Shift+D) of those.
 
     Returns
     -------
@@ -194,11 +197,36 @@ def validate_regions(faces, mouth_faces, lip_faces, n_vertices: int):
     has_border[lab[remap[border]]] = True
     if not has_border.all():
         bad = used[~has_border[lab]]
+        twins = _coincident_twins(vertices, bad)
+        if twins is not None:
+            raise RegionError(
+                f"{int((~has_border).sum())} piece(s) of the inner-lip region have no border vertex: their "
+                f"{len(bad)} vertices (first {bad[:5].tolist()}) are duplicates lying exactly on other vertices "
+                f"(first {twins[:5].tolist()}), faces duplicated in place (Shift+D with the move cancelled). "
+                "Delete the duplicated faces, or select all and Merge by Distance, then run again."
+            )
         raise RegionError(
             f"{int((~has_border).sum())} piece(s) of the inner-lip region have no border vertex "
             f"(first vertices {bad[:5].tolist()}); remove them from 'FL_lips' or connect them to the mouth region."
         )
     return mouth, lips
+
+
+def _coincident_twins(vertices, ids):
+    """(k,) for each vertex of ``ids`` a different vertex at the same position, or None when some has none."""
+    if vertices is None:
+        return None
+    V = np.asarray(vertices, dtype=np.float64)
+    if V.ndim != 2 or V.shape[1] != 3 or not np.isfinite(V).all():
+        return None
+    from scipy.spatial import cKDTree
+
+    others = np.setdiff1d(np.arange(len(V)), ids)
+    if not len(others):
+        return None
+    tol = 1e-6 * float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
+    d, j = cKDTree(V[others]).query(V[ids], distance_upper_bound=max(tol, 1e-300))
+    return others[j] if np.isfinite(d).all() else None
 
 
 # --------------------------------------------------------------------------

@@ -21,9 +21,11 @@ from ..capture.camera import Camera
 from ..errors import CameraError, SketchError
 from ..geometry.deform import PointConstraints
 from ..geometry.mesh import edge_faces
-from ..geometry.polyline import resample_polyline
+from ..geometry.polyline import resample_polyline, y_at
 from ..geometry.silhouette import facing, projected_normals
 from .contact import contact_terms, one_line
+from .camera_checks import require_camera_outside
+from .swapped_strokes import check_swapped_strokes
 
 __all__ = ["SketchView", "ViewMatcher", "press_lips", "prepare_sketch"]
 
@@ -45,15 +47,6 @@ class SketchView:
     upper: object
     lower: object
     name: str = ""
-
-
-def _y_at(x, curve):
-    """Interpolate a roughly x-monotonic curve's y at ``x`` (NaN outside its span)."""
-    o = np.argsort(curve[:, 0], kind="stable")
-    cx, cy = curve[o, 0], curve[o, 1]
-    y = np.interp(x, cx, cy)
-    y[(x < cx[0]) | (x > cx[-1])] = np.nan
-    return y
 
 
 def press_lips(upper, lower, overlap_upper=None, overlap_lower=None):
@@ -81,7 +74,7 @@ def press_lips(upper, lower, overlap_upper=None, overlap_lower=None):
     Lw = np.array(lower, dtype=np.float64)
     out = []
     for P, Q, ov, sign in ((U, Lw, overlap_upper, 1.0), (Lw, U, overlap_lower, -1.0)):
-        qy = _y_at(P[:, 0], Q)  # the other contour's y at each sample's column
+        qy = y_at(P[:, 0], Q)  # the other contour's y at each sample's column
         cross = np.where(np.isfinite(qy), sign * (P[:, 1] - qy), 0.0)  # > 0: lower drawn above upper
         o = np.zeros(len(P)) if ov is None else np.nan_to_num(np.maximum(np.asarray(ov, float), 0.0))
         move = np.maximum(cross - o, 0.0)
@@ -171,25 +164,25 @@ def _envelope_y(x, a, b, upper: bool):
     return np.where(np.isfinite(env), env, np.nan)
 
 
-def _lip_overlap_px(camera, X, faces, near, x):
-    """(N,) how far (pixels) the lower lip's silhouette of ``X`` lies above the upper lip's at image columns ``x``.
+def _lip_silhouette_y(camera, X, faces, near, x):
+    """``(yu, yl)`` (N,) each: image y of the upper lip's lowest and the lower lip's highest silhouette of ``X``
+    at image columns ``x`` (pixels, y down), NaN where that lip has no silhouette.
 
     The silhouette edges among ``faces`` with both ends in ``near`` are split into upper and lower
-    lip by their projected normals; the overlap at a column is the upper lip's lowest silhouette
-    minus the lower lip's highest one (image y down): positive where the lips overlap in the image,
-    0 where a lip has no silhouette.
+    lip by their projected normals.
     """
     F = np.asarray(faces)
     Fn = F[near[F].all(axis=1)]
+    none = np.full(len(x), np.nan)
     if len(Fn) == 0:
-        return np.zeros(len(x))
+        return none, none
     edges, ef = edge_faces(Fn)
     inner = (ef >= 0).all(axis=1)
     edges, ef = edges[inner], ef[inner]
     s = facing(X, Fn, camera) > 0
     E = edges[s[ef[:, 0]] != s[ef[:, 1]]]
     if len(E) == 0:
-        return np.zeros(len(x))
+        return none, none
     sil = np.unique(E)
     side = projected_normals(X[sil], _vertex_normals_subset(X, Fn, sil), camera)[:, 1] > 0
     up_v = np.zeros(len(X), bool)
@@ -198,8 +191,17 @@ def _lip_overlap_px(camera, X, faces, near, x):
     lo_v[sil[~side]] = True
     uv = camera.project(X)
     Eu, El = E[up_v[E].all(axis=1)], E[lo_v[E].all(axis=1)]
-    yu = _envelope_y(x, uv[Eu[:, 0]], uv[Eu[:, 1]], upper=True)
-    yl = _envelope_y(x, uv[El[:, 0]], uv[El[:, 1]], upper=False)
+    return (_envelope_y(x, uv[Eu[:, 0]], uv[Eu[:, 1]], upper=True),
+            _envelope_y(x, uv[El[:, 0]], uv[El[:, 1]], upper=False))
+
+
+def _lip_overlap_px(camera, X, faces, near, x):
+    """(N,) how far (pixels) the lower lip's silhouette of ``X`` lies above the upper lip's at image columns ``x``.
+
+    The upper lip's lowest silhouette minus the lower lip's highest one (:func:`_lip_silhouette_y`, image y
+    down): positive where the lips overlap in the image, 0 where a lip has no silhouette.
+    """
+    yu, yl = _lip_silhouette_y(camera, X, faces, near, x)
     return np.nan_to_num(yu - yl)
 
 
@@ -439,6 +441,7 @@ class ViewMatcher:
             d_sk, _ = cKDTree(sketch).query(uv[cand], distance_upper_bound=reach_px)
             near[np.flatnonzero(cand)[np.isfinite(d_sk)]] = True
         if not near.any():
+            require_camera_outside(cam, V0, F, fixed, depth, where)
             if (depth[~fixed] <= 0).mean() > 0.5:
                 raise CameraError(
                     f"The face is behind the camera{where}; select the camera that looks at the face (the one the "
@@ -460,6 +463,12 @@ class ViewMatcher:
         # overlaps under 2.5 % of the sketch's width (about 1 mm; where the silhouettes meet near the corners)
         # count as none, from 5 % on in full, so the pressing does not hinge on near-ties of the silhouettes
         tol = 0.025 * width
+        lo_x = max(up_raw[:, 0].min(), lo_raw[:, 0].min())
+        hi_x = min(up_raw[:, 0].max(), lo_raw[:, 0].max())
+        if hi_x > lo_x:
+            pad = 0.1 * (hi_x - lo_x)  # the corners, where the two strokes meet, say nothing of their order
+            cols = np.linspace(lo_x + pad, hi_x - pad, 64)
+            check_swapped_strokes(up_raw, lo_raw, *_lip_silhouette_y(cam, V0, F, near, cols), cols, where)
 
         def overlap(x):
             o = _lip_overlap_px(cam, V0, F, near, x)

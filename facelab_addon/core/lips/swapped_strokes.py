@@ -1,0 +1,76 @@
+"""Lip strokes drawn on each other's layer: the upper-lip contour on the lower lip's layer and back.
+
+An open mouth's inner contours bound a lens in the image: the upper one arches up, the lower one sags down,
+and the upper lies above the lower. Strokes on swapped layers turn that lens over while the captured face's
+lips are apart; Refine Lips would then pull each lip onto the other's contour (the lips several times worse
+than the capture). :func:`check_swapped_strokes` refuses such a sketch; pixels throughout (image y down).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import SketchError
+from ..geometry.polyline import y_at
+
+__all__ = ["SWAP_SHARE", "check_swapped_strokes"]
+
+
+def _sag(P) -> float:
+    """How far (pixels, image y down) a stroke's middle column lies below the line between its two ends."""
+    ends = P[[int(np.argmin(P[:, 0])), int(np.argmax(P[:, 0]))]]
+    return float(y_at(np.array([ends[:, 0].mean()]), P)[0] - ends[:, 1].mean())
+
+
+#: Share of the mouth's width over which the upper stroke must lie below the lower one (by at least a quarter of
+#: the captured lips' gap there) for :func:`check_swapped_strokes` to call the layers swapped.
+SWAP_SHARE = 0.6
+
+
+def check_swapped_strokes(upper, lower, yu, yl, x, where: str = "") -> None:
+    """Refuse a sketch whose upper and lower strokes look drawn on each other's layer.
+
+    Parameters
+    ----------
+    upper, lower : (N,2), (M,2) float
+        The strokes as drawn (resampled), pixels (image y down).
+    yu, yl : (K,) float
+        The captured upper lip's lowest and lower lip's highest silhouette at columns ``x`` (K,)
+        (``core.lips.views``), NaN where none.
+    x : (K,) float
+        Image columns across the span both strokes cover.
+    where : str
+        Names the view in messages.
+
+    Raises
+    ------
+    SketchError
+        When, over at least :data:`SWAP_SHARE` of the columns, the upper stroke lies below the lower one by
+        more than a quarter of the captured lips' gap (and 2 px), the captured lips are apart there (not
+        overlapping in this view, where a crossing drawing may be a real overlap), and the strokes lie
+        less than half as far (median) from the other lip's silhouette as from their own, and the two strokes
+        bound an upside-down lens (the upper stroke's middle sags below its ends more than the lower one's,
+        by a quarter of the gap: an open mouth's upper inner contour arches up, the lower sags down): what a
+        sketch on swapped layers looks like. A crossing drawn on purpose (one lip in front of the other)
+        keeps the lens's orientation, so it is read as drawn.
+    """
+    su, sl = y_at(x, upper), y_at(x, lower)
+    ok = np.isfinite(su) & np.isfinite(sl) & np.isfinite(yu) & np.isfinite(yl)
+    if ok.sum() < 10:
+        return
+    su, sl, yu, yl = su[ok], sl[ok], yu[ok], yl[ok]
+    gap = yl - yu  # > 0: the captured lips are apart in the image
+    cross = su - sl  # > 0: the upper stroke below the lower one
+    if not np.median(gap) > 0:
+        return
+    crossed = cross > np.maximum(2.0, 0.25 * gap)
+    as_drawn = np.median(np.abs(su - yu) + np.abs(sl - yl))
+    swapped = np.median(np.abs(su - yl) + np.abs(sl - yu))
+    # an open mouth's inner contours bound a lens: the upper arches up, the lower sags down (image y down)
+    lens = _sag(lower) - _sag(upper)
+    if crossed.mean() >= SWAP_SHARE and swapped < 0.5 * as_drawn and lens < -max(2.0, 0.25 * np.median(gap)):
+        raise SketchError(
+            f"The upper-lip stroke{where} lies below the lower-lip stroke over {100 * crossed.mean():.0f} % of the "
+            "mouth, while the face's lips are apart there: the strokes look drawn on swapped layers (the upper "
+            "lip on 'Lower lip'). Move each stroke to its layer (or swap the two layers' names) and refine again."
+        )
