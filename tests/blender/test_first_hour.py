@@ -32,3 +32,14 @@ def test_first_hour_on_the_sample(addon, tmp_path):
 
     assert w.baked.shape == w.round2.shape and w.baked_start == T0
     np.testing.assert_allclose(w.baked, w.round2, atol=1e-5)
+
+
+def test_the_page_names_the_walked_frames():
+    """docs/first-hour.md tells the artist to sketch the frames the walk sketches first."""
+    from pathlib import Path
+
+    from facelab_addon.testing.first_hour import FIRST_ROUND
+
+    page = (Path(__file__).resolve().parents[2] / "docs" / "first-hour.md").read_text()
+    missing = [f for f in FIRST_ROUND if f"**{f}**" not in page]
+    assert not missing, f"docs/first-hour.md does not name frame(s) {missing} of the walk's first round"
