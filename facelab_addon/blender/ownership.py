@@ -24,7 +24,7 @@ from . import compat
 
 __all__ = ["as_prefixes", "owned_key_names", "own_key", "key_matches", "owned_keys", "muted_shape_keys",
            "CORRECTION_TYPES", "correction_cache_record", "correction_cache", "is_correction_cache",
-           "correction_cache_prefix", "muted_correction_caches"]
+           "correction_cache_prefix", "muted_correction_caches", "correction_cache_factor"]
 
 
 def as_prefixes(p) -> tuple:
@@ -169,6 +169,21 @@ def correction_cache(obj, prefix: str):
     if md is not None and md.type not in CORRECTION_TYPES:
         md = None
     return md, [str(f) for f in entry.get("files", [])]
+
+
+def correction_cache_factor(obj, prefix: str):
+    """``(id, data_path)`` of the keyed factor that turns ``obj``'s correction cache for ``prefix`` on (1) and off
+    (0) per frame (the Mesh Cache's own, or the patch object's for a patch cache), or None without one."""
+    md = correction_cache(obj, prefix)[0]
+    if md is None:
+        return None
+    owner = obj
+    if md.type == "NODES":
+        owner = bpy.data.objects.get(correction_cache_record(obj).get(prefix, {}).get("patch", ""))
+        md = next((m for m in owner.modifiers if m.type == "MESH_CACHE"), None) if owner is not None else None
+        if md is None:
+            return None
+    return owner, f'modifiers["{bpy.utils.escape_identifier(md.name)}"].factor'
 
 
 def is_correction_cache(obj, md) -> bool:

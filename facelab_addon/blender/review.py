@@ -30,6 +30,7 @@ __all__ = [
     "showing_capture",
     "show_capture",
     "show_corrected",
+    "corrections_as_set",
     "correction_magnitude",
     "heat_colors",
     "write_heatmap",
@@ -112,6 +113,21 @@ def show_corrected(obj) -> tuple:
     _apply(obj, st, off=False)
     del obj[REVIEW_SAVED_PROP]
     return len(st["keys"]), len(st["modifiers"])
+
+
+@contextlib.contextmanager
+def corrections_as_set(obj):
+    """Meanwhile every correction's mute flags are the artist's (Review's *Show Capture* lifted); afterwards
+    as before. Reads of the corrected face (Propagate's training frames) see the artist's work, never the
+    capture Review shows."""
+    saved = json.loads(obj[REVIEW_SAVED_PROP]) if showing_capture(obj) else None
+    if saved is not None:
+        _apply(obj, saved, off=False)
+    try:
+        yield
+    finally:
+        if saved is not None:
+            _apply(obj, saved, off=True)
 
 
 @contextlib.contextmanager

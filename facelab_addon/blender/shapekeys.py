@@ -16,6 +16,7 @@ __all__ = [
     "owned_keys",
     "own_key",
     "key_spike",
+    "zero_on_frame",
     "find_fcurve",
     "values_from_action_only",
     "key_values",
@@ -89,6 +90,29 @@ def key_spike(key_block, frame: int) -> None:
             for kp in fc.keyframe_points:
                 kp.interpolation = "LINEAR"
     key_block.value = 1.0 if bpy.context.scene.frame_current == frame else 0.0
+
+
+def zero_on_frame(id_data, data_path: str, frame: int) -> bool:
+    """Key ``id_data.<data_path>`` 0 on ``frame``, leaving every other integer frame's value as it was.
+
+    Its values on ``frame - 1`` and ``frame + 1`` are keyed as they evaluate now (when not keyed already) and the
+    three keyframes interpolate linearly, so only ``frame`` (and the subframes around it) changes. Returns
+    whether there was an F-curve to change (a property that is not animated is left alone).
+    """
+    fc = find_fcurve(id_data, data_path)
+    if fc is None:
+        return False
+    n = len(fc.keyframe_points)
+    co = np.empty(2 * n, np.float32)
+    fc.keyframe_points.foreach_get("co", co)
+    keyed = set(np.round(co[0::2]).astype(np.int64).tolist()) if n else set()
+    values = {f: (0.0 if f == frame else float(fc.evaluate(f))) for f in (frame - 1, frame, frame + 1)}
+    for f, v in values.items():
+        if f == frame or f not in keyed:
+            kp = fc.keyframe_points.insert(f, v)
+            kp.interpolation = "LINEAR"
+    fc.update()
+    return True
 
 
 def find_fcurve(id_data, data_path: str):

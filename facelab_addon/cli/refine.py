@@ -8,7 +8,8 @@ Needs a .blend with the face, the scene camera and the sketch.
 Without ``--frames`` every sketched frame that has no refine key yet is refined; frames already
 refined are skipped (listed in the summary's ``skipped``), so running the command again adds
 nothing. A frame of ``--frames`` that is already refined is refused unless ``--again``, which
-refines it again on top of its key (a second key ``FL_Refine_<frame>.001`` adds to the first).
+refines it again from what the frame shows now: a new key ``FL_Refine_<frame>.001`` becomes the frame's
+training shape and the earlier key is switched off on that frame (kept, as Refine Lips does in the panel).
 
     python -m facelab_addon refine SHOT.blend --object Face --out SHOT_refined.blend      # sketched, not yet refined
     python -m facelab_addon refine SHOT.blend --object Face --frames 40,88 --out SHOT_refined.blend
@@ -30,8 +31,9 @@ def add_arguments(p) -> None:
     p.add_argument("--sketch", metavar="NAME",
                    help="the Grease Pencil sketch object (default: Setup > Sketch, else found by its lip layers)")
     p.add_argument("--again", action="store_true",
-                   help="refine frames of --frames that already have a refine key again, on top of it (a second "
-                        "key FL_Refine_<frame>.001); without it they are refused")
+                   help="refine frames of --frames that already have a refine key again: a new key "
+                        "FL_Refine_<frame>.001 replaces the earlier one on that frame (kept, keyed off); "
+                        "without it they are refused")
 
 
 def refine_keys(obj) -> dict:
@@ -73,7 +75,7 @@ def run(args, session) -> dict:
         if again and not args.again:
             keys = [k for f in again for k in done_before[f]]
             raise CliError(f"--frames {args.frames}: frames {again} are already refined ({', '.join(keys[:6])}); "
-                           "refining them again would add a second key on top of the first. Give --again to do that "
+                           "refining them again would replace their correction with a new key. Give --again to do that "
                            "on purpose, or leave them out of --frames.")
     elif gp is not None:
         sketched = sketch_keyframes(gp)
@@ -82,8 +84,8 @@ def run(args, session) -> dict:
                    for f in sketched if f in done_before]
         if skipped:
             shown = [d["frame"] for d in skipped][:12]
-            session.note(f"skipped {len(skipped)} sketched frames already refined ({shown}); to refine one again on "
-                         "top of its key, give --frames N --again")
+            session.note(f"skipped {len(skipped)} sketched frames already refined ({shown}); to refine one again, "
+                         "give --frames N --again")
         if sketched and not frames:
             session.log("every sketched frame is already refined; nothing to do")
             return {"object": obj.name, "sketch": gp.name, "refined": [], "skipped": skipped,
@@ -104,7 +106,8 @@ def run(args, session) -> dict:
             raise CliError(f"frame {f}: {e}", exit_code_for(e)) from None
         done.append({"frame": f, "shape_key": r.shape_key, "seconds": round(time.perf_counter() - t, 3)})
         if f in done_before:
-            session.note(f"frame {f} refined again (--again): '{r.shape_key}' adds to {done_before[f]}")
+            session.note(f"frame {f} refined again (--again): '{r.shape_key}' replaces {done_before[f]} on that frame "
+                         "(kept, keyed off there)")
         session.log(f"refine {i + 1}/{len(frames)}: frame {f} -> {r.shape_key} ({time.perf_counter() - t:.2f} s)")
     session.log(f"Refined {len(frames)} frames in {time.perf_counter() - t0:.1f} s")
     return {

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..blender import bakes, caches, correction_files
+from ..blender import bakes, caches, correction_files, review
 from ..blender.scene_time import require_scene_time
 from ..core.errors import FaceLabError
 from .settings import setting
@@ -95,8 +95,8 @@ def bake_steps(obj, frames, path, settings: BakeSettings | None = None):
     Raises
     ------
     FaceLabError
-        No destination, the file exists and ``settings.overwrite`` is off, an
-        unknown format, frames unfit for the format; ``MeshError`` when ``obj``
+        Review shows the capture on ``obj`` (*Show Capture*), no destination, the file exists and
+        ``settings.overwrite`` is off, an unknown format, frames unfit for the format; ``MeshError`` when ``obj``
         is not a mesh object.
     OutputError
         A relative path, or a destination that cannot be written (a read-only
@@ -107,6 +107,9 @@ def bake_steps(obj, frames, path, settings: BakeSettings | None = None):
     """
     settings = settings or BakeSettings()
     t0 = time.perf_counter()
+    if review.showing_capture(obj):
+        raise FaceLabError(f"Review shows the capture on '{obj.name}' (Show Capture), so the bake would hold the "
+                           "capture, not the corrected performance; click Show Corrected first.")
     if not path:
         raise FaceLabError("Choose a file to bake to.")
     if settings.format not in FORMATS:

@@ -34,7 +34,13 @@ from ..blender import bakes, cache_integrate, rest_space
 from ..blender.caches import input_positions
 from ..blender.capture_stream import CaptureReader
 from ..blender.objects import local_length, tolerance_length
-from ..blender.shapekeys import add_keys_from_deltas, key_values_bulk, remove_keys
+from ..blender.shapekeys import (
+    add_keys_from_deltas,
+    key_values_bulk,
+    owned_keys,
+    remove_keys,
+    zero_on_frame,
+)
 from ..core.capture.integrate import integrate_matrices
 from ..core.capture.pointcache_writer import PointCacheWriter
 from ..core.errors import FaceLabError, MeshError, OutputError
@@ -42,7 +48,8 @@ from ..core.geometry.compress import compress, compress_streamed, low_rank_reade
 from ..names import STORE_SETTINGS_ATTR
 from .settings import setting, stored
 
-__all__ = ["StorageSettings", "CorrectionResult", "CorrectionWriter", "StoredKeys", "write_corrective_keys"]
+__all__ = ["StorageSettings", "CorrectionResult", "CorrectionWriter", "StoredKeys", "write_corrective_keys",
+           "silence_correction"]
 
 _CAPTURE_CACHES = ("MESH_CACHE", "MESH_SEQUENCE_CACHE")
 
@@ -545,3 +552,20 @@ def write_corrective_keys(obj, prefix: str, deltas, frames, *, vertices=None, me
         for i in range(0, len(D), 256):
             w.add(np.asarray(frames)[i:i + 256], D[i:i + 256])
         return StoredKeys.of(w.finish())
+
+
+def silence_correction(obj, prefix: str, frame: int) -> int:
+    """Turn FaceLab's stored correction ``prefix`` off on ``frame`` alone, keys and point cache alike.
+
+    Each of FaceLab's ``prefix*`` keys is keyed 0 on ``frame`` and the correction cache's factor 0 there
+    (:func:`facelab_addon.blender.shapekeys.zero_on_frame`: every other frame keeps its value). Nothing is
+    removed. Returns how many keyed values were changed.
+    """
+    done = 0
+    key = obj.data.shape_keys
+    for name in owned_keys(obj, prefix) if key is not None else ():
+        done += zero_on_frame(key, f'key_blocks["{bpy.utils.escape_identifier(name)}"].value', frame)
+    factor = bakes.correction_cache_factor(obj, prefix)
+    if factor is not None:
+        done += zero_on_frame(*factor, frame)
+    return done

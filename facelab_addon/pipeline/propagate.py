@@ -2,8 +2,12 @@
 (Dinev et al. 2018 §4).
 
 Training data is scene data: every corrected frame is recorded on the face object
-(``obj.facelab.training_frames``, written by :func:`record_training_frame`, also by Refine
-Lips and :func:`add_corrected_frame`) and marked on the timeline. :func:`propagate_steps`
+(``obj.facelab.training_frames``) and marked on the timeline (:mod:`.training`). A training frame is one definition,
+written by one function (:func:`store_training_frame`, for Refine Lips, :func:`add_corrected_frame`
+and :func:`mark_training_frame`) and read by one (:func:`read_training_frames`): the corrected shape
+relative to the frame without FaceLab's lip corrections (:func:`uncorrected_frame`), as a key keyed
+on the frame alone, with Propagate's correction off there; so a frame keeps what the viewport
+showed after Refine (or the sculpt) through every later Propagate. :func:`propagate_steps`
 reads the captured sequence, fits a :class:`~facelab_addon.core.lips.propagate.LipRegressor`
 on the training frames, predicts the inner lips of every frame and writes the per-frame
 correction as a few compressed corrective keys ``FL_Prop_NN``
@@ -29,34 +33,33 @@ import numpy as np
 from ..blender import bakes, cache_integrate, caches
 from ..blender.capture_stream import CaptureReader
 from ..blender.mesh import face_topology, require_mesh, spread_key_offsets
-from ..blender.objects import ModifierState, require_editable, tolerance_length
+from ..blender.objects import ModifierState, local_length, require_editable, tolerance_length
 from ..blender.scene_time import require_scene_time
-from ..blender.shapekeys import (
-    add_corrective_key,
-    key_matches,
-    key_property_bulk,
-    key_spike,
-    owned_keys,
-    rest_vertices,
-)
-from ..core.errors import FaceLabError, FrameError, MeshError
+from ..blender.shapekeys import key_property_bulk, rest_vertices
+from ..core.errors import FaceLabError, FrameError
 from ..core.lips.propagate import LipRegressor
 from ..core.lips.reduced import StreamingBasis
 from ..core.lips.suggest import SuggestScreen
-from ..names import (
-    CORRECTED_PREFIX,
-    EXTRAPOLATION_ACTION,
-    EXTRAPOLATION_PROP,
-    PROPAGATE_PREFIX,
-    STORE_SETTINGS_ATTR,
-    SUGGEST_MARKER,
-    TRAIN_MARKER,
-)
+from ..names import EXTRAPOLATION_ACTION, EXTRAPOLATION_PROP, PROPAGATE_PREFIX, STORE_SETTINGS_ATTR, SUGGEST_MARKER
 from .correctives import CorrectionWriter, StorageSettings, StoredKeys
 from .frames import check_frames
 from .regions import region_faces
 from .settings import setting, stored
 from .steps import run_steps
+from .training import (  # re-exported: the training frames are Propagate's input
+    TRAINING_KEY_PREFIXES,
+    CorrectedFrame,
+    add_corrected_frame,
+    captured_unknown,
+    mark_training_frame,
+    read_training_frames,
+    record_training_frame,
+    remove_training_frame,
+    require_finite,
+    store_training_frame,
+    training_frames,
+    uncorrected_frame,
+)
 
 __all__ = [
     "PropagateSettings",
@@ -66,6 +69,11 @@ __all__ = [
     "record_training_frame",
     "remove_training_frame",
     "add_corrected_frame",
+    "mark_training_frame",
+    "store_training_frame",
+    "uncorrected_frame",
+    "read_training_frames",
+    "TRAINING_KEY_PREFIXES",
     "propagate_steps",
     "propagate",
     "training_input",
@@ -74,6 +82,11 @@ __all__ = [
 ]
 
 _CACHE_SOURCES = ("mesh_cache", "mesh_sequence_cache")
+#: Fewest training frames for the leave-one-out ridge (``PropagateSettings.ridge``): from fewer, leaving one out
+#: says too little, and the shrunk maps undercorrect.
+LOO_MIN_FRAMES = 5
+#: A frame is reported as expected worse than its capture past this expected RMS increase, world mm.
+WORSE_MM = 0.01
 _CHUNK = 256  # frames per streamed chunk: working memory ~ chunk x (mouth + lip vertices), not the shot
 _SHOT_SAMPLE = 64  # frames of the shot read before the fit for the "auto" model choice
 _WELD_SAMPLE = 16  # frames of the shot (besides the training frames) on which split-seam twins must coincide
@@ -96,8 +109,10 @@ class PropagateSettings:
         Scale each frame's predicted correction by ``|c|² / (|c|² + S)``, ``S`` the error the fitted model is
         expected to make on that frame by extrapolating beyond the training frames (``LipRegressor``
         ``damping``): a frame where the prediction is no more certain than it is large keeps most of its
-        capture. Off (default): every frame gets the full prediction. On roughly halves the damage to frames
-        the prediction makes worse, at a held-out error that is not lower on every scene (docs/propagate.md).
+        capture. On (default); off: every frame gets the full prediction (the paper).
+    ridge : {"loo", "none"}
+        ``LipRegressor`` ``ridge``: ``"loo"`` (each local map's ridge weight by leave-one-out over the training
+        frames, from :data:`LOO_MIN_FRAMES` training frames on; 0 with fewer) or ``"none"`` (0, the paper).
     """
 
     suggestions: int = setting(3, label="Suggestions", min=0, max=50,
@@ -111,7 +126,14 @@ class PropagateSettings:
                                      "few frames, keeps capture errors that do not follow the mouth")),
         description="What Propagate learns from the training frames: the lips' whole motion, only the "
                     "correction, or an automatic blend")
-    damping: bool = setting(False, label="Damp Uncertain Frames",
+    ridge: str = setting("loo", label="Regularization", choices=(
+        ("loo", "Leave-One-Out", "From 5 training frames on, shrink each local map toward zero by the ridge weight "
+                                 "whose leave-one-out error over the training frames is smallest: near-duplicate "
+                                 "training poses with different corrections no longer make the model extrapolate "
+                                 "wildly"),
+        ("none", "None", "The least-squares maps of the paper")),
+        description="How the regression is regularized (LipRegressor ridge)")
+    damping: bool = setting(True, label="Damp Uncertain Frames",
                             description="Shrink each frame's correction toward the capture by how uncertain the "
                                         "model is there (its expected error, from the training frames and the "
                                         "frame's distance from them): well-captured frames far from the training "
@@ -136,6 +158,10 @@ class PropagateResult:
         Frames suggested for correction next (also timeline markers), best first.
     extrapolation : (T,) float ndarray
         How far each frame's mouth lies outside the training poses (also keyed on the object).
+    expected_worse : list of int
+        Frames whose inner lips the correction is expected to leave worse than captured by more than
+        :data:`WORSE_MM` (``LipRegressor.expected_change``), the worst first: the frames to check, or to
+        correct next.
     note : str
         What was changed so the keys show over a cache (empty for shape-key animation).
     model : str
@@ -152,6 +178,7 @@ class PropagateResult:
     training: list = field(default_factory=list)
     suggested: list = field(default_factory=list)
     extrapolation: np.ndarray = None
+    expected_worse: list = field(default_factory=list)
     note: str = ""
     model: str = ""
     whole_weight: float = 1.0
@@ -161,119 +188,6 @@ class PropagateResult:
     def rank(self) -> int:
         """Number of corrective shapes written."""
         return len(self.keys)
-
-
-@dataclass
-class CorrectedFrame:
-    """A corrected frame added by :func:`add_corrected_frame`: its corrective key and largest offset."""
-
-    frame: int
-    shape_key: str
-    max_offset: float
-
-
-# --------------------------------------------------------------------------- training frames
-def training_frames(obj) -> list:
-    """Sorted unique training frames of ``obj`` whose correction still exists (a sketch's key not deleted)."""
-    key = obj.data.shape_keys
-    names = set(key.key_blocks.keys()) if key else set()
-    frames = {t.frame for t in obj.facelab.training_frames if t.source != "sketch" or t.shape_key in names}
-    return sorted(frames)
-
-
-def record_training_frame(scene, obj, frame: int, shape_key: str, source: str) -> None:
-    """Remember ``frame`` as a corrected (training) frame of ``obj`` and mark it on the timeline.
-
-    Parameters
-    ----------
-    scene : bpy.types.Scene
-    obj : bpy.types.Object
-    frame : int
-    shape_key : str
-        The corrective key holding the correction ("" for a sculpted mesh).
-    source : {"sketch", "sculpt"}
-    """
-    item = obj.facelab.training_frames.add()
-    item.frame, item.shape_key, item.source = frame, shape_key, source
-    if not any(m.frame == frame and m.name.startswith(TRAIN_MARKER) for m in scene.timeline_markers):
-        scene.timeline_markers.new(f"{TRAIN_MARKER} {frame}", frame=frame)
-
-
-def remove_training_frame(scene, obj, index: int) -> tuple:
-    """Forget the training record ``index`` of ``obj`` (its shape key is kept).
-
-    The frame's timeline marker goes too once no record is left on that frame.
-
-    Returns
-    -------
-    frame : int
-    shape_key : str
-        The kept key of the record ("" for a sculpted mesh).
-    """
-    tf = obj.facelab.training_frames
-    frame, shape_key = tf[index].frame, tf[index].shape_key
-    tf.remove(index)
-    if frame not in {t.frame for t in tf}:
-        for m in list(scene.timeline_markers):
-            if m.frame == frame and m.name.startswith(TRAIN_MARKER):
-                scene.timeline_markers.remove(m)
-    return frame, shape_key
-
-
-def add_corrected_frame(scene, obj, frame: int, vertices) -> CorrectedFrame:
-    """Make the face corrected by hand on ``frame`` a training frame.
-
-    The difference to the captured frame becomes a corrective key
-    ``FL_Corrected_<frame>`` (:data:`~facelab_addon.names.CORRECTED_PREFIX`) keyed 1 on the
-    frame and 0 on its neighbours, and the frame is recorded (source "sculpt"). Over a
-    cache, the cache is first made ready to carry keys
-    (:func:`facelab_addon.blender.cache_integrate.cache_to_shape_key_ready`) and the offsets are
-    mapped through its surface so the frame shows ``vertices`` exactly.
-
-    Parameters
-    ----------
-    scene : bpy.types.Scene
-    obj : bpy.types.Object
-    frame : int
-    vertices : (V,3) float array_like
-        The corrected face, object-local scene units, the mesh's vertex order.
-
-    Returns
-    -------
-    CorrectedFrame
-
-    Raises
-    ------
-    MeshError
-        ``vertices`` does not have the mesh's vertex count.
-    """
-    require_mesh(obj)
-    require_editable(obj, "Mark Corrected Frame")
-    require_scene_time(scene, "Mark Corrected Frame", obj)
-    V = np.asarray(vertices, dtype=np.float64)
-    n = len(obj.data.vertices)
-    if V.shape != (n, 3):
-        raise MeshError(f"The corrected face has {len(V)} vertices, '{obj.name}' has {n}; export it with the "
-                        "same topology.")
-    if not np.all(np.isfinite(V)):
-        raise MeshError(f"The corrected face for frame {frame} has NaN or infinite coordinates; fix the file and "
-                        "export it again.")
-    state = ModifierState(obj)
-    try:
-        if caches.sequence_source(obj) in _CACHE_SOURCES:
-            cache_integrate.cache_to_shape_key_ready(obj)
-        captured = caches.read_captured_frames(obj, [frame])[0].astype(np.float64)
-        _require_finite(captured[None], [frame], "captured")
-        d = V - captured
-        if caches.sequence_source(obj) in _CACHE_SOURCES:
-            d = cache_integrate.correction_to_key_offsets(obj, captured, d)
-    except BaseException:
-        state.restore()
-        raise
-    kb = add_corrective_key(obj, f"{CORRECTED_PREFIX}{frame:04d}", d)
-    key_spike(kb, frame)
-    record_training_frame(scene, obj, frame, kb.name, "sculpt")
-    return CorrectedFrame(frame=frame, shape_key=kb.name, max_offset=float(np.linalg.norm(d, axis=1).max()))
 
 
 # --------------------------------------------------------------------------- propagate
@@ -401,16 +315,6 @@ def _propagate_steps(scene, obj, frames, settings, t0, topo, mouth_faces, lip_fa
             state.restore()
 
 
-def _require_finite(X, frames, what):
-    """Raise naming the scene frames (not list indices) whose vertices of ``X`` (T,V,3) are not finite."""
-    bad = ~np.isfinite(X).reshape(len(X), -1).all(axis=1)
-    if np.any(bad):
-        named = [int(f) for f in np.asarray(frames)[bad][:5]]
-        raise MeshError(f"The {what} face has NaN or infinite coordinates on frame{'s' if len(named) > 1 else ''} "
-                        f"{', '.join(map(str, named))}; fix or re-import those frames (or leave them out of the "
-                        "range).")
-
-
 def _propagate_work(scene, obj, frames, settings, t0, topo, mouth_faces, lip_faces, train, chunk):
     T = len(frames)
     total = T + 2  # progress units: fit, T frames corrected, write
@@ -427,13 +331,14 @@ def _propagate_work(scene, obj, frames, settings, t0, topo, mouth_faces, lip_fac
     # a mesh split along seams: the regression sees the welded surface alone (no duplicates), ``kept`` its vertices
     kept = topo.weld.kept if topo.n_duplicates else None
     rest_w, tris_w = (rest, topo.tris) if kept is None else topo.weld.compact(rest)
-    corrected = caches.evaluate_frames(obj, train, mute_shape_keys_prefix=(PROPAGATE_PREFIX,))
-    _require_finite(corrected, train, "corrected (training)")
+    corrected = read_training_frames(obj, train)
+    require_finite(corrected, train, "corrected (training)")
     unknown = captured_unknown(obj, train)
     model = "whole" if unknown and settings.model == "auto" else settings.model
-    reg = LipRegressor(rest_w, tris_w, mouth_faces, lip_faces, model=model, damping=bool(settings.damping))
+    reg = LipRegressor(rest_w, tris_w, mouth_faces, lip_faces, model=model, damping=bool(settings.damping),
+                       ridge="loo" if settings.ridge == "loo" and len(train) >= LOO_MIN_FRAMES else 0.0)
     captured_train = caches.read_captured_frames(obj, list(train)).astype(np.float64)  # FaceLab keys muted
-    _require_finite(captured_train, train, "captured (training)")
+    require_finite(captured_train, train, "captured (training)")
     if kept is not None:
         corrected, captured_train = corrected[:, kept], captured_train[:, kept]
     corrected = training_input(captured_train, corrected, reg.interior_vertices)
@@ -454,7 +359,7 @@ def _propagate_work(scene, obj, frames, settings, t0, topo, mouth_faces, lip_fac
     if model == "auto" or (model == "correction" and settings.damping):  # an even sample of the shot (model_choice)
         pick = frames[np.unique(np.linspace(0, T - 1, min(T, _SHOT_SAMPLE)).round().astype(int))]
         shot = reader.read(pick)[:, at_used]
-        _require_finite(shot, pick, "captured")
+        require_finite(shot, pick, "captured")
     try:
         reg.fit(corrected, captured=None if unknown else captured_train, shot=shot, used_only=True)
     except FrameError as e:  # the core names positions in the training list; the artist reads scene frames
@@ -472,11 +377,11 @@ def _propagate_work(scene, obj, frames, settings, t0, topo, mouth_faces, lip_fac
     try:
         is_train = np.isin(frames, train)
         screen = SuggestScreen(reg, T, exclude=np.flatnonzero(is_train)) if settings.suggestions else None
-        score = np.empty(T)
+        score, change = np.empty(T), np.empty(T)
         for i, j in _chunks(T, chunk):
             yield "correcting the frames", 1 + i, total
             X = reader.read(frames[i:j])  # FaceLab keys muted
-            _require_finite(X, frames[i:j], "captured")
+            require_finite(X, frames[i:j], "captured")
             Xu = X[:, at_used]
             try:  # (t, nI, 3) correction, object local; where the model guesses: the extrapolation score
                 corr, score[i:j], feature_sq = reg.correct_chunk(Xu, used_only=True, first=i)
@@ -484,6 +389,7 @@ def _propagate_work(scene, obj, frames, settings, t0, topo, mouth_faces, lip_fac
                 raise e.for_frames([int(f) for f in frames]) from None
             if screen is not None:
                 screen.add_scores(i, feature_sq, score[i:j])
+            change[i:j] = reg.expected_change(corr, score[i:j])
             corr[is_train[i:j]] = 0.0  # training frames keep the artist's own correction
             if take is not None and on_cache:  # every twin moves with its representative: the seams stay closed
                 corr = corr[:, take]
@@ -515,6 +421,9 @@ def _propagate_work(scene, obj, frames, settings, t0, topo, mouth_faces, lip_fac
     if names.storage.mode == "cache" or "more than the budget" in names.storage.note:  # say where it went
         note = f"{note} {names.storage.note}".strip()
     score[is_train] = 0.0
+    change[is_train] = 0.0
+    flagged = np.flatnonzero(change > local_length(scene, obj, 1e-3 * WORSE_MM))
+    worse = [int(frames[i]) for i in flagged[np.argsort(-change[flagged], kind="stable")]]  # the worst first
     obj[EXTRAPOLATION_PROP] = 0.0
     key_property_bulk(obj, f'["{EXTRAPOLATION_PROP}"]', frames, score, action_name=EXTRAPOLATION_ACTION)
     for m in [m for m in scene.timeline_markers if m.name.startswith(SUGGEST_MARKER)]:
@@ -527,7 +436,7 @@ def _propagate_work(scene, obj, frames, settings, t0, topo, mouth_faces, lip_fac
             scene.timeline_markers.new(f"{SUGGEST_MARKER} {f}", frame=f)
     obj.data.update()
     return PropagateResult(object=obj.name, frames=frames, keys=names, training=list(train), suggested=suggested,
-                           extrapolation=score, note=note, model=model_summary(reg, unknown),
+                           extrapolation=score, expected_worse=worse, note=note, model=model_summary(reg, unknown),
                            whole_weight=reg.whole_weight, seconds=time.perf_counter() - t0)
 
 
@@ -541,27 +450,6 @@ def model_summary(reg, unknown=()) -> str:
     if reg.model != "auto":
         return {"whole": "whole motion", "correction": "correction"}[reg.model]
     return f"auto: {100 * a:.0f}% whole motion + {100 * (1 - a):.0f}% correction"
-
-
-def captured_unknown(obj, train) -> list:
-    """Training frames whose capture Propagate cannot read apart from the correction.
-
-    The correction model learns corrected minus captured lips, so it needs each training frame as
-    captured: the frame with its correction's key muted. Refine Lips and Add Corrected Frame record
-    FaceLab's own keys, which the capture reads leave out; a frame sculpted in place and marked with
-    Mark Training Frame records no key, so its capture is unknown.
-
-    Returns
-    -------
-    list of int
-        Those frames of ``train`` (sorted); empty when every training frame's capture is known.
-    """
-    key = obj.data.shape_keys
-    owned = set(owned_keys(obj)) if key else set()
-    known = {t.frame for t in obj.facelab.training_frames
-             if t.shape_key and key is not None and t.shape_key in key.key_blocks
-             and key_matches(key, t.shape_key, caches.FACELAB_PREFIXES, owned)}
-    return [int(f) for f in train if f not in known]
 
 
 def training_input(captured, corrected, interior) -> np.ndarray:

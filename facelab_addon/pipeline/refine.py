@@ -2,9 +2,13 @@
 (Dinev et al. 2018 §5), from one camera or several.
 
 :func:`refine` reads the camera(s), the lip sketch(es) and the evaluated face on a frame, runs
-:func:`facelab_addon.core.lips.sketch.refine_lips_views` and stores the correction as a new
+:func:`facelab_addon.core.lips.sketch.refine_lips_views` on the face as the viewport shows it and
+stores the refined shape, relative to the frame without FaceLab's lip corrections, as a new
 corrective key ``FL_Refine_<frame>`` (:data:`~facelab_addon.names.REFINE_PREFIX`) keyed 1 on
-the frame and 0 on its neighbours; the frame becomes a training frame of Propagate.
+the frame and 0 on its neighbours
+(:func:`~facelab_addon.pipeline.training.store_training_frame`): the frame becomes a training
+frame of Propagate, an earlier correction of the frame no longer adds there, and the frame shows
+the refined shape now and after every later Propagate.
 
 Views: every Grease Pencil lip sketch keyed on the frame whose camera is known
 (:func:`facelab_addon.blender.sketch_views.sketch_views`: one sketch per camera, as New Lip Sketch
@@ -36,13 +40,13 @@ from ..blender.mesh import (
 from ..blender.objects import ModifierState, require_editable, world_affine
 from ..blender.rest_space import to_rest_space
 from ..blender.scene_time import require_scene_time
-from ..blender.shapekeys import add_corrective_key, key_spike, rest_vertices
+from ..blender.shapekeys import rest_vertices
 from ..blender.sketch_views import sketch_camera, sketch_views
 from ..blender.strokes import read_lip_strokes, require_sketch_keyed_on
 from ..core.errors import CameraError
 from ..core.lips.sketch import SketchView, refine_lips_views
 from ..names import FIXED_GROUP, LIPS_GROUP, MOUTH_GROUP, REFINE_PREFIX
-from .propagate import record_training_frame
+from .training import store_training_frame, uncorrected_frame
 from .settings import setting
 
 __all__ = ["REFINE_DEFAULTS", "RefineSettings", "RefineResult", "refine"]
@@ -272,7 +276,10 @@ def refine(scene, obj, frame: int, settings: RefineSettings | None = None, *, ca
     try:
         if on_cache:
             note = cache_integrate.cache_to_shape_key_ready(obj)  # so the corrective key shows on the cache
-        d_world = X - V
+        # the training frame is the refined shape relative to the frame without FaceLab's lip corrections
+        # (uncorrected_frame), not to what Propagate happened to show here: it then holds through later rounds
+        base = uncorrected_frame(obj, frame) @ A.T + b
+        d_world = X - base
         d_local = world_to_local_deltas(obj, d_world)
         if on_cache:
             captured = caches.read_captured_frames(obj, [frame])[0]
@@ -281,10 +288,8 @@ def refine(scene, obj, frame: int, settings: RefineSettings | None = None, *, ca
         state.restore()  # a failure leaves the cache modifiers as they were
         raise
     d_local = to_rest_space(obj, [frame], d_local[None], depsgraph=dg)[0]  # through an Armature: rest-space offsets
-    kb = add_corrective_key(obj, f"{REFINE_PREFIX}{frame:04d}", d_local)
-    key_spike(kb, frame)
-    record_training_frame(scene, obj, frame, kb.name, "sketch")
-    moved = np.linalg.norm(d_world, axis=1)
+    kb = store_training_frame(scene, obj, frame, d_local, REFINE_PREFIX, "sketch")
+    moved = np.linalg.norm(X - V, axis=1)
     return RefineResult(frame=frame, shape_key=kb.name, moved_vertices=int((moved > 1e-9).sum()),
                         max_move=float(moved.max()), fixed_source=fixed_src, cameras=[v.name for v in views],
                         lips_region=lips is not None, note=note, head_turn_deg=info["head_turn_deg"],

@@ -14,7 +14,7 @@ Reports are assembled as a list of parts joined by ``"; "`` (:func:`join`), so a
 from __future__ import annotations
 
 __all__ = ["EXTRAPOLATING", "GUESSING", "extrapolation_word", "extrapolation_tooltip", "mm", "held_fixed",
-           "model_sentence", "forced_whole_reason", "propagate_headline", "join"]
+           "model_sentence", "forced_whole_reason", "propagate_headline", "expected_worse", "frame_list", "join"]
 
 #: Extrapolation scores above this are flagged: the frame's mouth lies well outside the training poses.
 EXTRAPOLATING = 0.5
@@ -93,6 +93,21 @@ def propagate_headline(frames: int, seconds: float, shapes: int, training: int, 
     the learnt correction to the captured lips, 22 % predicting their whole motion from the mouth"``."""
     return (f"Propagated to {frames:,} frames in {seconds:.1f} s: {shapes} corrective shape{'s' * (shapes != 1)} "
             f"learnt from {training} corrected frame{'s' * (training != 1)}, {model_sentence(whole_weight, reason)}")
+
+
+def frame_list(frames, most: int = 12) -> str:
+    """``"3, 4, 9"`` (``", ..."`` past ``most`` frames)."""
+    frames = [int(f) for f in frames]
+    return ", ".join(map(str, frames[:most])) + (", ..." if len(frames) > most else "")
+
+
+def expected_worse(frames) -> str:
+    """What Propagate expects to end worse than the capture (``frames``: scene frames, may be empty)."""
+    n = len(frames)
+    if not n:
+        return "the model expects no frame worse than the capture"
+    return (f"{n} frame{'s' * (n != 1)} expected worse than the capture: {frame_list(frames)} "
+            "(check them, or correct one)")
 
 
 def join(parts) -> str:

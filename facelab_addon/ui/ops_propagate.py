@@ -21,9 +21,9 @@ from ..pipeline import wording
 from ..pipeline.frames import frame_range
 from ..pipeline.propagate import (
     PropagateSettings,
+    mark_training_frame,
     propagate,
     propagate_steps,
-    record_training_frame,
     remove_training_frame,
 )
 from ..pipeline.regions import RegionSettings, auto_regions
@@ -82,8 +82,15 @@ class FACELAB_OT_mark_training_frame(bpy.types.Operator):
 
     def execute(self, context):
         obj, f = face_object(context), context.scene.frame_current
-        record_training_frame(context.scene, obj, f, "", "sculpt")
-        self.report({"INFO"}, f"Frame {f} marked as a training frame of '{obj.name}'")
+        if context.mode != "OBJECT":  # a sculpt or edit in progress is flushed to the mesh first
+            bpy.ops.object.mode_set(mode="OBJECT")
+        try:
+            r = mark_training_frame(context.scene, obj, f)
+        except FaceLabError as e:
+            self.report({"ERROR"}, str(e))
+            return {"CANCELLED"}
+        kept = f"; FaceLab's correction it showed is kept in '{r.shape_key}'" if r.shape_key else ""
+        self.report({"INFO"}, f"Frame {f} marked as a training frame of '{obj.name}'{kept}")
         return {"FINISHED"}
 
 
@@ -277,6 +284,7 @@ class FACELAB_OT_propagate(_ModalJob, bpy.types.Operator):
                                        wording.forced_whole_reason(r.model)),
             r.note,
             f"correct next (suggested): frames {', '.join(map(str, r.suggested))}" if r.suggested else "",
+            wording.expected_worse(r.expected_worse),
         ]))
 
     def execute(self, context):

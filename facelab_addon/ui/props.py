@@ -15,7 +15,9 @@ class FACELAB_PG_training_frame(bpy.types.PropertyGroup):
 
     frame: IntProperty(name="Frame", description="The corrected frame")
     shape_key: StringProperty(name="Shape Key", description="Corrective shape key holding the correction")
-    source: StringProperty(name="Source", default="sketch", description="'sketch' or 'sculpt'")
+    source: StringProperty(name="Source", default="sketch",
+                           description="'sketch' (Refine Lips), 'sculpt' (Add Corrected Frame) or 'marked' "
+                                       "(sculpted in place, Mark Training Frame)")
 
 
 class FACELAB_PG_object(bpy.types.PropertyGroup):

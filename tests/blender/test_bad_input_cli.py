@@ -426,10 +426,10 @@ def test_refine_without_frames_refines_only_frames_not_refined_yet(ict, addon, t
     bpy.ops.wm.open_mainfile(filepath=str(twice))
     keys = [k.name for k in bpy.data.objects["Face"].data.shape_keys.key_blocks]
     assert [k for k in keys if k.startswith("FL_Refine_")] == [f"FL_Refine_{FRAME:04d}"]  # no .001 stacked
-    # naming the refined frame is refused unless --again, which says what it stacked
+    # naming the refined frame is refused unless --again, which says which key it replaced there
     code, s = run_main(tmp_path, "refine", once, "--object", "Face", "--frames", FRAME)
     assert code == 1 and f"frames [{FRAME}] are already refined (FL_Refine_{FRAME:04d})" in s["error"]
     assert "Give --again" in s["error"]
     code, s = run_main(tmp_path, "refine", once, "--object", "Face", "--frames", FRAME, "--again")
     assert code == 0 and s["refined"][0]["shape_key"] == f"FL_Refine_{FRAME:04d}.001"
-    assert any(f"adds to ['FL_Refine_{FRAME:04d}']" in n for n in s["notes"])
+    assert any(f"replaces ['FL_Refine_{FRAME:04d}'] on that frame" in n for n in s["notes"])

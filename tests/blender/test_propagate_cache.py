@@ -121,3 +121,23 @@ def test_refine_and_propagate_on_a_mesh_cache(tmp_path, ict, addon, patch, monke
         bpy.ops.facelab.bake(filepath=str(out), format="PC2")
     assert bpy.ops.facelab.bake(filepath=str(tmp_path / "corrected.abc"), format="ABC") == {"FINISHED"}
     assert (tmp_path / "corrected.abc").stat().st_size > 1000
+
+    # the artist's loop on the cache: Refine a propagated frame, Propagate again; the frame keeps the refined shape
+    # (Propagate's correction, keys or the point cache after the capture, is keyed off on the refined frame)
+    f = 6
+    scene.frame_set(f)
+    m_f = syn.find_mouth(truth[f - 1], F, fixed, loop=syn.ICT_MOUTH_LOOP, units_per_mm=UPM)
+    up, lo = syn.lip_contours(truth[f - 1], F, cam, fixed, mouth=m_f)
+    bpy.context.view_layer.objects.active = obj
+    bpy.ops.facelab.new_lip_sketch()
+    write_stroke_pixels(scene.facelab.sketch, "Upper lip", f, [up], bcam)
+    write_stroke_pixels(scene.facelab.sketch, "Lower lip", f, [lo], bcam)
+    bpy.context.view_layer.objects.active = obj
+    assert bpy.ops.facelab.refine_lips() == {"FINISHED"}
+    refined = caches.evaluate_frames(obj, [f], mute_shape_keys_prefix=())[0]
+    X = refined @ np.array(obj.matrix_world)[:3, :3].T + np.array(obj.matrix_world)[:3, 3]
+    d = np.r_[contour_distance(X, F, cam, up, +1, candidates=~fixed), contour_distance(X, F, cam, lo, -1, candidates=~fixed)]
+    assert d.mean() < 1.0, d.mean()  # right after Refine the frame is on the strokes (nothing propagated on top)
+    assert bpy.ops.facelab.propagate(suggestions=0) == {"FINISHED"}
+    after = caches.evaluate_frames(obj, [f], mute_shape_keys_prefix=())[0]
+    assert np.abs(after - refined).max() < 1e-5  # 0.01 mm

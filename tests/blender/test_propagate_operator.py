@@ -57,6 +57,15 @@ def build(ict):
     return fs.scene, fs.obj, err, cap_w
 
 
+def paper_settings(scene):
+    """The shot's Propagate settings set to the paper's maps, undamped (the core regressor's defaults)."""
+    from facelab_addon.pipeline.propagate import PropagateSettings
+    from facelab_addon.ui.scene_settings import ensure_initialized, entry_for
+
+    ensure_initialized(scene, entry_for(PropagateSettings))
+    scene.facelab_propagate.ridge, scene.facelab_propagate.damping = "none", False
+
+
 @pytest.mark.slow
 def test_propagate_end_to_end(ict, addon):
     scene, obj, err, cap_w = build(ict)
@@ -78,6 +87,7 @@ def test_propagate_end_to_end(ict, addon):
         kb = add_corrective_key(obj, f"Sculpt_{f}", -w * err)
         key_spike(kb, f)
         assert bpy.ops.facelab.mark_training_frame() == {"FINISHED"}
+    paper_settings(scene)  # compared with the core regressor's defaults below
     assert bpy.ops.facelab.propagate(suggestions=2) == {"FINISHED"}
 
     key = obj.data.shape_keys

@@ -126,7 +126,7 @@ def test_heat_map_of_a_propagated_correction_matches_the_injected_error(ict, add
     it removes (the truth), to within the regression's residual."""
     from facelab_addon.blender.shapekeys import key_spike
 
-    from .test_propagate_operator import FRAMES, TRAIN, build
+    from .test_propagate_operator import FRAMES, TRAIN, build, paper_settings
 
     scene, obj, err, cap_w = build(ict)
     for f, w in zip(TRAIN, cap_w[np.searchsorted(FRAMES, TRAIN)]):
@@ -134,6 +134,7 @@ def test_heat_map_of_a_propagated_correction_matches_the_injected_error(ict, add
         key_spike(add_corrective_key(obj, f"Sculpt_{f}", -w * err), f)
         bpy.ops.facelab.mark_training_frame()
     bpy.ops.facelab.auto_regions()
+    paper_settings(scene)  # the undamped correction: the whole injected error
     assert bpy.ops.facelab.propagate(suggestions=3) == {"FINISHED"}
     assert obj.animation_data.action.name == "FL_Extrapolation"  # the object's action, named for what it keys
     f = 24

@@ -46,6 +46,9 @@ pytestmark = pytest.mark.blender
 
 HELD = [2, 11, 24, 37]
 
+#: The paper's maps, undamped: what the core regressor these tests compare with computes by default.
+PAPER = dict(ridge="none", damping=False)
+
 
 def corrected_scene(ict, train=TRAIN, keyed=False, lip_width=None):
     """The capture, Auto Regions, and the artist's sculpted corrections on ``train`` (recorded): sculpted in
@@ -85,7 +88,7 @@ def test_propagate_reproduces_the_training_corrections_and_predicts(ict, addon):
     scene, obj, err, cap_w = corrected_scene(ict)
     corrected = caches.evaluate_frames(obj, TRAIN, mute_shape_keys_prefix=(PROPAGATE_PREFIX,))
 
-    r = propagate(scene, obj, FRAMES, PropagateSettings(suggestions=2))
+    r = propagate(scene, obj, FRAMES, PropagateSettings(suggestions=2, **PAPER))
     assert r.keys == prop_keys(obj) and 1 <= r.rank <= 10
     assert r.training == TRAIN and list(r.frames) == list(FRAMES) and r.note == ""
     # training frames show exactly the artist's correction (the propagated correction is zero there)
@@ -130,7 +133,7 @@ def test_auto_model_from_three_frames_on_a_wide_lip_band(ict, addon):
     e = lambda X: np.linalg.norm(X - truth, axis=2)[:, lips].mean() / e0  # noqa: E731
     got = {}
     for model in ("whole", "auto"):
-        r = propagate(scene, obj, FRAMES, PropagateSettings(suggestions=0, model=model))
+        r = propagate(scene, obj, FRAMES, PropagateSettings(suggestions=0, model=model, **PAPER))
         got[model] = caches.evaluate_frames(obj, held, mute_shape_keys_prefix=())
         np.testing.assert_allclose(caches.evaluate_frames(obj, TRAIN, mute_shape_keys_prefix=()), corrected, atol=1e-7)
         assert np.abs(r.extrapolation[np.searchsorted(FRAMES, TRAIN)]).max() < 1e-3
@@ -151,12 +154,12 @@ def test_auto_model_from_three_frames_on_a_wide_lip_band(ict, addon):
 def test_propagate_refits_from_the_scene_every_run(ict, addon):
     """Adding or removing a training frame gives the model fitted on exactly the frames now recorded."""
     scene, obj, err, cap_w = corrected_scene(ict)
-    propagate(scene, obj, FRAMES, PropagateSettings(suggestions=0))
+    propagate(scene, obj, FRAMES, PropagateSettings(suggestions=0, **PAPER))
     f = 24
     scene.frame_set(f)
     key_spike(add_corrective_key(obj, f"Sculpt_{f}", -cap_w[np.searchsorted(FRAMES, f)] * err), f)
     record_training_frame(scene, obj, f, "", "sculpt")
-    r = propagate(scene, obj, FRAMES, PropagateSettings(suggestions=0))
+    r = propagate(scene, obj, FRAMES, PropagateSettings(suggestions=0, **PAPER))
     assert r.training == sorted(TRAIN + [f]) and r.keys == prop_keys(obj)
     held = [2, 11, 37]
     got = caches.evaluate_frames(obj, held, mute_shape_keys_prefix=())
@@ -167,7 +170,7 @@ def test_propagate_refits_from_the_scene_every_run(ict, addon):
     assert remove_training_frame(scene, obj, i) == (5, "")
     assert 5 not in [m.frame for m in scene.timeline_markers if m.name.startswith(TRAIN_MARKER)]
     assert training_frames(obj) == [18, 24, 31]
-    r = propagate(scene, obj, FRAMES, PropagateSettings(suggestions=0))
+    r = propagate(scene, obj, FRAMES, PropagateSettings(suggestions=0, **PAPER))
     assert r.training == [18, 24, 31]
     got = caches.evaluate_frames(obj, held, mute_shape_keys_prefix=())
     assert np.abs(got - independent_prediction(obj, r.training, held, "whole")[0]).max() < 1e-5 + 1e-6

@@ -20,13 +20,13 @@ pytestmark = pytest.mark.blender
 
 def test_damped_propagate_is_the_damped_regressor(ict, addon):
     scene, obj, err, cap_w = corrected_scene(ict, keyed=True)
-    assert PropagateSettings().damping is False  # the default is the undamped prediction
+    assert PropagateSettings().damping is True  # the default damps (benchmarks/artist_loop.py)
     corrected = caches.evaluate_frames(obj, TRAIN, mute_shape_keys_prefix=(PROPAGATE_PREFIX,))
     held = [f for f in FRAMES if f not in TRAIN]
     captured = caches.evaluate_frames(obj, held, mute_shape_keys_prefix=("FL_",)).astype(np.float64)
     got = {}
     for damping in (False, True):
-        r = propagate(scene, obj, FRAMES, PropagateSettings(suggestions=0, damping=damping))
+        r = propagate(scene, obj, FRAMES, PropagateSettings(suggestions=0, damping=damping, ridge="none"))
         got[damping] = caches.evaluate_frames(obj, held, mute_shape_keys_prefix=()).astype(np.float64)
         np.testing.assert_allclose(caches.evaluate_frames(obj, TRAIN, mute_shape_keys_prefix=()), corrected, atol=1e-7)
     # the core regressor fitted here, damped
@@ -42,4 +42,6 @@ def test_damped_propagate_is_the_damped_regressor(ict, addon):
     assert 0 < s.min() < 1 and s.max() <= 1
     size = {d: np.linalg.norm(got[d] - captured, axis=2).max(axis=1) for d in got}
     assert (size[True] <= size[False] + 2e-5).all()
-    assert (size[True] < 0.95 * size[False]).any()  # some frame is really damped (measured: to 0.91)
+    # some frame is really damped (measured: to 0.91 with the slopes through the origin; the slopes fitted with an
+    # intercept, model_choice.error_model's a_*_growth, damp this scene's extrapolated frames by under 1 %)
+    assert (size[True] < size[False] - 1e-6).any()

@@ -128,20 +128,45 @@ def error_model(reg, fits, shot=None):
     if has_c:
         ec = _poisson_per_frame(reg, _blend_patches(reg, [f[6][2] for f in fits], k), k)
         a_c = max(float(np.sum(ec)) - k * floor, 0.0) / denom
-    return {"a_w": float(np.sum(ew)) / denom, "a_c": a_c, "floor": floor, "mean_r2": float(np.mean(r2_shot))}
+    out = {"a_w": float(np.sum(ew)) / denom, "a_c": a_c, "floor": floor, "mean_r2": float(np.mean(r2_shot))}
+    # the slopes the damping uses: fitted with an intercept, so a miss that does not grow with the distance (two
+    # near-duplicate training poses corrected a little differently) is not read as a steep growth
+    out["a_w_growth"] = _growth(r2, ew)
+    out["a_c_growth"] = _growth(r2, ec - floor) if has_c else 0.0
+    # and never more than the worst leave-one-out miss: a far frame's expected error is capped there, so a slope
+    # read from a few close poses cannot switch every correction off
+    out["worst_w"], out["worst_c"] = float(np.max(ew)), float(np.max(ec)) if has_c else 0.0
+    return out
+
+
+def _growth(r2, err) -> float:
+    """Slope ``a >= 0`` of ``err ≈ b + a r2`` (``b >= 0``) over the training frames' leave-one-out."""
+    r2, err = np.asarray(r2, np.float64), np.maximum(np.asarray(err, np.float64), 0.0)
+    if len(r2) < 2 or np.ptp(r2) <= 1e-12 * max(float(np.max(r2)), 1e-300):
+        return float(np.sum(err) / max(float(np.sum(r2)), 1e-30))
+    from scipy.optimize import nnls
+
+    (a, _), _ = nnls(np.stack([r2, np.ones_like(r2)], axis=1), err)
+    return float(a)
 
 
 def expected_error(model, alpha, r2):
     """(T,) the part of the blend's expected squared interior lip error that grows with ``r2`` (T,).
 
-    ``(α² a_w + (1 - α)² a_c) r²`` (scene units², summed over the interior lip vertices; the two models'
+    ``(α² a_w + (1 - α)² a_c) r²``, with the slopes fitted with an intercept (``a_w_growth``, ``a_c_growth`` of
+    :func:`error_model`) and capped at the worst leave-one-out miss of the training frames (``worst_w``,
+    ``worst_c``) (scene units², summed over the interior lip vertices; the two models'
     errors taken as independent, :func:`error_model`): the error of extrapolating beyond the training
     frames. The correction model's floor is left out: it is the same on every frame, training frames and
     frames in their span included, where the prediction is as good as the training frames make it; so ``S``
     is 0 there (``r2`` 0) and the damping (:func:`damping_weights`) leaves those frames' corrections whole.
     """
     r2 = np.asarray(r2, dtype=np.float64)
-    return (alpha * alpha * model["a_w"] + (1.0 - alpha) ** 2 * model["a_c"]) * r2
+    a_w, a_c = model.get("a_w_growth", model["a_w"]), model.get("a_c_growth", model["a_c"])
+    S = (alpha * alpha * a_w + (1.0 - alpha) ** 2 * a_c) * r2
+    if "worst_w" in model:
+        S = np.minimum(S, alpha * alpha * model["worst_w"] + (1.0 - alpha) ** 2 * model["worst_c"])
+    return S
 
 
 def damping_weights(c2, S):

@@ -181,6 +181,7 @@ class LipRegressor(_Training, _StreamingPrediction):
             raise UsageError(f"damping must be True or False, got {damping!r}; use False (the paper) or True")
         self.damping = bool(damping)
         self._error_model = None
+        self._expected_model = None
         if model not in MODELS:
             raise UsageError(f"model must be one of {MODELS}, got {model!r}; use 'auto' (the default)")
         self.model = model
@@ -581,6 +582,51 @@ class LipRegressor(_Training, _StreamingPrediction):
         for s in range(0, len(A), _BLOCK):
             out[s : s + _BLOCK] = self._residual_norms(block(s))
         return out / self._sigma
+
+    def expected_change(self, corrections, extrapolation) -> np.ndarray:
+        """(t,) how much a frame's interior lip error is expected to change with its predicted correction, RMS
+        over the interior lip vertices, scene units (positive: expected worse than the capture).
+
+        The fitted error model (:func:`.model_choice.error_model`) gives the error ``S`` the prediction makes
+        on a frame: its part that grows with the frame's distance from the training span, plus the correction
+        model's floor (weighted as in the blend). A predicted correction ``c = c* + n`` of the true one ``c*``
+        with an independent error of size ``S`` has ``|c*|² ≈ |c|² - S``; applying ``s c`` (``s`` the damping
+        weight, 1 without ``damping``) leaves ``(1 - s)² |c*|² + s² S``, against ``|c*|²`` for the capture.
+
+        Parameters
+        ----------
+        corrections : (t, nI, 3) float array_like
+            The corrections :meth:`correct_chunk` returned for the frames (damped when ``damping``).
+        extrapolation : (t,) float array_like
+            Their extrapolation scores (:meth:`correct_chunk`, :meth:`extrapolation`).
+
+        Returns
+        -------
+        (t,) float64 ndarray
+        """
+        from .model_choice import expected_error
+
+        self._require_fit()
+        c = np.asarray(corrections, dtype=np.float64)
+        cd2 = np.einsum("tij,tij->t", c, c)
+        r2 = (np.asarray(extrapolation, dtype=np.float64) * self._sigma) ** 2
+        em, a = self._expected_model, self.whole_weight
+        S = expected_error(em, a, r2) if em else np.zeros_like(r2)
+        miss = S + ((1.0 - a) ** 2 * em["floor"] if em else 0.0)  # with the correction model's floor: every frame
+        if self.damping:  # undo the damping: |s c|² = c2³ / (c2 + S)² is increasing in c2 (bisection, log scale)
+            lo, hi = np.maximum(cd2, 1e-300), np.maximum(cd2 + 2 * S + np.sqrt(cd2 * S) * 4, 1e-300)
+            for _ in range(60):
+                mid = np.sqrt(lo * hi)
+                big = mid ** 3 / np.maximum(mid + S, 1e-300) ** 2 > cd2
+                hi, lo = np.where(big, mid, hi), np.where(big, lo, mid)
+            c2 = np.sqrt(lo * hi)
+            s = np.divide(c2, c2 + S, out=np.ones_like(c2), where=c2 + S > 0)
+        else:
+            c2, s = cd2, np.ones_like(cd2)
+        C = np.maximum(c2 - miss, 0.0)
+        after = (1 - s) ** 2 * C + s * s * miss
+        nI = max(len(self.interior_vertices), 1)
+        return np.sqrt(after / nI) - np.sqrt(C / nI)
 
     def training_span(self) -> np.ndarray:
         """(9m, r) orthonormal basis ``U_Y`` of the training mouth features (whole mouth region)."""

@@ -69,7 +69,7 @@ def thin_svd(M, center, rtol, atol=0.0):
     return U, s[:r, None] * Vv[:, :r].T
 
 
-def solve_theta(CY, CX, lam):
+def solve_theta(CY, CX, lam, free: int = 0):
     """Reduced map ``θ̄`` from the normal equations ``θ̄ (C_Y C_Yᵀ + λ' I) = C_X C_Yᵀ``.
 
     Parameters
@@ -80,6 +80,8 @@ def solve_theta(CY, CX, lam):
         Lip coefficients ``C_X``.
     lam : float
         Ridge weight, relative to the mean of ``diag(C_Y C_Yᵀ)`` (``λ' = lam * mean``); 0 is the paper.
+    free : int
+        The last ``free`` rows of ``C_Y`` (an intercept) are neither penalized nor counted in the mean.
 
     Returns
     -------
@@ -91,15 +93,16 @@ def solve_theta(CY, CX, lam):
         return np.zeros((CX.shape[0], rY))
     A = CY @ CY.T  # (rY, rY)
     B = CX @ CY.T  # (rX, rY)
-    if lam > 0:
-        A = A + lam * np.mean(np.diag(A)) * np.eye(rY)
+    if lam > 0 and rY > free:
+        pen = np.r_[np.ones(rY - free), np.zeros(free)]
+        A = A + lam * np.mean(np.diag(A)[: rY - free]) * np.diag(pen)
     # θ̄ A = B  <=>  A θ̄ᵀ = Bᵀ (A symmetric). The rank was already cut at rtol in the thin SVD
     # (A = diag(s²) up to rounding); lstsq only guards against exact singularity.
     sol, *_ = np.linalg.lstsq(A, B.T, rcond=1e-12)
     return sol.T
 
 
-def choose_ridge(CY, CX, ridge):
+def choose_ridge(CY, CX, ridge, free: int = 0):
     """The ridge weight for one reduced map: ``ridge`` itself, or picked by leave-one-out.
 
     Parameters
@@ -110,6 +113,8 @@ def choose_ridge(CY, CX, ridge):
         A fixed weight (see :func:`solve_theta`), or ``"loo"``: the weight of
         ``(0, 1e-4, 1e-3, 1e-2, 3e-2, 0.1, 0.3, 1)`` with the smallest
         leave-one-out error on the lip coefficients (0 with fewer than 3 frames).
+    free : int
+        As :func:`solve_theta`.
 
     Returns
     -------
@@ -125,14 +130,14 @@ def choose_ridge(CY, CX, ridge):
         err = 0.0
         for i in range(k):
             keep = np.arange(k) != i
-            th = solve_theta(CY[:, keep], CX[:, keep], lam)
+            th = solve_theta(CY[:, keep], CX[:, keep], lam, free)
             err += float(np.sum((th @ CY[:, i] - CX[:, i]) ** 2))
         if err < best_err * (1 - 1e-9):
             best, best_err = lam, err
     return best
 
 
-def loo_residuals(CY, CX, lam):
+def loo_residuals(CY, CX, lam, free: int = 0):
     """Leave-one-out residuals of a reduced map: frame ``i`` predicted by the map fitted on the others.
 
     Exact for the reduced model (the k-1 frame map applied to frame ``i``'s mouth coefficients is the
@@ -145,6 +150,8 @@ def loo_residuals(CY, CX, lam):
         Mouth and output coefficients of the k training frames (:func:`thin_svd`).
     lam : float
         Ridge weight (as :func:`solve_theta`).
+    free : int
+        As :func:`solve_theta`.
 
     Returns
     -------
@@ -157,7 +164,7 @@ def loo_residuals(CY, CX, lam):
         return out
     for i in range(k):
         keep = np.arange(k) != i
-        out[:, i] += solve_theta(CY[:, keep], CX[:, keep], lam) @ CY[:, i]
+        out[:, i] += solve_theta(CY[:, keep], CX[:, keep], lam, free) @ CY[:, i]
     return out
 
 

@@ -164,7 +164,7 @@ class RegressorTraining:
             if UY.shape[1] == 0:  # this patch's mouth input does not move in training: read the whole mouth
                 mouth_sel = np.arange(m)
                 UY, CY, UX, th, lam, E = self._fit_patch(Y3, X3[lip_sel])
-            corr = None if Xc3 is None or self.model == "whole" else self._fit_output(CY, Xc3[lip_sel], lam)
+            corr = None if Xc3 is None or self.model == "whole" else self._fit_output(CY, Xc3[lip_sel])
             fits.append((mouth_sel, UY, UX, th, lam, E, corr))
         self.whole_weight = self._choose_blend(fits, shot)
         a = self.whole_weight
@@ -217,31 +217,32 @@ class RegressorTraining:
         UX, CX = thin_svd(Xp.reshape(-1, self.k), self.center, self.rtol, self.atol)
         lam = choose_ridge(CY, CX, self.ridge)
         th = solve_theta(CY, CX, lam)  # (rX, rY)
-        E = UX @ loo_residuals(CY, CX, lam) if self.model == "auto" or self.damping else None
+        E = UX @ loo_residuals(CY, CX, lam)  # the expected-error model (damping, expected_change)
         return UY, CY, UX, th, lam, E
 
-    def _fit_output(self, CY, Xp, lam):
+    def _fit_output(self, CY, Xp):
         """The correction model of a patch: ``(U_Xc, θ̄_c, E_c, b)`` for lip corrections Xp (n_p,9,k), same mouth
-        input plus a constant (the intercept ``b`` (9 n_p,), a correction present in the rest pose)."""
+        input plus a constant (the intercept ``b`` (9 n_p,), a correction present in the rest pose). Its ridge weight
+        is ``ridge`` (with ``"loo"`` its own leave-one-out choice); the intercept is never penalized."""
         # a difference (centred already), small beside the motion: only round-off is cut (1e-7 of its size), so a
         # correction far smaller than the absolute cut of the motion is still reproduced on the training frames
         UX, CX = thin_svd(Xp.reshape(-1, self.k), "rest", 1e-7, 0.0)
         s = np.sqrt(3.0 * len(self.mouth_faces))  # the norm of the mouth's identity gradients (paper's uncentred y)
         CYa = np.vstack([CY, np.full((1, self.k), s)])
-        E = UX @ loo_residuals(CYa, CX, lam) if self.model == "auto" or self.damping else None
-        th = solve_theta(CYa, CX, lam)
+        lam = choose_ridge(CYa, CX, self.ridge, free=1)  # its own ridge; the intercept is never shrunk
+        E = UX @ loo_residuals(CYa, CX, lam, free=1)
+        th = solve_theta(CYa, CX, lam, free=1)
         return UX, th[:, :-1], E, UX @ th[:, -1] * s
 
     def _choose_blend(self, fits, shot):
         """``α`` of the model (1: whole, 0: correction; "auto": :func:`.model_choice.choose_blend`), and with
         ``damping`` the expected-error model of the prediction (:func:`.model_choice.error_model`)."""
-        self.model_errors, self._error_model = {}, None
+        self.model_errors = {}
         if self.model == "auto" and fits[0][6] is not None:
-            a, self.model_errors, self._error_model = choose_blend(self, fits, shot)
+            a, self.model_errors, em = choose_blend(self, fits, shot)
         else:
             a = 0.0 if self.model == "correction" else 1.0
-            if self.damping:
-                self._error_model = error_model(self, fits, shot if a == 0.0 else None)
-        if not self.damping:
-            self._error_model = None
+            em = error_model(self, fits, shot if a == 0.0 else None)
+        self._expected_model = em  # the expected error of every prediction (LipRegressor.expected_change)
+        self._error_model = em if self.damping else None
         return a
