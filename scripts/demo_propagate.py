@@ -171,8 +171,8 @@ def run(ict, out, img_dir, render, samples, n_train=8):
     ax.set_ylim(0, None)
     ax.legend(frameon=False)
     better, worse = int((e1[held - 1] < e0[held - 1]).sum()), int((e1[held - 1] > e0[held - 1]).sum())
-    ax.set_title(f"Inner-lip error per frame, capture vs after Propagate from {len(train)} sketched frames: "
-                 f"lower on {better} of the {len(held)} other frames, higher on {worse}")
+    ax.set_title(f"Inner-lip error per frame, capture vs after Propagate from {len(train)} sketched frames:\n"
+                 f"lower on {better} of the {len(held)} other frames, higher on {worse}", fontsize=10)
     fig.tight_layout()
     fig.savefig(img_dir / "propagate_timeline.png", dpi=90)
     plt.close(fig)
@@ -194,8 +194,9 @@ def run(ict, out, img_dir, render, samples, n_train=8):
             render(blend, png, frame=f, border=border, samples=samples, mute_keys=mute)
             ax = axes[r, c]
             ax.imshow(plt.imread(png))
-            ax.set_title(f"frame {f}, not sketched, the {picks[f]} one ({e0[f - 1]:.2f} -> {e1[f - 1]:.2f} mm): "
-                         f"{title}", fontsize=10)
+            head = (f"frame {f}, not sketched, the {picks[f]} one ({e0[f - 1]:.2f} -> {e1[f - 1]:.2f} mm)" if c == 0
+                    else f"frame {f}")
+            ax.set_title(f"{head}\n{title}", fontsize=10)
             ax.axis("off")
     fig.tight_layout()
     fig.savefig(img_dir / "propagate_before_after.png", dpi=80)

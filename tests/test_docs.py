@@ -195,14 +195,12 @@ def test_doc_checks_catch_what_they_should():
     assert [len(c) for _, c in cells] == [1, 1, 3, 3, 1, 400]
 
 
-@pytest.mark.xfail(reason="README rewrite pending", strict=False)
 def test_readme_is_short_and_table_cells_short():
     text = (ROOT / "README.md").read_text()
     assert len(text.splitlines()) <= README_LINES
     assert not [c for _, c in table_cells(text) if len(c) > MAX_CELL]
 
 
-@pytest.mark.xfail(reason="README rewrite pending", strict=False)
 def test_every_readme_figure_links_to_benchmarks():
     """Every line of the README giving a measured figure (a percentage, mm, ms, a ratio) links to
     docs/benchmarks.md, where the figure and the command that made it live."""
