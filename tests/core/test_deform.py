@@ -165,3 +165,82 @@ def test_coupled_deformer_with_fixed_anisotropic_terms_matches_dense_minimiser()
                                atol=1e-10)
     # the terms change the result (the test can fail): without them the base deformer's minimiser differs
     assert np.abs(D.solve(anchor, V, moving) - Dc.constrain(X0, anchor, moving)).max() > 1e-3
+
+
+def sparse_reference(L, lam, w, pinned, anchor, ref, C):
+    """Minimise the same energy by a direct sparse solve of the full constrained 3n system (scipy spsolve)."""
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as spla
+
+    N = len(anchor)
+    I3 = sp.identity(3)
+    A = lam * sp.kron(L.T @ L, I3) + sp.kron(sp.diags(w), I3)
+    b = lam * (sp.kron(L.T @ L, I3) @ ref.ravel()) + sp.kron(sp.diags(w), I3) @ anchor.ravel()
+    rows, cols, vals = [], [], []
+    for c in range(len(C)):
+        # S (3, 3N) picks the constrained surface point; H = s P^T P
+        S = sp.csr_matrix((np.repeat(C.bary[c], 3), (np.tile(np.arange(3), C.vertices.shape[1]),
+                                                     (3 * C.vertices[c][:, None] + np.arange(3)).ravel())),
+                          shape=(3, 3 * N))
+        H = C.strength[c] * C.metrics[c].T @ C.metrics[c]
+        T = (S.T @ sp.csr_matrix(H) @ S).tocoo()
+        rows.append(T.row), cols.append(T.col), vals.append(T.data)
+        b += S.T @ (H @ C.targets[c])
+    A = (A + sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                           shape=(3 * N, 3 * N))).tocsc()
+    free = np.flatnonzero(np.repeat(~pinned, 3))
+    held = np.flatnonzero(np.repeat(pinned, 3))
+    x = anchor.ravel().copy()
+    x[free] = spla.spsolve(A[free][:, free], b[free] - A[free][:, held] @ x[held])
+    return x.reshape(-1, 3)
+
+
+def test_kept_columns_grow_in_blocks_and_solves_match_a_direct_sparse_solve():
+    """Constraint sets that move from vertex to vertex, as the silhouettes do between solves: each solve adds
+    the columns it lacks as a new block (the kept ones are not copied) and reads only the part it uses; every
+    result, of the base and of the coupled deformer, is the direct sparse solve's."""
+    rng = np.random.default_rng(5)
+    V, F, _ = grid(10, jitter=0.2)
+    V[:, 2] = 0.1 * np.sin(V[:, 0] + V[:, 1])
+    L = cotangent_laplacian(V, F)
+    w = rng.uniform(0.05, 1, len(V))
+    pinned = np.zeros(len(V), bool)
+    pinned[:6] = True
+    anchor = V + 0.03 * rng.standard_normal(V.shape)
+
+    def rays(vs):
+        vs = np.asarray(vs)
+        return PointConstraints.rays(vs, V[vs] + 0.2 * rng.standard_normal((len(vs), 3)),
+                                     rng.standard_normal((len(vs), 3)), rng.uniform(1, 4, len(vs)))
+
+    first = np.arange(20, 60, 2)  # 20 vertices
+    sets = [
+        [rays(first)],
+        [rays(np.r_[first[:15], 61, 63, 65, 67, 69])],  # 15 kept, 5 new: a second block
+        [rays(first[:3]), PointConstraints.points([[70, 71, 81]], [[0.5, 0.5, 0.1]], 2.0, bary=[[0.2, 0.3, 0.5]])],
+        [rays(np.r_[first[::2], 61, 65])],  # across both blocks
+    ]
+    D = LaplacianDeformer(L, lambda_reg=3.0, pos_weights=w, pinned=pinned)
+    r = rng.standard_normal((len(V), 3))
+    r /= np.linalg.norm(r, axis=1, keepdims=True)
+    terms = PointConstraints(np.arange(len(V)), np.ones((len(V), 1)), anchor, r[:, :, None] * r[:, None, :], 2.0)
+    Dc = D.with_terms(terms, anchor)
+    X0 = Dc.unconstrained(anchor, V)
+    blocks, blocks_c = [], []
+    for cons in sets:
+        C = PointConstraints.concat(cons)
+        X = D.solve(anchor, V, cons)
+        np.testing.assert_allclose(X, sparse_reference(L, 3.0, w, pinned, anchor, V, C), rtol=0, atol=1e-10)
+        Xc = Dc.constrain(X0, anchor, cons)
+        ref_c = sparse_reference(L, 3.0, w, pinned, anchor, V, PointConstraints.concat([terms, C]))
+        np.testing.assert_allclose(Xc, ref_c, rtol=0, atol=1e-10)
+        assert np.abs(X - anchor).max() > 1e-2  # the constraints move the mesh: the comparison can fail
+        # the blocks kept so far are the same arrays (grown by appending, never re-copied)
+        assert all(a is b for a, b in zip(blocks, D.columns.blocks))
+        assert all(a is b for a, b in zip(blocks_c, Dc.columns.blocks))
+        blocks, blocks_c = list(D.columns.blocks), list(Dc.columns.blocks)
+    used = np.unique(np.concatenate([PointConstraints.concat(c).vertices[PointConstraints.concat(c).bary != 0]
+                                     for c in sets]))
+    assert not pinned[used].any()
+    assert len(D.columns) == len(used) and len(D.columns.blocks) == 3  # each column solved once
+    assert len(Dc.columns) == 3 * len(used)

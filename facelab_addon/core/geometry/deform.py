@@ -128,22 +128,81 @@ class PointConstraints:
         )
 
 
-def _cached_columns(solver, ids):
-    """Rows ``(M^-1 e_k)ᵀ`` of a factored system for unknowns ``ids``, solved once each and cached.
+class _ColumnCache:
+    """Columns ``M^-1 e_k`` of a factored SPD system ``M`` (n x n), solved once each and kept.
 
-    ``solver`` has ``factor`` (its SPD factor), ``_slot`` ((n,) int64: each unknown's row in the cache or -1)
-    and ``_rows_cache`` ((c, n) float64), as :class:`LaplacianDeformer` and :class:`CoupledDeformer` keep them.
+    The columns are kept as the blocks the factor solved them in, ``(n, k_b)`` each, and never copied when
+    more are added. A solve reads only what it needs from them: the principal block of ``M^-1`` on its
+    unknowns (:meth:`principal`) and the product of its columns with a small matrix (:meth:`apply`).
+
+    Parameters
+    ----------
+    factor : SPDFactor
+        The factored ``M``.
+    n : int
+        Unknowns of ``M``.
     """
-    ids = np.asarray(ids, dtype=np.int64)
-    missing = np.unique(ids[solver._slot[ids] < 0])
-    if len(missing):
-        E = np.zeros((len(solver._slot), len(missing)))
-        E[missing, np.arange(len(missing))] = 1.0
-        Z = solver.factor.solve(E)
-        start = len(solver._rows_cache)
-        solver._rows_cache = np.concatenate([solver._rows_cache, Z.T])
-        solver._slot[missing] = start + np.arange(len(missing))
-    return solver._rows_cache[solver._slot[ids]]
+
+    def __init__(self, factor, n: int):
+        self.factor = factor
+        self.n = int(n)
+        self.blocks = []  # (n, k_b) float64 arrays of columns
+        self.block_of = -np.ones(self.n, np.int64)  # each unknown's block, or -1
+        self.col_of = -np.ones(self.n, np.int64)  # its column in that block
+
+    def __len__(self):
+        return sum(b.shape[1] for b in self.blocks)
+
+    def _ensure(self, ids):
+        missing = np.unique(ids[self.block_of[ids] < 0])
+        if len(missing):
+            E = np.zeros((self.n, len(missing)))
+            E[missing, np.arange(len(missing))] = 1.0
+            self.blocks.append(self.factor.solve(E))
+            self.block_of[missing] = len(self.blocks) - 1
+            self.col_of[missing] = np.arange(len(missing))
+
+    def _groups(self, ids):
+        """Per block holding some of ``ids``: ``(block, positions in ids, columns in the block)``."""
+        bo, co = self.block_of[ids], self.col_of[ids]
+        if len(self.blocks) == 1:
+            return [(self.blocks[0], slice(None), co)]
+        out = []
+        for b in np.unique(bo):
+            sel = np.flatnonzero(bo == b)
+            out.append((self.blocks[b], sel, co[sel]))
+        return out
+
+    def principal(self, ids) -> np.ndarray:
+        """(u,u) ``(M^-1)[ids][:, ids]`` for unknowns ``ids`` (u,) int, solving the columns not kept yet.
+
+        Entry ``[i, j]`` is read from the column of ``ids[i]``, as the rows ``(M^-1 e_(ids[i]))ᵀ`` give it.
+        """
+        ids = np.asarray(ids, dtype=np.int64)
+        self._ensure(ids)
+        Zuu = np.empty((len(ids), len(ids)))
+        for block, sel, cols in self._groups(ids):
+            Zuu[sel] = block[ids][:, cols].T
+        return Zuu
+
+    def apply(self, ids, W) -> np.ndarray:
+        """``sum_j (M^-1 e_(ids[j])) W[j]``: (n,) for ``W`` (u,), (n, d) for ``W`` (u, d); ``ids`` (u,) int
+        distinct unknowns (their columns solved here if not kept yet)."""
+        ids = np.asarray(ids, dtype=np.int64)
+        self._ensure(ids)
+        W = np.asarray(W, dtype=np.float64)
+        out = None
+        for block, sel, cols in self._groups(ids):
+            Wb = W[sel]
+            k = block.shape[1]
+            if 3 * len(cols) >= k:  # most of the block is used: one product over it, zero weights elsewhere
+                full = np.zeros((k,) + W.shape[1:])
+                full[cols] = Wb
+                term = block @ full
+            else:
+                term = block[:, cols] @ Wb
+            out = term if out is None else out + term
+        return out
 
 
 class LaplacianDeformer:
@@ -199,15 +258,10 @@ class LaplacianDeformer:
         self._M = M.tocsr()
         self.backend = backend
         self.factor = SPDFactor(self._M, backend=backend)
-        # cached columns M^-1 e_v, stored as rows of one growing array: slot[v] is v's row or -1
-        self._slot = -np.ones(len(self.free), np.int64)
-        self._rows_cache = np.zeros((0, len(self.free)))
+        # the columns M^-1 e_v of constrained free vertices, kept between calls
+        self.columns = _ColumnCache(self.factor, len(self.free))
 
     # ------------------------------------------------------------------ utils
-    def _columns(self, free_ids):
-        """(u, n_free) rows ``(M^-1 e_v)ᵀ`` for free indices ``free_ids`` (cached between calls)."""
-        return _cached_columns(self, free_ids)
-
     def with_terms(self, terms, anchor) -> "CoupledDeformer":
         """This energy plus the fixed point-constraint ``terms`` (PointConstraints or a list), factored once.
 
@@ -279,11 +333,10 @@ class LaplacianDeformer:
             return X0
         # a free vertex with a zero weight is not in ``used``: point it at slot 0 (its b is 0, it adds nothing)
         pos = np.searchsorted(used, np.where(member, fv, used[0]))
-        Zt = self._columns(used)  # (u, n_f)
-        Zuu = Zt[:, used]  # (u, u) = principal block of M^-1, SPD
+        Zuu = self.columns.principal(used)  # (u, u) = principal block of M^-1, SPD
         low = _low_rank_rows(H, b, pos, q, 3 * u)
         if low is not None:
-            return X0 + Zt.T @ _low_rank_step(low, X0[used], Zuu)
+            return X0 + self.columns.apply(used, _low_rank_step(low, X0[used], Zuu))
         # Quadratic form in x_U (u*3): Q = sum_c kron(b_c b_cᵀ, H_c), r = sum_c b_c ⊗ H_c q_c
         Q = np.zeros((u, 3, u, 3))
         r = np.zeros((u, 3))
@@ -307,7 +360,7 @@ class LaplacianDeformer:
             check_finite=False,
         )
         G = (Q2 @ xU - r.reshape(-1)).reshape(u, 3)
-        return X0 - Zt.T @ G
+        return X0 - self.columns.apply(used, G)
 
 
 class CoupledDeformer:
@@ -344,12 +397,8 @@ class CoupledDeformer:
                 M3 = M3 + (A.T @ A).tocsr()
                 self._g3 = A.T @ g
         self.factor = SPDFactor(M3, backend=base.backend)
-        self._slot = -np.ones(3 * nf, np.int64)
-        self._rows_cache = np.zeros((0, 3 * nf))
-
-    def _columns(self, ids3):
-        """(u, 3 n_free) rows ``(M^-1 e_(v,d))ᵀ`` for unknowns ``ids3 = 3 i + d`` (cached between calls)."""
-        return _cached_columns(self, ids3)
+        # the columns M^-1 e_(v,d) of constrained unknowns 3 v + d, kept between calls
+        self.columns = _ColumnCache(self.factor, 3 * nf)
 
     def unconstrained(self, anchor, reference=None) -> np.ndarray:
         """(n_free,3) minimiser with the fixed terms and no moving constraints."""
@@ -376,14 +425,13 @@ class CoupledDeformer:
                 if low is not None:
                     rows, cols, coef, g, m = low
                     u3 = (3 * used[:, None] + np.arange(3)).reshape(-1)
-                    Zt = self._columns(u3)  # (3u, 3 n_f)
-                    Zuu = Zt[:, u3]
+                    Zuu = self.columns.principal(u3)  # (3u, 3u)
                     A = _rows_matrix(rows, cols, coef, m, len(used))
                     K = np.eye(m) + A @ np.asarray(A @ Zuu).T
                     y = scipy.linalg.cho_solve(scipy.linalg.cho_factor(K, lower=True, overwrite_a=True,
                                                                        check_finite=False),
                                                g - A @ X0.reshape(-1)[u3], check_finite=False)
-                    X = X0 + (Zt.T @ (A.T @ y)).reshape(-1, 3)
+                    X = X0 + self.columns.apply(u3, A.T @ y).reshape(-1, 3)
         out = a.copy()
         out[self.base.free] = X
         return out
