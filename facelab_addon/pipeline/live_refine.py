@@ -46,6 +46,7 @@ from ..core.errors import FaceLabError
 from ..core.lips.sketch import SketchView, SketchSolver
 from ..names import LIVE_PREVIEW_KEY
 from .refine import RefineResult, RefineSettings, lip_region, refine, view_sources
+from .training import uncorrected_frame
 
 __all__ = ["PREVIEW_KEY", "LiveUpdate", "LiveRefine", "remove_preview", "influence_to_mouth_widths"]
 
@@ -175,8 +176,9 @@ class LiveRefine:
         if scene.frame_current != self.frame:
             scene.frame_set(self.frame)
         dg = evaluated_depsgraph(scene)
-        self.V = evaluated_vertices(self.obj, dg)
+        self.shown = evaluated_vertices(self.obj, dg)
         A, b = world_affine(self.obj, dg)
+        self.V = uncorrected_frame(self.obj, self.frame) @ A.T + b  # where Refine's solve starts (the capture)
         local = np.linalg.solve(A, (self.V - b).T).T
         self.topo = face_topology(self.obj, iter([local]))
         self.tris = world_winding(self.topo.tris, A)  # world positions: a mirrored face keeps its normals outward
@@ -262,8 +264,8 @@ class LiveRefine:
         X, info = self._solve(views)
         solve_s = time.perf_counter() - ts
         self.X, self.info, self.mouth_width = X, info, float(info["mouth_width"])
-        self._write_preview(X - self.V)
-        d = np.linalg.norm(X - self.V, axis=1)
+        self._write_preview(X - self.shown)  # the preview key adds to what the face shows
+        d = np.linalg.norm(X - self.shown, axis=1)
         r = self.free_radius()
         return LiveUpdate(seconds=time.perf_counter() - t0, solve_seconds=solve_s, solves=int(info["solves"]),
                           rebuilt=bool(info["rebuilt"]), free_radius=r,

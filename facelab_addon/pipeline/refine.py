@@ -251,8 +251,12 @@ def refine(scene, obj, frame: int, settings: RefineSettings | None = None, *, ca
         cam = camera_from_blender(scene, cam_obj, dg)
         strokes = read_lip_strokes(scene, cam, frame, gp_obj=gp, depsgraph=dg)
         views.append(SketchView(cam, strokes["upper"], strokes["lower"], name=cam_obj.name))
-    V = evaluated_vertices(obj, dg)
+    shown = evaluated_vertices(obj, dg)
     A, b = world_affine(obj, dg)
+    # the solve starts from the frame without FaceLab's lip corrections (uncorrected_frame: the capture), not from
+    # what an earlier Propagate or Refine shows on it: the drawing alone decides the result, so a propagated error
+    # the sketch does not see is not carried into the training frame
+    V = uncorrected_frame(obj, frame) @ A.T + b
     # split seams welded where the twins coincide at rest, in every key and on this frame (a lip cut stays cut)
     topo = face_topology(obj, _local_frame(V, A, b))
     tris = world_winding(topo.tris, A)  # V is in world space: a mirrored object keeps its normals outward
@@ -278,8 +282,7 @@ def refine(scene, obj, frame: int, settings: RefineSettings | None = None, *, ca
             note = cache_integrate.cache_to_shape_key_ready(obj)  # so the corrective key shows on the cache
         # the training frame is the refined shape relative to the frame without FaceLab's lip corrections
         # (uncorrected_frame), not to what Propagate happened to show here: it then holds through later rounds
-        base = uncorrected_frame(obj, frame) @ A.T + b
-        d_world = X - base
+        d_world = X - V
         d_local = world_to_local_deltas(obj, d_world)
         if on_cache:
             captured = caches.read_captured_frames(obj, [frame])[0]
@@ -289,7 +292,7 @@ def refine(scene, obj, frame: int, settings: RefineSettings | None = None, *, ca
         raise
     d_local = to_rest_space(obj, [frame], d_local[None], depsgraph=dg)[0]  # through an Armature: rest-space offsets
     kb = store_training_frame(scene, obj, frame, d_local, REFINE_PREFIX, "sketch")
-    moved = np.linalg.norm(X - V, axis=1)
+    moved = np.linalg.norm(X - shown, axis=1)  # what the artist sees change
     return RefineResult(frame=frame, shape_key=kb.name, moved_vertices=int((moved > 1e-9).sum()),
                         max_move=float(moved.max()), fixed_source=fixed_src, cameras=[v.name for v in views],
                         lips_region=lips is not None, note=note, head_turn_deg=info["head_turn_deg"],

@@ -61,7 +61,7 @@ def test_refine_after_propagate_keeps_the_fix(addon, solved):
     first = _round_one(face)
     f = 41
     propagated = shown_frames(face, [f])[0]
-    assert _mm(propagated, face.capture[f - 1]) > 0.05  # Propagate corrected frame 41: Refine starts from that
+    assert _mm(propagated, face.capture[f - 1]) > 0.05  # Propagate corrected frame 41 before it is refined
     shown = refine_frame(face, f)
     assert _mm(_world(face, shown), solved[-1]) < TOL_MM  # right after Refine: the refined shape, no more
     propagate(face.scene, face.obj, face.frames, PropagateSettings())
@@ -188,3 +188,21 @@ def test_undo_of_a_refine_after_propagate_gives_the_propagated_frame_back(addon)
     shown = refine_frame(face, f)  # and the loop goes on from there
     propagate(face.scene, face.obj, face.frames, PropagateSettings())
     assert _mm(shown_frames(face, [f])[0], shown) < TOL_MM
+
+
+def test_refine_on_a_propagated_frame_solves_from_the_capture(addon, solved):
+    """The drawing alone decides a refined frame: Refine on a frame Propagate corrected gives what it gives on the
+    bare capture (Review's Show Capture on), so a propagated error the sketch does not show is not carried into
+    the training frame."""
+    f = 41
+    ref = sample_face()
+    _round_one(ref)
+    review.show_capture(ref.obj)
+    from_capture = refine_frame(ref, f)
+    review.show_corrected(ref.obj)
+    face = sample_face()
+    _round_one(face)
+    assert _mm(shown_frames(face, [f])[0], face.capture[f - 1]) > 0.05  # the frame shows Propagate's correction
+    on_propagated = refine_frame(face, f)
+    assert _mm(on_propagated, from_capture) < TOL_MM
+    assert _mm(_world(face, on_propagated), solved[-1]) < TOL_MM  # and the viewport shows that refined shape
