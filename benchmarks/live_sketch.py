@@ -80,20 +80,11 @@ def latency(bpy, size, runs, redraws):
     from facelab_addon.core.capture.ict import load_ict
     from facelab_addon.core.lips.sketch import refine_lips_views
     from facelab_addon.pipeline.live_refine import LiveRefine
-    from facelab_addon.testing import synthetic as syn
+    from facelab_addon.testing.gap_case import ict_gap_case
     from facelab_addon.testing.route import jitter_stroke
-    from facelab_addon.testing.subdivide import subdivide_midpoint
 
-    m = load_ict()
-    T, F, mm = m.neutral, m.faces, 0.1 * m.scale
-    fixed = ~m.part_vertex_mask("M_Face")
-    if size != "26k":
-        T, F, S = subdivide_midpoint(T, F)
-        fixed = (S @ fixed.astype(float)) > 0.99
-    mouth = syn.find_mouth(T, F, fixed, units_per_mm=mm)
-    cam = syn.frontal_camera(T, mouth.center, distance=40.0 * m.scale)
-    up, lo = syn.lip_contours(T, F, cam, mouth=mouth)
-    C, _ = syn.inject_lip_error(T, F, fixed, kind="gap", amount_mm=2.5, mouth=mouth)
+    g = ict_gap_case(load_ict(), size)
+    F, fixed, cam, up, lo, C = g.faces, g.fixed, g.camera, g.upper, g.lower, g.captured
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene
     scene.unit_settings.scale_length = 0.01  # ICT centimetres: 1 unit = 1 cm

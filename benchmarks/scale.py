@@ -281,25 +281,15 @@ def refine_time(size, runs=4):
     sketch from the truth (as ``benchmarks/sketch_refine.py``); median of the warm runs."""
     from facelab_addon.core.capture.ict import load_ict
     from facelab_addon.core.lips.sketch import refine_lips
-    from facelab_addon.testing import synthetic as syn
-    from facelab_addon.testing.subdivide import subdivide_midpoint
+    from facelab_addon.testing.gap_case import ict_gap_case
 
-    m = load_ict()
-    T, F, mm = m.neutral, m.faces, 0.1 * m.scale
-    fixed = ~m.part_vertex_mask("M_Face")
-    if size != "26k":
-        T, F, S = subdivide_midpoint(T, F)
-        fixed = (S @ fixed.astype(float)) > 0.99
-    mouth = syn.find_mouth(T, F, fixed, units_per_mm=mm)
-    cam = syn.frontal_camera(T, mouth.center, distance=40.0 * m.scale)
-    sk_u, sk_l = syn.lip_contours(T, F, cam, mouth=mouth)
-    C, _ = syn.inject_lip_error(T, F, fixed, kind="gap", amount_mm=2.5, mouth=mouth)
+    g = ict_gap_case(load_ict(), size)
     ts = []
     for _ in range(runs):
         t0 = time.perf_counter()
-        refine_lips(C, F, cam, sk_u, sk_l, fixed=fixed, iterations=5)
+        refine_lips(g.captured, g.faces, g.camera, g.upper, g.lower, fixed=g.fixed, iterations=5)
         ts.append(time.perf_counter() - t0)
-    return dict(vertices=len(T), seconds_median_warm=round(float(np.median(ts[1:])), 3),
+    return dict(vertices=len(g.truth), seconds_median_warm=round(float(np.median(ts[1:])), 3),
                 seconds_all=[round(t, 3) for t in ts], load=_uptime(), target_s=0.1 if size == "26k" else 0.3)
 
 
