@@ -64,7 +64,7 @@ class FACELAB_OT_auto_regions(bpy.types.Operator):
 
 
 class FACELAB_OT_mark_training_frame(bpy.types.Operator):
-    """Use the current frame's mesh (for example corrected by sculpting a shape key) as a training frame for propagation"""
+    """Use the current frame's mesh (for example corrected by sculpting a shape key) as a training frame for propagation; on a training frame, it becomes the frame's training shape (the earlier correction's key is kept, off on the frame)"""
 
     bl_idname = "facelab.mark_training_frame"
     bl_label = "Mark Training Frame"
@@ -72,25 +72,27 @@ class FACELAB_OT_mark_training_frame(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        if not poll_face(cls, context):
-            return False
-        f = context.scene.frame_current
-        if f in {t.frame for t in face_object(context).facelab.training_frames}:
-            cls.poll_message_set(f"Frame {f} is already a training frame")
-            return False
-        return True
+        return poll_face(cls, context)
 
     def execute(self, context):
         obj, f = face_object(context), context.scene.frame_current
         if context.mode != "OBJECT":  # a sculpt or edit in progress is flushed to the mesh first
             bpy.ops.object.mode_set(mode="OBJECT")
+        earlier = sorted({t.shape_key for t in obj.facelab.training_frames if t.frame == f and t.shape_key})
+        was_training = f in {t.frame for t in obj.facelab.training_frames}
         try:
             r = mark_training_frame(context.scene, obj, f)
         except FaceLabError as e:
             self.report({"ERROR"}, str(e))
             return {"CANCELLED"}
         kept = f"; FaceLab's correction it showed is kept in '{r.shape_key}'" if r.shape_key else ""
-        self.report({"INFO"}, f"Frame {f} marked as a training frame of '{obj.name}'{kept}")
+        if not was_training:
+            self.report({"INFO"}, f"Frame {f} marked as a training frame of '{obj.name}'{kept}")
+            return {"FINISHED"}
+        old = (f"; the earlier correction {', '.join(repr(k) for k in earlier)} is kept, keyed off on the frame"
+               if earlier else "")
+        self.report({"INFO"}, f"Training frame {f} of '{obj.name}' updated to what it shows now{kept}{old}; "
+                              "Propagate again to update the correction")
         return {"FINISHED"}
 
 

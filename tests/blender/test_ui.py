@@ -194,8 +194,9 @@ def test_training_list_markers_jump_remove_undo(addon):
     bpy.ops.ed.undo_push(message="Mark Training Frame")  # headless: the UI would push it
     assert [(t.frame, t.source) for t in obj.facelab.training_frames] == [(7, "marked")]  # sculpted in place
     assert [(m.name, m.frame) for m in scene.timeline_markers] == [("FL train 7", 7)]
-    with pytest.raises(RuntimeError, match="already a training frame"):  # the button is disabled, with why
-        bpy.ops.facelab.mark_training_frame()
+    assert bpy.ops.facelab.mark_training_frame() == {"FINISHED"}  # again: the frame's record is renewed, not doubled
+    assert [(t.frame, t.source) for t in obj.facelab.training_frames] == [(7, "marked")]
+    assert [(m.name, m.frame) for m in scene.timeline_markers] == [("FL train 7", 7)]
     scene.frame_set(20)
     bpy.ops.facelab.mark_training_frame()
     obj.facelab.active_training_index = 0
