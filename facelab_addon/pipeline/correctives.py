@@ -15,7 +15,8 @@ corrective, Retarget, Reconstruct) stores it through one policy, :class:`Correct
   the result says so.
 
 Re-running replaces only FaceLab's own output (keys: the registry of ``blender.shapekeys``;
-caches: the modifier and files recorded by ``blender.bakes``). :func:`write_corrective_keys` is
+caches: the modifier and files recorded by ``blender.bakes``); Review's *Show Capture* ends then, so
+the face shows the new output with every other correction. :func:`write_corrective_keys` is
 the one-call form for a whole (T,n,3) array.
 """
 
@@ -30,7 +31,7 @@ from dataclasses import dataclass, field
 import bpy
 import numpy as np
 
-from ..blender import bakes, cache_integrate, rest_space
+from ..blender import bakes, cache_integrate, rest_space, review
 from ..blender.caches import input_positions
 from ..blender.capture_stream import CaptureReader
 from ..blender.objects import local_length, tolerance_length
@@ -321,6 +322,7 @@ class CorrectionWriter:
         return mods, (caps[-1] + 1 if caps else 0)
 
     def _remove_previous(self) -> None:
+        review.show_corrected(self.obj)  # never the capture shown with FaceLab's newest correction alone
         remove_keys(self.obj, self.prefix)
         bakes.remove_correction_cache(self.obj, self.prefix)
 

@@ -122,16 +122,20 @@ def uncorrected_frame(obj, frame: int) -> np.ndarray:
 
     A training frame's correction is this frame's shape subtracted from what the artist made (the
     corrected shape relative to the capture), so it is the same whatever Propagate showed on the frame
-    when the artist refined or sculpted it. Object-local scene units, after the modifiers (as
+    when the artist refined or sculpted it, and whether Review shows the capture or not (its *Show Capture* is
+    lifted meanwhile). Object-local scene units, after the modifiers (as
     :func:`facelab_addon.blender.caches.evaluate_frames`).
     """
-    return caches.evaluate_frames(obj, [frame], mute_shape_keys_prefix=_LOOP_PREFIXES)[0].astype(np.float64)
+    with review.corrections_as_set(obj):  # the same whether Review shows the capture or not
+        return caches.evaluate_frames(obj, [frame], mute_shape_keys_prefix=_LOOP_PREFIXES)[0].astype(np.float64)
 
 
 def _supersede(scene, obj, frame: int) -> list:
     """Make room for a new correction of ``frame``: FaceLab's earlier training keys of the frame are keyed 0
     there (kept, never deleted) and their records dropped; Propagate's correction is keyed off on the frame.
-    Returns the superseded keys."""
+    Review's *Show Capture* ends first (the artist's mutes back), so the face shows the new correction with every
+    other one, never the capture with FaceLab's newest keys alone. Returns the superseded keys."""
+    review.show_corrected(obj)
     key = obj.data.shape_keys
     owned = set(owned_keys(obj)) if key is not None else set()
     gone = []
@@ -231,7 +235,8 @@ def mark_training_frame(scene, obj, frame: int) -> CorrectedFrame:
     ``FL_Corrected_<frame>`` stored by :func:`store_training_frame`, so the frame keeps the shape the artist
     marked through later Propagate runs; without such a correction only the record is written. Either way
     the record's source is "marked": the frame was sculpted in place, so its capture is unknown
-    (:func:`captured_unknown`).
+    (:func:`captured_unknown`). On a frame that is already a training frame (a sculpt on top of a refined one)
+    the new shape supersedes the earlier correction (:func:`store_training_frame`: its key kept, keyed 0 there).
 
     Returns
     -------

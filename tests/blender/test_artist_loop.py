@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from facelab_addon.blender import review
-from facelab_addon.blender.shapekeys import key_spike
+from facelab_addon.blender.shapekeys import add_corrective_key, key_spike
 from facelab_addon.core.errors import FaceLabError
 from facelab_addon.pipeline import refine as refine_module
 from facelab_addon.pipeline.bake import bake
@@ -113,28 +113,97 @@ def test_sculpt_on_a_propagated_frame_then_mark_training_frame(addon):
 
 
 def test_show_capture_during_refine_and_propagate(addon, solved, tmp_path):
-    # reference: Refine 41 with Review showing the capture, Propagate with Review off
+    # reference: Refine 41 and Propagate with Review off
     ref = sample_face()
     _round_one(ref)
-    review.show_capture(ref.obj)
     refine_frame(ref, 41)
-    review.show_corrected(ref.obj)
     propagate(ref.scene, ref.obj, ref.frames, PropagateSettings())
     expected = shown_frames(ref)
 
     face = sample_face()
     _round_one(face)
     review.show_capture(face.obj)
-    shown = refine_frame(face, 41)
-    assert _mm(_world(face, shown), solved[-1]) < TOL_MM  # the viewport (Review on) shows the refined shape
-    propagate(face.scene, face.obj, face.frames, PropagateSettings())  # Review still on
     with pytest.raises(FaceLabError, match="Show Corrected"):  # never a bake of the capture reported as done
         bake(face.obj, face.frames, tmp_path / "never_written.pc2")
-    review.show_corrected(face.obj)
+    shown = refine_frame(face, 41)
+    assert _mm(_world(face, shown), solved[-1]) < TOL_MM  # the viewport shows the refined shape
+    assert not review.showing_capture(face.obj)  # Refine ended Show Capture: every correction shows with it
+    review.show_capture(face.obj)
+    assert max(_mm(a, b) for a, b in zip(shown_frames(face), face.capture)) < 1e-3  # the new key is muted too
+    propagate(face.scene, face.obj, face.frames, PropagateSettings())
+    assert not review.showing_capture(face.obj)  # never the capture with Propagate's newest keys alone
     got = shown_frames(face)
     assert _mm(got[40], shown) < TOL_MM
     # Propagate trained on the corrections, not on the capture Review showed: the shot is the reference's
     assert max(_mm(a, b) for a, b in zip(got, expected)) < 1e-3
+    review.show_capture(face.obj)  # and Show Capture mutes every key Propagate wrote
+    assert max(_mm(a, b) for a, b in zip(shown_frames(face), face.capture)) < 1e-3
+
+
+def test_propagate_while_review_shows_the_capture_shows_the_result(addon):
+    face = sample_face()
+    for f in FIRST:
+        refine_frame(face, f)
+    review.show_capture(face.obj)
+    propagate(face.scene, face.obj, face.frames, PropagateSettings())
+    seen = shown_frames(face)
+    assert not review.showing_capture(face.obj)
+    for f in FIRST:  # the training frames show their fix with Propagate's output: no mix of muted and new keys
+        assert _mm(seen[f - 1], face.capture[f - 1]) > 0.05
+    review.show_corrected(face.obj)  # nothing left to restore
+    assert max(_mm(a, b) for a, b in zip(shown_frames(face), seen)) < 1e-6
+
+
+def test_refine_under_show_capture_over_another_facelab_correction(addon, solved):
+    """A training frame is measured from the frame without FaceLab's lip corrections whatever Review shows: with
+    another FaceLab correction on the face (a Solve key), Refine under Show Capture gives the frame the shape it
+    solved once the corrections show again."""
+    face = sample_face()
+    obj = face.obj
+    d = np.zeros((len(obj.data.vertices), 3))
+    d[face.lips, 2] = 3e-4  # 0.3 mm
+    add_corrective_key(obj, "FL_Solve_00", d).value = 1.0
+    review.show_capture(obj)
+    refine_frame(face, 41)
+    review.show_corrected(obj)
+    assert _mm(_world(face, shown_frames(face, [41])[0]), solved[-1]) < TOL_MM
+
+
+def test_sculpt_on_a_refined_frame_then_mark_training_frame_again(addon):
+    face = sample_face()
+    _round_one(face)
+    f = 41
+    refined = refine_frame(face, f)
+    (old,) = [t.shape_key for t in face.obj.facelab.training_frames if t.frame == f]
+    obj = face.obj
+    sculpt = obj.shape_key_add(name="MySculpt", from_mix=False)  # the artist's sculpt on top, keyed on the frame
+    co = np.empty(3 * len(obj.data.vertices), np.float32)
+    sculpt.data.foreach_get("co", co)
+    co = co.reshape(-1, 3)
+    co[face.lips, 2] += 3e-4
+    sculpt.data.foreach_set("co", co.ravel())
+    key_spike(sculpt, f)
+    face.scene.frame_set(f)
+    seen = shown_frames(face, [f])[0]
+    assert _mm(seen, refined) > 0.2
+    bpy.context.view_layer.objects.active = obj
+    bpy.ops.ed.undo_push(message="before Mark")
+    assert bpy.ops.facelab.mark_training_frame() == {"FINISHED"}
+    bpy.ops.ed.undo_push(message="Mark Training Frame")  # headless: the UI would push it
+    records = [t for t in obj.facelab.training_frames if t.frame == f]
+    assert len(records) == 1 and records[0].shape_key not in ("", old) and records[0].source == "marked"
+    keys = obj.data.shape_keys.key_blocks
+    assert old in keys and keys[old].value == 0.0  # the refined key is kept, off on the frame
+    assert _mm(shown_frames(face, [f])[0], seen) < TOL_MM
+    bpy.ops.ed.undo()  # back to the refined training frame
+    face = dataclasses.replace(face, scene=bpy.context.scene, obj=bpy.context.scene.facelab.face)
+    face.scene.frame_set(f)
+    assert [t.shape_key for t in face.obj.facelab.training_frames if t.frame == f] == [old]
+    assert _mm(shown_frames(face, [f])[0], seen) < TOL_MM  # the sculpt key is still on, over the refined shape
+    bpy.context.view_layer.objects.active = face.obj
+    assert bpy.ops.facelab.mark_training_frame() == {"FINISHED"}  # and again, then a round of the loop
+    propagate(face.scene, face.obj, face.frames, PropagateSettings())
+    assert _mm(shown_frames(face, [f])[0], seen) < TOL_MM  # the marked shape holds through Propagate
 
 
 def test_a_training_key_muted_by_hand_is_refused(addon):
