@@ -51,7 +51,9 @@ from ..geometry.mesh import grow_region, validate_mesh, vertex_adjacency
 from .bounded_lsq import box_least_squares
 from .matching import match_contours
 
-__all__ = ["SolveParams", "FrameResult", "BlendshapeSolver", "contour_region", "ANCHOR_RINGS_MOUTH", "ANCHOR_EYE_RADIUS"]
+__all__ = [
+    "SolveParams", "FrameResult", "BlendshapeSolver", "contour_region", "ANCHOR_RINGS_MOUTH", "ANCHOR_EYE_RADIUS",
+]
 
 #: Edge rings around the mouth loops (and, plus the number of eyelid loops, around the eyes) left out of the
 #: tie to the markers-only fit (``SolveParams.anchor_weight``).
