@@ -191,5 +191,7 @@ def test_the_lip_band_solve_moves_only_the_lips(held_out):
     assert rms(d2) < 0.7 * rms(d1), (rms(d1), rms(d2))
     assert 200 < band.sum() < 0.2 * face.sum()  # the lips, not the face
     # the optional lip-line pass acts on the band too
-    d3 = corr.lip_line_pass(Vb, d2, cap.markers_px[t], None, cc2, cap.curves[t])
+    p = PerformanceParams()
+    d3 = corr.lip_line_pass(Vb, d2, cap.markers_px[t], None, cc2, cap.curves[t], threshold_px=p.lip_line_threshold_px,
+                            curve_threshold_px=p.lip_line_curve_px)
     assert np.array_equal(d3[~band], d1[~band]) and not np.array_equal(d3[band], d2[band])

@@ -392,8 +392,8 @@ class OutOfSubspaceCorrective:
                 return True
         return False
 
-    def lip_line_pass(self, vertices_blend, delta, markers_px, bundles, correspondences, curves,
-                      threshold_px: float = 0.5, curve_threshold_px: float = 0.0) -> np.ndarray:
+    def lip_line_pass(self, vertices_blend, delta, markers_px, bundles, correspondences, curves, *,
+                      threshold_px: float, curve_threshold_px: float) -> np.ndarray:
         """A second corrective pass on the 2D contour points still off their curve; returns the new ``ΔV``.
 
         The first pass (:meth:`solve`) stops short of a curve the rig misses by
@@ -419,7 +419,11 @@ class OutOfSubspaceCorrective:
         curves : list of TrackedCurve
             The frame's tracked curves (to measure the distance to the line).
         threshold_px : float
-            Points within this many pixels of their curve get no term.
+            Points within this many pixels of their curve get no term
+            (``PerformanceParams.lip_line_threshold_px``).
+        curve_threshold_px : float
+            Curves whose RMS pixel distance on ``V_blend + ΔV`` is at most
+            this get no term (``PerformanceParams.lip_line_curve_px``).
 
         Returns
         -------
