@@ -26,7 +26,7 @@ Configurations:
    defaults (fit not tied to the markers-only fit, uniform corrective
    damping 0.01, contour weight 0.5);
 8. (extra) ``markers+contours+corrective_one_pass``: 3 with one corrective
-   pass only (``solve_performance(lip_passes=0)``, the default before the lip
+   pass only (``PerformanceParams(lip_passes=0)``, the default before the lip
    passes).
 
 ``--matrix`` runs markers only against 3 (and 7) side by side on the tuning
@@ -36,9 +36,9 @@ and held-out faces and camera rigs of ``testing.solve_cases``, clean and with
 3D eyelid targets are lifted onto the eyeball grown by each lid point's
 current height over it (``contours.match_contours(eyelid_height='current')``)
 in every configuration; the blendshape fit re-weights the lip-contour points
-with a 1 px Huber loss (``BlendshapeSolver(contour_huber_px=1)``); the
+with a 1 px Huber loss (``SolveParams(contour_huber_px=1)``); the
 corrective's contours are matched again on the fitted rig
-(``solve_performance(rematch=True)``).
+(``PerformanceParams(rematch=True)``).
 
 Metrics (means over frames):
 
@@ -88,14 +88,14 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from facelab_addon.core.capture.ict import load_ict  # noqa: E402
 from facelab_addon.core.lips.mouth import find_mouth  # noqa: E402
-from facelab_addon.core.solve.blendshape_solve import BlendshapeSolver, contour_region  # noqa: E402
-from facelab_addon.core.solve.corrective import OutOfSubspaceCorrective, lip_band  # noqa: E402
+from facelab_addon.core.solve.blendshape_solve import BlendshapeSolver, SolveParams, contour_region  # noqa: E402
+from facelab_addon.core.solve.corrective import CorrectiveParams, OutOfSubspaceCorrective, lip_band  # noqa: E402
 from facelab_addon.core.solve.matching import (  # noqa: E402
     contour_curve_distance,
     contour_residuals,
     match_contours,
 )
-from facelab_addon.core.solve.performance import LIP_PASSES, solve_performance  # noqa: E402
+from facelab_addon.core.solve.performance import PerformanceParams, solve_performance  # noqa: E402
 from facelab_addon.testing.capture_sim import make_capture  # noqa: E402
 from facelab_addon.testing.contour_truth import ict_contour_loops  # noqa: E402
 from facelab_addon.testing.solve_cases import (  # noqa: E402
@@ -195,10 +195,11 @@ def main(argv=None):
     t0 = time.perf_counter()
     warm = np.concatenate(list(loops.mouth) + [x for v in loops.eyes.values() for x in v])
     region = contour_region(model.neutral, model.faces, loops)
+    pixel_units = args.corrective_units == "pixels"
     corrective = OutOfSubspaceCorrective(model.neutral, model.faces, cap.cameras, cap.markers, None,
-                                         boundary=~face, warm_vertices=warm, region=region,
-                                         lip_band=lip_band(model.faces, loops, len(model.neutral)),
-                                         pixel_units=args.corrective_units == "pixels")
+                                         params=CorrectiveParams(pixel_units=pixel_units), boundary=~face,
+                                         warm_vertices=warm, region=region,
+                                         lip_band=lip_band(model.faces, loops, len(model.neutral)))
     t_corr = time.perf_counter() - t0
 
     configs = {
@@ -221,20 +222,23 @@ def main(argv=None):
         corr = corrective
         if cfg.get("paper"):
             paper_corrective = OutOfSubspaceCorrective(
-                model.neutral, model.faces, cap.cameras, cap.markers, None, boundary=~face, warm_vertices=warm,
-                pixel_units=args.corrective_units == "pixels", damping=0.0, contour_metric="ray", contour_weight=0.5)
+                model.neutral, model.faces, cap.cameras, cap.markers, None,
+                params=CorrectiveParams(pixel_units=pixel_units, damping=0.0, contour_metric="ray", contour_weight=0.5),
+                boundary=~face, warm_vertices=warm)
             corr = paper_corrective
         slv = solver
         if cfg.get("unanchored"):
             slv = BlendshapeSolver(model.neutral, D, model.faces, cap.cameras, cap.markers, None, loops=loops,
-                                   anchor_weight=0.0)
+                                   params=SolveParams(anchor_weight=0.0))
             corr = OutOfSubspaceCorrective(
-                model.neutral, model.faces, cap.cameras, cap.markers, None, boundary=~face, warm_vertices=warm,
-                pixel_units=args.corrective_units == "pixels", damping=0.01, contour_weight=0.5)
-        corr.eyelid_weight = cfg.get("eyelid_weight", 0.5)
+                model.neutral, model.faces, cap.cameras, cap.markers, None,
+                params=CorrectiveParams(pixel_units=pixel_units, damping=0.01, contour_weight=0.5),
+                boundary=~face, warm_vertices=warm)
+        corr.eyelid_weight = cfg.get("eyelid_weight", CorrectiveParams.eyelid_weight)  # the factor does not use it
+        passes = PerformanceParams(sliding=cfg["sliding"],
+                                   lip_passes=cfg.get("lip_passes", PerformanceParams.lip_passes))
         res = solve_performance(slv, corr if cfg["corrective"] else None, cap.markers_px, None,
-                                cap.curves if cfg["curves"] else None, sliding=cfg["sliding"],
-                                lip_passes=cfg.get("lip_passes", LIP_PASSES))
+                                cap.curves if cfg["curves"] else None, params=passes)
         results[name] = res
         m = evaluate(model, cap, loops, names, res, face, lip)
         fr = [f for f in res.info["frames"] if f is not None][1:]
@@ -292,7 +296,7 @@ MATRIX_CONFIGS = {
     "full": dict(curves=True, corrective=True),
     # the same with the previous defaults (no anchor, uniform damping 0.01, contour weight 0.5): issue 15's numbers
     "full_unanchored": dict(curves=True, corrective=True, anchor_weight=0.0, region=False),
-    # "full" with one corrective pass (solve_performance(lip_passes=0)): the default before the lip passes
+    # "full" with one corrective pass (PerformanceParams(lip_passes=0)): the default before the lip passes
     "full_one_pass": dict(curves=True, corrective=True, lip_passes=0),
 }
 MATRIX_KEYS = ("vertex_mm_face", "vertex_mm_lips", "vertex_mm_lip_silhouette", "contour_rms_px", "marker_rms_px",
@@ -319,16 +323,18 @@ def run_case(base, identity, amount, layout, noise_px, frames, lip_error_mm, con
     out = {}
     band = lip_band(model.faces, loops, len(model.neutral))
     for name, cfg in (configs or MATRIX_CONFIGS).items():
-        kw = {} if "anchor_weight" not in cfg else dict(anchor_weight=cfg["anchor_weight"])
-        solver = BlendshapeSolver(model.neutral, D, model.faces, cap.cameras, cap.markers, None, loops=loops, **kw)
+        fit = SolveParams(anchor_weight=cfg.get("anchor_weight", SolveParams.anchor_weight))
+        solver = BlendshapeSolver(model.neutral, D, model.faces, cap.cameras, cap.markers, None, loops=loops,
+                                  params=fit)
         corr = None
         if cfg["corrective"]:
             ckw = dict(region=region, lip_band=band) if cfg.get("region") is not False else dict(
-                region=None, damping=0.01, contour_weight=0.5)
+                region=None, params=CorrectiveParams(damping=0.01, contour_weight=0.5))
             corr = OutOfSubspaceCorrective(model.neutral, model.faces, cap.cameras, cap.markers, None,
                                            boundary=~face, warm_vertices=warm, **ckw)
+        passes = PerformanceParams(lip_passes=cfg.get("lip_passes", PerformanceParams.lip_passes))
         res = solve_performance(solver, corr, cap.markers_px, None, cap.curves if cfg["curves"] else None,
-                                lip_passes=cfg.get("lip_passes", LIP_PASSES))
+                                params=passes)
         m = evaluate(model, cap, loops, names, res, face, lip)
         fr = [f for f in res.info["frames"] if f is not None][1:]
         m["ms_per_frame"] = 1000 * float(np.median([f["time_s"] + f.get("corrective_time_s", 0.0) for f in fr]))

@@ -49,7 +49,7 @@ from facelab_addon.core.solve.deformation_transfer import (  # noqa: E402
     triangle_correspondence_from_markers,
 )
 from facelab_addon.core.solve.lip_contours import EndPoints, lip_contours, lip_distances  # noqa: E402
-from facelab_addon.core.solve.lip_sync import LipSync  # noqa: E402
+from facelab_addon.core.solve.lip_sync import LipSync, LipSyncParams  # noqa: E402
 from facelab_addon.core.solve.retarget import Retargeter  # noqa: E402
 from facelab_addon.testing.creature import widen_mouth  # noqa: E402
 from facelab_addon.testing.weights import viseme_weights  # noqa: E402
@@ -90,7 +90,7 @@ def run(quick: bool = False, render: bool = True, samples: int = 24, png=None) -
     rt = Retargeter(V, F, D, C, F, actor_contours=ac)
     cc = rt.lip_sync.creature_contours
     # the former settings (strong 1000 constraints on the raw targets), for the smoothness comparison only
-    old_ls = LipSync(C, F, cc, ac, strength=1000.0, seal_strength=1000.0, smooth=0.0)
+    old_ls = LipSync(C, F, cc, ac, params=LipSyncParams(strength=1000.0, seal_strength=1000.0, smooth=0.0))
     Lu = uniform_laplacian(F, len(V))
     W = viseme_weights(names, 2 if quick else 4)
     T = len(W)

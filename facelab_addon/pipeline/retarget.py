@@ -39,17 +39,20 @@ from ..blender.shapekeys import (
     rest_vertices,
 )
 from ..core.errors import FaceLabError
+from ..core.solve.retarget import RetargetParams
 from .correctives import CorrectionWriter, StoredKeys
 from .frames import frame_range
 from .solve import face_axes
 from .streaming import FrameChunks
 
-__all__ = ["RetargetSettings", "RetargetResult", "retarget"]
+__all__ = ["RetargetSettings", "RetargetResult", "retarget_params", "retarget"]
+
+_DEFAULTS = RetargetParams()  # the core's defaults: the single source of the defaults below
 
 
 @dataclass
 class RetargetSettings:
-    """Options of Retarget (defaults: FaceLab > Retarget's).
+    """Options of Retarget (defaults: the core's, see :func:`retarget_params`).
 
     frame_start, frame_end : int or None
         The range (None: the scene's start / end; negative frames are honoured).
@@ -77,8 +80,8 @@ class RetargetSettings:
     frame_end: int | None = None
     correspondence: str = "AUTO"
     creature_markers: object = None
-    lip_sync: bool = True
-    lip_threshold: float = 0.0
+    lip_sync: bool = _DEFAULTS.lip_sync
+    lip_threshold: float = _DEFAULTS.threshold
     end_points_upper: object = None
     end_points_lower: object = None
     existing_animation: str = "NEW_ACTION"
@@ -126,6 +129,11 @@ def _marker_correspondence(actor, creature, coll, a_rest, ta, c_rest, tc):
     return corr, f"{len(common)} markers"
 
 
+def retarget_params(settings: RetargetSettings) -> RetargetParams:
+    """The core's retargeting options from Retarget's settings (the one place they are mapped)."""
+    return RetargetParams(lip_sync=settings.lip_sync, threshold=settings.lip_threshold)
+
+
 def _end_points(settings, T):
     """{frame index: EndPoints} from the settings' hand-set talking portions, or None."""
     from ..core.solve.lip_contours import EndPoints
@@ -164,7 +172,7 @@ def retarget(scene, actor, creature, settings: RetargetSettings, progress=None) 
         No creature, the face itself, no correspondence, no rig; nothing is
         written then.
     """
-    from ..core.solve.retarget import retarget_performance
+    from ..core.solve.retarget import Retargeter, retarget_performance
 
     t0 = time.perf_counter()
     require_mesh(actor)
@@ -192,7 +200,7 @@ def retarget(scene, actor, creature, settings: RetargetSettings, progress=None) 
     if mode == "MARKERS" or (mode == "AUTO" and not same):
         corr, how = _marker_correspondence(actor, creature, settings.creature_markers, a_rest, ta, c_rest, tc)
     ep = _end_points(settings, len(frames))
-    kw = {}
+    axes = {}
     cams = []
     for v in settings.views:  # the face's up / forward axes from the tracking cameras when they can be read
         if v.camera is None or v.clip is None:
@@ -204,14 +212,14 @@ def retarget(scene, actor, creature, settings: RetargetSettings, progress=None) 
     if cams:
         up, fwd = face_axes(cams)
         Ai = np.linalg.inv(np.array(actor.matrix_world, dtype=np.float64)[:3, :3])
-        kw = dict(up=Ai @ up, forward=Ai @ fwd)
+        axes = dict(up=Ai @ up, forward=Ai @ fwd)
     # each frame's creature corrective goes to the writer's disk spool a chunk at a time (the writer changes
     # nothing in the scene before finish()); the actor's correctives stay factored as keys and values
     with CorrectionWriter(scene, creature, fl.RETARGET_PREFIX, measured_on="rest") as writer:
         sink = FrameChunks(writer, frames, len(c_rest), fill=True)
-        res = retarget_performance(a_rest, ta, a_deltas, W, c_rest, tc, corrective_keys=C, correspondence=corr,
-                                   lip_sync=settings.lip_sync, threshold=settings.lip_threshold, end_points=ep,
-                                   progress=progress, corrective_sink=sink, **kw)
+        rt = Retargeter(a_rest, ta, a_deltas, c_rest, tc, params=retarget_params(settings), correspondence=corr,
+                        **axes)
+        res = retarget_performance(rt, W, corrective_keys=C, end_points=ep, progress=progress, corrective_sink=sink)
         sink.close()
         # write: the creature's parallel rig (missing keys only), weights, correctives
         created, kept = [], []

@@ -47,6 +47,9 @@ from ..blender.scene_time import require_scene_time
 from ..blender.rig import rig_shapes
 from ..blender.shapekeys import key_values_bulk, remove_keys
 from ..core.errors import BundleError, CameraError, FaceLabError
+from ..core.solve.blendshape_solve import SolveParams
+from ..core.solve.corrective import CorrectiveParams
+from ..core.solve.performance import PerformanceParams
 from .correctives import CorrectionWriter, StoredKeys
 from .frames import frame_range  # noqa: F401  (re-exported: the CLI's and scripts' range)
 from .settings import setting
@@ -58,6 +61,7 @@ __all__ = [
     "BindResult",
     "SolveSettings",
     "SolveResult",
+    "solve_params",
     "frame_range",
     "require_views",
     "face_axes",
@@ -68,6 +72,9 @@ __all__ = [
 
 #: Bind Tracks flags a track whose bound point misses its marker in another view by more than this (pixels).
 DISAGREE_PX = 3.0
+
+# the core's defaults: the single source of the defaults of the solve settings below
+_FIT, _CORRECTIVE, _PASSES = SolveParams(), CorrectiveParams(), PerformanceParams()
 
 
 # --------------------------------------------------------------------------- settings and results
@@ -109,14 +116,14 @@ class BindResult:
 
 @dataclass
 class SolveSettings:
-    """Options of Solve Performance (defaults: FaceLab > Solve's).
+    """Options of Solve Performance (defaults: the core's, see :func:`solve_params`).
 
     ``frame_start`` / ``frame_end`` of None mean the scene's (negative frames are
     honoured); ``annotation_view``
     is the index of the view the scene annotation was drawn through (-1: the
     annotation is ignored); the other fields are those of :class:`BindSettings`
-    and the solver's options (weight bounds, term weights, sliding contours, the
-    corrective) and ``existing_animation`` (see
+    and the solver's options (weight bounds, dimensionless term weights, sliding
+    contours, the corrective) and ``existing_animation`` (see
     :func:`facelab_addon.blender.actions.prepare_action`).
     """
 
@@ -129,33 +136,54 @@ class SolveSettings:
     use_contours: bool = True
     annotation_view: int = -1
     use_corrective: bool = True
-    sliding: bool = True
-    weight_min: float = -1.0
-    weight_max: float = 1.0
-    marker_weight: float = 1.0
-    contour_weight: float = 1.0
+    sliding: bool = _PASSES.sliding
+    weight_min: float = _FIT.bounds[0]
+    weight_max: float = _FIT.bounds[1]
+    marker_weight: float = _FIT.marker_weight
+    contour_weight: float = _FIT.contour_weight
     existing_animation: str = "NEW_ACTION"
     anchor_weight: float = setting(
-        50.0, label="Markers Anchor", min=0.0, soft_max=1000.0,
+        _FIT.anchor_weight, label="Markers Anchor", min=0.0, soft_max=1000.0,
         description="How strongly the contour fit keeps the face away from the mouth and eyes where the markers "
                     "alone put it; lower it when the contours are more reliable than the markers (0: contours move the "
                     "whole face)")
     contour_damping: float = setting(
-        0.03, label="Corrective Damping at Contours", min=0.0, soft_max=1.0,
-        description="How strongly the corrective stays near the contours around the mouth and eyes (0.01 "
-                    "elsewhere); lower it when lip and lid corrections stop short of their contours")
+        _CORRECTIVE.region_damping, label="Corrective Damping at Contours", min=0.0, soft_max=1.0,
+        description="How strongly the corrective stays near the contours around the mouth and eyes "
+                    f"({_CORRECTIVE.damping:g} elsewhere); lower it when lip and lid corrections stop short of their "
+                    "contours")
     lip_passes: int = setting(
-        2, label="Lip Passes", min=0, max=10, soft_max=4,
+        _PASSES.lip_passes, label="Lip Passes", min=0, max=10, soft_max=4,
         description="Times the contours are matched again on the corrected mesh and the lips alone solved again "
                     "(0: one pass); raise it when the inner lips still miss their contour")
     lip_line_weight: float = setting(
-        8.0, label="Lip Line Weight", min=0.0, soft_max=50.0,
+        _CORRECTIVE.lip_contour_weight, label="Lip Line Weight", min=0.0, soft_max=50.0,
         description="Weight of the tracked lip lines in the lip passes, relative to the markers (1); raise it "
                     "when the lips miss the tracked lip lines")
     lip_damping: float = setting(
-        0.3, label="Lip Pass Damping", min=0.0, soft_max=3.0,
+        _CORRECTIVE.lip_damping, label="Lip Pass Damping", min=0.0, soft_max=3.0,
         description="How strongly the lip passes keep the lip correction on the lip rim; raise it when the lip "
                     "passes dent the lips")
+
+
+def solve_params(settings: SolveSettings) -> tuple[SolveParams, CorrectiveParams, PerformanceParams]:
+    """The core's options of Solve Performance from its settings (the one place they are mapped).
+
+    Returns
+    -------
+    fit : SolveParams
+        Weight bounds, marker / contour weights and the markers anchor of the blendshape fit.
+    corrective : CorrectiveParams
+        Damping at the contours and the lip passes' contour weight and damping.
+    passes : PerformanceParams
+        Sliding contours and the number of lip passes.
+    """
+    fit = SolveParams(bounds=(settings.weight_min, settings.weight_max), marker_weight=settings.marker_weight,
+                      contour_weight=settings.contour_weight, anchor_weight=settings.anchor_weight)
+    corrective = CorrectiveParams(region_damping=settings.contour_damping,
+                                  lip_contour_weight=settings.lip_line_weight, lip_damping=settings.lip_damping)
+    passes = PerformanceParams(sliding=settings.sliding, lip_passes=settings.lip_passes)
+    return fit, corrective, passes
 
 
 @dataclass
@@ -478,19 +506,16 @@ def solve_performance(scene, obj, settings: SolveSettings, progress=None) -> Sol
     t0 = time.perf_counter()
     g = _gather(scene, obj, settings)
     t_gather = time.perf_counter() - t0
+    fit, corrective, passes = solve_params(settings)
     solver = BlendshapeSolver(g.neutral, g.deltas, g.tris, g.cameras, g.marker_points, g.bundle_points, g.loops,
-                              bounds=(settings.weight_min, settings.weight_max),
-                              marker_weight=settings.marker_weight, contour_weight=settings.contour_weight,
-                              anchor_weight=settings.anchor_weight)
+                              params=fit)
     corr = None
     if settings.use_corrective:
         boundary = OutOfSubspaceCorrective.default_boundary(g.neutral, g.tris, g.marker_points, g.bundle_points)
         region = None if g.loops is None else contour_region(g.neutral, g.tris, g.loops)
         band = lip_band(g.tris, g.loops, len(g.neutral)) if g.loops is not None and g.loops.mouth else None
         corr = OutOfSubspaceCorrective(g.neutral, g.tris, g.cameras, g.marker_points, g.bundle_points,
-                                       boundary=boundary | g.fixed, region=region,
-                                       region_damping=settings.contour_damping, lip_band=band,
-                                       lip_contour_weight=settings.lip_line_weight, lip_damping=settings.lip_damping)
+                                       params=corrective, boundary=boundary | g.fixed, region=region, lip_band=band)
     frames = g.frames
     markers = g.markers
     if markers is None:
@@ -504,8 +529,7 @@ def solve_performance(scene, obj, settings: SolveSettings, progress=None) -> Sol
             writer = stack.enter_context(CorrectionWriter(scene, obj, fl.SOLVE_PREFIX, measured_on="rest"))
             sink = FrameChunks(writer, frames, len(g.neutral), matrix=np.linalg.inv(g.A), fill=False)
         # the core reports the index of the frame just solved; report frames done
-        res = core_solve(solver, corr, markers, g.bundles, g.curves, sliding=settings.sliding,
-                         lip_passes=settings.lip_passes,
+        res = core_solve(solver, corr, markers, g.bundles, g.curves, params=passes,
                          progress=(lambda i, n: progress(i + 1, n)) if progress is not None else None,
                          corrective_sink=sink)
         t_fit = time.perf_counter() - t1

@@ -283,19 +283,27 @@ def test_modifier_state_puts_back_modes_and_removes_what_was_added(addon, tmp_pa
 
 
 def test_solve_panel_settings_default_to_the_pipeline_defaults(addon):
-    """Every Solve setting declared with ``pipeline.settings.setting`` reaches the pipeline from the panel with
-    its declared default (a field missing from the panel would silently run at a different value)."""
+    """Every Solve setting declared with ``pipeline.settings.setting``, and every solver option the panel
+    offers, reaches the pipeline from the panel with the pipeline's default (which is the core's: a field
+    missing from the panel, or a panel default drifting from the core's, would silently run at a different
+    value); likewise for Retarget."""
     from dataclasses import fields
 
+    from facelab_addon.pipeline.retarget import RetargetSettings
     from facelab_addon.pipeline.solve import SolveSettings
-    from facelab_addon.pipeline.shot_settings import solve_settings
+    from facelab_addon.pipeline.shot_settings import retarget_settings, solve_settings
 
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene
     got, want = solve_settings(scene), SolveSettings()
     declared = [f.name for f in fields(SolveSettings) if f.metadata.get("facelab")]
     assert {"anchor_weight", "lip_passes", "lip_line_weight", "lip_damping"} <= set(declared)
-    for name in declared:
+    options = ("bundles", "use_contours", "annotation_view", "use_corrective", "sliding", "weight_min", "weight_max",
+               "marker_weight", "contour_weight", "existing_animation")
+    for name in declared + list(options):
+        assert getattr(got, name) == pytest.approx(getattr(want, name)), name
+    got, want = retarget_settings(scene), RetargetSettings()
+    for name in ("correspondence", "lip_sync", "lip_threshold", "existing_animation"):
         assert getattr(got, name) == pytest.approx(getattr(want, name)), name
     scene.facelab_solve.lip_passes = 0
     assert solve_settings(scene).lip_passes == 0

@@ -6,9 +6,9 @@ from scipy.optimize import lsq_linear
 
 from facelab_addon.core.capture.markers import nearest_surface_points
 from facelab_addon.core.errors import FaceLabError
-from facelab_addon.core.solve.blendshape_solve import BlendshapeSolver, FrameResult
+from facelab_addon.core.solve.blendshape_solve import BlendshapeSolver, FrameResult, SolveParams
 from facelab_addon.core.solve.bounded_lsq import box_least_squares
-from facelab_addon.core.solve.corrective import OutOfSubspaceCorrective
+from facelab_addon.core.solve.corrective import CorrectiveParams, OutOfSubspaceCorrective
 from facelab_addon.core.solve.matching import contour_curve_distance
 from facelab_addon.core.solve.performance import solve_performance
 from facelab_addon.testing.capture_sim import make_capture
@@ -45,7 +45,8 @@ def test_box_least_squares_matches_bvls_and_kkt():
 
 
 def test_markers_give_back_the_true_weights_without_noise(ict, cap, deltas):
-    solver = BlendshapeSolver(ict.neutral, deltas, ict.faces, cap.cameras, cap.markers, None, regularization=0.0)
+    solver = BlendshapeSolver(ict.neutral, deltas, ict.faces, cap.cameras, cap.markers, None,
+                              params=SolveParams(regularization=0.0))
     prev = None
     for t in range(len(cap.weights)):
         res = solver.solve_frame(cap.markers_px_clean[t], previous=prev, iterations=4)
@@ -58,7 +59,8 @@ def test_bundles_give_back_the_true_weights(ict, cap, deltas):
     X = cap.markers.evaluate(ict.neutral)
     bundles = nearest_surface_points(ict.neutral, ict.faces, X)
     np.testing.assert_allclose(bundles.evaluate(ict.neutral), X, atol=1e-9)
-    solver = BlendshapeSolver(ict.neutral, deltas, ict.faces, cap.cameras, None, bundles, regularization=0.0)
+    solver = BlendshapeSolver(ict.neutral, deltas, ict.faces, cap.cameras, None, bundles,
+                              params=SolveParams(regularization=0.0))
     B = bundles.evaluate(cap.truth[2])
     B[::7] = np.nan  # some bundles not reconstructed on this frame
     res = solver.solve_frame(None, B)
@@ -73,7 +75,8 @@ def test_bounds_clip_and_the_solution_stays_optimal(ict, cap, deltas):
     V = ict.neutral + np.einsum("s,svd->vd", w_true, deltas)
     X = cap.markers.evaluate(V)
     px = np.stack([c.project(X) for c in cap.cameras])
-    solver = BlendshapeSolver(ict.neutral, deltas, ict.faces, cap.cameras, cap.markers, None, regularization=0.0)
+    solver = BlendshapeSolver(ict.neutral, deltas, ict.faces, cap.cameras, cap.markers, None,
+                              params=SolveParams(regularization=0.0))
     res = solver.solve_frame(px, iterations=6)
     w = res.weights
     assert w[NAMES.index("jawOpen")] == 1.0 and w[NAMES.index("mouthSmile_L")] == -1.0
@@ -98,7 +101,7 @@ def test_corrective_is_zero_when_constraints_hold_and_fits_them_when_not(ict, ca
     X = cap.markers.evaluate(Vb + bump)
     px = np.stack([cam.project(X) for cam in cap.cameras])
     strong = OutOfSubspaceCorrective(ict.neutral, ict.faces, cap.cameras, cap.markers, None, boundary=~face,
-                                     marker_weight=1e5)
+                                     params=CorrectiveParams(marker_weight=1e5))
     d = strong.solve(Vb, px)
     Y = cap.markers.evaluate(Vb + d)
     err = np.concatenate([np.linalg.norm(cam.project(Y) - px[i], axis=1) for i, cam in enumerate(cap.cameras)])
@@ -116,7 +119,7 @@ def test_contours_recover_the_truth(ict, deltas):
     cap = make_capture(ict, names=NAMES, n_frames=2, n_markers=40, noise_px=0.0, seed=2, curves=True)
     loops = ict_contour_loops(ict)
     solver = BlendshapeSolver(ict.neutral, deltas, ict.faces, cap.cameras, cap.markers, None, loops=loops,
-                              regularization=0.0)
+                              params=SolveParams(regularization=0.0))
     prev = None
     for t in range(2):
         # mouth curves: exact in the rig's span (the eyelid curves are lifted onto a fitted eyeball
@@ -141,7 +144,8 @@ def test_solve_performance_skips_frames_without_data_and_counts_offscreen(ict, c
     mp = cap.markers_px_clean.copy()
     mp[1] = np.nan  # nothing tracked on frame 1
     mp[2, 0, :5] = [5000.0, 5000.0]  # 5 markers off-screen in camera 0
-    solver = BlendshapeSolver(ict.neutral, deltas, ict.faces, cap.cameras, cap.markers, None, regularization=0.0)
+    solver = BlendshapeSolver(ict.neutral, deltas, ict.faces, cap.cameras, cap.markers, None,
+                              params=SolveParams(regularization=0.0))
     seen = []
     res = solve_performance(solver, None, mp, progress=lambda i, n: seen.append((i, n)))
     assert list(res.skipped) == [1] and "no tracked markers" in res.skipped[1]
@@ -165,6 +169,33 @@ def test_bad_input_messages(ict, cap, deltas):
     with pytest.raises(FaceLabError, match="nothing to fit"):
         solver.solve_frame(np.full_like(cap.markers_px[0], np.nan))
     assert isinstance(solver.solve_frame(cap.markers_px[0]), FrameResult)
+
+
+def test_params_are_frozen_checked_and_reach_the_solvers(ict, cap, deltas):
+    """The parameter objects refuse bad values with the fix named, cannot be changed after the fact, and the
+    solver and corrective use the values they are given."""
+    import dataclasses
+
+    for make, match in ((lambda: SolveParams(anchor_weight=-1.0), "anchor_weight"),
+                        (lambda: SolveParams(anchor_weight=np.nan), "anchor_weight"),
+                        (lambda: CorrectiveParams(contour_metric="normal"), "contour_metric"),
+                        (lambda: CorrectiveParams(region_damping=-0.1), "region_damping"),
+                        (lambda: CorrectiveParams(lip_damping=np.inf), "lip_damping"),
+                        (lambda: CorrectiveParams(lip_contour_weight=-8.0), "lip_contour_weight")):
+        with pytest.raises(FaceLabError, match=match):
+            make()
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        SolveParams().marker_weight = 2.0
+    fit = SolveParams(bounds=(0.0, 0.5), marker_weight=2.0, anchor_weight=0.0)
+    solver = BlendshapeSolver(ict.neutral, deltas, ict.faces, cap.cameras, cap.markers, None, params=fit)
+    assert solver.params is fit and solver.marker_weight == 2.0 and solver.anchor_weight == 0.0
+    np.testing.assert_array_equal(solver.lo, 0.0)
+    np.testing.assert_array_equal(solver.hi, 0.5)
+    w = solver.solve_frame(cap.markers_px[0]).weights
+    assert w.min() >= 0.0 and w.max() <= 0.5 and np.isclose(w.max(), 0.5)  # the bounds given are the ones used
+    corr = OutOfSubspaceCorrective(ict.neutral, ict.faces, cap.cameras, cap.markers, None,
+                                   params=CorrectiveParams(damping=0.2, eyelid_weight=0.0))
+    assert corr.damping == 0.2 and corr.eyelid_weight == 0.0 and corr.contour_weight == 0.5
 
 
 def test_default_boundary_holds_the_border_and_parts_without_markers():
@@ -222,7 +253,7 @@ def test_damping_keeps_the_corrective_local_and_closer_to_the_truth(ict, cap, de
     errs = {}
     for damping in (0.0, 0.01):
         corr = OutOfSubspaceCorrective(ict.neutral, ict.faces, cap.cameras, cap.markers, None, boundary=~face,
-                                       damping=damping)
+                                       params=CorrectiveParams(damping=damping))
         d = corr.solve(Vb, px)
         e = np.linalg.norm(Vb + d - (Vb + bump), axis=1)
         errs[damping] = (e[face].mean(), e[far].mean())
@@ -268,7 +299,7 @@ def test_huber_weights_of_lip_contour_points(ict, deltas):
     cap = make_capture(ict, names=NAMES, n_frames=2, n_markers=40, noise_px=0.0, seed=2, curves=True)
     loops = ict_contour_loops(ict)
     solver = BlendshapeSolver(ict.neutral, deltas, ict.faces, cap.cameras, cap.markers, None, loops=loops,
-                              contour_huber_px=1.0)
+                              params=SolveParams(contour_huber_px=1.0))
     w = cap.weights[0]
     cc = solver.match(w, cap.curves[0])
     shift = np.array([3.0, -4.0])  # 5 px
@@ -297,8 +328,9 @@ def test_huber_keeps_in_span_fits_and_loosens_out_of_span_lips(ict, deltas):
         face = ict.part_vertex_mask("M_Face")
         for k in (None, 1.0):
             s = BlendshapeSolver(ict.neutral, deltas, ict.faces, cap.cameras, cap.markers, None, loops=loops,
-                                 contour_huber_px=k, anchor_weight=0.0)  # the Huber loss alone (clean markers
-            # would otherwise anchor the fit to the markers-only one, see test_contour_solve_unseen.py)
+                                 params=SolveParams(contour_huber_px=k, anchor_weight=0.0))
+            # the Huber loss alone (clean markers would otherwise anchor the fit to the markers-only one, see
+            # test_contour_solve_unseen.py)
             ws.append(s.solve_frame(cap.markers_px_clean[1], None, mouth, iterations=2).weights)
             errs.append(np.linalg.norm(s.vertices(ws[-1]) - cap.truth[1], axis=1)[face].mean())
         d = np.abs(ws[0] - ws[1]).max()

@@ -1,7 +1,7 @@
 """Contours must not make the face worse than markers alone, on a face and camera rig the defaults were not tuned on.
 
 Issue 15 (Bhat et al. 2013 §4): the contour fit is tied to the markers-only fit away from the mouth and eyes
-(``BlendshapeSolver(anchor_weight=...)``) and the corrective is damped outside the contours' regions; checked
+(``SolveParams.anchor_weight``) and the corrective is damped outside the contours' regions; checked
 against the ground truth of a held-out ICT identity filmed by a held-out camera rig (``testing.solve_cases``).
 """
 
@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from facelab_addon.core.lips.mouth import find_mouth
-from facelab_addon.core.solve.blendshape_solve import BlendshapeSolver, contour_region
-from facelab_addon.core.solve.corrective import OutOfSubspaceCorrective, lip_band
+from facelab_addon.core.solve.blendshape_solve import BlendshapeSolver, SolveParams, contour_region
+from facelab_addon.core.solve.corrective import CorrectiveParams, OutOfSubspaceCorrective, lip_band
 from facelab_addon.core.solve.matching import contour_curve_distance
-from facelab_addon.core.solve.performance import solve_performance
+from facelab_addon.core.solve.performance import PerformanceParams, solve_performance
 from facelab_addon.testing.capture_sim import make_capture
 from facelab_addon.testing.contour_truth import ict_contour_loops
 from facelab_addon.testing.solve_cases import HELD_OUT_CASES, TUNING_CASES, identity_model, layout_cameras
@@ -69,7 +69,7 @@ def test_contours_never_worsen_the_face_and_help_the_inner_lips_on_a_held_out_ca
     assert lip_c < 0.9 * lip_m, (lip_c, lip_m)
     # the previous defaults (no anchor, uniform damping) made this face worse than markers alone
     solver0 = BlendshapeSolver(model.neutral, D, model.faces, cap.cameras, cap.markers, None, loops=loops,
-                               anchor_weight=0.0)
+                               params=SolveParams(anchor_weight=0.0))
     corr0 = OutOfSubspaceCorrective(model.neutral, model.faces, cap.cameras, cap.markers, None, boundary=~face)
     face_0, lip_0 = _errors(model, solve_performance(solver0, corr0, px, None, cap.curves), cap, face, lip)
     assert face_c < face_0 and lip_c < lip_0, (face_c, face_0, lip_c, lip_0)
@@ -90,7 +90,7 @@ def test_a_strong_anchor_keeps_the_markers_only_face_outside_the_contour_regions
     moved = {}
     for k in (0.0, 1e6):
         s = BlendshapeSolver(model.neutral, D, model.faces, cap.cameras, cap.markers, None, loops=loops,
-                             anchor_weight=k)
+                             params=SolveParams(anchor_weight=k))
         X = s.vertices(s.solve_frame(cap.markers_px[t], None, mouth_curves).weights)
         moved[k] = float(np.linalg.norm(X - X_m, axis=1)[far].mean()) * 10.0  # mm
     assert moved[1e6] < 0.005, moved  # the face away from the mouth and eyes stays where the markers put it
@@ -126,7 +126,8 @@ def test_region_damping_applies_inside_the_contour_region_only(ict):
     err, inside = {}, {}
     for damping, region_damping in ((0.01, 0.01), (0.3, 0.01), (0.01, 0.3)):
         c = OutOfSubspaceCorrective(ict.neutral, ict.faces, cap.cameras, cap.markers, None, boundary=~face,
-                                    damping=damping, region=region, region_damping=region_damping)
+                                    params=CorrectiveParams(damping=damping, region_damping=region_damping),
+                                    region=region)
         dV = c.solve(Vb, cap.markers_px[0])
         err[damping, region_damping] = float(np.linalg.norm(Vb + dV - cap.truth[0], axis=1)[face & ~region].mean())
         inside[damping, region_damping] = float(np.linalg.norm(dV, axis=1)[face & region].mean())
@@ -135,13 +136,13 @@ def test_region_damping_applies_inside_the_contour_region_only(ict):
 
 
 def _solve_lip_line(model, cap, loops, face, lip, **kw):
-    """(lip line px RMS, face mm, inner-lip mm, result) of the default contour solve with ``kw`` for solve_performance."""
+    """(lip line px RMS, face mm, inner-lip mm, result) of the default contour solve with ``kw`` for PerformanceParams."""
     D = model.deltas(cap.names)
     solver = BlendshapeSolver(model.neutral, D, model.faces, cap.cameras, cap.markers, None, loops=loops)
     corr = OutOfSubspaceCorrective(model.neutral, model.faces, cap.cameras, cap.markers, None, boundary=~face,
                                    region=contour_region(model.neutral, model.faces, loops),
                                    lip_band=lip_band(model.faces, loops, len(model.neutral)))
-    res = solve_performance(solver, corr, cap.markers_px, None, cap.curves, **kw)
+    res = solve_performance(solver, corr, cap.markers_px, None, cap.curves, params=PerformanceParams(**kw))
     X = [model.neutral + np.einsum("s,svd->vd", res.weights[t], D) + res.correctives[t]
          for t in range(len(cap.truth))]
     px = np.concatenate([contour_curve_distance(X[t], cap.cameras, res.correspondences[t], cap.curves[t])
@@ -190,5 +191,7 @@ def test_the_lip_band_solve_moves_only_the_lips(held_out):
     assert rms(d2) < 0.7 * rms(d1), (rms(d1), rms(d2))
     assert 200 < band.sum() < 0.2 * face.sum()  # the lips, not the face
     # the optional lip-line pass acts on the band too
-    d3 = corr.lip_line_pass(Vb, d2, cap.markers_px[t], None, cc2, cap.curves[t])
+    p = PerformanceParams()
+    d3 = corr.lip_line_pass(Vb, d2, cap.markers_px[t], None, cc2, cap.curves[t], threshold_px=p.lip_line_threshold_px,
+                            curve_threshold_px=p.lip_line_curve_px)
     assert np.array_equal(d3[~band], d1[~band]) and not np.array_equal(d3[band], d2[band])

@@ -31,7 +31,7 @@ from facelab_addon.core.lips.propagate import LipRegressor
 from facelab_addon.core.lips.regions import auto_regions, faces_in_region
 from facelab_addon.core.lips.sketch import refine_lips
 from facelab_addon.core.lips.suggest import suggest_frames
-from facelab_addon.core.solve.blendshape_solve import BlendshapeSolver
+from facelab_addon.core.solve.blendshape_solve import BlendshapeSolver, SolveParams
 from facelab_addon.testing.meshes import grid_mesh
 
 from .lipmesh import front_camera, line_px, two_lips
@@ -383,7 +383,7 @@ def test_fuzz_blendshape_solver_on_a_tiny_rig(seed, flaw, nshapes, px, bounds):
     mk = outcome(nearest_surface_points, V, F, V[:4] if len(V) else np.zeros((0, 3)))
     if mk is None:
         return
-    solver = outcome(BlendshapeSolver, V, D, F, [cam], mk, None, bounds=bounds)
+    solver = outcome(BlendshapeSolver, V, D, F, [cam], mk, None, params=SolveParams(bounds=bounds))
     if solver is None:
         return
     obs = cam.project(V[:4])[None] if px != "huge" else np.full((1, len(mk), 2), 1e15)

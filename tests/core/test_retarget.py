@@ -13,8 +13,8 @@ from facelab_addon.core.solve.lip_contours import (
     lip_distances,
     lip_sync_end_points,
 )
-from facelab_addon.core.solve.lip_sync import LipSync
-from facelab_addon.core.solve.retarget import Retargeter, retarget_performance
+from facelab_addon.core.solve.lip_sync import LipSync, LipSyncParams
+from facelab_addon.core.solve.retarget import RetargetParams, Retargeter, retarget_performance
 from facelab_addon.testing.creature import widen_mouth
 
 N = 40  # vertices around the mouth (corners at angles 0 and pi)
@@ -184,18 +184,17 @@ def test_retargeter_copies_weights_transfers_correctives_and_applies_lip_sync():
     assert np.abs(Vc + np.tensordot(w, rt.creature_deltas, 1) + c_off - full).max() < 1e-3 * motion
     c_ls, info = rt.frame(w, corr)
     assert info["end_points"] is not None and np.abs(c_ls - c_off).max() > 1e-3
-    res = retarget_performance(Va, F, deltas, np.stack([w, 0 * w]), Vc, F, correctives=np.stack([corr, 0 * corr]),
-                               actor_loop=loop_ids())
+    res = retarget_performance(rt, np.stack([w, 0 * w]), correctives=np.stack([corr, 0 * corr]))
     np.testing.assert_allclose(res.correctives[0], c_ls, atol=1e-6)  # float32 storage
     np.testing.assert_allclose(res.weights, np.stack([w, 0 * w]))
     # artist override on one frame, automatic end points on the other
-    res2 = retarget_performance(Va, F, deltas, np.stack([w, w]), Vc, F, actor_loop=loop_ids(), end_points={1: (0.2, 0.8)})
+    res2 = retarget_performance(rt, np.stack([w, w]), end_points={1: (0.2, 0.8)})
     np.testing.assert_allclose(res2.end_points[1].upper, [0.2, 0.8])
     _, auto = rt.frame(w)
     np.testing.assert_allclose(res2.end_points[0].upper, auto["end_points"].upper)
     assert np.abs(res2.correctives[1] - res2.correctives[0]).max() > 1e-3
     with pytest.raises(FaceLabError, match="shape keys"):
-        Retargeter(Va, F, np.zeros((0,) + Va.shape), Vc, F, lip_sync=False)
+        Retargeter(Va, F, np.zeros((0,) + Va.shape), Vc, F, params=RetargetParams(lip_sync=False))
 
 
 @pytest.mark.ict
@@ -216,8 +215,9 @@ def test_lip_sync_on_the_zigzag_ict_loop_keeps_the_creature_lips_smooth():
     w = np.array([0.5, 0.2, 0.2])
     L = uniform_laplacian(F, len(V))
     out = {}
-    for label, kw in (("new", {}), ("old", dict(strength=1000.0, seal_strength=1000.0, smooth=0.0))):
-        rt = Retargeter(V, F, D, C, F, actor_contours=ac, **kw)
+    for label, lip in (("new", LipSyncParams()), ("old", LipSyncParams(strength=1000.0, seal_strength=1000.0,
+                                                                       smooth=0.0))):
+        rt = Retargeter(V, F, D, C, F, params=RetargetParams(lip=lip), actor_contours=ac)
         plain, _ = rt.frame(w, lip_sync=False)
         synced, info = rt.frame(w)
         d = synced - plain
@@ -254,14 +254,15 @@ def test_corrective_sink_gets_the_whole_shot_rows_bit_for_bit(lip_sync):
     values = rng.uniform(-1, 1, (T, R))
     values[2] = 0.0  # a frame without corrective
     dense = np.einsum("tr,rvd->tvd", values, basis)
-    kw = dict(actor_loop=loop_ids(), lip_sync=lip_sync, end_points={4: (0.2, 0.8)} if lip_sync else None)
-    whole = retarget_performance(Va, F, deltas, W, Vc, F, correctives=dense, **kw)
+    rt = Retargeter(Va, F, deltas, Vc, F, params=RetargetParams(lip_sync=lip_sync), actor_loop=loop_ids())
+    end_points = {4: (0.2, 0.8)} if lip_sync else None
+    whole = retarget_performance(rt, W, correctives=dense, end_points=end_points)
     assert whole.correctives.shape == (T,) + Vc.shape and whole.correctives.dtype == np.float32
     assert np.abs(whole.correctives).max() > 1e-3 and whole.info["nonzero"]
     got, done = [], []
-    streamed = retarget_performance(Va, F, deltas, W, Vc, F, corrective_keys=(basis, values),
+    streamed = retarget_performance(rt, W, corrective_keys=(basis, values), end_points=end_points,
                                     corrective_sink=lambda t, c: got.append((t, c.copy())),
-                                    progress=lambda d, n: done.append((d, n)), **kw)
+                                    progress=lambda d, n: done.append((d, n)))
     assert streamed.correctives is None and streamed.info["nonzero"]
     assert [t for t, _ in got] == list(range(T)) and done == [(t + 1, T) for t in range(T)]
     assert all(c.dtype == np.float32 and c.shape == Vc.shape for _, c in got)
@@ -284,16 +285,16 @@ def test_retarget_without_correctives_reports_all_zero_and_bad_corrective_shapes
     deltas = (open_mouth(Va, 0.4) - Va)[None]
     W = np.array([[0.5], [1.0]])
     got = []
-    res = retarget_performance(Va, F, deltas, W, Vc, F, lip_sync=False, corrective_sink=lambda t, c: got.append(c))
+    rt = Retargeter(Va, F, deltas, Vc, F, params=RetargetParams(lip_sync=False))
+    res = retarget_performance(rt, W, corrective_sink=lambda t, c: got.append(c))
     assert len(got) == 2 and not res.info["nonzero"] and not any(np.any(c) for c in got)
     basis = np.zeros((2,) + Va.shape)
     for bad, match in [((basis, np.zeros((3, 2))), "one row of key values per frame"),
                        ((basis[:, :-1], np.zeros((2, 2))), "Corrective keys have shape"),
                        ((basis,), "must be the pair")]:
         with pytest.raises(FaceLabError, match=match):
-            retarget_performance(Va, F, deltas, W, Vc, F, lip_sync=False, corrective_keys=bad)
+            retarget_performance(rt, W, corrective_keys=bad)
     with pytest.raises(FaceLabError, match="one per frame"):
-        retarget_performance(Va, F, deltas, W, Vc, F, lip_sync=False, correctives=np.zeros((3,) + Va.shape))
+        retarget_performance(rt, W, correctives=np.zeros((3,) + Va.shape))
     with pytest.raises(FaceLabError, match="not both"):
-        retarget_performance(Va, F, deltas, W, Vc, F, lip_sync=False, correctives=np.zeros((2,) + Va.shape),
-                             corrective_keys=(basis, np.zeros((2, 2))))
+        retarget_performance(rt, W, correctives=np.zeros((2,) + Va.shape), corrective_keys=(basis, np.zeros((2, 2))))

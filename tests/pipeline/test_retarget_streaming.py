@@ -14,7 +14,7 @@ from facelab_addon.blender.scene import new_mesh_object
 from facelab_addon.blender.shapekeys import rest_vertices
 from facelab_addon.core.geometry import compress
 from facelab_addon.core.solve import retarget as core_retarget
-from facelab_addon.core.solve.retarget import retarget_performance
+from facelab_addon.core.solve.retarget import RetargetParams, Retargeter, retarget_performance
 from facelab_addon.names import RETARGET_PREFIX, SOLVE_PREFIX
 from facelab_addon.pipeline import correctives, streaming
 from facelab_addon.pipeline.retarget import RetargetSettings, retarget
@@ -52,7 +52,8 @@ def test_streamed_correctives_equal_the_whole_shot(ict, solved, monkeypatch, lip
     names, a_rest, a_deltas, W, C = rig_animation(obj, np.arange(T), SOLVE_PREFIX)
     assert C is not None and np.abs(C).max() > 1e-4
     ta = mesh_triangles(obj.data)
-    whole = retarget_performance(a_rest, ta, a_deltas, W, rest_vertices(cre), ta, correctives=C, lip_sync=lip_sync)
+    rt = Retargeter(a_rest, ta, a_deltas, rest_vertices(cre), ta, params=RetargetParams(lip_sync=lip_sync))
+    whole = retarget_performance(rt, W, correctives=C)
     D = np.concatenate(got["deltas"])
     print(f"lip sync {lip_sync}: streamed vs whole-shot largest difference {np.abs(D - whole.correctives).max():.3g}"
           f" (largest corrective {np.abs(whole.correctives).max():.3g})")

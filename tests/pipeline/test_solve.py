@@ -12,13 +12,19 @@ from facelab_addon.blender.bindings import read_bindings
 from facelab_addon.blender.tracking import View
 from facelab_addon.core.capture.markers import SurfacePoints
 from facelab_addon.core.errors import BundleError, CameraError, FaceLabError
+from facelab_addon.core.solve.blendshape_solve import SolveParams
+from facelab_addon.core.solve.corrective import CorrectiveParams
+from facelab_addon.core.solve.performance import PerformanceParams
+from facelab_addon.core.solve.retarget import RetargetParams
 from facelab_addon.names import SOLVE_ACTION, SOLVE_PREFIX
 from facelab_addon.pipeline.solve import (
     BindSettings,
     SolveSettings,
     bind_tracks,
+    solve_params,
     solve_performance,
 )
+from facelab_addon.pipeline.retarget import RetargetSettings, retarget_params
 
 from ..blender.test_solve_operator import EXPR, W_TRUTH, T, build
 
@@ -27,6 +33,20 @@ pytestmark = pytest.mark.blender
 
 def _views(views):
     return [View(cam_obj, clip) for cam_obj, clip, _ in views]
+
+
+def test_settings_map_onto_the_core_params_with_the_core_defaults():
+    """The settings' defaults are the core's (one source) and every setting reaches its core parameter."""
+    assert solve_params(SolveSettings()) == (SolveParams(), CorrectiveParams(), PerformanceParams())
+    assert retarget_params(RetargetSettings()) == RetargetParams()
+    fit, corr, passes = solve_params(SolveSettings(
+        weight_min=0.0, weight_max=0.8, marker_weight=2.0, contour_weight=3.0, anchor_weight=4.0, sliding=False,
+        contour_damping=0.05, lip_passes=1, lip_line_weight=6.0, lip_damping=0.2))
+    assert fit == SolveParams(bounds=(0.0, 0.8), marker_weight=2.0, contour_weight=3.0, anchor_weight=4.0)
+    assert corr == CorrectiveParams(region_damping=0.05, lip_contour_weight=6.0, lip_damping=0.2)
+    assert passes == PerformanceParams(sliding=False, lip_passes=1)
+    assert retarget_params(RetargetSettings(lip_sync=False, lip_threshold=0.002)) == RetargetParams(
+        lip_sync=False, threshold=0.002)
 
 
 def test_bind_and_solve_recover_the_truth(ict, addon, tmp_path):

@@ -51,13 +51,95 @@ from ..geometry.mesh import grow_region, validate_mesh, vertex_adjacency
 from .bounded_lsq import box_least_squares
 from .matching import match_contours
 
-__all__ = ["FrameResult", "BlendshapeSolver", "contour_region", "ANCHOR_RINGS_MOUTH", "ANCHOR_EYE_RADIUS"]
+__all__ = [
+    "SolveParams", "FrameResult", "BlendshapeSolver", "contour_region", "ANCHOR_RINGS_MOUTH", "ANCHOR_EYE_RADIUS",
+]
 
 #: Edge rings around the mouth loops (and, plus the number of eyelid loops, around the eyes) left out of the
-#: tie to the markers-only fit (``BlendshapeSolver(anchor_weight=...)``).
+#: tie to the markers-only fit (``SolveParams.anchor_weight``).
 ANCHOR_RINGS_MOUTH = 2
 #: Radius, in eye widths, around the eyelid loops left out of that tie (the lids' skin moves with a blink).
 ANCHOR_EYE_RADIUS = 0.5
+
+
+@dataclass(frozen=True)
+class SolveParams:
+    """Options of the per-frame blendshape fit (:class:`BlendshapeSolver`).
+
+    Weights are dimensionless factors on squared residuals: marker and 2D
+    contour residuals are in pixels, bundle and 3D eyelid residuals in scene
+    units. The defaults are the paper's except where noted.
+
+    Weight bounds
+    -------------
+    bounds : (lo, hi)
+        Weight bounds (paper: -1, 1); scalars or (S,) arrays (dimensionless).
+
+    Energy weights
+    --------------
+    marker_weight, contour_weight, bundle_weight : float
+        ``omega`` of each energy (paper: 1).
+    regularization : float
+        Ridge, relative to the mean diagonal of the normal matrix (dimensionless).
+
+    Contours
+    --------
+    eyelids : {"3d", "2d", "both"}
+        How eyelid curves are fitted (:func:`.matching.match_contours`): lifted
+        onto the eyeball as 3D targets (paper), as 2D curves, or both.
+    contour_huber_px : float or None
+        Huber threshold (pixels) on the inner-lip contour points: after the
+        contour solve, ``robust_iterations`` re-solves with the same
+        correspondence weight each lip point by ``min(1, k / residual)``
+        (IRLS). Lips the rig cannot reach (out of its span) then bend the
+        whole lower face less; the corrective fits them. Curves the rig can
+        match (residuals below ``k``) are fitted exactly as without it.
+        None or 0: the paper's plain least squares. Not in the paper.
+    robust_iterations : int
+        IRLS re-solves for ``contour_huber_px``.
+
+    Tie to the markers-only fit
+    ---------------------------
+    anchor_weight : float
+        Tie to the markers-only fit away from the contours (not in the
+        paper; dimensionless). With markers and curves, the contour solves add
+        ``anchor_weight * n * mean_v |s (x_v(w) - x_v(w_m))|^2 / r^2`` over
+        the anchored vertices ``v``: ``w_m`` is the frame's markers-only
+        fit, ``r`` its marker reprojection RMS (pixels, at least
+        ``anchor_noise_floor_px``: how far the markers can be trusted),
+        ``n`` the number of marker observations and ``s`` the cameras'
+        pixels per scene unit at the markers. The curves then move the lips
+        and lids without explaining a lip the rig cannot reach with jaw and
+        cheek shapes the markers contradict; the corrective fits the rest.
+        Clean markers (small ``r``) hold the face firmly, noisy ones less.
+        0: the paper's fit. The default is chosen on the tuning captures
+        (docs/solve.md).
+    anchor_noise_floor_px : float or None
+        Smallest marker misfit ``r`` (pixels) the anchor is scaled by;
+        None or 0: no scaling (``r = 1``).
+
+    Raises
+    ------
+    FaceLabError
+        ``anchor_weight`` negative or not finite.
+    """
+
+    bounds: tuple = (-1.0, 1.0)
+    marker_weight: float = 1.0
+    contour_weight: float = 1.0
+    bundle_weight: float = 1.0
+    regularization: float = 1e-6
+    eyelids: str = "3d"
+    contour_huber_px: float | None = 1.0
+    robust_iterations: int = 2
+    anchor_weight: float = 50.0
+    anchor_noise_floor_px: float | None = 0.05
+
+    def __post_init__(self):
+        w = float(self.anchor_weight)
+        if not (np.isfinite(w) and w >= 0):
+            raise FaceLabError(f"anchor_weight must be a non-negative number, got {self.anchor_weight!r}; use 0 to "
+                               "turn the tie to the markers-only fit off.")
 
 
 @dataclass
@@ -164,63 +246,25 @@ class BlendshapeSolver:
         The B bundles' surface bindings.
     loops : ContourLoops or None
         Candidate contour loops (needed to use tracked curves).
-    bounds : (lo, hi)
-        Weight bounds (paper: -1, 1); scalars or (S,) arrays.
-    marker_weight, contour_weight, bundle_weight : float
-        ``omega`` of each energy (paper: 1).
-    regularization : float
-        Ridge, relative to the mean diagonal of the normal matrix.
-    eyelids : {"3d", "2d", "both"}
-        How eyelid curves are fitted (:func:`.matching.match_contours`): lifted
-        onto the eyeball as 3D targets (paper), as 2D curves, or both.
-    contour_huber_px : float or None
-        Huber threshold (pixels) on the inner-lip contour points: after the
-        contour solve, ``robust_iterations`` re-solves with the same
-        correspondence weight each lip point by ``min(1, k / residual)``
-        (IRLS). Lips the rig cannot reach (out of its span) then bend the
-        whole lower face less; the corrective fits them. Curves the rig can
-        match (residuals below ``k``) are fitted exactly as without it.
-        None or 0: the paper's plain least squares. Not in the paper.
-    robust_iterations : int
-        IRLS re-solves for ``contour_huber_px`` (2: a few ms a frame).
-    anchor_weight : float
-        Tie to the markers-only fit away from the contours (not in the
-        paper). With markers and curves, the contour solves add
-        ``anchor_weight * n * mean_v |s (x_v(w) - x_v(w_m))|^2 / r^2`` over
-        the anchored vertices ``v``: ``w_m`` is the frame's markers-only
-        fit, ``r`` its marker reprojection RMS (pixels, at least
-        ``anchor_noise_floor_px``: how far the markers can be trusted),
-        ``n`` the number of marker observations and ``s`` the cameras'
-        pixels per scene unit at the markers. The curves then move the lips
-        and lids without explaining a lip the rig cannot reach with jaw and
-        cheek shapes the markers contradict; the corrective fits the rest.
-        Clean markers (small ``r``) hold the face firmly, noisy ones less.
-        0: the paper's fit. Default 50, chosen on the tuning captures
-        (docs/solve.md).
+    params : SolveParams
+        Bounds, term weights, contour and anchor options.
     anchor_mask : (V,) bool, optional
-        The anchored vertices. Default: every vertex the rig moves except
-        the mouth loops grown by :data:`ANCHOR_RINGS_MOUTH` rings and
-        everything within :data:`ANCHOR_EYE_RADIUS` eye widths of the
-        eyelid loops and eyeballs (:func:`contour_region`).
-    anchor_noise_floor_px : float or None
-        Smallest marker misfit ``r`` (pixels) the anchor is scaled by;
-        None or 0: no scaling (``r = 1``).
+        The anchored vertices of ``params.anchor_weight``. Default: every
+        vertex the rig moves except the mouth loops grown by
+        :data:`ANCHOR_RINGS_MOUTH` rings and everything within
+        :data:`ANCHOR_EYE_RADIUS` eye widths of the eyelid loops and
+        eyeballs (:func:`contour_region`).
     """
 
     def __init__(self, neutral, deltas, faces, cameras, markers: SurfacePoints | None, bundles: SurfacePoints | None,
-                 loops=None, *, bounds=(-1.0, 1.0), marker_weight: float = 1.0, contour_weight: float = 1.0,
-                 bundle_weight: float = 1.0, regularization: float = 1e-6, eyelids: str = "3d",
-                 contour_huber_px: float | None = 1.0, robust_iterations: int = 2, anchor_weight: float = 50.0,
-                 anchor_mask=None, anchor_noise_floor_px: float | None = 0.05):
+                 loops=None, *, params: SolveParams = SolveParams(), anchor_mask=None):
         V0, F = validate_mesh(neutral, faces, name="neutral mesh")
-        self.anchor_weight = float(anchor_weight)
-        self.anchor_noise_floor_px = float(anchor_noise_floor_px or 0.0)
-        if not (np.isfinite(self.anchor_weight) and self.anchor_weight >= 0):
-            raise FaceLabError(f"anchor_weight must be a non-negative number, got {anchor_weight!r}; use 0 to turn "
-                               "the tie to the markers-only fit off.")
-        self.contour_huber_px = None if not contour_huber_px else float(contour_huber_px)
-        self.robust_iterations = int(robust_iterations)
-        self.eyelids = eyelids
+        self.params = params
+        self.anchor_weight = float(params.anchor_weight)
+        self.anchor_noise_floor_px = float(params.anchor_noise_floor_px or 0.0)
+        self.contour_huber_px = None if not params.contour_huber_px else float(params.contour_huber_px)
+        self.robust_iterations = int(params.robust_iterations)
+        self.eyelids = params.eyelids
         D = np.asarray(deltas, dtype=np.float64)
         if D.ndim != 3 or D.shape[1:] != V0.shape or D.shape[0] == 0:
             raise FaceLabError(
@@ -231,17 +275,17 @@ class BlendshapeSolver:
         self.S = D.shape[0]
         self.cameras = check_cameras(cameras)
         self.loops = loops
-        lo, hi = bounds
+        lo, hi = params.bounds
         self.lo = np.broadcast_to(np.asarray(lo, float), (self.S,)).copy()
         self.hi = np.broadcast_to(np.asarray(hi, float), (self.S,)).copy()
         if np.isnan(self.lo).any() or np.isnan(self.hi).any():
             raise FaceLabError("The weight bounds contain NaN; give numbers such as (-1, 1).")
         if (self.lo > self.hi).any():
             raise FaceLabError("Lower weight bounds exceed the upper ones; check the bounds.")
-        self.marker_weight = float(marker_weight)
-        self.contour_weight = float(contour_weight)
-        self.bundle_weight = float(bundle_weight)
-        self.regularization = float(regularization)
+        self.marker_weight = float(params.marker_weight)
+        self.contour_weight = float(params.contour_weight)
+        self.bundle_weight = float(params.bundle_weight)
+        self.regularization = float(params.regularization)
         self._P = [c.P for c in self.cameras]
         self.markers = markers
         self.bundles = bundles

@@ -25,6 +25,7 @@ y down; cameras ``core.capture.camera.Camera`` (OpenCV).
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -36,7 +37,7 @@ from ..geometry.linsolve import small_dense_threads
 from ..geometry.mesh import edge_faces, grow_region, validate_mesh, vertex_adjacency
 from .blendshape_solve import check_cameras
 
-__all__ = ["OutOfSubspaceCorrective", "lip_band", "LIP_BAND_RINGS"]
+__all__ = ["CorrectiveParams", "OutOfSubspaceCorrective", "lip_band", "LIP_BAND_RINGS"]
 
 #: Edge rings around the mouth loops (lip weld to lip fronts) that :func:`lip_band` adds.
 LIP_BAND_RINGS = 2
@@ -65,6 +66,96 @@ def lip_band(faces, loops, n_vertices: int, rings: int = LIP_BAND_RINGS) -> np.n
     return grow_region(m, vertex_adjacency(np.asarray(faces, np.int64), int(n_vertices)), int(rings))
 
 
+@dataclass(frozen=True)
+class CorrectiveParams:
+    """Options of the out-of-subspace corrective (:class:`OutOfSubspaceCorrective`).
+
+    All weights are dimensionless factors on squared scene-unit lengths (the
+    cotangent Laplacian ``|L ΔV|``, the ray / plane distances and ``|ΔV|``;
+    squared pixels with ``pixel_units``), so their balance does not depend on
+    the scene scale.
+
+    Energy weights
+    --------------
+    marker_weight, bundle_weight, contour_weight, eyelid_weight, laplacian_weight : float
+        Weights of the 2D marker rays, 3D bundles, 2D contour points, 3D
+        eyelid targets and ``|L ΔV|^2`` (paper: 1, 1, 0.5, 0.5, 1).
+
+    Damping
+    -------
+    damping : float
+        Weight of ``|ΔV|^2`` (not in the paper, whose energy has only the
+        Laplacian): keeps the corrective local. With the Laplacian alone a
+        constraint that the rig cannot meet (an eyelid target, a lip
+        silhouette) bends the whole free surface, since the marker rays pin
+        it only sideways, and the error grows away from the eyes and mouth.
+        The default keeps the correction near its constraints; 0 is the
+        paper's energy. Inside the corrective's ``region``: ``region_damping``.
+    region_damping : float
+        Damping inside the ``region`` (not in the paper; the default is
+        chosen on the tuning captures): stronger than ``damping`` so the lip
+        and lid corrections stay near the contours instead of spilling onto
+        the outer lips. Outside, ``damping`` stays low so that what the
+        markers see beyond the rig (a cheek puff the rig lacks) is still
+        corrected.
+
+    2D terms
+    --------
+    contour_metric : {'plane', 'ray'}
+        How a 2D contour point is tied to its tracked pixel. ``'ray'``: the
+        distance to the pixel's camera ray (the paper's Eq. 1 in 3D).
+        ``'plane'``: the distance to the plane through the ray and the
+        curve's image tangent, i.e. the silhouette residual along the curve
+        normal only. That plane is the surface's tangent plane at the true
+        occluding contour, so it stays right when the rig's silhouette sits
+        on a neighbouring edge ring or at another depth, where pulling the
+        rig's ring point onto the ray (from two cameras: onto the rays'
+        intersection, off the surface) bends the lip.
+    pixel_units : bool
+        False (the paper's form): 2D marker / contour terms are scene-unit
+        distances to the camera rays. True: the distances are converted to
+        pixels (times ``f / depth``), which weights the 2D terms
+        ~(f/depth)^2 more: tighter contours, but the corrective then also
+        fits the marker noise.
+
+    Lip passes
+    ----------
+    lip_contour_weight, lip_damping : float
+        The 2D contour weight and the damping of
+        :meth:`OutOfSubspaceCorrective.lip_band_solve` (not in the paper; the
+        first pass keeps ``contour_weight`` and ``region_damping``). A
+        heavier contour term with a stiffer damping takes the lip rim onto
+        the tracked line while keeping the correction on the rim's few rings
+        (chosen on the tuning captures, see docs/solve.md).
+
+    Raises
+    ------
+    FaceLabError
+        An unknown ``contour_metric``; ``region_damping``, ``lip_contour_weight``
+        or ``lip_damping`` negative or not finite.
+    """
+
+    marker_weight: float = 1.0
+    bundle_weight: float = 1.0
+    contour_weight: float = 0.5
+    eyelid_weight: float = 0.5
+    laplacian_weight: float = 1.0
+    damping: float = 0.01
+    region_damping: float = 0.03
+    contour_metric: str = "plane"
+    pixel_units: bool = False
+    lip_contour_weight: float = 8.0
+    lip_damping: float = 0.3
+
+    def __post_init__(self):
+        if self.contour_metric not in ("plane", "ray"):
+            raise FaceLabError(f"contour_metric must be 'plane' or 'ray', got {self.contour_metric!r}.")
+        for nm in ("region_damping", "lip_contour_weight", "lip_damping"):
+            val = float(getattr(self, nm))
+            if not (np.isfinite(val) and val >= 0):
+                raise FaceLabError(f"{nm} must be a non-negative number, got {val!r}.")
+
+
 class OutOfSubspaceCorrective:
     """Per-frame out-of-subspace corrective ``ΔV`` (Bhat et al. 2013, §4.3).
 
@@ -85,86 +176,45 @@ class OutOfSubspaceCorrective:
     Parameters
     ----------
     neutral : (V,3) float
+        Rest mesh, scene units.
     faces : (F,3) int
     cameras : list of Camera
     markers, bundles : SurfacePoints or None
         As for :class:`BlendshapeSolver`.
+    params : CorrectiveParams
+        Energy weights, damping and the contour metric.
     boundary : (V,) bool, optional
         Vertices held fixed (``ΔV = 0``). Default: the mesh border plus every
         connected component no marker or bundle lies on.
-    marker_weight, bundle_weight, contour_weight, eyelid_weight, laplacian_weight : float
-        Energy weights (paper: 1, 1, 0.5, 0.5, 1).
-    damping : float
-        Weight of ``|ΔV|^2`` (not in the paper, whose energy has only the
-        Laplacian): keeps the corrective local. With the Laplacian alone a
-        constraint that the rig cannot meet (an eyelid target, a lip
-        silhouette) bends the whole free surface, since the 80 or so marker
-        rays pin it only sideways, and the error grows away from the eyes
-        and mouth. The default keeps the correction near its constraints
-        (docs/benchmarks.md); 0 is the paper's energy. Inside ``region``: ``region_damping``.
-    contour_metric : {'plane', 'ray'}
-        How a 2D contour point is tied to its tracked pixel. ``'ray'``: the
-        distance to the pixel's camera ray (the paper's Eq. 1 in 3D).
-        ``'plane'`` (default): the distance to the plane through the ray and
-        the curve's image tangent, i.e. the silhouette residual along the
-        curve normal only. That plane is the surface's tangent plane at the
-        true occluding contour, so it stays right when the rig's silhouette
-        sits on a neighbouring edge ring or at another depth, where pulling
-        the rig's ring point onto the ray (from two cameras: onto the rays'
-        intersection, off the surface) bends the lip.
-    warm_vertices : (k,) int, optional
-        Vertices whose Woodbury columns are computed up front (e.g. all
-        candidate contour-loop vertices), so the first frames are not slower.
     region : (V,) bool, optional
         Where the curves inform the face (the mouth and the eyes:
-        ``blendshape_solve.contour_region``); None: ``damping`` everywhere.
-    region_damping : float
-        Damping inside ``region`` (not in the paper; the default is chosen
-        on the tuning captures): stronger than ``damping`` so the lip and
-        lid corrections stay near the contours instead of spilling onto the
-        outer lips. Outside, ``damping``
-        stays low so that what the markers see beyond the rig (a cheek puff
-        the rig lacks) is still corrected.
-    pixel_units : bool
-        False (default, the paper's form): 2D marker / contour terms are
-        scene-unit distances to the camera rays; with the dimensionless
-        cotangent Laplacian the balance does not depend on the scene scale.
-        True: the distances are converted to pixels (times ``f / depth``),
-        which weights the 2D terms ~(f/depth)^2 more: tighter contours, but
-        the corrective then also fits the marker noise.
+        ``blendshape_solve.contour_region``), damped by
+        ``params.region_damping``; None: ``params.damping`` everywhere.
     lip_band : (V,) bool, optional
         Where :meth:`lip_band_solve` and :meth:`lip_line_pass` may act
         (:func:`lip_band`): a second, small factor (the band's vertices
         only, the rest held), so these passes cannot move the face outside
         the lips and cost a fraction of a full solve. None: they act on the
         whole free surface (the full factor).
-    lip_contour_weight, lip_damping : float
-        The 2D contour weight and the damping of :meth:`lip_band_solve` (not
-        in the paper; the first pass keeps ``contour_weight`` and
-        ``region_damping``). A heavier contour term with a stiffer damping
-        takes the lip rim onto the tracked line while keeping the correction
-        on the rim's few rings (chosen on the tuning captures, see
-        docs/solve.md: 8 and 0.3).
+    warm_vertices : (k,) int, optional
+        Vertices whose Woodbury columns are computed up front (e.g. all
+        candidate contour-loop vertices), so the first frames are not slower.
     """
 
     def __init__(self, neutral, faces, cameras, markers: SurfacePoints | None, bundles: SurfacePoints | None, *,
-                 boundary=None, marker_weight: float = 1.0, bundle_weight: float = 1.0,
-                 contour_weight: float = 0.5, eyelid_weight: float = 0.5, laplacian_weight: float = 1.0,
-                 warm_vertices=None, pixel_units: bool = False, damping: float = 0.01,
-                 contour_metric: str = "plane", region=None, region_damping: float = 0.03, lip_band=None,
-                 lip_contour_weight: float = 8.0, lip_damping: float = 0.3):
+                 params: CorrectiveParams = CorrectiveParams(), boundary=None, region=None, lip_band=None,
+                 warm_vertices=None):
         V0, F = validate_mesh(neutral, faces, name="neutral mesh")
+        self.params = params
         self.neutral, self.faces = V0, F
         self.cameras = check_cameras(cameras)
         self.markers, self.bundles = markers, bundles
-        self.marker_weight = float(marker_weight)
-        self.bundle_weight = float(bundle_weight)
-        self.contour_weight = float(contour_weight)
-        self.eyelid_weight = float(eyelid_weight)
-        self.pixel_units = bool(pixel_units)
-        if contour_metric not in ("plane", "ray"):
-            raise FaceLabError(f"contour_metric must be 'plane' or 'ray', got {contour_metric!r}.")
-        self.contour_metric = contour_metric
+        self.marker_weight = float(params.marker_weight)
+        self.bundle_weight = float(params.bundle_weight)
+        self.contour_weight = float(params.contour_weight)
+        self.eyelid_weight = float(params.eyelid_weight)
+        self.pixel_units = bool(params.pixel_units)
+        self.contour_metric = params.contour_metric
         n = len(V0)
         if boundary is None:
             boundary = self.default_boundary(V0, F, markers, bundles)
@@ -174,31 +224,26 @@ class OutOfSubspaceCorrective:
         self.boundary = boundary
         L = cotangent_laplacian(V0, F)
         t0 = time.perf_counter()
-        self.damping = float(damping)
-        self.region_damping = float(region_damping)
+        self.damping = float(params.damping)
+        self.region_damping = float(params.region_damping)
         pos = self.damping
         if region is not None:
             region = np.asarray(region, bool)
             if region.shape != (n,):
                 raise FaceLabError(f"The region mask must have one entry per vertex ({n}), got {region.shape}.")
-            if not (np.isfinite(self.region_damping) and self.region_damping >= 0):
-                raise FaceLabError(f"region_damping must be a non-negative number, got {region_damping!r}.")
             pos = np.where(region, self.region_damping, self.damping)
         self.region = region
-        self.deformer = LaplacianDeformer(L, lambda_reg=float(laplacian_weight), pos_weights=pos,
-                                          pinned=boundary)
+        laplacian_weight = float(params.laplacian_weight)
+        self.deformer = LaplacianDeformer(L, lambda_reg=laplacian_weight, pos_weights=pos, pinned=boundary)
         self.lip_band, self.band_deformer = None, None
-        self.lip_contour_weight, self.lip_damping = float(lip_contour_weight), float(lip_damping)
-        for nm, val in (("lip_contour_weight", self.lip_contour_weight), ("lip_damping", self.lip_damping)):
-            if not (np.isfinite(val) and val >= 0):
-                raise FaceLabError(f"{nm} must be a non-negative number, got {val!r}.")
+        self.lip_contour_weight, self.lip_damping = float(params.lip_contour_weight), float(params.lip_damping)
         if lip_band is not None:
             lip_band = np.asarray(lip_band, bool)
             if lip_band.shape != (n,):
                 raise FaceLabError(f"The lip band mask must have one entry per vertex ({n}), got {lip_band.shape}.")
             self.lip_band = lip_band & ~boundary
             if self.lip_band.any():
-                self.band_deformer = LaplacianDeformer(L, lambda_reg=float(laplacian_weight),
+                self.band_deformer = LaplacianDeformer(L, lambda_reg=laplacian_weight,
                                                        pos_weights=self.lip_damping, pinned=~self.lip_band)
         self.factor_time_s = time.perf_counter() - t0
         if warm_vertices is not None:
@@ -236,7 +281,7 @@ class OutOfSubspaceCorrective:
                     contour_weight: float | None = None) -> PointConstraints | None:
         """The frame's point constraints (marker rays, bundles, contour rays, eyelid points).
 
-        ``contour_weight`` overrides the 2D contour weight (default: the constructor's).
+        ``contour_weight`` overrides the 2D contour weight (default: ``params.contour_weight``).
         """
         Vb = np.asarray(vertices_blend, float)
         cw = self.contour_weight if contour_weight is None else float(contour_weight)
@@ -347,8 +392,8 @@ class OutOfSubspaceCorrective:
                 return True
         return False
 
-    def lip_line_pass(self, vertices_blend, delta, markers_px, bundles, correspondences, curves,
-                      threshold_px: float = 0.5, curve_threshold_px: float = 0.0) -> np.ndarray:
+    def lip_line_pass(self, vertices_blend, delta, markers_px, bundles, correspondences, curves, *,
+                      threshold_px: float, curve_threshold_px: float) -> np.ndarray:
         """A second corrective pass on the 2D contour points still off their curve; returns the new ``ΔV``.
 
         The first pass (:meth:`solve`) stops short of a curve the rig misses by
@@ -374,7 +419,11 @@ class OutOfSubspaceCorrective:
         curves : list of TrackedCurve
             The frame's tracked curves (to measure the distance to the line).
         threshold_px : float
-            Points within this many pixels of their curve get no term.
+            Points within this many pixels of their curve get no term
+            (``PerformanceParams.lip_line_threshold_px``).
+        curve_threshold_px : float
+            Curves whose RMS pixel distance on ``V_blend + ΔV`` is at most
+            this get no term (``PerformanceParams.lip_line_curve_px``).
 
         Returns
         -------

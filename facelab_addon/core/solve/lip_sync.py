@@ -30,15 +30,16 @@ corners (a few vertices of a neighbouring edge row), so pairs of actor and
 creature points at equal arc fractions land at different places of the
 detours and the raw vector targets jump by millimetres between neighbouring
 pairs. The change each talking-portion pair asks for is therefore low-passed
-along the mouth (Gaussian, ``smooth``), and the constraints are soft
-(``strength`` 10, ``seal_strength`` 100 against the Laplacian term): strong
-(1000) constraints on the raw targets tore the creature's lips at the new
-corners.
+along the mouth (Gaussian, ``LipSyncParams.smooth``), and the constraints are
+soft (``strength`` and ``seal_strength`` against the Laplacian term): near-hard
+constraints on the raw targets tear the creature's lips at the new corners.
 
 Units: positions in scene units; end points are fractions of arc length.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -56,7 +57,43 @@ from .lip_contours import (
     lip_sync_end_points,
 )
 
-__all__ = ["LipSync"]
+__all__ = ["LipSyncParams", "LipSync"]
+
+
+@dataclass(frozen=True)
+class LipSyncParams:
+    """Options of the lip-sync deformer (:class:`LipSync`).
+
+    The weights are dimensionless: every term is a squared scene-unit length.
+
+    Attributes
+    ----------
+    radius : float or None
+        Vertices within this geodesic distance (along edges, scene units) of
+        the creature's contours may move; the rest is held. None: 0.8 x the
+        creature's corner-to-corner mouth width.
+    strength : float
+        Weight of the talking-portion constraints against the
+        cotangent-Laplacian term (weight ``lambda_reg``). Soft by default:
+        the pairs over-determine the lips, and near-hard constraints on the
+        raw targets tear the creature's lip corners where the contours zigzag.
+    seal_strength : float
+        Weight of the sealing (zero-distance) constraints between each
+        original corner and its new end point.
+    lambda_reg : float
+        Weight of the Laplacian term.
+    smooth : float
+        Width (standard deviation, fraction of the creature's upper-lip arc
+        length, dimensionless) of the Gaussian that low-passes the change the
+        talking-portion pairs ask for along the mouth; 0 turns it off. Sealed
+        pairs are never smoothed (they close exactly).
+    """
+
+    radius: float | None = None
+    strength: float = 10.0
+    seal_strength: float = 100.0
+    lambda_reg: float = 1.0
+    smooth: float = 0.02
 
 
 class LipSync:
@@ -72,33 +109,14 @@ class LipSync:
         The creature's inner-lip contours.
     actor_contours : LipContours
         The actor's inner-lip contours (vertex ids of the actor mesh).
-    radius : float, optional
-        Vertices within this geodesic distance (along edges, scene units) of
-        the creature's contours may move; the rest is held. Default: 0.8 x
-        the creature's corner-to-corner mouth width.
-    strength : float
-        Weight of the talking-portion constraints against the
-        cotangent-Laplacian term (weight ``lambda_reg``); unitless (both terms
-        are squared lengths). Soft by default: the pairs over-determine the
-        lips, and near-hard constraints on the raw targets tear the
-        creature's lip corners where the contours zigzag.
-    seal_strength : float
-        Weight of the sealing (zero-distance) constraints between each
-        original corner and its new end point; unitless.
-    lambda_reg : float
-        Weight of the Laplacian term.
-    smooth : float
-        Width (standard deviation, fraction of the creature's upper-lip arc
-        length) of the Gaussian that low-passes the change the talking-portion
-        pairs ask for along the mouth (see ``_smooth_targets``); 0 turns it
-        off. Sealed pairs are never smoothed (they close exactly).
+    params : LipSyncParams
+        Reach, constraint weights and smoothing.
     backend : str
         ``SPDFactor`` backend.
     """
 
     def __init__(self, creature_rest, creature_faces, creature_contours: LipContours, actor_contours: LipContours, *,
-                 radius=None, strength: float = 10.0, lambda_reg: float = 1.0, smooth: float = 0.02,
-                 seal_strength: float = 100.0, backend: str = "auto"):
+                 params: LipSyncParams = LipSyncParams(), backend: str = "auto"):
         V = np.asarray(creature_rest, dtype=np.float64)
         F = np.asarray(creature_faces, dtype=np.int64)
         self.creature_rest = V
@@ -112,14 +130,15 @@ class LipSync:
                 "rebuild the contours on the creature mesh."
             )
         width = float(np.linalg.norm(V[creature_contours.corners[0]] - V[creature_contours.corners[1]]))
-        self.radius = 0.8 * width if radius is None else float(radius)
+        self.params = params
+        self.radius = 0.8 * width if params.radius is None else float(params.radius)
         dist = geodesic_distance(V, F, cv, limit=self.radius, exact=False)
         self.free = np.isfinite(dist)
-        self.strength = float(strength)
-        self.smooth = float(smooth)
-        self.seal_strength = float(seal_strength)
+        self.strength = float(params.strength)
+        self.smooth = float(params.smooth)
+        self.seal_strength = float(params.seal_strength)
         L = cotangent_laplacian(V, F)
-        self.deformer = LaplacianDeformer(L, lambda_reg=lambda_reg, pos_weights=1e-6, pinned=~self.free,
+        self.deformer = LaplacianDeformer(L, lambda_reg=params.lambda_reg, pos_weights=1e-6, pinned=~self.free,
                                           backend=backend)
 
     def end_points(self, actor_frame, creature_frame, *, end_points=None, threshold: float = 0.0) -> EndPoints:

@@ -24,10 +24,72 @@ from ..errors import FaceLabError
 from .blendshape_solve import BlendshapeSolver
 from .corrective import OutOfSubspaceCorrective
 
-__all__ = ["PerformanceResult", "solve_performance", "LIP_PASSES"]
+__all__ = ["PerformanceParams", "PerformanceResult", "solve_performance"]
 
-#: Default number of lip passes (re-match on the corrected mesh, re-solve the lip band), chosen on the tuning cases.
-LIP_PASSES = 2
+
+@dataclass(frozen=True)
+class PerformanceParams:
+    """How :func:`solve_performance` alternates contour matching, the blendshape fit and the corrective.
+
+    Counts are passes per frame; thresholds are in pixels.
+
+    Blendshape fit
+    --------------
+    sliding : bool
+        Sliding contours (paper): match the contours afresh every frame;
+        False keeps the previous frame's correspondence (fixed contours,
+        Fig. 6). See :meth:`BlendshapeSolver.solve_frame`.
+    iterations : int
+        Correspondence / solve alternations of the fit
+        (:meth:`BlendshapeSolver.solve_frame`).
+
+    Corrective
+    ----------
+    rematch : bool
+        Before the corrective, match the contours again on the fitted rig
+        mesh (the blendshape fit's correspondences were built on the
+        iterate before its last solve), so the corrective's targets (and the
+        3D eyelid lifts, which use the lids' current heights) belong to the
+        mesh it corrects. A few ms per frame.
+    corrective_iterations : int
+        Corrective passes; each further pass re-matches the contours on
+        ``V_blend + ΔV`` and solves the corrective again (§4.2's alternation
+        of correspondence and solve, applied to the corrective).
+    lip_passes : int
+        After the corrective: match the contours again on ``V_blend + ΔV``
+        and solve the corrective again inside its lip band
+        (:meth:`OutOfSubspaceCorrective.lip_band_solve`, the rest of the face
+        held), this many times. On a steep view the rig's occluding contour
+        can sit several edge rings from the truth's; the corrected mesh's is
+        nearer; ``CorrectiveParams.lip_contour_weight`` and ``lip_damping``
+        take the rim onto the line. Needs a corrective built with a
+        ``lip_band`` (skipped without one: a whole-surface re-solve is
+        ``corrective_iterations``); each pass costs a contour match and a
+        solve on the band's vertices only. The default is chosen on the
+        tuning cases.
+
+    Lip line pass
+    -------------
+    lip_line_pass : bool
+        After the corrective and the lip passes, re-match the contours on
+        ``V_blend + ΔV`` and run :meth:`OutOfSubspaceCorrective.lip_line_pass`
+        on the contour points still more than ``lip_line_threshold_px`` from
+        their curve (on frames where a curve is more than
+        ``lip_line_curve_px`` RMS off): a tighter visible lip line at some
+        cost in the hidden inner-lip band (measured in docs/solve.md).
+        About one more corrective solve and contour match per frame.
+    lip_line_threshold_px, lip_line_curve_px : float
+        Pixels; see ``lip_line_pass``.
+    """
+
+    sliding: bool = True
+    iterations: int = 1
+    rematch: bool = True
+    corrective_iterations: int = 1
+    lip_passes: int = 2
+    lip_line_pass: bool = False
+    lip_line_threshold_px: float = 0.5
+    lip_line_curve_px: float = 0.0
 
 
 @dataclass
@@ -49,8 +111,8 @@ class PerformanceResult:
     correspondences : list (T) of list of CurveCorrespondence
         The contour correspondences each frame's final result was fitted to:
         the blendshape fit's, or with a corrective the corrective's (matched
-        again on the fitted rig, see ``rematch``); empty lists without curves
-        or for skipped frames.
+        again on the fitted rig, see ``PerformanceParams.rematch``); empty lists
+        without curves or for skipped frames.
     """
 
     weights: np.ndarray
@@ -61,11 +123,8 @@ class PerformanceResult:
 
 
 def solve_performance(solver: BlendshapeSolver, corrective: OutOfSubspaceCorrective | None, markers_px,
-                      bundles=None, curves_per_frame=None, *, progress=None, sliding: bool = True,
-                      iterations: int = 1, rematch: bool = True,
-                      corrective_iterations: int = 1, lip_passes: int = LIP_PASSES, lip_line_pass: bool = False,
-                      lip_line_threshold_px: float = 0.5,
-                      lip_line_curve_px: float = 0.0, corrective_sink=None) -> PerformanceResult:
+                      bundles=None, curves_per_frame=None, *, params: PerformanceParams = PerformanceParams(),
+                      progress=None, corrective_sink=None) -> PerformanceResult:
     """Solve a whole sequence, warm-starting every frame from the previous one.
 
     Parameters
@@ -73,44 +132,14 @@ def solve_performance(solver: BlendshapeSolver, corrective: OutOfSubspaceCorrect
     solver : BlendshapeSolver
     corrective : OutOfSubspaceCorrective or None
     markers_px : (T,C,M,2) float or None
-        NaN where a marker is not tracked.
+        Pixels; NaN where a marker is not tracked.
     bundles : (T,B,3) float or None
+        Scene units; NaN rows are missing.
     curves_per_frame : list (length T) of list of TrackedCurve, or None
+    params : PerformanceParams
+        Passes of contour matching, fit and corrective per frame.
     progress : callable(frame_index, n_frames), optional
         Called after each frame.
-    sliding, iterations
-        See :meth:`BlendshapeSolver.solve_frame`.
-    rematch : bool
-        Before the corrective, match the contours again on the fitted rig
-        mesh (the blendshape fit's correspondences were built on the
-        iterate before its last solve), so the corrective's targets (and the
-        3D eyelid lifts, which use the lids' current heights) belong to the
-        mesh it corrects. A few ms per frame.
-    corrective_iterations : int
-        Corrective passes; each further pass re-matches the contours on
-        ``V_blend + ΔV`` and solves the corrective again (§4.2's alternation
-        of correspondence and solve, applied to the corrective).
-    lip_passes : int
-        After the corrective: match the contours again on ``V_blend + ΔV``
-        and solve the corrective again inside its lip band
-        (:meth:`OutOfSubspaceCorrective.lip_band_solve`, the rest of the face
-        held), this many times. On a steep view the rig's occluding contour
-        can sit several edge rings from the truth's; the corrected mesh's is
-        nearer; ``lip_contour_weight`` and ``lip_damping`` of the corrective
-        take the rim onto the line. Needs a corrective built with a
-        ``lip_band`` (skipped without one: a whole-surface re-solve is
-        ``corrective_iterations``); each pass costs a contour match and a
-        solve on the band's vertices only.
-    lip_line_pass : bool
-        After the corrective and the lip passes, re-match the contours on ``V_blend + ΔV`` and
-        run :meth:`OutOfSubspaceCorrective.lip_line_pass` on the contour
-        points still more than ``lip_line_threshold_px`` from their curve
-        (on frames where a curve is more than ``lip_line_curve_px`` RMS off):
-        a tighter visible lip line at some cost in the hidden inner-lip band
-        (measured in docs/solve.md; off by default). About one more
-        corrective solve and contour match per frame.
-    lip_line_threshold_px, lip_line_curve_px : float
-        Pixels; see ``lip_line_pass``.
     corrective_sink : callable(frame_index, dV), optional
         Each solved frame's corrective ``dV`` (V,3) is handed to it (in frame
         order) instead of being kept: ``correctives`` is then None and memory
@@ -123,6 +152,7 @@ def solve_performance(solver: BlendshapeSolver, corrective: OutOfSubspaceCorrect
         ``skipped`` with the reason; the warm start then continues from the
         last solved frame.
     """
+    p = params
     lengths = [len(x) for x in (markers_px, bundles, curves_per_frame) if x is not None]
     if not lengths:
         raise FaceLabError("No tracking data: give marker tracks, bundles or curves to solve the performance.")
@@ -146,7 +176,7 @@ def solve_performance(solver: BlendshapeSolver, corrective: OutOfSubspaceCorrect
             frames.append(None)
             corrs.append([])
         else:
-            res = solver.solve_frame(mp, bd, cv, previous=prev, iterations=iterations, sliding=sliding)
+            res = solver.solve_frame(mp, bd, cv, previous=prev, iterations=p.iterations, sliding=p.sliding)
             W[i] = res.weights
             if res.info.get("markers_offscreen"):
                 offs[i] = res.info["markers_offscreen"]
@@ -154,23 +184,23 @@ def solve_performance(solver: BlendshapeSolver, corrective: OutOfSubspaceCorrect
                 t1, c1 = time.perf_counter(), time.process_time()
                 Vb = solver.vertices(res.weights)
                 cc = res.correspondences
-                if rematch and cv:
-                    cc = solver.match(res.weights, cv, sliding=sliding, previous=cc)
+                if p.rematch and cv:
+                    cc = solver.match(res.weights, cv, sliding=p.sliding, previous=cc)
                 d = corrective.solve(Vb, mp, bd, cc)
-                for _ in range(max(1, int(corrective_iterations)) - 1):
+                for _ in range(max(1, int(p.corrective_iterations)) - 1):
                     if not cv:
                         break
-                    cc = solver.match(res.weights, cv, sliding=sliding, previous=cc, vertices=Vb + d)
+                    cc = solver.match(res.weights, cv, sliding=p.sliding, previous=cc, vertices=Vb + d)
                     d = corrective.solve(Vb, mp, bd, cc)
-                for _ in range(max(0, int(lip_passes))):
+                for _ in range(max(0, int(p.lip_passes))):
                     if not cv or corrective.band_deformer is None:
                         break
-                    cc = solver.match(res.weights, cv, sliding=sliding, previous=cc, vertices=Vb + d)
+                    cc = solver.match(res.weights, cv, sliding=p.sliding, previous=cc, vertices=Vb + d)
                     d = corrective.lip_band_solve(Vb, d, mp, bd, cc)
-                if lip_line_pass and cv and corrective.off_the_line(Vb + d, cc, cv, lip_line_curve_px):
-                    cc = solver.match(res.weights, cv, sliding=sliding, previous=cc, vertices=Vb + d)
-                    d = corrective.lip_line_pass(Vb, d, mp, bd, cc, cv, threshold_px=lip_line_threshold_px,
-                                                 curve_threshold_px=lip_line_curve_px)
+                if p.lip_line_pass and cv and corrective.off_the_line(Vb + d, cc, cv, p.lip_line_curve_px):
+                    cc = solver.match(res.weights, cv, sliding=p.sliding, previous=cc, vertices=Vb + d)
+                    d = corrective.lip_line_pass(Vb, d, mp, bd, cc, cv, threshold_px=p.lip_line_threshold_px,
+                                                 curve_threshold_px=p.lip_line_curve_px)
                 if keep:
                     D[i] = d
                 else:

@@ -11,8 +11,8 @@
    contours (:mod:`.lip_contours`) match the actor's.
 
 :class:`Retargeter` builds the parallel rig and the lip-sync deformer once
-and retargets single frames; :func:`retarget_performance` runs it over a
-whole performance (:class:`RetargetResult`), keeping the creature's
+(options: :class:`RetargetParams`) and retargets single frames;
+:func:`retarget_performance` runs it over a whole performance (:class:`RetargetResult`), keeping the creature's
 correctives or streaming them frame by frame to a sink.
 
 Units: positions in scene units; end points are fractions of arc length;
@@ -22,7 +22,7 @@ times in seconds.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -30,9 +30,29 @@ from ..errors import FaceLabError
 from ..geometry.axes import Y_UP, Z_FORWARD
 from .deformation_transfer import DeformationTransfer
 from .lip_contours import lip_contours
-from .lip_sync import LipSync
+from .lip_sync import LipSync, LipSyncParams
 
-__all__ = ["RetargetResult", "Retargeter", "retarget_performance"]
+__all__ = ["RetargetParams", "RetargetResult", "Retargeter", "retarget_performance"]
+
+
+@dataclass(frozen=True)
+class RetargetParams:
+    """Options of the retargeting (:class:`Retargeter`).
+
+    Attributes
+    ----------
+    lip_sync : bool
+        Build the lip-sync deformer and apply the heuristic on every frame.
+    threshold : float
+        Lip-sync distance threshold, scene units: extra talking length allowed
+        before the creature's corners are sealed.
+    lip : LipSyncParams
+        The lip-sync deformer's reach, weights and smoothing.
+    """
+
+    lip_sync: bool = True
+    threshold: float = 0.0
+    lip: LipSyncParams = field(default_factory=LipSyncParams)
 
 
 @dataclass
@@ -77,26 +97,21 @@ class Retargeter:
     creature_faces : (F_t,3) int array_like
     correspondence : (F_t,) int array_like, optional
         Source triangle per creature triangle; default: shared topology.
-    lip_sync : bool
-        Build the lip-sync deformer.
+    params : RetargetParams
+        Lip sync on or off, its threshold and deformer options.
     actor_loop, creature_loop : (L,) int array_like, optional
         Inner-lip edge loops; default: detected (``lip_loop.inner_lip_loop``)
         on the actor, and the same vertex ids on a creature of the same
         topology (detected on the creature otherwise).
     actor_contours, creature_contours : LipContours, optional
         Give the split contours directly instead of loops.
-    threshold : float
-        Default lip-sync distance threshold, scene units.
     up, forward : (3,) float
-        Face axes for the corner and upper/lower detection.
-    radius, strength, smooth, seal_strength : float
-        Passed to :class:`LipSync`.
+        Face axes (actor space) for the corner and upper/lower detection.
     """
 
-    def __init__(self, actor_rest, actor_faces, actor_deltas, creature_rest, creature_faces, *, correspondence=None,
-                 lip_sync: bool = True, actor_loop=None, creature_loop=None, actor_contours=None,
-                 creature_contours=None, threshold: float = 0.0, up=Y_UP, forward=Z_FORWARD, radius=None,
-                 strength: float = 10.0, smooth: float = 0.02, seal_strength: float = 100.0):
+    def __init__(self, actor_rest, actor_faces, actor_deltas, creature_rest, creature_faces, *,
+                 params: RetargetParams = RetargetParams(), correspondence=None, actor_loop=None, creature_loop=None,
+                 actor_contours=None, creature_contours=None, up=Y_UP, forward=Z_FORWARD):
         t0 = time.perf_counter()
         self.transfer = DeformationTransfer(actor_rest, actor_faces, creature_rest, creature_faces, correspondence)
         t1 = time.perf_counter()
@@ -113,9 +128,10 @@ class Retargeter:
         self.actor_deltas = D
         self.creature_deltas = self.transfer.transfer_deltas(D)
         t2 = time.perf_counter()
-        self.threshold = float(threshold)
+        self.params = params
+        self.threshold = float(params.threshold)
         self.lip_sync = None
-        if lip_sync:
+        if params.lip_sync:
             Va, Fa = self.transfer.source_rest, self.transfer.source_faces
             Vc, Fc = self.transfer.target_rest, self.transfer.target_faces
             ac = actor_contours or lip_contours(Va, Fa, actor_loop, up=up, forward=forward)
@@ -126,8 +142,7 @@ class Retargeter:
                                   forward=forward)
             else:
                 cc = lip_contours(Vc, Fc, creature_loop, up=up, forward=forward)
-            self.lip_sync = LipSync(Vc, Fc, cc, ac, radius=radius, strength=strength, smooth=smooth,
-                                    seal_strength=seal_strength)
+            self.lip_sync = LipSync(Vc, Fc, cc, ac, params=params.lip)
         t3 = time.perf_counter()
         self.info = {"factor_s": t1 - t0, "transfer_shapes_s": t2 - t1, "lip_sync_setup_s": t3 - t2}
 
@@ -150,7 +165,7 @@ class Retargeter:
         lip_sync : bool, optional
             Apply the lip-sync heuristic (default: when it was built).
         threshold : float, optional
-            Distance threshold (default: the one given at construction).
+            Distance threshold, scene units (default: ``params.threshold``).
 
         Returns
         -------
@@ -177,7 +192,7 @@ class Retargeter:
         use = self.lip_sync is not None if lip_sync is None else bool(lip_sync)
         if use:
             if self.lip_sync is None:
-                raise FaceLabError("Lip sync was not set up for this creature; build the Retargeter with lip_sync=True.")
+                raise FaceLabError("Lip sync was not set up for this creature; build the Retargeter with RetargetParams(lip_sync=True).")
             actor = self.transfer.source_rest + blend_a + dv
             creature = self.creature_rest + blend_c + corr_c
             th = self.threshold if threshold is None else float(threshold)
@@ -218,35 +233,24 @@ def _actor_correctives(correctives, corrective_keys, T: int, shape: tuple):
     return lambda t: C[t]
 
 
-def retarget_performance(actor_rest, actor_faces, actor_deltas, weights, creature_rest, creature_faces, *,
-                         correctives=None, correspondence=None, lip_sync: bool = True, threshold: float = 0.0,
-                         end_points: dict | None = None, actor_loop=None, creature_loop=None, progress=None,
-                         corrective_sink=None, corrective_keys=None, **kwargs) -> RetargetResult:
+def retarget_performance(retargeter: Retargeter, weights, *, correctives=None, corrective_keys=None,
+                         end_points: dict | None = None, progress=None, corrective_sink=None) -> RetargetResult:
     """Retarget a solved performance to a creature (Bhat §5.1).
 
     Parameters
     ----------
-    actor_rest : (V,3) array_like
-        Actor neutral, scene units.
-    actor_faces : (F,3) int array_like
-    actor_deltas : (S,V,3) array_like
-        Actor blendshape deltas.
+    retargeter : Retargeter
+        The actor's and creature's parallel rigs and the lip-sync deformer.
     weights : (T,S) array_like
         Solved weights per frame.
-    creature_rest : (W,3) array_like
-    creature_faces : (F_t,3) int array_like
     correctives : (T,V,3) array_like, optional
         Actor correctives per frame, scene units.
-    correspondence : (F_t,) int array_like, optional
-        Default: shared topology.
-    lip_sync : bool
-        Apply the lip-sync heuristic.
-    threshold : float
-        Lip-sync distance threshold, scene units.
+    corrective_keys : tuple of ((R,V,3) array_like, (T,R) array_like), optional
+        Instead of ``correctives``: the actor's corrective keys' deltas (scene units) and their value on
+        each frame, mixed one frame at a time so that no (T,V,3) array is built (bit for bit the frames
+        of ``einsum("tr,rvd->tvd", values, basis)``).
     end_points : dict frame index -> EndPoints or fractions, optional
         Artist overrides on some frames.
-    actor_loop, creature_loop : (L,) int array_like, optional
-        Inner-lip edge loops (default detected).
     progress : callable(done, total), optional
         Called after each frame with the number of frames done.
     corrective_sink : callable(frame_index, corrective), optional
@@ -254,13 +258,6 @@ def retarget_performance(actor_rest, actor_faces, actor_deltas, weights, creatur
         whole-shot ``correctives`` would hold), is handed to it in frame order, every frame once,
         instead of being kept: ``correctives`` of the result is then None and memory does not
         grow with frames times vertices.
-    corrective_keys : tuple of ((R,V,3) array_like, (T,R) array_like), optional
-        Instead of ``correctives``: the actor's corrective keys' deltas (scene units) and their value on
-        each frame, mixed one frame at a time so that no (T,V,3) array is built (bit for bit the frames
-        of ``einsum("tr,rvd->tvd", values, basis)``).
-    **kwargs
-        Passed to :class:`Retargeter` (``radius``, ``strength``, ``up``,
-        ``forward``, ``actor_contours``, ``creature_contours``).
 
     Returns
     -------
@@ -271,9 +268,7 @@ def retarget_performance(actor_rest, actor_faces, actor_deltas, weights, creatur
     W = np.asarray(weights, dtype=np.float64)
     if W.ndim != 2:
         raise FaceLabError(f"Weights must be (frames, shapes), got shape {W.shape}.")
-    rt = Retargeter(actor_rest, actor_faces, actor_deltas, creature_rest, creature_faces,
-                    correspondence=correspondence, lip_sync=lip_sync, actor_loop=actor_loop,
-                    creature_loop=creature_loop, threshold=threshold, **kwargs)
+    rt = retargeter
     T = len(W)
     actor_corrective = _actor_correctives(correctives, corrective_keys, T, rt.transfer.source_rest.shape)
     out = np.zeros((T,) + rt.creature_rest.shape, dtype=np.float32) if corrective_sink is None else None
