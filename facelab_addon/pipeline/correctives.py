@@ -44,7 +44,7 @@ from ..blender.shapekeys import (
 from ..core.capture.integrate import integrate_matrices
 from ..core.capture.pointcache_writer import PointCacheWriter
 from ..core.errors import FaceLabError, MeshError, OutputError
-from ..core.geometry.compress import compress, compress_streamed, low_rank_reader
+from ..core.geometry.compress import StorageOutcome, compress, compress_streamed, low_rank_reader
 from ..names import STORE_SETTINGS_ATTR
 from .settings import setting, stored
 
@@ -90,8 +90,10 @@ class CorrectionResult:
 
     Attributes
     ----------
-    mode : str
-        ``"keys"``, ``"cache"`` or ``"none"`` (every frame's correction is below the tolerance).
+    outcome : StorageOutcome
+        Keys (within the budget, or over it for want of a cache folder), a point cache (of the whole mesh, or a
+        patch of the corrected vertices after the capture), or nothing (every frame's correction is below the
+        tolerance).
     keys : list of str
         Shape keys written.
     cache_path : str
@@ -109,7 +111,7 @@ class CorrectionResult:
         One sentence for the operator's report.
     """
 
-    mode: str
+    outcome: StorageOutcome
     keys: list = field(default_factory=list)
     cache_path: str = ""
     modifier: str = ""
@@ -118,6 +120,11 @@ class CorrectionResult:
     max_error_mm: float = 0.0
     tolerance_mm: float = 0.01
     note: str = ""
+
+    @property
+    def mode(self) -> str:
+        """``"keys"``, ``"cache"`` or ``"none"``: what the scene holds (``StorageOutcome.mode``)."""
+        return self.outcome.mode
 
 
 class StoredKeys(list):
@@ -292,10 +299,11 @@ class CorrectionWriter:
             r = fit.basis.shape[0]
             self._remove_previous()
             if r == 0:
-                return CorrectionResult("none", frames=T, max_error_mm=fit.max_error * self._to_mm,
+                return CorrectionResult(StorageOutcome.NONE, frames=T, max_error_mm=fit.max_error * self._to_mm,
                                         tolerance_mm=tol_mm, note=f"No correction above {tol_mm:g} mm; nothing stored.")
             names = self._write_keys(fit.basis, fit.weights, frames)
-            return CorrectionResult("keys", keys=names, rank=r, frames=T, max_error_mm=fit.max_error * self._to_mm,
+            return CorrectionResult(StorageOutcome.KEYS, keys=names, rank=r, frames=T,
+                                    max_error_mm=fit.max_error * self._to_mm,
                                     tolerance_mm=tol_mm,
                                     note=f"{len(names)} corrective keys ({prefix}*), every vertex within "
                                          f"{tol_mm:g} mm.")
@@ -308,7 +316,8 @@ class CorrectionWriter:
             basis, weights = compress(read(0, T), tol=self.tol)  # block by block from the spool
             self._remove_previous()
             names = self._write_keys(basis, weights, frames)
-            return CorrectionResult("keys", keys=names, rank=len(names), frames=T, max_error_mm=float("nan"),
+            return CorrectionResult(StorageOutcome.KEYS_OVER_BUDGET, keys=names, rank=len(names), frames=T,
+                                    max_error_mm=float("nan"),
                                     tolerance_mm=tol_mm,
                                     note=f"{len(names)} corrective keys, more than the budget of {budget}: {e}")
         return self._write_cache(path, read, frames, budget)
@@ -361,7 +370,8 @@ class CorrectionWriter:
         name = bakes.add_correction_cache(obj, self.prefix, path, fmt, span[0], span[-1], integrate=static,
                                           index=self._capture_index()[1] if index is None else index)
         obj.data.update()
-        return CorrectionResult("cache", cache_path=str(path), modifier=name, rank=budget, frames=len(frames),
+        return CorrectionResult(StorageOutcome.CACHE, cache_path=str(path), modifier=name, rank=budget,
+                                frames=len(frames),
                                 max_error_mm=0.0, tolerance_mm=float(s.tolerance_mm),
                                 note=f"The correction does not fit in {budget} keys within {s.tolerance_mm:g} mm, so "
                                      f"it was written as a {fmt} point cache '{path}' played by the Mesh Cache "
@@ -395,7 +405,8 @@ class CorrectionWriter:
         name = bakes.add_correction_patch(obj, self.prefix, path, fmt, np.arange(self.V) if self.vertices is None
                                           else self.vertices, span[0], span[-1], index=self._capture_index()[1])
         obj.data.update()
-        return CorrectionResult("cache", cache_path=str(path), modifier=name, rank=0, frames=len(frames),
+        return CorrectionResult(StorageOutcome.PATCH_CACHE, cache_path=str(path), modifier=name, rank=0,
+                                frames=len(frames),
                                 max_error_mm=0.0, tolerance_mm=float(s.tolerance_mm),
                                 note=f"The correction of {self.n} vertices changes with every frame of the capture "
                                      f"cache, so it was written as a {fmt} point cache of those vertices only "
