@@ -9,7 +9,8 @@ relative to the frame without FaceLab's lip corrections (:func:`uncorrected_fram
 on the frame alone, with Propagate's correction off there; so a frame keeps what the viewport
 showed after Refine (or the sculpt) through every later Propagate. :func:`propagate_steps`
 reads the captured sequence, fits a :class:`~facelab_addon.core.lips.propagate.LipRegressor`
-on the training frames, predicts the inner lips of every frame and writes the per-frame
+on the training frames, corrects the inner lips of every frame a chunk at a time
+(:class:`~facelab_addon.core.lips.shot.ShotCorrector`) and writes the per-frame
 correction as a few compressed corrective keys ``FL_Prop_NN``
 (:data:`~facelab_addon.names.PROPAGATE_PREFIX`), plus the extrapolation score keyed on the
 object and suggested frames as timeline markers. Over a capture cache, where the key offsets
