@@ -174,7 +174,7 @@ def instrument(timers):
     timers.patch(capture_stream.CaptureReader, "read", "read captured chunk (mouth + lip vertices)")
     timers.patch(caches, "evaluate_frames", "read_corrected (training frames)",
                  inside_passthrough=("read captured chunk (mouth + lip vertices)",))
-    timers.patch(op, "mesh_triangles", "setup: mesh_triangles")
+    timers.patch(op, "face_topology", "setup: face_topology (triangles, weld)")
     timers.patch(op, "region_faces", "setup: region_faces")
     timers.patch(op, "rest_vertices", "setup: rest_vertices")
     timers.patch(cprop.LipRegressor, "__init__", "regressor: LipRegressor.__init__ (Poisson factor, patches)")

@@ -31,9 +31,7 @@ from dataclasses import dataclass, field
 import bpy
 import numpy as np
 
-from ..blender import bakes, cache_integrate, rest_space, review
-from ..blender.caches import input_positions
-from ..blender.capture_stream import CaptureReader
+from ..blender import bakes, cache_write, rest_space, review
 from ..blender.objects import local_length, tolerance_length
 from ..blender.shapekeys import (
     add_keys_from_deltas,
@@ -42,18 +40,14 @@ from ..blender.shapekeys import (
     remove_keys,
     zero_on_frame,
 )
-from ..core.capture.integrate import integrate_matrices
-from ..core.capture.pointcache_writer import PointCacheWriter
+from ..core.capture.pointcache_writer import correction_layout, write_offset_cache
 from ..core.errors import FaceLabError, MeshError, OutputError
-from ..core.geometry.compress import compress, compress_streamed, low_rank_reader
+from ..core.geometry.compress import StorageOutcome, compress, compress_streamed, low_rank_reader
 from ..names import STORE_SETTINGS_ATTR
 from .settings import setting, stored
 
 __all__ = ["StorageSettings", "CorrectionResult", "CorrectionWriter", "StoredKeys", "write_corrective_keys",
            "silence_correction"]
-
-_CAPTURE_CACHES = ("MESH_CACHE", "MESH_SEQUENCE_CACHE")
-
 
 @dataclass
 class StorageSettings:
@@ -91,8 +85,10 @@ class CorrectionResult:
 
     Attributes
     ----------
-    mode : str
-        ``"keys"``, ``"cache"`` or ``"none"`` (every frame's correction is below the tolerance).
+    outcome : StorageOutcome
+        Keys (within the budget, or over it for want of a cache folder), a point cache (of the whole mesh, or a
+        patch of the corrected vertices after the capture), or nothing (every frame's correction is below the
+        tolerance).
     keys : list of str
         Shape keys written.
     cache_path : str
@@ -110,7 +106,7 @@ class CorrectionResult:
         One sentence for the operator's report.
     """
 
-    mode: str
+    outcome: StorageOutcome
     keys: list = field(default_factory=list)
     cache_path: str = ""
     modifier: str = ""
@@ -119,6 +115,11 @@ class CorrectionResult:
     max_error_mm: float = 0.0
     tolerance_mm: float = 0.01
     note: str = ""
+
+    @property
+    def mode(self) -> str:
+        """``"keys"``, ``"cache"`` or ``"none"``: what the scene holds (``StorageOutcome.mode``)."""
+        return self.outcome.mode
 
 
 class StoredKeys(list):
@@ -132,13 +133,6 @@ class StoredKeys(list):
         out = cls(result.keys)
         out.storage = result
         return out
-
-
-def _uniform(frames) -> bool:
-    if len(frames) < 2:
-        return True
-    d = np.diff(frames)
-    return bool((d > 0).all() and np.allclose(d, d[0], rtol=0, atol=1e-6))
 
 
 class CorrectionWriter:
@@ -293,10 +287,11 @@ class CorrectionWriter:
             r = fit.basis.shape[0]
             self._remove_previous()
             if r == 0:
-                return CorrectionResult("none", frames=T, max_error_mm=fit.max_error * self._to_mm,
+                return CorrectionResult(StorageOutcome.NONE, frames=T, max_error_mm=fit.max_error * self._to_mm,
                                         tolerance_mm=tol_mm, note=f"No correction above {tol_mm:g} mm; nothing stored.")
             names = self._write_keys(fit.basis, fit.weights, frames)
-            return CorrectionResult("keys", keys=names, rank=r, frames=T, max_error_mm=fit.max_error * self._to_mm,
+            return CorrectionResult(StorageOutcome.KEYS, keys=names, rank=r, frames=T,
+                                    max_error_mm=fit.max_error * self._to_mm,
                                     tolerance_mm=tol_mm,
                                     note=f"{len(names)} corrective keys ({prefix}*), every vertex within "
                                          f"{tol_mm:g} mm.")
@@ -309,17 +304,11 @@ class CorrectionWriter:
             basis, weights = compress(read(0, T), tol=self.tol)  # block by block from the spool
             self._remove_previous()
             names = self._write_keys(basis, weights, frames)
-            return CorrectionResult("keys", keys=names, rank=len(names), frames=T, max_error_mm=float("nan"),
+            return CorrectionResult(StorageOutcome.KEYS_OVER_BUDGET, keys=names, rank=len(names), frames=T,
+                                    max_error_mm=float("nan"),
                                     tolerance_mm=tol_mm,
                                     note=f"{len(names)} corrective keys, more than the budget of {budget}: {e}")
         return self._write_cache(path, read, frames, budget)
-
-    def _capture_index(self):
-        """``(modifiers, index)``: where a correction cache goes, right after the last capture cache (or first)."""
-        mods = list(self.obj.modifiers)
-        caps = [i for i, m in enumerate(mods) if m.show_viewport and m.type in _CAPTURE_CACHES
-                and not bakes.is_correction_cache(self.obj, m)]  # FaceLab's correction caches are no capture
-        return mods, (caps[-1] + 1 if caps else 0)
 
     def _remove_previous(self) -> None:
         review.show_corrected(self.obj)  # never the capture shown with FaceLab's newest correction alone
@@ -338,160 +327,42 @@ class CorrectionWriter:
         obj.data.update()
         return names
 
+    def _layout(self, frames):
+        fps = float(self.scene.render.fps) / float(self.scene.render.fps_base)
+        return correction_layout(frames, self.settings.cache_format, fps)
+
     def _write_cache(self, path, read, frames, budget) -> CorrectionResult:
         obj, s = self.obj, self.settings
-        fmt, span, row, header = self._layout(frames)
-        mods, index = self._capture_index()
-        caps = index > 0
-        # over a capture cache in Integrate mode the deltas are key offsets (``cache_integrate``)
-        integrate = caps and mods[index - 1].type == "MESH_CACHE" and mods[index - 1].deform_mode == "INTEGRATE"
-        rest = np.empty(self.V * 3, np.float64)
-        key = obj.data.shape_keys
-        (key.reference_key.data if key else obj.data.vertices).foreach_get("co", rest)
-        rest = rest.reshape(self.V, 3).astype(np.float32)
-        if integrate and self._under_capture_exact(mods, index, read, frames):
-            self._write_blocks(path, fmt, header, read, span, row, rest, self.vertices)
-            static, index = True, 0  # rest + key offsets, under the capture: shape keys of its own
-            mode = ("Integrate, under the capture cache: it holds only the correction as offsets from the mesh, "
-                    "and shape keys still add on top")
-        else:
-            static = self._write_whole(path, fmt, header, read, span, row, rest, integrate)
-            index = None
-            mode = "Integrate: shape keys still add on top" if static else \
-                "Overwrite: it holds the whole corrected input; later shape-key edits show once the modifier is off"
+        layout = self._layout(frames)
+        written = cache_write.write_correction_file(obj, self.prefix, path, layout, read, self.vertices, self.tol)
         self._remove_previous()  # the file is complete: now FaceLab's previous keys and cache go
-        name = bakes.add_correction_cache(obj, self.prefix, path, fmt, span[0], span[-1], integrate=static,
-                                          index=self._capture_index()[1] if index is None else index)
+        index = cache_write.capture_index(obj, self.prefix)[1] if written.index is None else written.index
+        name = bakes.add_correction_cache(obj, self.prefix, path, layout.format, layout.span[0], layout.span[-1],
+                                          integrate=written.integrate, index=index)
         obj.data.update()
-        return CorrectionResult("cache", cache_path=str(path), modifier=name, rank=budget, frames=len(frames),
-                                max_error_mm=0.0, tolerance_mm=float(s.tolerance_mm),
+        return CorrectionResult(StorageOutcome.CACHE, cache_path=str(path), modifier=name, rank=budget,
+                                frames=len(frames), max_error_mm=0.0, tolerance_mm=float(s.tolerance_mm),
                                 note=f"The correction does not fit in {budget} keys within {s.tolerance_mm:g} mm, so "
-                                     f"it was written as a {fmt} point cache '{path}' played by the Mesh Cache "
-                                     f"modifier '{name}' ({mode}).")
-
-    def _layout(self, frames):
-        """A correction cache's file layout for the stored ``frames`` (T,): ``(fmt, span, row, header)``.
-
-        ``span`` (S,) the scene frames the file holds (whole frames from the first to the last, or the evenly
-        spaced ``frames``), ``row`` maps a span frame to its stored frame index, ``header`` the file writer's
-        timing (PC2: start frame and rate; MDD: seconds).
-        """
-        fmt = self.settings.cache_format.upper()
-        if np.allclose(frames, np.round(frames)):
-            span = np.arange(int(round(frames.min())), int(round(frames.max())) + 1, dtype=np.float64)
-        elif _uniform(np.sort(frames)):
-            span = np.sort(frames)
-        else:
-            raise FaceLabError("A correction cache needs whole or evenly spaced frames; store it on whole frames.")
-        row = {float(round(f, 6)): i for i, f in enumerate(frames)}
-        fps = float(self.scene.render.fps) / float(self.scene.render.fps_base)
-        header = dict(start_frame=float(span[0]), sample_rate=1.0) if fmt == "PC2" else dict(times=span / fps)
-        return fmt, span, row, header
+                                     f"it was written as a {layout.format} point cache '{path}' played by the Mesh "
+                                     f"Cache modifier '{name}' ({written.mode}).")
 
     def _write_patch(self, path, read, frames) -> CorrectionResult:
         """The correction as a point cache of its own vertices, added after the capture (``after_capture``)."""
         obj, s = self.obj, self.settings
-        fmt, span, row, header = self._layout(frames)
-        self._write_blocks(path, fmt, header, read, span, row, np.zeros((self.n, 3), np.float32), None)
+        layout = self._layout(frames)
+        write_offset_cache(path, layout, read, np.zeros((self.n, 3), np.float32))
         self._remove_previous()
-        name = bakes.add_correction_patch(obj, self.prefix, path, fmt, np.arange(self.V) if self.vertices is None
-                                          else self.vertices, span[0], span[-1], index=self._capture_index()[1])
+        name = bakes.add_correction_patch(obj, self.prefix, path, layout.format,
+                                          np.arange(self.V) if self.vertices is None else self.vertices,
+                                          layout.span[0], layout.span[-1],
+                                          index=cache_write.capture_index(obj, self.prefix)[1])
         obj.data.update()
-        return CorrectionResult("cache", cache_path=str(path), modifier=name, rank=0, frames=len(frames),
-                                max_error_mm=0.0, tolerance_mm=float(s.tolerance_mm),
+        return CorrectionResult(StorageOutcome.PATCH_CACHE, cache_path=str(path), modifier=name, rank=0,
+                                frames=len(frames), max_error_mm=0.0, tolerance_mm=float(s.tolerance_mm),
                                 note=f"The correction of {self.n} vertices changes with every frame of the capture "
-                                     f"cache, so it was written as a {fmt} point cache of those vertices only "
-                                     f"'{path}', added after the capture by the Geometry Nodes modifier '{name}'.")
-
-    def _under_capture_exact(self, mods, index, read, frames) -> bool:
-        """Whether key offsets played by an Integrate cache at the top of the stack, under the captured Integrate
-        Mesh Cache ``mods[index - 1]``, show exactly what keys would.
-
-        That cache outputs ``rest + offsets + M_C s`` (``s``: the shape-key mix, ``M_C`` its own Integrate map,
-        the identity wherever it holds no correction), which the capture then carries like keys. So it is
-        exact when nothing else is enabled before the capture and, on every frame with a correction, no shape
-        key moves a vertex of the correction's polygon neighbourhood (FaceLab's spike keys of corrected frames
-        are 0 elsewhere; their own frame keeps a zero correction).
-        """
-        obj = self.obj
-        own = bakes.correction_cache(obj, self.prefix)[0]
-        if any(m.show_viewport and m != own for m in mods[: index - 1]):
-            return False
-        verts = np.arange(self.V) if self.vertices is None else self.vertices
-        ring = cache_integrate.polygon_neighbourhood(cache_integrate.polygon_corners(obj.data), verts)
-        moved = cache_integrate.keys_move_frames(obj, ring, frames, skip_prefixes=(self.prefix,))
-        tiny = 1e-3 * self.tol  # a correction this small changes no Integrate map measurably
-        return not any(np.abs(read(t, t + 1)).max() > tiny for t in np.flatnonzero(moved))
-
-    def _write_blocks(self, path, fmt, header, read, span, row, base, verts) -> None:
-        """Write ``base`` (m,3) plus the correction on ``verts`` (all m points when None) for every frame of
-        ``span``, a block of frames at a time (no scene evaluation, no capture read)."""
-        m = len(base)
-        block = max(1, min(256, (48 << 20) // (12 * m)))  # ~48 MB of positions at a time
-        buf = np.empty((block, m, 3), np.float32)
-        writer = PointCacheWriter(path, fmt, m, len(span), **header)
-        try:
-            for i in range(0, len(span), block):
-                fr = span[i:i + block]
-                b = buf[: len(fr)]
-                b[:] = base
-                rows = [row.get(float(round(f, 6))) for f in fr]
-                t0 = rows[0]
-                if t0 is not None and rows == list(range(t0, t0 + len(fr))):
-                    runs = [(0, t0, t0 + len(fr))]
-                else:
-                    runs = [(k, t, t + 1) for k, t in enumerate(rows) if t is not None]
-                for k, a, z in runs:
-                    d = np.asarray(read(a, z), dtype=np.float32)
-                    if verts is None:
-                        b[k : k + z - a] += d
-                    else:
-                        b[k : k + z - a, verts] += d
-                writer.write(b)
-            writer.close()
-        except BaseException:
-            writer.abort()
-            raise
-
-    def _write_whole(self, path, fmt, header, read, span, row, rest, integrate) -> bool:
-        """The file of a cache over the whole input (what the stack below it gives, plus the correction, mapped
-        through the capture's surface over an Integrate capture); whether that input is the static mesh."""
-        obj = self.obj
-        index = self._capture_index()[1]
-        corners = cache_integrate.polygon_corners(obj.data) if integrate else None
-        imap = cache_integrate.IntegrateMap(corners, self.vertices, rest) if integrate and self.vertices is not None \
-            else None
-        static = True
-        # the capture's own samples (what it carries keys by), not the evaluated mesh: other keys may be live
-        cap = CaptureReader(obj, None if imap is None else imap.vertices, cache_samples=True) if integrate else None
-        writer = PointCacheWriter(path, fmt, self.V, len(span), **header)
-        try:
-            for i in range(0, len(span), 32):
-                fr = span[i:i + 32]
-                base = input_positions(obj, fr, upto=index, skip_prefixes=(self.prefix,))  # without our old output
-                static = static and bool(np.all(base == rest[None]))
-                raw = cap.read(fr) if integrate else None
-                for k, f in enumerate(fr):
-                    t = row.get(float(round(f, 6)))
-                    if t is not None:
-                        d = np.asarray(read(t, t + 1)[0], dtype=np.float64)
-                        if integrate:
-                            if imap is not None:  # the corrected vertices' own maps, rest side inverted once
-                                d = imap.to_shown(raw[k : k + 1], d[None])[0]
-                            else:
-                                M = integrate_matrices(rest, raw[k], *corners)
-                                d = np.einsum("vij,vj->vi", M, d)
-                        d = d.astype(np.float32)
-                        if self.vertices is None:
-                            base[k] += d
-                        else:
-                            base[k, self.vertices] += d
-                writer.write(base)
-            writer.close()
-        except BaseException:
-            writer.abort()
-            raise
-        return static
+                                     f"cache, so it was written as a {layout.format} point cache of those vertices "
+                                     f"only '{path}', added after the capture by the Geometry Nodes modifier "
+                                     f"'{name}'.")
 
     # ------------------------------------------------------------------ lifetime
     def close(self) -> None:

@@ -9,7 +9,8 @@ relative to the frame without FaceLab's lip corrections (:func:`uncorrected_fram
 on the frame alone, with Propagate's correction off there; so a frame keeps what the viewport
 showed after Refine (or the sculpt) through every later Propagate. :func:`propagate_steps`
 reads the captured sequence, fits a :class:`~facelab_addon.core.lips.propagate.LipRegressor`
-on the training frames, predicts the inner lips of every frame and writes the per-frame
+on the training frames, corrects the inner lips of every frame a chunk at a time
+(:class:`~facelab_addon.core.lips.shot.ShotCorrector`) and writes the per-frame
 correction as a few compressed corrective keys ``FL_Prop_NN``
 (:data:`~facelab_addon.names.PROPAGATE_PREFIX`), plus the extrapolation score keyed on the
 object and suggested frames as timeline markers. Over a capture cache, where the key offsets
@@ -37,9 +38,9 @@ from ..blender.objects import ModifierState, local_length, require_editable, tol
 from ..blender.scene_time import require_scene_time
 from ..blender.shapekeys import key_property_bulk, rest_vertices
 from ..core.errors import FaceLabError, FrameError
+from ..core.geometry.compress import StorageOutcome
 from ..core.lips.propagate import LipRegressor
-from ..core.lips.reduced import StreamingBasis
-from ..core.lips.suggest import SuggestScreen
+from ..core.lips.shot import ShotCorrector, expected_worse, key_shapes_over_cache
 from ..names import EXTRAPOLATION_ACTION, EXTRAPOLATION_PROP, PROPAGATE_PREFIX, STORE_SETTINGS_ATTR, SUGGEST_MARKER
 from .correctives import CorrectionWriter, StorageSettings, StoredKeys
 from .frames import check_frames
@@ -282,12 +283,7 @@ def propagate_steps(scene, obj, frames, settings: PropagateSettings | None = Non
     chunk = min(_CHUNK, max(4, len(frames) // 40)) if chunk is None else chunk
     if int(chunk) < 1:
         raise FaceLabError(f"Propagate: chunk must be at least 1 frame, got {chunk}; use the default {_CHUNK}.")
-    return _propagate_steps(scene, obj, frames, settings, t0, topo, mouth_faces, lip_faces, train, int(chunk))
-
-
-def _key_shapes_over_cache(budget) -> int:
-    """Most greedy shapes the key offsets over a cache may take before they count as a patch cache."""
-    return max(64, 4 * int(budget))
+    return _propagate_steps(_Job(scene, obj, frames, settings, topo, mouth_faces, lip_faces, train, int(chunk), t0))
 
 
 def _chunks(n, size):
@@ -302,12 +298,32 @@ def _weld_poses(obj, frames, train):
         yield caches.evaluate_frames(obj, [f])[0]
 
 
-def _propagate_steps(scene, obj, frames, settings, t0, topo, mouth_faces, lip_faces, train, chunk):
-    state = ModifierState(obj)
+@dataclass
+class _Job:
+    """One checked Propagate call (:func:`propagate_steps`): what its steps work on.
+
+    ``frames`` (T,) int the consecutive scene frames; ``topo`` the mesh's ``face_topology`` (triangles, split-seam
+    weld); ``mouth_faces``/``lip_faces`` triangle ids of the regions; ``train`` the training frames (scene frames);
+    ``chunk`` frames read and corrected at a time; ``t0`` the call's ``perf_counter``.
+    """
+
+    scene: object
+    obj: object
+    frames: np.ndarray
+    settings: PropagateSettings
+    topo: object
+    mouth_faces: np.ndarray
+    lip_faces: np.ndarray
+    train: list
+    chunk: int
+    t0: float
+
+
+def _propagate_steps(job: _Job):
+    state = ModifierState(job.obj)
     done = False
     try:
-        result = yield from _propagate_work(scene, obj, frames, settings, t0, topo, mouth_faces, lip_faces, train,
-                                            chunk)
+        result = yield from _propagate_work(job)
         done = True
         return result
     finally:
@@ -315,12 +331,13 @@ def _propagate_steps(scene, obj, frames, settings, t0, topo, mouth_faces, lip_fa
             state.restore()
 
 
-def _propagate_work(scene, obj, frames, settings, t0, topo, mouth_faces, lip_faces, train, chunk):
+def _propagate_work(job: _Job):
+    scene, obj, frames, settings, topo, train = job.scene, job.obj, job.frames, job.settings, job.topo, job.train
     T = len(frames)
     total = T + 2  # progress units: fit, T frames corrected, write
     on_cache = caches.sequence_source(obj) in _CACHE_SOURCES
     storage = stored(scene, STORE_SETTINGS_ATTR, StorageSettings)
-    if on_cache and T > _key_shapes_over_cache(storage.key_budget):
+    if on_cache and T > key_shapes_over_cache(storage.key_budget):
         # over a captured cache a long shot's correction goes to a point cache: refuse an unsaved .blend without a
         # cache folder now, before the scene changes, not after every frame was corrected
         bakes.correction_cache_path(obj, PROPAGATE_PREFIX, str(storage.cache_format).upper(),
@@ -335,7 +352,7 @@ def _propagate_work(scene, obj, frames, settings, t0, topo, mouth_faces, lip_fac
     require_finite(corrected, train, "corrected (training)")
     unknown = captured_unknown(obj, train)
     model = "whole" if unknown and settings.model == "auto" else settings.model
-    reg = LipRegressor(rest_w, tris_w, mouth_faces, lip_faces, model=model, damping=bool(settings.damping),
+    reg = LipRegressor(rest_w, tris_w, job.mouth_faces, job.lip_faces, model=model, damping=bool(settings.damping),
                        ridge="loo" if settings.ridge == "loo" and len(train) >= LOO_MIN_FRAMES else 0.0)
     captured_train = caches.read_captured_frames(obj, list(train)).astype(np.float64)  # FaceLab keys muted
     require_finite(captured_train, train, "captured (training)")
@@ -370,74 +387,68 @@ def _propagate_work(scene, obj, frames, settings, t0, topo, mouth_faces, lip_fac
     # Over a cache the keys ride on its surface, so a correction that is a few shapes on the mesh is, as key
     # offsets, a new shape on every frame. The shown correction is spooled as it comes (the patch cache after the
     # capture, blender.bakes.add_correction_patch); the key offsets are compressed only until they clearly need
-    # more shapes than the key budget (4x: the greedy basis overshoots the final one), then no longer mapped.
-    store = StreamingBasis(len(out_v) if on_cache else len(iv), tol,
-                           max_rank=_key_shapes_over_cache(storage.key_budget) if on_cache else 1024)
+    # more shapes than the key budget, then no longer mapped (the corrector's outcome turns PATCH_CACHE).
+    is_train = np.isin(frames, train)
+    corrector = ShotCorrector(reg, is_train, tol, take=take if on_cache else None, patch_cache=on_cache,
+                              max_key_shapes=key_shapes_over_cache(storage.key_budget) if on_cache else 1024,
+                              suggest=bool(settings.suggestions))
     spool = CorrectionWriter(scene, obj, PROPAGATE_PREFIX, vertices=out_v, after_capture=True) if on_cache else None
     try:
-        is_train = np.isin(frames, train)
-        screen = SuggestScreen(reg, T, exclude=np.flatnonzero(is_train)) if settings.suggestions else None
-        score, change = np.empty(T), np.empty(T)
-        for i, j in _chunks(T, chunk):
+        for i, j in _chunks(T, job.chunk):
             yield "correcting the frames", 1 + i, total
             X = reader.read(frames[i:j])  # FaceLab keys muted
             require_finite(X, frames[i:j], "captured")
-            Xu = X[:, at_used]
-            try:  # (t, nI, 3) correction, object local; where the model guesses: the extrapolation score
-                corr, score[i:j], feature_sq = reg.correct_chunk(Xu, used_only=True, first=i)
+            # over a cache the keys ride on its surface: the offsets are mapped through it
+            to_key = None if ring is None else (lambda corr, X=X: ring.to_key(X[:, at_ring], corr))
+            try:  # (t, n, 3) correction shown, object local
+                corr = corrector.add_chunk(X[:, at_used], to_key)
             except FrameError as e:  # positions in the shot -> scene frames
                 raise e.for_frames([int(f) for f in frames]) from None
-            if screen is not None:
-                screen.add_scores(i, feature_sq, score[i:j])
-            change[i:j] = reg.expected_change(corr, score[i:j])
-            corr[is_train[i:j]] = 0.0  # training frames keep the artist's own correction
-            if take is not None and on_cache:  # every twin moves with its representative: the seams stay closed
-                corr = corr[:, take]
             if spool is not None:
                 spool.add(frames[i:j], corr)
-            if ring is not None and store is not None:  # keys ride on the cache surface: map the offsets through it
-                corr = ring.to_key(X[:, at_ring], corr)
-            if store is not None:
-                try:
-                    store.add(corr)
-                except FaceLabError:  # more shapes than keys could ever hold: the patch cache it is
-                    store = None
         yield "writing the corrective keys", total - 1, total
-        if store is None:
+        result = corrector.finish()
+        if result.outcome is StorageOutcome.PATCH_CACHE:
             names = StoredKeys.of(spool.finish())  # the patch cache: no keys
         else:
-            basis, weights = store.finish()
-            if take is None or on_cache:
-                names = _store_corrections(scene, obj, frames, basis, weights, out_v)
-            else:  # stored as on the welded surface, then each twin given its representative's offsets
-                names = _store_corrections(scene, obj, frames, basis, weights, iv)
-                if names.storage.mode == "keys":
-                    spread_key_offsets(obj, list(names), topo)
-                elif names.storage.mode == "cache":  # a point cache of the vertices written: every twin in it
-                    names = _store_corrections(scene, obj, frames, basis[:, take], weights, out_v)
+            names = _write_keys(job, result, iv, out_v, None if on_cache else take)
     finally:
         if spool is not None:
             spool.close()
-    if names.storage.mode == "cache" or "more than the budget" in names.storage.note:  # say where it went
+    if names.storage.outcome.reported:  # say where it went
         note = f"{note} {names.storage.note}".strip()
-    score[is_train] = 0.0
-    change[is_train] = 0.0
-    flagged = np.flatnonzero(change > local_length(scene, obj, 1e-3 * WORSE_MM))
-    worse = [int(frames[i]) for i in flagged[np.argsort(-change[flagged], kind="stable")]]  # the worst first
+    score = result.extrapolation
+    worse = [int(frames[i]) for i in expected_worse(result.expected_change, local_length(scene, obj, 1e-3 * WORSE_MM))]
     obj[EXTRAPOLATION_PROP] = 0.0
     key_property_bulk(obj, f'["{EXTRAPOLATION_PROP}"]', frames, score, action_name=EXTRAPOLATION_ACTION)
     for m in [m for m in scene.timeline_markers if m.name.startswith(SUGGEST_MARKER)]:
         scene.timeline_markers.remove(m)
     suggested = []
-    if screen is not None:
-        idx = _suggest(reg, reader, frames, at_used, screen, settings.suggestions)
+    if settings.suggestions:
+        idx = _suggest(corrector, reader, frames, at_used, settings.suggestions)
         suggested = [int(frames[i]) for i in idx]
         for f in suggested:
             scene.timeline_markers.new(f"{SUGGEST_MARKER} {f}", frame=f)
     obj.data.update()
     return PropagateResult(object=obj.name, frames=frames, keys=names, training=list(train), suggested=suggested,
                            extrapolation=score, expected_worse=worse, note=note, model=model_summary(reg, unknown),
-                           whole_weight=reg.whole_weight, seconds=time.perf_counter() - t0)
+                           whole_weight=reg.whole_weight, seconds=time.perf_counter() - job.t0)
+
+
+def _write_keys(job: _Job, result, iv, out_v, welded) -> StoredKeys:
+    """Store a ``KEYS`` :class:`ShotCorrection`: its shapes cover ``out_v`` (the written vertices), or, with
+    ``welded`` (the ``take`` of the split-seam twins, off a cache), the welded interior lips ``iv``."""
+    scene, obj, frames = job.scene, job.obj, job.frames
+    basis, weights = result.basis, result.weights
+    if welded is None:
+        return _store_corrections(scene, obj, frames, basis, weights, out_v)
+    # stored as on the welded surface, then each twin given its representative's offsets
+    names = _store_corrections(scene, obj, frames, basis, weights, iv)
+    if names.storage.mode == "keys":
+        spread_key_offsets(obj, list(names), job.topo)
+    elif names.storage.mode == "cache":  # a point cache of the vertices written: every twin in it
+        names = _store_corrections(scene, obj, frames, basis[:, welded], weights, out_v)
+    return names
 
 
 def model_summary(reg, unknown=()) -> str:
@@ -494,11 +505,6 @@ def _store_corrections(scene, obj, frames, basis, weights, vertices) -> StoredKe
         return StoredKeys.of(w.finish())
 
 
-def _suggest(reg, reader, frames, at_used, screen, count):
-    """Frame indices to correct next: the greedy choice of :func:`suggest_frames` among the
-    :class:`SuggestScreen` candidates (the frames farthest from the training span), re-read once."""
-
-    def features_of(idx):
-        return reg.mouth_features(reader.read(frames[idx])[:, at_used], used_only=True)
-
-    return screen.select(count, features_of, exact=False)[0]
+def _suggest(corrector, reader, frames, at_used, count):
+    """Frame indices to correct next (``ShotCorrector.suggest``): the screened candidates re-read once."""
+    return corrector.suggest(count, lambda idx: reader.read(frames[idx])[:, at_used])

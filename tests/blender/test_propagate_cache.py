@@ -31,7 +31,7 @@ def test_refine_and_propagate_on_a_mesh_cache(tmp_path, ict, addon, patch, monke
     from facelab_addon.pipeline import propagate as prop
 
     if patch:
-        monkeypatch.setattr(prop, "_key_shapes_over_cache", lambda budget: 1)
+        monkeypatch.setattr(prop, "key_shapes_over_cache", lambda budget: 1)
     F = ict.faces
     neutral = ict.neutral * SCALE
     t = np.linspace(0, 1, T)

@@ -12,6 +12,7 @@ import pytest
 from facelab_addon.blender import caches
 from facelab_addon.blender.shapekeys import add_corrective_key, key_values_bulk, owned_keys
 from facelab_addon.core.errors import FaceLabError, MeshError
+from facelab_addon.core.geometry.compress import StorageOutcome
 from facelab_addon.names import CORRECTION_CACHES_PROP, OWNED_KEYS_PROP, PROPAGATE_PREFIX, SOLVE_PREFIX
 from facelab_addon.pipeline.correctives import (
     CorrectionResult,
@@ -100,6 +101,7 @@ def test_low_rank_correction_becomes_keys_that_evaluate_to_it(animated, addon):
     keys = write_corrective_keys(obj, PROPAGATE_PREFIX, D, FRAMES, scene=scene)
     res = keys.storage
     assert isinstance(res, CorrectionResult) and res.mode == "keys" and res.cache_path == ""
+    assert res.outcome is StorageOutcome.KEYS and not res.outcome.reported
     assert keys == owned_keys(obj, PROPAGATE_PREFIX) and 1 <= len(keys) <= 3 == res.rank
     assert not [m for m in obj.modifiers]  # no cache
     err = np.linalg.norm(shown(obj) - before - D, axis=2)
@@ -115,6 +117,7 @@ def test_full_rank_correction_becomes_a_cache_beside_the_blend(tmp_path, animate
     res = write_corrective_keys(obj, SOLVE_PREFIX, D, FRAMES, scene=scene,
                                 settings=StorageSettings(cache_format=fmt)).storage
     assert res.mode == "cache" and res.keys == [] and not owned_keys(obj, SOLVE_PREFIX)
+    assert res.outcome is StorageOutcome.CACHE and res.outcome.reported
     assert res.cache_path == str(tmp_path / f"shot_Head_FL_Solve.{fmt.lower()}") and "point cache" in res.note
     md = obj.modifiers[res.modifier]
     assert md.type == "MESH_CACHE" and md.cache_format == fmt and bpy.path.abspath(md.filepath) == res.cache_path
@@ -137,6 +140,7 @@ def test_a_cache_needs_a_place_and_falls_back_to_keys_in_an_unsaved_blend(addon)
     res = write_corrective_keys(obj, SOLVE_PREFIX, D, FRAMES[:6], scene=scene,
                                 settings=StorageSettings(key_budget=2)).storage
     assert res.mode == "keys" and len(res.keys) == 6 and "not saved" in res.note and "budget of 2" in res.note
+    assert res.outcome is StorageOutcome.KEYS_OVER_BUDGET and res.outcome.reported
     assert np.linalg.norm(shown(obj, FRAMES[:6]) - shown(obj, FRAMES[:6], muted=("FL_",)) - D, axis=2).max() <= TOL
 
 
@@ -433,6 +437,7 @@ def test_after_capture_the_correction_is_a_patch_of_its_vertices_rerun_and_undo_
     D1 = full_rank(obj)[: len(frames)][:, sub]
     r1 = store(D1)
     assert r1.mode == "cache" and r1.keys == [] and "Geometry Nodes" in r1.note
+    assert r1.outcome is StorageOutcome.PATCH_CACHE
     assert [m.name for m in obj.modifiers] == ["Capture", r1.modifier, "FL_Prop_Cache"]
     md = obj.modifiers[r1.modifier]
     assert md.type == "NODES" and list(obj.modifiers).index(md) == 1  # right after the capture

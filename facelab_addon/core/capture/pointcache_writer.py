@@ -4,7 +4,9 @@ The byte layouts are those read by :mod:`.pointcache` (and by Blender's Mesh
 Cache modifier). :class:`PointCacheWriter` writes one (V,3) sample at a time,
 so a bake never holds the whole (T,V,3) sequence, into ``<path>.tmp``, which
 replaces ``path`` only when every announced sample was written.
-``write_pc2`` / ``write_mdd`` write a whole array at once.
+``write_pc2`` / ``write_mdd`` write a whole array at once. A stored per-frame correction is written
+as a cache of fixed positions plus the correction, a block of frames at a time
+(:func:`correction_layout`, :func:`write_offset_cache`).
 
 Positions are object-local, scene units, stored as float32 (little-endian for
 PC2, big-endian for MDD); MDD sample times are in seconds. No bpy in this
@@ -17,14 +19,16 @@ import contextlib
 import errno
 import os
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from ..errors import CacheFileError, CacheVertexCountError, MeshError, OutputError
+from ..errors import CacheFileError, CacheVertexCountError, FaceLabError, MeshError, OutputError
 from .pointcache import PC2_HEADER, PC2_HEADER_BYTES, PC2_MAGIC
 
-__all__ = ["PointCacheWriter", "write_pc2", "write_mdd", "check_writable", "check_name_length", "output_error"]
+__all__ = ["PointCacheWriter", "write_pc2", "write_mdd", "check_writable", "check_name_length", "output_error",
+           "CacheLayout", "correction_layout", "write_offset_cache"]
 
 
 def output_error(path, err: OSError) -> OutputError:
@@ -376,3 +380,122 @@ def write_mdd(path, frames, fps=24.0, start_frame=1, *, times=None) -> Path:
     with PointCacheWriter(path, "MDD", a.shape[1], a.shape[0], times=times) as w:
         w.write(a)
     return w.path
+
+
+@dataclass
+class CacheLayout:
+    """Which samples a correction cache holds (:func:`correction_layout`).
+
+    Attributes
+    ----------
+    format : str
+        ``"PC2"`` or ``"MDD"``.
+    frames : (T,) float64 ndarray
+        The scene frame of each row of the stored correction.
+    span : (S,) float64 ndarray
+        The scene frames of the file's samples: whole frames from the first stored frame to the last, or the
+        evenly spaced stored frames.
+    rows : dict
+        Scene frame (rounded to 1e-6) -> index of that frame in the stored correction; span frames without a
+        correction are absent (they hold the fixed positions alone).
+    header : dict
+        The ``PointCacheWriter`` timing keywords (PC2: ``start_frame``, ``sample_rate``; MDD: ``times``, s).
+    """
+
+    format: str
+    frames: np.ndarray
+    span: np.ndarray
+    rows: dict
+    header: dict
+
+    def row(self, frame):
+        """The stored correction's index of scene ``frame``, or None."""
+        return self.rows.get(float(round(frame, 6)))
+
+
+def _evenly_spaced(frames) -> bool:
+    if len(frames) < 2:
+        return True
+    d = np.diff(frames)
+    return bool((d > 0).all() and np.allclose(d, d[0], rtol=0, atol=1e-6))
+
+
+def correction_layout(frames, fmt: str, fps: float) -> CacheLayout:
+    """The samples of a cache holding a correction stored on scene ``frames``.
+
+    Parameters
+    ----------
+    frames : (T,) float array_like
+        Scene frames of the correction's rows, whole or evenly spaced.
+    fmt : {"PC2", "MDD"}
+    fps : float
+        Scene frames per second (MDD sample times).
+
+    Returns
+    -------
+    CacheLayout
+
+    Raises
+    ------
+    FaceLabError
+        Frames neither whole nor evenly spaced.
+    """
+    frames = np.asarray(frames, dtype=np.float64)
+    fmt = str(fmt).upper()
+    if np.allclose(frames, np.round(frames)):
+        span = np.arange(int(round(frames.min())), int(round(frames.max())) + 1, dtype=np.float64)
+    elif _evenly_spaced(np.sort(frames)):
+        span = np.sort(frames)
+    else:
+        raise FaceLabError("A correction cache needs whole or evenly spaced frames; store it on whole frames.")
+    rows = {float(round(f, 6)): i for i, f in enumerate(frames)}
+    header = dict(start_frame=float(span[0]), sample_rate=1.0) if fmt == "PC2" else dict(times=span / float(fps))
+    return CacheLayout(fmt, frames, span, rows, header)
+
+
+def write_offset_cache(path, layout: CacheLayout, read, base, vertices=None) -> None:
+    """Write ``base`` plus the correction on ``vertices`` for every sample of ``layout``, a block at a time.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+    layout : CacheLayout
+    read : callable
+        ``read(i, j)``: the correction's rows ``i:j`` (j - i, n, 3), scene units.
+    base : (m, 3) float array_like
+        Positions every sample starts from (object local, scene units; zeros for a cache of the correction alone).
+    vertices : (n,) int array_like, optional
+        Rows of ``base`` the correction moves (default: all ``m``, n = m).
+
+    Raises
+    ------
+    OutputError
+        The file cannot be written (nothing is left at ``path`` then).
+    """
+    base = np.asarray(base, dtype=np.float32)
+    m, span = len(base), layout.span
+    block = max(1, min(256, (48 << 20) // (12 * m)))  # ~48 MB of positions at a time
+    buf = np.empty((block, m, 3), np.float32)
+    writer = PointCacheWriter(path, layout.format, m, len(span), **layout.header)
+    try:
+        for i in range(0, len(span), block):
+            fr = span[i:i + block]
+            b = buf[: len(fr)]
+            b[:] = base
+            rows = [layout.row(f) for f in fr]
+            t0 = rows[0]
+            if t0 is not None and rows == list(range(t0, t0 + len(fr))):
+                runs = [(0, t0, t0 + len(fr))]
+            else:
+                runs = [(k, t, t + 1) for k, t in enumerate(rows) if t is not None]
+            for k, a, z in runs:
+                d = np.asarray(read(a, z), dtype=np.float32)
+                if vertices is None:
+                    b[k : k + z - a] += d
+                else:
+                    b[k : k + z - a, vertices] += d
+            writer.write(b)
+        writer.close()
+    except BaseException:
+        writer.abort()
+        raise

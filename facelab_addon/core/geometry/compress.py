@@ -20,13 +20,15 @@ and a per-frame, per-vertex error check of the ranks up to ``max_rank`` (third a
 
 from __future__ import annotations
 
+import enum
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..errors import FaceLabError, MeshError
 
-__all__ = ["compress", "reconstruct", "compress_streamed", "low_rank_reader", "StreamedBasis", "DEFAULT_TOL_M"]
+__all__ = ["compress", "reconstruct", "compress_streamed", "low_rank_reader", "StreamedBasis", "DEFAULT_TOL_M",
+           "StorageOutcome"]
 
 #: Default tolerance, 0.01 mm, in metres.
 DEFAULT_TOL_M = 1e-5
@@ -399,3 +401,29 @@ def _frame_errors(R, n):
     v = sq[:, 0::3] + sq[:, 1::3]
     v += sq[:, 2::3]
     return np.sqrt(v.max(axis=1))
+
+
+class StorageOutcome(enum.Enum):
+    """How a per-frame correction was (or is to be) stored.
+
+    ``NONE``: every frame is within the tolerance of zero, nothing stored; ``KEYS``: a few corrective keys,
+    at most the key budget; ``KEYS_OVER_BUDGET``: more keys than the budget, because a point cache had no
+    place (an unsaved .blend without a cache folder); ``CACHE``: a point cache of the whole mesh played by a
+    Mesh Cache modifier; ``PATCH_CACHE``: a point cache of the corrected vertices only, added after the capture.
+    """
+
+    NONE = "none"
+    KEYS = "keys"
+    KEYS_OVER_BUDGET = "keys over budget"
+    CACHE = "cache"
+    PATCH_CACHE = "patch cache"
+
+    @property
+    def mode(self) -> str:
+        """``"none"``, ``"keys"`` or ``"cache"``: what the scene holds."""
+        return {"keys over budget": "keys", "patch cache": "cache"}.get(self.value, self.value)
+
+    @property
+    def reported(self) -> bool:
+        """Whether a report says where the correction went: anything but a few keys within the budget (or nothing)."""
+        return self not in (StorageOutcome.NONE, StorageOutcome.KEYS)
