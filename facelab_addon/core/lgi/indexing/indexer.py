@@ -7,26 +7,33 @@ whose local geometry reproduces its position, and the per-bundle geometry is
 sewn together with natural-neighbour weights.
 
 Build once (:class:`GeometricIndexer`), then reconstruct every frame. The
-constructor runs named build steps in order; each step lives with the code
-that reads what it builds:
+indexer composes the state objects of its sibling modules, built in order:
 
-* input checks, the jaw (§6, Eq. 2: with a
+* :class:`~facelab_addon.core.lgi.indexing.dataset.IndexedDataset`: checked
+  inputs, the jaw (§6, Eq. 2: with a
   :class:`~facelab_addon.core.lgi.jaw.JawRig` the dataset shapes are unskinned,
   ``b* = T(theta_n)^-1 (x0 + b_n) - x0``, bundles are unskinned per frame with
   the frame's jaw parameters and the blend is skinned back by linear blend
-  skinning), natural-neighbour weights (§5,
-  :mod:`facelab_addon.core.lgi.natural_neighbor`), the float32 dataset of the
-  moving vertices and ``stats``: here;
-* point clouds, pruning, merged points, tetrahedra, hulls and grids (§4,
-  §4.1): :mod:`facelab_addon.core.lgi.clouds`;
-* neighbour tables and the per-frame choice of tetrahedra (§4, §5.1, Eq. 1):
-  :mod:`facelab_addon.core.lgi.locate`;
-* stitching matrices, the blend, exact interpolation, the RBF and Voronoi
-  stitchings and sequences with temporal smoothing (§5, §7):
-  :mod:`facelab_addon.core.lgi.stitch`.
+  skinning), natural-neighbour weights (§5) and the float32 dataset;
+* :class:`~facelab_addon.core.lgi.indexing.clouds.BundleClouds` and
+  :class:`~facelab_addon.core.lgi.indexing.clouds.TetGrid`: point clouds,
+  pruning, merged points, tetrahedra, hulls and grids (§4, §4.1);
+* :class:`~facelab_addon.core.lgi.indexing.locate.Locator`: neighbour tables
+  and the per-frame choice of tetrahedra (§4, §5.1, Eq. 1);
+* :class:`~facelab_addon.core.lgi.indexing.stitch.Stitcher`: the blend, exact
+  interpolation and the RBF and Voronoi stitchings (§5, §7).
 
 :meth:`GeometricIndexer.reconstruct` chains them for one frame: unskin the
 bundles, locate, blend, skin, exact-interpolation correction.
+:meth:`GeometricIndexer.reconstruct_stream` runs a sequence with temporal
+smoothing (§7): a central moving average of every bundle's barycentric shape
+weights (relative to the jaw-skinned neutral, so the jaw is not smoothed),
+applied as the average of the frames' blends (the stitching is linear in the
+weights: no extra blending). With exact interpolation the surface then passes
+through the moving average of the bundles, so the noise of single frames is
+not put back. Sequences run on two cores when one is idle: frames are indexed
+in order on the calling thread while a worker blends them and finishes the
+frames whose smoothing window is complete; BLAS is kept to one thread.
 
 Units: positions in scene units; barycentric and natural-neighbour weights
 are unitless; jaw angles in radians.
@@ -40,23 +47,23 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import scipy.linalg as sla
 
-from ..errors import BundleError, DatasetError, FaceLabError
-from ..geometry.linsolve import one_blas_thread
-from .clouds import IndexerClouds
-from .inputs import check_bundle_frame, check_reconstruction_inputs
-from .locate import IndexerLocate
-from .natural_neighbor import natural_neighbor_weights
-from .stitch import IndexerStitch
+from ...errors import BundleError, FaceLabError
+from ...geometry.linsolve import idle_core, one_blas_thread
+from ..inputs import check_bundle_frame, check_bundle_sequence
+from .clouds import build_clouds, build_grid
+from .dataset import build_dataset
+from .locate import Locator, build_neighbor_tables
+from .params import IndexerParams
+from .stitch import Stitcher
 
-__all__ = ["GeometricIndexer"]
+__all__ = ["GeometricIndexer", "indexer_stats"]
 
 
-class GeometricIndexer(IndexerClouds, IndexerLocate, IndexerStitch):
+class GeometricIndexer:
     """Local geometric indexing of a shape dataset by surface-bound bundles.
 
-    Build once per (mesh, dataset, bundle binding); :meth:`reconstruct` and
-    :meth:`reconstruct_sequence` are then cheap per frame (timings: docs/benchmarks.md,
-    ``benchmarks/geometric_indexing.py``).
+    Build once per (mesh, dataset, bundle binding, params); :meth:`reconstruct`
+    and :meth:`reconstruct_sequence` are then cheap per frame.
 
     Parameters
     ----------
@@ -73,257 +80,69 @@ class GeometricIndexer(IndexerClouds, IndexerLocate, IndexerStitch):
         Barycentric coordinates of each bundle in its triangle.
     names : list of str, optional
         Shape names, used in messages and :meth:`explain`.
+    bundle_names : list of str, optional
+        Bundle names for messages (default their indices).
     uvs : (V,2) or (F,3,2) array_like, optional
         UV map; natural-neighbour weights are then built in UV space (§5,
         the paper's choice), else with geodesics on the mesh.
-    nn_method : {"uv", "geodesic"}, optional
-        Force the natural-neighbour method.
     jaw : JawRig, optional
         Jaw articulation (§6, Eq. 2). Requires ``shape_jaw``.
     shape_jaw : (S,4) or (S,4,4) array_like, optional
         Jaw parameters ``(angle rad, tx, ty, tz)`` or rigid jaw poses of
         every dataset shape (:meth:`JawRig.fit_pose` estimates them).
-    merge_tolerance : float, optional
-        Shapes that put a bundle within this distance of each other (scene
-        units) share one cloud point; the neighbouring bundles pick which of
-        them to use (§5.1). Default ``2e-4`` times the face size.
-    prune_tolerance : float, optional
-        A shape is dropped from a bundle's point cloud when it moves no vertex
-        of the bundle's natural-neighbour region by more than this, weighted
-        by the bundle's weight (scene units). Default ``1e-7`` times the face
-        size: only shapes that leave the region still are dropped, because a
-        shape that moves the skin between bundles without moving the bundle
-        itself must stay reachable (it is merged into the neutral's point, so
-        it costs no tetrahedra).
-    neighbors : int
-        Each cloud point forms tetrahedra with 3 of its ``neighbors`` nearest
-        cloud points (all 4-point combinations when the cloud is no larger
-        than ``neighbors + 1``); the cloud's Delaunay tetrahedra are added so
-        that the tetrahedra cover its convex hull.
-    min_quality : float
-        Tetrahedra whose mean-ratio quality is lower are "too thin" (0..1).
-    max_edge : float, optional
-        Tetrahedra with an edge longer than this (scene units) are "too large".
-    forbidden : iterable of iterables of int or str
-        Flagged combinations: a tetrahedron holding all shapes of one set
-        (indices into ``shapes`` or names) is deleted.
-    min_tets_per_point : int
-        Every cloud point keeps at least this many of its best tetrahedra.
-    temporal_bias : float
-        Animated bundles (§5.1): a candidate's neighbour cost is multiplied by
-        ``1 + temporal_bias * (4 - shared) / 4``, where ``shared`` counts the
-        shapes it shares with the previous frame's choice. Unitless; a
-        candidate that fits the neighbours exactly still wins.
-    tie_tolerance : float, optional
-        Scene units. When a bundle's best candidate reproduces its neighbours
-        to within this (the neighbours cannot tell candidates apart, e.g. a
-        bundle that does not move while a shape moves the skin around it),
-        the candidates are re-ranked by the shapes the moving bundles chose
-        (each bundle votes with its distance from the neutral). Default
-        ``1e-5`` times the face size; 0 disables it.
-    neighbor_rings : int
-        Bundles whose surface points judge a candidate (§5.1): the natural
-        neighbours (1), or also their neighbours (2), ...
-    grid_density : float
-        Grid cells per tetrahedron of a bundle (the grid has about
-        ``(n_tets * grid_density)^(1/3)`` cells along its longest side):
-        more cells mean fewer candidates per query and more memory.
-    exact : bool
-        Add the ``B x B`` residual correction so that the surface passes
-        exactly through every bundle.
-    threads : int
-        Threads for the final blend (2 on a 2-core machine).
-    bundle_names : list of str, optional
-        Bundle names for messages (default their indices).
+    params : IndexerParams, optional
+        Tolerances, tetrahedra, grid, exactness and threads (default
+        ``IndexerParams()``).
 
     Attributes
     ----------
+    params : IndexerParams
+    dataset : IndexedDataset
+        Mesh, bundles, jaw, natural-neighbour weights (``dataset.nn``,
+        ``dataset.weights``), ``dataset.face_size`` and the stored deltas.
+    clouds : BundleClouds
+    grid : TetGrid
+    locator : Locator
+        ``locator.locate(q, prev)`` chooses the tetrahedra of unskinned bundles.
+    stitcher : Stitcher
+        ``stitcher.blend(sid, coef)`` sews per-bundle shape weights.
     stats : dict
         Point counts, tetrahedra kept and pruned, grid size, memory in
-        bytes, build time.
-    face_size : float
-        Bounding-box diagonal of the vertices with natural-neighbour weights
-        (the face region), scene units.
-    nn : natural_neighbor.NaturalNeighbors
-        The natural-neighbour weights and Voronoi cells.
+        bytes, build time (:func:`indexer_stats`).
+    last : dict
+        The last :meth:`reconstruct`'s choice (see there).
     """
 
-    def __init__(self, neutral, faces, shapes, bundle_faces, bundle_bary, *, names=None, uvs=None, nn_method=None,
-                 jaw=None, shape_jaw=None, prune_tolerance=None, merge_tolerance=None, neighbors: int = 6,
-                 min_quality: float = 0.05, max_edge=None, forbidden=(), min_tets_per_point: int = 4,
-                 temporal_bias: float = 0.25, tie_tolerance=None, neighbor_rings: int = 1, grid_density: float = 1.0,
-                 exact: bool = True,
-                 threads: int = 2, bundle_names=None):
+    def __init__(self, neutral, faces, shapes, bundle_faces, bundle_bary, *, names=None, bundle_names=None,
+                 uvs=None, jaw=None, shape_jaw=None, params: IndexerParams | None = None):
         t0 = time.perf_counter()
-        X = self._set_inputs(neutral, faces, shapes, names, bundle_faces, bundle_bary, exact, threads, bundle_names)
-        D = self._unskin_dataset(X, jaw, shape_jaw)
-        W = self._natural_neighbors(uvs, nn_method, prune_tolerance, temporal_bias, tie_tolerance)
-        mags, dup_tol = self._check_shapes_move(D, jaw)
-        self._store_dataset(D, mags)
-        P, move = self._point_clouds(X, dup_tol)
-        keep = self._prune(W, mags, move, forbidden)
-        st, counts, n_points, n_distinct = self._tetrahedra(P, keep, merge_tolerance, neighbors, min_quality, max_edge,
-                                                            min_tets_per_point)
-        self._convex_hulls(P)
-        self._tetrahedron_maps(P, counts)
-        self._build_grid(grid_density)
-        self._neighbor_tables(P, neighbor_rings)
-        self._stitching_matrices(W)
-        self._collect_stats(t0, P, W, move, st, counts, n_points, n_distinct)
+        p = IndexerParams() if params is None else params
+        self.params = p
+        ds, X, motion = build_dataset(neutral, faces, shapes, bundle_faces, bundle_bary, names=names,
+                                      bundle_names=bundle_names, uvs=uvs, nn_method=p.nn_method, jaw=jaw,
+                                      shape_jaw=shape_jaw)
+        self.dataset = ds
+        self.clouds = build_clouds(ds, X, motion, p)
+        del X, motion
+        self.grid = build_grid(self.clouds, p.grid_density, ds.face_size)
+        tables = build_neighbor_tables(ds.nn.neighbors, self.clouds, p.neighbor_rings)
+        self.locator = Locator(self.clouds, self.grid, tables, temporal_bias=p.temporal_bias,
+                               tie_tolerance=p.tie_tolerance_at(ds.face_size), face_size=ds.face_size)
+        self.stitcher = Stitcher(ds, p.threads)
+        self.stats = indexer_stats(ds, self.clouds, self.grid, self.stitcher)
+        self.stats["build_seconds"] = time.perf_counter() - t0
         self.last = {}
-        self._pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
-
-    # ------------------------------------------------------------------ build steps
-
-    def _set_inputs(self, neutral, faces, shapes, names, bundle_faces, bundle_bary, exact, threads, bundle_names):
-        """Check and store the mesh, the dataset shapes (S,V,3) and names, the bundle binding and the settings."""
-        x0, F, X, self.names, bf, bb = check_reconstruction_inputs(
-            neutral, faces, shapes, names, bundle_faces, bundle_bary, method="Local geometric indexing")
-        nv, S, B = len(x0), len(X), len(bf)
-        self.neutral, self.faces = x0, F
-        self.bundle_faces, self.bundle_bary = bf, bb
-        self.B, self.S, self.V = B, S, nv
-        self.exact = bool(exact)
-        self.threads = max(1, int(threads))
-        self.bundle_names = None if bundle_names is None else [str(n) for n in bundle_names]
-        return X
-
-    def _unskin_dataset(self, X, jaw, shape_jaw):
-        """Store the jaw rig and return the dataset's deltas (S,V,3), unskinned with it (Eq. 2)."""
-        x0, F, bf, bb, S, nv = self.neutral, self.faces, self.bundle_faces, self.bundle_bary, self.S, self.V
-        self.jaw = jaw
-        if jaw is not None:
-            if shape_jaw is None:
-                raise DatasetError(
-                    "A jaw rig needs the jaw parameters of every dataset shape (shape_jaw, (S,4)); estimate them "
-                    "or build the indexer without the jaw."
-                )
-            sj = np.asarray(shape_jaw, dtype=np.float64)
-            if sj.shape not in ((S, 4), (S, 4, 4)):
-                raise DatasetError(f"shape_jaw must be (S,4) or (S,4,4) with S={S}, got {sj.shape}.")
-            if len(jaw.weights) != nv:
-                raise DatasetError(f"The jaw rig has {len(jaw.weights)} skinning weights for {nv} vertices.")
-            D = np.stack([jaw.unskin_shape(X[s], x0, sj[s]) for s in range(S)])
-            self.shape_jaw = sj
-            self.bundle_jaw_weights = (jaw.weights[F[bf]] * bb).sum(1)
-        else:
-            D = X - x0
-            self.shape_jaw = None
-            self.bundle_jaw_weights = None
-        return D
-
-    def _natural_neighbors(self, uvs, nn_method, prune_tolerance, temporal_bias, tie_tolerance):
-        """Natural-neighbour weights (V,B) of the bundles (§5), the face size and the tolerances scaled by it."""
-        x0, F, bf, bb = self.neutral, self.faces, self.bundle_faces, self.bundle_bary
-        self.nn = natural_neighbor_weights(x0, F, bf, bb, uvs=uvs, method=nn_method)
-        W = self.nn.weights.tocsr()
-        W.sort_indices()
-        dom = self.nn.domain
-        lo, hi = x0[dom].min(axis=0), x0[dom].max(axis=0)
-        self.face_size = float(np.linalg.norm(hi - lo))
-        self.prune_tolerance = 1e-7 * self.face_size if prune_tolerance is None else float(prune_tolerance)
-        self.temporal_bias = float(temporal_bias)
-        self.tie_tolerance = 1e-5 * self.face_size if tie_tolerance is None else float(tie_tolerance)
-        return W
-
-    def _check_shapes_move(self, D, jaw):
-        """Reject shapes equal to the neutral or to each other; returns vertex motions (S,V) and the tolerance."""
-        dup_tol = 1e-7 * self.face_size
-        mags = np.linalg.norm(D, axis=2)  # (S,V)
-        still = np.flatnonzero(mags.max(axis=1) <= dup_tol)
-        if len(still):
-            why = ("equals the neutral once the jaw motion is removed (the jaw rig alone reproduces it)"
-                   if jaw is not None else "equals the neutral (moves nothing)")
-            raise DatasetError(f"Dataset shape {self.names[still[0]]!r} {why}; remove it from the dataset.")
-        self._check_duplicates(D, dup_tol)
-        return mags, dup_tol
-
-    def _check_duplicates(self, D, tol):
-        """Raise a DatasetError when two shapes' deltas ``D`` (S,V,3) agree to ``tol`` scene units."""
-        S = len(D)
-        flat = D.reshape(S, -1)
-        rng = np.random.default_rng(0)
-        proj = flat @ rng.standard_normal((flat.shape[1], 4))
-        scale = np.linalg.norm(flat, axis=1).max() + 1e-300
-        # candidates: close in every random projection, then verified exactly
-        d = np.abs(proj[:, None, :] - proj[None, :, :]).max(axis=2)
-        i, j = np.nonzero(np.triu(d <= 1e-6 * scale * np.sqrt(flat.shape[1]), 1))
-        for a, b in zip(i, j):
-            if np.abs(flat[a] - flat[b]).max() <= tol:
-                raise DatasetError(
-                    f"Dataset shapes {self.names[a]!r} and {self.names[b]!r} are duplicates (identical to "
-                    f"{tol:.2g} scene units); remove one of them."
-                )
-
-    def _store_dataset(self, D, mags):
-        """Keep the float32 deltas of the vertices that some shape moves, shape-major, shape 0 = the neutral."""
-        S = self.S
-        S1 = S + 1
-        self.S1 = S1
-        # only vertices that some shape moves are blended; float32 is ample for deltas (1e-7 relative)
-        # (shape-major layout: a vertex run of one shape is contiguous, which keeps the gathers cached)
-        self._active = np.flatnonzero(mags.max(axis=0) > 0)
-        Dv = np.zeros((S1, len(self._active), 3), dtype=np.float32)
-        Dv[1:] = D[:, self._active]
-        self._Dact = Dv.reshape(-1, 3)
-        del Dv
-
-    def _collect_stats(self, t0, P, W, move, st, counts, n_points, n_distinct):
-        """Fill ``stats``: point, tetrahedron and grid counts, memory in bytes, build time."""
-        B, S, nv = self.B, self.S, self.V
-        mem = {
-            "tetrahedra": int(self.tets.nbytes + self._tet_aff.nbytes + self._tet_lo.nbytes
-                              + self._tet_hi.nbytes + self.tet_bundle.nbytes + self._tet_flat.nbytes),
-            "merged_points": int(self._mem_ptr.nbytes + self._mem.nbytes),
-            "grid": int(self._cell_start.nbytes + self._cell_tets.nbytes),
-            "point_clouds": int(P.nbytes),
-            "natural_neighbor_weights": int(2 * (W.data.nbytes + W.indices.nbytes + W.indptr.nbytes)),
-            "dataset": int(self._Dact.nbytes),
-        }
-        kept = len(self.tets)
-        self.stats = {
-            "bundles": B,
-            "shapes": S,
-            "vertices": nv,
-            "face_size": self.face_size,
-            "points_per_bundle": {"min": int(n_points.min()), "mean": float(n_points.mean()),
-                                  "max": int(n_points.max())},
-            "distinct_points_per_bundle": {"min": int(n_distinct.min()), "mean": float(n_distinct.mean()),
-                                           "max": int(n_distinct.max())},
-            "tetrahedra_candidates": int(st["candidates"]),
-            "tetrahedra_kept": int(kept),
-            "tetrahedra_pruned_thin": int(st["thin"]),
-            "tetrahedra_pruned_large": int(st["large"]),
-            "tetrahedra_pruned_flagged": int(st["flagged"]),
-            "tetrahedra_restored_for_coverage": int(st["restored"]),
-            "flat_point_clouds": int(st["flat_clouds"]),
-            "segment_point_clouds": int(st["segment_clouds"]),
-            "tetrahedra_per_bundle": {"min": int(min(counts)), "mean": float(np.mean(counts)),
-                                      "max": int(max(counts))},
-            "grid_cells": int(len(self._cell_start) - 1),
-            "grid_entries": int(len(self._cell_tets)),
-            "memory_bytes": mem,
-            "memory_bytes_total": int(sum(mem.values())),
-            "memory_bytes_per_tetrahedron": float((mem["tetrahedra"] + mem["grid"]) / max(kept, 1)),
-            "shapes_merged_into_other_points": int(n_points.sum() - n_distinct.sum()),
-            "shapes_no_bundle_sees": [self.names[k] for k in np.flatnonzero(move.max(axis=1) <= self.merge_tolerance)],
-            "residual_matrix_condition": self._G_cond,
-            "natural_neighbor_method": self.nn.method,
-            "build_seconds": time.perf_counter() - t0,
-        }
 
     # ------------------------------------------------------------------ per-frame
 
-    def _check_bundles(self, q, what="bundles"):
-        return check_bundle_frame(q, self.B, self.bundle_names, what)
-
     def unskinned_bundles(self, q, jaw=None):
         """Bundle positions with the jaw motion removed (Eq. 2), scene units, (B,3)."""
-        if self.jaw is None:
+        ds = self.dataset
+        if ds.jaw is None:
             return q
         if jaw is None:
             raise BundleError("This indexer has a jaw rig; pass the frame's jaw parameters (angle, tx, ty, tz).")
-        return self.jaw.unskin(q, jaw, self.bundle_jaw_weights)
+        return ds.jaw.unskin(q, jaw, ds.bundle_jaw_weights)
 
     def reconstruct(self, bundles, jaw=None, *, stitching: str = "natural_neighbor", exact=None, prev=None):
         """Rebuild the high-resolution face for one frame of bundles.
@@ -364,22 +183,23 @@ class GeometricIndexer(IndexerClouds, IndexerLocate, IndexerStitch):
             return self._reconstruct(bundles, jaw, stitching, exact, prev)
 
     def _reconstruct(self, bundles, jaw, stitching, exact, prev):
-        q = self._check_bundles(bundles)
+        ds, st = self.dataset, self.stitcher
+        q = check_bundle_frame(bundles, ds.B, ds.bundle_names, "bundles")
         qu = self.unskinned_bundles(q, jaw)
-        ids, bary, dist = self.locate(qu, prev)
+        ids, bary, dist = self.locator.locate(qu, prev)
         if stitching == "natural_neighbor":
-            Xu = self.blend(ids, bary)
-            Wd, lu = self.W, self._G_lu
-            ex = self.exact if exact is None else bool(exact)
+            Xu = st.blend(ids, bary)
+            Wd, lu = st.weights, st.factor(stitching)
+            ex = bool(self.params.exact) if exact is None else bool(exact)
         elif stitching in ("rbf", "voronoi"):
-            Wd = self._rbf_matrix() if stitching == "rbf" else self._voronoi_matrix()
-            Xu = self._blend_dense(Wd, ids, bary)
+            Wd = st.stitching_matrix(stitching)
+            Xu = st.blend_dense(Wd, ids, bary)
             ex = False if exact is None else bool(exact)
-            lu = self._lu_for(stitching) if ex else None
+            lu = st.factor(stitching) if ex else None
         else:
             raise FaceLabError(f"Unknown stitching {stitching!r}; use 'natural_neighbor', 'rbf' or 'voronoi'.")
-        X = self.jaw.skin(Xu, jaw) if self.jaw is not None else Xu
-        r = q - self._bary_mat @ X
+        X = ds.jaw.skin(Xu, jaw) if ds.jaw is not None else Xu
+        r = q - st.bary_matrix @ X
         res = np.linalg.norm(r, axis=1)
         if ex:
             X = X + Wd @ sla.lu_solve(lu, r)
@@ -392,17 +212,250 @@ class GeometricIndexer(IndexerClouds, IndexerLocate, IndexerStitch):
         if not self.last:
             return "no frame reconstructed yet"
         ids, w = self.last["shape_ids"][bundle], self.last["bary"][bundle]
-        parts = [f"{w[k]:.2f} {'neutral' if ids[k] == 0 else self.names[ids[k] - 1]}" for k in range(4) if w[k] > 1e-6]
+        names = self.dataset.names
+        parts = [f"{w[k]:.2f} {'neutral' if ids[k] == 0 else names[ids[k] - 1]}" for k in range(4) if w[k] > 1e-6]
         return ", ".join(parts)
 
     def close(self):
         """Stop the blend threads (also done when the indexer is garbage collected)."""
-        if self._pool is not None:
-            self._pool.shutdown(wait=False)
-            self._pool = None
+        self.stitcher.close()
 
     def __del__(self):  # pragma: no cover - best effort
         try:
             self.close()
         except Exception:
             pass
+
+    # ------------------------------------------------------------------ sequences
+
+    def reconstruct_sequence(self, bundles, jaw=None, *, smooth: int = 1, exact=None, progress=None,
+                             pipeline="auto"):
+        """Rebuild every frame of an animated bundle sequence.
+
+        Frames are indexed in order, each preferring tetrahedra that share
+        shapes with the previous frame's (§5.1). With ``smooth > 1`` the
+        barycentric shape weights of every bundle are averaged over a
+        centred window of ``smooth`` frames (§7, "Temporal Smoothing"), relative
+        to the jaw-skinned neutral (the jaw itself is not smoothed). The
+        stitching is linear in the weights, so the average is taken over the
+        frames' unskinned blends: smoothing costs no extra blending.
+
+        Parameters
+        ----------
+        bundles : (T,B,3) array_like
+            Bundle positions per frame, scene units. A frame with any NaN
+            bundle is skipped.
+        jaw : (T,4) or (T,4,4) array_like, optional
+            Jaw parameters or rigid jaw poses per frame (required with a jaw
+            rig). A frame with NaN jaw parameters is skipped.
+        smooth : int
+            Moving-average window in frames (1 = off; even values are
+            rounded up to the next odd one). Frames skipped for NaN bundles
+            leave the window (it shrinks at gaps and at the ends).
+        exact : bool, optional
+            Residual correction (default: the indexer's). Without smoothing
+            the surface passes exactly through each frame's bundles; with
+            smoothing it passes exactly through the moving average of the
+            bundles over the same window (with the jaw motion removed, so the
+            jaw is not smoothed): the positions that the averaged weights
+            index wherever a tetrahedron holds the bundles. So the noise of
+            single frames is not put back (§7: smoothing the weights has a
+            "negligible impact on the ability to interpolate the bundles").
+        progress : callable, optional
+            Called as ``progress(done, total)`` after every frame is indexed.
+        pipeline : bool or "auto"
+            Blend and finish frames on a worker thread while the next frames
+            are indexed (with ``threads > 1``). ``"auto"``: only when a core
+            is idle (1-minute load average below ``cpu_count - 0.5``): on an
+            oversubscribed machine the two threads wait on each other for the
+            interpreter lock and run 2-4 times slower than one (measured).
+
+        Returns
+        -------
+        frames : (T,V,3) float64 ndarray
+            Reconstructions, scene units; skipped frames are NaN.
+        skipped : list of int
+            Frames skipped because of NaN bundle positions.
+        """
+        ds = self.dataset
+        Q = check_bundle_sequence(bundles, ds.B)
+        out = np.full((len(Q), ds.V, 3), np.nan)
+        skipped = self.reconstruct_stream(Q, jaw, out.__setitem__, smooth=smooth, exact=exact, progress=progress,
+                                          pipeline=pipeline)
+        return out, skipped
+
+    def reconstruct_stream(self, bundles, jaw, sink, *, smooth: int = 1, exact=None, progress=None,
+                           pipeline="auto"):
+        """:meth:`reconstruct_sequence` without the (T,V,3) result: each frame is handed to ``sink``.
+
+        Only the frames of the current smoothing window are held, so memory
+        does not grow with the frames times the vertices.
+
+        Parameters
+        ----------
+        bundles, jaw, smooth, exact, progress, pipeline
+            As in :meth:`reconstruct_sequence`.
+        sink : callable(t, X)
+            Called with the frame index ``t`` and its face ``X`` (V,3) float64
+            (scene units, a new array) for every frame that is not skipped, in
+            increasing ``t``, from one thread at a time (the pipeline's worker
+            when it runs).
+
+        Returns
+        -------
+        skipped : list of int
+            Frames skipped (NaN bundles or jaw); never passed to ``sink``.
+        """
+        with one_blas_thread():  # BLAS threads would spin against the pipeline's own threads
+            return self._reconstruct_sequence(bundles, jaw, smooth, exact, progress, pipeline, sink)
+
+    def _reconstruct_sequence(self, bundles, jaw, smooth, exact, progress, pipeline, sink):
+        ds, st = self.dataset, self.stitcher
+        Q = check_bundle_sequence(bundles, ds.B)
+        T = len(Q)
+        if ds.jaw is not None:
+            if jaw is None:
+                raise BundleError("This indexer has a jaw rig; pass jaw parameters per frame, (T,4).")
+            J = np.asarray(jaw, dtype=np.float64)
+            if J.shape not in ((T, 4), (T, 4, 4)):
+                raise BundleError(f"Expected jaw parameters per frame, (T,4) or (T,4,4) with T={T}, got {J.shape}.")
+        else:
+            J = [None] * T
+        ok = np.isfinite(Q).all(axis=(1, 2))
+        if ds.jaw is not None:
+            ok &= np.isfinite(J.reshape(T, -1)).all(axis=1)
+        skipped = [int(t) for t in np.flatnonzero(~ok)]
+        ex = bool(self.params.exact) if exact is None else bool(exact)
+        ids_t = np.zeros((T, ds.B, 4), dtype=np.int64)
+        bary_t = np.zeros((T, ds.B, 4))
+        half = max(int(smooth), 1) // 2
+        valid = np.flatnonzero(ok)
+        deltas, q_unskinned = {}, {}
+        acc, in_sum = [None], set()
+
+        def blend(t):
+            deltas[t] = st.blend_active(ids_t[t], bary_t[t], split=False)
+
+        def finish(t):
+            # The blend is linear in the barycentric weights, so the blend of the weights averaged over the
+            # window is the average of the frames' blends: each frame is blended once (no extra cost).
+            win = valid[(valid >= t - half) & (valid <= t + half)]
+            if len(win) == 1:
+                d, target = deltas[t], Q[t]
+            else:
+                # running sum over the window: frames enter and leave once (frames finish in order)
+                for s in set(win) - in_sum:
+                    acc[0] = deltas[s].astype(np.float64) if acc[0] is None else acc[0] + deltas[s]
+                    in_sum.add(s)
+                for s in in_sum - set(win):
+                    acc[0] -= deltas[s]
+                    in_sum.discard(s)
+                d = acc[0] / len(win)
+                # exact: through the moving average of the (jaw-unskinned) bundles, which is what the
+                # averaged weights index where a tetrahedron holds the bundles
+                target = np.mean([q_unskinned[s] for s in win], axis=0)
+                if ds.jaw is not None:
+                    target = ds.jaw.skin(target, J[t], ds.bundle_jaw_weights)
+            Xu = ds.neutral.copy()
+            Xu[ds.active] += d
+            sink(int(t), st.finish(Xu, target, J[t], ex))
+            for s in [s for s in deltas if s <= t - half and s not in in_sum]:
+                del deltas[s]
+                q_unskinned.pop(s, None)
+
+        # Two-stage pipeline: frames are indexed in order on this thread while a worker blends each indexed
+        # frame and finishes every frame whose smoothing window is complete (one worker: FIFO order).
+        if pipeline == "auto":
+            pipeline = idle_core()
+        worker = ThreadPoolExecutor(1) if (st.threads > 1 and pipeline) else None
+        self.last_pipeline = worker is not None
+        futs = []
+        run = (lambda f, t: futs.append(worker.submit(f, t))) if worker is not None else (lambda f, t: f(t))
+        prev = None
+        nxt = 0
+        try:
+            for t in range(T):
+                if ok[t]:
+                    qu = self.unskinned_bundles(Q[t], J[t])
+                    q_unskinned[t] = qu
+                    ids_t[t], bary_t[t], _ = self.locator.locate(qu, prev)
+                    prev = ids_t[t]
+                    run(blend, t)
+                while nxt < len(valid) and valid[nxt] + half <= t:
+                    run(finish, valid[nxt])
+                    nxt += 1
+                if progress is not None:
+                    progress(t + 1, T)
+            while nxt < len(valid):
+                run(finish, valid[nxt])
+                nxt += 1
+            for f in futs:
+                f.result()
+        finally:
+            if worker is not None:
+                worker.shutdown(wait=True)
+        self.last_sequence = {"shape_ids": ids_t, "bary": bary_t, "skipped": skipped}
+        return skipped
+
+
+def indexer_stats(ds, clouds, grid, stitcher):
+    """Point, tetrahedron and grid counts and memory of a built indexer (without ``build_seconds``).
+
+    Parameters
+    ----------
+    ds : IndexedDataset
+    clouds : BundleClouds
+    grid : TetGrid
+    stitcher : Stitcher
+
+    Returns
+    -------
+    dict
+        Counts, ``face_size`` (scene units), ``memory_bytes`` per part and in
+        total, ``memory_bytes_per_tetrahedron``, ``residual_matrix_condition``
+        and the ``shapes_no_bundle_sees`` (names).
+    """
+    W = ds.weights
+    c = clouds
+    st = c.counts
+    counts = c.tets_per_bundle
+    n_points, n_distinct = c.n_points, c.n_distinct
+    mem = {
+        "tetrahedra": int(c.tets.nbytes + c.tet_affine.nbytes + c.tet_lo.nbytes
+                          + c.tet_hi.nbytes + c.tet_bundle.nbytes + c.tet_flat.nbytes),
+        "merged_points": int(c.member_ptr.nbytes + c.members.nbytes),
+        "grid": int(grid.cell_start.nbytes + grid.cell_tets.nbytes),
+        "point_clouds": int(c.points.nbytes),
+        "natural_neighbor_weights": int(2 * (W.data.nbytes + W.indices.nbytes + W.indptr.nbytes)),
+        "dataset": int(ds.deltas.nbytes),
+    }
+    kept = len(c.tets)
+    return {
+        "bundles": ds.B,
+        "shapes": ds.S,
+        "vertices": ds.V,
+        "face_size": ds.face_size,
+        "points_per_bundle": {"min": int(n_points.min()), "mean": float(n_points.mean()),
+                              "max": int(n_points.max())},
+        "distinct_points_per_bundle": {"min": int(n_distinct.min()), "mean": float(n_distinct.mean()),
+                                       "max": int(n_distinct.max())},
+        "tetrahedra_candidates": int(st["candidates"]),
+        "tetrahedra_kept": int(kept),
+        "tetrahedra_pruned_thin": int(st["thin"]),
+        "tetrahedra_pruned_large": int(st["large"]),
+        "tetrahedra_pruned_flagged": int(st["flagged"]),
+        "tetrahedra_restored_for_coverage": int(st["restored"]),
+        "flat_point_clouds": int(st["flat_clouds"]),
+        "segment_point_clouds": int(st["segment_clouds"]),
+        "tetrahedra_per_bundle": {"min": int(counts.min()), "mean": float(np.mean(counts)),
+                                  "max": int(counts.max())},
+        "grid_cells": int(len(grid.cell_start) - 1),
+        "grid_entries": int(len(grid.cell_tets)),
+        "memory_bytes": mem,
+        "memory_bytes_total": int(sum(mem.values())),
+        "memory_bytes_per_tetrahedron": float((mem["tetrahedra"] + mem["grid"]) / max(kept, 1)),
+        "shapes_merged_into_other_points": int(n_points.sum() - n_distinct.sum()),
+        "shapes_no_bundle_sees": [ds.names[k] for k in np.flatnonzero(c.motion.max(axis=1) <= c.merge_tolerance)],
+        "residual_matrix_condition": stitcher.condition,
+        "natural_neighbor_method": ds.nn.method,
+    }

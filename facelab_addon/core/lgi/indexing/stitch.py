@@ -1,7 +1,7 @@
 """Stitching per-bundle geometry into one face, frame by frame (Cong, Lan and Fedkiw 2019, §5, §7).
 
-The blend of :class:`~facelab_addon.core.lgi.indexer.GeometricIndexer` (the
-mixin :class:`IndexerStitch`):
+The blend of :class:`~facelab_addon.core.lgi.indexing.indexer.GeometricIndexer`,
+:class:`Stitcher`:
 
 * **Stitching** (§5): natural-neighbour (Sibson) weights of the bundles on the
   neutral mesh, in UV space or with geodesics
@@ -17,16 +17,9 @@ mixin :class:`IndexerStitch`):
   variant with [6]). ``exact=False`` skips it.
 * **Baseline stitchings** (§7, Fig. 4; Fig. 1): Gaussian RBF interpolation of
   the per-bundle shape weights (``"rbf"``) and Voronoi cells (``"voronoi"``).
-* **Temporal smoothing** (§7): a central moving average of every bundle's
-  barycentric shape weights (relative to the jaw-skinned neutral, so the jaw
-  is not smoothed), applied as the average of the frames' blends (the
-  stitching is linear in the weights: no extra blending). With
-  ``exact=True`` the surface then passes through the moving average of the
-  bundles, so the noise of single frames is not put back.
-* **Sequences** run on two cores when one is idle: frames are indexed in
-  order on the calling thread while a worker blends them and finishes the
-  frames whose smoothing window is complete. BLAS is kept to one thread (its
-  spinning threads cost more than they give per frame).
+* **Linearity**: the blend is linear in the per-bundle weights, so the
+  blend of weights averaged over frames is the average of the frames' blends
+  (temporal smoothing, §7, uses this).
 
 Shapes: per-bundle shape ids and weights (B,K); natural-neighbour weights
 ``W`` (V,B) sparse; results (V,3) or (T,V,3). Units: positions in scene units;
@@ -41,45 +34,93 @@ import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 
-from ..errors import BundleError, MeshError
-from ..geometry.linsolve import idle_core, one_blas_thread
-from .inputs import check_bundle_sequence
-from .natural_neighbor import gaussian_rbf_weights, surface_points
+from ...errors import MeshError
+from ...geometry.linsolve import idle_core
+from ..natural_neighbor import gaussian_rbf_weights, surface_points
 
-__all__ = ["IndexerStitch"]
+__all__ = ["Stitcher", "shape_weight_matrix"]
 
 
-class IndexerStitch:
-    """Stitching and sequences of :class:`~facelab_addon.core.lgi.indexer.GeometricIndexer` (§5, §7).
+def shape_weight_matrix(sid, coef, n_ids):
+    """Per-bundle shape weights as a sparse (B, n_ids) matrix ``Beta`` (duplicate ids add up).
 
-    A mixin: :meth:`_stitching_matrices` builds the blend's row blocks and the
-    exact-interpolation factor once; :meth:`blend` and
-    :meth:`reconstruct_sequence` use them with the choices of
-    :meth:`~facelab_addon.core.lgi.locate.IndexerLocate.locate`.
+    Parameters
+    ----------
+    sid : (B,K) int array_like
+        Shape ids per bundle (0 = neutral, ``s + 1`` = ``shapes[s]``).
+    coef : (B,K) array_like
+        Their weights (unitless).
+    n_ids : int
+        Number of shape ids, the neutral included (``S + 1``).
+
+    Returns
+    -------
+    (B, n_ids) scipy.sparse.csr_matrix
+        ``Beta[i, sid[i, k]] += coef[i, k]``.
+    """
+    sid = np.asarray(sid, dtype=np.int64)
+    coef = np.asarray(coef, dtype=np.float64)
+    B, K = sid.shape
+    return sp.csr_matrix((coef.ravel(), (np.repeat(np.arange(B), K), sid.ravel())), shape=(B, n_ids))
+
+
+class Stitcher:
+    """Sews per-bundle shape weights into one face (§5, §7), for one :class:`IndexedDataset`.
+
+    Builds once: the natural-neighbour weights of the moving vertices in row
+    blocks (one per thread) and the LU factor of the ``B x B``
+    exact-interpolation matrix ``Bary W``; the RBF and Voronoi matrices are
+    built on first use.
+
+    Parameters
+    ----------
+    ds : IndexedDataset
+    threads : int
+        Row blocks of the blend, run on a thread pool when a core is idle.
+
+    Attributes
+    ----------
+    ds : IndexedDataset
+    threads : int
+    weights : (V,B) scipy.sparse.csr_matrix
+        Natural-neighbour weights (``ds.weights``).
+    bary_matrix : (B,V) scipy.sparse.csr_matrix
+        Surface point of every bundle: ``bary_matrix @ X`` (B,3).
+    condition : float
+        Condition number of ``bary_matrix @ weights``.
+
+    Raises
+    ------
+    MeshError
+        A vertex without natural-neighbour weight (a vertex no face uses).
     """
 
-    def _stitching_matrices(self, W):
-        """Natural-neighbour weights of the moving vertices in row blocks, and the exact-interpolation factor."""
-        F, bf, bb, B, nv = self.faces, self.bundle_faces, self.bundle_bary, self.B, self.V
+    def __init__(self, ds, threads: int = 2):
+        F, bf, bb, B, nv = ds.faces, ds.bundle_faces, ds.bundle_bary, ds.B, ds.V
+        W = ds.weights
+        self.ds = ds
+        self.threads = max(1, int(threads))
         if (np.diff(W.indptr) == 0).any():
             raise MeshError("Some vertices got no natural-neighbour weight; check that every vertex is used by a face.")
-        Wa = W[self._active].tocsr()
-        na = len(self._active)
+        Wa = W[ds.active].tocsr()
+        na = len(ds.active)
         cuts = np.linspace(0, na, self.threads + 1).astype(np.int64)
+
         def part(a, b):
             return (int(a), Wa[a:b].tocsr())
 
         self._w_parts = [part(a, b) for a, b in zip(cuts[:-1], cuts[1:]) if b > a]
         self._w_full = part(0, na)
-        self.W = W
+        self.weights = W
         # residual correction for exact interpolation: (Bary W) c = r
         Bary = sp.csr_matrix((bb.ravel(), (np.repeat(np.arange(B), 3), F[bf].ravel())), shape=(B, nv))
-        self._bary_mat = Bary
+        self.bary_matrix = Bary
         G = (Bary @ W).toarray()
-        self._G_lu = sla.lu_factor(G)
-        self._G_cond = float(np.linalg.cond(G))
+        self._lu = {"natural_neighbor": sla.lu_factor(G)}
+        self.condition = float(np.linalg.cond(G))
         self._rbf = None
         self._voronoi = None
+        self._pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
 
     def _blend_part(self, part, Beta):
         """One row block of the blend: per-vertex shape weights ``C = W_rows @ Beta`` (sparse), then one
@@ -88,16 +129,13 @@ class IndexerStitch:
         C = Wp @ Beta
         n = Wp.shape[0]
         rows = np.repeat(np.arange(off, off + n, dtype=np.int32), np.diff(C.indptr))
-        idx = C.indices.astype(np.int32) * np.int32(len(self._active)) + rows
-        A = sp.csr_matrix((C.data.astype(np.float32), idx, C.indptr), shape=(n, self._Dact.shape[0]))
-        return A @ self._Dact
+        idx = C.indices.astype(np.int32) * np.int32(len(self.ds.active)) + rows
+        A = sp.csr_matrix((C.data.astype(np.float32), idx, C.indptr), shape=(n, self.ds.deltas.shape[0]))
+        return A @ self.ds.deltas
 
-    def _blend_active(self, sid, coef, split: bool = True):
+    def blend_active(self, sid, coef, split: bool = True):
         """(n_active,3) float32 unskinned deltas of the moving vertices for per-bundle shape weights."""
-        sid = np.asarray(sid, dtype=np.int64)
-        coef = np.asarray(coef, dtype=np.float64)
-        K = sid.shape[1]
-        Beta = sp.csr_matrix((coef.ravel(), (np.repeat(np.arange(self.B), K), sid.ravel())), shape=(self.B, self.S1))
+        Beta = shape_weight_matrix(sid, coef, self.ds.S1)
         if not split:
             return self._blend_part(self._w_full, Beta)
         if self._pool is not None and len(self._w_parts) > 1 and idle_core():
@@ -130,210 +168,55 @@ class IndexerStitch:
         (V,3) float64 ndarray
             Scene units.
         """
-        out = self.neutral.copy()
-        out[self._active] += self._blend_active(sid, coef, split)
+        out = self.ds.neutral.copy()
+        out[self.ds.active] += self.blend_active(sid, coef, split)
         return out
 
-    def _blend_dense(self, Wd, sid, coef):
-        """Blend with a dense (V,B) weight matrix (RBF / Voronoi stitching)."""
-        K = sid.shape[1]
-        Beta = sp.csr_matrix((coef.ravel(), (np.repeat(np.arange(self.B), K), sid.ravel())), shape=(self.B, self.S1))
-        Wa = Wd[self._active]
+    def blend_dense(self, Wd, sid, coef):
+        """Unskinned blend (V,3) with a dense (V,B) weight matrix ``Wd`` (RBF / Voronoi stitching), scene units."""
+        ds = self.ds
+        Beta = shape_weight_matrix(sid, coef, ds.S1)
+        Wa = Wd[ds.active]
         C = np.asarray((Beta.T @ np.asarray(Wa.toarray() if sp.issparse(Wa) else Wa).T).T)
-        out = self.neutral.copy()
-        out[self._active] += np.einsum("as,sax->ax", C, self._Dact.reshape(self.S1, -1, 3).astype(np.float64))
+        out = ds.neutral.copy()
+        out[ds.active] += np.einsum("as,sax->ax", C, ds.deltas.reshape(ds.S1, -1, 3).astype(np.float64))
         return out
 
-    def _finish(self, Xu, q, jaw, exact):
-        X = self.jaw.skin(Xu, jaw) if self.jaw is not None else Xu
+    def finish(self, Xu, q, jaw, exact):
+        """Skin an unskinned blend ``Xu`` (V,3) with the frame's ``jaw`` and, when ``exact``, add the
+        natural-neighbour correction through the bundles ``q`` (B,3); scene units."""
+        ds = self.ds
+        X = ds.jaw.skin(Xu, jaw) if ds.jaw is not None else Xu
         if exact:
-            r = q - self._bary_mat @ X
-            X = X + self.W @ sla.lu_solve(self._G_lu, r)
+            r = q - self.bary_matrix @ X
+            X = X + self.weights @ sla.lu_solve(self._lu["natural_neighbor"], r)
         return X
 
-    def _lu_for(self, stitching):
-        key = "_lu_" + stitching
-        if getattr(self, key, None) is None:
-            Wd = self._rbf_matrix() if stitching == "rbf" else self._voronoi_matrix()
-            G = self._bary_mat @ Wd
-            G = G.toarray() if sp.issparse(G) else np.asarray(G)
-            setattr(self, key, sla.lu_factor(G))
-        return getattr(self, key)
-
-    def _rbf_matrix(self):
-        if self._rbf is None:
-            sites = surface_points(self.neutral, self.faces, self.bundle_faces, self.bundle_bary)
-            self._rbf = gaussian_rbf_weights(self.neutral, sites)
-        return self._rbf
-
-    def _voronoi_matrix(self):
+    def stitching_matrix(self, stitching):
+        """(V,B) stitching weights: ``"natural_neighbor"`` (sparse, §5), ``"rbf"`` (dense Gaussian RBF,
+        §7) or ``"voronoi"`` (sparse, one bundle per vertex, Fig. 1)."""
+        ds = self.ds
+        if stitching == "natural_neighbor":
+            return self.weights
+        if stitching == "rbf":
+            if self._rbf is None:
+                sites = surface_points(ds.neutral, ds.faces, ds.bundle_faces, ds.bundle_bary)
+                self._rbf = gaussian_rbf_weights(ds.neutral, sites)
+            return self._rbf
         if self._voronoi is None:
-            self._voronoi = sp.csr_matrix((np.ones(self.V), (np.arange(self.V), self.nn.cell)), shape=(self.V, self.B))
+            self._voronoi = sp.csr_matrix((np.ones(ds.V), (np.arange(ds.V), ds.nn.cell)), shape=(ds.V, ds.B))
         return self._voronoi
 
-    def reconstruct_sequence(self, bundles, jaw=None, *, smooth: int = 1, exact=None, progress=None,
-                             pipeline="auto"):
-        """Rebuild every frame of an animated bundle sequence.
+    def factor(self, stitching):
+        """LU factor (``scipy.linalg.lu_factor``) of ``bary_matrix @ stitching_matrix(stitching)`` (B,B)."""
+        if stitching not in self._lu:
+            G = self.bary_matrix @ self.stitching_matrix(stitching)
+            G = G.toarray() if sp.issparse(G) else np.asarray(G)
+            self._lu[stitching] = sla.lu_factor(G)
+        return self._lu[stitching]
 
-        Frames are indexed in order, each preferring tetrahedra that share
-        shapes with the previous frame's (§5.1). With ``smooth > 1`` the
-        barycentric shape weights of every bundle are averaged over a
-        centred window of ``smooth`` frames (§7, "Temporal Smoothing"), relative
-        to the jaw-skinned neutral (the jaw itself is not smoothed). The
-        stitching is linear in the weights, so the average is taken over the
-        frames' unskinned blends: smoothing costs no extra blending.
-
-        Parameters
-        ----------
-        bundles : (T,B,3) array_like
-            Bundle positions per frame, scene units. A frame with any NaN
-            bundle is skipped.
-        jaw : (T,4) or (T,4,4) array_like, optional
-            Jaw parameters or rigid jaw poses per frame (required with a jaw
-            rig). A frame with NaN jaw parameters is skipped.
-        smooth : int
-            Moving-average window in frames (1 = off; even values are
-            rounded up to the next odd one). Frames skipped for NaN bundles
-            leave the window (it shrinks at gaps and at the ends).
-        exact : bool, optional
-            Residual correction (default: the indexer's). Without smoothing
-            the surface passes exactly through each frame's bundles; with
-            smoothing it passes exactly through the moving average of the
-            bundles over the same window (with the jaw motion removed, so the
-            jaw is not smoothed): the positions that the averaged weights
-            index wherever a tetrahedron holds the bundles. So the noise of
-            single frames is not put back (§7: smoothing the weights has a
-            "negligible impact on the ability to interpolate the bundles").
-        progress : callable, optional
-            Called as ``progress(done, total)`` after every frame is indexed.
-        pipeline : bool or "auto"
-            Blend and finish frames on a worker thread while the next frames
-            are indexed (with ``threads > 1``). ``"auto"``: only when a core
-            is idle (1-minute load average below ``cpu_count - 0.5``): on an
-            oversubscribed machine the two threads wait on each other for the
-            interpreter lock and run 2-4 times slower than one (measured).
-
-        Returns
-        -------
-        frames : (T,V,3) float64 ndarray
-            Reconstructions, scene units; skipped frames are NaN.
-        skipped : list of int
-            Frames skipped because of NaN bundle positions.
-        """
-        Q = check_bundle_sequence(bundles, self.B)
-        out = np.full((len(Q), self.V, 3), np.nan)
-        skipped = self.reconstruct_stream(Q, jaw, out.__setitem__, smooth=smooth, exact=exact, progress=progress,
-                                          pipeline=pipeline)
-        return out, skipped
-
-    def reconstruct_stream(self, bundles, jaw, sink, *, smooth: int = 1, exact=None, progress=None,
-                           pipeline="auto"):
-        """:meth:`reconstruct_sequence` without the (T,V,3) result: each frame is handed to ``sink``.
-
-        Only the frames of the current smoothing window are held, so memory
-        does not grow with the frames times the vertices.
-
-        Parameters
-        ----------
-        bundles, jaw, smooth, exact, progress, pipeline
-            As in :meth:`reconstruct_sequence`.
-        sink : callable(t, X)
-            Called with the frame index ``t`` and its face ``X`` (V,3) float64
-            (scene units, a new array) for every frame that is not skipped, in
-            increasing ``t``, from one thread at a time (the pipeline's worker
-            when it runs).
-
-        Returns
-        -------
-        skipped : list of int
-            Frames skipped (NaN bundles or jaw); never passed to ``sink``.
-        """
-        with one_blas_thread():  # BLAS threads would spin against the pipeline's own threads
-            return self._reconstruct_sequence(bundles, jaw, smooth, exact, progress, pipeline, sink)
-
-    def _reconstruct_sequence(self, bundles, jaw, smooth, exact, progress, pipeline, sink):
-        Q = check_bundle_sequence(bundles, self.B)
-        T = len(Q)
-        if self.jaw is not None:
-            if jaw is None:
-                raise BundleError("This indexer has a jaw rig; pass jaw parameters per frame, (T,4).")
-            J = np.asarray(jaw, dtype=np.float64)
-            if J.shape not in ((T, 4), (T, 4, 4)):
-                raise BundleError(f"Expected jaw parameters per frame, (T,4) or (T,4,4) with T={T}, got {J.shape}.")
-        else:
-            J = [None] * T
-        ok = np.isfinite(Q).all(axis=(1, 2))
-        if self.jaw is not None:
-            ok &= np.isfinite(J.reshape(T, -1)).all(axis=1)
-        skipped = [int(t) for t in np.flatnonzero(~ok)]
-        ex = self.exact if exact is None else bool(exact)
-        ids_t = np.zeros((T, self.B, 4), dtype=np.int64)
-        bary_t = np.zeros((T, self.B, 4))
-        half = max(int(smooth), 1) // 2
-        valid = np.flatnonzero(ok)
-        deltas, q_unskinned = {}, {}
-        acc, in_sum = [None], set()
-
-        def blend(t):
-            deltas[t] = self._blend_active(ids_t[t], bary_t[t], split=False)
-
-        def finish(t):
-            # The blend is linear in the barycentric weights, so the blend of the weights averaged over the
-            # window is the average of the frames' blends: each frame is blended once (no extra cost).
-            win = valid[(valid >= t - half) & (valid <= t + half)]
-            if len(win) == 1:
-                d, target = deltas[t], Q[t]
-            else:
-                # running sum over the window: frames enter and leave once (frames finish in order)
-                for s in set(win) - in_sum:
-                    acc[0] = deltas[s].astype(np.float64) if acc[0] is None else acc[0] + deltas[s]
-                    in_sum.add(s)
-                for s in in_sum - set(win):
-                    acc[0] -= deltas[s]
-                    in_sum.discard(s)
-                d = acc[0] / len(win)
-                # exact: through the moving average of the (jaw-unskinned) bundles, which is what the
-                # averaged weights index where a tetrahedron holds the bundles
-                target = np.mean([q_unskinned[s] for s in win], axis=0)
-                if self.jaw is not None:
-                    target = self.jaw.skin(target, J[t], self.bundle_jaw_weights)
-            Xu = self.neutral.copy()
-            Xu[self._active] += d
-            sink(int(t), self._finish(Xu, target, J[t], ex))
-            for s in [s for s in deltas if s <= t - half and s not in in_sum]:
-                del deltas[s]
-                q_unskinned.pop(s, None)
-
-        # Two-stage pipeline: frames are indexed in order on this thread while a worker blends each indexed
-        # frame and finishes every frame whose smoothing window is complete (one worker: FIFO order).
-        if pipeline == "auto":
-            pipeline = idle_core()
-        worker = ThreadPoolExecutor(1) if (self.threads > 1 and pipeline) else None
-        self.last_pipeline = worker is not None
-        futs = []
-        run = (lambda f, t: futs.append(worker.submit(f, t))) if worker is not None else (lambda f, t: f(t))
-        prev = None
-        nxt = 0
-        try:
-            for t in range(T):
-                if ok[t]:
-                    qu = self.unskinned_bundles(Q[t], J[t])
-                    q_unskinned[t] = qu
-                    ids_t[t], bary_t[t], _ = self.locate(qu, prev)
-                    prev = ids_t[t]
-                    run(blend, t)
-                while nxt < len(valid) and valid[nxt] + half <= t:
-                    run(finish, valid[nxt])
-                    nxt += 1
-                if progress is not None:
-                    progress(t + 1, T)
-            while nxt < len(valid):
-                run(finish, valid[nxt])
-                nxt += 1
-            for f in futs:
-                f.result()
-        finally:
-            if worker is not None:
-                worker.shutdown(wait=True)
-        self.last_sequence = {"shape_ids": ids_t, "bary": bary_t, "skipped": skipped}
-        return skipped
+    def close(self):
+        """Stop the blend threads."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=False)
+            self._pool = None
