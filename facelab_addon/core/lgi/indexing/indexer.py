@@ -111,6 +111,9 @@ class GeometricIndexer:
         bytes, build time (:func:`indexer_stats`).
     last : dict
         The last :meth:`reconstruct`'s choice (see there).
+    last_sequence : dict
+        After a sequence: ``shape_ids`` (T,B,4), ``bary`` (T,B,4) and
+        ``skipped`` (list of frame indices).
     """
 
     def __init__(self, neutral, faces, shapes, bundle_faces, bundle_bary, *, names=None, bundle_names=None,
