@@ -60,7 +60,8 @@ from facelab_addon.core.capture.ict import load_ict  # noqa: E402
 from facelab_addon.core.lgi.baselines import BlendshapeFit  # noqa: E402
 from facelab_addon.core.lgi.correctives import RigCorrectives  # noqa: E402
 from facelab_addon.core.lgi.fit_residual import FitResidual, estimate_noise  # noqa: E402
-from facelab_addon.core.lgi.indexer import GeometricIndexer  # noqa: E402
+from facelab_addon.core.lgi.indexing.indexer import GeometricIndexer  # noqa: E402
+from facelab_addon.core.lgi.indexing.params import IndexerParams  # noqa: E402
 from facelab_addon.core.lgi.natural_neighbor import surface_points  # noqa: E402
 from facelab_addon.testing import datasets as ds  # noqa: E402
 from facelab_addon.testing.recon_cases import ict_identity, random_bundle_layout  # noqa: E402
@@ -95,9 +96,9 @@ def speed(gi, Q, thetas, SQ, seq_jaw, args, fr):
     fr_cpu = timed(lambda: fr.reconstruct_sequence(SQn), repeats=args.repeats, clock=time.thread_time) / args.frames
     q0, th0 = Q[:20], thetas[:20]
     single = timed(lambda: [gi.reconstruct(q0[k], th0[k]) for k in range(20)]) / 20
-    loc = timed(lambda: [gi.locate(gi.unskinned_bundles(q0[k], th0[k])) for k in range(20)]) / 20
-    ids_b = [gi.locate(gi.unskinned_bundles(q0[k], th0[k]))[:2] for k in range(20)]
-    blend = timed(lambda: [gi.blend(*ids_b[k]) for k in range(20)]) / 20
+    loc = timed(lambda: [gi.locator.locate(gi.unskinned_bundles(q0[k], th0[k])) for k in range(20)]) / 20
+    ids_b = [gi.locator.locate(gi.unskinned_bundles(q0[k], th0[k]))[:2] for k in range(20)]
+    blend = timed(lambda: [gi.stitcher.blend(*ids_b[k]) for k in range(20)]) / 20
     SQc = SQ.copy()
     seq_t = timed(lambda: gi.reconstruct_sequence(SQc, seq_jaw, pipeline=True), repeats=args.repeats) / args.frames
     seq_t5 = timed(lambda: gi.reconstruct_sequence(SQc, seq_jaw, smooth=5, pipeline=True),
@@ -129,8 +130,8 @@ def speed(gi, Q, thetas, SQ, seq_jaw, args, fr):
         "single_frame_locate": loc * 1e3,
         "single_frame_blend": blend * 1e3,
         "bundles": args.bundles,
-        "vertices": int(gi.V),
-        "shapes": int(gi.S),
+        "vertices": int(gi.dataset.V),
+        "shapes": int(gi.dataset.S),
     }
 
 
@@ -159,7 +160,7 @@ def held_out_case(ict, data, bf, bb, uvs, skin, lips, H, noise_seed, gi=None, pi
     own = gi is None
     if own:
         gi = GeometricIndexer(x0, F, data.shapes, bf, bb, names=data.names, uvs=uvs, jaw=gen.jaw, shape_jaw=data.jaw,
-                              threads=2)
+                              params=IndexerParams(threads=2))
     D = data.shapes - x0
     out, interp = {"bundles": len(bf)}, []
     for nmm in NOISE_MM:
@@ -278,10 +279,10 @@ def main():
 
     t = time.perf_counter()
     gi = GeometricIndexer(ict.neutral, F, data.shapes, bf, bb, names=data.names, uvs=uvs, jaw=gen.jaw,
-                          shape_jaw=data.jaw, threads=2)
+                          shape_jaw=data.jaw, params=IndexerParams(threads=2))
     res["build_seconds"] = time.perf_counter() - t
     res["indexer"] = gi.stats
-    fs = gi.face_size
+    fs = gi.dataset.face_size
     res["face_size_cm"] = fs
 
     if args.speed_only:
@@ -290,7 +291,7 @@ def main():
         thetas = np.stack([gen.jaw_parameters(w) for w in H])
         AW = ds.animated_weights(args.frames, seed=3)
         SQ = surface_points(np.stack([gen(w) for w in AW]), F, bf, bb)
-        fr = FitResidual(ict.neutral, F, data.shapes, bf, bb, uvs=uvs, nn=gi.nn)
+        fr = FitResidual(ict.neutral, F, data.shapes, bf, bb, uvs=uvs, nn=gi.dataset.nn)
         res["speed_ms_per_frame"] = speed(gi, Q, thetas, SQ, np.stack([gen.jaw_parameters(w) for w in AW]), args, fr)
         res["speed_ms_per_frame"]["fit_residual_build_seconds"] = fr.stats["build_seconds"]
         print(json.dumps(res["speed_ms_per_frame"], indent=1, default=float))
@@ -433,15 +434,15 @@ def draw(ict, gi, pics, curves, cor, outdir):
     front = V[F].mean(1)[:, 2] > 2.0
     Ff = F[front]
     tri = Triangulation(V[:, 0], V[:, 1], Ff)
-    P0 = surface_points(V, ict.faces, gi.bundle_faces, gi.bundle_bary)
+    P0 = surface_points(V, ict.faces, gi.dataset.bundle_faces, gi.dataset.bundle_bary)
     files = []
 
     # Fig. 1: Voronoi cells and the natural-neighbour weight of one bundle
     fig, ax = plt.subplots(1, 2, figsize=(12, 7))
-    cell = gi.nn.cell
+    cell = gi.dataset.nn.cell
     ax[0].tripcolor(tri, facecolors=(cell[Ff[:, 0]] * 7919 % 100).astype(float), cmap="tab20", shading="flat")
     i = int(np.argmin(np.linalg.norm(P0[:, :2] - [2.0, -3.0], axis=1)))
-    w = gi.W[:, i].toarray().ravel()
+    w = gi.dataset.weights[:, i].toarray().ravel()
     m = ax[1].tripcolor(tri, w, cmap="magma", shading="gouraud")
     for a in ax:
         a.plot(P0[:, 0], P0[:, 1], "k.", ms=4)

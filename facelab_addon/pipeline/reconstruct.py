@@ -79,7 +79,7 @@ class ReconstructSettings:
         weights and filtered by the noise level
         (:class:`~facelab_addon.core.lgi.fit_residual.FitResidual`).
         ``INDEXING``: the paper's local geometric indexing, exact through the
-        bundles (:class:`~facelab_addon.core.lgi.indexer.GeometricIndexer`;
+        bundles (:class:`~facelab_addon.core.lgi.indexing.indexer.GeometricIndexer`;
         the only method that uses the jaw settings).
     noise : float
         Bundle noise, standard deviation per axis in millimetres of the
@@ -209,7 +209,7 @@ def reconstruct_from_bundles(scene, obj, settings: ReconstructSettings, progress
     """
     from ..core.lgi.binding import bind_points
     from ..core.lgi.fit_residual import FitResidual
-    from ..core.lgi.indexer import GeometricIndexer
+    from ..core.lgi.indexing.indexer import GeometricIndexer
 
     t0 = time.perf_counter()
     f0, frames = _frame_range(scene, settings)
@@ -358,7 +358,7 @@ def generate_correctives(scene, obj, settings: CorrectiveSettings) -> Corrective
         if settings.drivers:
             add_product_driver(rig_obj.data.shape_keys, kb, combo)
         added.append((kb.name, float(np.linalg.norm(corr, axis=1).max()), info["projected"]))
-    return CorrectivesResult(rig=rig_obj.name, added=added, n_dataset=len(rc.dataset_names), n_bundles=rc.indexer.B,
+    return CorrectivesResult(rig=rig_obj.name, added=added, n_dataset=len(rc.dataset_names), n_bundles=rc.indexer.dataset.B,
                              dropped=list(rc.dropped), time_s=time.perf_counter() - t0)
 
 

@@ -10,7 +10,8 @@ from facelab_addon.blender.mesh import mesh_triangles
 from facelab_addon.blender.scene import new_mesh_object
 from facelab_addon.blender.shapekeys import add_corrective_key
 from facelab_addon.core.lgi.binding import bind_points
-from facelab_addon.core.lgi.indexer import GeometricIndexer
+from facelab_addon.core.lgi.indexing.indexer import GeometricIndexer
+from facelab_addon.core.lgi.indexing.params import IndexerParams
 from facelab_addon.testing.scenes import build_ict_face_scene, keyed_empties
 
 pytestmark = pytest.mark.blender
@@ -280,7 +281,6 @@ def test_jaw_bone_drives_the_jaw(ict, addon, gen):
     print("jaw region mean error mm: no jaw %.3f, jaw bone %.3f" % (errs["NONE"], errs["BONE"]))
     assert errs["BONE"] < 0.9 * errs["NONE"]  # measured 0.59 vs 0.68 mm
     # the bone's poses and the shapes' estimated poses agree with the core run on the generator's own jaw
-    from facelab_addon.core.lgi.indexer import GeometricIndexer
     from facelab_addon.core.lgi.jaw import JawRig
 
     rig = JawRig(gen.jaw.pivot * SCALE, gen.jaw.axis, gen.jaw.weights)
@@ -290,7 +290,7 @@ def test_jaw_bone_drives_the_jaw(ict, addon, gen):
     q = np.einsum("bk,tbkd->tbd", bary, truth[:, tris[pick]])
     bf, bb, _ = bind_points(n0, tris, q[0])
     gi = GeometricIndexer(n0, tris, np.stack([gen(w) for w in ds_w]) * SCALE, bf, bb, jaw=rig, shape_jaw=th_s,
-                          threads=1)
+                          params=IndexerParams(threads=1))
     ref, _ = gi.reconstruct_sequence(q, th_f)
     d = np.linalg.norm(got - ref, axis=2)[:, front].mean() * 1e3
     print("operator vs core with the true jaw: mean %.4f mm" % d)

@@ -265,7 +265,7 @@ def test_reconstruct_solver_result_as_keys_then_as_a_cache(tmp_path, ict, addon,
     """A pipeline through the policy: Reconstruct from Bundles stores its per-frame result as keys (default
     budget), then, with a budget of 2 keys, as a cache replacing those keys; both evaluate to the solver's
     reconstruction within 0.01 mm."""
-    from facelab_addon.core.lgi.indexer import GeometricIndexer
+    from facelab_addon.core.lgi.indexing.indexer import GeometricIndexer
     from facelab_addon.names import RECONSTRUCT_PREFIX
     from facelab_addon.pipeline.reconstruct import ReconstructSettings, reconstruct_from_bundles
 
@@ -279,7 +279,7 @@ def test_reconstruct_solver_result_as_keys_then_as_a_cache(tmp_path, ict, addon,
     real = GeometricIndexer.reconstruct_stream
 
     def spy(self, bundles, jaw, sink, **k):  # the pipeline streams the solver's frames: collect them too
-        X = solved["X"] = np.full((len(bundles), self.V, 3), np.nan)
+        X = solved["X"] = np.full((len(bundles), self.dataset.V, 3), np.nan)
 
         def both(t, x):
             X[t] = x

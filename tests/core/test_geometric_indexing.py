@@ -10,7 +10,8 @@ from facelab_addon.core.lgi.baselines import BlendshapeFit
 from facelab_addon.core.lgi.binding import bind_points
 from facelab_addon.core.lgi.correctives import RigCorrectives, rig_correctives
 from facelab_addon.core.lgi.fit_residual import FitResidual
-from facelab_addon.core.lgi.indexer import GeometricIndexer
+from facelab_addon.core.lgi.indexing.indexer import GeometricIndexer
+from facelab_addon.core.lgi.indexing.params import IndexerParams
 from facelab_addon.core.lgi.jaw import JawRig
 from facelab_addon.core.lgi.natural_neighbor import surface_points
 from facelab_addon.core.lgi.tets import (
@@ -25,6 +26,7 @@ from facelab_addon.core.lgi.tets import (
 # The dataset is stored in float32 (deltas to 1e-7 relative): reconstructions of dataset shapes are exact to
 # this (the plane is about 1.4 units across); bundle interpolation is exact in float64.
 FTOL = 1e-6
+ONE_THREAD = IndexerParams(threads=1)
 
 
 def plane(n=17):
@@ -71,7 +73,7 @@ def toy():
     pts += 0.03 * rng.standard_normal(pts.shape)
     P = np.c_[pts, np.zeros(len(pts))]
     bf, bb, _ = bind_points(V, F, P)
-    gi = GeometricIndexer(V, F, X, bf, bb, uvs=V[:, :2], names=[f"s{k}" for k in range(len(X))], threads=1)
+    gi = GeometricIndexer(V, F, X, bf, bb, uvs=V[:, :2], names=[f"s{k}" for k in range(len(X))], params=ONE_THREAD)
     return dict(V=V, F=F, W=W, X=X, bf=bf, bb=bb, gi=gi)
 
 
@@ -165,7 +167,7 @@ def test_jaw_indexer_reproduces_jaw_articulated_shapes():
     X = np.stack([rig.skin(X0[k], theta[k]) for k in range(len(W))])
     bf = np.arange(5, len(F), 31)
     bb = np.full((len(bf), 3), 1 / 3)
-    gi = GeometricIndexer(V, F, X, bf, bb, uvs=V[:, :2], jaw=rig, shape_jaw=theta, threads=1)
+    gi = GeometricIndexer(V, F, X, bf, bb, uvs=V[:, :2], jaw=rig, shape_jaw=theta, params=ONE_THREAD)
     P = surface_points(X, F, bf, bb)
     for k in range(len(W)):
         np.testing.assert_allclose(gi.reconstruct(P[k], theta[k]), X[k], atol=FTOL)
@@ -193,7 +195,7 @@ def test_jaw_poses_as_matrices_estimated_from_the_shapes():
     mats = np.stack([np.vstack([np.c_[rig.transform(th)], [0, 0, 0, 1]]) for th in theta])
     bf = np.arange(5, len(F), 31)
     bb = np.full((len(bf), 3), 1 / 3)
-    gi = GeometricIndexer(V, F, X, bf, bb, uvs=V[:, :2], jaw=rig, shape_jaw=mats, threads=1)
+    gi = GeometricIndexer(V, F, X, bf, bb, uvs=V[:, :2], jaw=rig, shape_jaw=mats, params=ONE_THREAD)
     P = surface_points(X, F, bf, bb)
     out, skipped = gi.reconstruct_sequence(P[[2, 7, 9]], mats[[2, 7, 9]])
     assert skipped == []
@@ -349,7 +351,7 @@ def test_smoothing_equals_the_blend_of_the_averaged_weights(toy):
     ids, bary = gi.last_sequence["shape_ids"], gi.last_sequence["bary"]
     for t in (0, 2, 4, 6):
         win = [s for s in (t - 1, t, t + 1) if 0 <= s < len(Q) and s != 3]
-        ref = gi.blend(np.concatenate(ids[win], axis=1), np.concatenate(bary[win], axis=1) / len(win))
+        ref = gi.stitcher.blend(np.concatenate(ids[win], axis=1), np.concatenate(bary[win], axis=1) / len(win))
         np.testing.assert_allclose(out[t], ref, atol=1e-6)
     assert np.isnan(out[3]).all()
 
@@ -400,16 +402,17 @@ def test_rig_correctives_rebuild_dataset_combinations_and_beat_the_linear_rig_on
 def test_stats_report_tetrahedra_and_memory(toy):
     st = toy["gi"].stats
     assert st["tetrahedra_kept"] > 0 and st["memory_bytes_total"] > 0
-    assert st["tetrahedra_kept"] == len(toy["gi"].tets)
+    assert st["tetrahedra_kept"] == len(toy["gi"].clouds.tets)
     assert st["points_per_bundle"]["max"] <= len(toy["X"]) + 1
 
 
 def test_forbidden_combinations_delete_tetrahedra(toy):
     V, F = toy["V"], toy["F"]
-    gi2 = GeometricIndexer(V, F, toy["X"], toy["bf"], toy["bb"], uvs=V[:, :2], threads=1, forbidden=[(0, 1)],
-                           names=[f"s{k}" for k in range(len(toy["X"]))])
+    gi2 = GeometricIndexer(V, F, toy["X"], toy["bf"], toy["bb"], uvs=V[:, :2],
+                           names=[f"s{k}" for k in range(len(toy["X"]))],
+                           params=IndexerParams(threads=1, forbidden=((0, 1),)))
     assert gi2.stats["tetrahedra_pruned_flagged"] > 0
-    assert not any({1, 2} <= set(t) for t in gi2.tets.tolist() if len(set(t)) == 4 and gi2.stats)
+    assert not any({1, 2} <= set(t) for t in gi2.clouds.tets.tolist() if len(set(t)) == 4 and gi2.stats)
 
 
 # ---------------------------------------------------------------- bad input
@@ -456,11 +459,11 @@ def test_ict_expressions_reconstruct_exactly_and_interpolate(ict):
              "mouthFunnel", "cheekPuff_L", "noseSneer_L", "eyeBlink_L", "mouthFrown_R", "browDown_R"]
     X = np.stack([ict.expressions[n] for n in names])
     bf, bb = ict_bundle_layout(ict, 40)
-    gi = GeometricIndexer(ict.neutral, ict.faces, X, bf, bb, uvs=ict_triangle_uvs(ict), names=names, threads=1)
+    gi = GeometricIndexer(ict.neutral, ict.faces, X, bf, bb, uvs=ict_triangle_uvs(ict), names=names, params=ONE_THREAD)
     P = surface_points(X, ict.faces, bf, bb)
     for k in (0, 1, 5, 11):
-        np.testing.assert_allclose(gi.reconstruct(P[k]), X[k], atol=1e-4 * gi.face_size)
+        np.testing.assert_allclose(gi.reconstruct(P[k]), X[k], atol=1e-4 * gi.dataset.face_size)
     x = ict.pose({"jawOpen": 0.3, "mouthSmile_L": 0.6, "browInnerUp_R": 0.5})
     q = surface_points(x, ict.faces, bf, bb)
     Xr = gi.reconstruct(q)
-    np.testing.assert_allclose(surface_points(Xr, ict.faces, bf, bb), q, atol=1e-6 * gi.face_size)
+    np.testing.assert_allclose(surface_points(Xr, ict.faces, bf, bb), q, atol=1e-6 * gi.dataset.face_size)

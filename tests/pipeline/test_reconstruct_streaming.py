@@ -9,7 +9,7 @@ import pytest
 
 from facelab_addon.core.geometry import compress
 from facelab_addon.core.lgi.fit_residual import FitResidual
-from facelab_addon.core.lgi.indexer import GeometricIndexer
+from facelab_addon.core.lgi.indexing.indexer import GeometricIndexer
 from facelab_addon.names import RECONSTRUCT_PREFIX
 from facelab_addon.pipeline import correctives, streaming
 from facelab_addon.pipeline.reconstruct import ReconstructSettings, reconstruct_from_bundles
@@ -50,7 +50,7 @@ def _spy(monkeypatch, cls):
         if cls is FitResidual:
             k["noise"] = self.noise  # the noise the stream estimated
         got["whole"], got["whole_skipped"] = self.reconstruct_sequence(*whole_a, **k)
-        got["neutral"] = self.neutral.copy()
+        got["neutral"] = (self.neutral if cls is FitResidual else self.dataset.neutral).copy()
         return skipped
 
     monkeypatch.setattr(correctives.CorrectionWriter, "add", add)

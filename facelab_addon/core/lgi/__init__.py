@@ -4,6 +4,6 @@ rig correctives.
 
 Modules, lowest first: ``tets`` (tetrahedron geometry), ``jaw`` (:class:`JawRig`, §6),
 ``binding`` (bundles on the neutral surface), ``natural_neighbor`` (stitching weights, §5),
-``clouds`` / ``locate`` / ``stitch`` (build, per-frame choice and blend of the indexer, §4-§5, §7),
-``indexer`` (:class:`GeometricIndexer`), ``baselines`` (:class:`BlendshapeFit`, §7) and
+``indexing`` (the subpackage of :class:`GeometricIndexer` and :class:`IndexerParams`, §4-§5, §7),
+``baselines`` (:class:`BlendshapeFit`, §7) and
 ``correctives`` (:class:`RigCorrectives`, §7, Fig. 7)."""

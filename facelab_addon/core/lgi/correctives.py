@@ -17,11 +17,12 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.linalg as sla
-import scipy.sparse as sp
 
 from ..errors import DatasetError, FaceLabError
 from ..geometry.mesh import validate_mesh
-from .indexer import GeometricIndexer
+from .indexing.indexer import GeometricIndexer
+from .indexing.params import IndexerParams
+from .indexing.stitch import shape_weight_matrix
 from .natural_neighbor import surface_points
 
 __all__ = ["RigCorrectives", "fit_rig_weights", "moving_bundle_layout", "rig_correctives"]
@@ -141,8 +142,10 @@ class RigCorrectives:
     n_bundles : int
     uvs : optional
         UV map for the natural-neighbour weights (§5).
-    **indexer_options
-        Passed to :class:`GeometricIndexer`.
+    params : IndexerParams, optional
+        Settings of the :class:`GeometricIndexer` (default
+        ``IndexerParams(threads=1, exact=False)``: the residual blend needs
+        no exact interpolation).
 
     Attributes
     ----------
@@ -158,7 +161,8 @@ class RigCorrectives:
     """
 
     def __init__(self, neutral, faces, rig_shapes: dict, dataset_shapes, *, dataset_names=None, dataset_weights=None,
-                 bundle_faces=None, bundle_bary=None, n_bundles: int = 100, uvs=None, **indexer_options):
+                 bundle_faces=None, bundle_bary=None, n_bundles: int = 100, uvs=None,
+                 params: IndexerParams | None = None):
         x0, F = validate_mesh(neutral, faces, name="neutral mesh")
         self.neutral, self.faces = x0, F
         if not rig_shapes:
@@ -196,8 +200,10 @@ class RigCorrectives:
         self.residuals = X[keep] - L[keep]
         if bundle_faces is None:
             bundle_faces, bundle_bary = moving_bundle_layout(x0, F, L[keep], n_bundles)
+        if params is None:
+            params = IndexerParams(threads=1, exact=False)
         self.indexer = GeometricIndexer(x0, F, L[keep], bundle_faces, bundle_bary, names=self.dataset_names, uvs=uvs,
-                                        **{"threads": 1, "exact": False, **indexer_options})
+                                        params=params)
         R = np.zeros((len(self.residuals) + 1,) + x0.shape)
         R[1:] = self.residuals
         self._R = R
@@ -234,20 +240,19 @@ class RigCorrectives:
             combination goes beyond the dataset there); ``shapes``: the
             dataset shapes used, by total weight.
         """
-        gi = self.indexer
+        ds = self.indexer.dataset
         lin = self.linear(weights)
-        q = surface_points(lin, self.faces, gi.bundle_faces, gi.bundle_bary)
-        ids, bary, dist = gi.locate(q)
-        Beta = sp.csr_matrix((bary.ravel(), (np.repeat(np.arange(gi.B), 4), ids.ravel())), shape=(gi.B, gi.S1))
-        C = (gi.W @ Beta).tocsc()
+        q = surface_points(lin, self.faces, ds.bundle_faces, ds.bundle_bary)
+        ids, bary, dist = self.indexer.locator.locate(q)
+        C = (ds.weights @ shape_weight_matrix(ids, bary, ds.S1)).tocsc()
         out = np.zeros_like(self.neutral)
         for s in np.flatnonzero(np.diff(C.indptr)[1:]) + 1:
             rows = C.indices[C.indptr[s] : C.indptr[s + 1]]
             out[rows] += C.data[C.indptr[s] : C.indptr[s + 1], None] * self._R[s, rows]
-        used = np.bincount(ids.ravel(), weights=bary.ravel(), minlength=gi.S1)[1:]
+        used = np.bincount(ids.ravel(), weights=bary.ravel(), minlength=ds.S1)[1:]
         order = np.argsort(-used)
         info = {"projected": int((dist > 0).sum()),
-                "shapes": [(self.dataset_names[k], float(used[k] / gi.B)) for k in order[:5] if used[k] > 0]}
+                "shapes": [(self.dataset_names[k], float(used[k] / ds.B)) for k in order[:5] if used[k] > 0]}
         return out, info
 
     def close(self):

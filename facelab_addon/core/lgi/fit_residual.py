@@ -1,7 +1,7 @@
 """Bounded blendshape fit plus a noise-aware, natural-neighbour-stitched residual: the default of Reconstruct.
 
 Cong, Lan and Fedkiw 2019 rebuild the face from sparse bundles by local
-geometric indexing (:class:`~facelab_addon.core.lgi.indexer.GeometricIndexer`)
+geometric indexing (:class:`~facelab_addon.core.lgi.indexing.indexer.GeometricIndexer`)
 and compare it with a blendshape fit of the dataset (§7, Fig. 4). Measured
 on held-out poses, a *bounded* blendshape fit (weights in [0, 1]) is the
 stronger baseline: exact local indexing passes bundle noise straight through
@@ -151,7 +151,7 @@ class FitResidual:
         Force the natural-neighbour method.
     nn : NaturalNeighbors, optional
         Precomputed natural-neighbour weights of these bundles (e.g. a
-        :class:`GeometricIndexer`'s ``nn``); ``uvs`` and ``nn_method`` are
+        :class:`GeometricIndexer`'s ``dataset.nn``); ``uvs`` and ``nn_method`` are
         then unused.
     weight_prior : float, optional
         ``tau_w``: prior standard deviation of a blendshape weight (unitless).

@@ -1,6 +1,6 @@
 """The inputs every bundle reconstruction checks: a mesh, its dataset shapes and the bundles' binding.
 
-Both reconstruction methods (:class:`~facelab_addon.core.lgi.indexer.GeometricIndexer`, the paper's
+Both reconstruction methods (:class:`~facelab_addon.core.lgi.indexing.indexer.GeometricIndexer`, the paper's
 local indexing, and :class:`~facelab_addon.core.lgi.fit_residual.FitResidual`, the default) take the
 same inputs and refuse the same bad ones with the same messages.
 """

@@ -1,8 +1,10 @@
 """Choosing a tetrahedron for every bundle (Cong, Lan and Fedkiw 2019, §4, §5.1, Eq. 1).
 
-The per-frame step of :class:`~facelab_addon.core.lgi.indexer.GeometricIndexer`
-(the mixin :class:`IndexerLocate`), with the neighbour tables it reads (built
-once):
+The per-frame step of
+:class:`~facelab_addon.core.lgi.indexing.indexer.GeometricIndexer`:
+:class:`Locator` queries the clouds and grid of
+:mod:`facelab_addon.core.lgi.indexing.clouds` and the :class:`NeighborTables`
+built once by :func:`build_neighbor_tables`:
 
 * **Eq. 1**: the chosen tetrahedron's barycentric weights blend its four
   shapes. When no tetrahedron holds the bundle it is projected to the closest
@@ -25,16 +27,29 @@ distances and costs in scene units; weights are unitless.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import scipy.sparse as sp
 
-from .tets import closest_point_triangles, closest_point_tetrahedron
+from ..tets import closest_point_triangles, closest_point_tetrahedron
 
-__all__ = ["IndexerLocate"]
+__all__ = ["Locator", "NeighborTables", "build_neighbor_tables"]
 
 
 def _ragged_arange(starts, counts):
-    """Concatenation of ``arange(s, s + c)`` for every pair; and the group of each entry."""
+    """Concatenation of ``arange(s, s + c)`` for every pair, and the group of each entry.
+
+    Parameters
+    ----------
+    starts, counts : (n,) int array_like
+
+    Returns
+    -------
+    idx : (sum(counts),) int64 ndarray
+    group : (sum(counts),) int64 ndarray
+        The pair ``k`` every entry comes from.
+    """
     counts = np.asarray(counts, dtype=np.int64)
     tot = int(counts.sum())
     grp = np.repeat(np.arange(len(counts)), counts)
@@ -45,42 +60,108 @@ def _ragged_arange(starts, counts):
     return idx, grp
 
 
-class IndexerLocate:
-    """Per-frame choice of tetrahedra of :class:`~facelab_addon.core.lgi.indexer.GeometricIndexer` (§4, §5.1).
+@dataclass
+class NeighborTables:
+    """The bundles that judge every candidate (§5.1), and where they sit on every cloud point's shape.
 
-    A mixin: :meth:`locate` queries the clouds, tetrahedra, hulls and grids
-    built by :class:`~facelab_addon.core.lgi.clouds.IndexerClouds` and the
-    neighbour tables built by :meth:`_neighbor_tables`.
+    ``P`` is the number of cloud points (``BundleClouds.point_shape``).
+
+    Attributes
+    ----------
+    neighbor_ptr : (B+1,) int64
+        CSR: the neighbours of bundle ``i`` are
+        ``neighbor_idx[neighbor_ptr[i]:neighbor_ptr[i+1]]`` (itself excluded).
+    neighbor_idx : int64
+    degree : (B,) int64
+        Neighbours per bundle.
+    pair_neighbor : int64
+        For every (cloud point, neighbour of its bundle) pair: the neighbour.
+    pair_pos : (n,3) float64
+        Where that neighbour sits on the cloud point's shape, scene units.
+    pair_offsets : (P+1,) int64
+        Pairs of cloud point ``p``: ``pair_offsets[p]:pair_offsets[p+1]``.
+    point_key : (P,) int64
+        ``bundle * (S+1) + representative shape id`` of every cloud point.
+    multi_points : int64
+        Cloud points that belong to a merged point with several members.
     """
 
-    def _neighbor_tables(self, P, neighbor_rings):
-        """Neighbouring bundles (§5.1), their positions on every cloud point's shape, and the merged-point keys."""
-        B, S1 = self.B, self.S1
-        Nb = self.nn.neighbors.tocsr()
-        R = Nb.copy()
-        for _ in range(int(neighbor_rings) - 1):
-            R = ((R + R @ Nb) > 0).astype(np.float64)
-        R = R.tolil()
-        R.setdiag(0)
-        Nb = sp.csr_matrix(R)
-        Nb.eliminate_zeros()
-        Nb.sort_indices()
-        self._nbr_ptr, self._nbr_idx = Nb.indptr.astype(np.int64), Nb.indices.astype(np.int64)
-        self._deg = np.diff(self._nbr_ptr)
-        # every cloud point with every neighbour of its bundle: the neighbours' positions on that shape
-        pos, g = _ragged_arange(self._nbr_ptr[self._cloud_bundle], self._deg[self._cloud_bundle])
-        self._pp_point, self._pp_nbr = g, self._nbr_idx[pos]
-        self._pp_pos = P[self._cloud_shape[g], self._pp_nbr]
-        self._pp_off = np.r_[0, np.cumsum(self._deg[self._cloud_bundle])]
-        # merged points: the representative key of every cloud point, and the points of multi-member keys
-        rep_of = np.zeros(len(self._cloud_shape), dtype=np.int64)
-        for i in range(B):
-            lo_, hi_ = self._cloud_off[i], self._cloud_off[i + 1]
-            rep_of[lo_:hi_] = i * S1 + self.cloud_shapes[i][self._cloud_rep_local[i]]
-        self._pt_key = rep_of
-        multi = np.zeros(B * S1, dtype=bool)
-        multi[self._multi_keys] = True
-        self._multi_pts = np.flatnonzero(multi[rep_of])
+    neighbor_ptr: np.ndarray
+    neighbor_idx: np.ndarray
+    degree: np.ndarray
+    pair_neighbor: np.ndarray
+    pair_pos: np.ndarray
+    pair_offsets: np.ndarray
+    point_key: np.ndarray
+    multi_points: np.ndarray
+
+
+def build_neighbor_tables(neighbors, clouds, rings: int = 1):
+    """Neighbouring bundles (§5.1), their positions on every cloud point's shape, and the merged-point keys.
+
+    Parameters
+    ----------
+    neighbors : (B,B) scipy.sparse matrix
+        Natural-neighbour adjacency of the bundles (``NaturalNeighbors.neighbors``).
+    clouds : BundleClouds
+    rings : int
+        1: the natural neighbours; 2: also their neighbours; ...
+
+    Returns
+    -------
+    NeighborTables
+    """
+    B, S1 = clouds.points.shape[1], clouds.points.shape[0]
+    P = clouds.points
+    Nb = neighbors.tocsr()
+    R = Nb.copy()
+    for _ in range(int(rings) - 1):
+        R = ((R + R @ Nb) > 0).astype(np.float64)
+    R = R.tolil()
+    R.setdiag(0)
+    Nb = sp.csr_matrix(R)
+    Nb.eliminate_zeros()
+    Nb.sort_indices()
+    ptr, idx = Nb.indptr.astype(np.int64), Nb.indices.astype(np.int64)
+    deg = np.diff(ptr)
+    pb = clouds.point_bundle
+    # every cloud point with every neighbour of its bundle: the neighbours' positions on that shape
+    pos, g = _ragged_arange(ptr[pb], deg[pb])
+    pair_nbr = idx[pos]
+    # merged points: the representative key of every cloud point, and the points of multi-member keys
+    rep_of = np.zeros(len(clouds.point_shape), dtype=np.int64)
+    for i in range(B):
+        lo_, hi_ = clouds.point_offsets[i], clouds.point_offsets[i + 1]
+        rep_of[lo_:hi_] = i * S1 + clouds.shapes[i][clouds.rep_local[i]]
+    multi = np.zeros(B * S1, dtype=bool)
+    multi[clouds.multi_keys] = True
+    return NeighborTables(neighbor_ptr=ptr, neighbor_idx=idx, degree=deg, pair_neighbor=pair_nbr,
+                          pair_pos=P[clouds.point_shape[g], pair_nbr], pair_offsets=np.r_[0, np.cumsum(deg[pb])],
+                          point_key=rep_of, multi_points=np.flatnonzero(multi[rep_of]))
+
+
+class Locator:
+    """Per-frame choice of a tetrahedron and barycentric weights for every bundle (§4, §5.1).
+
+    Parameters
+    ----------
+    clouds : BundleClouds
+    grid : TetGrid
+    tables : NeighborTables
+    temporal_bias : float
+        Unitless weight of the previous frame's choice (``IndexerParams.temporal_bias``).
+    tie_tolerance : float
+        Scene units (resolved, ``IndexerParams.tie_tolerance_at``); 0 disables the re-ranking.
+    face_size : float
+        Scene units; scales the geometric tolerances.
+    """
+
+    def __init__(self, clouds, grid, tables, *, temporal_bias: float, tie_tolerance: float, face_size: float):
+        self.clouds, self.grid, self.tables = clouds, grid, tables
+        self.temporal_bias = float(temporal_bias)
+        self.tie_tolerance = float(tie_tolerance)
+        self.face_size = float(face_size)
+        self.S1, self.B = clouds.points.shape[:2]
 
     def locate(self, q, prev=None):
         """Choose a tetrahedron and barycentric weights for every bundle (§4, §5.1).
@@ -103,25 +184,26 @@ class IndexerLocate:
             Distance from each bundle to its cloud's tetrahedralized volume
             (0 when a tetrahedron holds it), scene units.
         """
+        cl, tb, gr = self.clouds, self.tables, self.grid
         q = np.asarray(q, dtype=np.float64)
         B, S1 = self.B, self.S1
         # --- candidates: tetrahedra holding the bundle (grid, float32 screen, exact float64 weights)
-        rel = (q - self._grid_lo) / self._grid_h
+        rel = (q - gr.lo) / gr.h
         cidx = np.floor(rel).astype(np.int64)
-        inbox = ((cidx >= 0) & (cidx < self._grid_n)).all(axis=1)
-        cidx = np.clip(cidx, 0, self._grid_n - 1)
-        cell = self._grid_base + (cidx[:, 2] * self._grid_n[:, 1] + cidx[:, 1]) * self._grid_n[:, 0] + cidx[:, 0]
-        s0 = self._cell_start[cell]
-        cnt = np.where(inbox, self._cell_start[cell + 1] - s0, 0)
+        inbox = ((cidx >= 0) & (cidx < gr.n)).all(axis=1)
+        cidx = np.clip(cidx, 0, gr.n - 1)
+        cell = gr.base + (cidx[:, 2] * gr.n[:, 1] + cidx[:, 1]) * gr.n[:, 0] + cidx[:, 0]
+        s0 = gr.cell_start[cell]
+        cnt = np.where(inbox, gr.cell_start[cell + 1] - s0, 0)
         pos, bund = _ragged_arange(s0, cnt)
-        cand = self._cell_tets[pos]
+        cand = gr.cell_tets[pos]
         # box screen (float32 boxes rounded outwards), then the exact float64 affine maps of the survivors
         q32 = q.astype(np.float32)
         qb = q32[bund]
-        ok = ((self._tet_lo[cand] <= qb) & (qb <= self._tet_hi[cand])).all(axis=1)
+        ok = ((cl.tet_lo[cand] <= qb) & (qb <= cl.tet_hi[cand])).all(axis=1)
         cand, bund = cand[ok], bund[ok]
-        tid = self.tets[cand].astype(np.int64)
-        w3 = np.einsum("nij,nj->ni", self._tet_aff[cand], np.c_[q, np.ones(B)][bund])
+        tid = cl.tets[cand].astype(np.int64)
+        w3 = np.einsum("nij,nj->ni", cl.tet_affine[cand], np.c_[q, np.ones(B)][bund])
         w = np.column_stack([1 - w3.sum(1), w3])
         inside = (w >= -1e-9).all(axis=1)
         bund, tid, w = bund[inside], tid[inside], np.clip(w[inside], 0.0, None)
@@ -130,11 +212,11 @@ class IndexerLocate:
         single = (w > 1 - 1e-9).any(axis=1)
         bund, tid, w = bund[~single], tid[~single], w[~single]
         dist = np.zeros(B)
-        dp = np.linalg.norm(self._cloud_pos - q[self._cloud_bundle], axis=1)
-        near = dp <= self.merge_tolerance
+        dp = np.linalg.norm(cl.point_pos - q[cl.point_bundle], axis=1)
+        near = dp <= cl.merge_tolerance
         has = np.zeros(B, dtype=bool)
         has[bund] = True
-        has[self._cloud_bundle[near]] = True
+        has[cl.point_bundle[near]] = True
         miss = np.flatnonzero(~has)
         if len(miss):
             pb, pt, pw, pd = self._project_hull(miss, q)
@@ -143,43 +225,44 @@ class IndexerLocate:
             # projections onto a cloud point become that point's candidate
             top = pt[np.arange(len(pt)), np.argmax(pw, axis=1)]
             key = pb[one] * S1 + top[one]
-            near |= np.isin(self._pt_key, np.unique(key))
+            near |= np.isin(tb.point_key, np.unique(key))
             bund, tid, w = np.r_[bund, pb[~one]], np.vstack([tid, pt[~one]]), np.vstack([w, pw[~one]])
         # --- cloud points that may be used alone or as members of merged points: their own cost (§5.1)
         need = np.zeros(B * S1, dtype=bool)
         need[(bund[:, None] * S1 + tid)[w > 0]] = True
-        mp = self._multi_pts
-        pts = np.union1d(mp[need[self._pt_key[mp]]], np.flatnonzero(near))
+        mp = tb.multi_points
+        pts = np.union1d(mp[need[tb.point_key[mp]]], np.flatnonzero(near))
         pc = self._point_costs(q, prev, pts)
         ids, bary, cost = self._select(q, prev, None, bund, tid, w, pc, near)
         # Ties: where the neighbours cannot tell candidates apart (best cost below tie_tolerance), prefer
         # the shapes that the moving bundles chose (each bundle votes with its motion from the neutral).
         amb = cost <= self.tie_tolerance
         if amb.any() and self.tie_tolerance > 0:
-            motion = np.linalg.norm(q - self.points_all[0], axis=1)
+            motion = np.linalg.norm(q - cl.points[0], axis=1)
             vote = np.bincount(ids.ravel(), weights=(bary * motion[:, None]).ravel(), minlength=S1)
             vote[0] = 0.0
             if vote.max() > 0:
                 vote /= vote.max()
             vote[0] = 0.5  # the neutral beats shapes no moving bundle chose (the least assumption)
-            pc2 = pc + self.tie_tolerance * (1.0 - vote[self._cloud_shape])
+            pc2 = pc + self.tie_tolerance * (1.0 - vote[cl.point_shape])
             sel = amb[bund]
-            ids2, bary2, _ = self._select(q, prev, vote, bund[sel], tid[sel], w[sel], pc2, near & amb[self._cloud_bundle])
+            ids2, bary2, _ = self._select(q, prev, vote, bund[sel], tid[sel], w[sel], pc2, near & amb[cl.point_bundle])
             ids[amb], bary[amb] = ids2[amb], bary2[amb]
         return ids, bary, dist
 
     def _point_costs(self, q, prev, pts):
         """(P,) cost of cloud points ``pts`` used alone: neighbour RMS distance (+ temporal term), scene
         units; ``inf`` for the other points."""
-        c = np.full(len(self._cloud_shape), np.inf)
+        cl, tb = self.clouds, self.tables
+        c = np.full(len(cl.point_shape), np.inf)
         if len(pts) == 0:
             return c
-        pos, g = _ragged_arange(self._pp_off[pts], self._pp_off[pts + 1] - self._pp_off[pts])
-        e = ((self._pp_pos[pos] - q[self._pp_nbr[pos]]) ** 2).sum(axis=1)
-        cp = np.sqrt(np.bincount(g, weights=e, minlength=len(pts)) / np.maximum(self._deg[self._cloud_bundle[pts]], 1))
+        pos, g = _ragged_arange(tb.pair_offsets[pts], tb.pair_offsets[pts + 1] - tb.pair_offsets[pts])
+        e = ((tb.pair_pos[pos] - q[tb.pair_neighbor[pos]]) ** 2).sum(axis=1)
+        cp = np.sqrt(np.bincount(g, weights=e, minlength=len(pts)) / np.maximum(tb.degree[cl.point_bundle[pts]], 1))
         if prev is not None:
-            pv = np.asarray(prev)[self._cloud_bundle[pts]]
-            cp = cp * (1.0 + self.temporal_bias * ~(pv == self._cloud_shape[pts][:, None]).any(axis=1))
+            pv = np.asarray(prev)[cl.point_bundle[pts]]
+            cp = cp * (1.0 + self.temporal_bias * ~(pv == cl.point_shape[pts][:, None]).any(axis=1))
         c[pts] = cp
         return c
 
@@ -189,15 +272,16 @@ class IndexerLocate:
         Merged points in tetrahedra are replaced by their best member (lowest
         point cost). Returns (B,4) shapes, (B,4) weights and (B,) costs.
         """
+        cl, tb = self.clouds, self.tables
         B, S1 = self.B, self.S1
         sub = np.tile(np.arange(S1, dtype=np.int64), B)
-        mp = self._multi_pts
+        mp = tb.multi_points
         mp = mp[np.isfinite(pc[mp])]  # members without a cost keep their representative (the default)
         if len(mp):
-            o = np.lexsort((pc[mp], self._pt_key[mp]))
-            k = self._pt_key[mp][o]
+            o = np.lexsort((pc[mp], tb.point_key[mp]))
+            k = tb.point_key[mp][o]
             first = o[np.r_[True, k[1:] != k[:-1]]]
-            sub[self._pt_key[mp][first]] = self._cloud_shape[mp][first]
+            sub[tb.point_key[mp][first]] = cl.point_shape[mp][first]
         tid = sub[bund[:, None] * S1 + tid]
         c_t = self._neighbor_cost(bund, tid, w, q, prev, vote) if len(bund) else np.zeros(0)
         npt = np.flatnonzero(near)
@@ -206,12 +290,12 @@ class IndexerLocate:
         best = np.full(B, np.inf)
         # cloud points first (a tetrahedron must be strictly better to win)
         if len(npt):
-            o = np.lexsort((pc[npt], self._cloud_bundle[npt]))
-            bb_ = self._cloud_bundle[npt][o]
+            o = np.lexsort((pc[npt], cl.point_bundle[npt]))
+            bb_ = cl.point_bundle[npt][o]
             first = o[np.r_[True, bb_[1:] != bb_[:-1]]]
-            b_ = self._cloud_bundle[npt][first]
+            b_ = cl.point_bundle[npt][first]
             best[b_] = pc[npt][first]
-            ids[b_] = self._cloud_shape[npt][first][:, None]
+            ids[b_] = cl.point_shape[npt][first][:, None]
             bary[b_, 0] = 1.0
         if len(bund):
             o = np.lexsort((c_t, bund))
@@ -226,10 +310,11 @@ class IndexerLocate:
     def _neighbor_cost(self, bund, tet_ids, w, q, prev, vote=None):
         """Candidate cost, scene units: RMS distance of the neighbouring bundles to their surface points
         under the candidate's geometry (§5.1), plus the temporal and tie-break terms."""
-        deg = self._deg[bund]
-        pos, c = _ragged_arange(self._nbr_ptr[bund], deg)
-        j = self._nbr_idx[pos]
-        s = np.einsum("nk,nkx->nx", w[c], self.points_all[tet_ids[c], j[:, None]])
+        cl, tb = self.clouds, self.tables
+        deg = tb.degree[bund]
+        pos, c = _ragged_arange(tb.neighbor_ptr[bund], deg)
+        j = tb.neighbor_idx[pos]
+        s = np.einsum("nk,nkx->nx", w[c], cl.points[tet_ids[c], j[:, None]])
         e = ((s - q[j]) ** 2).sum(axis=1)
         cost = np.sqrt(np.bincount(c, weights=e, minlength=len(bund)) / np.maximum(deg, 1))
         if prev is not None:
@@ -248,15 +333,16 @@ class IndexerLocate:
         (:meth:`_project_candidates`). Returns bundles (n,), representative
         shapes (n,4), weights (n,4) and the distances (len(miss),).
         """
-        a, b = self._hull_off[miss], self._hull_off[miss + 1]
+        cl = self.clouds
+        a, b = cl.hull_offsets[miss], cl.hull_offsets[miss + 1]
         pos, grp = _ragged_arange(a, b - a)
         bm = miss[grp]
         qq = q[bm]
-        eq = self._hull_eq[pos]
+        eq = cl.hull_planes[pos]
         out = np.full(len(miss), -np.inf)
         np.maximum.at(out, grp, (eq[:, :3] * qq).sum(1) + eq[:, 3])
-        tri = self._hull_tri[pos]
-        X = self.points_all[tri, bm[:, None]]
+        tri = cl.hull_tris[pos]
+        X = cl.points[tri, bm[:, None]]
         d, w3 = closest_point_triangles(qq, X[:, 0], X[:, 1], X[:, 2])
         dmin = np.full(len(miss), np.inf)
         np.minimum.at(dmin, grp, d)
@@ -279,14 +365,15 @@ class IndexerLocate:
         Returns bundles (n,), representative shapes (n,4), weights (n,4) and
         the distance of every missing bundle (len(miss),), scene units.
         """
-        a, b = self.tet_offsets[miss], self.tet_offsets[miss + 1]
+        cl = self.clouds
+        a, b = cl.tet_offsets[miss], cl.tet_offsets[miss + 1]
         pos, grp = _ragged_arange(a, b - a)
         qq = q[miss][grp]
         # lower bound: distance to each tetrahedron's box; upper bound: distance to the nearest cloud point
-        lb = np.linalg.norm(np.maximum(np.maximum(self._tet_lo[pos] - qq, qq - self._tet_hi[pos]), 0.0), axis=1)
+        lb = np.linalg.norm(np.maximum(np.maximum(cl.tet_lo[pos] - qq, qq - cl.tet_hi[pos]), 0.0), axis=1)
         ub = np.full(len(miss), np.inf)
         for k, i in enumerate(miss):
-            ub[k] = np.linalg.norm(self.points_all[self.cloud_reps[i], i] - q[i], axis=1).min()
+            ub[k] = np.linalg.norm(cl.points[cl.reps[i], i] - q[i], axis=1).min()
         sel = lb <= ub[grp] * (1 + 1e-6) + 1e-9 * self.face_size
         pos, grp, qq, lb = pos[sel], grp[sel], qq[sel], lb[sel]
         # exact distances in rounds of increasing box distance, until no box is closer than the best
@@ -298,7 +385,7 @@ class IndexerLocate:
         dmin = np.full(len(miss), np.inf)
         d_all = np.full(len(grp), np.inf)
         w_all = np.zeros((len(grp), 4))
-        tid_all = self.tets[pos].astype(np.int64)
+        tid_all = cl.tets[pos].astype(np.int64)
         lim = 16
         while True:
             todo = ~done & (rank < lim) & (lb <= dmin[grp] * (1 + 1e-9) + 1e-12 * self.face_size)
@@ -308,7 +395,7 @@ class IndexerLocate:
                 lim *= 4
                 continue
             t = np.flatnonzero(todo)
-            Xt = self.points_all[tid_all[t], miss[grp[t]][:, None]]
+            Xt = cl.points[tid_all[t], miss[grp[t]][:, None]]
             d_all[t], w_all[t] = closest_point_tetrahedron(qq[t], Xt)
             done[t] = True
             np.minimum.at(dmin, grp[t], d_all[t])
