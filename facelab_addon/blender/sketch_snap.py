@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..core.capture.camera import Camera
-from ..core.lips.snap import snap_strokes
+from ..core.lips.snap import snap_lips
 from .plate import plate_file, plate_pixels
 
 __all__ = ["snap_to_plate"]
@@ -57,13 +57,14 @@ def snap_to_plate(cam_obj, camera: Camera, frame: int, strokes: dict, **options)
     opts = dict(options)
     if "search_px" in opts:
         opts["search_px"] = opts["search_px"] * sx
+    scaled = {lab: [np.asarray(p) * [sx, sy] for p in strokes[lab]] for lab in ("upper", "lower")}
+    snapped = dict(zip(("upper", "lower"), snap_lips(img, scaled["upper"], scaled["lower"], **opts)))
     out, moved, left = {}, 0, 0
-    for lab in ("upper", "lower"):
-        res = snap_strokes(img, [np.asarray(p) * [sx, sy] for p in strokes[lab]], **opts)
+    for lab, res in snapped.items():
         out[lab] = [r.points / [sx, sy] for r in res]
         moved += sum(r.n_snapped for r in res)
         left += sum(r.n_left for r in res)
     report = f"snapped {moved} of {moved + left} points to the plate"
     if left:
-        report += f"; {left} left as drawn (no edge within reach)"
+        report += f"; {left} left as drawn (no sharp lip edge within reach, or the lips touch there)"
     return out, report

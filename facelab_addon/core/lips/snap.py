@@ -28,12 +28,18 @@ from scipy import linalg, ndimage
 
 from ..errors import FaceLabError
 
-__all__ = ["SEARCH_PX", "SnapResult", "grey", "image_noise", "snap_stroke", "snap_strokes"]
+__all__ = ["BEND", "SEARCH_PX", "SHARP", "SnapResult", "grey", "image_noise", "prepare", "snap_lips", "snap_stroke",
+           "snap_strokes"]
 
 _STEP = 0.5  # profile sample spacing, pixels
 #: How far along the normal an edge is looked for, pixels each side (chosen on the sample plate's frames 2, 5,
-#: 8, ...: farther, the shading next to a lip's edge is taken more often than the edge).
-SEARCH_PX = 4.5
+#: 8, ...: a hand's 2-4 px wobble strays past 4.5 px; farther, shading next to a lip is taken more often).
+SEARCH_PX = 7.5
+#: Cost of a 1 px change of the snapped offset between neighbouring stroke points, in edges at the detection
+#: level (chosen on the sample plate's frames 2, 5, 8, ...).
+BEND = 2.0
+#: An edge's gradient must fall to half its peak within this many ``sigma`` of it, each side.
+SHARP = 3.0
 
 
 @dataclass
@@ -68,6 +74,9 @@ class SnapResult:
         return int((~self.snapped).sum())
 
 
+_LUMA = np.array([0.2126, 0.7152, 0.0722])  # Rec. 709
+
+
 def grey(image) -> np.ndarray:
     """(H,W) float64 luminance of an ``(H,W)`` or ``(H,W,C)`` image (RGB(A): Rec. 709 weights)."""
     im = np.asarray(image, dtype=np.float64)
@@ -76,7 +85,7 @@ def grey(image) -> np.ndarray:
     if im.ndim != 3:
         raise FaceLabError(f"The plate must be an (H,W) or (H,W,C) image, got shape {im.shape}; read it as pixels.")
     if im.shape[2] >= 3:
-        return im[..., :3] @ np.array([0.2126, 0.7152, 0.0722])
+        return im[..., :3] @ _LUMA
     return im[..., 0]
 
 
@@ -106,9 +115,10 @@ def _smooth(meas, weight, smooth: float) -> np.ndarray:
     return linalg.solveh_banded(ab, b)
 
 
-def snap_stroke(image, stroke_px, *, search_px: float = SEARCH_PX, sigma: float = 1.0, contrast: float = 5.0,
-                smooth: float = 2.0, polarity: int | None = None, noise: float | None = None,
-                quantum: float = 1.0 / 255.0, min_run_px: float = 12.0, prepared=None) -> SnapResult:
+def snap_stroke(image, stroke_px, *, search_px: float = SEARCH_PX, sigma: float = 1.0, contrast: float = 8.0,
+                smooth: float = 2.0, polarity: int | None = None, mouth_side=None, noise: float | None = None,
+                quantum: float = 1.0 / 255.0, min_run_px: float = 12.0, bend: float = BEND,
+                prepared=None) -> SnapResult:
     """Move the points of one stroke along its normal onto the plate's edge.
 
     Parameters
@@ -127,8 +137,13 @@ def snap_stroke(image, stroke_px, *, search_px: float = SEARCH_PX, sigma: float 
     smooth : float
         Weight of the offsets' second differences along the stroke (0: each point on its own).
     polarity : int, optional
-        +1 / -1 to take only edges whose gradient along the left-hand normal has that sign; default:
-        the sign most points' strongest edge has.
+        +1 / -1 to take only edges whose gradient along the left-hand normal has that sign.
+    mouth_side : (2,) array_like, optional
+        Image direction ``(dx, dy)`` (y down) in which the mouth's interior lies from this stroke
+        (``(0, 1)`` for an upper lip, ``(0, -1)`` for a lower one): the edge taken is darker on that side,
+        and on a colour image the edge is measured in the colour that tells the lip from the darker
+        side (the plate's own lip-to-mouth contrast). Ignored when ``polarity`` is given; without either,
+        the polarity most points' strongest edge has.
     noise : float, optional
         The image's noise, standard deviation in its units; default :func:`image_noise` of ``image``.
     quantum : float
@@ -136,9 +151,11 @@ def snap_stroke(image, stroke_px, *, search_px: float = SEARCH_PX, sigma: float 
     min_run_px : float
         Edges found along less than this length of the stroke (pixels) are not taken: a lip edge runs
         along the stroke, a shadow or a crease crossing it does not.
-    prepared : tuple, optional
-        ``(gy, gx)`` spline coefficients from an earlier call on the same image and ``sigma``
-        (:func:`snap_strokes` shares them; pass ``noise`` with them).
+    bend : float
+        Cost of the offset changing by one pixel between neighbouring points, in units of an edge at the
+        detection level (the path along the stroke is chosen by dynamic programming over the offsets).
+    prepared : dict, optional
+        Gradients from :func:`prepare` of the same image and ``sigma`` (:func:`snap_strokes` shares them).
 
     Returns
     -------
@@ -148,24 +165,33 @@ def snap_stroke(image, stroke_px, *, search_px: float = SEARCH_PX, sigma: float 
     n = len(P)
     if n == 0:
         return SnapResult(P.copy(), np.zeros(0), np.zeros(0, bool))
-    if not (search_px > 0 and sigma > 0 and contrast > 0 and smooth >= 0):
-        raise FaceLabError("snap_stroke needs search_px, sigma and contrast > 0 and smooth >= 0; use the defaults.")
-    gy, gx = prepared if prepared is not None else _gradients(grey(image), sigma)
+    if not (search_px > 0 and sigma > 0 and contrast > 0 and smooth >= 0 and bend >= 0):
+        raise FaceLabError("snap_stroke needs search_px, sigma and contrast > 0, smooth and bend >= 0; use the "
+                           "defaults.")
+    prep = prepared if prepared is not None else prepare(image, sigma)
     N = _normals(P)
     t = np.arange(-search_px, search_px + 1e-9, _STEP)  # (S,) offsets along the normal
     Q = P[:, None, :] + t[None, :, None] * N[:, None, :]  # (N,S,2) pixels
     coords = np.stack([Q[..., 1].ravel() - 0.5, Q[..., 0].ravel() - 0.5])  # (row, col) of the pixel centres
-    g = (ndimage.map_coordinates(gx, coords, order=3, mode="nearest", prefilter=False) * np.repeat(N[:, 0], len(t))
-         + ndimage.map_coordinates(gy, coords, order=3, mode="nearest", prefilter=False) * np.repeat(N[:, 1], len(t)))
-    g = g.reshape(n, len(t))  # directional derivative along the normal, (N,S)
-    inside = ((Q[..., 0] >= 0) & (Q[..., 0] <= gx.shape[1]) & (Q[..., 1] >= 0) & (Q[..., 1] <= gx.shape[0]))
-    g = np.where(inside, g, 0.0)
+    inside = ((Q[..., 0] >= 0) & (Q[..., 0] <= prep["shape"][1]) & (Q[..., 1] >= 0) & (Q[..., 1] <= prep["shape"][0]))
+
+    def profile(k):  # directional derivative of channel k along the normal, (N,S)
+        gy, gx = prep["gy"][k], prep["gx"][k]
+        g = (ndimage.map_coordinates(gx, coords, order=3, mode="nearest", prefilter=False) * np.repeat(N[:, 0], len(t))
+             + ndimage.map_coordinates(gy, coords, order=3, mode="nearest", prefilter=False)
+             * np.repeat(N[:, 1], len(t)))
+        return np.where(inside, g.reshape(n, len(t)), 0.0)
+
+    g = profile(0)  # grey
     if noise is None:
-        noise = image_noise(grey(image), quantum)
+        noise = image_noise(prep["grey"], quantum)
     # an edge stands `contrast` noise deviations above the profile on both sides, and above twice a step of
     # one storage level (a banded gradient of 8-bit footage is no edge)
-    level = max(contrast * float(noise) * _derivative_gain(sigma), 2.0 * quantum / (np.sqrt(2 * np.pi) * sigma),
-                1e-300)
+    floor = 2.0 * quantum / (np.sqrt(2 * np.pi) * sigma)
+    level = max(contrast * float(noise) * _derivative_gain(sigma), floor, 1e-300)
+    if polarity is None and mouth_side is not None:
+        side = float(np.mean(N @ np.asarray(mouth_side, dtype=np.float64)))
+        polarity = -int(np.sign(side))  # darker towards the mouth: the gradient along the normal falls there
     if polarity is None:
         best = g[np.arange(n), np.abs(g).argmax(1)]
         strong = np.abs(best) > level
@@ -173,6 +199,18 @@ def snap_stroke(image, stroke_px, *, search_px: float = SEARCH_PX, sigma: float 
     if polarity == 0:
         return SnapResult(P.copy(), np.zeros(n), np.zeros(n, bool), 0)
     s = polarity * g
+    if mouth_side is not None and len(prep["gy"]) > 1:
+        # the colour that tells the lip from the mouth: the principal direction of the colour gradients at each
+        # point's strongest one (signed so it brightens with luminance: the mouth is the darker side); the
+        # profile is then the gradient of the image in that colour
+        G = np.stack([profile(k) for k in range(1, len(prep["gy"]))])  # (C,N,S)
+        j = np.einsum("cns,cns->ns", G, G).argmax(1)
+        v = G[:, np.arange(n), j]  # (C,N)
+        w = np.linalg.eigh(v @ v.T)[1][:, -1]
+        w *= 1.0 if w @ _LUMA[:len(w)] >= 0 else -1.0
+        s = polarity * np.tensordot(w, G, 1)
+        level = max(contrast * image_noise(np.tensordot(w, prep["colour"], 1), quantum) * _derivative_gain(sigma),
+                    floor * float(np.abs(w).sum()), 1e-300)
     # local maxima above the level, with their subpixel offsets
     peak = np.zeros_like(s, dtype=bool)
     peak[:, 1:-1] = (s[:, 1:-1] > level) & (s[:, 1:-1] >= s[:, :-2]) & (s[:, 1:-1] > s[:, 2:])
@@ -180,6 +218,17 @@ def snap_stroke(image, stroke_px, *, search_px: float = SEARCH_PX, sigma: float 
     for r, c in zip(*np.nonzero(peak)):
         if s[r, c] - max(s[r, :c].min(), s[r, c + 1:].min()) < level:
             peak[r, c] = False
+    # width: a Gaussian through the three samples around the peak (a parabola through their logarithms, exact
+    # for a blurred step) no wider than `SHARP` sigmas (an edge as sharp as the plate's own, not a defocused one)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ls = np.log(np.maximum(s, 1e-300))
+        den = np.zeros_like(s)
+        den[:, 1:-1] = ls[:, :-2] - 2 * ls[:, 1:-1] + ls[:, 2:]
+        peak &= den < -(_STEP / (SHARP * sigma)) ** 2
+    # the path of offsets along the stroke: dynamic programming, each point scoring its edge strength (in levels,
+    # at most 3) and paying `bend` per pixel the offset changes from the previous point's
+    score = np.where(peak, np.minimum(s / level, 3.0), 0.0)
+    path = _best_path(score, t, bend)
     rows, cols = np.nonzero(peak)
     b = s[rows, cols]
     # a Gaussian through the three samples (a parabola through their logarithms): exact for a blurred step
@@ -188,26 +237,32 @@ def snap_stroke(image, stroke_px, *, search_px: float = SEARCH_PX, sigma: float 
     den = a - 2 * lb + c
     frac = np.where(den < 0, 0.5 * (a - c) / np.where(den < 0, den, -1.0), 0.0)
     pos = t[cols] + _STEP * np.clip(frac, -0.5, 0.5)
-    # first pick: the strongest edge of each point; then the one nearest the smoothed line
     meas = np.zeros(n)
     found = np.zeros(n, bool)
-    strength = np.full(n, -np.inf)
-    for r, p, v in zip(rows, pos, b):
-        if v > strength[r]:
-            strength[r], meas[r], found[r] = v, p, True
+    on_path = np.abs(t[cols] - path[rows]) < 1e-9
+    meas[rows[on_path]], found[rows[on_path]] = pos[on_path], True
+    found = _long_runs(P, found, min_run_px)
     d = _smooth(meas, found.astype(np.float64), smooth)
-    if len(rows):
-        meas2 = meas.copy()
-        gap = np.full(n, np.inf)
-        for r, p in zip(rows, pos):
-            e = abs(p - d[r])
-            if e < gap[r]:
-                gap[r], meas2[r] = e, p
-        found &= gap <= 1.0 + 0.25 * search_px  # an edge far off the smoothed line: none for this point
-        found = _long_runs(P, found, min_run_px)
-        d = _smooth(meas2, found.astype(np.float64), smooth)
     d = np.where(found, d, 0.0)
     return SnapResult(P + d[:, None] * N, d, found, polarity if found.any() else 0)
+
+
+def _best_path(score, t, bend) -> np.ndarray:
+    """(N,) offsets (values of ``t``) maximising ``sum score[i, k_i] - bend sum |t[k_i] - t[k_(i-1)]|`` over one
+    sample ``k_i`` of ``t`` (S,) per point; ``score`` (N,S). Viterbi."""
+    n, S = score.shape
+    pen = bend * np.abs(t[:, None] - t[None, :])  # (S,S) from -> to
+    acc = score[0].copy()
+    back = np.zeros((n, S), dtype=np.int64)
+    for i in range(1, n):
+        m = acc[:, None] - pen
+        back[i] = m.argmax(0)
+        acc = m[back[i], np.arange(S)] + score[i]
+    k = np.zeros(n, dtype=np.int64)
+    k[-1] = int(acc.argmax())
+    for i in range(n - 1, 0, -1):
+        k[i - 1] = back[i, k[i]]
+    return t[k]
 
 
 def _long_runs(P, found, min_len) -> np.ndarray:
@@ -266,6 +321,18 @@ def _gradients(img, sigma):
     return ndimage.spline_filter(gy, order=3), ndimage.spline_filter(gx, order=3)
 
 
+def prepare(image, sigma: float = 1.0) -> dict:
+    """What :func:`snap_stroke` reads of an image, computed once for all its strokes: the grey image
+    ``"grey"`` (H,W), the colour channels ``"colour"`` (C,H,W) (RGB; none for a grey image), and the
+    cubic spline coefficients of the Gaussian derivatives (scale ``sigma`` px) of grey then each colour,
+    ``"gy"`` / ``"gx"`` (1+C,H,W), and ``"shape"`` (H, W)."""
+    im = np.asarray(image, dtype=np.float64)
+    g = grey(im)
+    colour = np.moveaxis(im[..., :3], 2, 0) if im.ndim == 3 and im.shape[2] >= 3 else np.zeros((0,) + g.shape)
+    grads = [_gradients(c, sigma) for c in (g, *colour)]
+    return dict(grey=g, colour=colour, gy=[a for a, _ in grads], gx=[b for _, b in grads], shape=g.shape)
+
+
 def snap_strokes(image, strokes, **options) -> list:
     """:func:`snap_stroke` for each stroke of one image (its gradients and noise computed once, on the part
     of the image around the strokes). ``strokes``: list of (N,2) pixel arrays; ``options``: those of
@@ -285,13 +352,69 @@ def snap_strokes(image, strokes, **options) -> list:
     x1, y1 = min(int(np.ceil(pts[:, 0].max() + reach)), W), min(int(np.ceil(pts[:, 1].max() + reach)), H)
     if x1 <= x0 or y1 <= y0:  # the strokes are off the image: nothing to snap to
         return [SnapResult(p.copy(), np.zeros(len(p)), np.zeros(len(p), bool)) for p in strokes]
-    crop = img[y0:y1, x0:x1]
-    prepared = _gradients(crop, sigma)
+    crop = np.asarray(image, dtype=np.float64)[y0:y1, x0:x1]
+    prepared = prepare(crop, sigma)
     if options.get("noise") is None:
-        options = dict(options, noise=image_noise(crop, quantum))
+        options = dict(options, noise=image_noise(prepared["grey"], quantum))
     off = np.array([x0, y0], dtype=np.float64)
     out = []
     for p in strokes:
         r = snap_stroke(crop, p - off, prepared=prepared, **options)
         out.append(SnapResult(r.points + off, r.offsets, r.snapped, r.polarity))
     return out
+
+
+def snap_lips(image, upper, lower, *, min_gap_px: float = 1.0, **options) -> tuple:
+    """Snap the strokes of both inner lips of one image: :func:`snap_strokes` with the mouth below the
+    upper strokes and above the lower ones, then the mouth checked open where a point moved.
+
+    A point stays snapped only where, at its image column, the other lip's line (its points as snapped,
+    or as drawn where they were left) lies on the mouth's side by more than ``min_gap_px`` pixels: where
+    the lips touch or overlap (a sealed mouth: no interior between the lips, so no inner-lip edge to find),
+    the points are left as drawn, in both strokes.
+
+    Parameters
+    ----------
+    image : (H,W) or (H,W,C) array_like
+    upper, lower : list of (N,2) array_like
+        The strokes of each lip, pixels (top-left corner origin, y down).
+    min_gap_px : float
+        How far apart the lips must be to count as open, pixels.
+    **options
+        Of :func:`snap_stroke` (not ``mouth_side``).
+
+    Returns
+    -------
+    (list of SnapResult, list of SnapResult)
+        Upper and lower, one per stroke, in order.
+    """
+    drawn = {lab: [np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in strokes]
+             for lab, strokes in (("upper", upper), ("lower", lower))}
+    res = {lab: snap_strokes(image, drawn[lab], mouth_side=side, **options)
+           for lab, side in (("upper", (0.0, 1.0)), ("lower", (0.0, -1.0)))}
+
+    def line(results):  # (x sorted, y) of all the points of one lip's strokes as snapped
+        pts = np.vstack([r.points for r in results if len(r.points)]) if any(len(r.points) for r in results) \
+            else np.zeros((0, 2))
+        return pts[np.argsort(pts[:, 0])]
+
+    lines = {lab: line(res[lab]) for lab in res}
+    out = {}
+    for lab, other, sign in (("upper", "lower", 1.0), ("lower", "upper", -1.0)):
+        kept = []
+        for r, P0 in zip(res[lab], drawn[lab]):
+            snapped = r.snapped.copy()
+            o = lines[other]
+            if len(o) >= 2 and snapped.any():
+                x, y = r.points[:, 0], r.points[:, 1]
+                within = (x >= o[0, 0]) & (x <= o[-1, 0])
+                gap = sign * (np.interp(x, o[:, 0], o[:, 1]) - y)  # towards the mouth, pixels
+                snapped &= ~(within & (gap <= min_gap_px))
+            if (snapped == r.snapped).all():
+                kept.append(r)
+                continue
+            d = np.where(snapped, r.offsets, 0.0)
+            P = np.where(snapped[:, None], r.points, P0)
+            kept.append(SnapResult(P, d, snapped, r.polarity if snapped.any() else 0))
+        out[lab] = kept
+    return out["upper"], out["lower"]
