@@ -188,6 +188,65 @@ def test_snap_to_plate_brings_jittered_strokes_onto_the_rendered_lip_line(sample
     assert gp[SNAP_REPORT_PROP] == report
 
 
+def _select_strokes(gp, layer_name, frame, which):
+    """Select (in the drawing's point selection) the points of the strokes ``which`` (indices) only."""
+    layer = next(lay for lay in gp.data.layers if lay.name.lower() == layer_name.lower())
+    d = layer.get_frame_at(frame).drawing
+    offsets = np.empty(len(d.curve_offsets), np.int32)
+    d.curve_offsets.foreach_get("value", offsets)
+    sel = d.attributes.get(".selection") or d.attributes.new(".selection", "BOOLEAN", "POINT")
+    vals = np.zeros(int(offsets[-1]), bool)
+    for i in which:
+        vals[offsets[i]:offsets[i + 1]] = True
+    sel.data.foreach_set("value", vals)
+    return d
+
+
+def test_snap_is_a_per_stroke_choice(sample):
+    from facelab_addon.blender.sketch_snap import stroke_snap_choices
+    from facelab_addon.testing.route import jitter_stroke
+
+    data, scene, face, gp, cam, (up, lo) = _sketch(sample)
+    rng = np.random.default_rng(5)
+    k = len(lo) // 2
+    halves = [jitter_stroke(lo[:k + 1], 3.0, rng), jitter_stroke(lo[k:], 3.0, rng)]  # the lower lip in 2 strokes
+    write_stroke_pixels(gp, "Upper lip", FRAME, [jitter_stroke(up, 3.0, rng)], cam)
+    write_stroke_pixels(gp, "Lower lip", FRAME, halves, cam)
+    plain = read_lip_strokes(scene, cam, FRAME, gp_obj=gp)
+    assert SNAP_REPORT_PROP not in gp  # nothing asks for snapping yet
+    # Snap Selected Strokes on the first half only, the sketch's option off: that stroke alone is read snapped
+    d = _select_strokes(gp, "Lower lip", FRAME, [0])
+    assert bpy.ops.facelab.snap_selected_strokes(choice="ON") == {"FINISHED"}
+    np.testing.assert_array_equal(stroke_snap_choices(d), [1, 0])
+    got = read_lip_strokes(scene, cam, FRAME, gp_obj=gp)
+    first = _contour_error(got["lower"][0], lo)
+    assert first.mean() < 0.5 * _contour_error(plain["lower"][0], lo).mean(), first.mean()
+    np.testing.assert_array_equal(got["lower"][1], plain["lower"][1])
+    np.testing.assert_array_equal(got["upper"][0], plain["upper"][0])
+    n = len(plain["lower"][0])
+    assert gp[SNAP_REPORT_PROP].startswith("snapped ") and f" of {n} points" in gp[SNAP_REPORT_PROP]
+    # the sketch's option on, the first half set to Never: every other stroke is snapped, that one is not
+    assert bpy.ops.facelab.snap_selected_strokes(choice="OFF") == {"FINISHED"}
+    gp[SNAP_PROP] = True
+    got = read_lip_strokes(scene, cam, FRAME, gp_obj=gp)
+    np.testing.assert_array_equal(got["lower"][0], plain["lower"][0])
+    assert np.any(got["lower"][1] != plain["lower"][1]) and np.any(got["upper"][0] != plain["upper"][0])
+    # back to As Sketch: the first half follows the option again; snap=False still reads all as drawn
+    assert bpy.ops.facelab.snap_selected_strokes(choice="SKETCH") == {"FINISHED"}
+    got = read_lip_strokes(scene, cam, FRAME, gp_obj=gp)
+    assert np.any(got["lower"][0] != plain["lower"][0])
+    none = read_lip_strokes(scene, cam, FRAME, gp_obj=gp, snap=False)
+    for lab in ("upper", "lower"):
+        for a, b in zip(none[lab], plain[lab]):
+            np.testing.assert_array_equal(a, b)
+    # no stroke selected: the operator says so and changes nothing
+    _select_strokes(gp, "Lower lip", FRAME, [])
+    _select_strokes(gp, "Upper lip", FRAME, [])
+    assert bpy.ops.facelab.snap_selected_strokes(choice="ON") == {"CANCELLED"}
+    np.testing.assert_array_equal(stroke_snap_choices(d), [0, 0])
+    del gp[SNAP_PROP]
+
+
 # --------------------------------------------------------------------------- Live Refine
 def _half(P, first=True):
     k = len(P) // 2
