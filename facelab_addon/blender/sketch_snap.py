@@ -116,13 +116,16 @@ def snap_to_plate(cam_obj, camera: Camera, frame: int, strokes: dict, only=None,
         opts["search_px"] = opts["search_px"] * sx
     scaled = {lab: [np.asarray(p) * [sx, sy] for p in strokes[lab]] for lab in ("upper", "lower")}
     snapped = dict(zip(("upper", "lower"), snap_lips(img, scaled["upper"], scaled["lower"], **opts)))
-    out, moved, left = {}, 0, 0
+    out, moved, left, sealed = {}, 0, 0, 0
     for lab, res in snapped.items():
         use = [True] * len(res) if only is None else [bool(u) for u in only[lab]]
         out[lab] = [r.points / [sx, sy] if u else np.asarray(p) for r, p, u in zip(res, strokes[lab], use)]
         moved += sum(r.n_snapped for r, u in zip(res, use) if u)
         left += sum(r.n_left for r, u in zip(res, use) if u)
+        sealed += sum(r.n_sealed for r, u in zip(res, use) if u)
     report = f"snapped {moved} of {moved + left} points to the plate"
-    if left:
-        report += f"; {left} left as drawn (no sharp lip edge within reach, or the lips touch there)"
+    if left - sealed:
+        report += f"; {left - sealed} left as drawn (no sharp lip edge within reach)"
+    if sealed:
+        report += f"; {sealed} left as drawn where the lips touch or overlap (sealed: no inner-lip edge)"
     return out, report

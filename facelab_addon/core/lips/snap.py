@@ -28,7 +28,7 @@ from scipy import linalg, ndimage
 
 from ..errors import FaceLabError
 
-__all__ = ["BEND", "SEARCH_PX", "SHARP", "SnapResult", "grey", "image_noise", "prepare", "snap_lips", "snap_stroke",
+__all__ = ["BEND", "BRIDGE_PX", "SEARCH_PX", "SHARP", "SnapResult", "grey", "image_noise", "prepare", "snap_lips", "snap_stroke",
            "snap_strokes"]
 
 _STEP = 0.5  # profile sample spacing, pixels
@@ -38,6 +38,8 @@ SEARCH_PX = 7.5
 #: Cost of a 1 px change of the snapped offset between neighbouring stroke points, in edges at the detection
 #: level (chosen on the sample plate's frames 2, 5, 8, ...).
 BEND = 2.0
+#: Longest stretch of a stroke without an edge, between points with one, that moves with them, pixels.
+BRIDGE_PX = 8.0
 #: An edge's gradient must fall to half its peak within this many ``sigma`` of it, each side.
 SHARP = 3.0
 
@@ -57,12 +59,21 @@ class SnapResult:
     polarity : int
         +1 / -1: the sign of the image gradient along the stroke's normal (its left-hand normal in
         the image, y down) of the edge snapped to; 0 when no edge was found.
+    sealed : (N,) bool or None
+        Points left as drawn because the lips touch or overlap there (:func:`snap_lips`); None: not
+        checked.
     """
 
     points: np.ndarray
     offsets: np.ndarray
     snapped: np.ndarray
     polarity: int = 0
+    sealed: np.ndarray | None = None
+
+    @property
+    def n_sealed(self) -> int:
+        """Points left as drawn because the lips touch or overlap there."""
+        return 0 if self.sealed is None else int(self.sealed.sum())
 
     @property
     def n_snapped(self) -> int:
@@ -96,11 +107,12 @@ def _normals(P) -> np.ndarray:
     return np.c_[-T[:, 1], T[:, 0]]
 
 
-def _smooth(meas, weight, smooth: float) -> np.ndarray:
+def _smooth(meas, weight, smooth: float, free=None) -> np.ndarray:
     """Offsets ``d`` minimising ``sum w (d - meas)^2 + smooth sum (d[i+1] - 2 d[i] + d[i-1])^2``, with the
-    points of weight 0 held at 0 (left alone). (N,) float64."""
+    points of weight 0 held at 0 (left alone) unless ``free`` (N,) bool (then set by their neighbours).
+    (N,) float64."""
     n = len(meas)
-    held = weight <= 0
+    held = (weight <= 0) & (True if free is None else ~np.asarray(free, bool))
     if n < 3 or smooth <= 0:
         return np.where(held, 0.0, meas)
     D = np.zeros((n - 2, n))
@@ -118,7 +130,7 @@ def _smooth(meas, weight, smooth: float) -> np.ndarray:
 def snap_stroke(image, stroke_px, *, search_px: float = SEARCH_PX, sigma: float = 1.0, contrast: float = 8.0,
                 smooth: float = 2.0, polarity: int | None = None, mouth_side=None, noise: float | None = None,
                 quantum: float = 1.0 / 255.0, min_run_px: float = 12.0, bend: float = BEND,
-                prepared=None) -> SnapResult:
+                bridge_px: float = BRIDGE_PX, prepared=None) -> SnapResult:
     """Move the points of one stroke along its normal onto the plate's edge.
 
     Parameters
@@ -151,6 +163,9 @@ def snap_stroke(image, stroke_px, *, search_px: float = SEARCH_PX, sigma: float 
     min_run_px : float
         Edges found along less than this length of the stroke (pixels) are not taken: a lip edge runs
         along the stroke, a shadow or a crease crossing it does not.
+    bridge_px : float
+        Points without an edge between points with one, along at most this length of the stroke (pixels),
+        move with their neighbours (the smoothing sets them); longer stretches are left as drawn.
     bend : float
         Cost of the offset changing by one pixel between neighbouring points, in units of an edge at the
         detection level (the path along the stroke is chosen by dynamic programming over the offsets).
@@ -200,13 +215,16 @@ def snap_stroke(image, stroke_px, *, search_px: float = SEARCH_PX, sigma: float 
         return SnapResult(P.copy(), np.zeros(n), np.zeros(n, bool), 0)
     s = polarity * g
     if mouth_side is not None and len(prep["gy"]) > 1:
-        # the colour that tells the lip from the mouth: the principal direction of the colour gradients at each
-        # point's strongest one (signed so it brightens with luminance: the mouth is the darker side); the
-        # profile is then the gradient of the image in that colour
+        # the colour that tells the lip from the mouth best above the plate's noise: the colour gradients at
+        # each point's strongest one, signed alike (their principal direction, brightening with luminance: the
+        # mouth is the darker side) and summed, whitened by the noise covariance of the colours (a matched
+        # filter: the channel of largest edge-to-noise ratio); the profile is then the gradient in that colour
         G = np.stack([profile(k) for k in range(1, len(prep["gy"]))])  # (C,N,S)
         j = np.einsum("cns,cns->ns", G, G).argmax(1)
         v = G[:, np.arange(n), j]  # (C,N)
-        w = np.linalg.eigh(v @ v.T)[1][:, -1]
+        e = np.linalg.eigh(v @ v.T)[1][:, -1]
+        w = np.linalg.solve(prep["noise_cov"], (v * np.sign(e @ v)).sum(1))
+        w /= max(float(np.linalg.norm(w)), 1e-300)
         w *= 1.0 if w @ _LUMA[:len(w)] >= 0 else -1.0
         s = polarity * np.tensordot(w, G, 1)
         level = max(contrast * image_noise(np.tensordot(w, prep["colour"], 1), quantum) * _derivative_gain(sigma),
@@ -241,10 +259,27 @@ def snap_stroke(image, stroke_px, *, search_px: float = SEARCH_PX, sigma: float 
     found = np.zeros(n, bool)
     on_path = np.abs(t[cols] - path[rows]) < 1e-9
     meas[rows[on_path]], found[rows[on_path]] = pos[on_path], True
+    # a few points without an edge between points with one (a faint stretch of the same edge): bridged by
+    # the smoothing, not left behind as drawn
     found = _long_runs(P, found, min_run_px)
-    d = _smooth(meas, found.astype(np.float64), smooth)
-    d = np.where(found, d, 0.0)
-    return SnapResult(P + d[:, None] * N, d, found, polarity if found.any() else 0)
+    moved = found | _gaps(P, found, bridge_px)
+    d = _smooth(meas, found.astype(np.float64), smooth, free=moved & ~found)
+    d = np.where(moved, d, 0.0)
+    return SnapResult(P + d[:, None] * N, d, moved, polarity if moved.any() else 0)
+
+
+def _gaps(P, found, max_len) -> np.ndarray:
+    """(N,) bool: the points of the runs of False in ``found`` (N,) that have True on both sides and span
+    at most ``max_len`` pixels of the polyline ``P`` (N,2) between those two True points."""
+    out = np.zeros(len(found), bool)
+    idx = np.flatnonzero(found)
+    if len(idx) < 2 or max_len <= 0:
+        return out
+    s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))]
+    for a, b in zip(idx[:-1], idx[1:]):
+        if b - a > 1 and s[b] - s[a] <= max_len:
+            out[a + 1:b] = True
+    return out
 
 
 def _best_path(score, t, bend) -> np.ndarray:
@@ -323,14 +358,25 @@ def _gradients(img, sigma):
 
 def prepare(image, sigma: float = 1.0) -> dict:
     """What :func:`snap_stroke` reads of an image, computed once for all its strokes: the grey image
-    ``"grey"`` (H,W), the colour channels ``"colour"`` (C,H,W) (RGB; none for a grey image), and the
-    cubic spline coefficients of the Gaussian derivatives (scale ``sigma`` px) of grey then each colour,
-    ``"gy"`` / ``"gx"`` (1+C,H,W), and ``"shape"`` (H, W)."""
+    ``"grey"`` (H,W), the colour channels ``"colour"`` (C,H,W) (RGB; none for a grey image), their noise
+    covariance ``"noise_cov"`` (C,C), the cubic spline coefficients of the Gaussian derivatives (scale
+    ``sigma`` px) of grey then each colour, ``"gy"`` / ``"gx"`` (1+C,H,W), and ``"shape"`` (H, W)."""
     im = np.asarray(image, dtype=np.float64)
     g = grey(im)
     colour = np.moveaxis(im[..., :3], 2, 0) if im.ndim == 3 and im.shape[2] >= 3 else np.zeros((0,) + g.shape)
     grads = [_gradients(c, sigma) for c in (g, *colour)]
-    return dict(grey=g, colour=colour, gy=[a for a, _ in grads], gx=[b for _, b in grads], shape=g.shape)
+    cov = np.eye(len(colour))
+    if len(colour):
+        # the colours' noise covariance: of their finest detail (image minus its 1 px blur), the pixels within
+        # 4 robust deviations in every channel (edges left out)
+        r = np.stack([c - ndimage.gaussian_filter(c, 1.0) for c in colour]).reshape(len(colour), -1)
+        dev = np.abs(r - np.median(r, axis=1, keepdims=True))
+        ok = np.all(dev <= 4 * 1.4826 * np.median(dev, axis=1, keepdims=True) + 1e-300, axis=0)
+        if ok.sum() > 2 * len(colour):
+            cov = np.cov(r[:, ok])
+        cov = cov + (1e-12 + 1e-6 * np.trace(cov)) * np.eye(len(colour))
+    return dict(grey=g, colour=colour, gy=[a for a, _ in grads], gx=[b for _, b in grads], shape=g.shape,
+                noise_cov=cov)
 
 
 def snap_strokes(image, strokes, **options) -> list:
@@ -364,14 +410,16 @@ def snap_strokes(image, strokes, **options) -> list:
     return out
 
 
-def snap_lips(image, upper, lower, *, min_gap_px: float = 1.0, **options) -> tuple:
+def snap_lips(image, upper, lower, *, min_gap_px: float = 1.0, max_crossed: float = 0.5, **options) -> tuple:
     """Snap the strokes of both inner lips of one image: :func:`snap_strokes` with the mouth below the
     upper strokes and above the lower ones, then the mouth checked open where a point moved.
 
     A point stays snapped only where, at its image column, the other lip's line (its points as snapped,
     or as drawn where they were left) lies on the mouth's side by more than ``min_gap_px`` pixels: where
     the lips touch or overlap (a sealed mouth: no interior between the lips, so no inner-lip edge to find),
-    the points are left as drawn, in both strokes.
+    the points are left as drawn, in both strokes. Where the strokes as drawn cross (the upper one below the
+    lower) along more than ``max_crossed`` of their common width, the artist drew overlapping lips: every
+    point is left as drawn.
 
     Parameters
     ----------
@@ -380,6 +428,8 @@ def snap_lips(image, upper, lower, *, min_gap_px: float = 1.0, **options) -> tup
         The strokes of each lip, pixels (top-left corner origin, y down).
     min_gap_px : float
         How far apart the lips must be to count as open, pixels.
+    max_crossed : float
+        Largest fraction of their common width along which the drawn strokes may cross.
     **options
         Of :func:`snap_stroke` (not ``mouth_side``).
 
@@ -399,22 +449,30 @@ def snap_lips(image, upper, lower, *, min_gap_px: float = 1.0, **options) -> tup
         return pts[np.argsort(pts[:, 0])]
 
     lines = {lab: line(res[lab]) for lab in res}
+    # drawn crossing over most of their common width: the lips overlap (a sealed mouth drawn as the lips'
+    # silhouettes), whatever edges the strokes found
+    up0, lo0 = (line([SnapResult(p, np.zeros(len(p)), np.zeros(len(p), bool)) for p in drawn[lab]])
+                for lab in ("upper", "lower"))
+    crossed = False
+    if len(up0) >= 2 and len(lo0) >= 2:
+        w = (up0[:, 0] >= lo0[0, 0]) & (up0[:, 0] <= lo0[-1, 0])
+        crossed = bool(w.any()) and float(np.mean(np.interp(up0[w, 0], lo0[:, 0], lo0[:, 1]) - up0[w, 1] <= 0)) \
+            > max_crossed
     out = {}
     for lab, other, sign in (("upper", "lower", 1.0), ("lower", "upper", -1.0)):
         kept = []
         for r, P0 in zip(res[lab], drawn[lab]):
             snapped = r.snapped.copy()
             o = lines[other]
-            if len(o) >= 2 and snapped.any():
+            if crossed:
+                snapped[:] = False
+            elif len(o) >= 2 and snapped.any():
                 x, y = r.points[:, 0], r.points[:, 1]
                 within = (x >= o[0, 0]) & (x <= o[-1, 0])
                 gap = sign * (np.interp(x, o[:, 0], o[:, 1]) - y)  # towards the mouth, pixels
                 snapped &= ~(within & (gap <= min_gap_px))
-            if (snapped == r.snapped).all():
-                kept.append(r)
-                continue
             d = np.where(snapped, r.offsets, 0.0)
             P = np.where(snapped[:, None], r.points, P0)
-            kept.append(SnapResult(P, d, snapped, r.polarity if snapped.any() else 0))
+            kept.append(SnapResult(P, d, snapped, r.polarity if snapped.any() else 0, r.snapped & ~snapped))
         out[lab] = kept
     return out["upper"], out["lower"]
