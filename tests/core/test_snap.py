@@ -153,3 +153,24 @@ def test_defocused_edge_is_no_edge():
     np.testing.assert_array_equal(r.points, stroke)
     sharp = area_image(100, 140, lambda x, y: y > 50.0, blur=0.7, noise=0.003)
     assert snap_strokes(sharp, [stroke], mouth_side=(0, 1))[0].n_snapped == 41
+
+
+def test_a_short_faint_stretch_moves_with_the_edge_a_long_one_stays():
+    # the lip edge at y = 40.3 is flat grey for 7 px around x = 50 (a faint stretch) and gone from x = 80 on
+    img = area_image(80, 140, lambda x, y: (y > 40.3) & (x < 80), noise=0.003)
+    img[:, 47:54] = 0.45
+    x = np.linspace(10, 130, 121)  # 1 px apart
+    stroke = np.c_[x, np.full_like(x, 42.5)]
+    (r,) = snap_strokes(img, [stroke], mouth_side=(0, 1))
+    short = np.abs(x - 50.5) <= 1.0
+    on = (x < 75) & ~(np.abs(x - 50.5) < 6)
+    assert r.snapped[short].all() and r.snapped[on].all()
+    np.testing.assert_allclose(r.points[on, 1], 40.3, atol=0.1)
+    np.testing.assert_allclose(r.points[short, 1], 40.3, atol=0.3)  # set by its neighbours on the edge
+    far = x > 95
+    assert not r.snapped[far].any()
+    np.testing.assert_array_equal(r.points[far], stroke[far])
+    # without bridging, the faint stretch stays where it was drawn
+    (r0,) = snap_strokes(img, [stroke], mouth_side=(0, 1), bridge_px=0)
+    assert not r0.snapped[short].any()
+    np.testing.assert_array_equal(r0.points[short], stroke[short])
