@@ -6,20 +6,27 @@ stroke with the per-curve attribute :data:`~facelab_addon.names.SNAP_ATTR` of it
 -1 never, 0 as the sketch says: :func:`stroke_snap_choices`, :func:`set_stroke_snap`);
 :func:`.strokes.read_lip_strokes` then returns the snapped strokes (the strokes drawn are never changed)
 and writes what snapping did to :data:`~facelab_addon.names.SNAP_REPORT_PROP`. The plate is read with
-:func:`.plate.plate_file` / :func:`.plate.plate_pixels` (image sequences, as a Movie Clip or an Image, and
-stills).
+:func:`plate_image`: image sequences (as a Movie Clip or an Image) and stills by
+:func:`.plate.plate_file` / :func:`.plate.plate_pixels`, a movie file loaded as a Movie Clip by decoding its
+frame with Blender's FFmpeg (:func:`movie_frame_pixels`).
 """
 
 from __future__ import annotations
 
+import os
+import tempfile
+from pathlib import Path
+
+import bpy
 import numpy as np
 
 from ..core.capture.camera import Camera
 from ..core.lips.snap import snap_lips
 from ..names import SNAP_ATTR
-from .plate import plate_file, plate_pixels
+from .plate import PlateError, plate_file, plate_pixels
 
-__all__ = ["selected_strokes", "set_stroke_snap", "snap_to_plate", "stroke_snap_choices"]
+__all__ = ["movie_frame_pixels", "plate_image", "selected_strokes", "set_stroke_snap", "snap_to_plate",
+           "stroke_snap_choices"]
 
 
 def _n_curves(drawing) -> int:
@@ -100,12 +107,11 @@ def snap_to_plate(cam_obj, camera: Camera, frame: int, strokes: dict, only=None,
     Raises
     ------
     PlateError
-        The plate is a movie file, or its image for the frame is missing.
+        The plate has no image for the frame, or Blender cannot read it.
     """
-    path = None if cam_obj is None else plate_file(cam_obj, frame)
-    if path is None:
+    img = None if cam_obj is None else plate_image(cam_obj, frame)
+    if img is None:
         return strokes, "not snapped: the camera shows no plate"
-    img = plate_pixels(path)
     H, W = img.shape[:2]
     sx, sy = W / camera.width, H / camera.height
     if abs(sx - sy) > 1e-3 * max(sx, sy):
@@ -129,3 +135,102 @@ def snap_to_plate(cam_obj, camera: Camera, frame: int, strokes: dict, only=None,
     if sealed:
         report += f"; {sealed} left as drawn where the lips touch or overlap (sealed: no inner-lip edge)"
     return out, report
+
+
+def _movie_clip(cam_obj):
+    """The Movie Clip of a movie file the camera's plate shows (its first shown background image), or None."""
+    cam = getattr(cam_obj, "data", None)
+    if cam is None or getattr(cam_obj, "type", None) != "CAMERA":
+        return None
+    for bg in cam.background_images:
+        if not getattr(bg, "show_background_image", True):
+            continue
+        footage = bg.clip if bg.source == "MOVIE_CLIP" else bg.image if bg.source == "IMAGE" else None
+        if footage is None:
+            continue
+        return footage if bg.source == "MOVIE_CLIP" and footage.source == "MOVIE" else None
+    return None
+
+
+def plate_image(cam_obj, frame: int):
+    """(H,W,C) float32 pixels of the plate the camera shows on scene ``frame`` (row 0 at the top, 0..1 for
+    8-bit footage), or None when it shows none. A movie file loaded as a Movie Clip is decoded at the clip's
+    frame (its Start Frame and Frame Offset); image sequences and stills as :func:`.plate.plate_file` finds
+    them.
+
+    Raises
+    ------
+    PlateError
+        The frame is outside the footage, or Blender cannot read it.
+    """
+    clip = _movie_clip(cam_obj)
+    if clip is None:
+        path = plate_file(cam_obj, frame)
+        return None if path is None else plate_pixels(path)
+    n = int(frame) - int(clip.frame_start) + 1 + int(clip.frame_offset)
+    if not 1 <= n <= int(clip.frame_duration):
+        raise PlateError(f"The plate {Path(clip.filepath).name!r} has no frame for scene frame {frame} (it has "
+                         f"{int(clip.frame_duration)}); check the clip's Start Frame and Frame Offset.")
+    return movie_frame_pixels(bpy.path.abspath(clip.filepath), n)
+
+
+_MOVIE_CACHE = {}
+
+
+def movie_frame_pixels(path, number: int) -> np.ndarray:
+    """(H,W,C) float32 pixels of frame ``number`` (1 = the first) of a movie file, row 0 at the top, as
+    stored (0..1; no view transform), decoded by Blender's FFmpeg through a temporary scene's Video
+    Sequencer (removed again). The last frame read is kept.
+
+    Raises
+    ------
+    PlateError
+        Blender cannot decode the movie (a build without FFmpeg, or a broken file).
+    """
+    path = Path(path)
+    key = (str(path), path.stat().st_mtime_ns if path.exists() else 0, int(number))
+    if key in _MOVIE_CACHE:
+        return _MOVIE_CACHE[key]
+    if not path.exists():
+        raise PlateError(f"The plate {path.name!r} is missing; load the footage again (Load Plate).")
+    sc = bpy.data.scenes.new("FL_tmp_movie_frame")
+    tmp = tempfile.mkdtemp(prefix="facelab-frame-")
+    out = os.path.join(tmp, "frame.png")
+    try:
+        seq = sc.sequence_editor_create()
+        strips = seq.strips if hasattr(seq, "strips") else seq.sequences
+        try:
+            strip = strips.new_movie("plate", str(path), 1, 1)
+        except RuntimeError as e:
+            raise PlateError(f"Blender could not decode the movie {path.name!r} ({e}); export it as PNG/JPEG images "
+                             "(a numbered sequence) and load that as the plate.") from None
+        W, H = int(strip.elements[0].orig_width), int(strip.elements[0].orig_height)
+        if W < 1 or H < 1:
+            raise PlateError(f"Blender could not decode the movie {path.name!r}; export it as PNG/JPEG images (a "
+                             "numbered sequence) and load that as the plate.")
+        r = sc.render
+        r.resolution_x, r.resolution_y, r.resolution_percentage = W, H, 100
+        r.use_sequencer = True
+        r.image_settings.file_format = "PNG"
+        r.filepath = out
+        sc.view_settings.view_transform = "Standard"
+        sc.view_settings.look = "None"
+        sc.frame_start = sc.frame_end = sc.frame_current = int(number)
+        with bpy.context.temp_override(scene=sc):
+            bpy.ops.render.render(write_still=True, scene=sc.name)
+        img = bpy.data.images.load(out, check_existing=False)
+        try:
+            ch = int(img.channels)
+            px = np.empty(W * H * ch, np.float32)
+            img.pixels.foreach_get(px)
+        finally:
+            bpy.data.images.remove(img)
+    finally:
+        bpy.data.scenes.remove(sc)
+        if os.path.exists(out):
+            os.remove(out)
+        os.rmdir(tmp) if os.path.isdir(tmp) and not os.listdir(tmp) else None
+    px = px.reshape(H, W, ch)[::-1].copy()
+    _MOVIE_CACHE.clear()
+    _MOVIE_CACHE[key] = px
+    return px

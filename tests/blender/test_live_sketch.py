@@ -9,6 +9,7 @@ from facelab_addon.blender.camera import camera_from_blender
 from facelab_addon.blender.sample import read_sample
 from facelab_addon.blender.sketch_mode import DRAW_MODE
 from facelab_addon.names import SNAP_PROP, SNAP_REPORT_PROP
+from facelab_addon.blender.plate import PlateError
 from facelab_addon.blender.strokes import read_lip_strokes, write_stroke_pixels
 from facelab_addon.names import PREFIX
 
@@ -245,6 +246,74 @@ def test_snap_is_a_per_stroke_choice(sample):
     assert bpy.ops.facelab.snap_selected_strokes(choice="ON") == {"CANCELLED"}
     np.testing.assert_array_equal(stroke_snap_choices(d), [0, 0])
     del gp[SNAP_PROP]
+
+
+def _write_movie(path, files):
+    """An H.264 movie of the image files, written by Blender's FFmpeg (a scene of its own, removed again)."""
+    sc = bpy.data.scenes.new("movie writer")
+    try:
+        seq = sc.sequence_editor_create()
+        strips = seq.strips if hasattr(seq, "strips") else seq.sequences
+        st = strips.new_image("p", str(files[0]), 1, 1)
+        for f in files[1:]:
+            st.elements.append(f.name)
+        r = sc.render
+        r.resolution_x, r.resolution_y, r.resolution_percentage = st.elements[0].orig_width, st.elements[0].orig_height, 100
+        sc.frame_start, sc.frame_end = 1, len(files)
+        if hasattr(r.image_settings, "media_type"):  # Blender 5.0+
+            r.image_settings.media_type = "VIDEO"
+        r.image_settings.file_format = "FFMPEG"
+        r.ffmpeg.format, r.ffmpeg.codec, r.ffmpeg.constant_rate_factor = "MPEG4", "H264", "PERC_LOSSLESS"
+        r.use_sequencer = True
+        sc.view_settings.view_transform = "Standard"
+        r.filepath = str(path)
+        with bpy.context.temp_override(scene=sc):
+            bpy.ops.render.render(animation=True, scene=sc.name)
+    finally:
+        bpy.data.scenes.remove(sc)
+
+
+def test_snap_reads_a_movie_clip_frame_by_frame(sample, tmp_path):
+    from facelab_addon.blender.plate import plate_file, plate_pixels
+    from facelab_addon.blender.sketch_snap import plate_image, snap_to_plate
+    from facelab_addon.testing.route import jitter_stroke
+
+    if not bpy.app.build_options.codec_ffmpeg:
+        pytest.skip("this Blender has no FFmpeg")
+    data, scene, face, gp, cam, (up, lo) = _sketch(sample)
+    cam_obj = scene.camera
+    seq_clip = cam_obj.data.background_images[0].clip
+    files = [plate_file(cam_obj, f) for f in range(FRAME - 3, FRAME + 1)]
+    movie = tmp_path / "plate.mp4"
+    _write_movie(movie, files)
+    clip = bpy.data.movieclips.load(str(movie))
+    assert clip.source == "MOVIE"
+    try:
+        cam_obj.data.background_images[0].clip = clip
+        clip.frame_start = FRAME - 3  # the movie's first frame is the sequence's frame FRAME - 3
+        got = plate_image(cam_obj, FRAME)
+        ref = [plate_pixels(f)[..., :3] for f in files]
+        assert got.shape[:2] == ref[-1].shape[:2]
+        (x0, y0), (x1, y1) = (np.vstack([up, lo]).min(0) - 20).astype(int), (np.vstack([up, lo]).max(0) + 20).astype(int)
+        d = [float(np.abs(got[y0:y1, x0:x1, :3] - r[y0:y1, x0:x1]).mean()) for r in ref]  # around the mouth
+        assert d[-1] < 0.01 and d[-1] < 0.6 * min(d[:-1]), d  # the frame shown, not its neighbours
+        # the movie's frame snaps as the image sequence's does
+        rng = np.random.default_rng(11)
+        drawn = {"upper": [jitter_stroke(up, 3.0, rng)], "lower": [jitter_stroke(lo, 3.0, rng)]}
+        from_movie, report = snap_to_plate(cam_obj, cam, FRAME, drawn)
+        assert report.startswith("snapped ")
+        cam_obj.data.background_images[0].clip = seq_clip
+        from_seq, _ = snap_to_plate(cam_obj, cam, FRAME, drawn)
+        before = _contour_error(drawn["lower"][0], lo).mean()
+        after = _contour_error(from_movie["lower"][0], lo).mean()
+        assert after < 0.35 * before, (before, after)
+        assert np.median(np.linalg.norm(from_movie["lower"][0] - from_seq["lower"][0], axis=1)) < 0.1
+        cam_obj.data.background_images[0].clip = clip
+        with pytest.raises(PlateError, match="no frame for scene frame"):
+            plate_image(cam_obj, FRAME + 5)
+    finally:
+        cam_obj.data.background_images[0].clip = seq_clip
+        bpy.data.movieclips.remove(clip)
 
 
 # --------------------------------------------------------------------------- Live Refine
