@@ -145,13 +145,21 @@ def transform_points(M, P) -> np.ndarray:
     return P @ M[:3, :3].T + M[:3, 3]
 
 
-def drawing_polylines(drawing) -> list:
-    """Layer-space polylines of a GP v3 drawing: list of (n,3) float64 arrays."""
+def _curve_offsets(drawing) -> np.ndarray:
+    """(C+1,) int32 first point of each curve of a GP v3 drawing, then the number of points (empty: no curve)."""
     n_off = len(drawing.curve_offsets)
     if n_off < 2:
-        return []
+        return np.zeros(0, np.int32)
     offsets = np.empty(n_off, dtype=np.int32)
     drawing.curve_offsets.foreach_get("value", offsets)
+    return offsets
+
+
+def drawing_polylines(drawing) -> list:
+    """Layer-space polylines of a GP v3 drawing: list of (n,3) float64 arrays."""
+    offsets = _curve_offsets(drawing)
+    if len(offsets) < 2:
+        return []
     n_pts = int(offsets[-1])
     if n_pts == 0:
         return []
@@ -554,12 +562,8 @@ def _read_gp_object(obj, camera: Camera, frame: int, depsgraph, snap=None) -> di
 
 def _snap_choices(drawing) -> list:
     """The snap choice of each polyline :func:`drawing_polylines` returns (strokes without points dropped)."""
-    n_off = len(drawing.curve_offsets)
-    if n_off < 2:
-        return []
-    offsets = np.empty(n_off, dtype=np.int32)
-    drawing.curve_offsets.foreach_get("value", offsets)
-    return [int(c) for c, k in zip(stroke_snap_choices(drawing), np.diff(offsets)) if k > 0]
+    sizes = np.diff(_curve_offsets(drawing))
+    return [int(c) for c, k in zip(stroke_snap_choices(drawing), sizes) if k > 0]
 
 
 def _annotation_frame_at(layer, frame: int):
