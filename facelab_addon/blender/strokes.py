@@ -557,6 +557,8 @@ def _read_gp_object(obj, camera: Camera, frame: int, depsgraph, snap=None) -> di
         cam_obj = sketch_camera(obj) or getattr(bpy.context.scene, "camera", None)
         out, report = snap_to_plate(cam_obj, camera, frame, out, only=only)
         obj[SNAP_REPORT_PROP] = report
+    elif snap is None and SNAP_REPORT_PROP in obj:
+        del obj[SNAP_REPORT_PROP]  # nothing snapped now: no report of an earlier snapping
     return out
 
 

@@ -308,7 +308,7 @@ class FACELAB_OT_snap_selected_strokes(bpy.types.Operator):
             self.report({"WARNING"}, "No stroke of the lip layers is selected on this frame: select strokes in "
                                      "Edit Mode, then press Snap Selected Strokes")
             return {"CANCELLED"}
-        gp.data.update_tag() if hasattr(gp.data, "update_tag") else None
+        gp.data.update_tag()
         what = {"ON": "snapped to the plate", "OFF": "read as drawn", "SKETCH": "as the sketch's Snap to Plate"}
         self.report({"INFO"}, f"{n} stroke(s) {what[self.choice]}")
         return {"FINISHED"}
@@ -328,7 +328,7 @@ def draw_live(layout, context) -> None:
         row.operator("facelab.snap_selected_strokes", text="Snap Selected").choice = "ON"
         row.operator("facelab.snap_selected_strokes", text="Never").choice = "OFF"
         report = gp.get(SNAP_REPORT_PROP)
-        if report and gp.get(SNAP_PROP):
+        if report:
             col.label(text=report, icon="INFO")
     box = layout.box()
     props = scene.facelab_live

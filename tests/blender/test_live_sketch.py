@@ -245,7 +245,10 @@ def test_snap_is_a_per_stroke_choice(sample):
     _select_strokes(gp, "Upper lip", FRAME, [])
     assert bpy.ops.facelab.snap_selected_strokes(choice="ON") == {"CANCELLED"}
     np.testing.assert_array_equal(stroke_snap_choices(d), [0, 0])
-    del gp[SNAP_PROP]
+    # nothing snapped any more: no stale report
+    gp[SNAP_PROP] = False
+    read_lip_strokes(scene, cam, FRAME, gp_obj=gp)
+    assert SNAP_REPORT_PROP not in gp
 
 
 def _write_movie(path, files):
