@@ -278,6 +278,8 @@ class FACELAB_OT_snap_selected_strokes(bpy.types.Operator):
 
     choice: bpy.props.EnumProperty(
         name="Snap", default="ON",
+        description="How the selected strokes are read: snapped to the plate's lip edges, as drawn, or as the "
+                    "sketch's Snap to Plate says",
         items=(("ON", "Snap", "Read the selected strokes snapped to the plate"),
                ("OFF", "Never", "Read the selected strokes as drawn, whatever the sketch's Snap to Plate"),
                ("SKETCH", "As Sketch", "Follow the sketch's Snap to Plate option")))
