@@ -261,7 +261,8 @@ def _write_movie(path, files):
         for f in files[1:]:
             st.elements.append(f.name)
         r = sc.render
-        r.resolution_x, r.resolution_y, r.resolution_percentage = st.elements[0].orig_width, st.elements[0].orig_height, 100
+        r.resolution_x, r.resolution_y = st.elements[0].orig_width, st.elements[0].orig_height
+        r.resolution_percentage = 100
         sc.frame_start, sc.frame_end = 1, len(files)
         if hasattr(r.image_settings, "media_type"):  # Blender 5.0+
             r.image_settings.media_type = "VIDEO"
@@ -297,7 +298,8 @@ def test_snap_reads_a_movie_clip_frame_by_frame(sample, tmp_path):
         got = plate_image(cam_obj, FRAME)
         ref = [plate_pixels(f)[..., :3] for f in files]
         assert got.shape[:2] == ref[-1].shape[:2]
-        (x0, y0), (x1, y1) = (np.vstack([up, lo]).min(0) - 20).astype(int), (np.vstack([up, lo]).max(0) + 20).astype(int)
+        both = np.vstack([up, lo])
+        (x0, y0), (x1, y1) = (both.min(0) - 20).astype(int), (both.max(0) + 20).astype(int)
         d = [float(np.abs(got[y0:y1, x0:x1, :3] - r[y0:y1, x0:x1]).mean()) for r in ref]  # around the mouth
         assert d[-1] < 0.01 and d[-1] < 0.6 * min(d[:-1]), d  # the frame shown, not its neighbours
         # the movie's frame snaps as the image sequence's does

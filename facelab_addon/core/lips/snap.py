@@ -2,17 +2,24 @@
 
 A rough stroke drawn over footage lies within a few pixels of the lip line the plate shows. For every
 stroke point :func:`snap_stroke` samples the image's gradient along the stroke's normal (a Gaussian
-derivative of the grey image, read with cubic splines), takes the edge as the subpixel peak of that
-profile (a Gaussian through the three samples around the largest one), and smooths the offsets along
-the stroke (a second-difference penalty: one tridiagonal solve, repeated once after picking, at each
-point, the edge nearest the smoothed line). Only edges of the stroke's own polarity count (the one
-most of its points see: the upper lip's inner edge is light above, dark below), so the other lip's
-edge of a sealed mouth is not taken.
+derivative, read with cubic splines) within ``search_px``. Only edges of one polarity count: told the
+mouth's side (``mouth_side``), the edge darker on that side (the mouth's interior; the other lip's edge
+of a narrow mouth has the other polarity); else the polarity most points' strongest edge has. On a colour
+plate, told the mouth's side, the profile is the gradient in the colour that tells the lip from the
+mouth best above the plate's colour noise (the colour gradients at the strongest edges, summed and
+whitened by the noise covariance: a matched filter), not the grey level.
 
-Where no edge is found a point is left exactly where the artist drew it: an edge counts when its
-gradient stands ``contrast`` times above what the noise of the image around the strokes gives a
-gradient (:func:`image_noise`: a robust spread of the image's finest detail, so the threshold follows
-the plate's own noise, no absolute level), and lies within ``search_px`` of the stroke.
+An edge is a local peak of that profile standing ``contrast`` times above what the image's noise gives
+the gradient (:func:`image_noise`: a robust spread of the finest detail, so the threshold follows the
+plate's own noise), prominent on both sides, and no wider than ``SHARP`` sigmas (a defocused edge is
+none). The offsets along the stroke are one path through the peaks, chosen by dynamic programming (each
+point scores its edge's strength, a change of offset between neighbours costs ``bend`` per pixel: the
+hand's wobble is smooth along the stroke); each point on the path takes its peak's subpixel position (a
+Gaussian through the three samples around it) and the offsets are smoothed (a second-difference penalty:
+one banded solve). Runs of edge shorter than ``min_run_px`` are dropped (a crease crossing the stroke),
+gaps up to ``bridge_px`` between edge points move with them, and everywhere else a point is left
+exactly where the artist drew it. :func:`snap_lips` snaps both lips of a frame and leaves the points
+where the lips touch or overlap (a sealed mouth has no inner-lip edge).
 
 Conventions: pixels as in :mod:`facelab_addon.core.capture.camera` (top-left image corner at
 ``(0, 0)``, the centre of pixel ``(i, j)`` at ``(i + 0.5, j + 0.5)``, y down); images ``(H, W)`` or
@@ -28,8 +35,8 @@ from scipy import linalg, ndimage
 
 from ..errors import FaceLabError
 
-__all__ = ["BEND", "BRIDGE_PX", "SEARCH_PX", "SHARP", "SnapResult", "grey", "image_noise", "prepare", "snap_lips", "snap_stroke",
-           "snap_strokes"]
+__all__ = ["BEND", "BRIDGE_PX", "SEARCH_PX", "SHARP", "SnapResult", "grey", "image_noise", "prepare", "snap_lips",
+           "snap_stroke", "snap_strokes"]
 
 _STEP = 0.5  # profile sample spacing, pixels
 #: How far along the normal an edge is looked for, pixels each side (chosen on the sample plate's frames 2, 5,
@@ -40,7 +47,8 @@ SEARCH_PX = 7.5
 BEND = 2.0
 #: Longest stretch of a stroke without an edge, between points with one, that moves with them, pixels.
 BRIDGE_PX = 8.0
-#: An edge's gradient must fall to half its peak within this many ``sigma`` of it, each side.
+#: Widest edge taken: the Gaussian fitted to a gradient peak has a standard deviation of at most this many
+#: ``sigma`` (a defocused edge is wider).
 SHARP = 3.0
 
 
