@@ -311,6 +311,9 @@ class FACELAB_OT_snap_selected_strokes(bpy.types.Operator):
                                      "Edit Mode, then press Snap Selected Strokes")
             return {"CANCELLED"}
         gp.data.update_tag()
+        if session() is not None:  # the strokes Live Refine reads changed: re-solve now
+            LIVE["signature"] = None
+            live_update(context.scene)
         what = {"ON": "snapped to the plate", "OFF": "read as drawn", "SKETCH": "as the sketch's Snap to Plate"}
         self.report({"INFO"}, f"{n} stroke(s) {what[self.choice]}")
         return {"FINISHED"}

@@ -249,6 +249,21 @@ def test_snap_is_a_per_stroke_choice(sample):
     gp[SNAP_PROP] = False
     read_lip_strokes(scene, cam, FRAME, gp_obj=gp)
     assert SNAP_REPORT_PROP not in gp
+    # during Live Refine the preview follows a stroke's new choice at once
+    from facelab_addon.ui import ops_live
+
+    assert bpy.ops.facelab.live_refine() == {"FINISHED"}
+    try:
+        before = ops_live.session().views()[0].lower[0].copy()
+        np.testing.assert_array_equal(before, plain["lower"][0])
+        X0 = ops_live.session().preview_vertices().copy()
+        _select_strokes(gp, "Lower lip", FRAME, [0])
+        assert bpy.ops.facelab.snap_selected_strokes(choice="ON") == {"FINISHED"}
+        after = ops_live.session().views()[0].lower[0]
+        assert _contour_error(after, lo).mean() < 0.5 * _contour_error(before, lo).mean()
+        assert np.abs(ops_live.session().preview_vertices() - X0).max() > 0
+    finally:
+        assert bpy.ops.facelab.live_refine_discard() == {"FINISHED"}
 
 
 def _write_movie(path, files):
