@@ -395,18 +395,20 @@ def snap_strokes(image, strokes, **options) -> list:
     options = dict(options)
     quantum = options.setdefault("quantum", 1.0 / 255.0)
     strokes = [np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in strokes]
-    img = grey(image)
-    H, W = img.shape
+    image = np.asarray(image)
+    if image.ndim not in (2, 3):
+        grey(image)  # raises: not an image
+    H, W = image.shape[:2]
     sigma = float(options.get("sigma", 1.0))
     reach = float(options.get("search_px", SEARCH_PX)) + 4 * sigma + 4
     pts = np.vstack([p for p in strokes if len(p)]) if any(len(p) for p in strokes) else np.zeros((0, 2))
     if len(pts) == 0:
-        return [snap_stroke(img, p, **options) for p in strokes]
+        return [SnapResult(p.copy(), np.zeros(0), np.zeros(0, bool)) for p in strokes]
     x0, y0 = (max(int(np.floor(v - reach)), 0) for v in pts.min(0))
     x1, y1 = min(int(np.ceil(pts[:, 0].max() + reach)), W), min(int(np.ceil(pts[:, 1].max() + reach)), H)
     if x1 <= x0 or y1 <= y0:  # the strokes are off the image: nothing to snap to
         return [SnapResult(p.copy(), np.zeros(len(p)), np.zeros(len(p), bool)) for p in strokes]
-    crop = np.asarray(image, dtype=np.float64)[y0:y1, x0:x1]
+    crop = np.asarray(image[y0:y1, x0:x1], dtype=np.float64)
     prepared = prepare(crop, sigma)
     if options.get("noise") is None:
         options = dict(options, noise=image_noise(prepared["grey"], quantum))
