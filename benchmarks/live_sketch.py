@@ -27,7 +27,8 @@
   held out.
 
 Usage: ``PYTHONPATH=. python benchmarks/live_sketch.py [--quick] [--no-snap] > benchmarks/results/live_sketch.json``;
-``--snap-only FILE`` runs the snap part alone and prints FILE's results with their ``snap`` replaced.
+``--snap-only FILE`` runs the snap part alone and prints FILE's results with their ``snap`` replaced (write
+them to another file, then move it over FILE).
 """
 
 from __future__ import annotations
