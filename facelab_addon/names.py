@@ -49,6 +49,9 @@ LEGACY_KEY_PATTERNS = (
 LIVE_PREVIEW_KEY = "FL_LivePreview"
 #: Sketch object custom property (bool): read its strokes snapped to the plate (the strokes drawn stay as they are).
 SNAP_PROP = "facelab_snap"
+#: Grease Pencil drawing attribute (INT8, per stroke): +1 read this stroke snapped to the plate, -1 never,
+#: 0 (or no attribute) as the sketch's :data:`SNAP_PROP` says.
+SNAP_ATTR = "facelab_snap"
 #: Sketch object custom property (str): what the last snapping did (points snapped, left alone, and why).
 SNAP_REPORT_PROP = "facelab_snap_report"
 #: Temporary shape keys (``x``, ``y``, ``z``, ``c`` follow) that measure the modifier stack's

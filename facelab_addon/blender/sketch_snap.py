@@ -1,25 +1,86 @@
 """Snap to plate, the adapter: the lip strokes read from a sketch, moved onto the edges of the plate its
 camera shows on the frame (:func:`facelab_addon.core.lips.snap.snap_strokes`).
 
-A sketch asks for it with the custom property :data:`~facelab_addon.names.SNAP_PROP`;
+A sketch asks for it with the custom property :data:`~facelab_addon.names.SNAP_PROP` (all its strokes), a
+stroke with the per-curve attribute :data:`~facelab_addon.names.SNAP_ATTR` of its drawing (+1 snapped,
+-1 never, 0 as the sketch says: :func:`stroke_snap_choices`, :func:`set_stroke_snap`);
 :func:`.strokes.read_lip_strokes` then returns the snapped strokes (the strokes drawn are never changed)
 and writes what snapping did to :data:`~facelab_addon.names.SNAP_REPORT_PROP`. The plate is read with
-:func:`.plate.plate_file` / :func:`.plate.plate_pixels` (image sequences, as a Movie Clip or an Image, and
-stills).
+:func:`plate_image`: image sequences (as a Movie Clip or an Image) and stills by
+:func:`.plate.plate_file` / :func:`.plate.plate_pixels`, a movie file loaded as a Movie Clip by decoding its
+frame with Blender's FFmpeg (:func:`movie_frame_pixels`).
 """
 
 from __future__ import annotations
 
+import os
+import tempfile
+from pathlib import Path
+
+import bpy
 import numpy as np
 
 from ..core.capture.camera import Camera
-from ..core.lips.snap import snap_strokes
-from .plate import plate_file, plate_pixels
+from ..core.lips.snap import snap_lips
+from ..names import SNAP_ATTR
+from .plate import PlateError, plate_file, plate_pixels
 
-__all__ = ["snap_to_plate"]
+__all__ = ["movie_frame_pixels", "plate_image", "selected_strokes", "set_stroke_snap", "snap_to_plate",
+           "stroke_snap_choices"]
 
 
-def snap_to_plate(cam_obj, camera: Camera, frame: int, strokes: dict, **options) -> tuple:
+def _n_curves(drawing) -> int:
+    return max(len(drawing.curve_offsets) - 1, 0)
+
+
+def stroke_snap_choices(drawing) -> np.ndarray:
+    """(C,) int8 per stroke (curve) of a GP v3 drawing: +1 snap it, -1 never, 0 as the sketch's option says
+    (all 0 when the drawing has no :data:`~facelab_addon.names.SNAP_ATTR`)."""
+    n = _n_curves(drawing)
+    attr = drawing.attributes.get(SNAP_ATTR)
+    out = np.zeros(n, np.int32)
+    if attr is not None and attr.domain == "CURVE" and len(attr.data) == n and n:
+        attr.data.foreach_get("value", out)
+    return np.sign(out).astype(np.int8)
+
+
+def set_stroke_snap(drawing, strokes, choice: int) -> int:
+    """Set the snap choice (+1 snap, -1 never, 0 as the sketch says) of the strokes ``strokes`` ((C,) bool mask
+    or indices) of a GP v3 drawing; creates the per-curve attribute (0 elsewhere). Returns how many strokes."""
+    n = _n_curves(drawing)
+    idx = np.flatnonzero(np.asarray(strokes, dtype=bool)) if np.asarray(strokes).dtype == bool \
+        else np.asarray(strokes, dtype=np.int64)
+    if n == 0 or len(idx) == 0:
+        return 0
+    attr = drawing.attributes.get(SNAP_ATTR)
+    if attr is not None and (attr.domain != "CURVE" or attr.data_type != "INT8"):
+        drawing.attributes.remove(attr)
+        attr = None
+    if attr is None:
+        attr = drawing.attributes.new(SNAP_ATTR, "INT8", "CURVE")
+    vals = np.zeros(n, np.int32)
+    attr.data.foreach_get("value", vals)
+    vals[idx] = int(np.sign(choice))
+    attr.data.foreach_set("value", vals)
+    return len(idx)
+
+
+def selected_strokes(drawing) -> np.ndarray:
+    """(C,) bool: the strokes of a GP v3 drawing with a selected point (or selected, in stroke selection)."""
+    n = _n_curves(drawing)
+    sel = drawing.attributes.get(".selection")
+    if sel is None or n == 0:
+        return np.zeros(n, bool)
+    vals = np.zeros(len(sel.data), bool)
+    sel.data.foreach_get("value", vals)
+    if sel.domain == "CURVE":
+        return vals
+    offsets = np.empty(n + 1, np.int32)
+    drawing.curve_offsets.foreach_get("value", offsets)
+    return np.logical_or.reduceat(vals, offsets[:-1]) & (np.diff(offsets) > 0) if len(vals) else np.zeros(n, bool)
+
+
+def snap_to_plate(cam_obj, camera: Camera, frame: int, strokes: dict, only=None, **options) -> tuple:
     """The lip strokes snapped onto the edges of the plate the sketch's camera shows on ``frame``.
 
     Parameters
@@ -31,6 +92,9 @@ def snap_to_plate(cam_obj, camera: Camera, frame: int, strokes: dict, **options)
     frame : int
     strokes : dict
         ``{"upper": [(N,2), ...], "lower": [...]}`` pixels, as :func:`read_lip_strokes` returns them.
+    only : dict, optional
+        ``{"upper": [bool, ...], "lower": [...]}``: the strokes to snap (default all); the others are
+        returned as drawn (they still tell where the other lip is).
     **options
         Of :func:`facelab_addon.core.lips.snap.snap_stroke` (``search_px`` in render pixels).
 
@@ -43,12 +107,11 @@ def snap_to_plate(cam_obj, camera: Camera, frame: int, strokes: dict, **options)
     Raises
     ------
     PlateError
-        The plate is a movie file, or its image for the frame is missing.
+        The plate has no image for the frame, or Blender cannot read it.
     """
-    path = None if cam_obj is None else plate_file(cam_obj, frame)
-    if path is None:
+    img = None if cam_obj is None else plate_image(cam_obj, frame)
+    if img is None:
         return strokes, "not snapped: the camera shows no plate"
-    img = plate_pixels(path)
     H, W = img.shape[:2]
     sx, sy = W / camera.width, H / camera.height
     if abs(sx - sy) > 1e-3 * max(sx, sy):
@@ -57,13 +120,117 @@ def snap_to_plate(cam_obj, camera: Camera, frame: int, strokes: dict, **options)
     opts = dict(options)
     if "search_px" in opts:
         opts["search_px"] = opts["search_px"] * sx
-    out, moved, left = {}, 0, 0
-    for lab in ("upper", "lower"):
-        res = snap_strokes(img, [np.asarray(p) * [sx, sy] for p in strokes[lab]], **opts)
-        out[lab] = [r.points / [sx, sy] for r in res]
-        moved += sum(r.n_snapped for r in res)
-        left += sum(r.n_left for r in res)
+    scaled = {lab: [np.asarray(p) * [sx, sy] for p in strokes[lab]] for lab in ("upper", "lower")}
+    snapped = dict(zip(("upper", "lower"), snap_lips(img, scaled["upper"], scaled["lower"], **opts)))
+    out, moved, left, sealed = {}, 0, 0, 0
+    for lab, res in snapped.items():
+        use = [True] * len(res) if only is None else [bool(u) for u in only[lab]]
+        out[lab] = [r.points / [sx, sy] if u else np.asarray(p) for r, p, u in zip(res, strokes[lab], use)]
+        moved += sum(r.n_snapped for r, u in zip(res, use) if u)
+        left += sum(r.n_left for r, u in zip(res, use) if u)
+        sealed += sum(r.n_sealed for r, u in zip(res, use) if u)
     report = f"snapped {moved} of {moved + left} points to the plate"
-    if left:
-        report += f"; {left} left as drawn (no edge within reach)"
+    if left - sealed:
+        report += f"; {left - sealed} left as drawn (no sharp lip edge within reach)"
+    if sealed:
+        report += f"; {sealed} left as drawn where the lips touch or overlap (sealed: no inner-lip edge)"
     return out, report
+
+
+def _movie_clip(cam_obj):
+    """The Movie Clip of a movie file the camera's plate shows (its first shown background image), or None."""
+    cam = getattr(cam_obj, "data", None)
+    if cam is None or getattr(cam_obj, "type", None) != "CAMERA":
+        return None
+    for bg in cam.background_images:
+        if not getattr(bg, "show_background_image", True):
+            continue
+        footage = bg.clip if bg.source == "MOVIE_CLIP" else bg.image if bg.source == "IMAGE" else None
+        if footage is None:
+            continue
+        return footage if bg.source == "MOVIE_CLIP" and footage.source == "MOVIE" else None
+    return None
+
+
+def plate_image(cam_obj, frame: int):
+    """(H,W,C) float32 pixels of the plate the camera shows on scene ``frame`` (row 0 at the top, 0..1 for
+    8-bit footage), or None when it shows none. A movie file loaded as a Movie Clip is decoded at the clip's
+    frame (its Start Frame and Frame Offset); image sequences and stills as :func:`.plate.plate_file` finds
+    them.
+
+    Raises
+    ------
+    PlateError
+        The frame is outside the footage, or Blender cannot read it.
+    """
+    clip = _movie_clip(cam_obj)
+    if clip is None:
+        path = plate_file(cam_obj, frame)
+        return None if path is None else plate_pixels(path)
+    n = int(frame) - int(clip.frame_start) + 1 + int(clip.frame_offset)
+    if not 1 <= n <= int(clip.frame_duration):
+        raise PlateError(f"The plate {Path(clip.filepath).name!r} has no frame for scene frame {frame} (it has "
+                         f"{int(clip.frame_duration)}); check the clip's Start Frame and Frame Offset.")
+    return movie_frame_pixels(bpy.path.abspath(clip.filepath), n)
+
+
+_MOVIE_CACHE = {}
+
+
+def movie_frame_pixels(path, number: int) -> np.ndarray:
+    """(H,W,C) float32 pixels of frame ``number`` (1 = the first) of a movie file, row 0 at the top, as
+    stored (0..1; no view transform), decoded by Blender's FFmpeg through a temporary scene's Video
+    Sequencer (removed again). The last frame read is kept.
+
+    Raises
+    ------
+    PlateError
+        Blender cannot decode the movie (a build without FFmpeg, or a broken file).
+    """
+    path = Path(path)
+    key = (str(path), path.stat().st_mtime_ns if path.exists() else 0, int(number))
+    if key in _MOVIE_CACHE:
+        return _MOVIE_CACHE[key]
+    if not path.exists():
+        raise PlateError(f"The plate {path.name!r} is missing; load the footage again (Load Plate).")
+    sc = bpy.data.scenes.new("FL_tmp_movie_frame")
+    tmp = tempfile.mkdtemp(prefix="facelab-frame-")
+    out = os.path.join(tmp, "frame.png")
+    try:
+        seq = sc.sequence_editor_create()
+        strips = seq.strips if hasattr(seq, "strips") else seq.sequences
+        try:
+            strip = strips.new_movie("plate", str(path), 1, 1)
+        except RuntimeError as e:
+            raise PlateError(f"Blender could not decode the movie {path.name!r} ({e}); export it as PNG/JPEG images "
+                             "(a numbered sequence) and load that as the plate.") from None
+        W, H = int(strip.elements[0].orig_width), int(strip.elements[0].orig_height)
+        if W < 1 or H < 1:
+            raise PlateError(f"Blender could not decode the movie {path.name!r}; export it as PNG/JPEG images (a "
+                             "numbered sequence) and load that as the plate.")
+        r = sc.render
+        r.resolution_x, r.resolution_y, r.resolution_percentage = W, H, 100
+        r.use_sequencer = True
+        r.image_settings.file_format = "PNG"
+        r.filepath = out
+        sc.view_settings.view_transform = "Standard"
+        sc.view_settings.look = "None"
+        sc.frame_start = sc.frame_end = sc.frame_current = int(number)
+        with bpy.context.temp_override(scene=sc):
+            bpy.ops.render.render(write_still=True, scene=sc.name)
+        img = bpy.data.images.load(out, check_existing=False)
+        try:
+            ch = int(img.channels)
+            px = np.empty(W * H * ch, np.float32)
+            img.pixels.foreach_get(px)
+        finally:
+            bpy.data.images.remove(img)
+    finally:
+        bpy.data.scenes.remove(sc)
+        if os.path.exists(out):
+            os.remove(out)
+        os.rmdir(tmp) if os.path.isdir(tmp) and not os.listdir(tmp) else None
+    px = px.reshape(H, W, ch)[::-1].copy()
+    _MOVIE_CACHE.clear()
+    _MOVIE_CACHE[key] = px
+    return px

@@ -78,7 +78,7 @@ from .lip_layers import (
     live_lip_layers,
     missing_layer_error,
 )
-from .sketch_snap import snap_to_plate
+from .sketch_snap import snap_to_plate, stroke_snap_choices
 
 __all__ = [
     "SKETCH_CAMERA_PROP",
@@ -145,13 +145,21 @@ def transform_points(M, P) -> np.ndarray:
     return P @ M[:3, :3].T + M[:3, 3]
 
 
-def drawing_polylines(drawing) -> list:
-    """Layer-space polylines of a GP v3 drawing: list of (n,3) float64 arrays."""
+def _curve_offsets(drawing) -> np.ndarray:
+    """(C+1,) int32 first point of each curve of a GP v3 drawing, then the number of points (empty: no curve)."""
     n_off = len(drawing.curve_offsets)
     if n_off < 2:
-        return []
+        return np.zeros(0, np.int32)
     offsets = np.empty(n_off, dtype=np.int32)
     drawing.curve_offsets.foreach_get("value", offsets)
+    return offsets
+
+
+def drawing_polylines(drawing) -> list:
+    """Layer-space polylines of a GP v3 drawing: list of (n,3) float64 arrays."""
+    offsets = _curve_offsets(drawing)
+    if len(offsets) < 2:
+        return []
     n_pts = int(offsets[-1])
     if n_pts == 0:
         return []
@@ -518,7 +526,7 @@ def require_sketch_keyed_on(scene, frame: int, gp_obj=None) -> None:
 def _read_gp_object(obj, camera: Camera, frame: int, depsgraph, snap=None) -> dict:
     name_of = (lambda lay: lay.name)
     lips = live_lip_layers(obj.data.layers, name_of, f"Sketch '{obj.name}'")
-    out = {}
+    out, choice = {}, {"upper": [], "lower": []}
     for lab, nice in (("upper", UPPER_LAYER), ("lower", LOWER_LAYER)):
         if not lips[lab]:
             raise missing_layer_error(
@@ -533,17 +541,31 @@ def _read_gp_object(obj, camera: Camera, frame: int, depsgraph, snap=None) -> di
             M = layer_to_world(layer, obj, depsgraph)
             world = [transform_points(M, P) for P in drawing_polylines(fr.drawing)]
             polys += project_world(camera, world, f"Layer '{layer.name}' of '{obj.name}' on frame {frame}")
+            choice[lab] += _snap_choices(fr.drawing)
         if not polys:
             raise SketchError(
                 f"The '{nice}' layer of '{obj.name}' has no strokes on frame {frame}; "
                 f"draw the {nice.lower()} contour on it in camera view on this frame (keyed on it)."
             )
         out[lab] = polys
-    if snap if snap is not None else bool(obj.get(SNAP_PROP, False)):
+    # which strokes are read snapped: all or none when asked (``snap``), else each stroke's own choice
+    # (SNAP_ATTR), or the sketch's option for a stroke without one
+    on = bool(obj.get(SNAP_PROP, False))
+    only = {lab: [bool(snap) if snap is not None else (c > 0 or (c == 0 and on)) for c in choice[lab]]
+            for lab in choice}
+    if any(any(v) for v in only.values()):
         cam_obj = sketch_camera(obj) or getattr(bpy.context.scene, "camera", None)
-        out, report = snap_to_plate(cam_obj, camera, frame, out)
+        out, report = snap_to_plate(cam_obj, camera, frame, out, only=only)
         obj[SNAP_REPORT_PROP] = report
+    elif snap is None and SNAP_REPORT_PROP in obj:
+        del obj[SNAP_REPORT_PROP]  # nothing snapped now: no report of an earlier snapping
     return out
+
+
+def _snap_choices(drawing) -> list:
+    """The snap choice of each polyline :func:`drawing_polylines` returns (strokes without points dropped)."""
+    sizes = np.diff(_curve_offsets(drawing))
+    return [int(c) for c, k in zip(stroke_snap_choices(drawing), sizes) if k > 0]
 
 
 def _annotation_frame_at(layer, frame: int):

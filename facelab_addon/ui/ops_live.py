@@ -268,6 +268,57 @@ class FACELAB_OT_live_refine_discard(_WhileLive, bpy.types.Operator):
         return {"FINISHED"}
 
 
+class FACELAB_OT_snap_selected_strokes(bpy.types.Operator):
+    """Choose Snap to Plate for the selected strokes of the lip sketch on this frame: snapped, never, or as the
+    sketch's Snap to Plate says (the strokes drawn are not moved; they are read snapped)"""
+
+    bl_idname = "facelab.snap_selected_strokes"
+    bl_label = "Snap Selected Strokes"
+    bl_options = {"REGISTER", "UNDO"}
+
+    choice: bpy.props.EnumProperty(
+        name="Snap", default="ON",
+        description="How the selected strokes are read: snapped to the plate's lip edges, as drawn, or as the "
+                    "sketch's Snap to Plate says",
+        items=(("ON", "Snap", "Read the selected strokes snapped to the plate"),
+               ("OFF", "Never", "Read the selected strokes as drawn, whatever the sketch's Snap to Plate"),
+               ("SKETCH", "As Sketch", "Follow the sketch's Snap to Plate option")))
+
+    @classmethod
+    def poll(cls, context):
+        gp = getattr(context.scene.facelab, "sketch", None)
+        if gp is None or gp.type != "GREASEPENCIL":
+            cls.poll_message_set("No lip sketch yet: press New Lip Sketch")
+            return False
+        return True
+
+    def execute(self, context):
+        from ..blender.lip_layers import live_lip_layers
+        from ..blender.sketch_snap import selected_strokes, set_stroke_snap
+
+        gp = context.scene.facelab.sketch
+        frame = context.scene.frame_current
+        value = {"ON": 1, "OFF": -1, "SKETCH": 0}[self.choice]
+        lips = live_lip_layers(gp.data.layers, lambda lay: lay.name, f"Sketch '{gp.name}'")
+        n = 0
+        for layer in {lay.name: lay for lab in lips for lay in lips[lab]}.values():
+            fr = layer.get_frame_at(frame)
+            if fr is None or fr.drawing is None or fr.drawing.type != "DRAWING":
+                continue
+            n += set_stroke_snap(fr.drawing, selected_strokes(fr.drawing), value)
+        if n == 0:
+            self.report({"WARNING"}, "No stroke of the lip layers is selected on this frame: select strokes in "
+                                     "Edit Mode, then press Snap Selected Strokes")
+            return {"CANCELLED"}
+        gp.data.update_tag()
+        if session() is not None:  # the strokes Live Refine reads changed: re-solve now
+            LIVE["signature"] = None
+            live_update(context.scene)
+        what = {"ON": "snapped to the plate", "OFF": "read as drawn", "SKETCH": "as the sketch's Snap to Plate"}
+        self.report({"INFO"}, f"{n} stroke(s) {what[self.choice]}")
+        return {"FINISHED"}
+
+
 def draw_live(layout, context) -> None:
     """The Live Refine and Snap to Plate rows of 2. Sketch & Refine."""
     scene = context.scene
@@ -278,8 +329,11 @@ def draw_live(layout, context) -> None:
         row.operator("facelab.sketch_lip_layer", text="Upper Lip", icon="TRIA_UP").lip = "upper"
         row.operator("facelab.sketch_lip_layer", text="Lower Lip", icon="TRIA_DOWN").lip = "lower"
         col.prop(gp, SNAP_PROP, text="Snap to Plate")
+        row = col.row(align=True)
+        row.operator("facelab.snap_selected_strokes", text="Snap Selected").choice = "ON"
+        row.operator("facelab.snap_selected_strokes", text="Never").choice = "OFF"
         report = gp.get(SNAP_REPORT_PROP)
-        if report and gp.get(SNAP_PROP):
+        if report:
             col.label(text=report, icon="INFO")
     box = layout.box()
     props = scene.facelab_live
@@ -295,7 +349,7 @@ def draw_live(layout, context) -> None:
 
 
 classes = (FACELAB_PG_live, FACELAB_OT_live_refine, FACELAB_OT_live_refine_update, FACELAB_OT_live_refine_accept,
-           FACELAB_OT_live_refine_discard)
+           FACELAB_OT_live_refine_discard, FACELAB_OT_snap_selected_strokes)
 
 
 def register():
@@ -305,7 +359,8 @@ def register():
     setattr(bpy.types.Object, SNAP_PROP, bpy.props.BoolProperty(
         name="Snap to Plate", default=False,
         description="Read this sketch's strokes snapped onto the lip edges of the plate (the strokes drawn stay as "
-                    "they are); points with no edge within a few pixels stay as drawn"))
+                    "they are); points with no edge within a few pixels stay as drawn. A stroke set with Snap "
+                    "Selected Strokes follows its own choice"))
     for h in (bpy.app.handlers.undo_post, bpy.app.handlers.redo_post):
         if on_undo not in h:
             h.append(on_undo)

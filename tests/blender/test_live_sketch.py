@@ -9,6 +9,7 @@ from facelab_addon.blender.camera import camera_from_blender
 from facelab_addon.blender.sample import read_sample
 from facelab_addon.blender.sketch_mode import DRAW_MODE
 from facelab_addon.names import SNAP_PROP, SNAP_REPORT_PROP
+from facelab_addon.blender.plate import PlateError
 from facelab_addon.blender.strokes import read_lip_strokes, write_stroke_pixels
 from facelab_addon.names import PREFIX
 
@@ -186,6 +187,153 @@ def test_snap_to_plate_brings_jittered_strokes_onto_the_rendered_lip_line(sample
     del gp[SNAP_REPORT_PROP]
     assert bpy.ops.facelab.refine_lips() == {"FINISHED"}
     assert gp[SNAP_REPORT_PROP] == report
+
+
+def _select_strokes(gp, layer_name, frame, which):
+    """Select (in the drawing's point selection) the points of the strokes ``which`` (indices) only."""
+    layer = next(lay for lay in gp.data.layers if lay.name.lower() == layer_name.lower())
+    d = layer.get_frame_at(frame).drawing
+    offsets = np.empty(len(d.curve_offsets), np.int32)
+    d.curve_offsets.foreach_get("value", offsets)
+    sel = d.attributes.get(".selection") or d.attributes.new(".selection", "BOOLEAN", "POINT")
+    vals = np.zeros(int(offsets[-1]), bool)
+    for i in which:
+        vals[offsets[i]:offsets[i + 1]] = True
+    sel.data.foreach_set("value", vals)
+    return d
+
+
+def test_snap_is_a_per_stroke_choice(sample):
+    from facelab_addon.blender.sketch_snap import stroke_snap_choices
+    from facelab_addon.testing.route import jitter_stroke
+
+    data, scene, face, gp, cam, (up, lo) = _sketch(sample)
+    rng = np.random.default_rng(5)
+    k = len(lo) // 2
+    halves = [jitter_stroke(lo[:k + 1], 3.0, rng), jitter_stroke(lo[k:], 3.0, rng)]  # the lower lip in 2 strokes
+    write_stroke_pixels(gp, "Upper lip", FRAME, [jitter_stroke(up, 3.0, rng)], cam)
+    write_stroke_pixels(gp, "Lower lip", FRAME, halves, cam)
+    plain = read_lip_strokes(scene, cam, FRAME, gp_obj=gp)
+    assert SNAP_REPORT_PROP not in gp  # nothing asks for snapping yet
+    # Snap Selected Strokes on the first half only, the sketch's option off: that stroke alone is read snapped
+    d = _select_strokes(gp, "Lower lip", FRAME, [0])
+    assert bpy.ops.facelab.snap_selected_strokes(choice="ON") == {"FINISHED"}
+    np.testing.assert_array_equal(stroke_snap_choices(d), [1, 0])
+    got = read_lip_strokes(scene, cam, FRAME, gp_obj=gp)
+    first = _contour_error(got["lower"][0], lo)
+    assert first.mean() < 0.5 * _contour_error(plain["lower"][0], lo).mean(), first.mean()
+    np.testing.assert_array_equal(got["lower"][1], plain["lower"][1])
+    np.testing.assert_array_equal(got["upper"][0], plain["upper"][0])
+    n = len(plain["lower"][0])
+    assert gp[SNAP_REPORT_PROP].startswith("snapped ") and f" of {n} points" in gp[SNAP_REPORT_PROP]
+    # the sketch's option on, the first half set to Never: every other stroke is snapped, that one is not
+    assert bpy.ops.facelab.snap_selected_strokes(choice="OFF") == {"FINISHED"}
+    gp[SNAP_PROP] = True
+    got = read_lip_strokes(scene, cam, FRAME, gp_obj=gp)
+    np.testing.assert_array_equal(got["lower"][0], plain["lower"][0])
+    assert np.any(got["lower"][1] != plain["lower"][1]) and np.any(got["upper"][0] != plain["upper"][0])
+    # back to As Sketch: the first half follows the option again; snap=False still reads all as drawn
+    assert bpy.ops.facelab.snap_selected_strokes(choice="SKETCH") == {"FINISHED"}
+    got = read_lip_strokes(scene, cam, FRAME, gp_obj=gp)
+    assert np.any(got["lower"][0] != plain["lower"][0])
+    none = read_lip_strokes(scene, cam, FRAME, gp_obj=gp, snap=False)
+    for lab in ("upper", "lower"):
+        for a, b in zip(none[lab], plain[lab]):
+            np.testing.assert_array_equal(a, b)
+    # no stroke selected: the operator says so and changes nothing
+    _select_strokes(gp, "Lower lip", FRAME, [])
+    _select_strokes(gp, "Upper lip", FRAME, [])
+    assert bpy.ops.facelab.snap_selected_strokes(choice="ON") == {"CANCELLED"}
+    np.testing.assert_array_equal(stroke_snap_choices(d), [0, 0])
+    # nothing snapped any more: no stale report
+    gp[SNAP_PROP] = False
+    read_lip_strokes(scene, cam, FRAME, gp_obj=gp)
+    assert SNAP_REPORT_PROP not in gp
+    # during Live Refine the preview follows a stroke's new choice at once
+    from facelab_addon.ui import ops_live
+
+    assert bpy.ops.facelab.live_refine() == {"FINISHED"}
+    try:
+        before = ops_live.session().views()[0].lower[0].copy()
+        np.testing.assert_array_equal(before, plain["lower"][0])
+        X0 = ops_live.session().preview_vertices().copy()
+        _select_strokes(gp, "Lower lip", FRAME, [0])
+        assert bpy.ops.facelab.snap_selected_strokes(choice="ON") == {"FINISHED"}
+        after = ops_live.session().views()[0].lower[0]
+        assert _contour_error(after, lo).mean() < 0.5 * _contour_error(before, lo).mean()
+        assert np.abs(ops_live.session().preview_vertices() - X0).max() > 0
+    finally:
+        assert bpy.ops.facelab.live_refine_discard() == {"FINISHED"}
+
+
+def _write_movie(path, files):
+    """An H.264 movie of the image files, written by Blender's FFmpeg (a scene of its own, removed again)."""
+    sc = bpy.data.scenes.new("movie writer")
+    try:
+        seq = sc.sequence_editor_create()
+        strips = seq.strips if hasattr(seq, "strips") else seq.sequences
+        st = strips.new_image("p", str(files[0]), 1, 1)
+        for f in files[1:]:
+            st.elements.append(f.name)
+        r = sc.render
+        r.resolution_x, r.resolution_y = st.elements[0].orig_width, st.elements[0].orig_height
+        r.resolution_percentage = 100
+        sc.frame_start, sc.frame_end = 1, len(files)
+        if hasattr(r.image_settings, "media_type"):  # Blender 5.0+
+            r.image_settings.media_type = "VIDEO"
+        r.image_settings.file_format = "FFMPEG"
+        r.ffmpeg.format, r.ffmpeg.codec, r.ffmpeg.constant_rate_factor = "MPEG4", "H264", "PERC_LOSSLESS"
+        r.use_sequencer = True
+        sc.view_settings.view_transform = "Standard"
+        r.filepath = str(path)
+        with bpy.context.temp_override(scene=sc):
+            bpy.ops.render.render(animation=True, scene=sc.name)
+    finally:
+        bpy.data.scenes.remove(sc)
+
+
+def test_snap_reads_a_movie_clip_frame_by_frame(sample, tmp_path):
+    from facelab_addon.blender.plate import plate_file, plate_pixels
+    from facelab_addon.blender.sketch_snap import plate_image, snap_to_plate
+    from facelab_addon.testing.route import jitter_stroke
+
+    if not bpy.app.build_options.codec_ffmpeg:
+        pytest.skip("this Blender has no FFmpeg")
+    data, scene, face, gp, cam, (up, lo) = _sketch(sample)
+    cam_obj = scene.camera
+    seq_clip = cam_obj.data.background_images[0].clip
+    files = [plate_file(cam_obj, f) for f in range(FRAME - 3, FRAME + 1)]
+    movie = tmp_path / "plate.mp4"
+    _write_movie(movie, files)
+    clip = bpy.data.movieclips.load(str(movie))
+    assert clip.source == "MOVIE"
+    try:
+        cam_obj.data.background_images[0].clip = clip
+        clip.frame_start = FRAME - 3  # the movie's first frame is the sequence's frame FRAME - 3
+        got = plate_image(cam_obj, FRAME)
+        ref = [plate_pixels(f)[..., :3] for f in files]
+        assert got.shape[:2] == ref[-1].shape[:2]
+        both = np.vstack([up, lo])
+        (x0, y0), (x1, y1) = (both.min(0) - 20).astype(int), (both.max(0) + 20).astype(int)
+        d = [float(np.abs(got[y0:y1, x0:x1, :3] - r[y0:y1, x0:x1]).mean()) for r in ref]  # around the mouth
+        assert d[-1] < 0.01 and d[-1] < 0.6 * min(d[:-1]), d  # the frame shown, not its neighbours
+        # the movie's frame snaps as the image sequence's does
+        rng = np.random.default_rng(11)
+        drawn = {"upper": [jitter_stroke(up, 3.0, rng)], "lower": [jitter_stroke(lo, 3.0, rng)]}
+        from_movie, report = snap_to_plate(cam_obj, cam, FRAME, drawn)
+        assert report.startswith("snapped ")
+        cam_obj.data.background_images[0].clip = seq_clip
+        from_seq, _ = snap_to_plate(cam_obj, cam, FRAME, drawn)
+        before = _contour_error(drawn["lower"][0], lo).mean()
+        after = _contour_error(from_movie["lower"][0], lo).mean()
+        assert after < 0.35 * before, (before, after)
+        assert np.median(np.linalg.norm(from_movie["lower"][0] - from_seq["lower"][0], axis=1)) < 0.1
+        cam_obj.data.background_images[0].clip = clip
+        with pytest.raises(PlateError, match="no frame for scene frame"):
+            plate_image(cam_obj, FRAME + 5)
+    finally:
+        cam_obj.data.background_images[0].clip = seq_clip
+        bpy.data.movieclips.remove(clip)
 
 
 # --------------------------------------------------------------------------- Live Refine

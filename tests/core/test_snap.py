@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from facelab_addon.core.lips.snap import snap_stroke, snap_strokes
+from facelab_addon.core.lips.snap import snap_lips, snap_stroke, snap_strokes
 
 
 def area_image(H, W, inside, ss=8, blur=0.7, dark=0.1, light=0.8, noise=0.0, seed=0):
@@ -73,15 +73,20 @@ def test_edge_on_part_of_the_stroke_only_moves_that_part():
     assert r.n_left == int((~r.snapped).sum()) >= right.sum()
 
 
-def test_sealed_lips_each_stroke_takes_its_own_edge():
-    # a dark gap from y = 50.2 to 55.2 between two light lips: the upper stroke (light above, dark below)
-    # takes the top edge, the lower stroke the bottom edge, each drawn 2 px off on the far side
+def test_narrow_mouth_each_stroke_takes_its_own_edge():
+    # a dark gap from y = 50.2 to 55.2 between two light lips, both edges within reach of both strokes: the
+    # upper stroke (mouth below) takes the top edge, the lower stroke (mouth above) the bottom edge, each drawn
+    # 2 px off on the far side
     img = area_image(100, 140, lambda x, y: (y > 50.2) & (y < 55.2), blur=0.5)
     x = np.linspace(20, 120, 41)
-    up = snap_strokes(img, [np.c_[x, np.full_like(x, 48.2)]], polarity=None)[0]
-    lo = snap_strokes(img, [np.c_[x[::-1], np.full_like(x, 57.2)]])[0]
+    (up,), (lo,) = snap_lips(img, [np.c_[x, np.full_like(x, 48.2)]], [np.c_[x[::-1], np.full_like(x, 57.2)]])
     np.testing.assert_allclose(up.points[:, 1], 50.2, atol=0.06)
     np.testing.assert_allclose(lo.points[:, 1], 55.2, atol=0.06)
+    # told the side, each stroke ignores the other lip's edge even when that one is nearer
+    (lo,) = snap_strokes(img, [np.c_[x, np.full_like(x, 51.0)]], mouth_side=(0, -1))
+    np.testing.assert_allclose(lo.points[:, 1], 55.2, atol=0.06)
+    (up,) = snap_strokes(img, [np.c_[x[::-1], np.full_like(x, 54.5)]], mouth_side=(0, 1))
+    np.testing.assert_allclose(up.points[:, 1], 50.2, atol=0.06)
 
 
 def test_opposite_polarity_is_refused_when_asked():
@@ -100,3 +105,72 @@ def test_search_range_bounds_the_move():
     assert snap_strokes(img, [stroke], search_px=6.0)[0].n_snapped == 0
     r = snap_strokes(img, [stroke], search_px=12.0)[0]
     np.testing.assert_allclose(r.points[:, 1], 30.0, atol=0.03)
+
+
+def test_sealed_lips_are_left_as_drawn():
+    # a sealed mouth: the lit upper lip over the shaded lower one, one step edge at y = 50.3 where they meet
+    # and no dark interior. The upper stroke finds that edge, but the lower lip's line (drawn at y = 48.5, where
+    # its stroke found no edge of its own) is not below it: the lips overlap there, both strokes stay as drawn
+    img = area_image(100, 140, lambda x, y: y > 50.3, blur=0.5, light=0.8, dark=0.4, noise=0.003)
+    x = np.linspace(20, 120, 41)
+    up0, lo0 = np.c_[x, np.full_like(x, 52.5)], np.c_[x[::-1], np.full_like(x, 48.5)]
+    assert snap_strokes(img, [up0], mouth_side=(0, 1))[0].n_snapped == 41  # alone, it would move
+    (up,), (lo,) = snap_lips(img, [up0], [lo0])
+    assert up.n_snapped == lo.n_snapped == 0 and up.polarity == lo.polarity == 0
+    np.testing.assert_array_equal(up.points, up0)
+    np.testing.assert_array_equal(lo.points, lo0)
+    # open by 5 px (a dark interior below the edge down to y = 55.3), the same strokes snap
+    img = area_image(100, 140, lambda x, y: (y > 50.3) & (y < 55.3), blur=0.5, noise=0.003)
+    (up,), (lo,) = snap_lips(img, [up0], [lo0 + [0, 9.0]])
+    assert up.n_snapped == lo.n_snapped == 41
+    np.testing.assert_allclose(up.points[:, 1], 50.3, atol=0.1)
+    np.testing.assert_allclose(lo.points[:, 1], 55.3, atol=0.1)
+
+
+def test_lip_edge_in_colour_only_is_found_where_grey_barely_changes():
+    # a red lip (above y = 40.4) over a dark-green mouth of nearly the same luminance: the grey edge is weak,
+    # the lip-to-mouth colour contrast is strong
+    H, W = 80, 120
+    m = area_image(H, W, lambda x, y: y > 40.4, dark=0.0, light=1.0, blur=0.6)
+    lip, mouth = np.array([0.55, 0.12, 0.10]), np.array([0.05, 0.26, 0.12])
+    img = m[..., None] * lip + (1 - m[..., None]) * mouth
+    img = img + np.random.default_rng(1).normal(0, 0.01, img.shape)
+    assert abs((lip - mouth) @ [0.2126, 0.7152, 0.0722]) < 0.01
+    grey = img @ [0.2126, 0.7152, 0.0722]
+    assert snap_strokes(grey, [np.c_[np.linspace(20, 100, 41), np.full(41, 43.0)]], mouth_side=(0, 1))[0].n_snapped == 0
+    stroke = np.c_[np.linspace(20, 100, 41), 43.0 + np.sin(np.linspace(0, 3, 41))]
+    (r,) = snap_strokes(img, [stroke], mouth_side=(0, 1))
+    assert r.n_snapped == len(stroke)
+    np.testing.assert_allclose(r.points[:, 1], 40.4, atol=0.1)
+
+
+def test_defocused_edge_is_no_edge():
+    # a strong lip edge blurred by 6 px (a defocused plate): no sharp edge, the stroke is left as drawn
+    img = area_image(100, 140, lambda x, y: y > 50.0, blur=6.0, noise=0.003)
+    stroke = np.c_[np.linspace(20, 120, 41), np.full(41, 52.0)]
+    (r,) = snap_strokes(img, [stroke], mouth_side=(0, 1))
+    assert r.n_snapped == 0
+    np.testing.assert_array_equal(r.points, stroke)
+    sharp = area_image(100, 140, lambda x, y: y > 50.0, blur=0.7, noise=0.003)
+    assert snap_strokes(sharp, [stroke], mouth_side=(0, 1))[0].n_snapped == 41
+
+
+def test_a_short_faint_stretch_moves_with_the_edge_a_long_one_stays():
+    # the lip edge at y = 40.3 is flat grey for 7 px around x = 50 (a faint stretch) and gone from x = 80 on
+    img = area_image(80, 140, lambda x, y: (y > 40.3) & (x < 80), noise=0.003)
+    img[:, 47:54] = 0.45
+    x = np.linspace(10, 130, 121)  # 1 px apart
+    stroke = np.c_[x, np.full_like(x, 42.5)]
+    (r,) = snap_strokes(img, [stroke], mouth_side=(0, 1))
+    short = np.abs(x - 50.5) <= 1.0
+    on = (x < 75) & ~(np.abs(x - 50.5) < 6)
+    assert r.snapped[short].all() and r.snapped[on].all()
+    np.testing.assert_allclose(r.points[on, 1], 40.3, atol=0.1)
+    np.testing.assert_allclose(r.points[short, 1], 40.3, atol=0.3)  # set by its neighbours on the edge
+    far = x > 95
+    assert not r.snapped[far].any()
+    np.testing.assert_array_equal(r.points[far], stroke[far])
+    # without bridging, the faint stretch stays where it was drawn
+    (r0,) = snap_strokes(img, [stroke], mouth_side=(0, 1), bridge_px=0)
+    assert not r0.snapped[short].any()
+    np.testing.assert_array_equal(r0.points[short], stroke[short])
