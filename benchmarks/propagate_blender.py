@@ -291,7 +291,7 @@ def accuracy(bpy, obj, frames, train, err, cap_w, chunk=100):
     from facelab_addon.blender import caches
     from facelab_addon.blender.mesh import mesh_triangles, vertex_group_mask
     from facelab_addon.blender.shapekeys import rest_vertices, shape_key_sequence
-    from facelab_addon.core.lips.propagate import LipRegressor
+    from facelab_addon.core.lips.regressor import LipRegressor
     from facelab_addon.core.lips.regions import faces_in_region
 
     tris = mesh_triangles(obj.data)

@@ -37,8 +37,8 @@ from ..blender.objects import ModifierState, local_length, require_editable, tol
 from ..blender.scene_time import require_scene_time
 from ..blender.shapekeys import key_property_bulk, rest_vertices
 from ..core.errors import FaceLabError, FrameError
-from ..core.lips.propagate import LipRegressor
-from ..core.lips.reduced import StreamingBasis
+from ..core.lips.regressor import LipRegressor
+from ..core.lips.regressor.reduced import StreamingBasis
 from ..core.lips.suggest import SuggestScreen
 from ..names import EXTRAPOLATION_ACTION, EXTRAPOLATION_PROP, PROPAGATE_PREFIX, STORE_SETTINGS_ATTR, SUGGEST_MARKER
 from .correctives import CorrectionWriter, StorageSettings, StoredKeys

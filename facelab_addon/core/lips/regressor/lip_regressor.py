@@ -1,4 +1,4 @@
-"""Regression propagation of lip corrections: the learnt map from mouth to inner-lip gradients.
+"""The lip regressor: the learnt map from mouth to inner-lip deformation gradients, as one object.
 
 Dinev et al. 2018, "User-Guided Lip Correction for Facial Performance
 Capture", §4 "Automatic Lip Correction Learning". The deformation gradients
@@ -11,18 +11,23 @@ one column per frame), the reduced unknown ``θ̄ = U_Xᵀ θ U_Y`` (at most
 a sparse Poisson solve with the lip/mouth border vertices held at their
 captured positions (Dirichlet).
 
+:class:`LipRegressor` composes the package's modules: :func:`.operators.lip_operators` builds the
+fixed operators once (regions, Poisson factor, patches), :func:`.training.train` turns training
+features into a :class:`.state.TrainedModel`, and the functions of :mod:`.prediction` evaluate it.
+Its state is those plain objects (:attr:`LipRegressor.operators`, :attr:`LipRegressor.trained`).
+
 Implementation notes (deviations are marked):
 
 * The Poisson system is the usual gradient-domain least squares
   ``min_x Σ_t a_t ||∇_t x - F_t||²`` over the lip triangles (``∇_t`` the
   rest-pose gradient of the piecewise-linear map, ``a_t`` the rest area),
-  i.e. a cotangent Laplacian. Its interior block is factored once, in
-  ``__init__`` (cholespy, else SuperLU). Because the border moves every
+  i.e. a cotangent Laplacian. Its interior block is factored once, at
+  construction (cholespy, else SuperLU). Because the border moves every
   frame, prediction is linear in (mouth coefficients, border positions): a
   frame costs its mouth gradients and a few dense products (the solve folded
   into dense maps while they are small, else one shared back-substitution).
-  The paper reports 5.15 s a frame; :meth:`LipRegressor.predict` evaluates the folded maps in
-  float32, a block of frames per matrix product (0.55 ms CPU a frame at 105k vertices, load 9).
+  :meth:`LipRegressor.predict` evaluates the folded maps in float32, a block of frames per
+  matrix product (:mod:`.predict32`).
 * ``center="rest"`` (default, an addition to the paper): the regression runs
   on gradients minus the identity, ``x - I = θ (y - I)``, so the rest pose
   maps to itself and a single training frame already gives a pose-scaled
@@ -35,15 +40,13 @@ Implementation notes (deviations are marked):
   maps let, say, the left corner follow a smile while the lower lip follows
   the jaw, which matters when k is below the number of independent mouth
   motions. Still exact on the span of the training frames. ``patches=1``
-  is the paper's single map. The patches are built in :mod:`.patches`. On the ICT benchmark
-  (``benchmarks/propagate.py``, k = 10) the held-out inner-lip RMS error is
-  21% of the uncorrected capture's with the defaults, 32% with one
-  rest-centred map and 40% with the paper's uncentred map.
+  is the paper's single map. The patches are built in :mod:`.patches`; how the
+  variants compare: docs/benchmarks.md (``benchmarks/propagate.py``).
 * Memory: frames are read in their own dtype (a float32 sequence is not
   upcast as a whole); only the mouth and lip vertices are gathered, a block of
   frames at a time. ``predict(captured, out=captured)``
   writes only the interior lip vertices. For :meth:`LipRegressor.extrapolation`
-  and :func:`.suggest.suggest_frames` (the next frames worth correcting) on
+  and :func:`..suggest.suggest_frames` (the next frames worth correcting) on
   the same sequence, compute :meth:`LipRegressor.mouth_features` once and
   pass it as ``features=``.
 * ``ridge`` (default 0, the paper): Tikhonov term ``λ ||θ̄||²`` in the
@@ -67,29 +70,19 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import FaceLabError, FrameError, PredictionError, UsageError
-from ..geometry.gradients import rest_inverse, shape_matrices
-from ..geometry.laplacian import poisson_operator
-from ..geometry.linsolve import SPDFactor
-from .features import (
-    BLOCK as _BLOCK,
-    as_frames as _as_frames,
-    coordinate_major as _coordinate_major,
-    gradient_features as _gradient_features,
-    mouth_coefficients as _mouth_coefficients,
-    StreamingPrediction as _StreamingPrediction,
-)
-from .guards import check_settings as _check_settings, checked_mesh as _checked_mesh
-from .patches import lip_patches as _lip_patches
+from ...errors import FaceLabError, UsageError
+from . import prediction
+from .features import BLOCK, as_frames, frames_of, gradients
+from .guards import check_features, check_settings, checked_mesh
+from .operators import lip_operators
 from .reduced import MODELS
-from .regions import region_border, validate_regions
-from .training import RegressorTraining as _Training
+from .state import LipOperators, Settings, TrainedModel
+from .training import shot_inputs, train, training_features
 
 __all__ = ["LipRegressor"]
 
 
-
-class LipRegressor(_Training, _StreamingPrediction):
+class LipRegressor:
     """Learn inner-lip deformation gradients from the mouth region (Dinev et al. 2018, §4).
 
     Parameters
@@ -164,6 +157,12 @@ class LipRegressor(_Training, _StreamingPrediction):
         With ``model="auto"``: the predicted RMS error of the interior lip vertices over the shot
         (scene units) of ``"whole"``, ``"correction"``, ``"blend"`` and the correction model's
         ``"floor"`` (:mod:`.model_choice`); empty otherwise.
+    settings : Settings
+        The checked keyword arguments (:class:`.state.Settings`).
+    operators : LipOperators
+        Regions, Poisson system and patches (:class:`.state.LipOperators`), fixed at construction.
+    trained : TrainedModel or None
+        The current fit (:class:`.state.TrainedModel`); None before :meth:`fit`.
 
     Raises
     ------
@@ -176,124 +175,192 @@ class LipRegressor(_Training, _StreamingPrediction):
 
     def __init__(self, rest_vertices, faces, mouth_faces, lip_faces, *, patches: int = 10, input_radius=None,
                  center="rest", ridge=0.0, rtol=1e-4, atol=1e-4, backend="auto", model="auto", damping=False):
-        R, F = _checked_mesh(rest_vertices, faces)
+        R, F = checked_mesh(rest_vertices, faces)
         if not isinstance(damping, (bool, np.bool_)):
             raise UsageError(f"damping must be True or False, got {damping!r}; use False (the paper) or True")
-        self.damping = bool(damping)
-        self._error_model = None
-        self._expected_model = None
         if model not in MODELS:
             raise UsageError(f"model must be one of {MODELS}, got {model!r}; use 'auto' (the default)")
-        self.model = model
         if center not in ("rest", None):
             raise UsageError(f"center must be 'rest' or None, got {center!r}; use 'rest' (the default)")
-        _check_settings(ridge, rtol, atol, patches, input_radius)
-        self.rest = R
-        self.faces = F
-        self.n_vertices = len(R)
-        self.center = center
-        self.ridge = ridge
-        self.rtol = float(rtol)
-        self.atol = float(atol)
-        self._setup_regions(mouth_faces, lip_faces)
-        self._setup_poisson(backend)
-        self._setup_patches(patches, input_radius)
-        self._Y = None  # (9m, k) training mouth features
-        self._X = None  # (9n, k) training lip features
-        self._Xc = None  # (9n, k) corrected minus captured lip features (None: captured not given)
-        self.k = 0
-        self.whole_weight = 1.0  # α: weight of the whole-motion model in the fitted blend
-        self.model_errors = {}  # predicted RMS interior lip error of each model (scene units)
+        check_settings(ridge, rtol, atol, patches, input_radius)
+        self.settings = Settings(center=center, ridge=ridge, rtol=float(rtol), atol=float(atol), model=model,
+                                 damping=bool(damping))
+        self.operators: LipOperators = lip_operators(R, F, mouth_faces, lip_faces, center=center, patches=patches,
+                                                     input_radius=input_radius, backend=backend)
+        self.trained: TrainedModel | None = None
+        ops = self.operators
+        self.rest, self.faces, self.n_vertices = ops.rest, ops.faces, ops.n_vertices
+        self.mouth_faces, self.lip_faces = ops.mouth_faces, ops.lip_faces
+        self.lip_vertices, self.border_vertices = ops.lip_verts, ops.border_vertices
+        self.interior_vertices, self.used_vertices = ops.interior_vertices, ops.used
+        self.mouth_size, self.patch_spacing, self.n_patches = ops.mouth_size, ops.patch_spacing, len(ops.patches)
 
-    def _setup_regions(self, mouth_faces, lip_faces):
-        """Validated regions, their rest-pose inverse shape matrices and local vertex indexing."""
-        R, F = self.rest, self.faces
-        self.mouth_faces, self.lip_faces = validate_regions(F, mouth_faces, lip_faces, len(R), R)
-        self._mouth_tris = F[self.mouth_faces]
-        self._lip_tris = F[self.lip_faces]
-        self._mouth_rinv = rest_inverse(R, self._mouth_tris, name="mouth region")
-        self._mouth_P = np.matmul(self._mouth_rinv, self._mouth_rinv.transpose(0, 2, 1))  # ||D R^-1||² = <DᵀD, P>
-        self._lip_rinv = rest_inverse(R, self._lip_tris, name="inner-lip region")
-        self._mouth_verts, inv = np.unique(self._mouth_tris, return_inverse=True)
-        self._mouth_local = inv.reshape(-1, 3)
-        self._lip_verts_all, inv = np.unique(self._lip_tris, return_inverse=True)
-        self._lip_local = inv.reshape(-1, 3)
-        self._used = np.union1d(self._mouth_verts, self._lip_verts_all)  # vertices read per frame
-        self.used_vertices = self._used
-        self._mouth_u = np.searchsorted(self._used, self._mouth_verts)  # the same in a (T, len(used), 3) array
-        # the largest plausible correction: the extent of the mouth and lip regions (scene units)
-        self.mouth_size = float(np.ptp(R[self._used], axis=0).max())
+    # ------------------------------------------------------------------ settings and fit, as attributes
+    @property
+    def center(self):
+        """Feature centring: ``"rest"`` or None (:class:`.state.Settings`)."""
+        return self.settings.center
 
-    def _setup_poisson(self, backend):
-        """Poisson system on the lip triangles, Dirichlet on the border: interior block factored once."""
-        R, F = self.rest, self.faces
-        L, D = poisson_operator(R, F, self.lip_faces)
-        self.lip_vertices = self._lip_verts_all
-        self.border_vertices = region_border(F, self.lip_faces, len(R))
-        interior = np.setdiff1d(self.lip_vertices, self.border_vertices)
-        if interior.size == 0:
-            raise FaceLabError(
-                "Every inner-lip vertex is on the border, so nothing would be predicted; widen 'FL_lips' "
-                "(Auto Regions with a larger lip width)."
-            )
-        self.interior_vertices = interior
-        self._iv_u = np.searchsorted(self._used, interior)
-        self._bv_u = np.searchsorted(self._used, self.border_vertices)
-        L = L.tocsr()
-        self._L_II = L[interior][:, interior].tocsc()
-        self._L_IB = L[interior][:, self.border_vertices].tocsr()
-        self._D_I = D[interior].tocsr()  # (nI, 3n)
-        try:
-            self._factor = SPDFactor(self._L_II, backend, what="lip Poisson system")
-        except Exception as e:  # pragma: no cover - validated regions make L_II SPD
-            raise FaceLabError(
-                f"The inner-lip Poisson system could not be factored ({e}); check for degenerate or "
-                "disconnected triangles in 'FL_lips'."
-            ) from e
-        # divergence of the identity gradients: the constant part for center="rest"
-        ident = np.broadcast_to(np.eye(3), (len(self.lip_faces), 3, 3))
-        self._b_ident = self._D_I @ ident.transpose(0, 2, 1).reshape(-1, 3)  # (nI, 3)
+    @property
+    def ridge(self):
+        """Ridge weight of each reduced map: a float or ``"loo"``."""
+        return self.settings.ridge
 
-    def _setup_patches(self, patches, input_radius):
-        """Local patches of the lip region (:mod:`.patches`) and the divergence operator of each."""
-        R, F = self.rest, self.faces
-        self._patches, self.patch_spacing = _lip_patches(R, F, self.mouth_faces, self.lip_faces, int(patches),
-                                                        input_radius)
-        self.n_patches = len(self._patches)
-        Dc = self._D_I.tocsc()
-        self._D_patch = [Dc[:, (3 * ls[:, None] + np.arange(3)).ravel()].tocsr() for _, ls, _ in self._patches]
+    @property
+    def rtol(self) -> float:
+        """Relative singular-value cut-off of the thin SVDs."""
+        return self.settings.rtol
+
+    @property
+    def atol(self) -> float:
+        """Absolute cut-off: RMS gradient change per triangle (unitless)."""
+        return self.settings.atol
+
+    @property
+    def model(self) -> str:
+        """What is regressed: ``"auto"``, ``"whole"`` or ``"correction"``."""
+        return self.settings.model
+
+    @property
+    def damping(self) -> bool:
+        """Whether each frame's predicted correction is scaled by its expected error."""
+        return self.settings.damping
+
+    @property
+    def k(self) -> int:
+        """Number of training frames (0 before :meth:`fit`)."""
+        return 0 if self.trained is None else self.trained.data.k
+
+    @property
+    def whole_weight(self) -> float:
+        """``α`` of the fitted blend: 1 is the whole-motion model (also before :meth:`fit`)."""
+        return 1.0 if self.trained is None else self.trained.whole_weight
+
+    @property
+    def model_errors(self) -> dict:
+        """Predicted RMS interior lip error of each model, scene units (``model="auto"``; else empty)."""
+        return {} if self.trained is None else self.trained.model_errors
+
+    @property
+    def theta_bars(self) -> list:
+        """The whole-motion model's reduced maps θ̄, (rX, rY) each, one per patch."""
+        return self._fitted().theta_bars
+
+    @property
+    def ridges_used(self) -> list:
+        """The ridge weight each patch's map was fitted with."""
+        return self._fitted().ridges_used
+
+    # what .suggest reads of the fit: the training span U_Y, its RMS deformation, the training features
+    @property
+    def _UY(self):
+        return self._fitted().data.UY
+
+    @property
+    def _sigma(self):
+        return self._fitted().data.sigma
+
+    @property
+    def _Y(self):
+        return None if self.trained is None else self.trained.data.Y
+
+    def _fitted(self) -> TrainedModel:
+        if self.trained is None:
+            raise FaceLabError("The lip regressor has no training frames; call fit() with corrected frames first.")
+        return self.trained
+
+    def _require_fit(self):
+        self._fitted()
+
+    def _check_features(self, features):
+        return check_features(features, len(self.mouth_faces))
+
+    # ------------------------------------------------------------------ training
+    def fit(self, corrected, captured=None, *, shot=None, used_only=False):
+        """Fit the reduced regression(s) on corrected frames, replacing any earlier training.
+
+        Parameters
+        ----------
+        corrected : (k,V,3) array_like
+            Corrected (ground-truth) frames, scene units. For each, the mouth
+            gradients give ``y`` (the mouth is trusted, so corrected = captured
+            there) and the lip gradients give ``x``.
+        captured : (k,V,3) array_like, optional
+            The same frames as captured: their lip gradients give the
+            correction model's output ``x - x_captured`` (``model`` "auto" or
+            "correction"). Without them only the whole-motion model is fitted
+            (``model="correction"`` is refused).
+        shot : (T,V,3) array_like, optional
+            Captured frames the model will correct (the shot, or an even
+            sample of it: a few dozen frames suffice), for ``model="auto"``:
+            their distance from the training poses and the two models'
+            disagreement on them set the blend (:mod:`.model_choice`).
+        used_only : bool
+            ``shot`` holds only the :attr:`used_vertices` of each frame.
+
+        Returns
+        -------
+        self
+
+        Raises
+        ------
+        FaceLabError
+            With fewer than one training frame, a topology that differs from
+            the rest mesh, or NaN coordinates.
+        FrameError
+            With ``center="rest"``, when no training frame moves the mouth
+            (all in the rest pose to within ``atol``); the earlier fit is kept.
+        """
+        ops, st = self.operators, self.settings
+        y, x, xc = training_features(ops, st, corrected, captured)
+        self.trained = train(ops, st, y.copy(), x.copy(), xc, shot_inputs(ops, st, shot, used_only, xc))
+        return self
+
+    def add(self, corrected, captured=None, *, shot=None, used_only=False):
+        """Add corrected frame(s) to the training set and update the fit.
+
+        Re-runs the thin SVDs on the stacked ``k+1`` columns (cost
+        ``O(9m k²)`` per patch, milliseconds); the result equals :meth:`fit`
+        on all frames.
+
+        Parameters
+        ----------
+        corrected : (V,3) or (j,V,3) array_like
+            New corrected frame(s), scene units.
+        captured : (V,3) or (j,V,3) array_like, optional
+            The same frames as captured (as :meth:`fit`); needed for the
+            correction model when the earlier frames had them.
+        shot, used_only
+            As :meth:`fit`.
+
+        Returns
+        -------
+        self
+        """
+        ops, st = self.operators, self.settings
+        y, x, xc = training_features(ops, st, corrected, captured)
+        sh = shot_inputs(ops, st, shot, used_only, xc)
+        if self.trained is None:
+            self.trained = train(ops, st, y.copy(), x.copy(), xc, sh)
+        else:
+            old = self.trained.data
+            both = xc is not None and old.Xc is not None
+            self.trained = train(ops, st, np.hstack([old.Y, y]), np.hstack([old.X, x]),
+                                 np.hstack([old.Xc, xc]) if both else None, sh)
+        return self
 
     # ------------------------------------------------------------------ features
-    def _grad(self, frames, rinv, verts, local):
-        P = frames[:, verts, :]
-        return np.matmul(shape_matrices(P, local), rinv)  # (T, f, 3, 3)
-
     def mouth_gradients(self, frames) -> np.ndarray:
         """(T,m,3,3) deformation gradients of the mouth triangles of ``frames`` (T,V,3)."""
-        A = _as_frames(frames, self.n_vertices, "frames", self._used)
-        return self._grad(A, self._mouth_rinv, self._mouth_verts, self._mouth_local)
+        ops = self.operators
+        A = as_frames(frames, self.n_vertices, "frames", ops.used)
+        return gradients(A, ops.mouth_rinv, ops.mouth_verts, ops.mouth_local)
 
     def lip_gradients(self, frames) -> np.ndarray:
         """(T,n,3,3) deformation gradients of the inner-lip triangles of ``frames`` (T,V,3)."""
-        A = _as_frames(frames, self.n_vertices, "frames", self._used)
-        return self._grad(A, self._lip_rinv, self._lip_verts_all, self._lip_local)
-
-    def _feat(self, G):
-        T = G.shape[0]
-        if self.center == "rest":
-            G = G - np.eye(3)
-        return G.reshape(T, -1)
-
-    def _mouth_feat(self, frames, used_only=False):
-        """(T, 9m) mouth features of validated frames (any float dtype; computed in float64)."""
-        verts = self._mouth_u if used_only else self._mouth_verts
-        return _gradient_features(frames, verts, self._mouth_local, self._mouth_rinv, self.center == "rest")
-
-    def _frames(self, captured, what, used_only):
-        """Validated frames, full (T,V,3) or, with ``used_only``, (T, len(used_vertices), 3)."""
-        if used_only:
-            return _as_frames(captured, len(self._used), what + " (used vertices only)")
-        return _as_frames(captured, self.n_vertices, what, self._used)
+        ops = self.operators
+        A = as_frames(frames, self.n_vertices, "frames", ops.used)
+        return gradients(A, ops.lip_rinv, ops.lip_verts, ops.lip_local)
 
     def mouth_features(self, captured, *, used_only: bool = False) -> np.ndarray:
         """Whole-mouth feature vectors ``y`` of frames, one row per frame.
@@ -326,171 +393,13 @@ class LipRegressor(_Training, _StreamingPrediction):
             If no frames are given, or they have a different topology or NaN
             coordinates in the mouth or lip region (``MeshError``).
         """
-        A = self._frames(captured, "captured frames", used_only)
+        A = frames_of(self.operators, captured, "captured frames", used_only)
         out = np.empty((len(A), 9 * len(self.mouth_faces)))
-        for s in range(0, len(A), _BLOCK):
-            out[s : s + _BLOCK] = self._mouth_feat(A[s : s + _BLOCK], used_only)
+        for s in range(0, len(A), BLOCK):
+            out[s : s + BLOCK] = prediction.mouth_rows(self.operators, A[s : s + BLOCK], used_only)
         return out
 
-    def _check_features(self, features):
-        Y = np.asarray(features)
-        d = 9 * len(self.mouth_faces)
-        if Y.ndim != 2 or Y.shape[1] != d:
-            raise FaceLabError(
-                f"features have shape {Y.shape}, expected (T, {d}) (9 per mouth triangle); compute them with "
-                "mouth_features() of this regressor."
-            )
-        if len(Y) == 0:
-            raise FaceLabError("No features given (0 frames); pass at least one frame.")
-        if not np.issubdtype(Y.dtype, np.floating):
-            raise FaceLabError(f"features have dtype {Y.dtype}, expected floats; compute them with mouth_features().")
-        bad = np.flatnonzero(~np.isfinite(Y).all(axis=1))
-        if bad.size:
-            raise FrameError("The features of {frames} contain NaN or infinite values; recompute them with "
-                             "mouth_features() from frames without NaN coordinates.", bad[:20])
-        return Y
-
-    def _require_fit(self):
-        if self._Y is None:
-            raise FaceLabError("The lip regressor has no training frames; call fit() with corrected frames first.")
-
     # ------------------------------------------------------------------ prediction
-    def _coefficients(self, frames, used_only=False):
-        """Reduced coefficients ``z_p = U_Y,pᵀ y_p`` of all patches, (T, Σ rY), for validated frames.
-
-        ``y = vec(D_d D_r^-1)`` is linear in the shape matrix ``D_d``, so
-        ``U_Yᵀ y = Σ D_d[i,k] W[i,k]`` with ``W`` folded at fit time; the edge columns of ``D_d``
-        are linear in the positions, so a frame costs one product with its mouth vertices, the
-        phantom columns of its mouth triangles and three more products
-        (:func:`.features._fold_coefficients`).
-        """
-        verts = self._mouth_u if used_only else self._mouth_verts
-        if getattr(self, "_cm", (None,))[0] is not self._Mx:
-            nv, m = len(self._mouth_verts), len(self.mouth_faces)
-            self._cm = (self._Mx, _coordinate_major(self._Mx, nv), _coordinate_major(self._Mc, m))
-        return _mouth_coefficients(frames, verts, self._mouth_local, *self._cm[1:]) - self._z_ident
-
-    def _interior(self, A, used_only=False, z=None, r2=None):
-        """``(xi, xc)``: predicted and captured interior lip positions (t, nI, 3) float64 of validated frames.
-
-        With ``damping`` the correction ``xi - xc`` is scaled per frame (``r2`` (t,): the frames' squared
-        distances from the training span, computed from ``A`` when not given).
-        """
-        xi, xc = self._undamped_interior(A, used_only, z)
-        if self._error_model is not None:
-            if r2 is None:
-                r2 = self._residual_norms(self._mouth_feat(A, used_only)) ** 2
-            xi = self._damp(xi, xc, r2)
-        return xi, xc
-
-    def damping_weights(self, captured=None, *, features=None) -> np.ndarray:
-        """(T,) the factor each frame's predicted correction is scaled by (1 everywhere without ``damping``).
-
-        Parameters
-        ----------
-        captured, features
-            As :meth:`extrapolation`.
-
-        Returns
-        -------
-        (T,) float64 ndarray
-            In (0, 1]; see ``damping`` in the class description.
-        """
-        self._require_fit()
-        if features is None:
-            A = _as_frames(captured, self.n_vertices, "captured frames", self._used)
-            Y = self.mouth_features(A)
-        else:
-            A = None
-            Y = self._check_features(features)
-        if self._error_model is None:
-            return np.ones(len(Y))
-        if A is None:
-            raise UsageError("damping_weights() needs the captured frames (the predicted correction's size); pass "
-                             "captured=")
-        xi, xc = self._undamped_interior(A, False)
-        return self._damp_weights(xi - xc, self._residual_norms(Y) ** 2)
-
-    def _damp_weights(self, c, r2):
-        from .model_choice import damping_weights, expected_error
-
-        S = expected_error(self._error_model, self.whole_weight, r2)
-        return damping_weights(np.einsum("tij,tij->t", c, c), S)
-
-    def _damp(self, xi, xc, r2):
-        """``xc + s (xi - xc)`` with the damping weights ``s`` of each frame (t,)."""
-        c = xi - xc
-        return xc + self._damp_weights(c, r2)[:, None, None] * c
-
-    def _undamped_interior(self, A, used_only=False, z=None):
-        """:meth:`_interior` without damping."""
-        iv, bv = (self._iv_u, self._bv_u) if used_only else (self.interior_vertices, self.border_vertices)
-        nI, t = len(iv), len(A)
-        z = self._coefficients(A, used_only) if z is None else z
-        xb = np.asarray(A[:, bv, :], dtype=np.float64).transpose(1, 0, 2).reshape(len(bv), 3 * t)
-        # the blend α·whole + (1-α)·correction: x_I = K z + α (x_0 - H x_B) + (1 - α) x_captured,I
-        a = self.whole_weight
-        xc = np.asarray(A[:, iv, :], dtype=np.float64)
-        dense = self._dense_solution()
-        if dense is not None:  # two dense products instead of a sparse solve
-            K, H, x0 = dense
-            xi = (K @ z.T).reshape(nI, 3, t).transpose(0, 2, 1).reshape(nI, 3 * t)
-            xi -= (a * H) @ xb if a != 1.0 else H @ xb
-            xi = xi.reshape(nI, t, 3).transpose(1, 0, 2)
-            if x0 is not None:
-                xi += a * x0[None]
-        else:
-            rhs = (self._Zdiv @ z.T).reshape(nI, 3, t).transpose(0, 2, 1)  # (nI, t, 3)
-            if self.center == "rest":
-                rhs = rhs + a * self._b_ident[:, None, :]
-            rhs = rhs.reshape(nI, 3 * t) - a * (self._L_IB @ xb)
-            xi = self._factor.solve(rhs).reshape(nI, t, 3).transpose(1, 0, 2)
-        if a != 1.0:
-            xi += (1.0 - a) * (xc + self._x_b[None])
-        return xi, xc
-
-    def _residual_norms(self, Y):
-        """(T,) norms of mouth features ``Y`` (T, 9m) outside the global training span."""
-        r = Y - (Y @ self._UY) @ self._UY.T
-        return np.sqrt(np.sum(r * r, axis=1))
-
-    def predict_lip_gradients(self, captured) -> np.ndarray:
-        """Predicted inner-lip deformation gradients ``x = θ y`` (blended over patches and models).
-
-        Parameters
-        ----------
-        captured : (T,V,3) or (V,3) array_like
-            Captured frames, scene units.
-
-        Returns
-        -------
-        (T,n,3,3) float64 ndarray
-            One unitless 3×3 gradient per lip triangle (order of ``lip_faces``).
-        """
-        self._require_fit()
-        A = _as_frames(captured, self.n_vertices, "captured frames", self._used)
-        T = len(A)
-        z = self._coefficients(A)
-        x = np.zeros((T, len(self.lip_faces), 9))
-        o = 0
-        for (_, lip_sel, w), (UX, th, _) in zip(self._patches, self._pfit):
-            r = th.shape[1]
-            xp = (z[:, o : o + r] @ th.T) @ UX.T  # (T, 9 n_p)
-            x[:, lip_sel] += xp.reshape(T, len(lip_sel), 9) * w[None, :, None]
-            o += r
-        x = x.reshape(T, -1, 3, 3)
-        a = self.whole_weight
-        if self.center == "rest":
-            x = x + a * np.eye(3)
-        if a != 1.0:  # the correction model adds the captured gradients
-            x = x + (1.0 - a) * (self._grad(A, self._lip_rinv, self._lip_verts_all, self._lip_local)
-                                 + self._B.reshape(-1, 3, 3))
-        bad = np.flatnonzero(~np.isfinite(x).reshape(T, -1).all(axis=1))
-        if bad.size:
-            raise PredictionError("The predicted lip gradients of {frames} are not finite; check those frames "
-                                  "for extreme mouth shapes and retrain with frames like them.", bad[:20])
-        return x
-
     def predict(self, captured, *, out=None, chunk: int = 256) -> np.ndarray:
         """Correct the inner lips of captured frames.
 
@@ -543,7 +452,68 @@ class LipRegressor(_Training, _StreamingPrediction):
             than the size of the mouth region (:attr:`mouth_size`); it names
             the frame indices and ``out`` is left unchanged.
         """
-        return self._predict_frames(captured, out, chunk)
+        trained = self._fitted()
+        return prediction.predict_frames(self.operators, trained, captured, out, chunk)
+
+    def predict_lip_gradients(self, captured) -> np.ndarray:
+        """Predicted inner-lip deformation gradients ``x = θ y`` (blended over patches and models).
+
+        Parameters
+        ----------
+        captured : (T,V,3) or (V,3) array_like
+            Captured frames, scene units.
+
+        Returns
+        -------
+        (T,n,3,3) float64 ndarray
+            One unitless 3×3 gradient per lip triangle (order of ``lip_faces``).
+        """
+        trained = self._fitted()
+        A = as_frames(captured, self.n_vertices, "captured frames", self.operators.used)
+        return prediction.predict_lip_gradients(self.operators, trained, A)
+
+    def lip_corrections(self, captured, *, used_only: bool = False, first: int = 0) -> np.ndarray:
+        """The correction of the interior lip vertices, predicted minus captured, frame by frame.
+
+        What :meth:`predict` adds to ``captured[:, interior_vertices]``, without writing a
+        (T,V,3) result: the streaming form for long shots (the caller feeds chunks).
+
+        Parameters
+        ----------
+        captured : (T,V,3) array_like, or (T, len(used_vertices), 3) with ``used_only``
+            Captured frames (or only their :attr:`used_vertices`), scene units, float32 or float64.
+        used_only : bool
+            ``captured`` holds only the used vertices, in the order of :attr:`used_vertices`.
+        first : int
+            Index of the chunk's first frame in the shot, for the frame indices of errors.
+
+        Returns
+        -------
+        (T, nI, 3) float64 ndarray
+            Offsets of :attr:`interior_vertices`, scene units; the border vertices' are zero.
+
+        Raises
+        ------
+        FaceLabError, PredictionError
+            As :meth:`predict`.
+        """
+        trained = self._fitted()
+        return prediction.lip_corrections(self.operators, trained, captured, used_only, first)
+
+    def correct_chunk(self, captured, *, used_only: bool = False, first: int = 0):
+        """:meth:`lip_corrections` and the mouth's distance from the training span, in one pass over the mouth.
+
+        Returns ``(corrections (t,nI,3), extrapolation (t,), feature_sq (t,))``: the score of
+        :meth:`extrapolation` (from ``||y||² - ||U_Yᵀ y||²``, never forming ``y``) and ``||y||²``
+        (for :class:`.suggest.SuggestScreen`). Arguments as :meth:`lip_corrections`.
+        """
+        trained = self._fitted()
+        return prediction.correct_chunk(self.operators, trained, captured, used_only, first)
+
+    def mouth_projections(self, captured, directions, *, used_only: bool = False):
+        """``(Aᵀ y (t,d), ||y||² (t,))`` of frames' mouth features ``y`` on directions ``A`` (9m, d), never forming ``y``."""
+        trained = self._fitted()
+        return prediction.mouth_projections(self.operators, trained, captured, directions, used_only)
 
     def extrapolation(self, captured=None, *, features=None) -> np.ndarray:
         """How far each frame's mouth gradients lie outside the span of the training frames.
@@ -569,19 +539,47 @@ class LipRegressor(_Training, _StreamingPrediction):
         -------
         (T,) float64 ndarray
         """
-        self._require_fit()
+        trained, ops = self._fitted(), self.operators
         if (captured is None) == (features is None):
             raise UsageError("extrapolation() takes captured frames or their features, not both or neither; pass one")
         if features is None:
-            A = _as_frames(captured, self.n_vertices, "captured frames", self._used)
-            block = lambda s: self._mouth_feat(A[s : s + _BLOCK])  # noqa: E731
+            A = as_frames(captured, self.n_vertices, "captured frames", ops.used)
+            block = lambda s: prediction.mouth_rows(ops, A[s : s + BLOCK])  # noqa: E731
         else:
             A = self._check_features(features)
-            block = lambda s: A[s : s + _BLOCK]  # noqa: E731
+            block = lambda s: A[s : s + BLOCK]  # noqa: E731
         out = np.empty(len(A))
-        for s in range(0, len(A), _BLOCK):
-            out[s : s + _BLOCK] = self._residual_norms(block(s))
-        return out / self._sigma
+        for s in range(0, len(A), BLOCK):
+            out[s : s + BLOCK] = prediction.residual_norms(trained, block(s))
+        return out / trained.data.sigma
+
+    def damping_weights(self, captured=None, *, features=None) -> np.ndarray:
+        """(T,) the factor each frame's predicted correction is scaled by (1 everywhere without ``damping``).
+
+        Parameters
+        ----------
+        captured, features
+            As :meth:`extrapolation`.
+
+        Returns
+        -------
+        (T,) float64 ndarray
+            In (0, 1]; see ``damping`` in the class description.
+        """
+        trained, ops = self._fitted(), self.operators
+        if features is None:
+            A = as_frames(captured, self.n_vertices, "captured frames", ops.used)
+            Y = self.mouth_features(A)
+        else:
+            A = None
+            Y = self._check_features(features)
+        if trained.error_model is None:
+            return np.ones(len(Y))
+        if A is None:
+            raise UsageError("damping_weights() needs the captured frames (the predicted correction's size); pass "
+                             "captured=")
+        xi, xc = prediction.undamped_interior(ops, trained, A, False)
+        return prediction.frame_damping(trained, xi - xc, prediction.residual_norms(trained, Y) ** 2)
 
     def expected_change(self, corrections, extrapolation) -> np.ndarray:
         """(t,) how much a frame's interior lip error is expected to change with its predicted correction, RMS
@@ -604,31 +602,9 @@ class LipRegressor(_Training, _StreamingPrediction):
         -------
         (t,) float64 ndarray
         """
-        from .model_choice import expected_error
-
-        self._require_fit()
-        c = np.asarray(corrections, dtype=np.float64)
-        cd2 = np.einsum("tij,tij->t", c, c)
-        r2 = (np.asarray(extrapolation, dtype=np.float64) * self._sigma) ** 2
-        em, a = self._expected_model, self.whole_weight
-        S = expected_error(em, a, r2) if em else np.zeros_like(r2)
-        miss = S + ((1.0 - a) ** 2 * em["floor"] if em else 0.0)  # with the correction model's floor: every frame
-        if self.damping:  # undo the damping: |s c|² = c2³ / (c2 + S)² is increasing in c2 (bisection, log scale)
-            lo, hi = np.maximum(cd2, 1e-300), np.maximum(cd2 + 2 * S + np.sqrt(cd2 * S) * 4, 1e-300)
-            for _ in range(60):
-                mid = np.sqrt(lo * hi)
-                big = mid ** 3 / np.maximum(mid + S, 1e-300) ** 2 > cd2
-                hi, lo = np.where(big, mid, hi), np.where(big, lo, mid)
-            c2 = np.sqrt(lo * hi)
-            s = np.divide(c2, c2 + S, out=np.ones_like(c2), where=c2 + S > 0)
-        else:
-            c2, s = cd2, np.ones_like(cd2)
-        C = np.maximum(c2 - miss, 0.0)
-        after = (1 - s) ** 2 * C + s * s * miss
-        nI = max(len(self.interior_vertices), 1)
-        return np.sqrt(after / nI) - np.sqrt(C / nI)
+        trained = self._fitted()
+        return prediction.expected_change(self.operators, trained, self.damping, corrections, extrapolation)
 
     def training_span(self) -> np.ndarray:
         """(9m, r) orthonormal basis ``U_Y`` of the training mouth features (whole mouth region)."""
-        self._require_fit()
-        return self._UY
+        return self._fitted().data.UY

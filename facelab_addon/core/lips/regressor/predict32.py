@@ -2,32 +2,30 @@
 
 Dinev et al. 2018, "User-Guided Lip Correction for Facial Performance Capture", §4: the corrected
 inner lips are a Poisson reconstruction from the predicted gradients, with the lip border held at
-its captured positions. :class:`.features._StreamingPrediction` folds it into dense maps (interior
+its captured positions. :func:`.prediction.dense_solution` folds it into dense maps (interior
 positions linear in the reduced mouth coefficients and the border positions); this module
 evaluates those maps in float32 on changes from the rest pose, a block of frames per matrix
 product, with the record gathers and scatters, the work buffers and the block check of a
 prediction. Positions are scene units; the maps are unitless.
-
-Package-internal: the public API is :class:`.propagate.LipRegressor`.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from .guards import check_prediction as _check_prediction
+from .guards import check_prediction
 
-__all__: list[str] = []
+__all__ = ["check_moves", "put_rows", "Float32Prediction", "PredictionWork", "F32_BLOCK"]
 
 
 def check_moves(xi, xc, first, mouth_size, work=None):
-    """:func:`.guards._check_prediction` of predicted and captured positions (t, n, 3), from each frame's largest
+    """:func:`.guards.check_prediction` of predicted and captured positions (t, n, 3), from each frame's largest
     coordinate change (a lower bound of its largest move, within sqrt 3): the exact check runs on a block only
     when one of its frames comes near the limit or is not finite. ``work``: a buffer for the changes."""
     d = np.subtract(xi, xc, out=None if work is None else work[: len(xi)]).reshape(len(xi), -1)
     big = np.maximum(d.max(axis=1), -d.min(axis=1))  # NaN when a change is NaN
     if not (np.all(np.isfinite(big)) and np.all(big * np.sqrt(3.0) <= mouth_size)):
-        _check_prediction(xi, xc, first, mouth_size)
+        check_prediction(xi, xc, first, mouth_size)
 
 
 F32_BLOCK = 128  # frames per float32 prediction block (products of 128 rows run near the BLAS peak)
@@ -60,10 +58,10 @@ def put_rows(A, idx, X):
 
 
 class Float32Prediction:
-    """The fitted prediction of ``LipRegressor`` folded into float32 maps of displacements from the rest pose.
+    """A fitted prediction (:class:`.state.TrainedModel`) folded into float32 maps of displacements from the rest pose.
 
-    ``x_I = K z + x0 - H x_B`` (:meth:`.features._StreamingPrediction._dense_solution`) with the coefficients
-    ``z = Mxᵀ X + Mcᵀ c - z_ident`` (:func:`.features._fold_coefficients`) is evaluated in float32 on the
+    ``x_I = K z + x0 - H x_B`` (:func:`.prediction.dense_solution`) with the coefficients
+    ``z = Mxᵀ X + Mcᵀ c - z_ident`` (:func:`.features.fold_coefficients`) is evaluated in float32 on the
     displacements ``d = X - X_rest`` (formed in float64, so float32 and float64 frames of the same
     positions give the same result) and on the phantom columns' changes ``c - c_rest`` (``c`` from
     positions about the mouth's centre): every float32 number is a change from the rest pose, and the
@@ -76,16 +74,16 @@ class Float32Prediction:
     far below the 0.01 mm storage tolerance.
     """
 
-    def __init__(self, reg, dense):
+    def __init__(self, ops, model, dense):
         K, H, x0 = dense
         f32 = np.float32
-        mv, bv, iv = reg._mouth_verts, reg.border_vertices, reg.interior_vertices
-        m, nI, nB, R = len(reg._mouth_local), len(iv), len(bv), reg._Mx.shape[1]
-        ref = reg.rest
+        mv, bv, iv = ops.mouth_verts, ops.border_vertices, ops.interior_vertices
+        m, nI, nB, R = len(ops.mouth_local), len(iv), len(bv), model.Mx.shape[1]
+        ref = ops.rest
         self.idx = (mv, bv, iv)
         self.flat = tuple((3 * x[:, None] + np.arange(3)).ravel() for x in self.idx)
         self.ref = (ref[mv], ref[bv])
-        self.l = tuple(np.ascontiguousarray(reg._mouth_local[:, k]) for k in range(3))
+        self.l = tuple(np.ascontiguousarray(ops.mouth_local[:, k]) for k in range(3))
         Rm = ref[mv]
         e1, e2 = Rm[self.l[1]] - Rm[self.l[0]], Rm[self.l[2]] - Rm[self.l[0]]
         c = np.cross(e1, e2)
@@ -96,17 +94,17 @@ class Float32Prediction:
         self.rest_local = np.ascontiguousarray((Rm - Rm.mean(axis=0)).T[:, None, :], dtype=f32)  # (3, 1, nv)
         self.rest_c = 0.0
         self.rest_c = self._phantom(self.rest_local, np.empty((3, 1, m), f32), PredictionWork())
-        self.Mx = reg._Mx.astype(f32)  # (3nv, R), rows (vertex, coordinate)
-        self.Mc = np.ascontiguousarray(reg._Mc.reshape(m, 3, R).transpose(1, 0, 2), dtype=f32)  # (3, m, R)
-        z_ref = reg._Mx.T @ Rm.ravel() + reg._Mc.T @ c.ravel() - reg._z_ident  # (R,) coefficients of X_rest
+        self.Mx = model.Mx.astype(f32)  # (3nv, R), rows (vertex, coordinate)
+        self.Mc = np.ascontiguousarray(model.Mc.reshape(m, 3, R).transpose(1, 0, 2), dtype=f32)  # (3, m, R)
+        z_ref = model.Mx.T @ Rm.ravel() + model.Mc.T @ c.ravel() - model.z_ident  # (R,) coefficients of X_rest
         K3 = K.reshape(nI, 3, R)
         self.K = np.ascontiguousarray(K3.transpose(2, 1, 0).reshape(R, 3 * nI), dtype=f32)  # columns (coordinate, vertex)
         # the blend of the whole-motion and correction models (LipRegressor.whole_weight α):
         # x_I = K z + α (x0 - H x_B) + (1 - α) x_captured,I
-        a = self.alpha = float(reg.whole_weight)
+        a = self.alpha = float(model.whole_weight)
         self.Ht = np.ascontiguousarray(-a * H.T, dtype=f32)  # (nB, nI)
         self.ref_i = ref[iv]
-        self.base = K3 @ z_ref + a * (-H @ ref[bv] + (0.0 if x0 is None else x0)) + (1 - a) * (self.ref_i + reg._x_b)
+        self.base = K3 @ z_ref + a * (-H @ ref[bv] + (0.0 if x0 is None else x0)) + (1 - a) * (self.ref_i + model.x_b)
 
     def _phantom(self, Xc, out, w):
         """``c - c_rest`` (3, t, m) float32 into ``out`` from coordinate-major mouth positions Xc (3, t, nv)
