@@ -44,7 +44,7 @@ import numpy as np
 from .features import gradient_features
 from .reduced import loo_span_residuals
 
-__all__: list[str] = []
+__all__ = ["shot_features", "error_model", "expected_error", "damping_weights", "choose_blend"]
 
 
 def _poisson_per_frame(reg, G, k):
