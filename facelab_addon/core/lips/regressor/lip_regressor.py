@@ -412,8 +412,8 @@ class LipRegressor:
             The fitted maps run in float32 on the changes from the rest pose
             (formed in float64, so float32 and float64 frames of the same
             positions give the same result): rounding moves a vertex by about
-            1e-8 of the mouth's size (at most 3e-5 mm on ICT-FaceKit), far below
-            the 0.01 mm storage tolerance. Large lip regions, whose dense maps
+            1e-8 of the mouth's size, far below the 0.01 mm storage
+            tolerance. Large lip regions, whose dense maps
             would not fit, are solved in float64 (sparse back-substitution).
         out : (T,V,3) ndarray, optional
             Where to write the result, float32 or float64 (the shape of the

@@ -34,8 +34,8 @@ _F32_SUB = 8  # frames per pass of the phantom columns: the (3, t, m) float32 te
 
 def _rows(A, idx, flat=None, out=None):
     """(t, len(idx), 3) rows ``idx`` of frames A (t,V,3) in A's dtype (or into ``out``, contiguous, A's dtype);
-    ``flat`` = ``3 idx + (0,1,2)`` gathers them from the (t, 3V) view as single numbers, 2-3x faster than
-    ``A[:, idx]`` (measured at 105k vertices)."""
+    ``flat`` = ``3 idx + (0,1,2)`` gathers them from the (t, 3V) view as single numbers (a flat gather, cheaper
+    than the fancy indexing of ``A[:, idx]``)."""
     if flat is None or A.strides[2] != A.itemsize or A.strides[1] != 3 * A.itemsize:
         if out is None:
             return A[:, idx]
@@ -49,7 +49,7 @@ def _rows(A, idx, flat=None, out=None):
 
 def put_rows(A, idx, X):
     """``A[:, idx] = X`` (X (t, len(idx), 3), cast to A's dtype), written one 3-number record per vertex
-    (1.5-2.5x faster than ``A[:, idx] = X``)."""
+    (one void-record scatter instead of the three-number fancy assignment ``A[:, idx] = X``)."""
     if A.strides[2] != A.itemsize:
         A[:, idx] = X
         return
@@ -70,8 +70,7 @@ class Float32Prediction:
     two for the positions: the border displacements of all three coordinates as 3t rows times ``-α Hᵀ``,
     and ``z @ K``; with the correction model (``α < 1``) the captured interior's change from rest, times
     ``1 - α``, is added in float64. Float32 rounding moves a predicted vertex by
-    about 1e-8 of the mouth's size (measured: at most 3e-5 mm on ICT-FaceKit, ``benchmarks/scale.py``),
-    far below the 0.01 mm storage tolerance.
+    about 1e-8 of the mouth's size (``benchmarks/scale.py``), far below the 0.01 mm storage tolerance.
     """
 
     def __init__(self, ops, model, dense):
@@ -110,7 +109,7 @@ class Float32Prediction:
         """``c - c_rest`` (3, t, m) float32 into ``out`` from coordinate-major mouth positions Xc (3, t, nv)
         (``rest_local`` frame), with work buffers ``w`` (:class:`PredictionWork`). Indices are valid, so the gathers use
         ``mode="clip"`` (unbuffered); contiguous corner arrays, no masked division and no fresh temporaries
-        (each would be page-faulted in anew): measured about 2x faster per pass than without.
+        (each would be page-faulted in anew).
         """
         t, m = out.shape[1], out.shape[2]
         l0, l1, l2 = self.l
@@ -171,8 +170,8 @@ class Float32Prediction:
 
 
 class PredictionWork(dict):
-    """Work buffers kept across the blocks of one prediction: a fresh large temporary is page-faulted in anew on
-    every block (measured: about 20% of the CPU time of ``predict`` at 105k vertices)."""
+    """Work buffers kept across the blocks of one prediction (a fresh large temporary would be page-faulted in anew
+    on every block). One per prediction: a buffer keeps the dtype it was made with."""
 
     def get(self, name, shape, dtype=np.float32):
         """A buffer of at least ``shape`` (allocated on first use, or when larger; callers take a slice)."""

@@ -40,8 +40,8 @@ _DENSE_MAX = 20_000_000  # numbers in the dense Poisson maps of dense_solution (
 
 
 def _blas_threads():
-    """One BLAS thread on a busy machine (its threads would only spin: at 105k vertices, load 12, predict
-    took 1.1-1.5 ms CPU a frame with two, 1.1 with one), all of them when a core is idle."""
+    """One BLAS thread on a busy machine (more threads would only spin on the shared cores), all of them when a
+    core is idle."""
     import contextlib
 
     return contextlib.nullcontext() if idle_core() else one_blas_thread()
