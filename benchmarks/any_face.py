@@ -96,7 +96,7 @@ def run_route(face, units, posed, tmp, log, extra=(), *, error="wide", noise_px=
     from facelab_addon.blender.camera import camera_from_blender
     from facelab_addon.blender.mesh import mesh_triangles, vertex_group_mask
     from facelab_addon.core.geometry.silhouette import contour_distance
-    from facelab_addon.core.lips.propagate import LipRegressor
+    from facelab_addon.core.lips.regressor import LipRegressor
     from facelab_addon.core.lips.regions import faces_in_region
     from facelab_addon.names import LIPS_GROUP, MOUTH_GROUP
     from facelab_addon.pipeline.propagate import training_input

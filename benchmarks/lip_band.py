@@ -10,7 +10,7 @@ For lip bands of 0.12 and 0.2 mouth widths it reports:
 * ``default``: the paper's whole-motion regression (``LipRegressor`` fitted without the captured frames: the
   lip gradients regressed from the mouth);
 * ``auto``: Propagate's default, ``LipRegressor`` given the captured training frames and the shot: the blend of
-  the whole-motion and correction models of :mod:`facelab_addon.core.lips.model_choice`;
+  the whole-motion and correction models of :mod:`facelab_addon.core.lips.regressor.model_choice`;
 * ``mouth_band``: the 0.2 band with mouth bands of 0.2-0.8 mouth widths (the trusted input);
 * ``no_error_mm``: the same regression trained and evaluated on the truth (no capture error at all):
   the error it makes predicting the expression itself across the band;
@@ -44,7 +44,7 @@ from facelab_addon.core.capture.ict import load_ict  # noqa: E402
 from facelab_addon.core.geometry.geodesic import geodesic_distance  # noqa: E402
 from facelab_addon.core.lips import regions as R  # noqa: E402
 from facelab_addon.core.lips.lip_loop import inner_lip_loop, loop_width  # noqa: E402
-from facelab_addon.core.lips.propagate import LipRegressor  # noqa: E402
+from facelab_addon.core.lips.regressor import LipRegressor  # noqa: E402
 from facelab_addon.core.lips.suggest import suggest_frames  # noqa: E402
 from facelab_addon.testing import synthetic as syn  # noqa: E402
 from facelab_addon.testing.weights import CYCLIC_MOUTH_CHANNELS, cyclic_mouth_weights, speech_weights  # noqa: E402

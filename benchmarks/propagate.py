@@ -33,7 +33,7 @@ from facelab_addon.core.capture.ict import load_ict  # noqa: E402
 from facelab_addon.core.geometry.geodesic import geodesic_distance  # noqa: E402
 from facelab_addon.core.lips import regions  # noqa: E402
 from facelab_addon.core.lips.lip_loop import loop_width  # noqa: E402
-from facelab_addon.core.lips.propagate import LipRegressor  # noqa: E402
+from facelab_addon.core.lips.regressor import LipRegressor  # noqa: E402
 from facelab_addon.core.lips.suggest import suggest_frames  # noqa: E402
 from facelab_addon.testing.weights import SPEECH_CHANNELS, speech_weights  # noqa: E402
 
@@ -275,8 +275,8 @@ def main(argv=None):
     ref_out = long[:n_ref].copy()
     for t in range(n_ref):
         x = reg.predict_lip_gradients(long[t])[0]  # θ y through the factored θ
-        rhs = reg._D_I @ x.transpose(0, 2, 1).reshape(-1, 3) - reg._L_IB @ long[t, bv]
-        ref_out[t, iv] = np.column_stack([spsolve(reg._L_II, rhs[:, c]) for c in range(3)])
+        rhs = reg.operators.D_I @ x.transpose(0, 2, 1).reshape(-1, 3) - reg.operators.L_IB @ long[t, bv]
+        ref_out[t, iv] = np.column_stack([spsolve(reg.operators.L_II, rhs[:, c]) for c in range(3)])
     t_ref = (time.perf_counter() - t0) / n_ref
     ref_diff = float(np.abs(ref_out - res_new[:n_ref]).max())
     del res_new, long

@@ -166,8 +166,8 @@ class Timers:
 def instrument(timers):
     """Wrap the parts of ``pipeline.propagate.propagate`` (module attributes it looks up at call time)."""
     from facelab_addon.blender import cache_integrate, caches, capture_stream
-    from facelab_addon.core.lips import propagate as cprop
-    from facelab_addon.core.lips import reduced, suggest
+    from facelab_addon.core.lips import suggest
+    from facelab_addon.core.lips.regressor import LipRegressor, reduced
     from facelab_addon.pipeline import correctives as corr
     from facelab_addon.pipeline import propagate as op
 
@@ -177,9 +177,9 @@ def instrument(timers):
     timers.patch(op, "face_topology", "setup: face_topology (triangles, weld)")
     timers.patch(op, "region_faces", "setup: region_faces")
     timers.patch(op, "rest_vertices", "setup: rest_vertices")
-    timers.patch(cprop.LipRegressor, "__init__", "regressor: LipRegressor.__init__ (Poisson factor, patches)")
-    timers.patch(cprop.LipRegressor, "fit", "regressor: fit")
-    timers.patch(cprop.LipRegressor, "correct_chunk", "correct_chunk (predict + extrapolation, per chunk)")
+    timers.patch(LipRegressor, "__init__", "regressor: LipRegressor.__init__ (Poisson factor, patches)")
+    timers.patch(LipRegressor, "fit", "regressor: fit")
+    timers.patch(LipRegressor, "correct_chunk", "correct_chunk (predict + extrapolation, per chunk)")
     timers.patch(cache_integrate.IntegrateMap, "to_key", "map onto the cache (Integrate)")
     timers.patch(reduced.StreamingBasis, "add", "compress: StreamingBasis.add")
     timers.patch(reduced.StreamingBasis, "finish", "compress: StreamingBasis.finish (SVD, 0.01 mm)")
@@ -291,7 +291,7 @@ def accuracy(bpy, obj, frames, train, err, cap_w, chunk=100):
     from facelab_addon.blender import caches
     from facelab_addon.blender.mesh import mesh_triangles, vertex_group_mask
     from facelab_addon.blender.shapekeys import rest_vertices, shape_key_sequence
-    from facelab_addon.core.lips.propagate import LipRegressor
+    from facelab_addon.core.lips.regressor import LipRegressor
     from facelab_addon.core.lips.regions import faces_in_region
 
     tris = mesh_triangles(obj.data)

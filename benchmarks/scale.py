@@ -239,7 +239,7 @@ def core_predict(size, n=512, repeats=5):
     from threadpoolctl import threadpool_limits
 
     from facelab_addon.core.lips import regions
-    from facelab_addon.core.lips.propagate import LipRegressor
+    from facelab_addon.core.lips.regressor import LipRegressor
     from facelab_addon.testing.weights import speech_weights
 
     ict, V, F, D, S = face_model(size)

@@ -72,7 +72,7 @@ from facelab_addon.core.capture.ict import load_ict  # noqa: E402
 from facelab_addon.core.errors import FaceLabError  # noqa: E402
 from facelab_addon.core.geometry.mesh import unique_edges  # noqa: E402
 from facelab_addon.core.geometry.silhouette import point_segment_distance  # noqa: E402
-from facelab_addon.core.lips.propagate import LipRegressor  # noqa: E402
+from facelab_addon.core.lips.regressor import LipRegressor  # noqa: E402
 from facelab_addon.core.lips.regions import auto_regions, faces_in_region  # noqa: E402
 from facelab_addon.core.lips.sketch import (  # noqa: E402
     SketchView,

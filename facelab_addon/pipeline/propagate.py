@@ -8,7 +8,7 @@ and :func:`mark_training_frame`) and read by one (:func:`read_training_frames`):
 relative to the frame without FaceLab's lip corrections (:func:`uncorrected_frame`), as a key keyed
 on the frame alone, with Propagate's correction off there; so a frame keeps what the viewport
 showed after Refine (or the sculpt) through every later Propagate. :func:`propagate_steps`
-reads the captured sequence, fits a :class:`~facelab_addon.core.lips.propagate.LipRegressor`
+reads the captured sequence, fits a :class:`~facelab_addon.core.lips.regressor.LipRegressor`
 on the training frames, corrects the inner lips of every frame a chunk at a time
 (:class:`~facelab_addon.core.lips.shot.ShotCorrector`) and writes the per-frame
 correction as a few compressed corrective keys ``FL_Prop_NN``
@@ -39,7 +39,7 @@ from ..blender.scene_time import require_scene_time
 from ..blender.shapekeys import key_property_bulk, rest_vertices
 from ..core.errors import FaceLabError, FrameError
 from ..core.geometry.compress import StorageOutcome
-from ..core.lips.propagate import LipRegressor
+from ..core.lips.regressor import LipRegressor
 from ..core.lips.shot import ShotCorrector, expected_worse, key_shapes_over_cache
 from ..names import EXTRAPOLATION_ACTION, EXTRAPOLATION_PROP, PROPAGATE_PREFIX, STORE_SETTINGS_ATTR, SUGGEST_MARKER
 from .correctives import CorrectionWriter, StorageSettings, StoredKeys
@@ -105,7 +105,7 @@ class PropagateSettings:
         What the regression learns (``LipRegressor`` ``model``): the lips' whole motion (the paper), only
         the correction of the captured lips, or ("auto") the blend of the two with the smallest error
         expected on the shot, estimated from the training frames and the shot itself
-        (:mod:`~facelab_addon.core.lips.model_choice`).
+        (:mod:`~facelab_addon.core.lips.regressor.model_choice`).
     damping : bool
         Scale each frame's predicted correction by ``|c|² / (|c|² + S)``, ``S`` the error the fitted model is
         expected to make on that frame by extrapolating beyond the training frames (``LipRegressor``
@@ -228,7 +228,7 @@ def propagate_steps(scene, obj, frames, settings: PropagateSettings | None = Non
     frames at a time: read only the mouth and lip vertices
     (:class:`~facelab_addon.blender.capture_stream.CaptureReader`), predict the
     interior lip correction, (over a cache: map it onto the cache surface), add it to
-    a :class:`~facelab_addon.core.lips.reduced.StreamingBasis` and score the
+    a :class:`~facelab_addon.core.lips.regressor.reduced.StreamingBasis` and score the
     mouth; then write the few shapes and their weights. Memory is bounded by
     the chunk, not the shot. Nothing in the scene changes before the last step,
     except that a Mesh Cache is switched to Integrate (or an Alembic baked to

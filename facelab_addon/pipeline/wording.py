@@ -19,7 +19,7 @@ __all__ = ["EXTRAPOLATING", "GUESSING", "extrapolation_word", "extrapolation_too
 #: Extrapolation scores above this are flagged: the frame's mouth lies well outside the training poses.
 EXTRAPOLATING = 0.5
 #: Above this the frame departs from the training poses more than a typical training pose departs from
-#: rest (the score's unit, :meth:`facelab_addon.core.lips.propagate.LipRegressor.extrapolation`).
+#: rest (the score's unit, :meth:`facelab_addon.core.lips.regressor.LipRegressor.extrapolation`).
 GUESSING = 1.0
 
 

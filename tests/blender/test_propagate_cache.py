@@ -11,7 +11,7 @@ from facelab_addon.blender.mesh import mesh_triangles, vertex_group_mask
 from facelab_addon.blender.strokes import write_stroke_pixels
 from facelab_addon.core.capture.pointcache_writer import write_pc2
 from facelab_addon.core.geometry.silhouette import contour_distance
-from facelab_addon.core.lips.propagate import LipRegressor
+from facelab_addon.core.lips.regressor import LipRegressor
 from facelab_addon.core.lips.regions import faces_in_region
 from facelab_addon.pipeline.propagate import training_input
 from facelab_addon.testing import synthetic as syn

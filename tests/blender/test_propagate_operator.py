@@ -8,7 +8,7 @@ import pytest
 from facelab_addon.blender import caches
 from facelab_addon.blender.mesh import mesh_triangles, vertex_group_mask
 from facelab_addon.blender.shapekeys import add_corrective_key, key_spike, key_values_bulk
-from facelab_addon.core.lips.propagate import LipRegressor
+from facelab_addon.core.lips.regressor import LipRegressor
 from facelab_addon.core.lips.regions import faces_in_region
 from facelab_addon.testing.scenes import build_ict_face_scene
 from facelab_addon.testing.weights import CYCLIC_MOUTH_CHANNELS, cyclic_mouth_weights

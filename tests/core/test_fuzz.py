@@ -27,7 +27,7 @@ from facelab_addon.core.geometry.deform import LaplacianDeformer, PointConstrain
 from facelab_addon.core.geometry.laplacian import uniform_laplacian
 from facelab_addon.core.lgi.binding import bind_points
 from facelab_addon.core.lips.lip_loop import inner_lip_loop
-from facelab_addon.core.lips.propagate import LipRegressor
+from facelab_addon.core.lips.regressor import LipRegressor
 from facelab_addon.core.lips.regions import auto_regions, faces_in_region
 from facelab_addon.core.lips.sketch import refine_lips
 from facelab_addon.core.lips.suggest import suggest_frames

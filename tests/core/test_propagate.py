@@ -7,7 +7,7 @@ import scipy.sparse.linalg as spla
 from facelab_addon.core.errors import FaceLabError, MeshError
 from facelab_addon.core.geometry.gradients import deformation_gradients
 from facelab_addon.core.geometry.laplacian import poisson_operator
-from facelab_addon.core.lips.propagate import LipRegressor
+from facelab_addon.core.lips.regressor import LipRegressor
 from facelab_addon.core.lips.regions import RegionError, faces_in_region, region_border
 from facelab_addon.core.lips.suggest import suggest_frames
 
@@ -347,18 +347,18 @@ def test_mouth_features_are_shared_by_extrapolation_and_suggest_frames():
 
 
 def test_dense_poisson_maps_agree_with_the_sparse_solve(monkeypatch):
-    """Small lip regions are predicted through dense maps K, H (LipRegressor._dense_solution); large ones through
+    """Small lip regions are predicted through dense maps K, H (prediction.dense_solution); large ones through
     the sparse back-substitution. Both give the same positions, and a refit rebuilds the dense maps."""
-    import facelab_addon.core.lips.features as prop
+    import facelab_addon.core.lips.regressor.prediction as prop
 
     V, F, mouth, lips = grid(bumpy=True)
     train = np.stack([smooth_random_deformation(V, s) for s in range(3)])
     cap = np.stack([smooth_random_deformation(V, s) + lip_bump(V) for s in range(5, 10)])
     reg = LipRegressor(V, F, mouth, lips).fit(train)
     dense = reg.predict(cap)
-    assert reg._dense_solution() is not None
+    assert prop.dense_solution(reg.operators, reg.trained) is not None
     monkeypatch.setattr(prop, "_DENSE_MAX", 0)
-    assert reg._dense_solution() is None
+    assert prop.dense_solution(reg.operators, reg.trained) is None
     sparse = reg.predict(cap)
     assert np.abs(sparse - cap).max() > 1e-3  # a real correction
     np.testing.assert_allclose(dense, sparse, rtol=0, atol=f32_tol(reg))  # float32 maps vs the float64 solve

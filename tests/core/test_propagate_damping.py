@@ -1,13 +1,13 @@
 """LipRegressor's ``damping`` (issue 11, Propagate's Damp Uncertain Frames): each frame's predicted correction
 ``c`` is scaled by ``s = |c|² / (|c|² + S)``, ``S`` the model's expected error on that frame
-(:mod:`facelab_addon.core.lips.model_choice`). Grid face of tests/core/test_propagate.py, ground truth known."""
+(:mod:`facelab_addon.core.lips.regressor.model_choice`). Grid face of tests/core/test_propagate.py, ground truth known."""
 
 import numpy as np
 import pytest
 
 from facelab_addon.core.errors import UsageError
-from facelab_addon.core.lips.model_choice import damping_weights, expected_error
-from facelab_addon.core.lips.propagate import LipRegressor
+from facelab_addon.core.lips.regressor.model_choice import damping_weights, expected_error
+from facelab_addon.core.lips.regressor import LipRegressor
 
 from .test_propagate import f32_tol, grid, lip_bump, smooth_random_deformation
 
@@ -71,8 +71,8 @@ def test_the_weights_follow_the_expected_error(extrapolated_scene):
     off, on = (_fit(V, F, mouth, lips, truth, cap, train, d) for d in (False, True))
     X = cap[held]
     c = off.lip_corrections(X)
-    r2 = (on.extrapolation(X) * on._sigma) ** 2
-    S = expected_error(on._error_model, on.whole_weight, r2)
+    r2 = (on.extrapolation(X) * on.trained.data.sigma) ** 2
+    S = expected_error(on.trained.error_model, on.whole_weight, r2)
     s = damping_weights(np.sum(c * c, axis=(1, 2)), S)
     np.testing.assert_allclose(on.damping_weights(X), s, rtol=1e-9)
     np.testing.assert_allclose(off.damping_weights(X), 1.0)

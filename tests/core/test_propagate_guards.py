@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from facelab_addon.core.errors import FaceLabError, FrameError, PredictionError
-from facelab_addon.core.lips.propagate import LipRegressor
-from facelab_addon.core.lips.reduced import thin_svd
+from facelab_addon.core.lips.regressor import LipRegressor
+from facelab_addon.core.lips.regressor.reduced import thin_svd
 
 from .test_propagate import fA, fB, grid, lip_bump, row_shift, smooth_random_deformation
 
@@ -90,7 +90,7 @@ def test_in_place_blocks_already_written_are_restored_on_a_refusal(dtype):
         good.predict(seq, out=seq, chunk=1)
     np.testing.assert_array_equal(seq, keep)
     assert np.abs(good.predict(seq[:2]) - seq[:2]).max() > 1e-3 * MM  # frames 0 and 1 would change
-    import facelab_addon.core.lips.features as feat
+    import facelab_addon.core.lips.regressor.prediction as feat
 
     calls = []
 
@@ -100,13 +100,13 @@ def test_in_place_blocks_already_written_are_restored_on_a_refusal(dtype):
             raise KeyboardInterrupt
         return _check(*a, **k)
 
-    _check = feat._check_moves
-    feat._check_moves = interrupted
+    _check = feat.check_moves
+    feat.check_moves = interrupted
     try:
         with pytest.raises(KeyboardInterrupt):
             good.predict(seq[:2], out=seq[:2], chunk=1)
     finally:
-        feat._check_moves = _check
+        feat.check_moves = _check
     np.testing.assert_array_equal(seq, keep)
 
 def test_round_off_singular_values_are_cut_absolutely():

@@ -1,14 +1,14 @@
 """LipRegressor's models (issue 11): the paper's whole-motion regression, the correction regression (corrected
 minus captured lip gradients, added to the capture) and the "auto" blend chosen from the training frames and
-the shot (:mod:`facelab_addon.core.lips.model_choice`). Grid face of tests/core/test_propagate.py."""
+the shot (:mod:`facelab_addon.core.lips.regressor.model_choice`). Grid face of tests/core/test_propagate.py."""
 
 import numpy as np
 import pytest
 
 from facelab_addon.core.errors import FaceLabError, UsageError
 from facelab_addon.core.geometry.gradients import deformation_gradients
-from facelab_addon.core.lips.propagate import LipRegressor
-from facelab_addon.core.lips.reduced import loo_residuals, loo_span_residuals, solve_theta
+from facelab_addon.core.lips.regressor import LipRegressor
+from facelab_addon.core.lips.regressor.reduced import loo_residuals, loo_span_residuals, solve_theta
 
 from .test_propagate import f32_tol, grid, lip_bump, smooth_random_deformation
 
@@ -91,13 +91,13 @@ def blend_scene():
 def test_any_blend_is_the_blend_of_the_two_models_on_every_path(blend_scene, monkeypatch):
     """The folded maps of a blend (forced to α = 0.4) give α · whole + (1 - α) · correction: positions through the
     float32 maps, the float64 maps, the sparse solve and the streaming chunks, and the lip gradients."""
-    import facelab_addon.core.lips.features as feats
-    import facelab_addon.core.lips.training as training
+    import facelab_addon.core.lips.regressor.prediction as feats
+    import facelab_addon.core.lips.regressor.training as training
 
     V, F, mouth, lips, truth, cap = blend_scene
     train, held = [0, 1, 2, 3], np.arange(4, 10)
     regs = fit_all(V, F, mouth, lips, truth, cap, train, None, ("whole", "correction"))
-    monkeypatch.setattr(training, "choose_blend", lambda reg, fits, shot: (0.4, {}, None))
+    monkeypatch.setattr(training, "choose_blend", lambda reg, span, fits, shot: (0.4, {}, None))
     reg = fit_all(V, F, mouth, lips, truth, cap, train, None, ("auto",))["auto"]
     assert reg.whole_weight == 0.4
     X = cap[held]

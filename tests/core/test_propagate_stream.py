@@ -7,8 +7,8 @@ import pytest
 
 from facelab_addon.core.errors import FaceLabError
 from facelab_addon.core.geometry.compress import compress
-from facelab_addon.core.lips.propagate import LipRegressor
-from facelab_addon.core.lips.reduced import StreamingBasis
+from facelab_addon.core.lips.regressor import LipRegressor
+from facelab_addon.core.lips.regressor.reduced import StreamingBasis
 from facelab_addon.core.lips.suggest import SuggestScreen, suggest_frames
 from facelab_addon.testing.subdivide import subdivide_midpoint
 

@@ -220,7 +220,7 @@ def test_lip_faces_duplicated_in_place_are_named_as_duplicates():
     make a borderless piece of the inner-lip region. The message named the new vertices only; it now says they
     are duplicates lying on other vertices and how to remove them (Propagate's regressor says the same)."""
     from facelab_addon.core.errors import RegionError
-    from facelab_addon.core.lips.propagate import LipRegressor
+    from facelab_addon.core.lips.regressor import LipRegressor
     from facelab_addon.testing.meshes import grid_mesh
 
     V, F = grid_mesh(np.arange(12, dtype=float), np.arange(10, dtype=float), lambda x, y: 0.3 * np.sin(0.5 * x))

@@ -8,7 +8,7 @@ import pytest
 
 from facelab_addon.core.errors import FaceLabError
 from facelab_addon.core.geometry.compress import StorageOutcome
-from facelab_addon.core.lips.propagate import LipRegressor
+from facelab_addon.core.lips.regressor import LipRegressor
 from facelab_addon.core.lips.shot import ShotCorrector, expected_worse, key_shapes_over_cache
 from facelab_addon.core.lips.suggest import suggest_frames
 

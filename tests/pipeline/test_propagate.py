@@ -17,7 +17,7 @@ from facelab_addon.blender.shapekeys import (
     rest_vertices,
 )
 from facelab_addon.core.errors import FaceLabError, RegionError
-from facelab_addon.core.lips.propagate import LipRegressor
+from facelab_addon.core.lips.regressor import LipRegressor
 from facelab_addon.core.lips.regions import faces_in_region
 from facelab_addon.names import (
     CORRECTED_PREFIX,

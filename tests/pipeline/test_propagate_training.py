@@ -9,7 +9,7 @@ import pytest
 from facelab_addon.blender import caches
 from facelab_addon.blender.mesh import mesh_triangles, vertex_group_mask
 from facelab_addon.blender.shapekeys import add_corrective_key, key_spike, rest_vertices
-from facelab_addon.core.lips.propagate import LipRegressor
+from facelab_addon.core.lips.regressor import LipRegressor
 from facelab_addon.core.lips.regions import faces_in_region
 from facelab_addon.names import LIPS_GROUP, MOUTH_GROUP, REFINE_PREFIX
 from facelab_addon.pipeline.propagate import PropagateSettings, propagate, record_training_frame

@@ -6,7 +6,7 @@ predicts the interior-lip correction of each chunk of captured frames
 poses, estimates how each frame's error is expected to change (``LipRegressor.expected_change``),
 keeps the artist's own correction on the training frames (zero correction there), gives every
 split-seam twin its representative's correction, and compresses the key offsets into a few shapes
-(:class:`~facelab_addon.core.lips.reduced.StreamingBasis`). It also decides how the correction can
+(:class:`~facelab_addon.core.lips.regressor.reduced.StreamingBasis`). It also decides how the correction can
 be stored (:class:`~facelab_addon.core.geometry.compress.StorageOutcome`): as keys, or, over a capture
 cache whose key offsets need more shapes than keys hold, as a patch point cache of the corrected
 vertices. Reading frames and writing keys or caches is the caller's (``pipeline.propagate``).
@@ -22,7 +22,7 @@ import numpy as np
 
 from ..errors import FaceLabError
 from ..geometry.compress import StorageOutcome
-from .reduced import StreamingBasis
+from .regressor.reduced import StreamingBasis
 from .suggest import SuggestScreen
 
 __all__ = ["ShotCorrector", "ShotCorrection", "key_shapes_over_cache", "expected_worse"]

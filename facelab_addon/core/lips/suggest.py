@@ -15,8 +15,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import FaceLabError, UsageError
-from .features import BLOCK, as_frames, mouth_feature_matrix
-from .propagate import LipRegressor
+from .regressor.features import BLOCK, as_frames, mouth_feature_matrix
+from .regressor import LipRegressor
 
 __all__ = ["suggest_frames", "SuggestScreen"]
 

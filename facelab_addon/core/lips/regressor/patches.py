@@ -2,7 +2,7 @@
 
 Dinev et al. 2018, "User-Guided Lip Correction for Facial Performance
 Capture", §4 learns one linear map from the mouth gradients to the lip
-gradients. :class:`.propagate.LipRegressor` with ``patches > 1`` (an addition
+gradients. :class:`.lip_regressor.LipRegressor` with ``patches > 1`` (an addition
 to the paper) covers the lip region with overlapping patches instead, each
 predicted by its own reduced regression from the mouth triangles near it.
 This module builds them: patch centres by geodesic (edge-path) farthest-point
@@ -10,8 +10,6 @@ sampling on the lip triangles, partition-of-unity weights (per lip vertex,
 falling off linearly with the edge-path distance to each centre, normalised
 over the patches, averaged per triangle), and the mouth triangles within the
 input radius of each patch. Distances are in scene units.
-
-Package-internal: used by :mod:`.propagate`.
 """
 
 from __future__ import annotations
@@ -19,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-__all__: list[str] = []
+__all__ = ["lip_patches"]
 
 _OVERLAP = 1.0
 

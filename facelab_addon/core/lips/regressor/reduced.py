@@ -8,7 +8,7 @@ unknown ``θ̄ = U_Xᵀ θ U_Y`` (at most ``k × k``) solves the normal equation
 a rank tolerance, :func:`solve_theta` the normal equations (with an optional
 Tikhonov term) and :func:`choose_ridge` its weight by leave-one-out error.
 All quantities are unitless (deformation gradients). Used by
-:class:`.propagate.LipRegressor`, once per patch.
+:func:`.training.train`, once per patch.
 """
 
 from __future__ import annotations
@@ -218,7 +218,7 @@ class StreamingBasis:
     """
 
     def __init__(self, n: int, tol: float, *, max_rank: int = 1024):
-        from ..errors import FaceLabError
+        from ...errors import FaceLabError
 
         if not (tol > 0 and np.isfinite(tol)):
             raise FaceLabError(f"The compression tolerance must be a positive distance in scene units, got {tol}.")
@@ -239,7 +239,7 @@ class StreamingBasis:
         deltas : (t, n, 3) array_like
             Per-frame offsets, scene units, in shot order.
         """
-        from ..errors import FaceLabError
+        from ...errors import FaceLabError
 
         X = np.asarray(deltas, dtype=np.float64).reshape(len(deltas), 3 * self.n)
         t, gtol = len(X), 0.25 * self.tol

@@ -2,51 +2,27 @@
 
 Dinev et al. 2018, "User-Guided Lip Correction for Facial Performance
 Capture", §4: the input of the regression is the vector ``y`` of deformation
-gradients of the trusted mouth triangles. This module holds the helpers that
-:mod:`.propagate` (the regression) and :mod:`.suggest` (training-frame
+gradients of the trusted mouth triangles. This module holds what the
+regressor (training and prediction) and :mod:`..suggest` (training-frame
 suggestion) share for it: validating a (T,V,3) sequence without copying it,
 the shape-matrix columns of a block of frames (vertex-major), the dense coefficient operators of a fit, and the whole-mouth feature
 rows ``vec(F_t - I)``, all computed a block of ``BLOCK`` frames at a time so
 a long float32 sequence is never converted whole; the per-triangle columns
-are computed coordinate-major in cache-sized blocks of frames, and the
-Poisson solve of a prediction is folded into dense maps while they are small. Positions are scene units;
+are computed coordinate-major in cache-sized blocks of frames. Positions are scene units;
 gradients and features are unitless, float64.
-
-Package-internal: the public API is :class:`.propagate.LipRegressor` and
-:func:`.suggest.suggest_frames`.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from ..errors import FaceLabError, MeshError
-from ..geometry.gradients import rest_inverse, shape_matrices
-from ..geometry.linsolve import idle_core, one_blas_thread
-from .guards import (
-    check_prediction as _check_prediction,
-    checked_out as _checked_out,
-    same_array as _same_array,
-)
-from .predict32 import (
-    F32_BLOCK as _F32_BLOCK,
-    check_moves as _check_moves,
-    Float32Prediction as _Float32Prediction,
-    put_rows as _put_rows,
-    PredictionWork as _Work,
-)
+from ...errors import FaceLabError, MeshError
+from ...geometry.gradients import rest_inverse, shape_matrices
 
-__all__: list[str] = []
+__all__ = ["BLOCK", "as_frames", "frames_of", "gradients", "feature_rows", "mouth_feature_matrix",
+           "fold_coefficients", "coordinate_major", "mouth_coefficients", "gradient_features", "patch_operators",
+           "fold_directions", "mouth_terms"]
 
-def _blas_threads():
-    """One BLAS thread on a busy machine (its threads would only spin: at 105k vertices, load 12, predict
-    took 1.1-1.5 ms CPU a frame with two, 1.1 with one), all of them when a core is idle."""
-    import contextlib
-
-    return contextlib.nullcontext() if idle_core() else one_blas_thread()
-
-
-_DENSE_MAX = 20_000_000  # numbers in the dense Poisson maps of StreamingPrediction._dense_solution (160 MB)
 BLOCK = 64  # frames per block of the per-frame loops (working memory ~ block x region size)
 
 
@@ -86,6 +62,30 @@ def as_frames(a, n_vertices, what, used=None, check_finite=True):
         )
     return A
 
+
+
+def frames_of(ops, captured, what, used_only):
+    """Validated frames of a regressor (:class:`.state.LipOperators` ``ops``): full (T,V,3), or with
+    ``used_only`` only its used vertices (T, len(ops.used), 3). Scene units, float32 or float64, not copied."""
+    if used_only:
+        return as_frames(captured, len(ops.used), what + " (used vertices only)")
+    return as_frames(captured, ops.n_vertices, what, ops.used)
+
+
+def gradients(frames, rinv, verts, local):
+    """(T,f,3,3) deformation gradients ``D D_r⁻¹`` of triangles ``local`` (f,3) over vertices ``verts`` of
+    frames (T,*,3); ``rinv`` (f,3,3) the inverse rest shape matrices. Unitless, float64."""
+    P = frames[:, verts, :]
+    return np.matmul(shape_matrices(P, local), rinv)  # (T, f, 3, 3)
+
+
+def feature_rows(G, center):
+    """(T, 9f) feature rows of gradients G (T,f,3,3): flattened row-major, minus the identity when
+    ``center == "rest"``."""
+    T = G.shape[0]
+    if center == "rest":
+        G = G - np.eye(3)
+    return G.reshape(T, -1)
 
 def mouth_feature_matrix(frames, rest_vertices, faces, mouth_faces, chunk=BLOCK):
     """(T, 9m) mouth gradients minus the identity of validated frames (any float dtype), float64."""
@@ -153,7 +153,7 @@ def fold_coefficients(local, n_verts, sels, Ws, m):
     sels : list of (m_p,) int ndarray
         Mouth triangles (indices into ``local``) read by each patch.
     Ws : list of (3,3,m_p,r_p) ndarray
-        ``W[i,k,f,r]`` of each patch (``LipRegressor._patch_operators``).
+        ``W[i,k,f,r]`` of each patch (:func:`patch_operators`).
     m : int
         Number of mouth triangles.
 
@@ -263,7 +263,7 @@ def gradient_features(frames, verts, local, rinv, center):
 
 
 def patch_operators(nI, rinv, lip_sel, w, Dp, UY, UX, th, center):
-    """A fitted patch of ``LipRegressor`` folded into the prediction: ``(Z, W, z_ident)``.
+    """A fitted patch of the regressor folded into the prediction: ``(Z, W, z_ident)``.
 
     ``rinv`` (m_p,3,3) are the inverse rest shape matrices of the patch's mouth triangles,
     ``Dp`` the divergence of its lip triangles on the ``nI`` interior vertices, ``w`` its
@@ -294,7 +294,7 @@ def fold_directions(A, rinv, local, n_verts):
     return fold_coefficients(local, n_verts, [np.arange(m)], [W], m)
 
 
-def _mouth_terms(frames, verts, local, MxT, McT, P):
+def mouth_terms(frames, verts, local, MxT, McT, P):
     """Folded projections and squared norms of the mouth gradients of frames (T,*,3), without forming them.
 
     ``MxT``, ``McT``: folded maps (:func:`fold_coefficients`) in :func:`coordinate_major` order.
@@ -323,188 +323,3 @@ def _mouth_terms(frames, verts, local, MxT, McT, P):
         zb += McT @ C.reshape(3 * m, t)
         Z[s : s + t] = zb.T
     return Z, sq
-
-
-class StreamingPrediction:
-    """The per-chunk entry points of :class:`.propagate.LipRegressor` for long shots (mixed into it).
-
-    They take a chunk of frames (or only its :attr:`used_vertices`) and return what a streaming
-    caller keeps: the interior lip corrections, the extrapolation score and the mouth features'
-    norms and projections, computed from folded operators without forming the (t, 9m) features.
-    """
-
-    def lip_corrections(self, captured, *, used_only: bool = False, first: int = 0) -> np.ndarray:
-        """The correction of the interior lip vertices, predicted minus captured, frame by frame.
-
-        What :meth:`predict` adds to ``captured[:, interior_vertices]``, without writing a
-        (T,V,3) result: the streaming form for long shots (the caller feeds chunks).
-
-        Parameters
-        ----------
-        captured : (T,V,3) array_like, or (T, len(used_vertices), 3) with ``used_only``
-            Captured frames (or only their :attr:`used_vertices`), scene units, float32 or float64.
-        used_only : bool
-            ``captured`` holds only the used vertices, in the order of :attr:`used_vertices`.
-        first : int
-            Index of the chunk's first frame in the shot, for the frame indices of errors.
-
-        Returns
-        -------
-        (T, nI, 3) float64 ndarray
-            Offsets of :attr:`interior_vertices`, scene units; the border vertices' are zero.
-
-        Raises
-        ------
-        FaceLabError, PredictionError
-            As :meth:`predict`.
-        """
-        self._require_fit()
-        A = self._frames(captured, "captured frames", used_only)
-        xi, xc = self._interior(A, used_only)
-        _check_prediction(xi, xc, first, self.mouth_size)
-        xi -= xc
-        return xi
-
-    def _norms(self, Z, sq):
-        """``(U_Yᵀ y, ||y||²)`` from folded projections ``Z`` whose last column is the identity's."""
-        c = 1.0 if self.center == "rest" else 0.0
-        return Z[:, :-1] - self._span_ident, sq - 2 * c * Z[:, -1] + 3 * c * len(self.mouth_faces)
-
-    def correct_chunk(self, captured, *, used_only: bool = False, first: int = 0):
-        """:meth:`lip_corrections` and the mouth's distance from the training span, in one pass over the mouth.
-
-        Returns ``(corrections (t,nI,3), extrapolation (t,), feature_sq (t,))``: the score of
-        :meth:`extrapolation` (from ``||y||² - ||U_Yᵀ y||²``, never forming ``y``) and ``||y||²``
-        (for :class:`.suggest.SuggestScreen`). Arguments as :meth:`lip_corrections`.
-        """
-        self._require_fit()
-        A = self._frames(captured, "captured frames", used_only)
-        verts = self._mouth_u if used_only else self._mouth_verts
-        if getattr(self, "_cm_all", (None,))[0] is not self._Mx_all:
-            nv, m = len(self._mouth_verts), len(self.mouth_faces)
-            self._cm_all = (self._Mx_all, coordinate_major(self._Mx_all, nv), coordinate_major(self._Mc_all, m))
-        with _blas_threads():
-            Z, sq = _mouth_terms(A, verts, self._mouth_local, *self._cm_all[1:], self._mouth_P)
-            R = self._Mx.shape[1]
-            zU, sq = self._norms(Z[:, R:], sq)
-            r2 = np.clip(sq - np.sum(zU * zU, axis=1), 0.0, None)
-            xi, xc = self._interior(A, used_only, z=Z[:, :R] - self._z_ident, r2=r2)
-        _check_prediction(xi, xc, first, self.mouth_size)
-        res = np.sqrt(r2)
-        return xi - xc, res / self._sigma, sq
-
-    def mouth_projections(self, captured, directions, *, used_only: bool = False):
-        """``(Aᵀ y (t,d), ||y||² (t,))`` of frames' mouth features ``y`` on directions ``A`` (9m, d), never forming ``y``."""
-        self._require_fit()
-        A = self._frames(captured, "captured frames", used_only)
-        D = np.asarray(directions, dtype=np.float64)
-        if self._dir_fold[0] is not D:
-            ident = np.tile(np.eye(3).ravel(), len(self.mouth_faces))[:, None]
-            ext = np.hstack([D, ident])
-            nv, m = len(self._mouth_verts), len(self.mouth_faces)
-            Mx, Mc = fold_directions(ext, self._mouth_rinv, self._mouth_local, nv)
-            self._dir_fold = (D, (coordinate_major(Mx, nv), coordinate_major(Mc, m)),
-                              (ident.T @ D).ravel() if self.center == "rest" else np.zeros(D.shape[1]))
-        _, (Mx, Mc), d_ident = self._dir_fold
-        verts = self._mouth_u if used_only else self._mouth_verts
-        Z, sq = _mouth_terms(A, verts, self._mouth_local, Mx, Mc, self._mouth_P)
-        c = 1.0 if self.center == "rest" else 0.0
-        return Z[:, :-1] - d_ident, sq - 2 * c * Z[:, -1] + 3 * c * len(self.mouth_faces)
-
-    def _dense_solution(self):
-        """``(K, H, x0)`` of the Poisson solve as dense maps, or None when they would be large.
-
-        The interior positions are linear in the coefficients ``z`` and the border positions:
-        ``x_I = L_II⁻¹ (Zdiv z + b_ident - L_IB x_B) = K z + x0 - H x_B`` with ``K = L_II⁻¹ Zdiv``
-        (nI*3, R) (per coordinate), ``H = L_II⁻¹ L_IB`` (nI, nB) and ``x0 = L_II⁻¹ b_ident``.
-        Built once per fit from the factor (``H`` once per regressor); two dense products per
-        chunk replace the chunk's sparse back-substitution. Used while ``K`` and ``H`` together
-        stay below :data:`_DENSE_MAX` numbers.
-        """
-        nI, nB, R = len(self.interior_vertices), len(self.border_vertices), self._Zdiv.shape[1]
-        if nI * (nB + 3 * R) > _DENSE_MAX:
-            return None
-        if getattr(self, "_dense", None) is not None and self._dense[0] is self._Zdiv:
-            return self._dense[1]
-        if getattr(self, "_H", None) is None:
-            self._H = self._factor.solve(self._L_IB.toarray())  # (nI, nB)
-        Zr = self._Zdiv.reshape(nI, 3 * R)  # rows: vertex; columns: (coordinate, coefficient)
-        K = self._factor.solve(Zr).reshape(nI, 3, R).reshape(3 * nI, R)
-        x0 = self._factor.solve(self._b_ident) if self.center == "rest" else None
-        self._dense = (self._Zdiv, (K, self._H, x0))
-        return self._dense[1]
-
-    def _float32_maps(self):
-        """The :class:`_Float32Prediction` of the current fit, or None when the dense maps would be large."""
-        dense = self._dense_solution()
-        if dense is None:
-            return None
-        if getattr(self, "_f32", (None,))[0] is not dense:
-            self._f32 = (dense, _Float32Prediction(self, dense))
-        return self._f32[1]
-
-    def _predict_frames(self, captured, out, chunk):
-        """:meth:`.propagate.LipRegressor.predict`: check every frame's result, then write (see its docstring).
-
-        In place, each block of frames is written while its rows are still in cache and the captured
-        interior positions are kept (frames' dtype): a refusal or any error restores them, so ``out``
-        ends as it was.
-        """
-        self._require_fit()
-        A = as_frames(captured, self.n_vertices, "captured frames", self._used, check_finite=False)
-        T, chunk = len(A), int(chunk)
-        if chunk < 1:
-            raise FaceLabError(f"chunk must be at least 1 frame, got {chunk}; use the default 256.")
-        out3 = None if out is None else _checked_out(out, A)
-        iv = self.interior_vertices
-        in_place = out3 is not None and _same_array(out3, A)
-        # in place: the captured interior (to restore); else the checked results, written at the end
-        keep = np.empty((T, len(iv), 3), A.dtype if in_place else np.float64 if out3 is None else out3.dtype)
-        maps = None if self._error_model is not None else self._float32_maps()  # damping: the float64 path
-        done, bad = 0, False
-        step = min(chunk, _F32_BLOCK, T) if maps is not None else min(chunk, T)
-        xbuf = np.empty((step, len(iv), 3), A.dtype) if in_place else None  # one block's result
-        work = np.empty((step, len(iv), 3), np.result_type(keep.dtype, A.dtype))  # its changes (checks)
-        ws = _Work()  # the float32 maps' work buffers
-        try:
-            with _blas_threads():
-                for s in range(0, T, step):
-                    Ab = A[s : s + step]
-                    t = len(Ab)
-                    if maps is None:
-                        r = self._interior_checked(Ab)
-                    else:  # in place: the captured rows go straight to keep; else the result does
-                        r = maps.interior(Ab, xbuf[:t], keep[s : s + t], ws) if in_place else maps.interior(
-                            Ab, keep[s : s + t], None, ws)
-                    if r is None:
-                        bad = True
-                        break
-                    _check_moves(*r, s, self.mouth_size, work)
-                    if in_place:
-                        if maps is None:
-                            keep[s : s + t] = r[1]
-                        _put_rows(Ab, iv, r[0])
-                        done = s + t
-                    elif maps is None:
-                        keep[s : s + t] = r[0]
-        except BaseException:
-            if done:
-                _put_rows(A[:done], iv, keep[:done])
-            raise
-        if bad:  # raises MeshError naming the frames with NaNs (the whole shot is scanned for them)
-            if done:
-                _put_rows(A[:done], iv, keep[:done])
-            as_frames(captured, self.n_vertices, "captured frames", self._used)
-        if in_place:
-            return out
-        if out is None:
-            out3 = A.astype(np.float64)  # always a copy
-        elif not _same_array(out3, A):
-            out3[...] = A
-        _put_rows(out3, iv, keep)
-        return out3 if out is None else out
-
-    def _interior_checked(self, Ab):
-        """``(xi, xc)`` of frames Ab (t,V,3) through the sparse solve (float64), None when a used row is not finite."""
-        U = Ab[:, self._used]
-        return self._interior(U, used_only=True) if np.isfinite(U).all() else None

@@ -2,23 +2,21 @@
 
 Dinev et al. 2018, "User-Guided Lip Correction for Facial Performance
 Capture", §4 gives the regression; this module holds what
-:class:`.propagate.LipRegressor` checks around it so that every bad input
+:class:`.lip_regressor.LipRegressor` checks around it so that every bad input
 or implausible result ends in a :class:`~facelab_addon.core.errors.FaceLabError`
 naming the problem and the fix: the rest mesh, the settings, the ``out``
-array of :meth:`~.propagate.LipRegressor.predict` (float32/float64, the
-frames' shape, writeable) and each predicted frame (finite, and no vertex
+array of :meth:`~.lip_regressor.LipRegressor.predict` (float32/float64, the
+frames' shape, writeable), precomputed mouth features and each predicted frame (finite, and no vertex
 moved further than the mouth region is wide). Positions are scene units.
-
-Package-internal: the public API is :class:`.propagate.LipRegressor`.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from ..errors import FaceLabError, MeshError, PredictionError
+from ...errors import FaceLabError, FrameError, MeshError, PredictionError
 
-__all__: list[str] = []
+__all__ = ["check_settings", "same_array", "checked_mesh", "checked_out", "check_features", "check_prediction"]
 
 
 def check_settings(ridge, rtol, atol, patches, input_radius):
@@ -78,6 +76,30 @@ def checked_out(out, A):
     if not out.flags.writeable:
         raise FaceLabError("out is read-only; pass a writeable array (or no out).")
     return out
+
+
+def check_features(features, m):
+    """``features`` as a (T, 9m) float array after checking its shape, dtype and values (``m`` mouth triangles).
+
+    Raises FaceLabError for a wrong shape, no frames or a non-float dtype, and FrameError naming the rows with
+    NaN or infinite values; each message says to compute them with ``LipRegressor.mouth_features``.
+    """
+    Y = np.asarray(features)
+    d = 9 * m
+    if Y.ndim != 2 or Y.shape[1] != d:
+        raise FaceLabError(
+            f"features have shape {Y.shape}, expected (T, {d}) (9 per mouth triangle); compute them with "
+            "mouth_features() of this regressor."
+        )
+    if len(Y) == 0:
+        raise FaceLabError("No features given (0 frames); pass at least one frame.")
+    if not np.issubdtype(Y.dtype, np.floating):
+        raise FaceLabError(f"features have dtype {Y.dtype}, expected floats; compute them with mouth_features().")
+    bad = np.flatnonzero(~np.isfinite(Y).all(axis=1))
+    if bad.size:
+        raise FrameError("The features of {frames} contain NaN or infinite values; recompute them with "
+                         "mouth_features() from frames without NaN coordinates.", bad[:20])
+    return Y
 
 
 def check_prediction(xi, captured_interior, first, mouth_size):

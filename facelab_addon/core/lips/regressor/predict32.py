@@ -2,32 +2,30 @@
 
 Dinev et al. 2018, "User-Guided Lip Correction for Facial Performance Capture", §4: the corrected
 inner lips are a Poisson reconstruction from the predicted gradients, with the lip border held at
-its captured positions. :class:`.features._StreamingPrediction` folds it into dense maps (interior
+its captured positions. :func:`.prediction.dense_solution` folds it into dense maps (interior
 positions linear in the reduced mouth coefficients and the border positions); this module
 evaluates those maps in float32 on changes from the rest pose, a block of frames per matrix
 product, with the record gathers and scatters, the work buffers and the block check of a
 prediction. Positions are scene units; the maps are unitless.
-
-Package-internal: the public API is :class:`.propagate.LipRegressor`.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from .guards import check_prediction as _check_prediction
+from .guards import check_prediction
 
-__all__: list[str] = []
+__all__ = ["check_moves", "put_rows", "Float32Prediction", "PredictionWork", "F32_BLOCK"]
 
 
 def check_moves(xi, xc, first, mouth_size, work=None):
-    """:func:`.guards._check_prediction` of predicted and captured positions (t, n, 3), from each frame's largest
+    """:func:`.guards.check_prediction` of predicted and captured positions (t, n, 3), from each frame's largest
     coordinate change (a lower bound of its largest move, within sqrt 3): the exact check runs on a block only
     when one of its frames comes near the limit or is not finite. ``work``: a buffer for the changes."""
     d = np.subtract(xi, xc, out=None if work is None else work[: len(xi)]).reshape(len(xi), -1)
     big = np.maximum(d.max(axis=1), -d.min(axis=1))  # NaN when a change is NaN
     if not (np.all(np.isfinite(big)) and np.all(big * np.sqrt(3.0) <= mouth_size)):
-        _check_prediction(xi, xc, first, mouth_size)
+        check_prediction(xi, xc, first, mouth_size)
 
 
 F32_BLOCK = 128  # frames per float32 prediction block (products of 128 rows run near the BLAS peak)
@@ -36,8 +34,8 @@ _F32_SUB = 8  # frames per pass of the phantom columns: the (3, t, m) float32 te
 
 def _rows(A, idx, flat=None, out=None):
     """(t, len(idx), 3) rows ``idx`` of frames A (t,V,3) in A's dtype (or into ``out``, contiguous, A's dtype);
-    ``flat`` = ``3 idx + (0,1,2)`` gathers them from the (t, 3V) view as single numbers, 2-3x faster than
-    ``A[:, idx]`` (measured at 105k vertices)."""
+    ``flat`` = ``3 idx + (0,1,2)`` gathers them from the (t, 3V) view as single numbers (a flat gather, cheaper
+    than the fancy indexing of ``A[:, idx]``)."""
     if flat is None or A.strides[2] != A.itemsize or A.strides[1] != 3 * A.itemsize:
         if out is None:
             return A[:, idx]
@@ -51,7 +49,7 @@ def _rows(A, idx, flat=None, out=None):
 
 def put_rows(A, idx, X):
     """``A[:, idx] = X`` (X (t, len(idx), 3), cast to A's dtype), written one 3-number record per vertex
-    (1.5-2.5x faster than ``A[:, idx] = X``)."""
+    (one void-record scatter instead of the three-number fancy assignment ``A[:, idx] = X``)."""
     if A.strides[2] != A.itemsize:
         A[:, idx] = X
         return
@@ -60,10 +58,10 @@ def put_rows(A, idx, X):
 
 
 class Float32Prediction:
-    """The fitted prediction of ``LipRegressor`` folded into float32 maps of displacements from the rest pose.
+    """A fitted prediction (:class:`.state.TrainedModel`) folded into float32 maps of displacements from the rest pose.
 
-    ``x_I = K z + x0 - H x_B`` (:meth:`.features._StreamingPrediction._dense_solution`) with the coefficients
-    ``z = Mxᵀ X + Mcᵀ c - z_ident`` (:func:`.features._fold_coefficients`) is evaluated in float32 on the
+    ``x_I = K z + x0 - H x_B`` (:func:`.prediction.dense_solution`) with the coefficients
+    ``z = Mxᵀ X + Mcᵀ c - z_ident`` (:func:`.features.fold_coefficients`) is evaluated in float32 on the
     displacements ``d = X - X_rest`` (formed in float64, so float32 and float64 frames of the same
     positions give the same result) and on the phantom columns' changes ``c - c_rest`` (``c`` from
     positions about the mouth's centre): every float32 number is a change from the rest pose, and the
@@ -72,20 +70,19 @@ class Float32Prediction:
     two for the positions: the border displacements of all three coordinates as 3t rows times ``-α Hᵀ``,
     and ``z @ K``; with the correction model (``α < 1``) the captured interior's change from rest, times
     ``1 - α``, is added in float64. Float32 rounding moves a predicted vertex by
-    about 1e-8 of the mouth's size (measured: at most 3e-5 mm on ICT-FaceKit, ``benchmarks/scale.py``),
-    far below the 0.01 mm storage tolerance.
+    about 1e-8 of the mouth's size (``benchmarks/scale.py``), far below the 0.01 mm storage tolerance.
     """
 
-    def __init__(self, reg, dense):
+    def __init__(self, ops, model, dense):
         K, H, x0 = dense
         f32 = np.float32
-        mv, bv, iv = reg._mouth_verts, reg.border_vertices, reg.interior_vertices
-        m, nI, nB, R = len(reg._mouth_local), len(iv), len(bv), reg._Mx.shape[1]
-        ref = reg.rest
+        mv, bv, iv = ops.mouth_verts, ops.border_vertices, ops.interior_vertices
+        m, nI, nB, R = len(ops.mouth_local), len(iv), len(bv), model.Mx.shape[1]
+        ref = ops.rest
         self.idx = (mv, bv, iv)
         self.flat = tuple((3 * x[:, None] + np.arange(3)).ravel() for x in self.idx)
         self.ref = (ref[mv], ref[bv])
-        self.l = tuple(np.ascontiguousarray(reg._mouth_local[:, k]) for k in range(3))
+        self.l = tuple(np.ascontiguousarray(ops.mouth_local[:, k]) for k in range(3))
         Rm = ref[mv]
         e1, e2 = Rm[self.l[1]] - Rm[self.l[0]], Rm[self.l[2]] - Rm[self.l[0]]
         c = np.cross(e1, e2)
@@ -96,23 +93,23 @@ class Float32Prediction:
         self.rest_local = np.ascontiguousarray((Rm - Rm.mean(axis=0)).T[:, None, :], dtype=f32)  # (3, 1, nv)
         self.rest_c = 0.0
         self.rest_c = self._phantom(self.rest_local, np.empty((3, 1, m), f32), PredictionWork())
-        self.Mx = reg._Mx.astype(f32)  # (3nv, R), rows (vertex, coordinate)
-        self.Mc = np.ascontiguousarray(reg._Mc.reshape(m, 3, R).transpose(1, 0, 2), dtype=f32)  # (3, m, R)
-        z_ref = reg._Mx.T @ Rm.ravel() + reg._Mc.T @ c.ravel() - reg._z_ident  # (R,) coefficients of X_rest
+        self.Mx = model.Mx.astype(f32)  # (3nv, R), rows (vertex, coordinate)
+        self.Mc = np.ascontiguousarray(model.Mc.reshape(m, 3, R).transpose(1, 0, 2), dtype=f32)  # (3, m, R)
+        z_ref = model.Mx.T @ Rm.ravel() + model.Mc.T @ c.ravel() - model.z_ident  # (R,) coefficients of X_rest
         K3 = K.reshape(nI, 3, R)
         self.K = np.ascontiguousarray(K3.transpose(2, 1, 0).reshape(R, 3 * nI), dtype=f32)  # columns (coordinate, vertex)
         # the blend of the whole-motion and correction models (LipRegressor.whole_weight α):
         # x_I = K z + α (x0 - H x_B) + (1 - α) x_captured,I
-        a = self.alpha = float(reg.whole_weight)
+        a = self.alpha = float(model.whole_weight)
         self.Ht = np.ascontiguousarray(-a * H.T, dtype=f32)  # (nB, nI)
         self.ref_i = ref[iv]
-        self.base = K3 @ z_ref + a * (-H @ ref[bv] + (0.0 if x0 is None else x0)) + (1 - a) * (self.ref_i + reg._x_b)
+        self.base = K3 @ z_ref + a * (-H @ ref[bv] + (0.0 if x0 is None else x0)) + (1 - a) * (self.ref_i + model.x_b)
 
     def _phantom(self, Xc, out, w):
         """``c - c_rest`` (3, t, m) float32 into ``out`` from coordinate-major mouth positions Xc (3, t, nv)
         (``rest_local`` frame), with work buffers ``w`` (:class:`PredictionWork`). Indices are valid, so the gathers use
         ``mode="clip"`` (unbuffered); contiguous corner arrays, no masked division and no fresh temporaries
-        (each would be page-faulted in anew): measured about 2x faster per pass than without.
+        (each would be page-faulted in anew).
         """
         t, m = out.shape[1], out.shape[2]
         l0, l1, l2 = self.l
@@ -173,8 +170,8 @@ class Float32Prediction:
 
 
 class PredictionWork(dict):
-    """Work buffers kept across the blocks of one prediction: a fresh large temporary is page-faulted in anew on
-    every block (measured: about 20% of the CPU time of ``predict`` at 105k vertices)."""
+    """Work buffers kept across the blocks of one prediction (a fresh large temporary would be page-faulted in anew
+    on every block). One per prediction: a buffer keeps the dtype it was made with."""
 
     def get(self, name, shape, dtype=np.float32):
         """A buffer of at least ``shape`` (allocated on first use, or when larger; callers take a slice)."""

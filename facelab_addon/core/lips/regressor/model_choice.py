@@ -6,7 +6,7 @@ few training frames on a wide lip band it cannot (3 frames do not span the band'
 motion). The *correction* model regresses only corrected minus captured lip gradients (plus a
 constant: a correction present in the rest pose) and adds them to the frame's captured gradients; it
 needs no expression motion, but keeps whatever part of the capture error is not a linear function of
-the mouth. :class:`.propagate.LipRegressor` (``model="auto"``) predicts
+the mouth. :class:`.lip_regressor.LipRegressor` (``model="auto"``) predicts
 ``α · whole + (1 - α) · correction`` with ``α`` from this module. Both models and so the blend are
 exact on the training frames.
 
@@ -44,32 +44,32 @@ import numpy as np
 from .features import gradient_features
 from .reduced import loo_span_residuals
 
-__all__: list[str] = []
+__all__ = ["shot_features", "error_model", "expected_error", "damping_weights", "choose_blend"]
 
 
 def _poisson_per_frame(reg, G, k):
     """(k,) squared interior position norms of per-frame lip gradient changes G (n, 9, k), border held at 0."""
     n, nI = len(reg.lip_faces), len(reg.interior_vertices)
-    rhs = reg._D_I @ G.reshape(n, 3, 3, k).transpose(0, 2, 1, 3).reshape(3 * n, 3 * k)  # columns (i, frame)
-    P = reg._factor.solve(rhs).reshape(nI, 3, k)
+    rhs = reg.D_I @ G.reshape(n, 3, 3, k).transpose(0, 2, 1, 3).reshape(3 * n, 3 * k)  # columns (i, frame)
+    P = reg.factor.solve(rhs).reshape(nI, 3, k)
     return np.sum(P * P, axis=(0, 1))
 
 
 def _blend_patches(reg, parts, k):
     """(n, 9, k) lip gradient features blended over the patches from per-patch (9 n_p, k) arrays."""
     G = np.zeros((len(reg.lip_faces), 9, k))
-    for (_, lip_sel, w), E in zip(reg._patches, parts):
+    for (_, lip_sel, w), E in zip(reg.patches, parts):
         G[lip_sel] += E.reshape(len(lip_sel), 9, k) * w[:, None, None]
     return G
 
 
 def shot_features(reg, frames, used_only):
     """``(Ys, Xs)``: (T, 9m) mouth and (T, 9n) captured lip features of shot frames (validated, float)."""
-    mouth = reg._mouth_u if used_only else reg._mouth_verts
-    lips = np.searchsorted(reg._used, reg._lip_verts_all) if used_only else reg._lip_verts_all
+    mouth = reg.mouth_u if used_only else reg.mouth_verts
+    lips = np.searchsorted(reg.used, reg.lip_verts) if used_only else reg.lip_verts
     center = reg.center == "rest"
-    Ys = gradient_features(frames, mouth, reg._mouth_local, reg._mouth_rinv, center)
-    Xs = gradient_features(frames, lips, reg._lip_local, reg._lip_rinv, center)
+    Ys = gradient_features(frames, mouth, reg.mouth_local, reg.mouth_rinv, center)
+    Xs = gradient_features(frames, lips, reg.lip_local, reg.lip_rinv, center)
     return Ys, Xs
 
 
@@ -79,7 +79,7 @@ def _shot_floor(reg, fits, shot, r2_shot):
     T = len(Ys)
     m9 = Ys.reshape(T, -1, 9)
     diff = []
-    for (mouth_sel, lip_sel, _), f in zip(reg._patches, fits):
+    for (mouth_sel, lip_sel, _), f in zip(reg.patches, fits):
         sel, UY, UX, th, corr = f[0], f[1], f[2], f[3], f[6]
         z = m9[:, sel].reshape(T, -1) @ UY  # (T, rY) the patch's mouth coefficients
         UXc, thc, _, b = corr
@@ -95,7 +95,7 @@ def _shot_floor(reg, fits, shot, r2_shot):
     return float(b)
 
 
-def error_model(reg, fits, shot=None):
+def error_model(reg, span, fits, shot=None):
     """The expected-error model of both regressions: ``{"a_w", "a_c", "floor", "mean_r2"}``.
 
     A frame at squared distance ``r²`` from the training span (mouth features, unitless) is expected to
@@ -106,21 +106,21 @@ def error_model(reg, fits, shot=None):
 
     Parameters
     ----------
-    reg, fits, shot
+    reg, span, fits, shot
         As :func:`choose_blend`.
 
     Returns
     -------
     dict of float
     """
-    k = reg.k
+    k = span.k
     ew = _poisson_per_frame(reg, _blend_patches(reg, [f[5] for f in fits], k), k)
-    r2 = loo_span_residuals(reg._UY.T @ reg._Y)  # each training mouth's distance from the others' span
+    r2 = loo_span_residuals(span.UY.T @ span.Y)  # each training mouth's distance from the others' span
     has_c = fits[0][6] is not None
     if shot is None:
         r2_shot, floor = r2, 0.0
     else:
-        res = shot[0] - (shot[0] @ reg._UY) @ reg._UY.T
+        res = shot[0] - (shot[0] @ span.UY) @ span.UY.T
         r2_shot = np.sum(res * res, axis=1)
         floor = _shot_floor(reg, fits, shot, r2_shot) if has_c else 0.0
     denom = max(float(np.sum(r2)), 1e-30)
@@ -183,13 +183,15 @@ def damping_weights(c2, S):
     return np.divide(c2, den, out=np.ones_like(den), where=den > 0)
 
 
-def choose_blend(reg, fits, shot=None):
+def choose_blend(reg, span, fits, shot=None):
     """``(α, report, model)``: the whole-motion model's weight in the blend, the estimates behind it, the error model.
 
     Parameters
     ----------
-    reg : LipRegressor
-        Fitted regions, global span (``_Y``, ``_UY``) and Poisson factor.
+    reg : LipOperators
+        The regressor's regions, patches and Poisson factor (:class:`.state.LipOperators`).
+    span : TrainingSet
+        The training features and their global span (``Y``, ``UY``, ``k``; :class:`.state.TrainingSet`).
     fits : list
         Per patch ``(mouth_sel, U_Y, U_X, θ̄, λ, E_w, (U_Xc, θ̄_c, E_c, b))``: the two models' maps and
         leave-one-out residuals ``E`` (9 n_p, k) of the lip features.
@@ -207,7 +209,7 @@ def choose_blend(reg, fits, shot=None):
         :func:`error_model`.
     """
     nI = len(reg.interior_vertices)
-    em = error_model(reg, fits, shot)
+    em = error_model(reg, span, fits, shot)
     S_w = em["a_w"] * em["mean_r2"]
     S_c = em["floor"] + em["a_c"] * em["mean_r2"]
     alpha = 1.0 if S_w + S_c <= 0 else S_c / (S_w + S_c)
