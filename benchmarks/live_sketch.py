@@ -110,7 +110,7 @@ def latency(bpy, size, runs, redraws):
             # the full Refine of the same strokes, solved from scratch (what Accept would write)
             views = live.views()
             full = refine_lips_views(live.V, live.topo.tris, views, fixed=live.fixed, lips=live.lips,
-                                     rest_vertices=live.rest, **live.refine_settings().solver_weights())
+                                     rest_vertices=live.rest, params=live.refine_settings().params())
             d_px = float(np.abs(cam.project(full) - cam.project(live.preview_vertices())).max())
             rows.append(dict(kind=kind, ms=round(1000 * wall, 1), cpu_ms=round(1000 * cpu, 1),
                              solve_ms=round(1000 * u.solve_seconds, 1), rebuilt=u.rebuilt, solves=u.solves,

@@ -43,7 +43,7 @@ from ..blender.scene_time import require_scene_time
 from ..blender.shapekeys import rest_vertices
 from ..blender.strokes import read_lip_strokes, require_sketch_keyed_on
 from ..core.errors import FaceLabError
-from ..core.lips.sketch import SketchView, SketchSolver
+from ..core.lips.sketch import RefineParams, SketchSolver, SketchView
 from ..names import LIVE_PREVIEW_KEY
 from .refine import RefineResult, RefineSettings, lip_region, refine, view_sources
 from .training import uncorrected_frame
@@ -223,9 +223,9 @@ class LiveRefine:
     def _session(self) -> SketchSolver:
         """The frame's :class:`~facelab_addon.core.lips.sketch_session.SketchSolver`, kept while the settings are
         unchanged (the face, its regions and the frame are the session's own)."""
-        kw = self.settings.solver_weights()
-        kw.pop("free_radius")
-        if self._solver is None or self._solver_key != kw:
+        # each solve sets free_radius from the Influence: a change of it alone keeps the solver
+        params = replace(self.settings.params(), free_radius=RefineParams.free_radius)
+        if self._solver is None or self._solver_key != params:
             self._solver = None
             w = self.topo.weld if self.topo.n_duplicates else None
             V, tris, fixed, lips, rest = self.V, self.tris, self.fixed, self.lips, self.rest
@@ -234,9 +234,9 @@ class LiveRefine:
                 tris = world_winding(tris, self.A)
                 fixed, rest = fixed[w.kept], rest[w.kept]
                 lips = None if lips is None else lips[w.kept]
-            self._solver = SketchSolver(V, tris, fixed=fixed, lips=lips, rest_vertices=rest, width_tol=WIDTH_TOL,
-                                        **kw)
-            self._solver_key = kw
+            self._solver = SketchSolver(V, tris, params, fixed=fixed, lips=lips, rest_vertices=rest,
+                                        width_tol=WIDTH_TOL)
+            self._solver_key = params
         return self._solver
 
     def _solve(self, views):

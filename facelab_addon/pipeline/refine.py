@@ -44,7 +44,7 @@ from ..blender.shapekeys import rest_vertices
 from ..blender.sketch_views import sketch_camera, sketch_views
 from ..blender.strokes import read_lip_strokes, require_sketch_keyed_on
 from ..core.errors import CameraError
-from ..core.lips.sketch import SketchView, refine_lips_views
+from ..core.lips.sketch import RefineParams, SketchView, refine_lips_views
 from ..names import FIXED_GROUP, LIPS_GROUP, MOUTH_GROUP, REFINE_PREFIX
 from .training import store_training_frame, uncorrected_frame
 from .settings import setting
@@ -154,12 +154,13 @@ class RefineSettings:
                                                 "correction keeps its depth (0: it moves across the camera's rays "
                                                 "only); lower it when the rest pose's depth is wrong for the shot")
 
-    def solver_weights(self) -> dict:
-        """The keyword arguments of :func:`~facelab_addon.core.lips.sketch.refine_lips`."""
-        return dict(iterations=self.iterations, lambda_pos=self.lambda_pos, lambda_reg=self.lambda_reg,
-                    lambda_silh=self.lambda_silh, prior=self.prior, smooth_reach=self.smooth_reach,
-                    free_radius=self.free_radius, crossings=self.crossings, depth_reg=self.depth_reg,
-                    rest_depth_reg=self.rest_depth_reg)
+    def params(self) -> RefineParams:
+        """The core solver's settings (:class:`~facelab_addon.core.lips.refine_params.RefineParams`): these
+        fields, and the core's defaults for the rest."""
+        return RefineParams(iterations=self.iterations, lambda_pos=self.lambda_pos, lambda_reg=self.lambda_reg,
+                            lambda_silh=self.lambda_silh, prior=self.prior, smooth_reach=self.smooth_reach,
+                            free_radius=self.free_radius, crossings=self.crossings, depth_reg=self.depth_reg,
+                            rest_depth_reg=self.rest_depth_reg)
 
 
 @dataclass
@@ -267,13 +268,13 @@ def refine(scene, obj, frame: int, settings: RefineSettings | None = None, *, ca
         w = topo.weld
         Vc, tris_c = w.compact(V)
         tris_c = world_winding(tris_c, A)
-        Xc, info = refine_lips_views(Vc, tris_c, views, fixed=fixed[w.kept], rest_vertices=rest[w.kept],
-                                     lips=None if lips is None else lips[w.kept], return_info=True,
-                                     **settings.solver_weights())
+        Xc, info = refine_lips_views(Vc, tris_c, views, settings.params(), fixed=fixed[w.kept],
+                                     rest_vertices=rest[w.kept], lips=None if lips is None else lips[w.kept],
+                                     return_info=True)
         X = V + w.uncompact(Xc - Vc)  # each duplicate moves with its representative: the seams stay closed
     else:
-        X, info = refine_lips_views(V, tris, views, fixed=fixed, lips=lips, rest_vertices=rest, return_info=True,
-                                    **settings.solver_weights())
+        X, info = refine_lips_views(V, tris, views, settings.params(), fixed=fixed, lips=lips, rest_vertices=rest,
+                                    return_info=True)
     note = ""
     on_cache = caches.sequence_source(obj) in _CACHE_SOURCES
     state = ModifierState(obj)

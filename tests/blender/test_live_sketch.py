@@ -263,7 +263,7 @@ def test_live_refine_keeps_its_solver_between_strokes_and_rebuilds_for_new_setti
             V, tris = w.compact(V)
             fixed, rest, lips = fixed[w.kept], rest[w.kept], None if lips is None else lips[w.kept]
         X = refine_lips_views(V, tris, live.views(), fixed=fixed, lips=lips, rest_vertices=rest,
-                              **live.refine_settings().solver_weights())
+                              params=live.refine_settings().params())
         return X if w is None else live.V + w.uncompact(X - V)
 
     u1 = live.update()
