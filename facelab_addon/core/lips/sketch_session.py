@@ -40,7 +40,7 @@ from ..geometry.deform import LaplacianDeformer, PointConstraints
 from ..geometry.laplacian import laplacian as make_laplacian
 from ..geometry.linsolve import small_dense_threads
 from ..geometry.mesh import validate_mesh, vertex_adjacency
-from .refine_params import CROSSINGS, RefineParams
+from .refine_params import RefineParams
 from .sketch_prior import (
     anchor_weights,
     depth_terms,
@@ -54,7 +54,7 @@ from .sketch_prior import (
 from .span_prior import fit_span, span_columns, taper
 from .views import ViewMatcher
 
-__all__ = ["SketchSolver", "CROSSINGS", "RefineParams"]
+__all__ = ["SketchSolver"]
 
 
 def _camera_key(cam):
