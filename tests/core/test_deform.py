@@ -167,6 +167,37 @@ def test_coupled_deformer_with_fixed_anisotropic_terms_matches_dense_minimiser()
     assert np.abs(D.solve(anchor, V, moving) - Dc.constrain(X0, anchor, moving)).max() > 1e-3
 
 
+def test_a_lazy_deformer_factors_at_first_use_and_solves_the_same():
+    """``lazy=True``: no factor until a solve needs one (a coupled deformer made from it factors only its own
+    system), then the very same minimiser as the eager deformer; a singular system is refused at that solve."""
+    rng = np.random.default_rng(2)
+    V, F, _ = grid(8, jitter=0.2)
+    L = uniform_laplacian(F, len(V))
+    w = rng.uniform(0.05, 1, len(V))
+    pinned = np.zeros(len(V), bool)
+    pinned[:5] = True
+    anchor = V + 0.05 * rng.standard_normal(V.shape)
+    r = rng.standard_normal((len(V), 3))
+    r /= np.linalg.norm(r, axis=1, keepdims=True)
+    terms = PointConstraints(np.arange(len(V)), np.ones((len(V), 1)), anchor, r[:, :, None] * r[:, None, :], 2.0)
+    moving = [PointConstraints.rays([10, 20, 33], rng.standard_normal((3, 3)), rng.standard_normal((3, 3)), [1, 2, 3])]
+    eager = LaplacianDeformer(L, lambda_reg=3.0, pos_weights=w, pinned=pinned)
+    lazy = LaplacianDeformer(L, lambda_reg=3.0, pos_weights=w, pinned=pinned, lazy=True)
+    assert eager._factor is not None and lazy._factor is None
+    Xc = lazy.with_terms(terms, anchor)
+    Yc = Xc.constrain(Xc.unconstrained(anchor, V), anchor, moving)
+    assert lazy._factor is None  # the coupled solve never needed the base factor
+    Ye = eager.with_terms(terms, anchor)
+    assert np.array_equal(Yc, Ye.constrain(Ye.unconstrained(anchor, V), anchor, moving))
+    assert np.array_equal(lazy.solve(anchor, V, moving), eager.solve(anchor, V, moving))
+    assert lazy._factor is not None
+    with pytest.raises(FaceLabError, match="singular"):
+        LaplacianDeformer(L, lambda_reg=0.0, pos_weights=0.0)  # eager: refused when made
+    free_floating = LaplacianDeformer(L, lambda_reg=0.0, pos_weights=0.0, lazy=True)
+    with pytest.raises(FaceLabError, match="singular"):
+        free_floating.solve(anchor)  # lazy: refused at the first solve
+
+
 def sparse_reference(L, lam, w, pinned, anchor, ref, C):
     """Minimise the same energy by a direct sparse solve of the full constrained 3n system (scipy spsolve)."""
     import scipy.sparse as sp

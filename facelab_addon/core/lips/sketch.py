@@ -70,8 +70,6 @@ system between solves.
 
 from __future__ import annotations
 
-from ..errors import UsageError
-from ..geometry.mesh import validate_mesh
 from ..geometry.polyline import resample_polyline  # noqa: F401  (re-exported for the benchmark)
 from .refine_params import CROSSINGS, RefineParams
 from .sketch_session import SketchSolver
@@ -175,9 +173,6 @@ def refine_lips_views(vertices, faces, views, params: RefineParams | None = None
     MeshError, CameraError, SketchError
         With a message naming the fix (and the view, with several).
     """
-    V0, F = validate_mesh(vertices, faces)
-    views = list(views) if views is not None else []
-    if not views:
-        raise UsageError("refine_lips_views needs at least one SketchView (a camera and its two lip strokes).")
-    solver = SketchSolver(V0, F, params, fixed=fixed, lips=lips, rest_vertices=rest_vertices, basis=basis)
+    # the solver checks the mesh (once) and the views (at least one)
+    solver = SketchSolver(vertices, faces, params, fixed=fixed, lips=lips, rest_vertices=rest_vertices, basis=basis)
     return solver.solve(views, return_info=return_info)

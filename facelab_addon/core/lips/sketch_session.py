@@ -192,13 +192,14 @@ class SketchSolver:
         p = self.params
         w = anchor_weights(V0, Fl, region, prior=p.prior, lambda_pos=p.lambda_pos, lambda_reg=p.lambda_reg,
                            reach=p.smooth_reach * W, fixed=self.fixed, lips=self.lips)
-        L = make_laplacian(V0, Fl, self.params.laplacian, adjacency=adj)
+        L = make_laplacian(V0, Fl, p.laplacian, adjacency=adj)
         if self.lips is not None:
             # the held border of the lip region keeps its position, not its Laplacian coordinates: the
             # correction may meet it at an angle (as Propagate's Poisson solve, which holds the same border,
             # reproduces it), instead of flattening out before it
             L = sp.diags((~(self.lips & ~region & ~self.fixed)).astype(np.float64)) @ L
-        solver = LaplacianDeformer(L, lambda_reg=self.params.lambda_reg, pos_weights=w, pinned=~region)
+        # factored at its first use: one view with the rest-depth terms solves a coupled system of its own
+        solver = LaplacianDeformer(L, lambda_reg=p.lambda_reg, pos_weights=w, pinned=~region, lazy=True)
         # silhouettes: on triangles of the region and its held ring (a border vertex may be on the silhouette)
         around = region | (adj @ region.astype(np.float64) > 0)
         self.builds += 1
