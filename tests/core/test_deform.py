@@ -133,11 +133,9 @@ def test_constraint_rows_and_vertex_systems_give_the_same_minimiser(monkeypatch)
     np.testing.assert_allclose(X_rows, dense_reference(L, 2.0, w, pinned, V, V, C), atol=1e-10)
 
 
-def test_coupled_deformer_with_fixed_anisotropic_terms_matches_dense_minimiser():
-    """Fixed terms that couple the coordinates (rank-1 stiffness along rays, on single vertices and on
-    Laplacian-like rows touching pinned vertices) folded into the factor, moving constraints added by
-    Woodbury: the same minimiser as the dense 3n system with every term in it."""
-    rng = np.random.default_rng(1)
+def _coupled_case(seed):
+    """A bent 8x8 grid: ``(rng, V, L (uniform), w, pinned (first 5), anchor, r (V,3) unit directions)``."""
+    rng = np.random.default_rng(seed)
     V, F, _ = grid(8, jitter=0.2)
     V[:, 2] = 0.1 * np.sin(V[:, 0])
     L = uniform_laplacian(F, len(V))
@@ -147,6 +145,14 @@ def test_coupled_deformer_with_fixed_anisotropic_terms_matches_dense_minimiser()
     anchor = V + 0.05 * rng.standard_normal(V.shape)
     r = rng.standard_normal((len(V), 3))
     r /= np.linalg.norm(r, axis=1, keepdims=True)
+    return rng, V, L, w, pinned, anchor, r
+
+
+def test_coupled_deformer_with_fixed_anisotropic_terms_matches_dense_minimiser():
+    """Fixed terms that couple the coordinates (rank-1 stiffness along rays, on single vertices and on
+    Laplacian-like rows touching pinned vertices) folded into the factor, moving constraints added by
+    Woodbury: the same minimiser as the dense 3n system with every term in it."""
+    rng, V, L, w, pinned, anchor, r = _coupled_case(1)
     fixed_terms = PointConstraints.concat([
         PointConstraints(np.arange(len(V)), np.ones((len(V), 1)), anchor, r[:, :, None] * r[:, None, :], 2.0),
         PointConstraints([[1, 6, 7], [30, 31, 39]], [[1.0, -0.5, -0.5], [1.0, -0.5, -0.5]], np.zeros((2, 3)),
@@ -170,15 +176,7 @@ def test_coupled_deformer_with_fixed_anisotropic_terms_matches_dense_minimiser()
 def test_a_lazy_deformer_factors_at_first_use_and_solves_the_same():
     """``lazy=True``: no factor until a solve needs one (a coupled deformer made from it factors only its own
     system), then the very same minimiser as the eager deformer; a singular system is refused at that solve."""
-    rng = np.random.default_rng(2)
-    V, F, _ = grid(8, jitter=0.2)
-    L = uniform_laplacian(F, len(V))
-    w = rng.uniform(0.05, 1, len(V))
-    pinned = np.zeros(len(V), bool)
-    pinned[:5] = True
-    anchor = V + 0.05 * rng.standard_normal(V.shape)
-    r = rng.standard_normal((len(V), 3))
-    r /= np.linalg.norm(r, axis=1, keepdims=True)
+    rng, V, L, w, pinned, anchor, r = _coupled_case(2)
     terms = PointConstraints(np.arange(len(V)), np.ones((len(V), 1)), anchor, r[:, :, None] * r[:, None, :], 2.0)
     moving = [PointConstraints.rays([10, 20, 33], rng.standard_normal((3, 3)), rng.standard_normal((3, 3)), [1, 2, 3])]
     eager = LaplacianDeformer(L, lambda_reg=3.0, pos_weights=w, pinned=pinned)
