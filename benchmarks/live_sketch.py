@@ -11,8 +11,8 @@
   alternately, moved up to 1.5 px across it: the strokes rewritten in the Grease Pencil), ``--redraws``
   after the lower lip is drawn again by hand (``testing.route.jitter_stroke``, 2 px RMS); the headline
   latency is the edited point's median. After every update, the preview's largest distance (image pixels)
-  from a full Refine of the same strokes (``refine_lips_views`` from scratch); then ``accept()`` and the
-  preview's distance from the Refine it writes. The machine's load (``os.getloadavg``) is stated before
+  from a full Refine of the same strokes (``RefineProblem.solve``: ``refine_lips_views`` from scratch); then
+  ``accept()`` and the preview's distance from the Refine it writes. The machine's load (``os.getloadavg``) is stated before
   and after.
 * ``snap``: the shipped sample's plate (``assets/sample/plate``: Cycles renders of the truth,
   1280x720, read through the scene's Movie Clip as Snap to Plate reads it). On every ``--every``-th
@@ -83,7 +83,6 @@ def latency(bpy, size, runs, redraws):
     from facelab_addon.blender.scene import new_mesh_object
     from facelab_addon.blender.strokes import new_lip_sketch, write_stroke_pixels
     from facelab_addon.core.capture.ict import load_ict
-    from facelab_addon.core.lips.sketch import refine_lips_views
     from facelab_addon.pipeline.live_refine import LiveRefine
     from facelab_addon.testing.gap_case import ict_gap_case
     from facelab_addon.testing.route import jitter_stroke
@@ -114,8 +113,7 @@ def latency(bpy, size, runs, redraws):
             wall, cpu = time.perf_counter() - t0, time.process_time() - c0
             # the full Refine of the same strokes, solved from scratch (what Accept would write)
             views = live.views()
-            full = refine_lips_views(live.V, live.topo.tris, views, fixed=live.fixed, lips=live.lips,
-                                     rest_vertices=live.rest, **live.refine_settings().solver_weights())
+            full, _ = live.problem.solve(views, live.refine_settings().params())
             d_px = float(np.abs(cam.project(full) - cam.project(live.preview_vertices())).max())
             rows.append(dict(kind=kind, ms=round(1000 * wall, 1), cpu_ms=round(1000 * cpu, 1),
                              solve_ms=round(1000 * u.solve_seconds, 1), rebuilt=u.rebuilt, solves=u.solves,

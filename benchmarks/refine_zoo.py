@@ -48,7 +48,8 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from _harness import json_stdout, log, since  # noqa: E402
 
-#: The Refine settings compared: name -> keyword arguments of ``refine_lips_views`` (besides the case's).
+#: The Refine settings compared: name -> fields of ``RefineParams`` and keyword arguments of ``refine_lips_views``
+#: (``basis``), besides the case's.
 METHODS = {"default": {}, "paper": {"prior": "paper"}}
 FACES = ("ict", "ict-s1", "ict-s2", "remeshed")
 #: The targets of issue 25 (held-out families, every face).
@@ -95,7 +96,7 @@ def oracle_cut(zf, mc, case, e0, band):
 
 
 def run_case(zf, case, methods, oracle=False):
-    from facelab_addon.core.lips.sketch import SketchView, refine_lips_views
+    from facelab_addon.core.lips.sketch import RefineParams, SketchView, refine_lips_views
     from facelab_addon.testing import error_zoo as Z
 
     mc = Z.make_case(zf, case)
@@ -130,8 +131,10 @@ def run_case(zf, case, methods, oracle=False):
                 kw["basis"] = mc.basis(zf, exclude=Z.POSES[case.pose])
             t0 = time.process_time()
             try:
-                X = refine_lips_views(mc.capture, zf.faces, views, fixed=zf.fixed, lips=zf.lips, rest_vertices=mc.rest,
-                                      **kw)
+                fields = {f.name for f in dataclasses.fields(RefineParams)}
+                params = RefineParams(**{k: v for k, v in kw.items() if k in fields})
+                X = refine_lips_views(mc.capture, zf.faces, views, params, fixed=zf.fixed, lips=zf.lips,
+                                      rest_vertices=mc.rest, **{k: v for k, v in kw.items() if k not in fields})
             except Exception as e:  # the zoo reports what breaks
                 row["runs"][f"{nv}v_{name}"] = dict(exception=f"{type(e).__name__}: {e}")
                 continue
@@ -251,7 +254,8 @@ def main(argv=None):
     ap.add_argument("--families", default=None, help="comma-separated subset of error_zoo.FAMILIES")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--variant", action="append", default=[],
-                    help="name=JSON keyword arguments of refine_lips_views, compared besides default and paper")
+                    help="name=JSON fields of RefineParams (and refine_lips_views' basis), compared besides "
+                         "default and paper")
     ap.add_argument("--clean", action="store_true",
                     help="diagnosis: sketches without a hand's noise (exact truth contours, whole strokes)")
     ap.add_argument("--oracle", action="store_true",

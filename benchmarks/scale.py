@@ -280,14 +280,14 @@ def refine_time(size, runs=4):
     """Subprocess: core ``refine_lips`` (5 iterations, whole face) on the neutral face with a 2.5 mm inner-lip gap,
     sketch from the truth (as ``benchmarks/sketch_refine.py``); median of the warm runs."""
     from facelab_addon.core.capture.ict import load_ict
-    from facelab_addon.core.lips.sketch import refine_lips
+    from facelab_addon.core.lips.sketch import RefineParams, refine_lips
     from facelab_addon.testing.gap_case import ict_gap_case
 
     g = ict_gap_case(load_ict(), size)
     ts = []
     for _ in range(runs):
         t0 = time.perf_counter()
-        refine_lips(g.captured, g.faces, g.camera, g.upper, g.lower, fixed=g.fixed, iterations=5)
+        refine_lips(g.captured, g.faces, g.camera, g.upper, g.lower, RefineParams(iterations=5), fixed=g.fixed)
         ts.append(time.perf_counter() - t0)
     return dict(vertices=len(g.truth), seconds_median_warm=round(float(np.median(ts[1:])), 3),
                 seconds_all=[round(t, 3) for t in ts], load=_uptime(), target_s=0.1 if size == "26k" else 0.3)

@@ -75,6 +75,7 @@ from facelab_addon.core.geometry.silhouette import point_segment_distance  # noq
 from facelab_addon.core.lips.regressor import LipRegressor  # noqa: E402
 from facelab_addon.core.lips.regions import auto_regions, faces_in_region  # noqa: E402
 from facelab_addon.core.lips.sketch import (  # noqa: E402
+    RefineParams,
     SketchView,
     press_lips,
     refine_lips,
@@ -220,11 +221,11 @@ def run_case(model, fixed, name, pose, kind, amount_mm, radius_mm, runs):
     times, cpu, X, info = [], [], None, None
     for _ in range(runs + 1):
         t, c = time.perf_counter(), time.process_time()
-        X, info = refine_lips(C, F, cam, sk_u, sk_l, fixed=fixed, iterations=5, return_info=True)
+        X, info = refine_lips(C, F, cam, sk_u, sk_l, RefineParams(iterations=5), fixed=fixed, return_info=True)
         times.append(time.perf_counter() - t)
         cpu.append(time.process_time() - c)
     warm = statistics.median(times[1:])
-    Xo = refine_lips(C, F, cam, sk_u, sk_l, fixed=fixed, iterations=5, prior=OTHER_PRIOR)
+    Xo = refine_lips(C, F, cam, sk_u, sk_l, RefineParams(iterations=5, prior=OTHER_PRIOR), fixed=fixed)
 
     # what the solver was asked to reach after pressing crossing stretches
     pu = press_lips(resample_polyline(sk_u), resample_polyline(sk_l))
@@ -360,8 +361,8 @@ def picture(model, fixed, path):
     cam = S.frontal_camera(T, mouth.center, distance=40.0 * model.scale)
     up, lo = S.lip_contours(T, F, cam, mouth=mouth)
     C, _ = S.inject_lip_error(T, F, fixed, mouth=mouth, radius_mm=12.0)
-    rows = [("12 mm wide gap", [("capture", C), ("paper's Eq. 1", refine_lips(C, F, cam, up, lo, fixed=fixed,
-                                                                               prior="paper")),
+    paper = refine_lips(C, F, cam, up, lo, RefineParams(prior="paper"), fixed=fixed)
+    rows = [("12 mm wide gap", [("capture", C), ("paper's Eq. 1", paper),
                                 ("smooth prior (default)", refine_lips(C, F, cam, up, lo, fixed=fixed))])]
     w, side = S.lip_error_weights(T, F, fixed, mouth=mouth)
     D = T + (1.25 * mm * w * side)[:, None] * mouth.up + (FORWARD_ERROR_MM * mm * w)[:, None] * mouth.forward
@@ -421,7 +422,7 @@ def run_speed(model, fixed, runs):
     for prior in (DEFAULT_PRIOR, OTHER_PRIOR):
         cuts = []
         for C, T, F, fx, lip in ((C0, T0, model.faces, fixed, lip0), (Vs, Ts, Fs, fixed_s, lip_s)):
-            X = refine_lips(C, F, cam, up, lo, fixed=fx, prior=prior)
+            X = refine_lips(C, F, cam, up, lo, RefineParams(prior=prior), fixed=fx)
             cuts.append(_r(100.0 * (1.0 - lip_error(X, T, lip, mm)["rms"] / lip_error(C, T, lip, mm)["rms"]), 1))
         res[prior] = cuts
     for key, (C, F, fx, target) in (("ict_26k", (C0, model.faces, fixed, TARGET_SECONDS)),

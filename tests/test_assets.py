@@ -2,7 +2,6 @@
 (and the core defaults), a broken preset is refused with its file name, the sample lip mesh is
 exactly ``two_lips()``, and the add-on takes its defaults from the presets."""
 
-import inspect
 import json
 import math
 import subprocess
@@ -88,10 +87,10 @@ def test_sketch_preset_is_the_papers_and_the_solvers_defaults():
     p = load_preset("sketch_refine", SKETCH_SCHEMA)
     assert p == {"iterations": 5, "lambda_pos": 0.1, "lambda_reg": 3.0, "lambda_silh": 1.0}
     assert type(p["iterations"]) is int and all(type(p[k]) is float for k in ("lambda_pos", "lambda_reg", "lambda_silh"))
-    from facelab_addon.core.lips.sketch import refine_lips
+    from facelab_addon.core.lips.refine_params import RefineParams
 
-    sig = inspect.signature(refine_lips).parameters
-    assert {k: sig[k].default for k in p} == p
+    defaults = RefineParams()
+    assert {k: getattr(defaults, k) for k in p} == p
 
 
 def test_region_preset_is_the_core_default():

@@ -1,7 +1,9 @@
 """Live Refine: the lips follow the sketch stroke by stroke, as a preview, until the artist accepts it.
 
 :class:`LiveRefine` is a synchronous session on one frame of one face. It reads the face, its fixed
-and lip regions and its rest pose once; :meth:`LiveRefine.update` (after each stroke, or each edited
+and lip regions and its rest pose once, with Refine's own reader
+(:func:`facelab_addon.pipeline.refine.refine_problem`, so both solve the same welded, wound surface);
+:meth:`LiveRefine.update` (after each stroke, or each edited
 point) reads the lip sketch(es) of the frame as Refine Lips reads them (snapped to the plate when the
 sketch asks for it), solves with one :class:`facelab_addon.core.lips.sketch_session.SketchSolver` kept
 for the session (its free region, operators and factorisation are made again only when the strokes
@@ -28,25 +30,14 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..blender import caches
-from ..blender.camera import camera_from_blender, evaluated_depsgraph
-from ..blender.mesh import (
-    default_fixed_mask,
-    evaluated_vertices,
-    face_topology,
-    require_mesh,
-    world_to_local_deltas,
-    world_winding,
-)
-from ..blender.objects import require_editable, world_affine
+from ..blender.mesh import require_mesh, world_to_local_deltas
+from ..blender.objects import require_editable
 from ..blender.rest_space import to_rest_space
 from ..blender.scene_time import require_scene_time
-from ..blender.shapekeys import rest_vertices
-from ..blender.strokes import read_lip_strokes, require_sketch_keyed_on
 from ..core.errors import FaceLabError
-from ..core.lips.sketch import SketchView, SketchSolver
+from ..core.lips.sketch import RefineParams, SketchSolver
 from ..names import LIVE_PREVIEW_KEY
-from .refine import RefineResult, RefineSettings, lip_region, refine, view_sources
-from .training import uncorrected_frame
+from .refine import RefineResult, RefineSettings, checked_view_sources, read_views, refine, refine_problem
 
 __all__ = ["PREVIEW_KEY", "LiveUpdate", "LiveRefine", "remove_preview", "influence_to_mouth_widths"]
 
@@ -175,17 +166,8 @@ class LiveRefine:
         remove_preview(self.obj)  # a stale preview (an undo, a crash) is never read as the capture
         if scene.frame_current != self.frame:
             scene.frame_set(self.frame)
-        dg = evaluated_depsgraph(scene)
-        self.shown = evaluated_vertices(self.obj, dg)
-        A, b = world_affine(self.obj, dg)
-        self.V = uncorrected_frame(self.obj, self.frame) @ A.T + b  # where Refine's solve starts (the capture)
-        local = np.linalg.solve(A, (self.V - b).T).T
-        self.topo = face_topology(self.obj, iter([local]))
-        self.tris = world_winding(self.topo.tris, A)  # world positions: a mirrored face keeps its normals outward
-        self.A = A
-        self.fixed, self.fixed_source = default_fixed_mask(self.obj, self.topo, self.settings.fixed_group)
-        self.lips = lip_region(self.obj) if self.settings.use_regions else None
-        self.rest = rest_vertices(self.obj) @ A.T + b
+        #: The frame's face as Refine reads it (capture, weld, fixed and lip regions, rest pose).
+        self.problem = refine_problem(scene, self.obj, self.frame, self.settings)
         self.X = None
         self.info = None
         self._solver = None  # the frame's SketchSolver, kept between updates (see _session)
@@ -196,16 +178,8 @@ class LiveRefine:
     # ------------------------------------------------------------------ reading
     def views(self) -> list:
         """The :class:`~facelab_addon.core.lips.sketch.SketchView` s of the frame's strokes, read now."""
-        pairs = view_sources(self.scene, self.frame, self.sketch, self.camera_obj, self.settings.all_views)
-        for gp, _ in pairs:
-            require_sketch_keyed_on(self.scene, self.frame, gp)
-        dg = evaluated_depsgraph(self.scene)
-        out = []
-        for gp, cam_obj in pairs:
-            cam = camera_from_blender(self.scene, cam_obj, dg)
-            s = read_lip_strokes(self.scene, cam, self.frame, gp_obj=gp, depsgraph=dg)
-            out.append(SketchView(cam, s["upper"], s["lower"], name=cam_obj.name))
-        return out
+        pairs = checked_view_sources(self.scene, self.frame, self.sketch, self.camera_obj, self.settings.all_views)
+        return read_views(self.scene, self.frame, pairs)
 
     # ------------------------------------------------------------------ solving
     def free_radius(self, mouth_width: float | None = None) -> float:
@@ -223,30 +197,17 @@ class LiveRefine:
     def _session(self) -> SketchSolver:
         """The frame's :class:`~facelab_addon.core.lips.sketch_session.SketchSolver`, kept while the settings are
         unchanged (the face, its regions and the frame are the session's own)."""
-        kw = self.settings.solver_weights()
-        kw.pop("free_radius")
-        if self._solver is None or self._solver_key != kw:
+        # each solve sets free_radius from the Influence: a change of it alone keeps the solver
+        params = replace(self.settings.params(), free_radius=RefineParams.free_radius)
+        if self._solver is None or self._solver_key != params:
             self._solver = None
-            w = self.topo.weld if self.topo.n_duplicates else None
-            V, tris, fixed, lips, rest = self.V, self.tris, self.fixed, self.lips, self.rest
-            if w is not None:
-                V, tris = w.compact(self.V)
-                tris = world_winding(tris, self.A)
-                fixed, rest = fixed[w.kept], rest[w.kept]
-                lips = None if lips is None else lips[w.kept]
-            self._solver = SketchSolver(V, tris, fixed=fixed, lips=lips, rest_vertices=rest, width_tol=WIDTH_TOL,
-                                        **kw)
-            self._solver_key = kw
+            self._solver = self.problem.solver(params, width_tol=WIDTH_TOL)
+            self._solver_key = params
         return self._solver
 
     def _solve(self, views):
-        solver = self._session()
-        X, info = solver.solve(views, free_radius=self.free_radius, return_info=True)
-        w = self.topo.weld if self.topo.n_duplicates else None
-        if w is not None:
-            info["region"] = w.uncompact(np.asarray(info["region"], bool))  # a duplicate moves with its twin
-            return self.V + w.uncompact(X - solver.V0), info
-        return X, info
+        X, info = self._session().solve(views, free_radius=self.free_radius, return_info=True)
+        return self.problem.expand(X, info), info
 
     def update(self) -> LiveUpdate:
         """Re-solve the frame from the strokes drawn now and show the result as the preview key.
@@ -264,8 +225,8 @@ class LiveRefine:
         X, info = self._solve(views)
         solve_s = time.perf_counter() - ts
         self.X, self.info, self.mouth_width = X, info, float(info["mouth_width"])
-        self._write_preview(X - self.shown)  # the preview key adds to what the face shows
-        d = np.linalg.norm(X - self.shown, axis=1)
+        self._write_preview(X - self.problem.shown)  # the preview key adds to what the face shows
+        d = np.linalg.norm(X - self.problem.shown, axis=1)
         r = self.free_radius()
         return LiveUpdate(seconds=time.perf_counter() - t0, solve_seconds=solve_s, solves=int(info["solves"]),
                           rebuilt=bool(info["rebuilt"]), free_radius=r,

@@ -1,8 +1,9 @@
 """Refine Lips: deform the lips so their silhouettes match the sketched contours on one frame
 (Dinev et al. 2018 §5), from one camera or several.
 
-:func:`refine` reads the camera(s), the lip sketch(es) and the evaluated face on a frame, runs
-:func:`facelab_addon.core.lips.sketch.refine_lips_views` on the face as the viewport shows it and
+:func:`refine` reads the camera(s), the lip sketch(es) (:func:`read_views`) and the face on a frame
+(:func:`refine_problem`, which Live Refine uses too), runs
+:func:`facelab_addon.core.lips.sketch.refine_lips_views` with the settings' :class:`RefineParams` and
 stores the refined shape, relative to the frame without FaceLab's lip corrections, as a new
 corrective key ``FL_Refine_<frame>`` (:data:`~facelab_addon.names.REFINE_PREFIX`) keyed 1 on
 the frame and 0 on its neighbours
@@ -44,12 +45,13 @@ from ..blender.shapekeys import rest_vertices
 from ..blender.sketch_views import sketch_camera, sketch_views
 from ..blender.strokes import read_lip_strokes, require_sketch_keyed_on
 from ..core.errors import CameraError
-from ..core.lips.sketch import SketchView, refine_lips_views
+from ..core.lips.sketch import RefineParams, SketchSolver, SketchView, refine_lips_views
 from ..names import FIXED_GROUP, LIPS_GROUP, MOUTH_GROUP, REFINE_PREFIX
 from .training import store_training_frame, uncorrected_frame
 from .settings import setting
 
-__all__ = ["REFINE_DEFAULTS", "RefineSettings", "RefineResult", "refine", "view_sources", "lip_region"]
+__all__ = ["REFINE_DEFAULTS", "RefineSettings", "RefineResult", "RefineProblem", "refine", "refine_problem",
+           "checked_view_sources", "read_views", "view_sources", "lip_region"]
 
 _CACHE_SOURCES = ("mesh_cache", "mesh_sequence_cache")
 
@@ -154,12 +156,13 @@ class RefineSettings:
                                                 "correction keeps its depth (0: it moves across the camera's rays "
                                                 "only); lower it when the rest pose's depth is wrong for the shot")
 
-    def solver_weights(self) -> dict:
-        """The keyword arguments of :func:`~facelab_addon.core.lips.sketch.refine_lips`."""
-        return dict(iterations=self.iterations, lambda_pos=self.lambda_pos, lambda_reg=self.lambda_reg,
-                    lambda_silh=self.lambda_silh, prior=self.prior, smooth_reach=self.smooth_reach,
-                    free_radius=self.free_radius, crossings=self.crossings, depth_reg=self.depth_reg,
-                    rest_depth_reg=self.rest_depth_reg)
+    def params(self) -> RefineParams:
+        """The core solver's settings (:class:`~facelab_addon.core.lips.refine_params.RefineParams`): these
+        fields, and the core's defaults for the rest."""
+        return RefineParams(iterations=self.iterations, lambda_pos=self.lambda_pos, lambda_reg=self.lambda_reg,
+                            lambda_silh=self.lambda_silh, prior=self.prior, smooth_reach=self.smooth_reach,
+                            free_radius=self.free_radius, crossings=self.crossings, depth_reg=self.depth_reg,
+                            rest_depth_reg=self.rest_depth_reg)
 
 
 @dataclass
@@ -236,9 +239,7 @@ def refine(scene, obj, frame: int, settings: RefineSettings | None = None, *, ca
     """
     settings = settings or RefineSettings()
     t0 = time.perf_counter()
-    pairs = view_sources(scene, frame, sketch, camera_obj, settings.all_views)
-    for gp, _ in pairs:
-        require_sketch_keyed_on(scene, frame, gp)  # never a drawing held from an earlier frame
+    pairs = checked_view_sources(scene, frame, sketch, camera_obj, settings.all_views)
     if scene.frame_current != frame or scene.frame_subframe:  # a subframe left on would be read as the frame
         scene.frame_set(frame)
     obj = require_mesh(obj)
@@ -246,34 +247,10 @@ def refine(scene, obj, frame: int, settings: RefineSettings | None = None, *, ca
     require_scene_time(scene, "Refine Lips", obj)
     caches.check_capture_files(obj)  # never the static mesh in place of a broken cache
     dg = evaluated_depsgraph(scene)
-    views = []
-    for gp, cam_obj in pairs:
-        cam = camera_from_blender(scene, cam_obj, dg)
-        strokes = read_lip_strokes(scene, cam, frame, gp_obj=gp, depsgraph=dg)
-        views.append(SketchView(cam, strokes["upper"], strokes["lower"], name=cam_obj.name))
-    shown = evaluated_vertices(obj, dg)
-    A, b = world_affine(obj, dg)
-    # the solve starts from the frame without FaceLab's lip corrections (uncorrected_frame: the capture), not from
-    # what an earlier Propagate or Refine shows on it: the drawing alone decides the result, so a propagated error
-    # the sketch does not see is not carried into the training frame
-    V = uncorrected_frame(obj, frame) @ A.T + b
-    # split seams welded where the twins coincide at rest, in every key and on this frame (a lip cut stays cut)
-    topo = face_topology(obj, _local_frame(V, A, b))
-    tris = world_winding(topo.tris, A)  # V is in world space: a mirrored object keeps its normals outward
-    fixed, fixed_src = default_fixed_mask(obj, topo, settings.fixed_group)
-    lips = lip_region(obj) if settings.use_regions else None
-    rest = rest_vertices(obj) @ A.T + b  # the Basis, where the object is: the head unturned
-    if topo.n_duplicates:  # the solver sees the welded surface alone (no duplicate weighs in a fit twice)
-        w = topo.weld
-        Vc, tris_c = w.compact(V)
-        tris_c = world_winding(tris_c, A)
-        Xc, info = refine_lips_views(Vc, tris_c, views, fixed=fixed[w.kept], rest_vertices=rest[w.kept],
-                                     lips=None if lips is None else lips[w.kept], return_info=True,
-                                     **settings.solver_weights())
-        X = V + w.uncompact(Xc - Vc)  # each duplicate moves with its representative: the seams stay closed
-    else:
-        X, info = refine_lips_views(V, tris, views, fixed=fixed, lips=lips, rest_vertices=rest, return_info=True,
-                                    **settings.solver_weights())
+    views = read_views(scene, frame, pairs, dg)
+    problem = refine_problem(scene, obj, frame, settings, depsgraph=dg)
+    V, shown = problem.capture, problem.shown
+    X, info = problem.solve(views, settings.params())
     note = ""
     on_cache = caches.sequence_source(obj) in _CACHE_SOURCES
     state = ModifierState(obj)
@@ -294,9 +271,151 @@ def refine(scene, obj, frame: int, settings: RefineSettings | None = None, *, ca
     kb = store_training_frame(scene, obj, frame, d_local, REFINE_PREFIX, "sketch")
     moved = np.linalg.norm(X - shown, axis=1)  # what the artist sees change
     return RefineResult(frame=frame, shape_key=kb.name, moved_vertices=int((moved > 1e-9).sum()),
-                        max_move=float(moved.max()), fixed_source=fixed_src, cameras=[v.name for v in views],
-                        lips_region=lips is not None, note=note, head_turn_deg=info["head_turn_deg"],
+                        max_move=float(moved.max()), fixed_source=problem.fixed_source, cameras=[v.name for v in views],
+                        lips_region=problem.lips is not None, note=note, head_turn_deg=info["head_turn_deg"],
                         seconds=time.perf_counter() - t0)
+
+
+@dataclass
+class RefineProblem:
+    """One frame of one face as the sketch solve sees it: what Refine Lips and Live Refine both solve.
+
+    Made by :func:`refine_problem`. Positions are world space, scene units; ``V`` is the face's vertex count.
+
+    Attributes
+    ----------
+    frame : int
+    capture : (V,3) float
+        Where the solve starts: the frame without FaceLab's lip corrections
+        (:func:`~facelab_addon.pipeline.training.uncorrected_frame`), world positions.
+    shown : (V,3) float
+        What the viewport shows on the frame (earlier corrections included), world positions.
+    affine : ((3,3) float, (3,) float)
+        ``(A, b)``: world = local @ A.T + b.
+    topo : FaceTopology
+        Triangles and the weld of split seams (:func:`~facelab_addon.blender.mesh.face_topology`): twins that
+        coincide at rest and on this frame are one vertex for the solve.
+    tris : (F,3) int
+        Triangles of the whole mesh, wound for world space (a mirrored object keeps its normals outward).
+    fixed : (V,) bool
+        Hidden vertices, held (:func:`~facelab_addon.blender.mesh.default_fixed_mask`).
+    fixed_source : str
+        What fixed them (the vertex group, or separate mesh parts).
+    lips : (V,) bool or None
+        ``FL_lips`` when the settings use the regions and the face has them (:func:`lip_region`), else None.
+    rest : (V,3) float
+        The face's Basis where the object is (the head unturned), world positions.
+    """
+
+    frame: int
+    capture: np.ndarray
+    shown: np.ndarray
+    affine: tuple
+    topo: object
+    tris: np.ndarray
+    fixed: np.ndarray
+    fixed_source: str
+    lips: np.ndarray | None
+    rest: np.ndarray
+
+    def __post_init__(self):
+        w = self.weld
+        if w is None:
+            self._face = (self.capture, self.tris, self.fixed, self.lips, self.rest)
+        else:  # the solver sees the welded surface alone (no duplicate weighs in a fit twice)
+            Vc, tris_c = w.compact(self.capture)
+            self._face = (Vc, world_winding(tris_c, self.affine[0]), self.fixed[w.kept],
+                          None if self.lips is None else self.lips[w.kept], self.rest[w.kept])
+
+    @property
+    def weld(self):
+        """The seam weld (``topo.weld``), or None when the mesh has no split seam."""
+        return self.topo.weld if self.topo.n_duplicates else None
+
+    def solver_face(self) -> tuple:
+        """``(vertices (W,3), triangles (G,3), fixed (W,), lips (W,) or None, rest (W,3))`` of the surface the
+        solver sees: the welded one (``W`` kept vertices) when the mesh has split seams, else the whole mesh."""
+        return self._face
+
+    def solver(self, params: RefineParams, width_tol: float = 0.0) -> SketchSolver:
+        """A :class:`~facelab_addon.core.lips.sketch_session.SketchSolver` of :meth:`solver_face`."""
+        V, tris, fixed, lips, rest = self._face
+        return SketchSolver(V, tris, params, fixed=fixed, lips=lips, rest_vertices=rest, width_tol=width_tol)
+
+    def expand(self, X, info=None):
+        """The solver's result ``X`` (on :meth:`solver_face`) on the whole mesh, world positions: each duplicate of
+        a welded seam moves with its twin, so the seams stay closed. ``info['region']``, when given, is expanded
+        in place."""
+        w = self.weld
+        if w is None:
+            return X
+        if info is not None:
+            info["region"] = w.uncompact(np.asarray(info["region"], bool))
+        return self.capture + w.uncompact(X - self._face[0])
+
+    def solve(self, views, params: RefineParams):
+        """Refine the lips to ``views`` from the capture: ``(X (V,3) world positions, info)`` of
+        :func:`~facelab_addon.core.lips.sketch.refine_lips_views` (its ``region`` on the whole mesh)."""
+        V, tris, fixed, lips, rest = self._face
+        X, info = refine_lips_views(V, tris, views, params, fixed=fixed, lips=lips, rest_vertices=rest,
+                                    return_info=True)
+        return self.expand(X, info), info
+
+
+def refine_problem(scene, obj, frame: int, settings: RefineSettings, *, depsgraph=None) -> RefineProblem:
+    """Read ``obj`` on ``frame`` as the sketch solve sees it (the scene already on ``frame``).
+
+    Parameters
+    ----------
+    scene : bpy.types.Scene
+    obj : bpy.types.Object
+        The face mesh (checked by the caller).
+    frame : int
+    settings : RefineSettings
+        Its ``fixed_group`` and ``use_regions``.
+    depsgraph : bpy.types.Depsgraph, optional
+        Default: the scene's evaluated one.
+
+    Returns
+    -------
+    RefineProblem
+    """
+    dg = depsgraph if depsgraph is not None else evaluated_depsgraph(scene)
+    shown = evaluated_vertices(obj, dg)
+    A, b = world_affine(obj, dg)
+    # the solve starts from the frame without FaceLab's lip corrections (uncorrected_frame: the capture), not from
+    # what an earlier Propagate or Refine shows on it: the drawing alone decides the result, so a propagated error
+    # the sketch does not see is not carried into the training frame
+    V = uncorrected_frame(obj, frame) @ A.T + b
+    # split seams welded where the twins coincide at rest, in every key and on this frame (a lip cut stays cut)
+    topo = face_topology(obj, _local_frame(V, A, b))
+    tris = world_winding(topo.tris, A)  # V is in world space: a mirrored object keeps its normals outward
+    fixed, fixed_src = default_fixed_mask(obj, topo, settings.fixed_group)
+    lips = lip_region(obj) if settings.use_regions else None
+    rest = rest_vertices(obj) @ A.T + b  # the Basis, where the object is: the head unturned
+    return RefineProblem(frame=int(frame), capture=V, shown=shown, affine=(A, b), topo=topo, tris=tris, fixed=fixed,
+                         fixed_source=fixed_src, lips=lips, rest=rest)
+
+
+def checked_view_sources(scene, frame, sketch, camera_obj, all_views) -> list:
+    """:func:`view_sources`, each sketch checked to be keyed on ``frame`` (never a drawing held from an earlier
+    frame)."""
+    pairs = view_sources(scene, frame, sketch, camera_obj, all_views)
+    for gp, _ in pairs:
+        require_sketch_keyed_on(scene, frame, gp)
+    return pairs
+
+
+def read_views(scene, frame, pairs, depsgraph=None) -> list:
+    """One :class:`~facelab_addon.core.lips.sketch.SketchView` per ``(sketch, camera object)`` of ``pairs``: the
+    camera and its lip strokes on ``frame``, read now."""
+    dg = depsgraph if depsgraph is not None else evaluated_depsgraph(scene)
+    views = []
+    for gp, cam_obj in pairs:
+        cam = camera_from_blender(scene, cam_obj, dg)
+        strokes = read_lip_strokes(scene, cam, frame, gp_obj=gp, depsgraph=dg)
+        views.append(SketchView(cam, strokes["upper"], strokes["lower"], name=cam_obj.name))
+    return views
 
 
 def _local_frame(V, A, b):

@@ -404,15 +404,11 @@ def test_live_refine_keeps_its_solver_between_strokes_and_rebuilds_for_new_setti
     live = LiveRefine(scene, face, sketch=gp)
 
     def full_refine():  # the same strokes and settings solved from scratch, as Accept's Refine solves them
-        w = live.topo.weld if live.topo.n_duplicates else None
-        V, tris, fixed, rest = live.V, live.topo.tris, live.fixed, live.rest
-        lips = live.lips
-        if w is not None:
-            V, tris = w.compact(V)
-            fixed, rest, lips = fixed[w.kept], rest[w.kept], None if lips is None else lips[w.kept]
-        X = refine_lips_views(V, tris, live.views(), fixed=fixed, lips=lips, rest_vertices=rest,
-                              **live.refine_settings().solver_weights())
-        return X if w is None else live.V + w.uncompact(X - V)
+        w = live.problem.weld
+        V, tris, fixed, lips, rest = live.problem.solver_face()
+        X = refine_lips_views(V, tris, live.views(), live.refine_settings().params(), fixed=fixed, lips=lips,
+                              rest_vertices=rest)
+        return X if w is None else live.problem.capture + w.uncompact(X - V)
 
     u1 = live.update()
     X1 = live.preview_vertices()

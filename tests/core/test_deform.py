@@ -133,11 +133,9 @@ def test_constraint_rows_and_vertex_systems_give_the_same_minimiser(monkeypatch)
     np.testing.assert_allclose(X_rows, dense_reference(L, 2.0, w, pinned, V, V, C), atol=1e-10)
 
 
-def test_coupled_deformer_with_fixed_anisotropic_terms_matches_dense_minimiser():
-    """Fixed terms that couple the coordinates (rank-1 stiffness along rays, on single vertices and on
-    Laplacian-like rows touching pinned vertices) folded into the factor, moving constraints added by
-    Woodbury: the same minimiser as the dense 3n system with every term in it."""
-    rng = np.random.default_rng(1)
+def _coupled_case(seed):
+    """A bent 8x8 grid: ``(rng, V, L (uniform), w, pinned (first 5), anchor, r (V,3) unit directions)``."""
+    rng = np.random.default_rng(seed)
     V, F, _ = grid(8, jitter=0.2)
     V[:, 2] = 0.1 * np.sin(V[:, 0])
     L = uniform_laplacian(F, len(V))
@@ -147,6 +145,14 @@ def test_coupled_deformer_with_fixed_anisotropic_terms_matches_dense_minimiser()
     anchor = V + 0.05 * rng.standard_normal(V.shape)
     r = rng.standard_normal((len(V), 3))
     r /= np.linalg.norm(r, axis=1, keepdims=True)
+    return rng, V, L, w, pinned, anchor, r
+
+
+def test_coupled_deformer_with_fixed_anisotropic_terms_matches_dense_minimiser():
+    """Fixed terms that couple the coordinates (rank-1 stiffness along rays, on single vertices and on
+    Laplacian-like rows touching pinned vertices) folded into the factor, moving constraints added by
+    Woodbury: the same minimiser as the dense 3n system with every term in it."""
+    rng, V, L, w, pinned, anchor, r = _coupled_case(1)
     fixed_terms = PointConstraints.concat([
         PointConstraints(np.arange(len(V)), np.ones((len(V), 1)), anchor, r[:, :, None] * r[:, None, :], 2.0),
         PointConstraints([[1, 6, 7], [30, 31, 39]], [[1.0, -0.5, -0.5], [1.0, -0.5, -0.5]], np.zeros((2, 3)),
@@ -165,6 +171,29 @@ def test_coupled_deformer_with_fixed_anisotropic_terms_matches_dense_minimiser()
                                atol=1e-10)
     # the terms change the result (the test can fail): without them the base deformer's minimiser differs
     assert np.abs(D.solve(anchor, V, moving) - Dc.constrain(X0, anchor, moving)).max() > 1e-3
+
+
+def test_a_lazy_deformer_factors_at_first_use_and_solves_the_same():
+    """``lazy=True``: no factor until a solve needs one (a coupled deformer made from it factors only its own
+    system), then the very same minimiser as the eager deformer; a singular system is refused at that solve."""
+    rng, V, L, w, pinned, anchor, r = _coupled_case(2)
+    terms = PointConstraints(np.arange(len(V)), np.ones((len(V), 1)), anchor, r[:, :, None] * r[:, None, :], 2.0)
+    moving = [PointConstraints.rays([10, 20, 33], rng.standard_normal((3, 3)), rng.standard_normal((3, 3)), [1, 2, 3])]
+    eager = LaplacianDeformer(L, lambda_reg=3.0, pos_weights=w, pinned=pinned)
+    lazy = LaplacianDeformer(L, lambda_reg=3.0, pos_weights=w, pinned=pinned, lazy=True)
+    assert eager._factor is not None and lazy._factor is None
+    Xc = lazy.with_terms(terms, anchor)
+    Yc = Xc.constrain(Xc.unconstrained(anchor, V), anchor, moving)
+    assert lazy._factor is None  # the coupled solve never needed the base factor
+    Ye = eager.with_terms(terms, anchor)
+    assert np.array_equal(Yc, Ye.constrain(Ye.unconstrained(anchor, V), anchor, moving))
+    assert np.array_equal(lazy.solve(anchor, V, moving), eager.solve(anchor, V, moving))
+    assert lazy._factor is not None
+    with pytest.raises(FaceLabError, match="singular"):
+        LaplacianDeformer(L, lambda_reg=0.0, pos_weights=0.0)  # eager: refused when made
+    free_floating = LaplacianDeformer(L, lambda_reg=0.0, pos_weights=0.0, lazy=True)
+    with pytest.raises(FaceLabError, match="singular"):
+        free_floating.solve(anchor)  # lazy: refused at the first solve
 
 
 def sparse_reference(L, lam, w, pinned, anchor, ref, C):

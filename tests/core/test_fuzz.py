@@ -29,7 +29,7 @@ from facelab_addon.core.lgi.binding import bind_points
 from facelab_addon.core.lips.lip_loop import inner_lip_loop
 from facelab_addon.core.lips.regressor import LipRegressor
 from facelab_addon.core.lips.regions import auto_regions, faces_in_region
-from facelab_addon.core.lips.sketch import refine_lips
+from facelab_addon.core.lips.sketch import RefineParams, refine_lips
 from facelab_addon.core.lips.suggest import suggest_frames
 from facelab_addon.core.solve.blendshape_solve import BlendshapeSolver, SolveParams
 from facelab_addon.testing.meshes import grid_mesh
@@ -417,7 +417,7 @@ def test_fuzz_refine_lips(seed, upper, lower, flaw, iterations):
     U = {"ok": U, "empty": np.zeros((0, 2)), "nan": np.where(rng.random(U.shape) < 0.2, np.nan, U),
          "one_point": U[:1], "offscreen": U + 1e5, "duplicate": np.repeat(U[:1], 5, axis=0)}[upper]
     Lw = {"ok": Lw, "empty": np.zeros((0, 2)), "nan": np.full_like(Lw, np.nan), "crossing": line_px(CAM, 0.3, n=10)}[lower]
-    res = outcome(refine_lips, V, F, CAM, U, Lw, iterations=iterations)
+    res = outcome(lambda: refine_lips(V, F, CAM, U, Lw, RefineParams(iterations=iterations)))
     if res is not None:
         finite(res)
         assert res.shape == V.shape

@@ -9,7 +9,7 @@ from facelab_addon.core.geometry.silhouette import (
     lip_side,
     silhouette_edges,
 )
-from facelab_addon.core.lips.sketch import press_lips, refine_lips
+from facelab_addon.core.lips.sketch import RefineParams, press_lips, refine_lips
 
 from .lipmesh import front_camera, line_px, tube, two_lips
 
@@ -55,8 +55,8 @@ def test_refine_moves_silhouettes_onto_sketch():
     V, F, upper = two_lips(gap=0.4)
     V_in = V.copy()
     cam = front_camera()
-    X, info = refine_lips(V, F, cam, line_px(cam, 0.1), line_px(cam, -0.1), return_info=True, fixed=free(V),
-                          prior="paper", reach_px=20, free_radius=0.1)
+    X, info = refine_lips(V, F, cam, line_px(cam, 0.1), line_px(cam, -0.1),
+                          RefineParams(prior="paper", reach_px=20, free_radius=0.1), return_info=True, fixed=free(V))
     np.testing.assert_array_equal(V, V_in)  # input untouched
     cu = contour_distance(X, F, cam, info["upper_samples"], +1)
     cl = contour_distance(X, F, cam, info["lower_samples"], -1)
@@ -79,8 +79,9 @@ def test_lower_drawn_above_upper_presses_lips_together():
     V, F, upper = two_lips(gap=0.4)
     cam = front_camera()
     # crossed sketch: upper drawn at y=-0.05, lower at y=+0.05 -> both go to y=0
-    X, info = refine_lips(V, F, cam, line_px(cam, -0.05), line_px(cam, 0.05), iterations=10, return_info=True,
-                          fixed=free(V), prior="paper", crossings="press")
+    X, info = refine_lips(V, F, cam, line_px(cam, -0.05), line_px(cam, 0.05),
+                          RefineParams(iterations=10, prior="paper", crossings="press"), return_info=True,
+                          fixed=free(V))
     mid = cam.project(np.array([[0.0, 0, 0]]))[0, 1]
     np.testing.assert_allclose(info["upper_samples"][:, 1], mid, atol=0.5)
     np.testing.assert_allclose(info["lower_samples"][:, 1], mid, atol=0.5)
@@ -94,11 +95,11 @@ def test_crossing_drawing_is_followed_as_drawn_by_default():
     V, F, upper = two_lips(gap=0.4)
     cam = front_camera()
     up, lo = line_px(cam, -0.05), line_px(cam, 0.05)
-    _, info = refine_lips(V, F, cam, up, lo, iterations=2, return_info=True, fixed=free(V), prior="paper")
+    _, info = refine_lips(V, F, cam, up, lo, RefineParams(iterations=2, prior="paper"), return_info=True, fixed=free(V))
     np.testing.assert_allclose(info["upper_samples"][:, 1], up[0, 1], atol=0.5)
     np.testing.assert_allclose(info["lower_samples"][:, 1], lo[0, 1], atol=0.5)
     with pytest.raises(UsageError, match="crossings"):
-        refine_lips(V, F, cam, up, lo, crossings="squash")
+        refine_lips(V, F, cam, up, lo, RefineParams(crossings="squash"))
 
 
 def test_fixed_vertices_are_not_lip_candidates_and_barely_move():
@@ -116,8 +117,8 @@ def test_fixed_vertices_are_not_lip_candidates_and_barely_move():
     # the left part of the upper lip fixed: free, its silhouette is matched and moves the full 0.1
     fixed = upper & (V[:, 0] < -0.5)
     up, lo = line_px(cam, 0.1), line_px(cam, -0.1)
-    X0, loose = refine_lips(V, F, cam, up, lo, return_info=True, fixed=free(V), prior="paper")
-    X1, held = refine_lips(V, F, cam, up, lo, fixed=fixed, return_info=True, prior="paper")
+    X0, loose = refine_lips(V, F, cam, up, lo, RefineParams(prior="paper"), return_info=True, fixed=free(V))
+    X1, held = refine_lips(V, F, cam, up, lo, RefineParams(prior="paper"), fixed=fixed, return_info=True)
     ids = np.flatnonzero(fixed)
     assert np.isin(loose["matched_upper"], ids).any()  # measured 10 (the check below can fail)
     assert not np.isin(np.r_[held["matched_upper"], held["matched_lower"]], ids).any()
@@ -156,17 +157,19 @@ def test_bad_input_messages():
     # face behind the camera: camera at +z looking away from the mouth
     away = Camera.look_at([0, 0, 20], [0, 0, 40], [0, 1, 0], 50, 36, 1920, 1080)
     with pytest.raises(CameraError, match="behind the camera"):
-        refine_lips(V, F, away, np.array([[900.0, 500], [1000, 500]]), np.array([[900.0, 560], [1000, 560]]), fixed=free(V))
+        refine_lips(V, F, away, np.array([[900.0, 500], [1000, 500]]), np.array([[900.0, 560], [1000, 560]]),
+                    fixed=free(V))
 
 
 def test_sketch_on_the_current_silhouette_barely_moves_the_mesh():
     # the sketch traces the mesh's own inner silhouettes (y = +-0.2, x in [-1.5, 1.5])
     V, F, _ = two_lips(gap=0.4)
     cam = front_camera()
-    X = refine_lips(V, F, cam, line_px(cam, 0.2), line_px(cam, -0.2), fixed=free(V), prior="paper")
+    X = refine_lips(V, F, cam, line_px(cam, 0.2), line_px(cam, -0.2), RefineParams(prior="paper"), fixed=free(V))
     assert np.abs(X - V).max() < 0.004  # < 0.5 px; only the stroke ends pull at the lip ends
     # the literal per-pixel rays also pull along the contour (x), sliding the lips sideways
-    Xp = refine_lips(V, F, cam, line_px(cam, 0.2), line_px(cam, -0.2), silhouette_rays="pixel", fixed=free(V), prior="paper")
+    Xp = refine_lips(V, F, cam, line_px(cam, 0.2), line_px(cam, -0.2),
+                     RefineParams(silhouette_rays="pixel", prior="paper"), fixed=free(V))
     assert np.abs(Xp - V)[:, 0].max() > 5 * np.abs(X - V)[:, 0].max()
 
 
@@ -189,8 +192,8 @@ def test_crossing_sketch_over_lips_that_already_overlap_is_taken_as_drawn():
     C = V.copy()
     C[:, 1] += 0.05
     cam = front_camera()
-    X, info = refine_lips(C, F, cam, line_px(cam, -0.1), line_px(cam, 0.1), return_info=True, fixed=free(V),
-                          iterations=10)
+    X, info = refine_lips(C, F, cam, line_px(cam, -0.1), line_px(cam, 0.1), RefineParams(iterations=10),
+                          return_info=True, fixed=free(V))
     mid = cam.project(np.array([[0.0, 0.0, 0.0]]))[0, 1]
     assert info["upper_samples"][:, 1].mean() > mid + 12 and info["lower_samples"][:, 1].mean() < mid - 12
     i_u = np.flatnonzero((np.abs(V[:, 0]) < 1e-9) & upper & (np.abs(V[:, 1] + 0.1) < 1e-9))
@@ -213,7 +216,7 @@ def test_strokes_shorter_than_the_mouth_do_not_slide_the_lips_sideways():
     V, F = np.vstack([Vu, Vl]), np.vstack([Fu, Fl + len(Vu)])
     cam = front_camera()
     up, lo = line_px(cam, 0.1, -1.3, 1.3), line_px(cam, -0.1, -1.3, 1.3)
-    X, info = refine_lips(V, F, cam, up, lo, fixed=free(V), prior="paper", reach_px=40, free_radius=0.2,
+    X, info = refine_lips(V, F, cam, up, lo, RefineParams(prior="paper", reach_px=40, free_radius=0.2), fixed=free(V),
                           return_info=True)
     assert np.abs(V[info["matched_upper"], 0]).max() == 1.5  # the vertices beyond the ends are matched
     d = X - V
@@ -238,8 +241,8 @@ def test_a_stroke_stopping_short_of_a_curved_lip_does_not_pull_the_lip_onto_its_
         x = np.linspace(x0, x1, 200)
         return cam.project(np.c_[x, y0 + 0.5 * x**2, np.zeros_like(x)])
 
-    X, info = refine_lips(V, F, cam, curve(0.2, -2, 2), curve(-0.2, -2, 0.6), fixed=free(V), prior="paper",
-                          reach_px=40, free_radius=0.2, return_info=True)
+    X, info = refine_lips(V, F, cam, curve(0.2, -2, 2), curve(-0.2, -2, 0.6),
+                          RefineParams(prior="paper", reach_px=40, free_radius=0.2), fixed=free(V), return_info=True)
     assert 1.0 in V[info["matched_lower"], 0]  # the vertex beyond the end is matched
     d = np.linalg.norm(X - V, axis=1)
     assert d.max() < 0.01, d.max()  # measured 0.0037 (tangent plane at the end: 0.0568 at x = 1)

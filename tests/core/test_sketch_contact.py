@@ -87,7 +87,7 @@ def test_limit_and_gap_measures(ict_zoo):
 
 
 def test_contact_pulls_sealed_lips_together_in_3d(ict_zoo):
-    from facelab_addon.core.lips.sketch import SketchView, refine_lips_views
+    from facelab_addon.core.lips.sketch import RefineParams, SketchView, refine_lips_views
     from facelab_addon.testing import error_zoo as Z
 
     zf = ict_zoo
@@ -97,8 +97,8 @@ def test_contact_pulls_sealed_lips_together_in_3d(ict_zoo):
     views = [SketchView(mc.cameras[0], *mc.strokes[0])]
     gaps = {}
     for w in (0.0, 1.0):
-        X, info = refine_lips_views(mc.capture, zf.faces, views, fixed=zf.fixed, lips=zf.lips, contact=w,
-                                    return_info=True)
+        X, info = refine_lips_views(mc.capture, zf.faces, views, RefineParams(contact=w), fixed=zf.fixed,
+                                    lips=zf.lips, return_info=True)
         gaps[w] = Z.contact_gap(X, pairs)
         assert np.linalg.norm(X - mc.capture, axis=1)[~zf.lips].max() == 0.0
     assert info["one_line_samples"][0] > 20
@@ -127,15 +127,16 @@ def test_fit_span_recovers_a_known_mix_from_ray_terms():
 
 
 def test_basis_start_moves_only_the_inside_of_the_lip_region(ict_zoo):
-    from facelab_addon.core.lips.sketch import SketchView, refine_lips_views
+    from facelab_addon.core.lips.sketch import RefineParams, SketchView, refine_lips_views
     from facelab_addon.core.lips.span_prior import taper
     from facelab_addon.testing import error_zoo as Z
 
     zf = ict_zoo
     case = next(c for c in Z.sample_cases(["gap"], 3, seed=0) if c.pose == "sealed")
     mc = Z.make_case(zf, case)
-    X, info = refine_lips_views(mc.capture, zf.faces, [SketchView(mc.cameras[0], *mc.strokes[0])], fixed=zf.fixed,
-                                lips=zf.lips, basis=mc.basis(zf), basis_reg=1.0, return_info=True)
+    X, info = refine_lips_views(mc.capture, zf.faces, [SketchView(mc.cameras[0], *mc.strokes[0])],
+                                RefineParams(basis_reg=1.0), fixed=zf.fixed, lips=zf.lips, basis=mc.basis(zf),
+                                return_info=True)
     assert np.abs(info["span_weights"]).max() > 0
     assert np.linalg.norm(X - mc.capture, axis=1)[~zf.lips].max() == 0.0
     w = taper(mc.capture, zf.faces, info["region"])

@@ -9,7 +9,7 @@ import pytest
 from facelab_addon.core.capture.camera import Camera
 from facelab_addon.core.errors import FaceLabError
 from facelab_addon.core.lips.regions import auto_regions
-from facelab_addon.core.lips.sketch import SketchView, refine_lips, refine_lips_views
+from facelab_addon.core.lips.sketch import RefineParams, SketchView, refine_lips, refine_lips_views
 from facelab_addon.core.lips.sketch_prior import (
     BAND_RINGS,
     anchor_weights,
@@ -47,7 +47,8 @@ def test_smooth_prior_corrects_a_wide_lip_error_better_than_the_papers(closed):
     e0 = rms(C, c["T"], lip, c["mm"])
     cut = {}
     for prior in ("paper", "smooth"):
-        X, info = refine_lips(C, c["F"], c["cam"], c["up"], c["lo"], fixed=c["fixed"], prior=prior, return_info=True)
+        X, info = refine_lips(C, c["F"], c["cam"], c["up"], c["lo"], RefineParams(prior=prior), fixed=c["fixed"],
+                              return_info=True)
         cut[prior] = 1 - rms(X, c["T"], lip, c["mm"]) / e0
         assert info["silhouette_px"][-1] < 0.5 * info["silhouette_px"][0]  # on the sketch in both
         assert np.abs(X - C)[c["fixed"]].max() < (1e-12 if prior == "smooth" else 1e-3)  # hidden parts held
@@ -113,7 +114,8 @@ def test_same_result_at_any_scale():
     for s in (0.01, 1.0, 100.0):
         cs = Camera(cam.K, cam.R, cam.t * s, cam.width, cam.height)  # the same view of the scaled scene
         for prior in ("smooth", "paper"):
-            res[s, prior] = refine_lips(V * s, F, cs, up, lo, fixed=np.zeros(len(V), bool), prior=prior) / s
+            res[s, prior] = refine_lips(V * s, F, cs, up, lo, RefineParams(prior=prior),
+                                        fixed=np.zeros(len(V), bool)) / s
     for prior in ("smooth", "paper"):
         np.testing.assert_allclose(res[0.01, prior], res[1.0, prior], atol=1e-7)
         np.testing.assert_allclose(res[100.0, prior], res[1.0, prior], atol=1e-7)
@@ -168,7 +170,8 @@ def test_band_prior_on_a_dense_mesh_with_fl_lips(band_case):
     e0 = rms(c["C"], c["T"], c["lip"], c["mm"])
     cut = {}
     for prior in ("paper", "smooth", "band"):
-        X = refine_lips(c["C"], c["F"], c["cam"], c["up"], c["lo"], fixed=c["fixed"], lips=c["lips"], prior=prior)
+        X = refine_lips(c["C"], c["F"], c["cam"], c["up"], c["lo"], RefineParams(prior=prior), fixed=c["fixed"],
+                        lips=c["lips"])
         cut[prior] = 1 - rms(X, c["T"], c["lip"], c["mm"]) / e0
         assert np.abs(X - c["C"])[~c["lips"]].max() == 0.0  # only the inside of FL_lips moves
     # measured: band 0.602, smooth 0.594, paper 0.613. On this dense mesh (1.5 mm edges) the two reaches nearly
@@ -180,8 +183,8 @@ def test_band_prior_reach_is_at_least_band_rings_edges_inside_the_lips(closed):
     c = closed
     C, _ = S.inject_lip_error(c["T"], c["F"], c["fixed"], mouth=c["mouth"])
     # without a lip region the band prior is the smooth one
-    Xb = refine_lips(C, c["F"], c["cam"], c["up"], c["lo"], fixed=c["fixed"], prior="band")
-    Xs = refine_lips(C, c["F"], c["cam"], c["up"], c["lo"], fixed=c["fixed"], prior="smooth")
+    Xb = refine_lips(C, c["F"], c["cam"], c["up"], c["lo"], RefineParams(prior="band"), fixed=c["fixed"])
+    Xs = refine_lips(C, c["F"], c["cam"], c["up"], c["lo"], RefineParams(prior="smooth"), fixed=c["fixed"])
     np.testing.assert_array_equal(Xb, Xs)
     V, F = c["T"], c["F"]
     region = ~c["fixed"]

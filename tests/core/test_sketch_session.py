@@ -9,7 +9,7 @@ import pytest
 
 from facelab_addon.core.capture.camera import Camera
 from facelab_addon.core.errors import UsageError
-from facelab_addon.core.lips.sketch import SketchSolver, SketchView, refine_lips_views
+from facelab_addon.core.lips.sketch import RefineParams, SketchSolver, SketchView, refine_lips_views
 
 from .lipmesh import front_camera, line_px, two_lips
 
@@ -46,10 +46,10 @@ def test_a_solve_is_refine_lips_views(mouth, case):
     V, F, fixed = mouth
     kw = dict(CASES[case])
     views = _views(kw.pop("views", 1))
-    if kw.get("lips") == "inner":
-        kw["lips"] = np.abs(V[:, 0]) < 1.8
-    ref, info_ref = refine_lips_views(V, F, views, fixed=fixed, return_info=True, **kw)
-    solver = SketchSolver(V, F, fixed=fixed, **kw)
+    lips = np.abs(V[:, 0]) < 1.8 if kw.pop("lips", None) == "inner" else None
+    params = RefineParams(**kw)
+    ref, info_ref = refine_lips_views(V, F, views, params, fixed=fixed, lips=lips, return_info=True)
+    solver = SketchSolver(V, F, params, fixed=fixed, lips=lips)
     X, info = solver.solve(views, return_info=True)
     assert np.abs(ref - V).max() > 0.05  # the strokes move the lips: the comparison is not of the capture
     assert _rel(X, ref) <= 1e-9
@@ -75,7 +75,7 @@ def test_a_second_solve_with_one_more_stroke_is_a_fresh_solve(mouth):
 def test_the_same_strokes_reuse_the_system(mouth):
     V, F, fixed = mouth
     views = _views(1)
-    solver = SketchSolver(V, F, fixed=fixed, prior="paper")
+    solver = SketchSolver(V, F, RefineParams(prior="paper"), fixed=fixed)
     X1 = solver.solve(views)
     X2, info = solver.solve(views, return_info=True)
     assert solver.builds == 1 and not info["rebuilt"]
@@ -106,8 +106,8 @@ def test_stopping_at_a_repeated_matching_keeps_the_result(mouth, iterations):
     """The iterations end where ``iterations`` single steps, each matched on the last one's result, end."""
     V, F, fixed = mouth
     views = _views(1)
-    X = SketchSolver(V, F, fixed=fixed, prior="paper", iterations=iterations).solve(views)
-    step = SketchSolver(V, F, fixed=fixed, prior="paper", iterations=1)
+    X = SketchSolver(V, F, RefineParams(prior="paper", iterations=iterations), fixed=fixed).solve(views)
+    step = SketchSolver(V, F, RefineParams(prior="paper", iterations=1), fixed=fixed)
     Y = V
     for _ in range(iterations):
         Y = step.solve(views, start=Y)
@@ -117,7 +117,8 @@ def test_stopping_at_a_repeated_matching_keeps_the_result(mouth, iterations):
 
 def test_the_iterations_stop_once_the_matching_repeats(mouth):
     V, F, fixed = mouth
-    _, info = SketchSolver(V, F, fixed=fixed, prior="paper", iterations=20).solve(_views(1), return_info=True)
+    _, info = SketchSolver(V, F, RefineParams(prior="paper", iterations=20),
+                           fixed=fixed).solve(_views(1), return_info=True)
     assert info["solves"] < 20 and len(info["silhouette_px"]) == 21
 
 

@@ -12,7 +12,7 @@ import pytest
 from facelab_addon.core.capture.camera import Camera
 from facelab_addon.core.errors import FaceLabError
 from facelab_addon.core.geometry.laplacian import uniform_laplacian
-from facelab_addon.core.lips.sketch import SketchView, refine_lips_views
+from facelab_addon.core.lips.sketch import RefineParams, SketchView, refine_lips_views
 from facelab_addon.core.lips.sketch_prior import depth_terms
 from facelab_addon.testing import synthetic as S
 
@@ -90,7 +90,8 @@ def test_a_second_view_adds_no_false_depth_at_rest(at_rest):
     c = at_rest
     X1 = refine_lips_views(c["C"], c["F"], c["views"][:1], fixed=c["fixed"])
     X2 = refine_lips_views(c["C"], c["F"], c["views"], fixed=c["fixed"])
-    Xj = refine_lips_views(c["C"], c["F"], c["views"], fixed=c["fixed"], main_view_iterations=0, views_keep=np.inf)
+    Xj = refine_lips_views(c["C"], c["F"], c["views"], RefineParams(main_view_iterations=0, views_keep=np.inf),
+                           fixed=c["fixed"])
     e0, e1, e2, ej = _rms(c, c["C"]), _rms(c, X1), _rms(c, X2), _rms(c, Xj)
     assert _along_ray(c, c["C"]) < 0.01 * e0  # no depth error to find
     assert e1 < 0.35 * e0, (e0, e1)  # one view: measured cut 73.3 %
@@ -102,8 +103,8 @@ def test_a_second_view_adds_no_false_depth_at_rest(at_rest):
 def test_one_view_is_unaffected_by_the_multi_view_options(at_rest):
     c = at_rest
     X1 = refine_lips_views(c["C"], c["F"], c["views"][:1], fixed=c["fixed"])
-    Xo = refine_lips_views(c["C"], c["F"], c["views"][:1], fixed=c["fixed"], main_view_iterations=0, views_keep=np.inf,
-                           depth_reg=0.0)
+    Xo = refine_lips_views(c["C"], c["F"], c["views"][:1],
+                           RefineParams(main_view_iterations=0, views_keep=np.inf, depth_reg=0.0), fixed=c["fixed"])
     np.testing.assert_array_equal(X1, Xo)
 
 
@@ -114,7 +115,7 @@ def test_depth_stiffness_removes_false_depth_at_rest_and_keeps_the_depth_of_a_no
     out = {}
     for name, c in (("rest", at_rest), ("nod", nodded)):
         for k in (0.0, 3.0):
-            X = refine_lips_views(c["C"], c["F"], c["views"], fixed=c["fixed"], depth_reg=k)
+            X = refine_lips_views(c["C"], c["F"], c["views"], RefineParams(depth_reg=k), fixed=c["fixed"])
             out[name, k] = (_rms(c, X), _along_ray(c, X))
     e0 = _rms(at_rest, at_rest["C"])
     # at rest: false depth 0.045 -> 0.032 mm (measured), the cut 72.4 -> 72.8 %
@@ -124,7 +125,8 @@ def test_depth_stiffness_removes_false_depth_at_rest_and_keeps_the_depth_of_a_no
     assert out["nod", 3.0][1] < 0.5 * _along_ray(nodded, nodded["C"]), out
     assert out["nod", 3.0][0] < out["nod", 0.0][0], out
     with pytest.raises(FaceLabError, match="depth_reg"):
-        refine_lips_views(at_rest["C"], at_rest["F"], at_rest["views"], fixed=at_rest["fixed"], depth_reg=-1.0)
+        refine_lips_views(at_rest["C"], at_rest["F"], at_rest["views"], RefineParams(depth_reg=-1.0),
+                          fixed=at_rest["fixed"])
 
 
 def test_depth_terms_penalise_only_uneven_depth_along_the_rays():

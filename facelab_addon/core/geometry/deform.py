@@ -223,9 +223,13 @@ class LaplacianDeformer:
         the solve local and fast.
     backend : str
         ``SPDFactor`` backend.
+    lazy : bool
+        Factor ``M`` at its first use instead of now (a :meth:`with_terms` deformer factors its own system, so
+        this one may never be needed; a singular ``M`` is then refused at the first solve).
     """
 
-    def __init__(self, L, *, lambda_reg: float = 1.0, pos_weights=0.0, pinned=None, backend: str = "auto"):
+    def __init__(self, L, *, lambda_reg: float = 1.0, pos_weights=0.0, pinned=None, backend: str = "auto",
+                 lazy: bool = False):
         L = sp.csr_matrix(L)
         n = L.shape[0]
         self.n = n
@@ -257,9 +261,24 @@ class LaplacianDeformer:
         M = self.lambda_reg * (self._Lf.T @ self._Lf) + sp.diags(self._w_f)
         self._M = M.tocsr()
         self.backend = backend
-        self.factor = SPDFactor(self._M, backend=backend)
-        # the columns M^-1 e_v of constrained free vertices, kept between calls
-        self.columns = _ColumnCache(self.factor, len(self.free))
+        self._factor = None
+        self._columns = None
+        if not lazy:
+            self.factor  # noqa: B018  (factored now: a singular system is refused here)
+
+    @property
+    def factor(self) -> SPDFactor:
+        """The factor of ``M`` (made at the first use with ``lazy``)."""
+        if self._factor is None:
+            self._factor = SPDFactor(self._M, backend=self.backend)
+        return self._factor
+
+    @property
+    def columns(self) -> "_ColumnCache":
+        """The columns ``M^-1 e_v`` of constrained free vertices, kept between calls."""
+        if self._columns is None:
+            self._columns = _ColumnCache(self.factor, len(self.free))
+        return self._columns
 
     # ------------------------------------------------------------------ utils
     def with_terms(self, terms, anchor) -> "CoupledDeformer":

@@ -2,7 +2,8 @@
 
 :func:`~facelab_addon.core.lips.sketch.refine_lips_views` solves one set of strokes from scratch.
 :class:`SketchSolver` holds a face (its captured vertices, triangles, hidden and lip-region masks, rest
-pose) and the refinement's settings, and solves any number of stroke sets on it:
+pose, shape offsets) and the refinement's settings (:class:`~facelab_addon.core.lips.refine_params.RefineParams`),
+and solves any number of stroke sets on it:
 
 * what depends on the face only (the validated mesh, its depth and pixels in each camera) is made once,
   and the geodesic distances from the lip area near the strokes are kept while that area is the same;
@@ -39,9 +40,8 @@ from ..geometry.deform import LaplacianDeformer, PointConstraints
 from ..geometry.laplacian import laplacian as make_laplacian
 from ..geometry.linsolve import small_dense_threads
 from ..geometry.mesh import validate_mesh, vertex_adjacency
-from .contact import CONTACT_WEIGHT
+from .refine_params import RefineParams
 from .sketch_prior import (
-    PRIORS,
     anchor_weights,
     depth_terms,
     free_region,
@@ -51,13 +51,10 @@ from .sketch_prior import (
     separate_parts,
     sketch_scale,
 )
-from .span_prior import SPAN_REG, fit_span, span_columns, taper
+from .span_prior import fit_span, span_columns, taper
 from .views import ViewMatcher
 
-__all__ = ["SketchSolver", "CROSSINGS"]
-
-#: How a crossing drawing (lower contour above the upper one) is read: as drawn, or as a request to press.
-CROSSINGS = ("follow", "press")
+__all__ = ["SketchSolver"]
 
 
 def _camera_key(cam):
@@ -93,9 +90,9 @@ class SketchSolver:
     vertices : (V,3) float
         Captured mesh, scene units. Not modified.
     faces : (F,3) int
-    fixed, lips, prior, iterations, lambda_pos, lambda_reg, lambda_silh, smooth_reach, free_radius, laplacian,
-    reach_px, silhouette_rays, crossings, main_view_iterations, views_keep, depth_reg, rest_vertices,
-    rest_depth_reg, contact, basis, basis_reg
+    params : RefineParams, optional
+        The refinement's settings; default ``RefineParams()``.
+    fixed, lips, rest_vertices, basis
         As in :func:`~facelab_addon.core.lips.sketch.refine_lips_views`.
     width_tol : float
         Keep the system for strokes whose free region is the same and whose mouth width (the unit of the
@@ -111,39 +108,16 @@ class SketchSolver:
         A bad mesh, mask or setting, with the fix.
     """
 
-    def __init__(self, vertices, faces, *, fixed=None, lips=None, prior: str = "band", iterations: int = 5,
-                 lambda_pos: float = 0.1, lambda_reg: float = 3.0, lambda_silh: float = 1.0,
-                 smooth_reach: float = 0.12, free_radius: float = 0.1, laplacian: str = "uniform",
-                 reach_px: float | None = None, silhouette_rays: str = "nearest", crossings: str = "follow",
-                 main_view_iterations: int = 1, views_keep: float = 1.5, depth_reg: float = 3.0,
-                 rest_vertices=None, rest_depth_reg: float = 10.0, contact: float = CONTACT_WEIGHT, basis=None,
-                 basis_reg: float = SPAN_REG, width_tol: float = 0.0):
+    def __init__(self, vertices, faces, params: RefineParams | None = None, *, fixed=None, lips=None,
+                 rest_vertices=None, basis=None, width_tol: float = 0.0):
         V0, F = validate_mesh(vertices, faces)
         n = len(V0)
-        if iterations < 1:
-            raise FaceLabError("iterations must be at least 1.")
-        if silhouette_rays not in ("nearest", "pixel", "normal"):
-            raise UsageError(f"silhouette_rays must be 'nearest', 'normal' or 'pixel', got {silhouette_rays!r}")
-        if crossings not in CROSSINGS:
-            raise UsageError(f"crossings must be one of {CROSSINGS}, got {crossings!r}")
-        if not (np.isfinite(depth_reg) and depth_reg >= 0):
-            raise FaceLabError(f"depth_reg must be a non-negative number, got {depth_reg!r}; use the default 3.")
-        if not (np.isfinite(rest_depth_reg) and rest_depth_reg >= 0):
-            raise FaceLabError(f"rest_depth_reg must be a non-negative number, got {rest_depth_reg!r}; use the "
-                               "default 10.")
-        if prior not in PRIORS:
-            raise UsageError(f"prior must be one of {PRIORS}, got {prior!r}")
-        if not (np.isfinite(contact) and contact >= 0):
-            raise FaceLabError(f"contact must be a non-negative number, got {contact!r}; use the default "
-                               f"{CONTACT_WEIGHT} (0: off).")
-        if not (np.isfinite(basis_reg) and basis_reg >= 0):
-            raise FaceLabError(f"basis_reg must be a non-negative number, got {basis_reg!r}; use the default "
-                               f"{SPAN_REG}.")
+        p = RefineParams() if params is None else params
+        if not isinstance(p, RefineParams):
+            raise UsageError(f"params must be a RefineParams, got {type(p).__name__}; build one with "
+                             "RefineParams(...) (its defaults are the refinement's).")
         if not (np.isfinite(width_tol) and width_tol >= 0):
             raise UsageError(f"width_tol must be a non-negative fraction, got {width_tol!r}; use 0 (exact).")
-        for nm, val in (("smooth_reach", smooth_reach), ("free_radius", free_radius)):
-            if not (np.isfinite(val) and val > 0):
-                raise FaceLabError(f"{nm} must be a positive number of mouth widths, got {val!r}; use the default.")
         fixed = separate_parts(F, n) if fixed is None else np.asarray(fixed, dtype=bool)
         if fixed.shape != (n,):
             raise FaceLabError(f"'fixed' must be a mask of {n} vertices, got {fixed.shape}.")
@@ -153,13 +127,8 @@ class SketchSolver:
                 raise FaceLabError(f"'lips' must be a mask of {n} vertices, got {lips.shape}; rebuild the regions.")
         self.V0, self.F, self.n = V0, F, n
         self.fixed, self.lips = fixed, lips
-        self.prior, self.iterations = prior, int(iterations)
-        self.lambda_pos, self.lambda_reg, self.lambda_silh = lambda_pos, lambda_reg, lambda_silh
-        self.smooth_reach, self.free_radius, self.laplacian = smooth_reach, free_radius, laplacian
-        self.reach_px, self.silhouette_rays, self.crossings = reach_px, silhouette_rays, crossings
-        self.main_view_iterations, self.views_keep, self.depth_reg = main_view_iterations, views_keep, depth_reg
-        self.rest_vertices, self.rest_depth_reg = rest_vertices, rest_depth_reg
-        self.contact, self.basis, self.basis_reg = contact, basis, basis_reg
+        self.params = p
+        self.rest_vertices, self.basis = rest_vertices, basis
         self.width_tol = float(width_tol)
         self._system = None
         self._distances = None  # (near bytes, limit, (V,) seed distances) of the last free region
@@ -178,8 +147,8 @@ class SketchSolver:
         out = []
         for k, v in enumerate(views):
             where = f" in view '{v.name or k + 1}'" if multi else ""
-            out.append(ViewMatcher(v, self.V0, self.F, self.fixed, reach_px=self.reach_px, where=where,
-                                   press=self.crossings == "press", contact=self.contact,
+            out.append(ViewMatcher(v, self.V0, self.F, self.fixed, reach_px=self.params.reach_px, where=where,
+                                   press=self.params.crossings == "press", contact=self.params.contact,
                                    projection=self._projection(v.camera)))
         return out
 
@@ -220,15 +189,17 @@ class SketchSolver:
         # everything below needs only the triangles near the free region (its rows of L are exact there)
         Fl = F[local_faces(F, region, rings=2)]
         adj = vertex_adjacency(Fl, n)
-        w = anchor_weights(V0, Fl, region, prior=self.prior, lambda_pos=self.lambda_pos, lambda_reg=self.lambda_reg,
-                           reach=self.smooth_reach * W, fixed=self.fixed, lips=self.lips)
-        L = make_laplacian(V0, Fl, self.laplacian, adjacency=adj)
+        p = self.params
+        w = anchor_weights(V0, Fl, region, prior=p.prior, lambda_pos=p.lambda_pos, lambda_reg=p.lambda_reg,
+                           reach=p.smooth_reach * W, fixed=self.fixed, lips=self.lips)
+        L = make_laplacian(V0, Fl, p.laplacian, adjacency=adj)
         if self.lips is not None:
             # the held border of the lip region keeps its position, not its Laplacian coordinates: the
             # correction may meet it at an angle (as Propagate's Poisson solve, which holds the same border,
             # reproduces it), instead of flattening out before it
             L = sp.diags((~(self.lips & ~region & ~self.fixed)).astype(np.float64)) @ L
-        solver = LaplacianDeformer(L, lambda_reg=self.lambda_reg, pos_weights=w, pinned=~region)
+        # factored at its first use: one view with the rest-depth terms solves a coupled system of its own
+        solver = LaplacianDeformer(L, lambda_reg=p.lambda_reg, pos_weights=w, pinned=~region, lazy=True)
         # silhouettes: on triangles of the region and its held ring (a border vertex may be on the silhouette)
         around = region | (adj @ region.astype(np.float64) > 0)
         self.builds += 1
@@ -287,13 +258,14 @@ class SketchSolver:
         views = list(views) if views is not None else []
         matchers = self.matchers(views)
         multi = len(matchers) > 1
-        fr = self.free_radius if free_radius is None else free_radius
+        p = self.params
+        fr = p.free_radius if free_radius is None else free_radius
         builds = self.builds
         sysm, W = self._system_for(matchers, fr)
         region, Fl, L, solver = sysm.region, sysm.Fl, sysm.L, sysm.solver
         for m in matchers:
             m.restrict(Fl, sysm.around & ~self.fixed, in_lip_region=self.lips is not None)
-        lam, rays, keep = self.lambda_silh, self.silhouette_rays, self.views_keep
+        lam, rays, keep = p.lambda_silh, p.silhouette_rays, p.views_keep
 
         def correspondences(X, gates=None, upto=None):  # gates: per view, (N+M,) sample weights or None
             cons, dists, matched = [], [], []
@@ -311,17 +283,18 @@ class SketchSolver:
         if with_basis:
             # the face's own expression offsets, tapered to zero at the free region's border, mixed to match the sketch
             U = span_columns(self.basis, taper(V0, Fl, region), W)
-            ref, span_weights = fit_span(V0, U, lambda X: correspondences(X)[0], self.iterations, self.basis_reg)
+            ref, span_weights = fit_span(V0, U, lambda X: correspondences(X)[0], int(p.iterations),
+                                         p.basis_reg)
         turn = None
         counter = [0]
         with small_dense_threads(1):
             if not multi:
                 if with_basis or sysm.single is None:
                     s1, turn = solver, None
-                    if self.rest_vertices is not None and self.rest_depth_reg > 0:
+                    if self.rest_vertices is not None and p.rest_depth_reg > 0:
                         # one view: the depth it cannot see follows the face's rest pose, turned with the head
                         terms, turn = rest_depth_terms(ref, self.rest_vertices, matchers[0].camera, region,
-                                                       self.rest_depth_reg, mouth_width=W)
+                                                       p.rest_depth_reg, mouth_width=W)
                         if terms is not None:
                             s1 = solver.with_terms(terms, ref)
                     base = s1.unconstrained(ref, ref)  # E_pos and E_reg refer to ref: the same every iteration
@@ -330,17 +303,17 @@ class SketchSolver:
                 else:
                     s1, base, turn = sysm.single
                 X = ref if start is None else np.asarray(start, dtype=np.float64)
-                X, hist, matched = self._iterate(s1, base, ref, X, self.iterations,
+                X, hist, matched = self._iterate(s1, base, ref, X, p.iterations,
                                                  lambda Y: correspondences(Y), counter)
             else:
                 if with_basis or sysm.multi is None:
                     base0 = solver.unconstrained(ref, ref)
                     s2, base2 = solver, base0
-                    if self.depth_reg > 0:
+                    if p.depth_reg > 0:
                         # the depth along the main camera's rays bends stiffer (a fixed, coordinate-coupling term:
                         # factored once into the solver the other views join)
                         s2 = solver.with_terms(depth_terms(L, ref, matchers[0].camera, region,
-                                                           self.depth_reg * self.lambda_reg), ref)
+                                                           p.depth_reg * p.lambda_reg), ref)
                         base2 = s2.unconstrained(ref, ref)
                     if not with_basis:
                         sysm.multi = (base0, s2, base2)
@@ -348,9 +321,9 @@ class SketchSolver:
                     base0, s2, base2 = sysm.multi
                 X = ref if start is None else np.asarray(start, dtype=np.float64)
                 hist = []
-                if int(self.main_view_iterations) > 0:
+                if int(p.main_view_iterations) > 0:
                     # the main (first) view alone first; its result is where the other views are matched from
-                    X, hist, matched = self._iterate(solver, base0, ref, X, int(self.main_view_iterations),
+                    X, hist, matched = self._iterate(solver, base0, ref, X, int(p.main_view_iterations),
                                                      lambda Y: correspondences(Y, upto=1), counter)
 
                 def gated(Y):
@@ -361,7 +334,7 @@ class SketchSolver:
                         g = [None] + [(d <= keep * np.median(d)).astype(np.float64) for d in d0]
                     return correspondences(Y, g)
 
-                X, h2, matched = self._iterate(s2, base2, ref, X, self.iterations, gated, counter)
+                X, h2, matched = self._iterate(s2, base2, ref, X, p.iterations, gated, counter)
                 hist += h2
         if not np.isfinite(X).all():
             raise FaceLabError("The lip solve diverged (non-finite result); check the strokes and the camera.")
@@ -376,7 +349,7 @@ class SketchSolver:
             matched_lower=matched[0].get("lower"),
             n_free=int(region.sum()),
             mouth_width=W,
-            prior=self.prior,
+            prior=p.prior,
             head_turn_deg=turn,
             span_weights=span_weights,
             seconds=time.perf_counter() - t0,

@@ -267,8 +267,8 @@ END_TOL_PX = 0.5
 #: A silhouette vertex projecting farther than this fraction of the sketch's width beyond a stroke's end gets no term
 #: from that stroke (it is left to the smoothness terms): that far out, the stroke's tangent line at its end no
 #: longer says where the lip is. A stroke stopping short of a mouth corner would otherwise pull the corner onto the
-#: straight extension of its end (a lower lip curving up to the corner, drawn to 35 px short of it: the corner pulled
-#: 1.5 mm down and out, a frame's cut -92 % instead of +44 % on a coarse face; route_sweep, remeshed actor s2).
+#: straight extension of its end (a lower lip that curves up to the corner, drawn to short of it: the corner is
+#: pulled down and out along that straight line).
 END_REACH = 0.05
 
 
