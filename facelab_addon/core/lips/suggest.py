@@ -90,7 +90,7 @@ def suggest_frames(captured=None, count: int = 1, *, regressor: LipRegressor | N
         raise UsageError("suggest_frames() takes captured frames or their features, not both or neither; pass one")
     if features is not None:
         if regressor is not None:
-            F0 = regressor._check_features(features)
+            F0 = regressor.check_features(features)
         else:
             F0 = np.asarray(features)
             if F0.ndim != 2 or F0.shape[1] % 9 or len(F0) == 0:
@@ -111,7 +111,7 @@ def suggest_frames(captured=None, count: int = 1, *, regressor: LipRegressor | N
         R = np.asarray(rest_vertices, dtype=np.float64)
         A = as_frames(captured, len(R), "captured frames")
         Rz = mouth_feature_matrix(A, R, faces, mouth_faces)
-    Q = regressor._UY if regressor is not None and regressor._Y is not None else None
+    Q = regressor.training_span() if regressor is not None and regressor.is_fitted else None
     T = len(Rz)
     # feature scale (threshold of "already in the span"), then residuals after projecting on Q, in place
     sq = np.empty(T)
@@ -173,7 +173,7 @@ class SuggestScreen:
     """
 
     def __init__(self, regressor, n_frames: int, exclude=(), directions=None, candidates: int = 128):
-        regressor._require_fit()
+        regressor.require_fit()
         self.reg, self.T = regressor, int(n_frames)
         self.excl = np.zeros(self.T, dtype=bool)
         ex = np.asarray(list(exclude), dtype=np.int64)
@@ -186,7 +186,7 @@ class SuggestScreen:
     def add(self, start: int, features) -> None:
         """Record frames ``start..start+t-1`` from their (t, 9m) mouth features (not kept)."""
         Y = np.asarray(features, dtype=np.float64)
-        Q = self.reg._UY
+        Q = self.reg.training_span()
         r = Y - (Y @ Q) @ Q.T
         if len(self.dirs):
             r -= (r @ self.dirs.T) @ self.dirs
@@ -203,11 +203,11 @@ class SuggestScreen:
             raise FaceLabError("This screen deflates by directions; record its frames with add() or add_frames().")
         n = len(feature_sq)
         self.sq[start : start + n] = feature_sq
-        self.res[start : start + n] = np.asarray(extrapolation) * self.reg._sigma
+        self.res[start : start + n] = np.asarray(extrapolation) * self.reg.feature_scale
 
     def add_frames(self, start: int, frames, *, used_only: bool = False) -> None:
         """Record frames from their positions (T,V,3) (or used vertices): features projected, never formed."""
-        A = np.hstack([self.reg._UY, self.dirs.T])
+        A = np.hstack([self.reg.training_span(), self.dirs.T])
         P, sq = self.reg.mouth_projections(frames, A, used_only=used_only)
         self.sq[start : start + len(sq)] = sq
         self.res[start : start + len(sq)] = np.sqrt(np.clip(sq - np.sum(P * P, axis=1), 0.0, None))
@@ -246,7 +246,7 @@ class SuggestScreen:
         ex = np.flatnonzero(self.excl)
         idx = np.concatenate([ex, np.sort(cand)]).astype(np.int64)
         F = np.array(features_of(idx), dtype=np.float64) if idx.size else np.zeros((0, self.dirs.shape[1]))
-        Q = self.reg._UY
+        Q = self.reg.training_span()
         F -= (F @ Q) @ Q.T
         if len(self.dirs):
             F -= (F @ self.dirs.T) @ self.dirs

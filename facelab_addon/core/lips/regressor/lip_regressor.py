@@ -251,28 +251,27 @@ class LipRegressor:
         """The ridge weight each patch's map was fitted with."""
         return self._fitted().ridges_used
 
-    # what .suggest reads of the fit: the training span U_Y, its RMS deformation, the training features
     @property
-    def _UY(self):
-        return self._fitted().data.UY
+    def is_fitted(self) -> bool:
+        """Whether :meth:`fit` has given the regressor training frames."""
+        return self.trained is not None
 
     @property
-    def _sigma(self):
+    def feature_scale(self) -> float:
+        """RMS norm of the training frames' whole-mouth features (the σ of :meth:`extrapolation`'s score)."""
         return self._fitted().data.sigma
-
-    @property
-    def _Y(self):
-        return None if self.trained is None else self.trained.data.Y
 
     def _fitted(self) -> TrainedModel:
         if self.trained is None:
             raise FaceLabError("The lip regressor has no training frames; call fit() with corrected frames first.")
         return self.trained
 
-    def _require_fit(self):
+    def require_fit(self) -> None:
+        """Raise :class:`FaceLabError` (naming the fix) when the regressor has no training frames yet."""
         self._fitted()
 
-    def _check_features(self, features):
+    def check_features(self, features) -> np.ndarray:
+        """(T, 9m) mouth features checked against this regressor's mouth region (m triangles)."""
         return check_features(features, len(self.mouth_faces))
 
     # ------------------------------------------------------------------ training
@@ -546,7 +545,7 @@ class LipRegressor:
             A = as_frames(captured, self.n_vertices, "captured frames", ops.used)
             block = lambda s: prediction.mouth_rows(ops, A[s : s + BLOCK])  # noqa: E731
         else:
-            A = self._check_features(features)
+            A = self.check_features(features)
             block = lambda s: A[s : s + BLOCK]  # noqa: E731
         out = np.empty(len(A))
         for s in range(0, len(A), BLOCK):
@@ -572,7 +571,7 @@ class LipRegressor:
             Y = self.mouth_features(A)
         else:
             A = None
-            Y = self._check_features(features)
+            Y = self.check_features(features)
         if trained.error_model is None:
             return np.ones(len(Y))
         if A is None:
