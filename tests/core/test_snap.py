@@ -79,7 +79,8 @@ def test_narrow_mouth_each_stroke_takes_its_own_edge():
     # 2 px off on the far side
     img = area_image(100, 140, lambda x, y: (y > 50.2) & (y < 55.2), blur=0.5)
     x = np.linspace(20, 120, 41)
-    (up,), (lo,) = snap_lips(img, [np.c_[x, np.full_like(x, 48.2)]], [np.c_[x[::-1], np.full_like(x, 57.2)]])
+    (up,), (lo,) = snap_lips(img, [np.c_[x, np.full_like(x, 48.2)]], [np.c_[x[::-1], np.full_like(x, 57.2)]],
+                             lower_corner=0.0)
     np.testing.assert_allclose(up.points[:, 1], 50.2, atol=0.06)
     np.testing.assert_allclose(lo.points[:, 1], 55.2, atol=0.06)
     # told the side, each stroke ignores the other lip's edge even when that one is nearer
@@ -121,7 +122,7 @@ def test_sealed_lips_are_left_as_drawn():
     np.testing.assert_array_equal(lo.points, lo0)
     # open by 5 px (a dark interior below the edge down to y = 55.3), the same strokes snap
     img = area_image(100, 140, lambda x, y: (y > 50.3) & (y < 55.3), blur=0.5, noise=0.003)
-    (up,), (lo,) = snap_lips(img, [up0], [lo0 + [0, 9.0]])
+    (up,), (lo,) = snap_lips(img, [up0], [lo0 + [0, 9.0]], lower_corner=0.0)
     assert up.n_snapped == lo.n_snapped == 41
     np.testing.assert_allclose(up.points[:, 1], 50.3, atol=0.1)
     np.testing.assert_allclose(lo.points[:, 1], 55.3, atol=0.1)
@@ -174,3 +175,19 @@ def test_a_short_faint_stretch_moves_with_the_edge_a_long_one_stays():
     (r0,) = snap_strokes(img, [stroke], mouth_side=(0, 1), bridge_px=0)
     assert not r0.snapped[short].any()
     np.testing.assert_array_equal(r0.points[short], stroke[short])
+
+
+def test_lower_lip_snaps_only_part_way_near_the_mouth_corners():
+    # the mouth spans x = 20..120 (both strokes); the lower lip's move ramps from nothing at each corner to all
+    # of it `lower_corner` of the width in; the upper lip moves all the way everywhere
+    img = area_image(100, 140, lambda x, y: (y > 50.2) & (y < 58.2), blur=0.5)
+    x = np.linspace(20, 120, 51)
+    up0, lo0 = np.c_[x, np.full_like(x, 48.2)], np.c_[x[::-1], np.full_like(x, 60.2)]
+    (up,), (lo,) = snap_lips(img, [up0], [lo0], lower_corner=0.2)
+    np.testing.assert_allclose(up.points[:, 1], 50.2, atol=0.06)
+    share = np.clip(np.minimum(lo0[:, 0] - 20, 120 - lo0[:, 0]) / 20.0, 0, 1)
+    np.testing.assert_allclose(lo.points[:, 1], 60.2 - 2.0 * share, atol=0.06)
+    np.testing.assert_array_equal(lo.points[[0, -1]], lo0[[0, -1]])
+    np.testing.assert_allclose(lo.points[:, 0], lo0[:, 0], atol=1e-9)
+    (lo_full,) = snap_lips(img, [up0], [lo0], lower_corner=0.0)[1]
+    np.testing.assert_allclose(lo_full.points[:, 1], 58.2, atol=0.06)

@@ -35,7 +35,7 @@ from scipy import linalg, ndimage
 
 from ..errors import FaceLabError
 
-__all__ = ["BEND", "BRIDGE_PX", "SEARCH_PX", "SHARP", "SnapResult", "grey", "image_noise", "prepare", "snap_lips",
+__all__ = ["BEND", "BRIDGE_PX", "LOWER_CORNER", "SEARCH_PX", "SHARP", "SnapResult", "grey", "image_noise", "prepare", "snap_lips",
            "snap_stroke", "snap_strokes"]
 
 _STEP = 0.5  # profile sample spacing, pixels
@@ -50,6 +50,10 @@ BRIDGE_PX = 8.0
 #: Widest edge taken: the Gaussian fitted to a gradient peak has a standard deviation of at most this many
 #: ``sigma`` (a defocused edge is wider).
 SHARP = 3.0
+#: Fraction of the mouth's width, from each corner, over which the lower lip's snap ramps in from nothing (at
+#: the corners its inner line runs inside the mouth's shadow, and the edge there is the lit lip's boundary,
+#: below the line; chosen on the sample plate's frames 2, 5, 8, ...).
+LOWER_CORNER = 0.15
 
 
 @dataclass
@@ -420,7 +424,8 @@ def snap_strokes(image, strokes, **options) -> list:
     return out
 
 
-def snap_lips(image, upper, lower, *, min_gap_px: float = 1.0, max_crossed: float = 0.5, **options) -> tuple:
+def snap_lips(image, upper, lower, *, min_gap_px: float = 1.0, max_crossed: float = 0.5,
+              lower_corner: float = LOWER_CORNER, **options) -> tuple:
     """Snap the strokes of both inner lips of one image: :func:`snap_strokes` with the mouth below the
     upper strokes and above the lower ones, then the mouth checked open where a point moved.
 
@@ -429,7 +434,10 @@ def snap_lips(image, upper, lower, *, min_gap_px: float = 1.0, max_crossed: floa
     the lips touch or overlap (a sealed mouth: no interior between the lips, so no inner-lip edge to find),
     the points are left as drawn, in both strokes. Where the strokes as drawn cross (the upper one below the
     lower) along more than ``max_crossed`` of their common width, the artist drew overlapping lips: every
-    point is left as drawn.
+    point is left as drawn. Near the mouth's corners (the extreme columns of all the strokes) the lower lip's
+    points move only part of the way: from nothing at a corner to all of it ``lower_corner`` of the mouth's
+    width in (there the lower lip's inner line runs inside the mouth's shadow and the visible edge is the lit
+    lip's boundary, below the line).
 
     Parameters
     ----------
@@ -440,6 +448,8 @@ def snap_lips(image, upper, lower, *, min_gap_px: float = 1.0, max_crossed: floa
         How far apart the lips must be to count as open, pixels.
     max_crossed : float
         Largest fraction of their common width along which the drawn strokes may cross.
+    lower_corner : float
+        Fraction of the mouth's width from each corner over which the lower lip's snap ramps in (0: none).
     **options
         Of :func:`snap_stroke` (not ``mouth_side``).
 
@@ -468,6 +478,10 @@ def snap_lips(image, upper, lower, *, min_gap_px: float = 1.0, max_crossed: floa
         w = (up0[:, 0] >= lo0[0, 0]) & (up0[:, 0] <= lo0[-1, 0])
         crossed = bool(w.any()) and float(np.mean(np.interp(up0[w, 0], lo0[:, 0], lo0[:, 1]) - up0[w, 1] <= 0)) \
             > max_crossed
+    allpts = [p for ps in drawn.values() for p in ps if len(p)]
+    xa = min(float(p[:, 0].min()) for p in allpts) if allpts else 0.0
+    xb = max(float(p[:, 0].max()) for p in allpts) if allpts else 0.0
+    ramp = max(lower_corner * (xb - xa), 0.0)
     out = {}
     for lab, other, sign in (("upper", "lower", 1.0), ("lower", "upper", -1.0)):
         kept = []
@@ -481,8 +495,13 @@ def snap_lips(image, upper, lower, *, min_gap_px: float = 1.0, max_crossed: floa
                 within = (x >= o[0, 0]) & (x <= o[-1, 0])
                 gap = sign * (np.interp(x, o[:, 0], o[:, 1]) - y)  # towards the mouth, pixels
                 snapped &= ~(within & (gap <= min_gap_px))
-            d = np.where(snapped, r.offsets, 0.0)
-            P = np.where(snapped[:, None], r.points, P0)
-            kept.append(SnapResult(P, d, snapped, r.polarity if snapped.any() else 0, r.snapped & ~snapped))
+            sealed = r.snapped & ~snapped
+            share = np.ones(len(P0))
+            if lab == "lower" and ramp > 0 and len(P0):
+                share = np.clip(np.minimum(P0[:, 0] - xa, xb - P0[:, 0]) / ramp, 0.0, 1.0)
+            snapped &= share > 0
+            d = np.where(snapped, share * r.offsets, 0.0)
+            P = np.where(snapped[:, None], P0 + share[:, None] * (r.points - P0), P0)
+            kept.append(SnapResult(P, d, snapped, r.polarity if snapped.any() else 0, sealed))
         out[lab] = kept
     return out["upper"], out["lower"]
