@@ -177,6 +177,22 @@ def test_a_short_faint_stretch_moves_with_the_edge_a_long_one_stays():
     np.testing.assert_array_equal(r0.points[short], stroke[short])
 
 
+def test_crease_between_touching_lips_is_left_as_drawn():
+    # the lips touch along a dark crease 2 px wide: its two sides are no inner-lip lines, both strokes stay as
+    # drawn (and say so); the same strokes over a 6 px open mouth snap onto its edges
+    x = np.linspace(20, 120, 41)
+    up0, lo0 = np.c_[x, np.full_like(x, 48.7)], np.c_[x[::-1], np.full_like(x, 53.7)]
+    crease = area_image(100, 140, lambda x, y: (y > 50.2) & (y < 52.2), blur=0.5)
+    (up,), (lo,) = snap_lips(crease, [up0], [lo0])
+    np.testing.assert_array_equal(up.points, up0)
+    np.testing.assert_array_equal(lo.points, lo0)
+    assert up.n_snapped == lo.n_snapped == 0 and up.n_sealed == 41 and lo.n_sealed == 41
+    mouth = area_image(100, 140, lambda x, y: (y > 50.2) & (y < 56.2), blur=0.5)
+    (up,), (lo,) = snap_lips(mouth, [up0], [lo0 + [0.0, 2.0]], lower_corner=0.0)
+    np.testing.assert_allclose(up.points[:, 1], 50.2, atol=0.06)
+    np.testing.assert_allclose(lo.points[:, 1], 56.2, atol=0.06)
+
+
 def test_lower_lip_snaps_only_part_way_near_the_mouth_corners():
     # the mouth spans x = 20..120 (both strokes); the lower lip's move ramps from nothing at each corner to all
     # of it `lower_corner` of the width in; the upper lip moves all the way everywhere

@@ -19,7 +19,8 @@ Gaussian through the three samples around it) and the offsets are smoothed (a se
 one banded solve). Runs of edge shorter than ``min_run_px`` are dropped (a crease crossing the stroke),
 gaps up to ``bridge_px`` between edge points move with them, and everywhere else a point is left
 exactly where the artist drew it. :func:`snap_lips` snaps both lips of a frame and leaves the points
-where the lips touch or overlap (a sealed mouth has no inner-lip edge).
+where the lips touch or overlap (a sealed mouth has no inner-lip edge; the two sides of a narrow dark crease
+between touching lips are none either), and moves the lower lip only part of the way near the mouth's corners.
 
 Conventions: pixels as in :mod:`facelab_addon.core.capture.camera` (top-left image corner at
 ``(0, 0)``, the centre of pixel ``(i, j)`` at ``(i + 0.5, j + 0.5)``, y down); images ``(H, W)`` or
@@ -35,8 +36,8 @@ from scipy import linalg, ndimage
 
 from ..errors import FaceLabError
 
-__all__ = ["BEND", "BRIDGE_PX", "LOWER_CORNER", "SEARCH_PX", "SHARP", "SnapResult", "grey", "image_noise", "prepare", "snap_lips",
-           "snap_stroke", "snap_strokes"]
+__all__ = ["BEND", "BRIDGE_PX", "CREASE_PX", "LOWER_CORNER", "SEARCH_PX", "SHARP", "SnapResult", "grey",
+           "image_noise", "prepare", "snap_lips", "snap_stroke", "snap_strokes"]
 
 _STEP = 0.5  # profile sample spacing, pixels
 #: How far along the normal an edge is looked for, pixels each side (chosen on the sample plate's frames 2, 5,
@@ -54,6 +55,9 @@ SHARP = 3.0
 #: the corners its inner line runs inside the mouth's shadow, and the edge there is the lit lip's boundary,
 #: below the line; chosen on the sample plate's frames 2, 5, 8, ...).
 LOWER_CORNER = 0.15
+#: Widest gap between the two lips' edges, pixels over three quarters of their common width, that is taken
+#: for the two sides of a dark crease where the lips touch (a sealed mouth) rather than an open mouth.
+CREASE_PX = 4.0
 
 
 @dataclass
@@ -425,7 +429,7 @@ def snap_strokes(image, strokes, **options) -> list:
 
 
 def snap_lips(image, upper, lower, *, min_gap_px: float = 1.0, max_crossed: float = 0.5,
-              lower_corner: float = LOWER_CORNER, **options) -> tuple:
+              lower_corner: float = LOWER_CORNER, crease_px: float = CREASE_PX, **options) -> tuple:
     """Snap the strokes of both inner lips of one image: :func:`snap_strokes` with the mouth below the
     upper strokes and above the lower ones, then the mouth checked open where a point moved.
 
@@ -434,7 +438,9 @@ def snap_lips(image, upper, lower, *, min_gap_px: float = 1.0, max_crossed: floa
     the lips touch or overlap (a sealed mouth: no interior between the lips, so no inner-lip edge to find),
     the points are left as drawn, in both strokes. Where the strokes as drawn cross (the upper one below the
     lower) along more than ``max_crossed`` of their common width, the artist drew overlapping lips: every
-    point is left as drawn. Near the mouth's corners (the extreme columns of all the strokes) the lower lip's
+    point is left as drawn; so is every point when the lips' snapped edges are at most ``crease_px`` apart
+    along three quarters of their common width (the two sides of a dark crease where the lips touch). Near
+    the mouth's corners (the extreme columns of all the strokes) the lower lip's
     points move only part of the way: from nothing at a corner to all of it ``lower_corner`` of the mouth's
     width in (there the lower lip's inner line runs inside the mouth's shadow and the visible edge is the lit
     lip's boundary, below the line).
@@ -448,6 +454,9 @@ def snap_lips(image, upper, lower, *, min_gap_px: float = 1.0, max_crossed: floa
         How far apart the lips must be to count as open, pixels.
     max_crossed : float
         Largest fraction of their common width along which the drawn strokes may cross.
+    crease_px : float
+        Widest gap, pixels, between the lips' edges (over three quarters of their common width) taken for a
+        crease between touching lips.
     lower_corner : float
         Fraction of the mouth's width from each corner over which the lower lip's snap ramps in (0: none).
     **options
@@ -478,6 +487,14 @@ def snap_lips(image, upper, lower, *, min_gap_px: float = 1.0, max_crossed: floa
         w = (up0[:, 0] >= lo0[0, 0]) & (up0[:, 0] <= lo0[-1, 0])
         crossed = bool(w.any()) and float(np.mean(np.interp(up0[w, 0], lo0[:, 0], lo0[:, 1]) - up0[w, 1] <= 0)) \
             > max_crossed
+    # both lips' edges a narrow band apart along their common width: the two sides of a dark crease where the
+    # lips touch, not an open mouth
+    up1, lo1 = (np.vstack([np.zeros((0, 2))] + [r.points[r.snapped] for r in res[lab]]) for lab in ("upper", "lower"))
+    up1, lo1 = up1[np.argsort(up1[:, 0])], lo1[np.argsort(lo1[:, 0])]
+    if len(up1) >= 2 and len(lo1) >= 2:
+        w = (up1[:, 0] >= lo1[0, 0]) & (up1[:, 0] <= lo1[-1, 0])
+        if w.sum() >= 2:
+            crossed |= float(np.percentile(np.interp(up1[w, 0], lo1[:, 0], lo1[:, 1]) - up1[w, 1], 75)) <= crease_px
     allpts = [p for ps in drawn.values() for p in ps if len(p)]
     xa = min(float(p[:, 0].min()) for p in allpts) if allpts else 0.0
     xb = max(float(p[:, 0].max()) for p in allpts) if allpts else 0.0
