@@ -20,7 +20,8 @@
   (``testing.route.jitter_stroke``, RMS 2-4 px, two seeds) and snapped as Snap to Plate snaps a sketch
   (``core.lips.snap.snap_lips``: upper and lower lip, each knowing the mouth's side); the mean distance (px) of the
   stroke points from the true line before and after, per lip, with the frames split by how far the
-  lips are apart at the middle (open: > 8 px; narrow or sealed: <= 8 px). *No edge*: the same strokes
+  lips are apart at the middle (open: > 8 px; narrow or sealed: <= 8 px, split into narrow open, > 0 px, and
+  sealed). *No edge*: the same strokes
   on the plate blurred by a 6 px Gaussian (a defocused plate), and moved 40 px up onto the skin above
   the upper lip (a region with no lip edge; their distance is measured from the moved true line). The
   defaults were chosen on frames 2, 5, 8, ...; with ``--every 3`` the frames measured (1, 4, 7, ...) are
@@ -224,6 +225,8 @@ def snap(bpy, every, seeds=2):
     narrow = [r for r in rows if r["gap_px"] <= 8]
     return dict(frames=sorted({r["frame"] for r in rows}), strokes=len(rows) * 2,
                 open_lips=summary(open_, "plate"), narrow_or_sealed=summary(narrow, "plate"),
+                narrow_open=summary([r for r in narrow if r["gap_px"] > 0], "plate"),
+                sealed=summary([r for r in narrow if r["gap_px"] <= 0], "plate"),
                 no_edge_blurred_plate=summary(rows, "blurred"), no_edge_skin=summary(rows, "skin"),
                 target_px=TARGET["snap_px"], rows=rows)
 
