@@ -21,7 +21,8 @@ import numpy as np
 
 from ..names import CORRECTION_ATTR, CORRECTION_RANGE_PROP, EXTRAPOLATION_PROP, PREFIX, REVIEW_SAVED_PROP
 from .mesh import evaluated_vertices
-from .shapekeys import find_fcurve, owned_keys
+from .ownership import owned_keys
+from .shapekeys import find_fcurve
 
 __all__ = [
     "CAPTURE_MODIFIER_PREFIX",

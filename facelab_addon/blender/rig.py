@@ -11,7 +11,8 @@ import numpy as np
 from .. import names as fl
 from ..core.errors import FaceLabError
 from .actions import curve_values, key_path
-from .shapekeys import owned_keys, rest_vertices
+from .ownership import owned_keys
+from .shapekeys import rest_vertices
 
 __all__ = [
     "rig_shapes",

@@ -34,10 +34,10 @@ from ..blender import bakes, cache_integrate, rest_space
 from ..blender.caches import input_positions
 from ..blender.capture_stream import CaptureReader
 from ..blender.objects import local_length, tolerance_length
+from ..blender.ownership import correction_cache, correction_cache_factor, is_correction_cache, owned_keys
 from ..blender.shapekeys import (
     add_keys_from_deltas,
     key_values_bulk,
-    owned_keys,
     remove_keys,
     zero_on_frame,
 )
@@ -317,7 +317,7 @@ class CorrectionWriter:
         """``(modifiers, index)``: where a correction cache goes, right after the last capture cache (or first)."""
         mods = list(self.obj.modifiers)
         caps = [i for i, m in enumerate(mods) if m.show_viewport and m.type in _CAPTURE_CACHES
-                and not bakes.is_correction_cache(self.obj, m)]  # FaceLab's correction caches are no capture
+                and not is_correction_cache(self.obj, m)]  # FaceLab's correction caches are no capture
         return mods, (caps[-1] + 1 if caps else 0)
 
     def _remove_previous(self) -> None:
@@ -412,7 +412,7 @@ class CorrectionWriter:
         are 0 elsewhere; their own frame keeps a zero correction).
         """
         obj = self.obj
-        own = bakes.correction_cache(obj, self.prefix)[0]
+        own = correction_cache(obj, self.prefix)[0]
         if any(m.show_viewport and m != own for m in mods[: index - 1]):
             return False
         verts = np.arange(self.V) if self.vertices is None else self.vertices
@@ -565,7 +565,7 @@ def silence_correction(obj, prefix: str, frame: int) -> int:
     key = obj.data.shape_keys
     for name in owned_keys(obj, prefix) if key is not None else ():
         done += zero_on_frame(key, f'key_blocks["{bpy.utils.escape_identifier(name)}"].value', frame)
-    factor = bakes.correction_cache_factor(obj, prefix)
+    factor = correction_cache_factor(obj, prefix)
     if factor is not None:
         done += zero_on_frame(*factor, frame)
     return done

@@ -48,7 +48,7 @@ from ..blender.rig import rig_shapes
 from ..blender.shapekeys import key_values_bulk, remove_keys
 from ..core.errors import BundleError, CameraError, FaceLabError
 from .correctives import CorrectionWriter, StoredKeys
-from .frames import frame_range  # noqa: F401  (re-exported: the CLI's and scripts' range)
+from .frames import frame_range
 from .settings import setting
 from .streaming import FrameChunks
 
@@ -58,7 +58,6 @@ __all__ = [
     "BindResult",
     "SolveSettings",
     "SolveResult",
-    "frame_range",
     "require_views",
     "face_axes",
     "bind_tracks",

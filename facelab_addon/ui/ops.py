@@ -7,15 +7,8 @@ from ..blender.sketch_mode import DRAW_MODE, SKETCH_MODES, start_drawing
 from ..blender.strokes import has_lip_sketch, new_lip_sketch, set_lip_layer
 from ..core.errors import FaceLabError
 from ..pipeline import shot_settings, wording
-from ..pipeline.propagate import record_training_frame  # noqa: F401  (re-exported for scripts)
 from ..pipeline.refine import RefineSettings, refine
-from .common import (  # noqa: F401  (re-exported)
-    face_object,
-    fill_scene_range,
-    operator_range,
-    poll_face,
-    progress_callback,
-)
+from .common import face_object, poll_face
 
 
 def refine_settings(context) -> RefineSettings:

@@ -16,7 +16,8 @@ from ..blender.strokes import has_lip_sketch
 from ..core.errors import FaceLabError
 from ..names import SNAP_PROP, SNAP_REPORT_PROP
 from ..pipeline.live_refine import PREVIEW_KEY, LiveRefine, remove_preview
-from .ops import face_object, poll_face, refine_settings
+from .common import face_object, poll_face
+from .ops import refine_settings
 
 #: The running session (one at a time), its sketch's stroke signature and its last message.
 LIVE = {"session": None, "signature": None, "message": "", "draw": None}

@@ -14,7 +14,9 @@ import numpy as np
 import pytest
 
 from facelab_addon.cli import _common
-from facelab_addon.cli._common import CliError, contiguous, exit_code_for, operator_failure, parse_frames
+from facelab_addon.cli._common import exit_code_for, operator_failure
+from facelab_addon.cli._errors import CliError
+from facelab_addon.cli._frames import contiguous, parse_frames
 from facelab_addon.core.capture.pointcache_writer import write_pc2
 from facelab_addon.core.errors import (
     CacheFileError,

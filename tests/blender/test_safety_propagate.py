@@ -7,13 +7,15 @@ import numpy as np
 import pytest
 
 from facelab_addon.blender import caches
-from facelab_addon.blender.shapekeys import add_corrective_key, find_fcurve, key_spike, owned_keys
+from facelab_addon.blender.ownership import owned_keys
+from facelab_addon.blender.shapekeys import add_corrective_key, find_fcurve, key_spike
 from facelab_addon.core.errors import MeshError
 from facelab_addon.names import EXTRAPOLATION_PROP, OWNED_KEYS_PROP, PROPAGATE_PREFIX
 from facelab_addon.pipeline import propagate as propagate_module
-from facelab_addon.pipeline.propagate import propagate, propagate_steps, record_training_frame
+from facelab_addon.pipeline.propagate import propagate, propagate_steps
 from facelab_addon.pipeline.regions import auto_regions
 from facelab_addon.pipeline.steps import StepJob
+from facelab_addon.pipeline.training import record_training_frame
 
 from .test_propagate_operator import FRAMES, SCALE
 
@@ -146,7 +148,7 @@ def test_an_artist_key_named_like_facelabs_is_read_as_part_of_the_capture(ict, a
     assert moved[30:].max() < 1e-7
     # FaceLab's own key with the same prefix is muted when the capture is read
     ours = add_corrective_key(obj, f"{PROPAGATE_PREFIX}00", np.full((len(obj.data.vertices), 3), 0.002))
-    from facelab_addon.blender.shapekeys import own_key
+    from facelab_addon.blender.ownership import own_key
 
     own_key(ours)
     ours.value = 1.0

@@ -9,7 +9,8 @@ import pytest
 
 from facelab_addon.blender import caches
 from facelab_addon.blender.camera import camera_from_blender
-from facelab_addon.blender.shapekeys import find_fcurve, owned_keys
+from facelab_addon.blender.ownership import owned_keys
+from facelab_addon.blender.shapekeys import find_fcurve
 from facelab_addon.blender.strokes import new_lip_sketch, write_stroke_pixels
 from facelab_addon.core.errors import SketchError
 from facelab_addon.names import OWNED_KEYS_PROP, PROPAGATE_PREFIX

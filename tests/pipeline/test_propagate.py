@@ -28,17 +28,14 @@ from facelab_addon.names import (
     SUGGEST_MARKER,
     TRAIN_MARKER,
 )
-from facelab_addon.pipeline.propagate import (
-    PropagateSettings,
+from facelab_addon.pipeline.propagate import PropagateSettings, propagate, propagate_steps, training_input
+from facelab_addon.pipeline.regions import RegionSettings, auto_regions
+from facelab_addon.pipeline.training import (
     add_corrected_frame,
-    propagate,
-    propagate_steps,
     record_training_frame,
     remove_training_frame,
     training_frames,
-    training_input,
 )
-from facelab_addon.pipeline.regions import RegionSettings, auto_regions
 
 from ..blender.test_propagate_operator import FRAMES, SCALE, TRAIN, build
 
