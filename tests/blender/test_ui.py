@@ -312,6 +312,27 @@ def test_every_registered_property_has_a_tooltip(addon):
     assert not [n for n, t in texts if cited.search(t)], [n for n, t in texts if cited.search(t)]
 
 
+def test_refine_and_live_refine_refuse_a_missing_camera_or_sketch_alike(addon):
+    """Refine Lips and Live Refine share one sketch check: the same reason, the face first, then the camera, then
+    the sketch."""
+    scene = empty_scene()
+
+    def refused(reason):
+        for op in ("refine_lips", "live_refine"):
+            assert not getattr(bpy.ops.facelab, op).poll(), op
+            with pytest.raises(RuntimeError, match=re.escape(reason)):
+                getattr(bpy.ops.facelab, op)()
+
+    refused("Select the captured face mesh (or set it in FaceLab > Setup)")
+    small_face(scene)
+    refused("Set a scene camera first (the camera the sketch is drawn in)")
+    scene.camera = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
+    scene.collection.objects.link(scene.camera)
+    refused("No lip sketch yet: press New Lip Sketch and draw the inner lips in camera view")
+    assert bpy.ops.facelab.new_lip_sketch() == {"FINISHED"}
+    assert bpy.ops.facelab.refine_lips.poll() and bpy.ops.facelab.live_refine.poll()
+
+
 def test_extrapolation_helpers(addon):
     from facelab_addon.blender.shapekeys import key_property_bulk
 
