@@ -1,7 +1,7 @@
 """Shape-key rigs -> arrays: the blendshape rig, the dataset of facial shapes, FaceLab's keys, drivers.
 
 Every reader works in object-local coordinates (shape-key space) and leaves
-out FaceLab's own keys (those it recorded, :func:`.shapekeys.owned_keys`).
+out FaceLab's own keys (those it recorded, :func:`.ownership.owned_keys`).
 """
 
 from __future__ import annotations
