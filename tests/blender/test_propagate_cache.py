@@ -25,7 +25,7 @@ T = 16
 TRAIN = [3, 9, 14]
 
 
-@pytest.mark.parametrize("patch", [False, True])
+@pytest.mark.parametrize("patch", [False, pytest.param(True, marks=pytest.mark.slow)])
 def test_refine_and_propagate_on_a_mesh_cache(tmp_path, ict, addon, patch, monkeypatch):
     """``patch``: the key offsets count as needing more shapes than keys hold (as on a long shot), so the
     correction goes to a point cache of the corrected vertices after the capture (Geometry Nodes)."""

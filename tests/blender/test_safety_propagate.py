@@ -37,6 +37,7 @@ def coords(obj, name):
     return c
 
 
+@pytest.mark.slow
 def test_artist_key_named_like_facelabs_survives_propagate(ict, addon):
     scene, obj, err = corrected(ict)
     fix = obj.shape_key_add(name="FL_Prop_MyFix", from_mix=False)  # the artist's own, in the Shape Keys panel
@@ -62,6 +63,7 @@ def test_negative_start_frame_is_honoured(ict, addon):
     assert keyed[0] == -4 and keyed[-1] == FRAMES[-1] and len(keyed) == len(FRAMES) + 5
 
 
+@pytest.mark.slow
 def test_broken_frame_is_named_by_its_scene_frame(ict, addon, monkeypatch):
     scene, obj, err = corrected(ict)
     read = propagate_module.CaptureReader.read  # Propagate streams the capture through a CaptureReader
@@ -78,6 +80,7 @@ def test_broken_frame_is_named_by_its_scene_frame(ict, addon, monkeypatch):
     assert list(obj.data.shape_keys.key_blocks.keys()) == keys_before  # nothing written
 
 
+@pytest.mark.slow
 def test_cancel_and_failure_on_a_mesh_cache_leave_the_modifier_as_it_was(ict, addon, tmp_path, monkeypatch):
     from ..pipeline.test_propagate import pc2_capture_face
 
@@ -109,6 +112,7 @@ def test_cancel_and_failure_on_a_mesh_cache_leave_the_modifier_as_it_was(ict, ad
                                atol=1e-6)  # the capture plays as before
 
 
+@pytest.mark.slow
 def test_a_neutral_training_frame_is_refused_naming_its_scene_frame(ict, addon):
     """The issue's case 1 through the operator: a lip fix sculpted on a still, neutral face as the only
     training frame used to move the lips by kilometres on other frames; now Propagate refuses, names the
@@ -130,6 +134,7 @@ def test_a_neutral_training_frame_is_refused_naming_its_scene_frame(ict, addon):
     assert obj.data.shape_keys.key_blocks.keys() == before
 
 
+@pytest.mark.slow
 def test_an_artist_key_named_like_facelabs_is_read_as_part_of_the_capture(ict, addon):
     """Reading the capture mutes FaceLab's recorded output only: the artist's own ``FL_Prop_MyFix``
     shows in what Propagate reads, while a key FaceLab wrote is left out."""

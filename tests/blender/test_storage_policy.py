@@ -258,6 +258,7 @@ def test_bad_input_is_refused_before_anything_changes(addon):
     assert list(obj.data.shape_keys.key_blocks.keys()) == keys
 
 
+@pytest.mark.slow
 def test_reconstruct_solver_result_as_keys_then_as_a_cache(tmp_path, ict, addon, monkeypatch):
     """A pipeline through the policy: Reconstruct from Bundles stores its per-frame result as keys (default
     budget), then, with a budget of 2 keys, as a cache replacing those keys; both evaluate to the solver's

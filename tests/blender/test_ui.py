@@ -352,6 +352,7 @@ def test_extrapolation_helpers(addon):
     assert EXTRAPOLATING == 0.5
 
 
+@pytest.mark.slow
 def test_propagate_job_steps_and_cancels(ict, addon):
     """The modal Propagate's job, driven by hand (timers never run headless): it reports stages in
     order with growing progress, Esc between steps changes no key, and run to the end it writes keys."""

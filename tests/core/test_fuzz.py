@@ -101,6 +101,7 @@ def random_lips(rng):
 
 @FUZZ
 @given(seed=SEEDS, flaw=FLAWS, lips=st.booleans(), loop=st.sampled_from([None, "random", "short"]))
+@pytest.mark.slow
 def test_fuzz_regions(seed, flaw, lips, loop):
     rng = np.random.default_rng(seed)
     V, F = (random_lips if lips else random_grid)(rng)

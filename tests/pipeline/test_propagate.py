@@ -218,6 +218,7 @@ def pc2_capture_face(ict, tmp_path, n_frames=16):
     return SimpleNamespace(scene=scene, face=face, md=md, frames=frames, capture=capture, truth=truth, pc2=pc2)
 
 
+@pytest.mark.slow
 def test_corrected_frame_over_a_mesh_cache(ict, addon, tmp_path):
     """A corrected face (an OBJ's vertices) on frame 9 of a PC2 capture: the cache is switched to
     Integrate, the key is mapped through the cache surface, and frame 9 shows the corrected face."""
