@@ -62,7 +62,7 @@ def poll_face(cls, context) -> bool:
     return True
 
 
-def poll_sketch(context):
+def poll_sketch(context) -> str | None:
     """Why the lips of the face cannot be solved from the sketch in ``context``'s scene, or None when they can.
 
     The reason (a ``str`` for ``poll_message_set``) names what is missing and what to do, in this order: the face
