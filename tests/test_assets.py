@@ -214,7 +214,7 @@ def test_auto_regions_operator_uses_the_region_preset(addon, ict):
     from facelab_addon.blender.mesh import vertex_group_mask
     from facelab_addon.blender.scene import new_mesh_object
     from facelab_addon.core.lips.regions import auto_regions
-    from facelab_addon.ui import prefs
+    from facelab_addon.pipeline.regions import REGION_DEFAULTS
 
     def run(**kw):
         bpy.ops.wm.read_factory_settings(use_empty=True)
