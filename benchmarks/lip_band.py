@@ -44,6 +44,7 @@ from facelab_addon.core.capture.ict import load_ict  # noqa: E402
 from facelab_addon.core.geometry.geodesic import geodesic_distance  # noqa: E402
 from facelab_addon.core.lips import regions as R  # noqa: E402
 from facelab_addon.core.lips.lip_loop import inner_lip_loop, loop_width  # noqa: E402
+from facelab_addon.core.lips.mouth import find_mouth  # noqa: E402
 from facelab_addon.core.lips.regressor import LipRegressor  # noqa: E402
 from facelab_addon.core.lips.suggest import suggest_frames  # noqa: E402
 from facelab_addon.testing import synthetic as syn  # noqa: E402
@@ -63,7 +64,7 @@ class Scene:
         self.truth = (self.V.ravel() + W @ D).reshape(len(FRAMES), -1, 3) * SCALE
         self.cap_w = 1.0 - 1.5 * W[:, 0]
         fixed = ~ict.part_vertex_mask("M_Face")
-        mouth = syn.find_mouth(self.V, self.F, fixed, loop=syn.ICT_MOUTH_LOOP)
+        mouth = find_mouth(self.V, self.F, fixed, loop=syn.ICT_MOUTH_LOOP)
         self.w, self.side = syn.lip_error_weights(self.V, self.F, fixed, mouth=mouth)
         self.width = loop_width(self.V, inner_lip_loop(self.V, self.F))
 

@@ -170,6 +170,7 @@ def snap(bpy, every, seeds=2):
 
     from facelab_addon.blender.plate import plate_file, plate_pixels
     from facelab_addon.blender.sample import read_sample
+    from facelab_addon.core.lips.mouth import find_mouth
     from facelab_addon.core.lips.snap import snap_lips
     from facelab_addon.testing import synthetic as syn
     from facelab_addon.testing.route import jitter_stroke
@@ -180,8 +181,8 @@ def snap(bpy, every, seeds=2):
     scene = bpy.context.scene
     pv, po = data.poly_verts, data.poly_offsets
     F = np.array([[pv[s], pv[s + k], pv[s + k + 1]] for s, e in zip(po[:-1], po[1:]) for k in range(1, e - s - 1)])
-    mouth = syn.find_mouth(data.vertices, F, None, near=data.vertices[data.inner_lip_loop].mean(0),
-                           units_per_mm=0.001)
+    mouth = find_mouth(data.vertices, F, None, near=data.vertices[data.inner_lip_loop].mean(0),
+                       units_per_mm=0.001)
     truth = data.truth()
     rows = []
     for f in data.frames[::every]:

@@ -206,6 +206,7 @@ def build(bpy, ict, frames, W):
     from facelab_addon.blender.shapekeys import add_corrective_key, key_values_bulk
     from facelab_addon.core.geometry.geodesic import geodesic_distance
     from facelab_addon.core.lips import regions
+    from facelab_addon.core.lips.mouth import find_mouth
     from facelab_addon.testing import synthetic as syn
     from facelab_addon.testing.scenes import build_ict_face_scene
 
@@ -220,7 +221,7 @@ def build(bpy, ict, frames, W):
     # Poisson solve) and on FL_mouth (the trusted input): no regression could remove that part.
     V = ict.neutral * SCALE
     fixed = ~ict.part_vertex_mask("M_Face")
-    mouth = syn.find_mouth(V, ict.faces, fixed, loop=syn.ICT_MOUTH_LOOP)
+    mouth = find_mouth(V, ict.faces, fixed, loop=syn.ICT_MOUTH_LOOP)
     w, side = syn.lip_error_weights(V, ict.faces, fixed, mouth=mouth)
     tris = mesh_triangles(obj.data)
     lips = vertex_group_mask(obj, "FL_lips")

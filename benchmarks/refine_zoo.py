@@ -82,7 +82,8 @@ def load_faces(keys):
 def oracle_cut(zf, mc, case, e0, band):
     """The default Refine's cut from five clean sketches (the main camera, and 30 degrees above, below and to either
     side of it): what the silhouettes can tell at best, with this prior."""
-    from facelab_addon.core.lips.sketch import SketchView, refine_lips_views
+    from facelab_addon.core.lips.sketch import refine_lips_views
+    from facelab_addon.core.lips.views import SketchView
     from facelab_addon.testing import error_zoo as Z
 
     c = mc.truth[zf.loop].mean(axis=0)
@@ -96,7 +97,9 @@ def oracle_cut(zf, mc, case, e0, band):
 
 
 def run_case(zf, case, methods, oracle=False):
-    from facelab_addon.core.lips.sketch import RefineParams, SketchView, refine_lips_views
+    from facelab_addon.core.lips.refine_params import RefineParams
+    from facelab_addon.core.lips.sketch import refine_lips_views
+    from facelab_addon.core.lips.views import SketchView
     from facelab_addon.testing import error_zoo as Z
 
     mc = Z.make_case(zf, case)

@@ -111,7 +111,7 @@ def build(size, n_frames, source, path):
     from facelab_addon.blender.scene import new_mesh_object
     from facelab_addon.blender.shapekeys import add_corrective_key, key_spike, key_values_bulk
     from facelab_addon.core.capture.pointcache_writer import PointCacheWriter
-    from facelab_addon.pipeline.propagate import add_corrected_frame, record_training_frame
+    from facelab_addon.pipeline.training import add_corrected_frame, record_training_frame
     from facelab_addon.testing.weights import speech_weights
 
     t0 = time.perf_counter()
@@ -191,7 +191,7 @@ def run(path, size, source):
     growth = out.stat().st_size / 1e6 - before_mb
     out.unlink()
     keys = [kb.name for kb in obj.data.shape_keys.key_blocks if kb.name.startswith("FL_Prop_")]
-    from facelab_addon.blender.bakes import correction_cache
+    from facelab_addon.blender.ownership import correction_cache
 
     md, files = correction_cache(obj, "FL_Prop_")  # the correction cache, when the correction went to one
     cache = dict(cache_modifier=f"{md.name} ({md.type})" if md is not None else "",
@@ -280,7 +280,8 @@ def refine_time(size, runs=4):
     """Subprocess: core ``refine_lips`` (5 iterations, whole face) on the neutral face with a 2.5 mm inner-lip gap,
     sketch from the truth (as ``benchmarks/sketch_refine.py``); median of the warm runs."""
     from facelab_addon.core.capture.ict import load_ict
-    from facelab_addon.core.lips.sketch import RefineParams, refine_lips
+    from facelab_addon.core.lips.refine_params import RefineParams
+    from facelab_addon.core.lips.sketch import refine_lips
     from facelab_addon.testing.gap_case import ict_gap_case
 
     g = ict_gap_case(load_ict(), size)

@@ -71,17 +71,14 @@ from facelab_addon.core.capture.camera import Camera  # noqa: E402
 from facelab_addon.core.capture.ict import load_ict  # noqa: E402
 from facelab_addon.core.errors import FaceLabError  # noqa: E402
 from facelab_addon.core.geometry.mesh import unique_edges  # noqa: E402
+from facelab_addon.core.geometry.polyline import resample_polyline  # noqa: E402
 from facelab_addon.core.geometry.silhouette import point_segment_distance  # noqa: E402
+from facelab_addon.core.lips.mouth import find_mouth  # noqa: E402
+from facelab_addon.core.lips.refine_params import RefineParams  # noqa: E402
 from facelab_addon.core.lips.regressor import LipRegressor  # noqa: E402
 from facelab_addon.core.lips.regions import auto_regions, faces_in_region  # noqa: E402
-from facelab_addon.core.lips.sketch import (  # noqa: E402
-    RefineParams,
-    SketchView,
-    press_lips,
-    refine_lips,
-    refine_lips_views,
-    resample_polyline,
-)
+from facelab_addon.core.lips.sketch import refine_lips, refine_lips_views  # noqa: E402
+from facelab_addon.core.lips.views import SketchView, press_lips  # noqa: E402
 from facelab_addon.testing import synthetic as S  # noqa: E402
 
 TARGET_CONTOUR_MEAN_PX = 1.0
@@ -212,7 +209,7 @@ def run_case(model, fixed, name, pose, kind, amount_mm, radius_mm, runs):
     F = model.faces
     mm = 0.1 * model.scale  # scene units per millimetre
     T = model.pose(pose)
-    mouth = S.find_mouth(T, F, fixed, units_per_mm=mm)
+    mouth = find_mouth(T, F, fixed, units_per_mm=mm)
     cam = S.frontal_camera(T, mouth.center, distance=40.0 * model.scale)
     sk_u, sk_l = S.lip_contours(T, F, cam, mouth=mouth)
     C, err_mask = S.inject_lip_error(T, F, fixed, kind=kind, amount_mm=amount_mm, mouth=mouth, radius_mm=radius_mm)
@@ -287,7 +284,7 @@ def run_depth(model, fixed, name, pose):
     F = model.faces
     mm = 0.1 * model.scale
     T = model.pose(pose)
-    mouth = S.find_mouth(T, F, fixed, units_per_mm=mm)
+    mouth = find_mouth(T, F, fixed, units_per_mm=mm)
     w, side = S.lip_error_weights(T, F, fixed, mouth=mouth)
     lip = w > 1e-3
     C = T + (0.5 * 2.5 * mm * w * side)[:, None] * mouth.up + (FORWARD_ERROR_MM * mm * w)[:, None] * mouth.forward
@@ -323,7 +320,7 @@ def run_regions(model, fixed):
     out = []
     for name, pose in (("open_gap", POSE_OPEN), ("closed_gap", POSE_CLOSED)):
         T = model.pose(pose)
-        mouth = S.find_mouth(T, F, fixed, units_per_mm=mm)
+        mouth = find_mouth(T, F, fixed, units_per_mm=mm)
         cam = S.frontal_camera(T, mouth.center, distance=40.0 * model.scale)
         up, lo = S.lip_contours(T, F, cam, mouth=mouth)
         C, _ = S.inject_lip_error(T, F, fixed, mouth=mouth)
@@ -357,7 +354,7 @@ def picture(model, fixed, path):
     F = model.faces
     mm = 0.1 * model.scale
     T = model.pose(POSE_CLOSED)
-    mouth = S.find_mouth(T, F, fixed, units_per_mm=mm)
+    mouth = find_mouth(T, F, fixed, units_per_mm=mm)
     cam = S.frontal_camera(T, mouth.center, distance=40.0 * model.scale)
     up, lo = S.lip_contours(T, F, cam, mouth=mouth)
     C, _ = S.inject_lip_error(T, F, fixed, mouth=mouth, radius_mm=12.0)
@@ -408,7 +405,7 @@ def run_speed(model, fixed, runs):
     out = {}
     mm = 0.1 * model.scale
     T0 = model.pose(POSE_CLOSED)
-    mouth = S.find_mouth(T0, model.faces, fixed, units_per_mm=mm)
+    mouth = find_mouth(T0, model.faces, fixed, units_per_mm=mm)
     C0, _ = S.inject_lip_error(T0, model.faces, fixed, kind="gap", amount_mm=2.5, mouth=mouth)
     cam = S.frontal_camera(T0, mouth.center, distance=40.0 * model.scale)
     up, lo = S.lip_contours(T0, model.faces, cam, mouth=mouth)

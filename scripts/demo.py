@@ -46,12 +46,13 @@ UNITS_PER_MM = 0.001
 
 def scenario(ict):
     """Truth, capture, camera, sketch and masks for the demo (metres)."""
+    from facelab_addon.core.lips.mouth import find_mouth
     from facelab_addon.testing import synthetic as syn
 
     F = ict.faces
     truth = ict.pose({"jawOpen": 0.2, "mouthFunnel": 0.3}) * SCALE
     fixed = syn.ict_fixed_mask(ict) if hasattr(syn, "ict_fixed_mask") else ~ict.part_vertex_mask("M_Face")
-    mouth = syn.find_mouth(truth, F, fixed, loop=syn.ICT_MOUTH_LOOP, units_per_mm=UNITS_PER_MM)
+    mouth = find_mouth(truth, F, fixed, loop=syn.ICT_MOUTH_LOOP, units_per_mm=UNITS_PER_MM)
     cam = syn.frontal_camera(truth, mouth.center, distance=0.40)
     upper, lower = syn.lip_contours(truth, F, cam, fixed, mouth=mouth)
     captured, err_mask = syn.inject_lip_error(truth, F, fixed, kind="gap", amount_mm=2.5, mouth=mouth)

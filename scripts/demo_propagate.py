@@ -63,6 +63,7 @@ def run(ict, out, img_dir, render, samples, n_train=8):
     from facelab_addon.blender.scene import add_studio_lights
     from facelab_addon.blender.shapekeys import add_corrective_key, key_values_bulk
     from facelab_addon.blender.strokes import write_stroke_pixels
+    from facelab_addon.core.lips.mouth import find_mouth
     from facelab_addon.core.lips.suggest import suggest_frames
     from facelab_addon.testing import synthetic as syn
     from facelab_addon.testing.scenes import build_ict_face_scene
@@ -75,7 +76,7 @@ def run(ict, out, img_dir, render, samples, n_train=8):
     frames = np.arange(1, N_FRAMES + 1)
     truth = neutral[None] + np.einsum("tk,kvd->tvd", W, deltas)
     fixed = ~ict.part_vertex_mask("M_Face")
-    mouth = syn.find_mouth(neutral, F, fixed, loop=syn.ICT_MOUTH_LOOP, units_per_mm=UNITS_PER_MM)
+    mouth = find_mouth(neutral, F, fixed, loop=syn.ICT_MOUTH_LOOP, units_per_mm=UNITS_PER_MM)
     w, side = syn.lip_error_weights(neutral, F, fixed, mouth=mouth)
     err = np.zeros_like(neutral)
     err[:, 1] = side * w * 1.25 * UNITS_PER_MM  # 2.5 mm gap at full strength
@@ -117,7 +118,7 @@ def run(ict, out, img_dir, render, samples, n_train=8):
     for f in ranked:  # the artist sketches suggested frames where both inner contours are visible
         if len(train) == n_train:
             break
-        m_f = syn.find_mouth(truth[f - 1], F, fixed, loop=syn.ICT_MOUTH_LOOP, units_per_mm=UNITS_PER_MM)
+        m_f = find_mouth(truth[f - 1], F, fixed, loop=syn.ICT_MOUTH_LOOP, units_per_mm=UNITS_PER_MM)
         try:
             upper, lower = syn.lip_contours(truth[f - 1], F, cam, fixed, mouth=m_f)
         except Exception:

@@ -86,6 +86,7 @@ def reduced_face(ict):
 
 def build_npz(ict) -> dict:
     from facelab_addon.core.lips.lip_loop import inner_lip_loop
+    from facelab_addon.core.lips.mouth import find_mouth
     from facelab_addon.testing import synthetic as syn
     from facelab_addon.testing.weights import rectified_sine_weights
 
@@ -95,7 +96,7 @@ def build_npz(ict) -> dict:
     deltas = np.stack([(ict.expressions[n] - ict.neutral) * SCALE for n in EXPR])
     W = rectified_sine_weights(N_FRAMES, len(EXPR), seed=7)
     fixed = ~ict.part_vertex_mask("M_Face")
-    mouth = syn.find_mouth(neutral, F, fixed, loop=syn.ICT_MOUTH_LOOP, units_per_mm=UNITS_PER_MM)
+    mouth = find_mouth(neutral, F, fixed, loop=syn.ICT_MOUTH_LOOP, units_per_mm=UNITS_PER_MM)
     w, side = syn.lip_error_weights(neutral, F, fixed, mouth=mouth)
     err = np.zeros_like(neutral)
     err[:, 1] = side * w * 0.5 * GAP_MM * UNITS_PER_MM  # each lip moves half the gap
@@ -168,6 +169,7 @@ def figure(path: Path, n: int = 3) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from facelab_addon.core.lips.mouth import find_mouth
     from facelab_addon.testing import synthetic as syn
 
     with np.load(OUT / "face.npz") as z:
@@ -180,7 +182,7 @@ def figure(path: Path, n: int = 3) -> None:
     F = np.array([[pv[s], pv[s + k], pv[s + k + 1]] for s, e in zip(po[:-1], po[1:]) for k in range(1, e - s - 1)])
     truth = V[None] + np.einsum("tk,kvd->tvd", a["weights"].astype(float), a["expression_deltas"].astype(float))
     captured = truth + a["capture_error_weights"][:, None, None] * a["capture_error"][None].astype(float)
-    mouth = syn.find_mouth(V, F, None, near=V[a["inner_lip_loop"]].mean(0), units_per_mm=UNITS_PER_MM)
+    mouth = find_mouth(V, F, None, near=V[a["inner_lip_loop"]].mean(0), units_per_mm=UNITS_PER_MM)
     from facelab_addon.core.geometry.polyline import y_at
 
     def drawable(t):  # the plate's upper lip above its lower lip (frames where the lips overlap are skipped)

@@ -44,6 +44,7 @@ def build(out):
     from facelab_addon.blender.scene import add_studio_lights
     from facelab_addon.blender.shapekeys import add_corrective_key, key_spike, key_values_bulk
     from facelab_addon.core.capture.ict import load_ict
+    from facelab_addon.core.lips.mouth import find_mouth
     from facelab_addon.testing import synthetic as syn
     from facelab_addon.testing.scenes import build_ict_face_scene
     from facelab_addon.testing.weights import rectified_sine_weights
@@ -55,7 +56,7 @@ def build(out):
     W = rectified_sine_weights(N_FRAMES, len(EXPR), seed=3)
     frames = np.arange(1, N_FRAMES + 1)
     fixed = ~ict.part_vertex_mask("M_Face")
-    mouth = syn.find_mouth(neutral, ict.faces, fixed, loop=syn.ICT_MOUTH_LOOP, units_per_mm=1e-3)
+    mouth = find_mouth(neutral, ict.faces, fixed, loop=syn.ICT_MOUTH_LOOP, units_per_mm=1e-3)
     w, side = syn.lip_error_weights(neutral, ict.faces, fixed, mouth=mouth)
     err = np.zeros_like(neutral)
     err[:, 1] = side * w * 1.25e-3  # the lips 2.5 mm apart at full strength

@@ -191,10 +191,11 @@ def test_preferences_and_sketch_material_come_from_the_presets(addon):
     import bpy
 
     from facelab_addon.blender import compat, strokes
+    from facelab_addon.pipeline.regions import REGION_DEFAULTS
     from facelab_addon.ui import prefs
 
     assert prefs.DEFAULTS == load_preset("sketch_refine", SKETCH_SCHEMA)
-    assert prefs.REGION_DEFAULTS == load_preset("regions", REGION_SCHEMA)
+    assert REGION_DEFAULTS == load_preset("regions", REGION_SCHEMA)
     # the preferences hold the defaults of new scenes, through the scene settings generated from the presets
     rna = bpy.types.PropertyGroup.bl_rna_get_subclass_py("FACELAB_PG_facelab_refine").bl_rna.properties
     assert {k: pytest.approx(rna[k].default) for k in SKETCH_SCHEMA} == prefs.DEFAULTS
@@ -212,7 +213,7 @@ def test_auto_regions_operator_uses_the_region_preset(addon, ict):
     from facelab_addon.blender.mesh import vertex_group_mask
     from facelab_addon.blender.scene import new_mesh_object
     from facelab_addon.core.lips.regions import auto_regions
-    from facelab_addon.ui import prefs
+    from facelab_addon.pipeline.regions import REGION_DEFAULTS
 
     def run(**kw):
         bpy.ops.wm.read_factory_settings(use_empty=True)
@@ -230,7 +231,7 @@ def test_auto_regions_operator_uses_the_region_preset(addon, ict):
     core_mouth, core_lips = auto_regions(V, ict.faces)  # the core defaults
     assert np.array_equal(mouth, core_mouth) and np.array_equal(lips, core_lips)
 
-    assert prefs.REGION_DEFAULTS["lip_width"] < 0.2
+    assert REGION_DEFAULTS["lip_width"] < 0.2
     _, lips2 = run(lip_width=0.2)  # a wider lip band saved with the shot
     assert lips2.sum() > lips.sum() and not (lips & ~lips2).any()
 

@@ -30,18 +30,12 @@ from .caches import checked_frames, iter_evaluated, kept_frame, require_mesh_obj
 from .ownership import (
     as_prefixes,
     correction_cache,
-    correction_cache_factor,
-    correction_cache_prefix,
     correction_cache_record,
-    is_correction_cache,
-    muted_correction_caches,
 )
 from .shapekeys import key_property_bulk, remove_fcurve, unique_name
 
 __all__ = ["bake_point_cache_steps", "bake_pc2", "bake_mdd", "bake_alembic", "bake_destination",
-           "correction_cache_path", "correction_cache", "is_correction_cache", "correction_cache_prefix",
-           "add_correction_cache", "add_correction_patch", "remove_correction_cache", "muted_correction_caches",
-           "correction_cache_factor"]
+           "correction_cache_path", "add_correction_cache", "add_correction_patch", "remove_correction_cache"]
 
 
 def bake_destination(path) -> Path:

@@ -18,9 +18,10 @@ import numpy as np
 
 from ..core.capture.integrate import integrate_matrices
 from ..core.capture.pointcache_writer import CacheLayout, PointCacheWriter, write_offset_cache
-from . import bakes, cache_integrate
+from . import cache_integrate
 from .caches import input_positions
 from .capture_stream import CaptureReader
+from .ownership import correction_cache, is_correction_cache
 
 __all__ = ["CAPTURE_CACHES", "WrittenCache", "capture_index", "write_correction_file"]
 
@@ -53,7 +54,7 @@ def capture_index(obj, prefix: str):
     cache (or first). FaceLab's correction caches are no capture."""
     mods = list(obj.modifiers)
     caps = [i for i, m in enumerate(mods) if m.show_viewport and m.type in CAPTURE_CACHES
-            and not bakes.is_correction_cache(obj, m)]
+            and not is_correction_cache(obj, m)]
     return mods, (caps[-1] + 1 if caps else 0)
 
 
@@ -106,7 +107,7 @@ def _under_capture_exact(obj, prefix, mods, index, read, frames, vertices, tol) 
     key moves a vertex of the correction's polygon neighbourhood (FaceLab's spike keys of corrected frames
     are 0 elsewhere; their own frame keeps a zero correction).
     """
-    own = bakes.correction_cache(obj, prefix)[0]
+    own = correction_cache(obj, prefix)[0]
     if any(m.show_viewport and m != own for m in mods[: index - 1]):
         return False
     verts = np.arange(len(obj.data.vertices)) if vertices is None else vertices

@@ -25,6 +25,7 @@ import numpy as np
 from ..core.errors import MeshError
 from ..names import REST_SPACE_KEY
 from .caches import kept_frame, set_frame
+from .ownership import is_correction_cache
 
 __all__ = ["deforming_modifiers", "require_same_vertex_count", "to_rest_space"]
 
@@ -37,8 +38,6 @@ def deforming_modifiers(obj) -> list:
     Every enabled modifier except capture caches and FaceLab's correction caches (Mesh Cache,
     Mesh Sequence Cache, a correction patch), whose mapping is :mod:`.cache_integrate`'s.
     """
-    from .bakes import is_correction_cache  # FaceLab's own output (a correction patch's Geometry Nodes) too
-
     return [m for m in obj.modifiers if m.show_viewport and m.type not in _CACHE_TYPES and not is_correction_cache(obj, m)]
 
 

@@ -2,7 +2,7 @@
 sketches of neighbouring frames, the frames to look at next.
 
 * :func:`show_capture` / :func:`show_corrected` mute and restore every correction FaceLab made on a
-  face (its recorded corrective shape keys, :func:`~facelab_addon.blender.shapekeys.owned_keys`, and
+  face (its recorded corrective shape keys, :func:`~facelab_addon.blender.ownership.owned_keys`, and
   its correction modifiers), keeping the artist's own mutes exactly: they are saved on the object
   (:data:`~facelab_addon.names.REVIEW_SAVED_PROP`, JSON) while the capture is shown.
 * :func:`correction_magnitude` is the per-vertex distance (mm of world space) between the corrected
@@ -21,7 +21,8 @@ import numpy as np
 
 from ..names import CORRECTION_ATTR, CORRECTION_RANGE_PROP, EXTRAPOLATION_PROP, PREFIX, REVIEW_SAVED_PROP
 from .mesh import evaluated_vertices
-from .shapekeys import find_fcurve, owned_keys
+from .ownership import owned_keys
+from .shapekeys import find_fcurve
 
 __all__ = [
     "CAPTURE_MODIFIER_PREFIX",

@@ -1,7 +1,7 @@
 """Shape-key rigs -> arrays: the blendshape rig, the dataset of facial shapes, FaceLab's keys, drivers.
 
 Every reader works in object-local coordinates (shape-key space) and leaves
-out FaceLab's own keys (those it recorded, :func:`.shapekeys.owned_keys`).
+out FaceLab's own keys (those it recorded, :func:`.ownership.owned_keys`).
 """
 
 from __future__ import annotations
@@ -11,7 +11,8 @@ import numpy as np
 from .. import names as fl
 from ..core.errors import FaceLabError
 from .actions import curve_values, key_path
-from .shapekeys import owned_keys, rest_vertices
+from .ownership import owned_keys
+from .shapekeys import rest_vertices
 
 __all__ = [
     "rig_shapes",

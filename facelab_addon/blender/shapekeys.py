@@ -13,8 +13,6 @@ from .ownership import key_matches, own_key, owned_key_names, owned_keys
 __all__ = [
     "unique_key_name",
     "add_corrective_key",
-    "owned_keys",
-    "own_key",
     "key_spike",
     "zero_on_frame",
     "find_fcurve",

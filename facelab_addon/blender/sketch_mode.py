@@ -8,10 +8,9 @@ from __future__ import annotations
 
 import bpy
 
-from .sketch_views import sketch_camera
-from .strokes import set_lip_layer
+from .strokes import set_lip_layer, sketch_camera
 
-__all__ = ["DRAW_MODE", "SKETCH_MODES", "set_lip_layer", "start_drawing"]
+__all__ = ["DRAW_MODE", "SKETCH_MODES", "start_drawing"]
 
 #: ``Object.mode`` / ``context.mode`` of Grease Pencil (v3) Draw mode (Blender 4.3 and newer: 4.5, 5.0, 5.3).
 DRAW_MODE = "PAINT_GREASE_PENCIL"

@@ -14,9 +14,9 @@ from __future__ import annotations
 
 from ..core.errors import SketchError
 from .lip_layers import has_lip_layers, hidden_object, live_lip_layers
-from .strokes import SKETCH_CAMERA_PROP, sketch_camera, sketch_name_for
+from .strokes import sketch_camera
 
-__all__ = ["SKETCH_CAMERA_PROP", "sketch_camera", "sketch_name_for", "sketch_views"]
+__all__ = ["sketch_views"]
 
 
 def sketch_views(scene, frame: int) -> list:

@@ -43,21 +43,7 @@ import importlib
 import pkgutil
 import sys
 
-from ._common import (  # noqa: F401  (re-exported for subcommand modules and scripts)
-    EXIT_BPY,
-    EXIT_FAILED,
-    EXIT_INPUT,
-    EXIT_INTERNAL,
-    EXIT_OBJECT,
-    EXIT_OK,
-    EXIT_OUTPUT,
-    EXIT_USAGE,
-    CliError,
-    Session,
-    add_common_arguments,
-    add_settings_arguments,
-    execute,
-)
+from ._common import add_common_arguments, add_settings_arguments, execute
 
 
 def subcommands() -> dict:

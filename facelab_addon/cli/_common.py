@@ -16,7 +16,7 @@ import time
 import traceback
 from pathlib import Path
 
-from ._errors import (  # noqa: F401  (the exit codes and CliError are imported from here by the commands)
+from ._errors import (
     EXIT_BPY,
     EXIT_FAILED,
     EXIT_INPUT,
@@ -27,15 +27,14 @@ from ._errors import (  # noqa: F401  (the exit codes and CliError are imported 
     EXIT_USAGE,
     CliError,
 )
-from ._frames import MAX_FRAME, MAX_FRAME_COUNT, contiguous, parse_frames  # noqa: F401  (for the commands)
+from ._frames import MAX_FRAME
 from ._stdout import quiet_stdout
-from ._paths import (  # noqa: F401  (same_file for the commands)
+from ._paths import (
     check_blend_caches,
     check_distinct_outputs,
     check_outputs,
     check_outputs_not_played,
     expand_paths,
-    same_file,
 )
 
 MESH_EXTS = (".obj", ".abc")

@@ -18,13 +18,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..names import LIPS_GROUP, MOUTH_GROUP
-from ._common import (
-    EXIT_INPUT,
-    EXIT_USAGE,
-    CliError,
-    contiguous,
-    parse_frames,
-)
+from ._errors import EXIT_INPUT, EXIT_USAGE, CliError
+from ._frames import contiguous, parse_frames
 
 HELP = "propagate the training frames' lip corrections to every frame (corrective shape keys)"
 
@@ -54,7 +49,7 @@ def _corrected_specs(specs):
 
 def add_corrected_frames(session, obj, specs) -> list[str]:
     """Corrective keys from corrected OBJs, recorded as training frames; returns the key names."""
-    from ..pipeline.propagate import add_corrected_frame
+    from ..pipeline.training import add_corrected_frame
 
     names = []
     for frame, path in specs:

@@ -9,7 +9,8 @@ section 4: rebuild the face on every frame from animated 3D bundles (the selecte
 from __future__ import annotations
 
 from ..names import BUNDLES_COLLECTION
-from ._common import CliError, contiguous, parse_frames
+from ._errors import CliError
+from ._frames import contiguous, parse_frames
 
 HELP = "rebuild the face from animated 3D bundles (corrective shape keys)"
 INPUTS = ("blend",)

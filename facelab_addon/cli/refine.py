@@ -21,7 +21,9 @@ from __future__ import annotations
 import re
 
 from ..names import REFINE_PREFIX
-from ._common import CliError, exit_code_for, parse_frames
+from ._common import exit_code_for
+from ._errors import CliError
+from ._frames import parse_frames
 
 HELP = "refine the lips on sketched frames (one corrective shape key per frame)"
 INPUTS = ("blend",)

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import time
 
-from ._common import EXIT_FAILED, EXIT_OBJECT, EXIT_USAGE, CliError
+from ._errors import EXIT_FAILED, EXIT_OBJECT, EXIT_USAGE, CliError
 from .solve import progress, set_range
 
 HELP = "carry the solved performance to a creature mesh (shape keys, weights, correctives, lip sync)"

@@ -15,7 +15,9 @@ import math
 import time
 
 from ..names import SOLVE_PREFIX
-from ._common import EXIT_FAILED, CliError, contiguous, parse_frames, quiet_stdout
+from ._errors import EXIT_FAILED, CliError
+from ._frames import contiguous, parse_frames
+from ._stdout import quiet_stdout
 
 HELP = "solve shape-key weights (+ correctives) from the tracked markers of the scene's views"
 INPUTS = ("blend",)
@@ -50,7 +52,7 @@ def progress(session, total: int, label: str):
 def set_range(session, args, what: str):
     """``--frames`` -> FaceLab > Solve > Start/End (the range the pipelines read); returns the frames array."""
     from ..core.errors import FaceLabError
-    from ..pipeline.solve import frame_range
+    from ..pipeline.frames import frame_range
 
     scene = session.scene
     s = scene.facelab_solve

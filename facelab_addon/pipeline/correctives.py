@@ -33,10 +33,10 @@ import numpy as np
 
 from ..blender import bakes, cache_write, rest_space, review
 from ..blender.objects import local_length, tolerance_length
+from ..blender.ownership import correction_cache_factor, owned_keys
 from ..blender.shapekeys import (
     add_keys_from_deltas,
     key_values_bulk,
-    owned_keys,
     remove_keys,
     zero_on_frame,
 )
@@ -438,7 +438,7 @@ def silence_correction(obj, prefix: str, frame: int) -> int:
     key = obj.data.shape_keys
     for name in owned_keys(obj, prefix) if key is not None else ():
         done += zero_on_frame(key, f'key_blocks["{bpy.utils.escape_identifier(name)}"].value', frame)
-    factor = bakes.correction_cache_factor(obj, prefix)
+    factor = correction_cache_factor(obj, prefix)
     if factor is not None:
         done += zero_on_frame(*factor, frame)
     return done

@@ -9,7 +9,7 @@ sketch asks for it), solves with one :class:`facelab_addon.core.lips.sketch_sess
 for the session (its free region, operators and factorisation are made again only when the strokes
 change the free region or the mouth's width, or the settings change; see :data:`WIDTH_TOL`) and shows
 the result on the face as the shape key :data:`PREVIEW_KEY`, which nothing else reads: it is not one
-of FaceLab's recorded keys (:func:`facelab_addon.blender.shapekeys.owned_keys`), no training frame
+of FaceLab's recorded keys (:func:`facelab_addon.blender.ownership.owned_keys`), no training frame
 points to it, and the capture readers leave it out (``shapekeys.key_matches``).
 :meth:`LiveRefine.accept` removes the preview and runs :func:`facelab_addon.pipeline.refine.refine`
 on the same strokes and settings, so the result has exactly a Refine's meaning and storage;
@@ -35,7 +35,8 @@ from ..blender.objects import require_editable
 from ..blender.rest_space import to_rest_space
 from ..blender.scene_time import require_scene_time
 from ..core.errors import FaceLabError
-from ..core.lips.sketch import RefineParams, SketchSolver
+from ..core.lips.refine_params import RefineParams
+from ..core.lips.sketch_session import SketchSolver
 from ..names import LIVE_PREVIEW_KEY
 from .refine import RefineResult, RefineSettings, checked_view_sources, read_views, refine, refine_problem
 

@@ -4,8 +4,8 @@
 Training data is scene data: every corrected frame is recorded on the face object
 (``obj.facelab.training_frames``) and marked on the timeline (:mod:`.training`). A training frame is one definition,
 written by one function (:func:`store_training_frame`, for Refine Lips, :func:`add_corrected_frame`
-and :func:`mark_training_frame`) and read by one (:func:`read_training_frames`): the corrected shape
-relative to the frame without FaceLab's lip corrections (:func:`uncorrected_frame`), as a key keyed
+and :func:`.training.mark_training_frame`) and read by one (:func:`.training.read_training_frames`): the corrected shape
+relative to the frame without FaceLab's lip corrections (:func:`.training.uncorrected_frame`), as a key keyed
 on the frame alone, with Propagate's correction off there; so a frame keeps what the viewport
 showed after Refine (or the sculpt) through every later Propagate. :func:`propagate_steps`
 reads the captured sequence, fits a :class:`~facelab_addon.core.lips.regressor.LipRegressor`
@@ -47,40 +47,9 @@ from .frames import check_frames
 from .regions import region_faces
 from .settings import setting, stored
 from .steps import run_steps
-from .training import (  # re-exported: the training frames are Propagate's input
-    TRAINING_KEY_PREFIXES,
-    CorrectedFrame,
-    add_corrected_frame,
-    captured_unknown,
-    mark_training_frame,
-    read_training_frames,
-    record_training_frame,
-    remove_training_frame,
-    require_finite,
-    store_training_frame,
-    training_frames,
-    uncorrected_frame,
-)
+from .training import captured_unknown, read_training_frames, require_finite, training_frames
 
-__all__ = [
-    "PropagateSettings",
-    "PropagateResult",
-    "CorrectedFrame",
-    "training_frames",
-    "record_training_frame",
-    "remove_training_frame",
-    "add_corrected_frame",
-    "mark_training_frame",
-    "store_training_frame",
-    "uncorrected_frame",
-    "read_training_frames",
-    "TRAINING_KEY_PREFIXES",
-    "propagate_steps",
-    "propagate",
-    "training_input",
-    "model_summary",
-    "captured_unknown",
-]
+__all__ = ["PropagateSettings", "PropagateResult", "propagate_steps", "propagate", "training_input", "model_summary"]
 
 _CACHE_SOURCES = ("mesh_cache", "mesh_sequence_cache")
 #: Fewest training frames for the leave-one-out ridge (``PropagateSettings.ridge``): from fewer, leaving one out

@@ -45,7 +45,10 @@ from ..blender.shapekeys import rest_vertices
 from ..blender.sketch_views import sketch_camera, sketch_views
 from ..blender.strokes import read_lip_strokes, require_sketch_keyed_on
 from ..core.errors import CameraError
-from ..core.lips.sketch import RefineParams, SketchSolver, SketchView, refine_lips_views
+from ..core.lips.refine_params import RefineParams
+from ..core.lips.sketch import refine_lips_views
+from ..core.lips.sketch_session import SketchSolver
+from ..core.lips.views import SketchView
 from ..names import FIXED_GROUP, LIPS_GROUP, MOUTH_GROUP, REFINE_PREFIX
 from .training import store_training_frame, uncorrected_frame
 from .settings import setting

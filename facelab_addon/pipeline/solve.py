@@ -51,7 +51,7 @@ from ..core.solve.blendshape_solve import SolveParams
 from ..core.solve.corrective import CorrectiveParams
 from ..core.solve.performance import PerformanceParams
 from .correctives import CorrectionWriter, StoredKeys
-from .frames import frame_range  # noqa: F401  (re-exported: the CLI's and scripts' range)
+from .frames import frame_range
 from .settings import setting
 from .streaming import FrameChunks
 
@@ -62,7 +62,6 @@ __all__ = [
     "SolveSettings",
     "SolveResult",
     "solve_params",
-    "frame_range",
     "require_views",
     "face_axes",
     "bind_tracks",

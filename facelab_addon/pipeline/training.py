@@ -21,9 +21,10 @@ import numpy as np
 from ..blender import cache_integrate, caches, review
 from ..blender.mesh import require_mesh
 from ..blender.objects import ModifierState, require_editable
+from ..blender.ownership import key_matches, owned_keys
 from ..blender.rest_space import to_rest_space
 from ..blender.scene_time import require_scene_time
-from ..blender.shapekeys import add_corrective_key, key_matches, key_spike, owned_keys, zero_on_frame
+from ..blender.shapekeys import add_corrective_key, key_spike, zero_on_frame
 from ..core.errors import FaceLabError, MeshError
 from ..names import CORRECTED_PREFIX, PROPAGATE_PREFIX, REFINE_PREFIX, TRAIN_MARKER
 from .correctives import silence_correction

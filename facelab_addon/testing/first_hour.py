@@ -22,6 +22,7 @@ from ..blender.sample import read_sample
 from ..blender.strokes import write_stroke_pixels
 from ..core.capture.camera import Camera
 from ..core.capture.pointcache import read_pc2
+from ..core.lips.mouth import find_mouth
 from ..names import CORRECTION_ATTR, LIPS_GROUP, MOUTH_GROUP, SUGGEST_MARKER
 from . import synthetic as syn
 
@@ -75,8 +76,8 @@ def walk(out_dir, first_round=FIRST_ROUND) -> FirstHour:
     face = scene.facelab.face
     F = triangles(data)
     truth, captured, frames = data.truth(), data.captured(), data.frames
-    mouth = syn.find_mouth(data.vertices, F, None, near=data.vertices[data.inner_lip_loop].mean(0),
-                           units_per_mm=0.001)
+    mouth = find_mouth(data.vertices, F, None, near=data.vertices[data.inner_lip_loop].mean(0),
+                       units_per_mm=0.001)
     cam = Camera(data.camera.K, data.camera.R, data.camera.t, data.camera.width, data.camera.height)
     bcam = camera_from_blender(scene)
 

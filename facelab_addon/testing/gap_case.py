@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..core.lips.mouth import find_mouth
 from . import synthetic as syn
 from .subdivide import subdivide_midpoint
 
@@ -55,7 +56,7 @@ def ict_gap_case(model, size: str = "26k") -> GapCase:
     if size != "26k":
         T, F, S = subdivide_midpoint(T, F)
         fixed = (S @ fixed.astype(float)) > 0.99
-    mouth = syn.find_mouth(T, F, fixed, units_per_mm=mm)
+    mouth = find_mouth(T, F, fixed, units_per_mm=mm)
     cam = syn.frontal_camera(T, mouth.center, distance=40.0 * model.scale)
     up, lo = syn.lip_contours(T, F, cam, mouth=mouth)
     C, _ = syn.inject_lip_error(T, F, fixed, kind="gap", amount_mm=2.5, mouth=mouth)

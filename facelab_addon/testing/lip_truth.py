@@ -11,10 +11,9 @@ model's own data with a different, simple rule (nothing here imports ``core.lips
   whose distance grows under ``jawOpen`` by more than ``separation`` (15) times their rest distance are *contact
   pairs* (on ICT-FaceKit: the facing surfaces of the two lips, 0.1-3 mm apart at rest, pulled 1-2 cm apart; no
   other skin comes near that ratio once pairs within two mesh edges are left out). The ratio 15 keeps the mouth
-  corners on the commissure: from 10 to 13 the crease running on from it into the cheek (a few tenths of a
-  millimetre wide) still counts, the corners move 0.4 mm outward and ICT's mouth is 1.8 % wider; from 15 to 20
-  the line is the same. The vertex of a pair that the jaw moves more is
-  on the lower lip. The mouth corners are the contact vertices farthest apart along the mouth's width (the
+  corners on the commissure: a lower ratio also counts the crease running on from it into the cheek (a few
+  tenths of a millimetre wide) and moves the corners outward along it; a higher one up to 20 gives the same
+  line. The vertex of a pair that the jaw moves more is on the lower lip. The mouth corners are the contact vertices farthest apart along the mouth's width (the
   principal axis of the contact vertices, across the jaw's motion). On each lip the line is the cheapest mesh
   path from corner to corner through that lip's contact vertices, an edge costing its length over the product of
   its ends' largest separation ratios: it follows the row where the lips are closest for how far they part.

@@ -86,6 +86,7 @@ def sample_face(first=(11, 37, 44)) -> LoopFace:
     from ..blender.sample import read_sample
     from ..blender.strokes import new_lip_sketch, write_stroke_pixels
     from ..core.capture.camera import Camera
+    from ..core.lips.mouth import find_mouth
     from ..pipeline.regions import RegionSettings, auto_regions
     from ..pipeline.sample import SampleSettings, load_sample
     from . import synthetic as syn
@@ -100,8 +101,8 @@ def sample_face(first=(11, 37, 44)) -> LoopFace:
     pv, po = data.poly_verts, data.poly_offsets
     F = np.array([[pv[s], pv[s + k], pv[s + k + 1]] for s, e in zip(po[:-1], po[1:]) for k in range(1, e - s - 1)])
     truth = data.truth().astype(np.float64)
-    mouth = syn.find_mouth(data.vertices, F, None, near=data.vertices[data.inner_lip_loop].mean(0),
-                           units_per_mm=0.001)
+    mouth = find_mouth(data.vertices, F, None, near=data.vertices[data.inner_lip_loop].mean(0),
+                       units_per_mm=0.001)
     cam = Camera(data.camera.K, data.camera.R, data.camera.t, data.camera.width, data.camera.height)
     frames = np.asarray(data.frames)
 

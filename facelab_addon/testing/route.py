@@ -130,8 +130,8 @@ def build_route_scene(face, *, units: str = "m", frames=None, armature: bool = F
     error_mm : float
         Largest displacement of each lip by the capture error (the gap grows by twice this).
     error : str
-        The capture error's model, a key of :data:`ERRORS` (default ``"wide"``, the benchmark's original
-        error); see :func:`capture_error`.
+        The capture error's model, a key of :data:`ERRORS` (default ``"wide"``: the inner lips pulled apart
+        along the face's up axis); see :func:`capture_error`.
     expressions : sequence of str
         The performed expressions (``cyclic_mouth_weights`` channels).
     name : str

@@ -55,8 +55,6 @@ __all__ = [
     "ICT_MOUTH_LOOP",
     "ICT_UP",
     "ICT_FORWARD",
-    "Mouth",
-    "find_mouth",
     "frontal_camera",
     "lip_contours",
     "lip_error_weights",

@@ -1,9 +1,11 @@
-"""Helpers every FaceLab operator and panel shares: the face being worked on, the shared ``poll``,
+"""Helpers every FaceLab operator and panel shares: the face being worked on, the shared ``poll`` checks,
 the frame range an operator was given, and a progress callback."""
 
 import sys
 
 import bpy
+
+from ..blender.strokes import has_lip_sketch
 
 
 def progress_callback(context, T, label="FaceLab"):
@@ -48,9 +50,30 @@ def face_object(context):
     return ob if ob is not None and ob.type == "MESH" else None
 
 
+#: Why an operator on the face cannot run without one (``poll_message_set``).
+NO_FACE = "Select the captured face mesh (or set it in FaceLab > Setup)"
+
+
 def poll_face(cls, context) -> bool:
     """Shared ``poll``: a face mesh must be selected (or set in Setup); explains itself otherwise."""
     if face_object(context) is None:
-        cls.poll_message_set("Select the captured face mesh (or set it in FaceLab > Setup)")
+        cls.poll_message_set(NO_FACE)
         return False
     return True
+
+
+def poll_sketch(context) -> str | None:
+    """Why the lips of the face cannot be solved from the sketch in ``context``'s scene, or None when they can.
+
+    The reason (a ``str`` for ``poll_message_set``) names what is missing and what to do, in this order: the face
+    (:func:`face_object`), a scene camera (the camera the sketch is drawn in), a lip sketch
+    (:func:`~facelab_addon.blender.strokes.has_lip_sketch`).
+    """
+    scene = context.scene
+    if face_object(context) is None:
+        return NO_FACE
+    if scene.camera is None:
+        return "Set a scene camera first (the camera the sketch is drawn in)"
+    if not has_lip_sketch(scene, scene.facelab.sketch):
+        return "No lip sketch yet: press New Lip Sketch and draw the inner lips in camera view"
+    return None

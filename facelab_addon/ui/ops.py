@@ -4,18 +4,11 @@
 import bpy
 
 from ..blender.sketch_mode import DRAW_MODE, SKETCH_MODES, start_drawing
-from ..blender.strokes import has_lip_sketch, new_lip_sketch, set_lip_layer
+from ..blender.strokes import new_lip_sketch, set_lip_layer
 from ..core.errors import FaceLabError
 from ..pipeline import shot_settings, wording
-from ..pipeline.propagate import record_training_frame  # noqa: F401  (re-exported for scripts)
 from ..pipeline.refine import RefineSettings, refine
-from .common import (  # noqa: F401  (re-exported)
-    face_object,
-    fill_scene_range,
-    operator_range,
-    poll_face,
-    progress_callback,
-)
+from .common import face_object, poll_sketch
 
 
 def refine_settings(context) -> RefineSettings:
@@ -105,16 +98,12 @@ class FACELAB_OT_refine_lips(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        if not poll_face(cls, context):
-            return False
-        if context.scene.camera is None:
-            cls.poll_message_set("Set a scene camera first (the camera the sketch was drawn in)")
+        why = poll_sketch(context)
+        if why is not None:
+            cls.poll_message_set(why)
             return False
         if context.mode not in SKETCH_MODES:
             cls.poll_message_set("Switch to Object Mode (or the sketch's Draw mode) to refine")
-            return False
-        if not has_lip_sketch(context.scene, context.scene.facelab.sketch):
-            cls.poll_message_set("No lip sketch yet: press New Lip Sketch and draw the inner lips in camera view")
             return False
         return True
 

@@ -12,11 +12,11 @@ synchronous step the tests drive.
 import bpy
 import numpy as np
 
-from ..blender.strokes import has_lip_sketch
 from ..core.errors import FaceLabError
 from ..names import SNAP_PROP, SNAP_REPORT_PROP
 from ..pipeline.live_refine import PREVIEW_KEY, LiveRefine, remove_preview
-from .ops import face_object, poll_face, refine_settings
+from .common import face_object, poll_sketch
+from .ops import refine_settings
 
 #: The running session (one at a time), its sketch's stroke signature and its last message.
 LIVE = {"session": None, "signature": None, "message": "", "draw": None}
@@ -173,13 +173,9 @@ class FACELAB_OT_live_refine(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        if not poll_face(cls, context):
-            return False
-        if context.scene.camera is None:
-            cls.poll_message_set("Set a scene camera first (the camera the sketch is drawn in)")
-            return False
-        if not has_lip_sketch(context.scene, context.scene.facelab.sketch):
-            cls.poll_message_set("No lip sketch yet: press New Lip Sketch")
+        why = poll_sketch(context)
+        if why is not None:
+            cls.poll_message_set(why)
             return False
         return True
 

@@ -19,17 +19,12 @@ from ..names import LIPS_GROUP, MOUTH_GROUP, file_name_part
 from ..pipeline import bake as bake_pipeline
 from ..pipeline import wording
 from ..pipeline.frames import frame_range
-from ..pipeline.propagate import (
-    PropagateSettings,
-    mark_training_frame,
-    propagate,
-    propagate_steps,
-    remove_training_frame,
-)
+from ..pipeline.propagate import PropagateSettings, propagate, propagate_steps
 from ..pipeline.regions import RegionSettings, auto_regions
+from ..pipeline.shot_settings import scene_settings
 from ..pipeline.steps import StepJob, run_steps
+from ..pipeline.training import mark_training_frame, remove_training_frame
 from .common import face_object, fill_scene_range, operator_range, poll_face, progress_callback
-from .scene_settings import scene_settings
 
 
 class FACELAB_OT_auto_regions(bpy.types.Operator):

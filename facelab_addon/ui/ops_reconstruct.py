@@ -13,9 +13,9 @@ from ..pipeline.reconstruct import (
     generate_correctives,
     reconstruct_from_bundles,
 )
+from ..pipeline.shot_settings import corrective_settings, reconstruct_settings
 from . import props_reconstruct
 from .common import face_object, fill_scene_range, operator_range, poll_face, progress_callback
-from .props_reconstruct import corrective_settings, reconstruct_settings
 
 
 def _dataset_keys(obj) -> int:

@@ -9,9 +9,8 @@ from bpy.props import BoolProperty, FloatProperty, IntProperty, StringProperty
 from ..blender import review
 from ..blender.strokes import find_sketch_object
 from ..core.errors import FaceLabError
-from ..names import EXTRAPOLATION_PROP, SUGGEST_MARKER
+from ..names import CORRECTION_ATTR, EXTRAPOLATION_PROP, SUGGEST_MARKER
 from ..pipeline import shot_settings, wording
-from . import scene_settings
 from .common import face_object, poll_face
 
 
@@ -83,9 +82,9 @@ class FACELAB_OT_correction_heatmap(bpy.types.Operator):
         moved = int(np.count_nonzero(mag > 0.01))
         if top <= 0.0:
             self.report({"WARNING"}, f"No correction on frame {scene.frame_current}: '{obj.name}' is the capture here "
-                                     f"(heat map {review.CORRECTION_ATTR} all grey)")
+                                     f"(heat map {CORRECTION_ATTR} all grey)")
             return {"FINISHED"}
-        self.report({"INFO"}, f"Heat map '{review.CORRECTION_ATTR}' on frame {scene.frame_current}: grey 0 mm to red "
+        self.report({"INFO"}, f"Heat map '{CORRECTION_ATTR}' on frame {scene.frame_current}: grey 0 mm to red "
                               f"{vmax:.2f} mm; largest correction {top:.2f} mm, {moved:,} vertices move more than "
                               "0.01 mm" + ("" if shown else "; view it in Solid mode > Attribute color"))
         return {"FINISHED"}
@@ -185,7 +184,7 @@ class FACELAB_OT_most_extrapolated_frame(bpy.types.Operator):
 
 
 def _entry(op):
-    e = scene_settings.entry_for(op.target)
+    e = shot_settings.entry_for(op.target)
     if e is None:
         op.report({"ERROR"}, f"No FaceLab settings called {op.target!r}: one of "
                              f"{[x.attr for x in shot_settings.SCENE_SETTINGS]}")
@@ -206,7 +205,7 @@ class FACELAB_OT_reset_settings(bpy.types.Operator):
         if e is None:
             return {"CANCELLED"}
         grp = getattr(context.scene, e.attr)
-        for k, v in scene_settings.preference_defaults(e, context).items():
+        for k, v in shot_settings.preference_defaults(e, context).items():
             setattr(grp, k, v)
         self.report({"INFO"}, f"{e.cls.__name__}: the defaults of the preferences")
         return {"FINISHED"}
@@ -232,7 +231,7 @@ class FACELAB_OT_save_settings_defaults(bpy.types.Operator):
         e = _entry(self)
         if e is None:
             return {"CANCELLED"}
-        scene_settings.copy_values(getattr(context.scene, e.attr), getattr(shot_settings.preferences(context), e.attr), e)
+        shot_settings.copy_values(getattr(context.scene, e.attr), getattr(shot_settings.preferences(context), e.attr), e)
         context.preferences.is_dirty = True
         self.report({"INFO"}, f"{e.cls.__name__}: this shot's values are the defaults of new scenes")
         return {"FINISHED"}

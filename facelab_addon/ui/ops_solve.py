@@ -11,16 +11,11 @@ from bpy.props import IntProperty
 
 from ..core.errors import FaceLabError
 from ..names import RETARGET_PREFIX
+from ..pipeline.frames import frame_range
 from ..pipeline.retarget import retarget
-from ..pipeline.solve import (
-    DISAGREE_PX,
-    bind_tracks,
-    frame_range,
-    solve_performance,
-    summarise_skips,
-)
+from ..pipeline.shot_settings import bind_settings, retarget_settings, solve_settings
+from ..pipeline.solve import DISAGREE_PX, bind_tracks, solve_performance, summarise_skips
 from .common import face_object, poll_face, progress_callback
-from .props_solve import bind_settings, retarget_settings, solve_settings
 
 
 def _first(names, n=8) -> str:

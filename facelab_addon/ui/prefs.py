@@ -12,9 +12,8 @@ import bpy
 from bpy.props import PointerProperty
 
 from ..pipeline.refine import REFINE_DEFAULTS
-from ..pipeline.regions import REGION_DEFAULTS  # noqa: F401  (the Auto Regions preset, re-exported)
 from ..pipeline import shot_settings
-from ..pipeline.shot_settings import ADDON_ID, preferences  # noqa: F401  (re-exported)
+from ..pipeline.shot_settings import ADDON_ID
 from . import scene_settings
 
 #: Refine Lips solver settings of the preset ``assets/presets/sketch_refine.json``.
@@ -31,7 +30,7 @@ def _draw(self, context):
         box = col.box()
         box.label(text=e.cls.__name__.removesuffix("Settings"))
         grp = getattr(self, e.attr)
-        for d in scene_settings.fields(e):
+        for d in shot_settings.fields(e):
             box.prop(grp, d["name"])
 
 

@@ -13,7 +13,6 @@ from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, Po
 from ..names import BUNDLES_COLLECTION
 from ..pipeline.reconstruct import ReconstructSettings
 from ..pipeline.settings import describe
-from ..pipeline.shot_settings import corrective_settings, reconstruct_settings  # noqa: F401  (re-exported)
 
 _SETTINGS = {d["name"]: d for d in describe(ReconstructSettings)}
 METHODS = [tuple(c) for c in _SETTINGS["method"]["choices"]]

@@ -26,12 +26,6 @@ from bpy.props import (
 )
 
 from ..names import BUNDLES_COLLECTION, SOLVE_ACTION, SOLVE_PREFIX
-from ..pipeline.shot_settings import (  # noqa: F401  (the readers of these properties, re-exported)
-    bind_settings,
-    retarget_settings,
-    scene_views,
-    solve_settings,
-)
 
 
 def _is_camera(self, obj):

@@ -20,24 +20,7 @@ import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
 from ..pipeline import shot_settings
-from ..pipeline.shot_settings import (  # noqa: F401  (the registry's helpers and readers, re-exported)
-    INITIALIZED,
-    SHARED,
-    UNIT_LABELS,
-    Entry,
-    add_flags,
-    apply_flags,
-    command_fields,
-    copy_values,
-    ensure_initialized,
-    entry_for,
-    fields,
-    label,
-    panel_fields,
-    preference_defaults,
-    scene_settings,
-    values,
-)
+from ..pipeline.shot_settings import INITIALIZED, Entry, ensure_initialized, fields, label, panel_fields
 from .common import face_object
 
 

@@ -56,6 +56,7 @@ def _round_one(face):
     return shapes
 
 
+@pytest.mark.slow
 def test_refine_after_propagate_keeps_the_fix(addon, solved):
     face = sample_face()
     first = _round_one(face)
@@ -70,6 +71,7 @@ def test_refine_after_propagate_keeps_the_fix(addon, solved):
         assert _mm(shown_frames(face, [g])[0], s) < TOL_MM
 
 
+@pytest.mark.slow
 def test_refine_twice_on_one_frame(addon, solved):
     face = sample_face()
     _round_one(face)
@@ -112,6 +114,7 @@ def test_sculpt_on_a_propagated_frame_then_mark_training_frame(addon):
     assert _mm(shown_frames(face, [f])[0], seen) < TOL_MM
 
 
+@pytest.mark.slow
 def test_show_capture_during_refine_and_propagate(addon, solved, tmp_path):
     # reference: Refine 41 and Propagate with Review off
     ref = sample_face()
@@ -230,6 +233,7 @@ def test_the_readme_loop_improves_each_round(addon):
     assert held[-1] <= 1.1 * one["rounds"][-1]["held_out_rms_mm"], (held[-1], one["rounds"][-1])
 
 
+@pytest.mark.slow
 def test_save_and_reload_between_rounds_changes_nothing(addon, tmp_path):
     plan = [list(FIRST), [41, 7]]
     straight = run_loop(sample_face(), plan=plan)

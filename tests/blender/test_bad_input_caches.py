@@ -204,6 +204,7 @@ def test_bakes_to_unwritable_places_are_output_errors(tmp_path):
 
 
 @pytest.mark.parametrize("kind", ["truncated", "deleted"])
+@pytest.mark.slow
 def test_propagate_operator_refuses_a_broken_mesh_cache(tmp_path, ict, addon, kind):
     """The probe's case: Propagate over a Mesh Cache whose file broke after the training frames were made."""
     from facelab_addon.blender.shapekeys import add_corrective_key, key_spike

@@ -14,7 +14,9 @@ import numpy as np
 import pytest
 
 from facelab_addon.cli import _common
-from facelab_addon.cli._common import CliError, contiguous, exit_code_for, operator_failure, parse_frames
+from facelab_addon.cli._common import exit_code_for, operator_failure
+from facelab_addon.cli._errors import CliError
+from facelab_addon.cli._frames import contiguous, parse_frames
 from facelab_addon.core.capture.pointcache_writer import write_pc2
 from facelab_addon.core.errors import (
     CacheFileError,
@@ -381,6 +383,7 @@ def test_a_folder_or_a_blend_from_a_newer_blender(tmp_path, addon):
                              for n in s["notes"]), s
 
 
+@pytest.mark.slow
 def test_a_saved_shot_whose_alembic_was_truncated_is_refused_before_blender_reads_it(tmp_path, addon):
     """Blender aborts (signal 6) opening a .blend whose Alembic capture is truncated: in a subprocess."""
     from .test_caches import T, ico, key_per_frame, known_sequence, rest_of
@@ -410,6 +413,7 @@ def test_a_saved_shot_whose_alembic_was_truncated_is_refused_before_blender_read
 # --------------------------------------------------------------------------- refine: never a second key in silence
 
 
+@pytest.mark.slow
 def test_refine_without_frames_refines_only_frames_not_refined_yet(ict, addon, tmp_path):
     from .test_cli import sketched_shot
     from .test_refine_operator import FRAME

@@ -18,9 +18,9 @@ import pytest  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
 from facelab_addon.blender import bakes, cache_integrate, caches  # noqa: E402
-from facelab_addon.blender.shapekeys import own_key  # noqa: E402
+from facelab_addon.blender.ownership import own_key  # noqa: E402
 from facelab_addon.core.capture import integrate, meshcache, pointcache, pointcache_writer  # noqa: E402
-from facelab_addon.core.errors import FaceLabError, MeshError  # noqa: E402
+from facelab_addon.core.errors import CacheVertexCountError, FaceLabError, MeshError  # noqa: E402
 
 pytestmark = [pytest.mark.blender, pytest.mark.usefixtures("empty_scene")]  # every test: an empty scene
 
@@ -174,7 +174,7 @@ def test_mesh_cache_vertex_count_mismatch(tmp_path):
     ob = ico()
     pointcache_writer.write_pc2(tmp_path / "w.pc2", np.zeros((2, 7, 3)))
     add_mesh_cache(ob, tmp_path / "w.pc2", "PC2")
-    with pytest.raises(pointcache.CacheVertexCountError, match="7 points but 'Face' has 42 vertices"):
+    with pytest.raises(CacheVertexCountError, match="7 points but 'Face' has 42 vertices"):
         caches.read_mesh_cache_frames(ob, [1])
     with pytest.raises(MeshError, match="no enabled Mesh Cache"):
         caches.read_mesh_cache_frames(ico("Other"), [1])

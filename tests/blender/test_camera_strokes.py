@@ -421,7 +421,8 @@ def test_grease_pencil_object_wins_over_annotation(empty_scene):
 
 
 def test_one_sketch_per_camera_and_the_views_of_a_frame(empty_scene):
-    from facelab_addon.blender.sketch_views import SKETCH_CAMERA_PROP, sketch_camera, sketch_views
+    from facelab_addon.blender.sketch_views import sketch_views
+    from facelab_addon.blender.strokes import SKETCH_CAMERA_PROP, sketch_camera
 
     scene = empty_scene
     cam_a, camera_a = face_camera(scene)

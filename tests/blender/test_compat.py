@@ -80,6 +80,7 @@ def test_node_tree_and_material_fill(empty_scene):
     assert np.allclose(gp_mat.grease_pencil.fill_color, (0.2, 0.4, 0.6, 0.0))
 
 
+@pytest.mark.slow
 def test_cli_unregisters_what_it_registered(tmp_path):
     """A process that leaves FaceLab registered hangs at exit in bpy 4.5: the CLI unregisters first."""
     script = tmp_path / "run_cli.py"

@@ -9,6 +9,7 @@ import pytest
 pytestmark = pytest.mark.blender
 
 
+@pytest.mark.slow
 def test_first_hour_on_the_sample(addon, tmp_path):
     from facelab_addon.testing.first_hour import walk
 

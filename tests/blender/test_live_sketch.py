@@ -25,6 +25,7 @@ def _triangles(data):
 
 @pytest.fixture(scope="module")
 def sample(addon):
+    from facelab_addon.core.lips.mouth import find_mouth
     from facelab_addon.testing import synthetic as syn
 
     data = read_sample()
@@ -32,8 +33,8 @@ def sample(addon):
     assert bpy.ops.facelab.load_sample() == {"FINISHED"}
     scene = bpy.context.scene
     F = _triangles(data)
-    mouth = syn.find_mouth(data.vertices, F, None, near=data.vertices[data.inner_lip_loop].mean(0),
-                           units_per_mm=0.001)
+    mouth = find_mouth(data.vertices, F, None, near=data.vertices[data.inner_lip_loop].mean(0),
+                       units_per_mm=0.001)
     truth = {}
     for f in (FRAME,):
         truth[f] = syn.lip_contours(data.truth()[f - 1], F, data.camera, mouth=mouth)
@@ -345,7 +346,7 @@ def _half(P, first=True):
 def test_live_refine_stroke_by_stroke_then_accept_is_a_refine(sample):
     from facelab_addon.blender.caches import evaluate_frames
     from facelab_addon.blender.mesh import evaluated_vertices
-    from facelab_addon.blender.shapekeys import key_matches, owned_keys
+    from facelab_addon.blender.ownership import key_matches, owned_keys
     from facelab_addon.pipeline.live_refine import PREVIEW_KEY, LiveRefine
 
     data, scene, face, gp, cam, (up, lo) = _sketch(sample)

@@ -11,6 +11,7 @@ from facelab_addon.blender.mesh import mesh_triangles, vertex_group_mask
 from facelab_addon.blender.strokes import write_stroke_pixels
 from facelab_addon.core.capture.pointcache_writer import write_pc2
 from facelab_addon.core.geometry.silhouette import contour_distance
+from facelab_addon.core.lips.mouth import find_mouth
 from facelab_addon.core.lips.regressor import LipRegressor
 from facelab_addon.core.lips.regions import faces_in_region
 from facelab_addon.pipeline.propagate import training_input
@@ -24,7 +25,7 @@ T = 16
 TRAIN = [3, 9, 14]
 
 
-@pytest.mark.parametrize("patch", [False, True])
+@pytest.mark.parametrize("patch", [False, pytest.param(True, marks=pytest.mark.slow)])
 def test_refine_and_propagate_on_a_mesh_cache(tmp_path, ict, addon, patch, monkeypatch):
     """``patch``: the key offsets count as needing more shapes than keys hold (as on a long shot), so the
     correction goes to a point cache of the corrected vertices after the capture (Geometry Nodes)."""
@@ -39,7 +40,7 @@ def test_refine_and_propagate_on_a_mesh_cache(tmp_path, ict, addon, patch, monke
     funnel = 0.15 + 0.1 * np.cos(2 * np.pi * t)
     truth = np.stack([ict.pose({"jawOpen": a, "mouthFunnel": b}) * SCALE for a, b in zip(jaw, funnel)])
     fixed = ~ict.part_vertex_mask("M_Face")
-    mouth = syn.find_mouth(neutral, F, fixed, loop=syn.ICT_MOUTH_LOOP, units_per_mm=UPM)
+    mouth = find_mouth(neutral, F, fixed, loop=syn.ICT_MOUTH_LOOP, units_per_mm=UPM)
     w, side = syn.lip_error_weights(neutral, F, fixed, mouth=mouth)
     err = np.zeros_like(neutral)
     err[:, 1] = side * w * 1.0 * UPM
@@ -58,7 +59,7 @@ def test_refine_and_propagate_on_a_mesh_cache(tmp_path, ict, addon, patch, monke
     bcam = camera_from_blender(scene)
     for f in TRAIN:
         scene.frame_set(f)
-        m_f = syn.find_mouth(truth[f - 1], F, fixed, loop=syn.ICT_MOUTH_LOOP, units_per_mm=UPM)
+        m_f = find_mouth(truth[f - 1], F, fixed, loop=syn.ICT_MOUTH_LOOP, units_per_mm=UPM)
         up, lo = syn.lip_contours(truth[f - 1], F, cam, fixed, mouth=m_f)
         bpy.context.view_layer.objects.active = obj
         bpy.ops.facelab.new_lip_sketch()
@@ -84,7 +85,7 @@ def test_refine_and_propagate_on_a_mesh_cache(tmp_path, ict, addon, patch, monke
     assert bpy.ops.facelab.propagate(suggestions=0) == {"FINISHED"}
     names = [(m.name, m.type) for m in obj.modifiers]
     if patch:
-        from facelab_addon.blender.bakes import correction_cache
+        from facelab_addon.blender.ownership import correction_cache
         from facelab_addon.core.capture.pointcache import cache_info
 
         assert names == [("Capture", "MESH_CACHE"), ("FL_Prop_Cache", "NODES")] and not [
@@ -126,7 +127,7 @@ def test_refine_and_propagate_on_a_mesh_cache(tmp_path, ict, addon, patch, monke
     # (Propagate's correction, keys or the point cache after the capture, is keyed off on the refined frame)
     f = 6
     scene.frame_set(f)
-    m_f = syn.find_mouth(truth[f - 1], F, fixed, loop=syn.ICT_MOUTH_LOOP, units_per_mm=UPM)
+    m_f = find_mouth(truth[f - 1], F, fixed, loop=syn.ICT_MOUTH_LOOP, units_per_mm=UPM)
     up, lo = syn.lip_contours(truth[f - 1], F, cam, fixed, mouth=m_f)
     bpy.context.view_layer.objects.active = obj
     bpy.ops.facelab.new_lip_sketch()

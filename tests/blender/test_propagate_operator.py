@@ -28,11 +28,12 @@ def lip_capture_error(ict):
     of the lip region Auto Regions proposes (that border is held by the Poisson solve).
     """
     from facelab_addon.core.geometry.geodesic import geodesic_distance
+    from facelab_addon.core.lips.mouth import find_mouth
     from facelab_addon.core.lips.regions import auto_regions, region_border
     from facelab_addon.testing import synthetic as syn
 
     fixed = ~ict.part_vertex_mask("M_Face")
-    mouth = syn.find_mouth(ict.neutral, ict.faces, fixed, loop=syn.ICT_MOUTH_LOOP)
+    mouth = find_mouth(ict.neutral, ict.faces, fixed, loop=syn.ICT_MOUTH_LOOP)
     w, side = syn.lip_error_weights(ict.neutral, ict.faces, fixed, mouth=mouth)
     # fade to zero before the border of the lip region Auto Regions will propose (the border is held)
 
@@ -60,7 +61,7 @@ def build(ict):
 def paper_settings(scene):
     """The shot's Propagate settings set to the paper's maps, undamped (the core regressor's defaults)."""
     from facelab_addon.pipeline.propagate import PropagateSettings
-    from facelab_addon.ui.scene_settings import ensure_initialized, entry_for
+    from facelab_addon.pipeline.shot_settings import ensure_initialized, entry_for
 
     ensure_initialized(scene, entry_for(PropagateSettings))
     scene.facelab_propagate.ridge, scene.facelab_propagate.damping = "none", False

@@ -10,8 +10,9 @@ import pytest
 from facelab_addon.blender import caches
 from facelab_addon.blender.capture_stream import CaptureReader
 from facelab_addon.names import PROPAGATE_PREFIX
-from facelab_addon.pipeline.propagate import PropagateSettings, propagate, record_training_frame
+from facelab_addon.pipeline.propagate import PropagateSettings, propagate
 from facelab_addon.pipeline.regions import auto_regions
+from facelab_addon.pipeline.training import record_training_frame
 
 from ..pipeline.test_propagate import corrected_scene, pc2_capture_face
 from .test_propagate_operator import FRAMES

@@ -25,6 +25,7 @@ def truth_all(truth, neutral):
     return np.concatenate([neutral[None], truth])
 
 
+@pytest.mark.slow
 def test_reconstruct_from_bundles_end_to_end(ict, addon):
     T = 6
     fs = build_ict_face_scene(ict, EXPR, frame_range=(1, T), scale=SCALE, select=False)
@@ -130,6 +131,7 @@ def _simple_scene(ict, keys, n_bundles=30, T=3):
     return scene, obj, empties, X
 
 
+@pytest.mark.slow
 def test_operator_reports_bad_input_with_the_fix(ict, addon):
     # fewer than 4 dataset shapes
     _simple_scene(ict, EXPR[:3])
@@ -163,6 +165,7 @@ def test_operator_reports_bad_input_with_the_fix(ict, addon):
         bpy.ops.facelab.reconstruct_from_bundles()
 
 
+@pytest.mark.slow
 def test_missing_bundles_skip_their_frames(ict, addon):
     scene, obj, empties, X = _simple_scene(ict, EXPR[:6], T=3)
     # bundle B07 is lost on frame 2: its empty is disabled in renders there (hiding it in the viewport would
@@ -192,6 +195,7 @@ def test_missing_bundles_skip_their_frames(ict, addon):
 # --------------------------------------------------------------------------- bake the reconstruction (issue 5)
 
 
+@pytest.mark.slow
 def test_reconstructed_face_bakes_to_pc2_mdd_and_alembic(ict, addon, tmp_path):
     from facelab_addon.core.capture.pointcache import read_cache
 
@@ -218,6 +222,7 @@ def test_reconstructed_face_bakes_to_pc2_mdd_and_alembic(ict, addon, tmp_path):
 # --------------------------------------------------------------------------- jaw bone (Eq. 2)
 
 
+@pytest.mark.slow
 def test_jaw_bone_drives_the_jaw(ict, addon, gen):
     from mathutils import Matrix
 
@@ -316,6 +321,7 @@ def test_jaw_bone_drives_the_jaw(ict, addon, gen):
 # --------------------------------------------------------------------------- point mesh (vertex list)
 
 
+@pytest.mark.slow
 def test_point_mesh_bundles_animated_by_shape_keys(ict, addon):
     scene, obj, empties, X = _simple_scene(ict, EXPR[:6], T=3)
     from facelab_addon.blender.bundles import read_bundles
@@ -348,6 +354,7 @@ def rest_vertices_of(obj):
 # --------------------------------------------------------------------------- corrective shapes (Fig. 7)
 
 
+@pytest.mark.slow
 def test_generate_correctives_adds_driven_keys_that_beat_the_linear_rig(ict, addon, gen):
     from facelab_addon.core.lgi.correctives import RigCorrectives
 

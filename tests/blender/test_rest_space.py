@@ -128,6 +128,7 @@ def test_topology_changing_stack_is_refused(addon):
 ICT_LIP_RING = np.arange(6632, 6706)  # the ICT-FaceKit inner-lip ring (shared/ict-facekit/README.md)
 
 
+@pytest.mark.slow
 def test_refine_on_a_rigged_face_shows_the_solver_result(tmp_path, ict, addon, monkeypatch):
     from facelab_addon.blender.camera import camera_from_blender
     from facelab_addon.blender.strokes import new_lip_sketch, write_stroke_pixels
@@ -165,6 +166,7 @@ def test_refine_on_a_rigged_face_shows_the_solver_result(tmp_path, ict, addon, m
     assert e < TOL
 
 
+@pytest.mark.slow
 def test_propagate_on_a_rigged_face_shows_the_regression(ict, addon):
     from ..pipeline.test_propagate import HELD, corrected_scene, independent_prediction
     from .test_propagate_operator import FRAMES as SHOT

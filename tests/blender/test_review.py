@@ -121,6 +121,7 @@ def test_heat_map_is_the_correction_in_world_millimetres(addon):
     assert np.allclose(col[:, :3], review.HEAT_STOPS[0, 1:])
 
 
+@pytest.mark.slow
 def test_heat_map_of_a_propagated_correction_matches_the_injected_error(ict, addon):
     """After Propagate on the ICT capture, the heat map of a held-out frame is the size of the lip error
     it removes (the truth), to within the regression's residual."""

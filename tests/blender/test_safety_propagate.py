@@ -7,13 +7,15 @@ import numpy as np
 import pytest
 
 from facelab_addon.blender import caches
-from facelab_addon.blender.shapekeys import add_corrective_key, find_fcurve, key_spike, owned_keys
+from facelab_addon.blender.ownership import owned_keys
+from facelab_addon.blender.shapekeys import add_corrective_key, find_fcurve, key_spike
 from facelab_addon.core.errors import MeshError
 from facelab_addon.names import EXTRAPOLATION_PROP, OWNED_KEYS_PROP, PROPAGATE_PREFIX
 from facelab_addon.pipeline import propagate as propagate_module
-from facelab_addon.pipeline.propagate import propagate, propagate_steps, record_training_frame
+from facelab_addon.pipeline.propagate import propagate, propagate_steps
 from facelab_addon.pipeline.regions import auto_regions
 from facelab_addon.pipeline.steps import StepJob
+from facelab_addon.pipeline.training import record_training_frame
 
 from .test_propagate_operator import FRAMES, SCALE
 
@@ -35,6 +37,7 @@ def coords(obj, name):
     return c
 
 
+@pytest.mark.slow
 def test_artist_key_named_like_facelabs_survives_propagate(ict, addon):
     scene, obj, err = corrected(ict)
     fix = obj.shape_key_add(name="FL_Prop_MyFix", from_mix=False)  # the artist's own, in the Shape Keys panel
@@ -60,6 +63,7 @@ def test_negative_start_frame_is_honoured(ict, addon):
     assert keyed[0] == -4 and keyed[-1] == FRAMES[-1] and len(keyed) == len(FRAMES) + 5
 
 
+@pytest.mark.slow
 def test_broken_frame_is_named_by_its_scene_frame(ict, addon, monkeypatch):
     scene, obj, err = corrected(ict)
     read = propagate_module.CaptureReader.read  # Propagate streams the capture through a CaptureReader
@@ -76,6 +80,7 @@ def test_broken_frame_is_named_by_its_scene_frame(ict, addon, monkeypatch):
     assert list(obj.data.shape_keys.key_blocks.keys()) == keys_before  # nothing written
 
 
+@pytest.mark.slow
 def test_cancel_and_failure_on_a_mesh_cache_leave_the_modifier_as_it_was(ict, addon, tmp_path, monkeypatch):
     from ..pipeline.test_propagate import pc2_capture_face
 
@@ -107,6 +112,7 @@ def test_cancel_and_failure_on_a_mesh_cache_leave_the_modifier_as_it_was(ict, ad
                                atol=1e-6)  # the capture plays as before
 
 
+@pytest.mark.slow
 def test_a_neutral_training_frame_is_refused_naming_its_scene_frame(ict, addon):
     """The issue's case 1 through the operator: a lip fix sculpted on a still, neutral face as the only
     training frame used to move the lips by kilometres on other frames; now Propagate refuses, names the
@@ -128,6 +134,7 @@ def test_a_neutral_training_frame_is_refused_naming_its_scene_frame(ict, addon):
     assert obj.data.shape_keys.key_blocks.keys() == before
 
 
+@pytest.mark.slow
 def test_an_artist_key_named_like_facelabs_is_read_as_part_of_the_capture(ict, addon):
     """Reading the capture mutes FaceLab's recorded output only: the artist's own ``FL_Prop_MyFix``
     shows in what Propagate reads, while a key FaceLab wrote is left out."""
@@ -146,7 +153,7 @@ def test_an_artist_key_named_like_facelabs_is_read_as_part_of_the_capture(ict, a
     assert moved[30:].max() < 1e-7
     # FaceLab's own key with the same prefix is muted when the capture is read
     ours = add_corrective_key(obj, f"{PROPAGATE_PREFIX}00", np.full((len(obj.data.vertices), 3), 0.002))
-    from facelab_addon.blender.shapekeys import own_key
+    from facelab_addon.blender.ownership import own_key
 
     own_key(ours)
     ours.value = 1.0

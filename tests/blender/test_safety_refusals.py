@@ -13,7 +13,8 @@ import pytest
 
 from facelab_addon.blender.bakes import bake_destination
 from facelab_addon.blender.objects import ModifierState, NotEditableError, require_editable
-from facelab_addon.blender.shapekeys import add_corrective_key, add_keys_from_deltas, key_spike, owned_keys, remove_keys
+from facelab_addon.blender.ownership import owned_keys
+from facelab_addon.blender.shapekeys import add_corrective_key, add_keys_from_deltas, key_spike, remove_keys
 from facelab_addon.core.errors import FaceLabError, OutputError
 from facelab_addon.names import OWNED_KEYS_PROP, PROPAGATE_PREFIX, SOLVE_PREFIX
 from facelab_addon.pipeline.bake import BakeSettings, bake
@@ -64,10 +65,11 @@ def linked_face(addon, tmp_path):
 
 # --------------------------------------------------------------------------- library-linked faces
 def test_linked_face_is_refused_by_every_writer(linked_face, tmp_path):
-    from facelab_addon.pipeline.propagate import add_corrected_frame, propagate_steps
+    from facelab_addon.pipeline.propagate import propagate_steps
     from facelab_addon.pipeline.reconstruct import ReconstructSettings, reconstruct_from_bundles
     from facelab_addon.pipeline.regions import auto_regions
     from facelab_addon.pipeline.solve import SolveSettings, solve_performance
+    from facelab_addon.pipeline.training import add_corrected_frame
 
     ob, scene = linked_face, bpy.context.scene
     before = key_coords(ob, "Smile").copy()

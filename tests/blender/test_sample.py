@@ -82,6 +82,7 @@ def test_load_sample_needs_neither_network_nor_ict(sample, monkeypatch, tmp_path
 
 def test_auto_regions_refine_propagate_on_the_sample_close_the_lips(sample):
     from facelab_addon.blender.mesh import vertex_group_mask
+    from facelab_addon.core.lips.mouth import find_mouth
     from facelab_addon.core.lips.regions import faces_in_region
     from facelab_addon.core.lips.suggest import suggest_frames
     from facelab_addon.testing import synthetic as syn
@@ -97,8 +98,8 @@ def test_auto_regions_refine_propagate_on_the_sample_close_the_lips(sample):
     assert face.vertex_groups.get(MOUTH_GROUP) and face.vertex_groups.get(LIPS_GROUP)
 
     # the artist traces the plate (the truth) on frames FaceLab would suggest
-    mouth = syn.find_mouth(data.vertices, F, None, near=data.vertices[data.inner_lip_loop].mean(0),
-                           units_per_mm=0.001)
+    mouth = find_mouth(data.vertices, F, None, near=data.vertices[data.inner_lip_loop].mean(0),
+                       units_per_mm=0.001)
     cam = Camera(data.camera.K, data.camera.R, data.camera.t, data.camera.width, data.camera.height)
     bcam = camera_from_blender(scene)
     mouth_faces = faces_in_region(F, vertex_group_mask(face, MOUTH_GROUP))

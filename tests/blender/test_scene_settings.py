@@ -16,7 +16,7 @@ from facelab_addon.pipeline.regions import RegionSettings
 from facelab_addon.pipeline import shot_settings
 from facelab_addon.pipeline.settings import describe, setting
 from facelab_addon.pipeline.shot_settings import SCENE_SETTINGS, Entry
-from facelab_addon.ui import ops, prefs, scene_settings
+from facelab_addon.ui import ops, prefs
 
 from .test_ui import RecordingLayout, empty_scene, small_face
 
@@ -30,7 +30,7 @@ def test_every_declared_field_is_a_scene_property(addon):
         grp = getattr(scene, e.attr)
         rna = grp.bl_rna.properties
         for d in describe(e.cls):
-            if d["name"] in scene_settings.SHARED:  # stored once, in Setup
+            if d["name"] in shot_settings.SHARED:  # stored once, in Setup
                 assert d["name"] not in rna and d["name"] in scene.facelab.bl_rna.properties
                 continue
             p = rna[d["name"]]
@@ -46,7 +46,7 @@ def test_every_declared_field_is_a_scene_property(addon):
     assert scene.facelab_regions.bl_rna.properties["lip_width"].name == "Lip Band (mouth widths)"
     # the settings the operators get are the dataclass's (exact decimals, not 32-bit floats)
     assert ops.refine_settings(bpy.context) == RefineSettings()
-    assert scene_settings.scene_settings(scene, RegionSettings, replace=True) == RegionSettings(replace=True)
+    assert shot_settings.scene_settings(scene, RegionSettings, replace=True) == RegionSettings(replace=True)
 
 
 def test_settings_are_saved_with_the_shot_and_used(addon, tmp_path):
@@ -62,7 +62,7 @@ def test_settings_are_saved_with_the_shot_and_used(addon, tmp_path):
     bpy.ops.wm.open_mainfile(filepath=str(path))
     r = ops.refine_settings(bpy.context)
     assert (r.lambda_silh, r.iterations, r.fixed_group, r.lambda_pos) == (2.5, 7, "Teeth", 0.1)
-    assert scene_settings.scene_settings(bpy.context.scene, PropagateSettings).suggestions == 6
+    assert shot_settings.scene_settings(bpy.context.scene, PropagateSettings).suggestions == 6
     # Reset: back to the defaults (the preferences', here the dataclass's)
     assert bpy.ops.facelab.reset_settings(target="facelab_refine") == {"FINISHED"}
     assert ops.refine_settings(bpy.context) == RefineSettings(fixed_group="Teeth")
@@ -73,19 +73,19 @@ def test_settings_are_saved_with_the_shot_and_used(addon, tmp_path):
 def test_new_scenes_take_the_preferences_defaults(addon, monkeypatch):
     empty_scene()
     scene = bpy.data.scenes.new("Shot")  # (a loaded file's scenes are filled on load)
-    entry = scene_settings.entry_for("facelab_refine")
+    entry = shot_settings.entry_for("facelab_refine")
     mine = dict(iterations=9, lambda_pos=0.2, lambda_reg=4.0, lambda_silh=1.5)
-    stored = {d["name"]: d["default"] for d in scene_settings.fields(entry)} | mine
+    stored = {d["name"]: d["default"] for d in shot_settings.fields(entry)} | mine
     fake = types.SimpleNamespace(facelab_refine=types.SimpleNamespace(**stored))
     monkeypatch.setattr(shot_settings, "preferences", lambda context=None: fake)
-    assert scene_settings.preference_defaults(entry) == stored
-    r = scene_settings.scene_settings(scene, RefineSettings)  # first use: filled from the preferences
+    assert shot_settings.preference_defaults(entry) == stored
+    r = shot_settings.scene_settings(scene, RefineSettings)  # first use: filled from the preferences
     assert (r.iterations, r.lambda_reg) == (9, 4.0)
     fake.facelab_refine.iterations = 3  # preferences changed later: this shot keeps its own
-    assert scene_settings.scene_settings(scene, RefineSettings).iterations == 9
+    assert shot_settings.scene_settings(scene, RefineSettings).iterations == 9
     other = bpy.data.scenes.new("Other")
     other.facelab_refine.lambda_silh = 3.0  # an edit makes the values the shot's own
-    r = scene_settings.scene_settings(other, RefineSettings)
+    r = shot_settings.scene_settings(other, RefineSettings)
     assert (r.lambda_silh, r.iterations) == (3.0, 5)
 
 
@@ -113,7 +113,7 @@ def test_a_settings_class_is_added_with_one_line(addon, monkeypatch):
         grp = scene.facelab_example
         assert grp.bl_rna.properties["tolerance"].name == "Tolerance (mm)" and "internal" not in grp.bl_rna.properties
         grp.tolerance, grp.codec = 0.2, "cache"
-        assert scene_settings.scene_settings(scene, _StorageSettings) == _StorageSettings(tolerance=0.2, codec="cache")
+        assert shot_settings.scene_settings(scene, _StorageSettings) == _StorageSettings(tolerance=0.2, codec="cache")
         # its sub-panel under Train & Propagate draws every field
         sub = bpy.types.FACELAB_PT_facelab_example
         assert sub.bl_parent_id == "FACELAB_PT_propagate"
@@ -126,12 +126,12 @@ def test_a_settings_class_is_added_with_one_line(addon, monkeypatch):
 
         args = build_parser().parse_args(["propagate", "x.blend", "--tolerance", "0.5", "--no-sparse",
                                           "--codec", "keys", "--lip-width", "0.2"])
-        got = scene_settings.apply_flags(args, scene, "propagate")
+        got = shot_settings.apply_flags(args, scene, "propagate")
         assert got["facelab_example"] == dict(tolerance=0.5, sparse=False, max_keys=8, codec="keys")
         assert got["facelab_regions"]["lip_width"] == 0.2 and scene.facelab_regions.lip_width == pytest.approx(0.2)
         args = build_parser().parse_args(["propagate", "x.blend", "--max-keys", "0"])
         with pytest.raises(ValueError, match="--max-keys 0: below the minimum 1"):
-            scene_settings.apply_flags(args, scene, "propagate")
+            shot_settings.apply_flags(args, scene, "propagate")
         with pytest.raises(SystemExit):
             build_parser().parse_args(["propagate", "x.blend", "--codec", "zip"])
     finally:
@@ -156,9 +156,9 @@ def test_settings_subpanels_draw(addon):
             fake = type("P", (), {"layout": RecordingLayout()})()
             adv.draw(fake, ctx)
             props += [a[1] for m, a, kw in fake.layout.log if m == "prop"]
-        assert sorted(props) == sorted(d["name"] for d in scene_settings.fields(e)), e.attr
+        assert sorted(props) == sorted(d["name"] for d in shot_settings.fields(e)), e.attr
     # flags of a command without FaceLab settings: none added
     p = argparse.ArgumentParser()
-    scene_settings.add_flags(p, "no-such-command")
+    shot_settings.add_flags(p, "no-such-command")
     assert [a.dest for a in p._actions] == ["help"]
     assert scene is not None

@@ -9,7 +9,8 @@ import pytest
 
 from facelab_addon.blender import caches
 from facelab_addon.blender.camera import camera_from_blender
-from facelab_addon.blender.shapekeys import find_fcurve, owned_keys
+from facelab_addon.blender.ownership import owned_keys
+from facelab_addon.blender.shapekeys import find_fcurve
 from facelab_addon.blender.strokes import new_lip_sketch, write_stroke_pixels
 from facelab_addon.core.errors import SketchError
 from facelab_addon.names import OWNED_KEYS_PROP, PROPAGATE_PREFIX
@@ -51,6 +52,7 @@ def refine_error(rs, frame, sketch=None):
 
 # --------------------------------------------------------------------------- handedness
 @pytest.mark.parametrize("how", ["object", "parent"])
+@pytest.mark.slow
 def test_a_mirrored_face_is_refined_as_the_unmirrored_one(ict, addon, how):
     """Scale (-1, 1, 1) on the face (or on its parent) turns its triangles' winding over in world space: the
     lips' normals pointed into the head and Refine read the upper lip as the lower one (measured 0.38 -> 0.63 mm,
@@ -73,6 +75,7 @@ def test_a_mirrored_face_is_refined_as_the_unmirrored_one(ict, addon, how):
     assert after < 0.55 * before, (before, after)
 
 
+@pytest.mark.slow
 def test_strokes_on_swapped_layers_are_refused(ict, addon):
     """The upper lip drawn on 'Lower lip' and the lower on 'Upper lip' over open lips: refused with the fix
     (was accepted, and Refine made the lips 0.38 -> 0.65 mm); drawn right, the same strokes refine."""
@@ -95,6 +98,7 @@ def test_strokes_on_swapped_layers_are_refused(ict, addon):
 
 
 # --------------------------------------------------------------------------- the artist's keys
+@pytest.mark.slow
 def test_an_artists_key_named_like_facelabs_is_left_alone(ict, addon):
     """``FL_Prop_00`` made by the artist in a file FaceLab never touched (no registry): Propagate writes its
     keys under free names and leaves the artist's coordinates, slider range and animation as they were."""
@@ -178,6 +182,7 @@ def test_two_shown_sketches_of_one_camera_are_refused_and_a_hidden_one_is_skippe
 
 
 # --------------------------------------------------------------------------- scene time
+@pytest.mark.slow
 def test_time_stretching_is_refused_by_every_reader_and_writer(ict, addon):
     """Time Stretching 100 -> 50: Blender shows on frame F the animation of frame 2F, the shape keys' F-curves
     read directly give frame F (measured 9.1 mm apart on this shot), and keys written on frame F play on F/2.
@@ -215,6 +220,7 @@ def test_time_stretching_is_refused_by_every_reader_and_writer(ict, addon):
     assert bpy.ops.facelab.propagate(suggestions=0) == {"FINISHED"}
 
 
+@pytest.mark.slow
 def test_a_subframe_left_on_is_not_read_as_the_frame(ict, addon):
     """The scene left on frame 2 + 0.5 subframe (scrubbing with subframes): Refine of frame 2 read the face of
     frame 2.5; now it sets the whole frame, and the key is the one refined from frame 2 itself."""
@@ -235,6 +241,7 @@ def test_a_subframe_left_on_is_not_read_as_the_frame(ict, addon):
 
 # --------------------------------------------------------------------------- scale
 @pytest.mark.parametrize("scale", [1e-3, 1e3])
+@pytest.mark.slow
 def test_a_face_at_a_thousandth_or_a_thousand_times_its_size_is_corrected(ict, addon, scale):
     """The face and its cameras scaled 1/1000 (0.2 mm wide in a metre scene) or 1000x: Auto Regions, Refine and
     Propagate work as at life size. At 1/1000 Propagate raised ``ValueError: cannot reshape array of size 0``:
@@ -291,6 +298,7 @@ def test_a_mesh_far_from_its_origin_is_refused_with_the_fix(ict, addon):
 
 
 # --------------------------------------------------------------------------- messages that point the right way
+@pytest.mark.slow
 def test_an_infinite_key_is_named_with_the_frame_it_is_on(ict, addon):
     """+inf in one vertex of a key keyed to 1 only on frame 20: the reader mixed 0 x inf = NaN into every frame
     and the message named frames 1-5. Now the frames where the key is 0 read as Blender shows them, and the

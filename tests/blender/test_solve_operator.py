@@ -163,6 +163,7 @@ def add_contours(ict, scene, obj, views, truth, cams):
     return got
 
 
+@pytest.mark.slow
 def test_solve_and_retarget_end_to_end(ict, addon, tmp_path):
     t_start = time.perf_counter()
     scene, obj, cams, markers, truth, views = build(ict, tmp_path)
@@ -299,6 +300,7 @@ def test_solve_and_retarget_end_to_end(ict, addon, tmp_path):
     print(f"solve {t_solve:.1f} s, retarget {t_ret:.1f} s, test total {time.perf_counter() - t_start:.1f} s")
 
 
+@pytest.mark.slow
 def test_bad_input_messages(ict, addon, tmp_path):
     scene, obj, cams, markers, truth, views = build(ict, tmp_path)
     bpy.context.view_layer.objects.active = obj
@@ -441,6 +443,7 @@ def test_panel_sections_draw(addon):
         assert want in seen, want
 
 
+@pytest.mark.slow
 def test_retarget_with_marker_correspondence(ict, addon, tmp_path):
     """Correspondence from empties named like the bound tracks; too few of them is refused."""
     from facelab_addon.blender.bindings import read_bindings

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from facelab_addon.blender import caches
-from facelab_addon.blender.shapekeys import add_corrective_key, key_values_bulk, owned_keys
+from facelab_addon.blender.ownership import owned_keys
+from facelab_addon.blender.shapekeys import add_corrective_key, key_values_bulk
 from facelab_addon.core.errors import FaceLabError, MeshError
 from facelab_addon.core.geometry.compress import StorageOutcome
 from facelab_addon.names import CORRECTION_CACHES_PROP, OWNED_KEYS_PROP, PROPAGATE_PREFIX, SOLVE_PREFIX
@@ -261,6 +262,7 @@ def test_bad_input_is_refused_before_anything_changes(addon):
     assert list(obj.data.shape_keys.key_blocks.keys()) == keys
 
 
+@pytest.mark.slow
 def test_reconstruct_solver_result_as_keys_then_as_a_cache(tmp_path, ict, addon, monkeypatch):
     """A pipeline through the policy: Reconstruct from Bundles stores its per-frame result as keys (default
     budget), then, with a budget of 2 keys, as a cache replacing those keys; both evaluate to the solver's
@@ -414,7 +416,7 @@ def test_after_capture_the_correction_is_a_patch_of_its_vertices_rerun_and_undo_
     """``after_capture``: displacements of the captured mesh go to a point cache of the corrected vertices only,
     added after the capture by a Geometry Nodes modifier; they add to the capture and to the artist's keys
     exactly; a re-run and undo replace only FaceLab's patch (modifier, node group, patch object, attribute)."""
-    from facelab_addon.blender.bakes import correction_cache
+    from facelab_addon.blender.ownership import correction_cache
     from facelab_addon.core.capture.pointcache import read_pc2
 
     scene, obj = head(False)

@@ -9,10 +9,14 @@ import numpy as np
 import pytest
 
 import facelab_addon
+from facelab_addon.blender.review import keyed_extrapolation
+from facelab_addon.names import EXTRAPOLATION_PROP
 from facelab_addon.pipeline import bake as bake_pipeline
 from facelab_addon.pipeline import propagate as propagate_pipeline
+from facelab_addon.pipeline import shot_settings
 from facelab_addon.pipeline.steps import StepJob
-from facelab_addon.ui import ops, ops_propagate, panel, prefs
+from facelab_addon.pipeline.wording import EXTRAPOLATING
+from facelab_addon.ui import common, ops, ops_propagate, panel
 
 pytestmark = pytest.mark.blender
 
@@ -182,7 +186,7 @@ def test_with_a_face_polls_and_messages(addon):
     # Setup > Face wins over the active object
     other = small_face(scene)
     scene.facelab.face = obj
-    assert ops.face_object(bpy.context) == obj and bpy.context.active_object == other
+    assert common.face_object(bpy.context) == obj and bpy.context.active_object == other
 
 
 def test_training_list_markers_jump_remove_undo(addon):
@@ -240,7 +244,7 @@ def test_property_defaults(addon):
     # solver settings: the shot's, the paper's (Dinev §5) when the add-on preferences are not there
     r = ops.refine_settings(bpy.context)
     assert (r.iterations, r.lambda_pos, r.lambda_reg, r.lambda_silh, r.fixed_group) == (5, 0.1, 3.0, 1.0, "FL_fixed")
-    assert prefs.preferences(bpy.context) is None  # the bpy module: FaceLab is not an enabled add-on
+    assert shot_settings.preferences(bpy.context) is None  # the bpy module: FaceLab is not an enabled add-on
     p = bpy.types.AddonPreferences.bl_rna_get_subclass_py("FACELAB_AP_preferences")
     assert p.bl_idname == "facelab_addon"  # from a checkout; bl_ext.<repo>.facelab installed
     # operator options
@@ -268,7 +272,7 @@ def test_redo_panels_start_from_the_scene_range(addon):
 
     op = type("Op", (), {})()
     op.properties, op.frame_start, op.frame_end = Given({"frame_end"}), 1, 30  # End given, Start not
-    ops.fill_scene_range(op, scene)
+    common.fill_scene_range(op, scene)
     assert (op.frame_start, op.frame_end) == (7, 30)
     for name in ("propagate", "reconstruct_from_bundles"):
         props = getattr(bpy.ops.facelab, name).get_rna_type().properties
@@ -309,6 +313,27 @@ def test_every_registered_property_has_a_tooltip(addon):
     assert not [n for n, t in texts if cited.search(t)], [n for n, t in texts if cited.search(t)]
 
 
+def test_refine_and_live_refine_refuse_a_missing_camera_or_sketch_alike(addon):
+    """Refine Lips and Live Refine share one sketch check: the same reason, the face first, then the camera, then
+    the sketch."""
+    scene = empty_scene()
+
+    def refused(reason):
+        for op in ("refine_lips", "live_refine"):
+            assert not getattr(bpy.ops.facelab, op).poll(), op
+            with pytest.raises(RuntimeError, match=re.escape(reason)):
+                getattr(bpy.ops.facelab, op)()
+
+    refused("Select the captured face mesh (or set it in FaceLab > Setup)")
+    small_face(scene)
+    refused("Set a scene camera first (the camera the sketch is drawn in)")
+    scene.camera = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
+    scene.collection.objects.link(scene.camera)
+    refused("No lip sketch yet: press New Lip Sketch and draw the inner lips in camera view")
+    assert bpy.ops.facelab.new_lip_sketch() == {"FINISHED"}
+    assert bpy.ops.facelab.refine_lips.poll() and bpy.ops.facelab.live_refine.poll()
+
+
 def test_extrapolation_helpers(addon):
     from facelab_addon.blender.shapekeys import key_property_bulk
 
@@ -316,18 +341,19 @@ def test_extrapolation_helpers(addon):
     assert panel.frame_ranges([]) == []
     scene = empty_scene()
     obj = small_face(scene)
-    assert panel.keyed_extrapolation(obj) is None and panel.extrapolating_ranges(obj) == (None, 0)
+    assert keyed_extrapolation(obj) is None and panel.extrapolating_ranges(obj) == (None, 0)
     frames = np.arange(1, 21)
     score = np.where((frames >= 5) & (frames <= 8) | (frames == 15), 0.9, 0.1)
-    obj[panel.EXTRAPOLATION_PROP] = 0.0
-    key_property_bulk(obj, f'["{panel.EXTRAPOLATION_PROP}"]', frames, score)
-    f, sc = panel.keyed_extrapolation(obj)
+    obj[EXTRAPOLATION_PROP] = 0.0
+    key_property_bulk(obj, f'["{EXTRAPOLATION_PROP}"]', frames, score)
+    f, sc = keyed_extrapolation(obj)
     np.testing.assert_array_equal(f, frames)
     np.testing.assert_allclose(sc, score, atol=1e-6)
     assert panel.extrapolating_ranges(obj) == ([(5, 8), (15, 15)], 5)
-    assert panel.EXTRAPOLATING == 0.5 and propagate_pipeline.EXTRAPOLATION_PROP == panel.EXTRAPOLATION_PROP
+    assert EXTRAPOLATING == 0.5
 
 
+@pytest.mark.slow
 def test_propagate_job_steps_and_cancels(ict, addon):
     """The modal Propagate's job, driven by hand (timers never run headless): it reports stages in
     order with growing progress, Esc between steps changes no key, and run to the end it writes keys."""
@@ -472,8 +498,8 @@ def test_panels_draw_the_workflow(addon):
         scene.frame_set(f)
         bpy.ops.facelab.mark_training_frame()
     frames = np.arange(1, 41)
-    obj[panel.EXTRAPOLATION_PROP] = 0.0
-    key_property_bulk(obj, f'["{panel.EXTRAPOLATION_PROP}"]', frames, np.where((frames > 10) & (frames < 14), 0.9, 0.1))
+    obj[EXTRAPOLATION_PROP] = 0.0
+    key_property_bulk(obj, f'["{EXTRAPOLATION_PROP}"]', frames, np.where((frames > 10) & (frames < 14), 0.9, 0.1))
     scene.timeline_markers.new("FL suggest 12", frame=12)
     scene.frame_set(12)
     lay = draw(bpy.types.FACELAB_PT_propagate, ctx)

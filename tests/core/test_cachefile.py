@@ -12,7 +12,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from facelab_addon.core.capture import integrate, meshcache, pointcache, pointcache_writer
-from facelab_addon.core.errors import FaceLabError, MeshError
+from facelab_addon.core.errors import CacheFileError, CacheVertexCountError, FaceLabError, MeshError
 
 
 @pytest.fixture
@@ -96,7 +96,7 @@ def test_single_frame_and_streaming_writer(tmp_path, seq):
 
 
 def test_missing_file(tmp_path):
-    with pytest.raises(pointcache.CacheFileError, match="not found"):
+    with pytest.raises(CacheFileError, match="not found"):
         pointcache.read_pc2(tmp_path / "nope.pc2")
 
 
@@ -105,45 +105,45 @@ def test_wrong_header(tmp_path, seq):
     raw = bytearray(p.read_bytes())
     raw[:12] = b"POINTCACHE3\0"
     p.write_bytes(bytes(raw))
-    with pytest.raises(pointcache.CacheFileError, match="not a PC2 file"):
+    with pytest.raises(CacheFileError, match="not a PC2 file"):
         pointcache.read_pc2(p)
 
 
 def test_truncated(tmp_path, seq):
     p = pointcache_writer.write_pc2(tmp_path / "a.pc2", seq)
     p.write_bytes(p.read_bytes()[:-7])
-    with pytest.raises(pointcache.CacheFileError, match="truncated.*6 samples of 5 points"):
+    with pytest.raises(CacheFileError, match="truncated.*6 samples of 5 points"):
         pointcache.read_pc2(p)
     p.write_bytes(b"POINTCACHE2\0\1\0")
-    with pytest.raises(pointcache.CacheFileError, match="shorter than the 32-byte header"):
+    with pytest.raises(CacheFileError, match="shorter than the 32-byte header"):
         pointcache.pc2_info(p)
     m = pointcache_writer.write_mdd(tmp_path / "a.mdd", seq)
     m.write_bytes(m.read_bytes()[:-1])
-    with pytest.raises(pointcache.CacheFileError, match="truncated"):
+    with pytest.raises(CacheFileError, match="truncated"):
         pointcache.read_mdd(m)
 
 
 def test_bad_counts_and_wrong_format(tmp_path, seq):
     raw = b"POINTCACHE2\0" + struct.pack("<iiffi", 1, 3, 0.0, 1.0, 0)
     (tmp_path / "z.pc2").write_bytes(raw)
-    with pytest.raises(pointcache.CacheFileError, match="0 samples"):
+    with pytest.raises(CacheFileError, match="0 samples"):
         pointcache.read_pc2(tmp_path / "z.pc2")
     p = pointcache_writer.write_pc2(tmp_path / "a.pc2", seq)
-    with pytest.raises(pointcache.CacheFileError, match="is a PC2 file, not an MDD"):
+    with pytest.raises(CacheFileError, match="is a PC2 file, not an MDD"):
         pointcache.read_mdd(p)
     # an MDD written little-endian by mistake
     le = struct.pack("<ii", 6, 5) + np.zeros(6, "<f4").tobytes() + seq.astype("<f4").tobytes()
     (tmp_path / "le.mdd").write_bytes(le)
-    with pytest.raises(pointcache.CacheFileError, match="little-endian"):
+    with pytest.raises(CacheFileError, match="little-endian"):
         pointcache.read_mdd(tmp_path / "le.mdd")
-    with pytest.raises(pointcache.CacheFileError, match="outside the 6 samples"):
+    with pytest.raises(CacheFileError, match="outside the 6 samples"):
         pointcache.read_pc2(p, frames=[6])
 
 
 def test_vertex_count_mismatch(tmp_path, seq):
     info = pointcache.pc2_info(pointcache_writer.write_pc2(tmp_path / "a.pc2", seq))
     assert pointcache.check_vertex_count(info, 5) is info
-    with pytest.raises(pointcache.CacheVertexCountError, match="5 points but 'Face' has 7 vertices") as e:
+    with pytest.raises(CacheVertexCountError, match="5 points but 'Face' has 7 vertices") as e:
         pointcache.check_vertex_count(info, 7, name="'Face'")
     assert isinstance(e.value, MeshError) and isinstance(e.value, FaceLabError)
 

@@ -77,6 +77,7 @@ def test_contours_never_worsen_the_face_and_help_the_inner_lips_on_a_held_out_ca
         assert face_0 > face_m, (face_0, face_m)  # what issue 15 reported: contours made the face worse
 
 
+@pytest.mark.slow
 def test_a_strong_anchor_keeps_the_markers_only_face_outside_the_contour_regions(held_out):
     model, cap, loops, face, lip = held_out
     D = model.deltas(cap.names)
@@ -150,6 +151,7 @@ def _solve_lip_line(model, cap, loops, face, lip, **kw):
     return (float(np.sqrt(np.mean(px ** 2))),) + _errors(model, res, cap, face, lip) + (res,)
 
 
+@pytest.mark.slow
 def test_the_lip_passes_put_the_visible_lip_line_under_a_pixel_on_a_held_out_low_rig(held_out):
     """The low rig (both cameras under the chin, held out): one corrective pass stops short of the lip curves
     (about 1.3 px RMS on these frames: the contour the rig mesh shows a steep camera can sit several edge rings

@@ -29,7 +29,8 @@ from facelab_addon.core.lgi.binding import bind_points
 from facelab_addon.core.lips.lip_loop import inner_lip_loop
 from facelab_addon.core.lips.regressor import LipRegressor
 from facelab_addon.core.lips.regions import auto_regions, faces_in_region
-from facelab_addon.core.lips.sketch import RefineParams, refine_lips
+from facelab_addon.core.lips.refine_params import RefineParams
+from facelab_addon.core.lips.sketch import refine_lips
 from facelab_addon.core.lips.suggest import suggest_frames
 from facelab_addon.core.solve.blendshape_solve import BlendshapeSolver, SolveParams
 from facelab_addon.testing.meshes import grid_mesh
@@ -101,6 +102,7 @@ def random_lips(rng):
 
 @FUZZ
 @given(seed=SEEDS, flaw=FLAWS, lips=st.booleans(), loop=st.sampled_from([None, "random", "short"]))
+@pytest.mark.slow
 def test_fuzz_regions(seed, flaw, lips, loop):
     rng = np.random.default_rng(seed)
     V, F = (random_lips if lips else random_grid)(rng)

@@ -4,11 +4,11 @@ import numpy as np
 import pytest
 import scipy.sparse.linalg as spla
 
-from facelab_addon.core.errors import FaceLabError, MeshError
+from facelab_addon.core.errors import FaceLabError, MeshError, RegionError
 from facelab_addon.core.geometry.gradients import deformation_gradients
 from facelab_addon.core.geometry.laplacian import poisson_operator
 from facelab_addon.core.lips.regressor import LipRegressor
-from facelab_addon.core.lips.regions import RegionError, faces_in_region, region_border
+from facelab_addon.core.lips.regions import faces_in_region, region_border
 from facelab_addon.core.lips.suggest import suggest_frames
 
 NX, NY = 24, 16

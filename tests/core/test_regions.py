@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
+from facelab_addon.core.errors import RegionError
 from facelab_addon.core.geometry import geodesic
 from facelab_addon.core.geometry.mesh import vertex_adjacency
 from facelab_addon.core.lips import lip_loop, regions
-from facelab_addon.core.lips.regions import RegionError
 
 
 def grid(n=7, m=None):

@@ -9,7 +9,9 @@ from facelab_addon.core.geometry.silhouette import (
     lip_side,
     silhouette_edges,
 )
-from facelab_addon.core.lips.sketch import RefineParams, press_lips, refine_lips
+from facelab_addon.core.lips.refine_params import RefineParams
+from facelab_addon.core.lips.sketch import refine_lips
+from facelab_addon.core.lips.views import press_lips
 
 from .lipmesh import front_camera, line_px, tube, two_lips
 

@@ -87,7 +87,9 @@ def test_limit_and_gap_measures(ict_zoo):
 
 
 def test_contact_pulls_sealed_lips_together_in_3d(ict_zoo):
-    from facelab_addon.core.lips.sketch import RefineParams, SketchView, refine_lips_views
+    from facelab_addon.core.lips.refine_params import RefineParams
+    from facelab_addon.core.lips.sketch import refine_lips_views
+    from facelab_addon.core.lips.views import SketchView
     from facelab_addon.testing import error_zoo as Z
 
     zf = ict_zoo
@@ -127,8 +129,11 @@ def test_fit_span_recovers_a_known_mix_from_ray_terms():
 
 
 def test_basis_start_moves_only_the_inside_of_the_lip_region(ict_zoo):
-    from facelab_addon.core.lips.sketch import RefineParams, SketchView, refine_lips_views
+    from facelab_addon.core.lips.refine_params import RefineParams
+    from facelab_addon.core.lips.sketch import refine_lips_views
+    from facelab_addon.core.lips.views import SketchView
     from facelab_addon.core.lips.span_prior import taper
+    from facelab_addon.core.lips.views import SketchView
     from facelab_addon.testing import error_zoo as Z
 
     zf = ict_zoo
@@ -147,7 +152,8 @@ def test_refine_keeps_the_truth_under_its_own_clean_sketch(ict_zoo):
     """The zoo's sketch is the truth's silhouettes as Refine reads them: refined from the truth, the lips stay."""
     import dataclasses
 
-    from facelab_addon.core.lips.sketch import SketchView, refine_lips_views
+    from facelab_addon.core.lips.sketch import refine_lips_views
+    from facelab_addon.core.lips.views import SketchView
     from facelab_addon.testing import error_zoo as Z
 
     zf = ict_zoo

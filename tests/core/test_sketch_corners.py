@@ -10,8 +10,9 @@ import pytest
 from facelab_addon.core.capture.camera import Camera
 from facelab_addon.core.geometry.polyline import resample_polyline
 from facelab_addon.core.lips import views as views_mod
-from facelab_addon.core.lips.sketch import SketchView, refine_lips_views
-from facelab_addon.core.lips.views import _mouth_corners, _stroke_ends
+from facelab_addon.core.lips.mouth import find_mouth
+from facelab_addon.core.lips.sketch import refine_lips_views
+from facelab_addon.core.lips.views import SketchView, _mouth_corners, _stroke_ends
 from facelab_addon.testing import synthetic as S
 
 
@@ -59,7 +60,7 @@ def corner_case(ict):
     fixed = ~ict.part_vertex_mask("M_Face")
     mm = 0.1 * ict.scale
     T = ict.pose({"jawOpen": 0.15})
-    mouth = S.find_mouth(T, F, fixed, units_per_mm=mm)
+    mouth = find_mouth(T, F, fixed, units_per_mm=mm)
     C, w = _corner_error(T, F, fixed, mm, mouth)
     cam = Camera.look_at(mouth.center + 40.0 * ict.scale * mouth.forward, mouth.center, mouth.up, 50, 36, 1920, 1080)
     view = SketchView(cam, *S.lip_contours(T, F, cam, mouth=mouth, margin_mm=3.0))

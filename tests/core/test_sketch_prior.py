@@ -8,8 +8,11 @@ import pytest
 
 from facelab_addon.core.capture.camera import Camera
 from facelab_addon.core.errors import FaceLabError
+from facelab_addon.core.lips.mouth import find_mouth
 from facelab_addon.core.lips.regions import auto_regions
-from facelab_addon.core.lips.sketch import RefineParams, SketchView, refine_lips, refine_lips_views
+from facelab_addon.core.lips.refine_params import RefineParams
+from facelab_addon.core.lips.sketch import refine_lips, refine_lips_views
+from facelab_addon.core.lips.views import SketchView
 from facelab_addon.core.lips.sketch_prior import (
     BAND_RINGS,
     anchor_weights,
@@ -17,6 +20,7 @@ from facelab_addon.core.lips.sketch_prior import (
     mean_edge_length,
     separate_parts,
 )
+from facelab_addon.core.lips.views import SketchView
 from facelab_addon.testing import synthetic as S
 
 from .lipmesh import front_camera, line_px, tube, two_lips
@@ -30,7 +34,7 @@ def closed(ict):
     fixed = ~ict.part_vertex_mask("M_Face")
     mm = 0.1 * ict.scale
     T = ict.pose(CLOSED)
-    mouth = S.find_mouth(T, F, fixed, units_per_mm=mm)
+    mouth = find_mouth(T, F, fixed, units_per_mm=mm)
     cam = S.frontal_camera(T, mouth.center, distance=40.0 * ict.scale)
     up, lo = S.lip_contours(T, F, cam, mouth=mouth)
     return dict(F=F, fixed=fixed, mm=mm, T=T, mouth=mouth, cam=cam, up=up, lo=lo)
@@ -156,7 +160,7 @@ def band_case(ict):
     fixed = ~ict.part_vertex_mask("M_Face")
     mm = 0.1 * ict.scale
     T = ict.pose({"jawOpen": 0.2, "mouthFunnel": 0.3})
-    mouth = S.find_mouth(T, F, fixed, units_per_mm=mm)
+    mouth = find_mouth(T, F, fixed, units_per_mm=mm)
     cam = S.frontal_camera(T, mouth.center, distance=40.0 * ict.scale)
     up, lo = S.lip_contours(T, F, cam, mouth=mouth)
     C, _ = S.inject_lip_error(T, F, fixed, mouth=mouth)

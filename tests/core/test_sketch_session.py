@@ -9,7 +9,10 @@ import pytest
 
 from facelab_addon.core.capture.camera import Camera
 from facelab_addon.core.errors import UsageError
-from facelab_addon.core.lips.sketch import RefineParams, SketchSolver, SketchView, refine_lips_views
+from facelab_addon.core.lips.refine_params import RefineParams
+from facelab_addon.core.lips.sketch import refine_lips_views
+from facelab_addon.core.lips.sketch_session import SketchSolver
+from facelab_addon.core.lips.views import SketchView
 
 from .lipmesh import front_camera, line_px, two_lips
 

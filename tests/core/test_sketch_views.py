@@ -12,8 +12,12 @@ import pytest
 from facelab_addon.core.capture.camera import Camera
 from facelab_addon.core.errors import FaceLabError
 from facelab_addon.core.geometry.laplacian import uniform_laplacian
-from facelab_addon.core.lips.sketch import RefineParams, SketchView, refine_lips_views
+from facelab_addon.core.lips.mouth import find_mouth
+from facelab_addon.core.lips.refine_params import RefineParams
+from facelab_addon.core.lips.sketch import refine_lips_views
+from facelab_addon.core.lips.views import SketchView
 from facelab_addon.core.lips.sketch_prior import depth_terms
+from facelab_addon.core.lips.views import SketchView
 from facelab_addon.testing import synthetic as S
 
 from .test_laplacian import grid
@@ -24,7 +28,7 @@ def _case(ict, nod_deg):
     fixed = ~ict.part_vertex_mask("M_Face")
     mm = 0.1 * ict.scale
     T = ict.pose({"mouthPress_L": 0.25, "mouthPress_R": 0.25})
-    mouth = S.find_mouth(T, F, fixed, units_per_mm=mm)
+    mouth = find_mouth(T, F, fixed, units_per_mm=mm)
     w, side = S.lip_error_weights(T, F, fixed, mouth=mouth)
     C = T + (1.25 * mm * w * side)[:, None] * mouth.up  # the lips pulled apart along the face's up, as on the route
 

@@ -28,17 +28,14 @@ from facelab_addon.names import (
     SUGGEST_MARKER,
     TRAIN_MARKER,
 )
-from facelab_addon.pipeline.propagate import (
-    PropagateSettings,
+from facelab_addon.pipeline.propagate import PropagateSettings, propagate, propagate_steps, training_input
+from facelab_addon.pipeline.regions import RegionSettings, auto_regions
+from facelab_addon.pipeline.training import (
     add_corrected_frame,
-    propagate,
-    propagate_steps,
     record_training_frame,
     remove_training_frame,
     training_frames,
-    training_input,
 )
-from facelab_addon.pipeline.regions import RegionSettings, auto_regions
 
 from ..blender.test_propagate_operator import FRAMES, SCALE, TRAIN, build
 
@@ -221,6 +218,7 @@ def pc2_capture_face(ict, tmp_path, n_frames=16):
     return SimpleNamespace(scene=scene, face=face, md=md, frames=frames, capture=capture, truth=truth, pc2=pc2)
 
 
+@pytest.mark.slow
 def test_corrected_frame_over_a_mesh_cache(ict, addon, tmp_path):
     """A corrected face (an OBJ's vertices) on frame 9 of a PC2 capture: the cache is switched to
     Integrate, the key is mapped through the cache surface, and frame 9 shows the corrected face."""

@@ -12,8 +12,9 @@ from facelab_addon.blender.shapekeys import add_corrective_key, key_spike, rest_
 from facelab_addon.core.lips.regressor import LipRegressor
 from facelab_addon.core.lips.regions import faces_in_region
 from facelab_addon.names import LIPS_GROUP, MOUTH_GROUP, REFINE_PREFIX
-from facelab_addon.pipeline.propagate import PropagateSettings, propagate, record_training_frame
+from facelab_addon.pipeline.propagate import PropagateSettings, propagate
 from facelab_addon.pipeline.regions import auto_regions
+from facelab_addon.pipeline.training import record_training_frame
 
 from ..blender.test_propagate_operator import FRAMES, TRAIN, build
 

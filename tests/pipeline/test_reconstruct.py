@@ -40,6 +40,7 @@ def _shot(ict, keys, weights):
     return scene, obj, empties, truth, pts
 
 
+@pytest.mark.slow
 def test_reconstruct_passes_through_the_bundles_and_recovers_the_poses(ict, addon):
     keys = EXPR[:6]
     poses = [{}, {keys[0]: 0.5}, {keys[1]: 0.7, keys[2]: 0.3}, {keys[3]: 1.0}]

@@ -58,7 +58,7 @@ def _spy(monkeypatch, cls):
     return got
 
 
-@pytest.mark.parametrize("method", ["FIT_RESIDUAL", "INDEXING"])
+@pytest.mark.parametrize("method", ["FIT_RESIDUAL", pytest.param("INDEXING", marks=pytest.mark.slow)])
 def test_streamed_frames_equal_the_whole_shot(ict, addon, monkeypatch, method):
     """Chunks of 3 frames, smoothing over 3 frames and a lost bundle on frame 4: the writer receives every
     frame once, in order, each equal to the whole-shot reconstruction minus the Basis (the lost frame: zero)."""
@@ -90,6 +90,7 @@ def test_streamed_frames_equal_the_whole_shot(ict, addon, monkeypatch, method):
     assert r.keys and r.keys.storage.mode == "keys"
 
 
+@pytest.mark.slow
 def test_stored_keys_do_not_depend_on_the_chunk_size(ict, addon, monkeypatch):
     scene, obj, empties, truth, pts = _shot(ict, EXPR[:6], _poses(9))
     V = len(obj.data.vertices)
@@ -111,6 +112,7 @@ def test_stored_keys_do_not_depend_on_the_chunk_size(ict, addon, monkeypatch):
     assert np.abs(stored[0][2]).max() > 0.1
 
 
+@pytest.mark.slow
 def test_memory_is_flat_in_frames(ict, addon, monkeypatch):
     """Python-heap peak (tracemalloc, numpy included) from the reconstructor's setup to the stored result,
     40 vs 80 frames with 4-frame chunks (and 4-frame blocks in the compression, whose sketch of 34 shapes

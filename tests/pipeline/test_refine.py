@@ -81,6 +81,7 @@ def test_refine_settings_are_the_preferences_defaults():
     assert {k: getattr(s, k) for k in prefs.DEFAULTS} == prefs.DEFAULTS and s.fixed_group == "FL_fixed"
 
 
+@pytest.mark.slow
 def test_refine_bad_input_changes_nothing(tmp_path, ict, addon):
     s, gp, cam = sketched(tmp_path, ict, lower=False)
     scene, obj = s["scene"], s["obj"]
@@ -100,6 +101,7 @@ def test_refine_bad_input_changes_nothing(tmp_path, ict, addon):
     np.testing.assert_allclose(evaluated_vertices(obj, bpy.context.evaluated_depsgraph_get()), s["C"], atol=1e-7)
 
 
+@pytest.mark.slow
 def test_refine_with_regions_moves_only_the_inside_of_fl_lips(tmp_path, ict, addon):
     from facelab_addon.blender.mesh import set_vertex_group
     from facelab_addon.core.lips.regions import auto_regions
@@ -125,15 +127,17 @@ def test_refine_with_regions_moves_only_the_inside_of_fl_lips(tmp_path, ict, add
     assert not r2.lips_region and np.linalg.norm(d, axis=1)[~lips].max() > 1e-5
 
 
+@pytest.mark.slow
 def test_refine_uses_every_camera_sketched_on_the_frame(tmp_path, ict, addon):
     from facelab_addon.blender.camera import new_camera_object
     from facelab_addon.core.capture.camera import Camera
+    from facelab_addon.core.lips.mouth import find_mouth
     from facelab_addon.testing import synthetic as S
 
     s, gp, cam = sketched(tmp_path, ict)
     scene, obj, T, F = s["scene"], s["obj"], s["T"], s["F"]
     fixed = ~s["face_mask"]
-    mouth = S.find_mouth(T, F, fixed, units_per_mm=0.001)
+    mouth = find_mouth(T, F, fixed, units_per_mm=0.001)
     e = np.radians(20.0)
     below = Camera.look_at(mouth.center + 0.40 * (np.cos(e) * mouth.forward - np.sin(e) * mouth.up), mouth.center,
                            mouth.up, 50, 36, 1920, 1080)

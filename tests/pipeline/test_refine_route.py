@@ -19,6 +19,7 @@ FRAME = 30
 
 
 @pytest.mark.parametrize("use_regions", [True, False])
+@pytest.mark.slow
 def test_refine_on_overlapping_lips_follows_the_truth_sketch(ict, addon, use_regions):
     rs = build_route_scene(ict, units="m", armature=True, frames=np.arange(FRAME - 1, FRAME + 2))
     scene, obj = rs.scene, rs.obj
@@ -161,6 +162,7 @@ def test_sketch_truth_with_noise_draws_the_truth_jittered(ict, addon):
     assert np.array_equal(up1, up2)
 
 
+@pytest.mark.slow
 def test_one_view_of_a_nodded_head_takes_the_depth_from_the_rest_pose(ict, addon):
     """Posed (the head bone nodded 20°), a third of the capture error lies along the main camera's rays. The
     face's Basis is its rest pose: Refine holds the correction off the camera's rays as they cross the Basis,

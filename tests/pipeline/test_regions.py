@@ -24,6 +24,7 @@ def face(ict):
     return new_mesh_object("Face", ict.neutral * SCALE, poly_verts=ict.poly_verts, poly_offsets=ict.poly_offsets)
 
 
+@pytest.mark.slow
 def test_auto_regions_writes_the_core_regions(ict, addon):
     obj = face(ict)
     tris = mesh_triangles(obj.data)
@@ -102,6 +103,7 @@ def body_object(ict, hands=1, units="m"):
     return scene, obj, folds
 
 
+@pytest.mark.slow
 def test_auto_regions_on_a_body_uses_the_camera_and_the_sketch(ict, addon):
     import bpy
 
@@ -140,6 +142,7 @@ def test_auto_regions_on_a_body_uses_the_camera_and_the_sketch(ict, addon):
 
 
 @pytest.mark.parametrize("units", ["cm", "mm-scaled"])
+@pytest.mark.slow
 def test_the_contact_gap_is_in_millimetres_of_world_space(ict, addon, units):
     """A 6 mm contact gap finds the same regions in metres, in centimetres and on an object scaled 1000x."""
     _, obj, _ = body_object(ict, hands=2, units="m")

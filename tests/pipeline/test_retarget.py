@@ -45,6 +45,7 @@ def _key_deltas(obj, names):
     return np.stack([co(key.key_blocks[k]) - co(key.reference_key) for k in names])
 
 
+@pytest.mark.slow
 def test_retarget_to_the_actor_itself_gives_the_actor_back(ict, solved):
     scene, obj, truth, vs = solved
     twin = new_mesh_object("Twin", truth[0], poly_verts=ict.poly_verts, poly_offsets=ict.poly_offsets)

@@ -25,7 +25,7 @@ from .test_retarget import solved  # noqa: F401  (the module fixture)
 pytestmark = pytest.mark.blender
 
 
-@pytest.mark.parametrize("lip_sync", [False, True])
+@pytest.mark.parametrize("lip_sync", [False, pytest.param(True, marks=pytest.mark.slow)])
 def test_streamed_correctives_equal_the_whole_shot(ict, solved, monkeypatch, lip_sync):  # noqa: F811
     from facelab_addon.testing.creature import widen_mouth
     from facelab_addon.testing.synthetic import ICT_MOUTH_LOOP
@@ -80,6 +80,7 @@ def _keyed_actor(ict, n_frames):
     return fs.scene, fs.obj, cre
 
 
+@pytest.mark.slow
 def test_memory_is_flat_in_frames(ict, addon, monkeypatch):
     """Python-heap peak (tracemalloc, numpy included) from the Retargeter's set-up to the stored result, 40 vs 80
     frames with 4-frame chunks (and 4-frame blocks in the compression): 40 more frames of the whole shot would

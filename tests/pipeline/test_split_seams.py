@@ -44,6 +44,7 @@ def test_the_split_face_falls_into_pieces(ict):
     assert separate_parts(split.faces, len(split.neutral))[face].sum() > 1000
 
 
+@pytest.mark.slow
 def test_auto_regions_on_the_split_face_are_the_welded_regions(runs):
     welded, split, cut = runs
     assert welded["lips"].sum() > 100 and welded["mouth"].sum() > 100

@@ -195,7 +195,8 @@ def load_ict(root=None, *, scale: float = 1.0, expressions=None, use_cache: bool
     expressions : list of str, optional
         Keep only these expressions (default: all 57).
     use_cache : bool
-        Read/write the parsed ``.npz`` cache (about 0.5 s instead of ~10 s).
+        Read the parsed arrays from the ``.npz`` cache when it is there, else parse the OBJ files and
+        write it.
 
     Returns
     -------

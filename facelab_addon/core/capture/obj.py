@@ -24,7 +24,7 @@ import numpy as np
 
 from ..errors import ObjFileError
 
-__all__ = ["ObjMesh", "ObjFileError", "read_obj", "read_obj_vertices"]
+__all__ = ["ObjMesh", "read_obj", "read_obj_vertices"]
 
 
 class ObjMesh(NamedTuple):

@@ -46,8 +46,6 @@ import numpy as np
 from ..errors import CacheFileError, CacheVertexCountError
 
 __all__ = [
-    "CacheFileError",
-    "CacheVertexCountError",
     "CacheInfo",
     "PC2_MAGIC",
     "pc2_info",

@@ -1,13 +1,13 @@
 """Factor-once / solve-many for sparse symmetric positive-definite systems.
 
-Uses ``cholespy`` (fastest measured here) when it is installed and falls back
-to SciPy's SuperLU with a symmetric ordering. Never call ``spsolve`` in a
+Uses ``cholespy`` (CHOLMOD's sparse Cholesky factorisation) when it is installed
+and falls back to SciPy's SuperLU with a symmetric ordering. Never call ``spsolve`` in a
 loop: build one ``SPDFactor`` and call ``solve`` many times.
 
 Also the BLAS thread controls of the solvers: small dense systems and
-per-frame work run faster on one BLAS thread (``small_dense_threads``,
-``one_blas_thread``), and ``idle_core`` tells whether a second thread would
-get a core of its own.
+per-frame work run on one BLAS thread (``small_dense_threads``,
+``one_blas_thread``), where more threads cost more to start than they share, and
+``idle_core`` tells whether a second thread would get a core of its own.
 """
 
 from __future__ import annotations

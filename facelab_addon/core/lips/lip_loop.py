@@ -29,10 +29,8 @@ one lip to the other, kept on that side of them, runs around the end of the
 slit, and its far point is the corner. The loop is the union of two cheapest
 edge paths between the corners, one over each lip, along the front of the
 contact, with edge costs proportional to the local gap, so they follow the
-line where the lips are closest. On ICT-FaceKit the loop (about 80 vertices) runs along the
-74-vertex lip rings where the neutral lips are about 1 mm apart; detection
-takes about 0.5 s and does not depend on the scene unit, orientation or
-vertex order.
+line where the lips are closest. The detection does not depend on the scene unit, orientation
+or vertex order.
 """
 
 from __future__ import annotations

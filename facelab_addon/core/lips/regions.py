@@ -28,7 +28,6 @@ from ..geometry.mesh import vertex_adjacency
 from .lip_loop import region_mesh, inner_lip_loop, loop_width
 
 __all__ = [
-    "RegionError",
     "faces_in_region",
     "region_vertex_mask",
     "region_border",

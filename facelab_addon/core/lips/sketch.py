@@ -70,13 +70,11 @@ system between solves.
 
 from __future__ import annotations
 
-from ..geometry.polyline import resample_polyline  # noqa: F401  (re-exported for the benchmark)
-from .refine_params import CROSSINGS, RefineParams
+from .refine_params import RefineParams
 from .sketch_session import SketchSolver
-from .views import SketchView, prepare_sketch, press_lips
+from .views import SketchView
 
-__all__ = ["refine_lips", "refine_lips_views", "press_lips", "prepare_sketch", "SketchView", "SketchSolver",
-           "RefineParams", "CROSSINGS"]
+__all__ = ["refine_lips", "refine_lips_views"]
 
 
 def refine_lips(vertices, faces, camera, upper, lower, params: RefineParams | None = None, *, fixed=None, lips=None,

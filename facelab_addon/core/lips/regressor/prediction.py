@@ -19,7 +19,6 @@ from ...geometry.linsolve import idle_core, one_blas_thread
 from .features import (
     as_frames,
     coordinate_major,
-    feature_rows,
     fold_directions,
     frames_of,
     gradient_features,
