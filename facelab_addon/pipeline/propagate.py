@@ -18,10 +18,9 @@ object and suggested frames as timeline markers. Over a capture cache, where the
 written as a point cache of the corrected vertices, added after the capture
 (:class:`~facelab_addon.pipeline.correctives.CorrectionWriter` ``after_capture``).
 
-The regressor is fitted afresh on every run: on the ICT face (26,719 vertices, 10 training
-frames) the fit costs 0.07 s (0.17 s CPU with the "auto" model choice over a 64-frame sample of
-the shot), a few % of a 1,000-frame Propagate (3.5 s), so no fitted model is kept between runs
-and a changed mesh, region or training set can never be served stale.
+The regressor is fitted afresh on every run (the fit is a small part of a Propagate; see
+``docs/benchmarks.md``), so no fitted model is kept between runs and a changed mesh, region or
+training set can never be served stale.
 """
 
 from __future__ import annotations
