@@ -62,3 +62,38 @@ def test_the_truth_lip_line_is_found_on_the_transferred_jaw(head):
     assert abs(V[line.corners, 0].sum()) < 0.05 and V[line.corners[1], 0] > 0.8
     assert abs(V[line.upper, 1].mean() - V[[m["upper_lip"], m["lower_lip"]], 1].mean()) < 0.3
     assert (V[line.upper, 1].mean() > V[line.lower, 1].mean())
+
+
+@pytest.mark.blender
+@pytest.mark.slow
+@pytest.mark.parametrize("scene_kw", [dict(units="m"), dict(units="m", obj_import=True, import_scale=0.01),
+                                      dict(units="m", obj_import=True, import_scale=1.0)],
+                         ids=["metres", "obj-cm-as-m-fixed", "obj-cm-as-m-100x"])
+def test_the_route_refines_the_makehuman_head(ict, head, addon, scene_kw):
+    """Auto Regions finds this head's lips without help, and Refine on a truth sketch cuts the lip error, moving
+    nothing outside ``FL_lips``: in a metre scene and imported from an OBJ as an artist does (rotated, unapplied
+    scale; a centimetre OBJ read as metres, fixed or not)."""
+    from facelab_addon.blender import caches
+    from facelab_addon.blender.mesh import vertex_group_mask
+    from facelab_addon.names import LIPS_GROUP
+    from facelab_addon.pipeline.refine import RefineSettings, refine
+    from facelab_addon.pipeline.regions import auto_regions
+    from facelab_addon.testing.route import build_route_scene, lip_errors, sketch_truth
+
+    frame = 14
+    rs = build_route_scene(head, armature=True, frames=np.arange(frame - 1, frame + 2), **scene_kw)
+    scene, obj = rs.scene, rs.obj
+    auto_regions(obj, scene=scene)
+    lips = vertex_group_mask(obj, LIPS_GROUP)
+    e = np.linalg.norm(rs.error, axis=1)
+    assert e[lips].sum() > 0.95 * e.sum()  # FL_lips covers the capture error
+    captured = caches.evaluate_frames(obj, [frame]).astype(np.float64)
+    gp, _, _ = sketch_truth(rs, frame, rs.cameras[0])
+    refine(scene, obj, frame, RefineSettings(), sketch=gp)
+    refined = caches.evaluate_frames(obj, [frame], mute_shape_keys_prefix=()).astype(np.float64)
+    before, after = lip_errors(rs, captured, [frame])[0], lip_errors(rs, refined, [frame])[0]
+    big = 100.0 if scene_kw.get("import_scale") == 1.0 else 1.0  # a centimetre OBJ read as metres: 100x the face
+    assert before > 0.15 * big  # mm of the scene
+    assert after < 0.6 * before, (before, after)
+    moved = np.linalg.norm(refined - captured, axis=2)[0]
+    assert moved[~lips].max() < 1e-6 * moved[lips].max()
