@@ -35,6 +35,8 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 
+from .remeshed import RemeshedFace
+
 __all__ = ["ENV", "HOW_TO", "EXPRESSIONS", "NECK_BELOW_NOSE_CM", "TransferredHead", "makehuman_obj_path",
            "read_obj_groups", "face_markers", "jaw_split_truth_line", "makehuman_head"]
 
@@ -69,16 +71,8 @@ class TransferredHead:
         if self.faces is None:
             self.faces = _fan(self.poly_verts, self.poly_offsets)
 
-    @property
-    def expression_names(self):
-        return list(self.expressions)
-
-    def pose(self, weights: dict | None = None):
-        """Neutral plus weighted expression offsets, (V,3) cm."""
-        out = self.neutral.copy()
-        for n, w in (weights or {}).items():
-            out += w * (self.expressions[n] - self.neutral)
-        return out
+    expression_names = RemeshedFace.expression_names
+    pose = RemeshedFace.pose  # neutral plus weighted expression offsets, (V,3) cm
 
     def part_vertex_mask(self, *names):
         """(V,) bool: every vertex for ``"M_Face"`` (the head is all skin), none for any other part."""
