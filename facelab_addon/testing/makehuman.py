@@ -12,8 +12,9 @@ over by deformation transfer (:class:`facelab_addon.core.solve.deformation_trans
 triangle correspondence from :func:`~facelab_addon.core.solve.deformation_transfer.triangle_correspondence_from_markers`),
 with markers found on both meshes by the same geometric rules (:func:`face_markers`: nose tip, nasion, the inner
 lips' midpoints, the mouth corners, the chin); no vertex id of either mesh is used. The transferred shapes are the
-truth of a performance on this head (the benchmark's lip line comes from its own ``jawOpen``:
-:func:`facelab_addon.testing.lip_truth.truth_line`).
+truth of a performance on this head; its lip contact line (``truth``, which
+:func:`facelab_addon.testing.lip_truth.truth_line` returns) comes from its own ``jawOpen`` by
+:func:`jaw_split_truth_line`.
 
 The mesh is not in the repository. :func:`makehuman_obj_path` reads it from the ``FACELAB_MAKEHUMAN_OBJ``
 environment variable (:data:`HOW_TO` says how to get it); tests and benchmarks skip without it. The result quacks
