@@ -40,8 +40,12 @@ with a hand's 1.5 px sketch jitter (``testing.route.jitter_stroke``), Refine Lip
 paper; set in the shot's Refine settings, which the operator reads) and the held-out Propagate; JSON with the
 runs, a ``table`` (face x error x views x prior) and ``mean_by_prior``. No bake, no picture. About 5-6 minutes.
 
+``--face makehuman``: instead of the two ICT faces, MakeHuman's CC0 head (``testing.makehuman``: its own topology,
+ICT's mouth shapes carried over by deformation transfer; read from ``FACELAB_MAKEHUMAN_OBJ``, skipped without it).
+``--train``: other training frames. A Refine Lips refusal is recorded in the run (``refusal``, ``error``).
+
 Usage: ``PYTHONPATH=. python benchmarks/any_face.py [--quick | --views | --errors [--error-models corners,wide] [--priors band]]
-[--png docs/images/any_face.png]``.
+[--face makehuman] [--train 2,6,10] [--png docs/images/any_face.png]``.
 Prints one JSON object on stdout (save it as ``benchmarks/results/any_face.json``; the ``--views`` comparison,
 metres, at rest and posed, one view / + lower camera / + side camera, printed as JSON);
 Blender's own output goes to stderr. About 8-12 minutes on 2 shared cores (``--quick``: metres, unposed, one view and
@@ -154,7 +158,11 @@ def run_route(face, units, posed, tmp, log, extra=(), *, error="wide", noise_px=
         scene.facelab.sketch = gp
         scene.frame_set(f)
         bpy.context.view_layer.objects.active = obj
-        if bpy.ops.facelab.refine_lips() != {"FINISHED"}:
+        try:
+            res = bpy.ops.facelab.refine_lips()
+        except RuntimeError as exc:  # the operator refused (its report), e.g. a sketch it reads as mis-drawn
+            res, out["refusal"] = None, str(exc).strip()
+        if res != {"FINISHED"}:
             out["error"] = f"Refine Lips failed on frame {f}"
             return out, None
     t["refine_10_frames"] = time.perf_counter() - t0
@@ -518,7 +526,15 @@ def main(argv=None):
                     help="--errors: only these comma-separated error models (e.g. corners,wide,narrow)")
     ap.add_argument("--priors", default=None, help="--errors: only these comma-separated priors (e.g. band)")
     ap.add_argument("--png", default=None, help="write the picture here (e.g. docs/images/any_face.png)")
+    ap.add_argument("--face", choices=["ict", "makehuman"], default="ict",
+                    help="ict: ICT-FaceKit and its remesh (default); makehuman: MakeHuman's CC0 head with ICT's mouth "
+                         "shapes by deformation transfer (testing.makehuman; needs FACELAB_MAKEHUMAN_OBJ)")
+    ap.add_argument("--train", default=None,
+                    help="comma-separated training frames (default 2,6,...,38)")
     args = ap.parse_args(argv)
+    if args.train:
+        global TRAIN
+        TRAIN = [int(f) for f in args.train.split(",")]
     if args.priors:
         global PRIORS
         PRIORS = [p for p in PRIORS if p in args.priors.split(",")]
@@ -530,7 +546,15 @@ def main(argv=None):
         from facelab_addon.testing.remeshed import remeshed_ict
 
         ict = load_ict()
-        faces = {"ICT-FaceKit": ict, "ICT remeshed (quads)": remeshed_ict(ict)}
+        if args.face == "makehuman":
+            from facelab_addon.testing import makehuman
+
+            if makehuman.makehuman_obj_path() is None:
+                out_json.emit(dict(skipped=f"needs MakeHuman's mesh: {makehuman.HOW_TO}"))
+                return 0
+            faces = {"MakeHuman (CC0, ICT shapes by DT)": makehuman.makehuman_head(ict=ict)}
+        else:
+            faces = {"ICT-FaceKit": ict, "ICT remeshed (quads)": remeshed_ict(ict)}
         out = dict(bpy_version=bpy.app.version_string, frames=len(FRAMES), training_frames=TRAIN, faces={})
         pics = {}
         if args.errors:

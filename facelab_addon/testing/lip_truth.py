@@ -296,7 +296,8 @@ def truth_line(face, expression: str = "jawOpen", skin: str = "M_Face") -> Truth
     Parameters
     ----------
     face : ICTModel, RemeshedFace or alike
-        A face with a ``source`` model and ``source_vertices`` / ``barycentric`` (a remesh) gets its source's
+        A face with a ``truth`` (a :class:`TruthLine`: ``testing.makehuman.TransferredHead``) gets it; a face
+        with a ``source`` model and ``source_vertices`` / ``barycentric`` (a remesh) gets its source's
         line transferred (:func:`transferred_truth_line`); a face split along seams (a ``base`` model and the
         ``source`` vertex of each split vertex: ``testing.split_seams.SplitFace``) gets its base's line at the
         first copy of each vertex; any other needs ``neutral``, ``faces``,
@@ -310,6 +311,8 @@ def truth_line(face, expression: str = "jawOpen", skin: str = "M_Face") -> Truth
     -------
     TruthLine
     """
+    if isinstance(getattr(face, "truth", None), TruthLine):  # a face that carries its own (testing.makehuman)
+        return face.truth
     if getattr(face, "source", None) is not None and hasattr(face, "barycentric"):
         return transferred_truth_line(face)
     if getattr(face, "base", None) is not None and getattr(face, "source", None) is not None:
