@@ -1,0 +1,83 @@
+"""Strokes on swapped layers (core.lips.swapped_strokes): refused for an open mouth, never for lips that overlap
+in the image along the whole mouth (sealed lips seen from well below, issue 25's oracle views)."""
+
+import numpy as np
+import pytest
+
+from facelab_addon.core.errors import SketchError
+from facelab_addon.core.lips.swapped_strokes import check_swapped_strokes
+
+X = np.linspace(-200.0, 200.0, 401)  # a mouth 400 px wide
+T = X / 200.0
+ARC = 500.0 + 50.0 * T**2  # the mouth's line, seen from below: its middle higher in the image (y down)
+COLS = np.linspace(-160.0, 160.0, 64)  # the columns the check reads: the inner 80 % (as core.lips.views does)
+TC = COLS / 200.0
+
+
+def _at(y_of_t):
+    return np.c_[X, y_of_t(T)]
+
+
+def test_open_mouth_on_swapped_layers_is_refused():
+    """An open mouth's contours meet at the corners; drawn on each other's layer they bound an upside-down lens."""
+    up = lambda t: 500.0 + 50.0 * t**2 - 20.0 * (1 - t**2)  # noqa: E731
+    lo = lambda t: 500.0 + 50.0 * t**2 + 20.0 * (1 - t**2)  # noqa: E731
+    yu, yl = up(TC), lo(TC)  # the capture: the same open mouth
+    check_swapped_strokes(_at(up), _at(lo), yu, yl, COLS)  # as drawn: fine
+    with pytest.raises(SketchError, match=r"swapped layers.*Move each stroke to its layer"):
+        check_swapped_strokes(_at(lo), _at(up), yu, yl, COLS)
+
+
+def test_lips_overlapping_along_the_mouth_are_read_as_drawn():
+    """Sealed lips seen from 30 degrees below: the truth's inner contours cross in an even band (7-11 px) while the
+    capture holds the lips about 10 px apart. The strokes lie on the capture's other lip, the band is a little
+    deeper in the middle (an upside-down sag of 4 px, more than a quarter of the gap), but it closes toward neither
+    corner: correct layers (the oracle view 3 of the zoo's first ICT case was refused for this)."""
+    band = lambda t: 7.0 + 4.0 * (1 - t**2)  # noqa: E731  (px: how far the upper stroke lies below the lower)
+    lower = _at(lambda t: 500.0 + 50.0 * t**2)
+    upper = _at(lambda t: 500.0 + 50.0 * t**2 + band(t))
+    yu = 500.0 + 50.0 * TC**2 - 1.0  # the capture's upper lip just above the lower stroke
+    yl = 500.0 + 50.0 * TC**2 + band(TC) + 1.0  # its lower lip just below the upper stroke
+    check_swapped_strokes(upper, lower, yu, yl, COLS)
+    # the same band with its ends pinched together at the corners is an upside-down lens: refused
+    lens = lambda t: 11.0 * (1 - t**2)  # noqa: E731
+    upper = _at(lambda t: 500.0 + 50.0 * t**2 + lens(t))
+    yl = 500.0 + 50.0 * TC**2 + lens(TC) + 1.0
+    with pytest.raises(SketchError, match="swapped layers"):
+        check_swapped_strokes(upper, lower, yu, yl, COLS)
+
+
+@pytest.fixture(scope="module")
+def ict_zoo():
+    from facelab_addon.core.capture.ict import load_ict
+    from facelab_addon.testing.error_zoo import zoo_face
+
+    try:
+        ict = load_ict()
+    except Exception as e:  # noqa: BLE001
+        pytest.skip(f"ICT-FaceKit not available: {e}")
+    return zoo_face(ict, "ICT")
+
+
+def test_clean_sketch_from_below_sealed_lips_is_not_refused(ict_zoo):
+    """The zoo's first ICT case (sealed lips held apart in the capture) drawn exactly from 30 degrees below its
+    camera: the truth's contours cross over the whole mouth, correctly layered; the view is accepted, and the same
+    sketch of the case's open-mouth sibling on swapped layers is still refused."""
+    from facelab_addon.core.lips.views import SketchView, ViewMatcher
+    from facelab_addon.testing import error_zoo as Z
+
+    zf = ict_zoo
+    case = Z.sample_cases(list(Z.FAMILIES), 3, seed=0)[0]
+    assert (case.family, case.pose) == ("gap", "sealed")
+    mc = Z.make_case(zf, case)
+    c = mc.truth[zf.loop].mean(axis=0)
+    cam = Z.zoo_camera(zf, c, case.azim, case.elev - 30.0, case.lens_mm, case.distance_cm)
+    up, lo, _ = Z.truth_sketch(zf, mc.truth, cam)
+    assert np.median(up[:, 1] - lo[:, 1]) > 4.0  # the truth's contours do cross in this view
+    ViewMatcher(SketchView(cam, up, lo), mc.capture, zf.faces, zf.fixed)
+    # an open mouth (the zoo's "funnel" cases) drawn on swapped layers in its main view: refused
+    case = next(k for k in Z.sample_cases(list(Z.FAMILIES), 3, seed=0) if k.pose == "funnel" and k.family == "cross")
+    mc = Z.make_case(zf, case)
+    up, lo, _ = Z.truth_sketch(zf, mc.truth, mc.cameras[0])
+    with pytest.raises(SketchError, match="swapped layers"):
+        ViewMatcher(SketchView(mc.cameras[0], lo, up), mc.capture, zf.faces, zf.fixed)
