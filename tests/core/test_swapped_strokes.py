@@ -59,18 +59,6 @@ def test_a_shallow_upside_down_lens_warns_a_deep_one_is_refused(depth_px, refuse
         assert "in view 'cam'" in msg and "overlap" in msg and "swapped layers" in msg and "Refined as drawn" in msg
 
 
-@pytest.fixture(scope="module")
-def ict_zoo():
-    from facelab_addon.core.capture.ict import load_ict
-    from facelab_addon.testing.error_zoo import zoo_face
-
-    try:
-        ict = load_ict()
-    except Exception as e:  # noqa: BLE001
-        pytest.skip(f"ICT-FaceKit not available: {e}")
-    return zoo_face(ict, "ICT")
-
-
 def test_clean_sketch_from_below_sealed_lips_is_not_refused(ict_zoo):
     """The zoo's first ICT case (sealed lips held apart in the capture) drawn exactly from 30 degrees below its
     camera: the truth's contours cross over the whole mouth, correctly layered; the view is accepted, and the same
