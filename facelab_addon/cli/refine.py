@@ -107,6 +107,8 @@ def run(args, session) -> dict:
         except FaceLabError as e:
             raise CliError(f"frame {f}: {e}", exit_code_for(e)) from None
         done.append({"frame": f, "shape_key": r.shape_key, "seconds": round(time.perf_counter() - t, 3)})
+        for w in r.warnings:
+            session.note(f"frame {f}: {w}")
         if f in done_before:
             session.note(f"frame {f} refined again (--again): '{r.shape_key}' replaces {done_before[f]} on that frame "
                          "(kept, keyed off there)")

@@ -194,6 +194,9 @@ class RefineResult:
         camera cannot see was taken from the rest pose turned so far. None with several views, or when the
         rest pose does not fit the frame rigidly or ``rest_depth_reg`` is 0.
     seconds : float
+    warnings : list of str
+        What the artist should check in the sketch (strokes that may be on swapped layers); the key is
+        written as drawn.
     """
 
     frame: int
@@ -206,6 +209,7 @@ class RefineResult:
     note: str = ""
     head_turn_deg: float | None = None
     seconds: float = 0.0
+    warnings: list = field(default_factory=list)
 
 
 def refine(scene, obj, frame: int, settings: RefineSettings | None = None, *, camera_obj=None,
@@ -276,7 +280,7 @@ def refine(scene, obj, frame: int, settings: RefineSettings | None = None, *, ca
     return RefineResult(frame=frame, shape_key=kb.name, moved_vertices=int((moved > 1e-9).sum()),
                         max_move=float(moved.max()), fixed_source=problem.fixed_source, cameras=[v.name for v in views],
                         lips_region=problem.lips is not None, note=note, head_turn_deg=info["head_turn_deg"],
-                        seconds=time.perf_counter() - t0)
+                        seconds=time.perf_counter() - t0, warnings=list(info.get("warnings", [])))
 
 
 @dataclass

@@ -124,6 +124,8 @@ class FACELAB_OT_refine_lips(bpy.types.Operator):
             f"head turned {r.head_turn_deg:.0f}° from the Basis: its depth taken from there"
             if r.head_turn_deg is not None and r.head_turn_deg >= 2 else "",
         ]))
+        for w in r.warnings:
+            self.report({"WARNING"}, w)
         return {"FINISHED"}
 
 

@@ -338,3 +338,26 @@ def test_a_camera_inside_the_head_is_named_as_the_problem(ict, addon):
     bpy.context.view_layer.update()
     with pytest.raises(CameraError, match=r"camera is inside the head.*Move the camera in front of the face"):
         refine(rs.scene, rs.obj, FRAME, RefineSettings(), sketch=gp)
+
+
+
+def test_strokes_on_swapped_layers_over_nearly_closed_lips_refine_with_a_warning(ict, addon):
+    """The captured lips 1 mm apart (frame 1, a 0.5 mm capture error) and their contours drawn on swapped layers:
+    the crossing (11 px, under 5 % of the mouth's width) could as well be lips overlapping in a view from above or
+    below, so Refine is not refused; it writes its key and the result carries the warning naming both readings
+    (the Refine Lips operator reports it)."""
+    frame = 1
+    rs = route(ict, error_mm=0.5)
+    rs.scene.frame_set(frame)
+    C = caches.evaluate_frames(rs.obj, [frame]).astype(np.float64)[0]
+    M = np.array(rs.obj.matrix_world)
+    cam = camera_from_blender(rs.scene, rs.scene.camera)
+    up, lo = truth_contours(rs, C @ M[:3, :3].T + M[:3, 3], cam)  # the capture's own inner contours
+    gp = new_lip_sketch(rs.scene, rs.scene.camera)
+    write_stroke_pixels(gp, "Upper lip", frame, [lo], cam)
+    write_stroke_pixels(gp, "Lower lip", frame, [up], cam)
+    keys = len(rs.obj.data.shape_keys.key_blocks)
+    r = refine(rs.scene, rs.obj, frame, RefineSettings(), sketch=gp)
+    assert len(rs.obj.data.shape_keys.key_blocks) == keys + 1
+    assert len(r.warnings) == 1
+    assert "overlap" in r.warnings[0] and "swapped layers" in r.warnings[0] and "undo" in r.warnings[0]

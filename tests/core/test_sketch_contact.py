@@ -41,18 +41,6 @@ def test_contact_terms_pair_the_lips_with_sample_counts():
     assert contact_terms(up_v, lo_v, np.full(5, -1), 1.0) is None
 
 
-@pytest.fixture(scope="module")
-def ict_zoo():
-    from facelab_addon.core.capture.ict import load_ict
-    from facelab_addon.testing.error_zoo import zoo_face
-
-    try:
-        ict = load_ict()
-    except Exception as e:  # noqa: BLE001
-        pytest.skip(f"ICT-FaceKit not available: {e}")
-    return zoo_face(ict, "ICT")
-
-
 def test_error_families_are_confined_to_their_reach(ict_zoo):
     from scipy.spatial import cKDTree
 

@@ -119,7 +119,8 @@ def refine_lips(vertices, faces, camera, upper, lower, params: RefineParams | No
         before each iteration and, last, for the result,
         ``matched_upper``/``matched_lower`` vertex indices of the last
         iteration (first view), ``mouth_width`` (scene units), ``n_free``,
-        ``seconds``, ``upper_samples``/``lower_samples`` (first view).
+        ``seconds``, ``upper_samples``/``lower_samples`` (first view), ``warnings``: what the artist should
+        check in the sketch (list of str; :func:`~facelab_addon.core.lips.swapped_strokes.check_swapped_strokes`).
 
     Raises
     ------

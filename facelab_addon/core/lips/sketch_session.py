@@ -360,6 +360,7 @@ class SketchSolver:
             one_line_samples=[int((m.partner >= 0).sum()) for m in matchers],
             rebuilt=self.builds > builds,
             solves=counter[0],
+            warnings=[m.warning for m in matchers if m.warning],
         )
         return X, info
 

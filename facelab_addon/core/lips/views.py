@@ -413,6 +413,7 @@ class ViewMatcher:
     """
 
     in_lip_region = False  # set by restrict(): the search is limited to a painted lip region's inside
+    warning = ""  # what the artist should check in this view's sketch (core.lips.swapped_strokes), empty if nothing
 
     def __init__(self, view: SketchView, vertices, faces, fixed, reach_px=None, where: str = "",
                  envelope: bool = True, press: bool = True, contact: float = 0.0, projection=None):
@@ -470,7 +471,8 @@ class ViewMatcher:
         if hi_x > lo_x:
             pad = 0.1 * (hi_x - lo_x)  # the corners, where the two strokes meet, say nothing of their order
             cols = np.linspace(lo_x + pad, hi_x - pad, 64)
-            check_swapped_strokes(up_raw, lo_raw, *_lip_silhouette_y(cam, V0, F, near, cols), cols, where)
+            self.warning = check_swapped_strokes(up_raw, lo_raw, *_lip_silhouette_y(cam, V0, F, near, cols), cols,
+                                                 where)
 
         def overlap(x):
             o = _lip_overlap_px(cam, V0, F, near, x)
