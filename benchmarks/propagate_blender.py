@@ -17,7 +17,8 @@ on the captured sequence (no regressor: extreme poses first); each is
 "sculpted" (``add_corrective_key`` cancelling the error + ``key_spike``) and
 marked (``bpy.ops.facelab.mark_training_frame``). Then
 ``bpy.ops.facelab.propagate`` runs once, and once more after the frame it
-suggests first is corrected too (incremental).
+suggests first is corrected too (incremental): sculpted from what the viewport shows (the capture with
+Propagate's correction, which Mark Training Frame keeps) to the truth, checked to train as the truth.
 
 Reported: .blend sizes before/after (uncompressed and zstd), FL_Prop_* keys
 and keyframes written, operator wall time split into its parts (the parts of
@@ -363,6 +364,7 @@ def main(argv=None):
     from facelab_addon.core.capture.ict import load_ict
     from facelab_addon.core.lips.suggest import suggest_frames
     from facelab_addon.pipeline import propagate as op
+    from facelab_addon.pipeline.training import read_training_frames
     from facelab_addon.testing.weights import speech_weights
 
     out["bpy_version"] = bpy.app.version_string
@@ -432,13 +434,21 @@ def main(argv=None):
         # ----- incremental: correct the first suggested frame, propagate again
         f_new = [int(m.name.split()[-1]) for m in scene.timeline_markers if m.name.startswith("FL suggest")][0]
         scene.frame_set(f_new)
-        kb = add_corrective_key(obj, f"Sculpt_{f_new}", -cap_w[f_new - 1] * err)
+        # the artist sculpts what the viewport shows (the capture with Propagate's correction) to the truth; Mark
+        # Training Frame keeps the shown correction (pipeline.training.mark_training_frame), so the sculpt is only
+        # the rest: cancelling the whole capture error here would correct the frame twice
+        cap_new = shape_key_sequence(obj, [f_new], skip_prefixes=("FL_",))[0].astype(np.float64)
+        shown = caches.evaluate_frames(obj, [f_new], mute_shape_keys_prefix=())[0].astype(np.float64)
+        kb = add_corrective_key(obj, f"Sculpt_{f_new}", cap_new - cap_w[f_new - 1] * err - shown)
         key_spike(kb, f_new)
         assert bpy.ops.facelab.mark_training_frame() == {"FINISHED"}
+        trained_as = read_training_frames(obj, [f_new])[0].astype(np.float64)
+        added_err_mm = float(np.abs(trained_as - (cap_new - cap_w[f_new - 1] * err)).max()) * M_TO_MM
+        assert added_err_mm <= COMPRESS_TOL_MM, f"frame {f_new} trains {added_err_mm:.3g} mm off its truth"
         scene.frame_set(1)
         run2 = run_operator(bpy, "incremental", suggestions=3)
         names2, kf2, kfe2 = count_prop(obj)
-        run2.update(added_frame=f_new, fl_prop_keys=len(names2), keyframes=kf2 + kfe2,
+        run2.update(added_frame=f_new, added_frame_max_error_mm=round(added_err_mm, 6), fl_prop_keys=len(names2), keyframes=kf2 + kfe2,
                     incremental_path_used="regressor: add (incremental)" in run2["split"]
                     and "regressor: LipRegressor.__init__ (Poisson factor, patches)" not in run2["split"])
         out["propagate_incremental"] = run2
