@@ -34,7 +34,7 @@ from ..core.errors import CameraError, FaceLabError
 
 __all__ = ["PlateError", "ClipInfo", "footage_extensions", "check_footage", "load_clip", "loaded_clip", "clip_info",
            "add_clip_background", "match_scene_to_clip", "clip_lens_is_set", "lens_from_clip", "plate_file",
-           "plate_pixels"]
+           "plate_pixels", "shown_footage"]
 
 #: Focal length (mm) and sensor width (mm) Blender gives the tracking camera of a freshly loaded clip.
 BLENDER_DEFAULT_LENS = (24.0, 35.0)
@@ -315,6 +315,30 @@ def plate_file(cam_obj, frame: int):
         The plate is a movie file (this reads image sequences and stills; convert the movie to images),
         or the frame's file is missing.
     """
+    shown = shown_footage(cam_obj)
+    if shown is None:
+        return None
+    bg, footage = shown
+    first = Path(bpy.path.abspath(footage.filepath))
+    if footage.source == "MOVIE":
+        raise PlateError(f"The plate {first.name!r} is a movie file; snapping reads image sequences: export it "
+                         "as PNG/JPEG images (a numbered sequence) and load that as the plate.")
+    if bg.source == "MOVIE_CLIP":
+        n = _first_number(first) + int(frame) - int(footage.frame_start) + int(footage.frame_offset)
+        path = _numbered(first, n)
+    elif footage.source == "SEQUENCE":
+        path = _numbered(first, _image_user_number(bg.image_user, frame))
+    else:
+        path = first
+    if not path.exists():
+        raise PlateError(f"The plate has no image for frame {frame} ({str(path)!r}); check the footage's start "
+                         "frame (the clip's Start Frame) or the missing file.")
+    return path
+
+
+def shown_footage(cam_obj):
+    """``(background image, footage)`` of the camera's plate, or None: its first shown background image that
+    holds a Movie Clip or an Image (``footage`` is that ``bpy.types.MovieClip`` or ``bpy.types.Image``)."""
     cam = getattr(cam_obj, "data", None)
     if cam is None or getattr(cam_obj, "type", None) != "CAMERA":
         return None
@@ -322,23 +346,8 @@ def plate_file(cam_obj, frame: int):
         if not getattr(bg, "show_background_image", True):
             continue
         footage = bg.clip if bg.source == "MOVIE_CLIP" else bg.image if bg.source == "IMAGE" else None
-        if footage is None:
-            continue
-        first = Path(bpy.path.abspath(footage.filepath))
-        if footage.source == "MOVIE":
-            raise PlateError(f"The plate {first.name!r} is a movie file; snapping reads image sequences: export it "
-                             "as PNG/JPEG images (a numbered sequence) and load that as the plate.")
-        if bg.source == "MOVIE_CLIP":
-            n = _first_number(first) + int(frame) - int(footage.frame_start) + int(footage.frame_offset)
-            path = _numbered(first, n)
-        elif footage.source == "SEQUENCE":
-            path = _numbered(first, _image_user_number(bg.image_user, frame))
-        else:
-            path = first
-        if not path.exists():
-            raise PlateError(f"The plate has no image for frame {frame} ({str(path)!r}); check the footage's start "
-                             "frame (the clip's Start Frame) or the missing file.")
-        return path
+        if footage is not None:
+            return bg, footage
     return None
 
 

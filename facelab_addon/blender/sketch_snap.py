@@ -23,7 +23,7 @@ import numpy as np
 from ..core.capture.camera import Camera
 from ..core.lips.snap import snap_lips
 from ..names import SNAP_ATTR
-from .plate import PlateError, plate_file, plate_pixels
+from .plate import PlateError, plate_file, plate_pixels, shown_footage
 
 __all__ = ["movie_frame_pixels", "plate_image", "selected_strokes", "set_stroke_snap", "snap_to_plate",
            "stroke_snap_choices"]
@@ -139,17 +139,11 @@ def snap_to_plate(cam_obj, camera: Camera, frame: int, strokes: dict, only=None,
 
 def _movie_clip(cam_obj):
     """The Movie Clip of a movie file the camera's plate shows (its first shown background image), or None."""
-    cam = getattr(cam_obj, "data", None)
-    if cam is None or getattr(cam_obj, "type", None) != "CAMERA":
+    shown = shown_footage(cam_obj)
+    if shown is None:
         return None
-    for bg in cam.background_images:
-        if not getattr(bg, "show_background_image", True):
-            continue
-        footage = bg.clip if bg.source == "MOVIE_CLIP" else bg.image if bg.source == "IMAGE" else None
-        if footage is None:
-            continue
-        return footage if bg.source == "MOVIE_CLIP" and footage.source == "MOVIE" else None
-    return None
+    bg, footage = shown
+    return footage if bg.source == "MOVIE_CLIP" and footage.source == "MOVIE" else None
 
 
 def plate_image(cam_obj, frame: int):
