@@ -34,7 +34,7 @@ and held-out faces and camera rigs of ``testing.solve_cases``, clean and with
 0.5 / 1 px marker noise (``benchmarks/results/contour_solve_matrix.json``).
 
 3D eyelid targets are lifted onto the eyeball grown by each lid point's
-current height over it (``contours.match_contours(eyelid_height='current')``)
+current height over it (``MatchParams(eyelid_height='current')``)
 in every configuration; the blendshape fit re-weights the lip-contour points
 with a 1 px Huber loss (``SolveParams(contour_huber_px=1)``); the
 corrective's contours are matched again on the fitted rig

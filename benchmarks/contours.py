@@ -32,7 +32,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from facelab_addon.core.capture.ict import load_ict  # noqa: E402
 from facelab_addon.core.solve.contour_loops import MOUTH_CURVES  # noqa: E402
-from facelab_addon.core.solve.matching import contour_residuals, match_contours  # noqa: E402
+from facelab_addon.core.solve.matching import MatchParams, contour_residuals, match_contours  # noqa: E402
 from facelab_addon.testing.capture_sim import helmet_cameras  # noqa: E402
 from facelab_addon.testing.contour_truth import (  # noqa: E402
     ict_contour_loops,
@@ -71,7 +71,7 @@ def main():
     curves = synthetic_tracked_curves(V, F, cams, loops, spacing_px=1.0)
     timing = {}
     for mode in ("3d", "2d", "both"):
-        cpu, wall = timed(lambda: match_contours(V, F, cams, curves, loops, eyelids=mode), 50)
+        cpu, wall = timed(lambda: match_contours(V, F, cams, curves, loops, MatchParams(eyelids=mode)), 50)
         timing[mode] = dict(cpu_ms=round(cpu, 3), wall_ms=round(wall, 3))
     cpu, wall = timed(lambda: synthetic_tracked_curves(V, F, cams, loops), 10)
     timing["synthetic_tracked_curves"] = dict(cpu_ms=round(cpu, 3), wall_ms=round(wall, 3))
@@ -84,7 +84,7 @@ def main():
         X = model.pose(w)
         cv = synthetic_tracked_curves(X, F, cams, loops)
         n_curves.append(len(cv))
-        corr = match_contours(X, F, cams, cv, loops, eyelids="both")
+        corr = match_contours(X, F, cams, cv, loops, MatchParams(eyelids="both"))
         for c, r in zip(corr, contour_residuals(X, cams, corr)):
             if c.camera < 0:
                 mm_lid.append(r * 10.0)  # ICT: centimetres

@@ -21,7 +21,7 @@ import numpy as np  # noqa: E402
 from facelab_addon.core.capture.camera import Camera  # noqa: E402
 from facelab_addon.core.capture.ict import load_ict  # noqa: E402
 from facelab_addon.core.solve.contour_loops import MOUTH_CURVES  # noqa: E402
-from facelab_addon.core.solve.matching import match_contours  # noqa: E402
+from facelab_addon.core.solve.matching import MatchParams, match_contours  # noqa: E402
 from facelab_addon.core.solve.occlusion import _facing_sign, half_silhouette_counts  # noqa: E402
 from facelab_addon.testing.contour_truth import (  # noqa: E402
     ict_contour_loops,
@@ -97,7 +97,7 @@ def eyelids(out="docs/images/contours_eyelids.png"):
         curves = synthetic_tracked_curves(X, m.faces, [cam], loops, names=["eyelid_left_upper", "eyelid_left_lower"])
         for c in curves:  # moved 3 px away from the lid so the pairing shows
             c.pixels = c.pixels + [0.0, -3.0 if c.name.endswith("upper") else 3.0]
-        corr = match_contours(X, m.faces, [cam], curves, loops, eyelids="both")
+        corr = match_contours(X, m.faces, [cam], curves, loops, MatchParams(eyelids="both"))
         P = cam.project(X)
         for lp in loops.eyes["left"]:
             q = P[np.r_[lp, lp[:1]]]

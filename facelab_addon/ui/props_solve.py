@@ -10,8 +10,15 @@ ids and barycentric weights of its surface point, written by Bind Tracks
 (read and written as arrays by :mod:`facelab_addon.blender.bindings`).
 
 :func:`facelab_addon.pipeline.shot_settings.bind_settings`, ``solve_settings`` and
-``retarget_settings`` gather these properties into the pipelines' settings.
+``retarget_settings`` gather these properties into the pipelines' settings. The solve and
+retarget options take their defaults (and, for the settings the pipeline declares with
+:func:`facelab_addon.pipeline.settings.setting`, their labels, bounds and tooltips) from
+:class:`~facelab_addon.pipeline.solve.SolveSettings` and
+:class:`~facelab_addon.pipeline.retarget.RetargetSettings`, whose defaults are the core's: one place to
+change a default.
 """
+
+from dataclasses import fields
 
 import bpy
 from bpy.props import (
@@ -26,6 +33,21 @@ from bpy.props import (
 )
 
 from ..names import BUNDLES_COLLECTION, SOLVE_ACTION, SOLVE_PREFIX
+from ..pipeline.retarget import RetargetSettings
+from ..pipeline.settings import describe
+from ..pipeline.solve import SolveSettings
+
+_SOLVE = {f.name: f.default for f in fields(SolveSettings)}  # the pipeline's (the core's) defaults
+_RETARGET = {f.name: f.default for f in fields(RetargetSettings)}
+_DECLARED = {d["name"]: d for d in describe(SolveSettings)}
+
+
+def _declared(prop, name: str):
+    """``prop`` (a ``bpy.props`` function) for the setting ``name`` of SolveSettings: its label, default,
+    bounds and tooltip."""
+    d = _DECLARED[name]
+    bounds = {k: d[k] for k in ("min", "max", "soft_min", "soft_max") if d[k] is not None}
+    return prop(name=d["label"], default=d["default"], description=d["description"], **bounds)
 
 
 def _is_camera(self, obj):
@@ -89,14 +111,14 @@ class FACELAB_PG_solve_scene(bpy.types.PropertyGroup):
         items=[("NONE", "None", "No 3D bundles"),
                ("EMPTIES", "Empties", "The empties (or point meshes) of the Bundle Collection"),
                ("TRACKING", "Tracking", "The reconstructed bundles of the first view's Movie Clip (its camera solve)")],
-        default="NONE",
+        default=_SOLVE["bundles"],
         description="3D bundles to fit besides the 2D markers",
     )
     bundle_collection: PointerProperty(name="Bundle Collection", type=bpy.types.Collection,
                                        description=f"Collection of bundle empties (default: '{BUNDLES_COLLECTION}')")
-    use_contours: BoolProperty(name="Contours", default=True,
+    use_contours: BoolProperty(name="Contours", default=_SOLVE["use_contours"],
                                description="Fit the inner-lip and eyelid contours of the views' masks / sketches")
-    annotation_view: IntProperty(name="Annotation View", default=-1, min=-1,
+    annotation_view: IntProperty(name="Annotation View", default=_SOLVE["annotation_view"], min=-1,
                                  description="View whose camera the scene annotation's contour layers were drawn "
                                              "through (-1: ignore the annotation)")
     use_annotation: BoolProperty(
@@ -104,10 +126,10 @@ class FACELAB_PG_solve_scene(bpy.types.PropertyGroup):
         set=lambda self, v: setattr(self, "annotation_view", max(0, self.annotation_view) if v else -1),
         description="Also fit the contour layers of the scene's annotation, drawn through the camera of the "
                     "Annotation View")
-    use_corrective: BoolProperty(name="Corrective", default=True,
+    use_corrective: BoolProperty(name="Corrective", default=_SOLVE["use_corrective"],
                                  description="Add the per-frame out-of-subspace corrective (compressed corrective "
                                              f"shape keys {SOLVE_PREFIX}*)")
-    sliding: BoolProperty(name="Sliding Contours", default=True,
+    sliding: BoolProperty(name="Sliding Contours", default=_SOLVE["sliding"],
                           description="Re-match contour correspondences every frame (off: keep the first frame's)")
     use_scene_range: BoolProperty(name="Scene Range", default=True,
                                   description="Work on the scene's frame range (off: the Start / End below)")
@@ -118,45 +140,29 @@ class FACELAB_PG_solve_scene(bpy.types.PropertyGroup):
     frame_end: IntProperty(name="End", get=lambda self: _range_get(self, 1),
                            set=lambda self, v: _range_set(self, 1, v),
                            description="Last frame (the scene's end while Scene Range is on)")
-    weight_min: FloatProperty(name="Min Weight", default=-1.0, soft_min=-1.0, soft_max=0.0,
+    weight_min: FloatProperty(name="Min Weight", default=_SOLVE["weight_min"], soft_min=-1.0, soft_max=0.0,
                               description="Lowest weight a shape key may get (-1 allows subtracting shapes); raise "
                                           "it to 0 when the solve uses shapes backwards")
-    weight_max: FloatProperty(name="Max Weight", default=1.0, soft_min=0.0, soft_max=1.0,
+    weight_max: FloatProperty(name="Max Weight", default=_SOLVE["weight_max"], soft_min=0.0, soft_max=1.0,
                               description="Highest weight a shape key may get; lower it when expressions overshoot "
                                           "the rig's sculpted shapes")
-    marker_weight: FloatProperty(name="Marker Weight", default=1.0, min=0.0,
+    marker_weight: FloatProperty(name="Marker Weight", default=_SOLVE["marker_weight"], min=0.0,
                                  description="How much the solve trusts the tracked markers; lower it when noisy "
                                              "tracks make the face jitter")
-    contour_weight: FloatProperty(name="Contour Weight", default=1.0, min=0.0,
+    contour_weight: FloatProperty(name="Contour Weight", default=_SOLVE["contour_weight"], min=0.0,
                                   description="How much the solve trusts the lip and eyelid contours against the "
                                               "markers; raise it when lips or lids miss their contours")
-    anchor_weight: FloatProperty(
-        name="Markers Anchor", default=50.0, min=0.0, soft_max=1000.0,
-        description="How strongly the contour fit keeps the face away from the mouth and eyes where the markers "
-                    "alone put it; lower it when the contours are more reliable than the markers (0: contours move the "
-                    "whole face)")
-    contour_damping: FloatProperty(
-        name="Corrective Damping at Contours", default=0.03, min=0.0, soft_max=1.0,
-        description="How strongly the corrective stays near the contours around the mouth and eyes (0.01 "
-                    "elsewhere); lower it when lip and lid corrections stop short of their contours")
-    lip_passes: IntProperty(
-        name="Lip Passes", default=2, min=0, max=10, soft_max=4,
-        description="Times the contours are matched again on the corrected mesh and the lips alone solved again "
-                    "(0: one pass); raise it when the inner lips still miss their contour")
-    lip_line_weight: FloatProperty(
-        name="Lip Line Weight", default=8.0, min=0.0, soft_max=50.0,
-        description="Weight of the tracked lip lines in the lip passes, relative to the markers (1); raise it "
-                    "when the lips miss the tracked lip lines")
-    lip_damping: FloatProperty(
-        name="Lip Pass Damping", default=0.3, min=0.0, soft_max=3.0,
-        description="How strongly the lip passes keep the lip correction on the lip rim; raise it when the lip "
-                    "passes dent the lips")
+    anchor_weight: _declared(FloatProperty, "anchor_weight")
+    contour_damping: _declared(FloatProperty, "contour_damping")
+    lip_passes: _declared(IntProperty, "lip_passes")
+    lip_line_weight: _declared(FloatProperty, "lip_line_weight")
+    lip_damping: _declared(FloatProperty, "lip_damping")
     existing_animation: EnumProperty(
         name="Existing Animation",
         items=[("NEW_ACTION", "New Action", "Keep the artist's shape-key action (fake user) and write the solve to a "
                                             f"copy of it named {SOLVE_ACTION} (switch back in the Shape Key Editor)"),
                ("REPLACE", "Replace Curves", "Overwrite the rig keys' curves in the current action")],
-        default="NEW_ACTION",
+        default=_SOLVE["existing_animation"],
         description="What to do when the rig's shape keys are already animated by an action FaceLab did not make",
     )
     # retarget
@@ -168,15 +174,15 @@ class FACELAB_PG_solve_scene(bpy.types.PropertyGroup):
                ("TOPOLOGY", "Same Topology", "Vertex i of the actor is vertex i of the creature"),
                ("MARKERS", "Markers", "Empties in the Creature Markers collection named like the actor's bound "
                                       "tracks mark the same points on the creature")],
-        default="AUTO",
+        default=_RETARGET["correspondence"],
         description="How the creature's points are matched to the actor's",
     )
     creature_markers: PointerProperty(name="Creature Markers", type=bpy.types.Collection,
                                       description="Empties on the creature named like the actor's tracks")
-    lip_sync: BoolProperty(name="Lip Sync", default=True,
+    lip_sync: BoolProperty(name="Lip Sync", default=_RETARGET["lip_sync"],
                            description="Seal the creature's lip corners so its talking portion matches the actor's "
                                        "lip length")
-    lip_threshold: FloatProperty(name="Threshold", default=0.0, min=0.0, subtype="DISTANCE",
+    lip_threshold: FloatProperty(name="Threshold", default=_RETARGET["lip_threshold"], min=0.0, subtype="DISTANCE",
                                  description="Extra talking length allowed before the corners are sealed")
     use_end_points: BoolProperty(name="Custom End Points", default=False,
                                  description="Set the talking portion by hand instead of automatically")

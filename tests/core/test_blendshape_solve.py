@@ -267,7 +267,7 @@ def test_truth_is_a_fixed_point_of_the_corrective_with_eyelids(ict, deltas):
     The 3D eyelid targets are lifted with the lids' current heights over the eyeball (unbiased); with the
     rest heights (the old lift) a blink leaves them up to ~1 mm off and the corrective follows them.
     """
-    from facelab_addon.core.solve.matching import match_contours
+    from facelab_addon.core.solve.matching import MatchParams, match_contours
     from facelab_addon.testing.contour_truth import ict_contour_loops
 
     cap = make_capture(ict, names=NAMES, n_frames=3, n_markers=60, noise_px=0.0, seed=1, curves=True)
@@ -285,7 +285,7 @@ def test_truth_is_a_fixed_point_of_the_corrective_with_eyelids(ict, deltas):
     assert max(np.abs(c.evaluate(V) - c.targets).max() for c in eyel) < 0.01  # cm: 0.1 mm
     d = corr.solve(V, cap.markers_px_clean[t], None, cc)
     good = np.linalg.norm(d, axis=1)[face]
-    rest = match_contours(V, ict.faces, cap.cameras, cap.curves[t], loops, eyelid_height="rest")
+    rest = match_contours(V, ict.faces, cap.cameras, cap.curves[t], loops, MatchParams(eyelid_height="rest"))
     d_rest = corr.solve(V, cap.markers_px_clean[t], None, rest)
     bad = np.linalg.norm(d_rest, axis=1)[face]
     assert good.max() < 0.002 and good.mean() < 1e-4  # cm (measured 3e-4, 1.5e-5)

@@ -29,6 +29,7 @@ from facelab_addon.core.geometry.sphere import fit_sphere, project_to_sphere, ra
 from facelab_addon.core.solve.contour_loops import TrackedCurve, contour_loops
 from facelab_addon.core.solve.matching import (
     CurveCorrespondence,
+    MatchParams,
     half_points,
     contour_residuals,
     match_contours,
@@ -388,7 +389,7 @@ def test_truth_curves_matched_to_the_truth_have_near_zero_residual(ict, ict_loop
     cams = helmet(V)
     curves = synthetic_tracked_curves(V, ict.faces, cams, ict_loops)
     assert len(curves) == 12
-    corr = match_contours(V, ict.faces, cams, curves, ict_loops, eyelids="both")
+    corr = match_contours(V, ict.faces, cams, curves, ict_loops, MatchParams(eyelids="both"))
     assert len(corr) == 4 + 16
     res = contour_residuals(V, cams, corr)
     for c, r in zip(corr, res):
@@ -402,7 +403,7 @@ def test_truth_curves_matched_to_the_truth_have_near_zero_residual(ict, ict_loop
             assert r.max() < 0.01, (c.name, r.max())  # cm
             assert c.source_camera in (0, 1)
     # the rest-height lift (old default) is off wherever the expression changes the lid's height (blink)
-    rest = match_contours(V, ict.faces, cams, curves, ict_loops, eyelid_height="rest")
+    rest = match_contours(V, ict.faces, cams, curves, ict_loops, MatchParams(eyelid_height="rest"))
     r3 = np.concatenate([r for c, r in zip(rest, contour_residuals(V, cams, rest)) if c.camera < 0])
     if expr == "eyeBlink_L":
         assert r3.max() > 0.05  # cm
@@ -469,9 +470,11 @@ def test_bad_input_messages(band, ict, ict_loops):
     with pytest.raises(MeshError, match="rebuild the loops"):
         match_contours(V[:-1], F, [cam], [good], loops)
     with pytest.raises(FaceLabError, match="eyelid_height must be"):
-        match_contours(ict.neutral, ict.faces, helmet(ict.neutral), [], ict_loops, eyelid_height="x")
+        MatchParams(eyelid_height="x")
     with pytest.raises(FaceLabError, match="eyelids must be"):
-        match_contours(V, F, [cam], [good], loops, eyelids="3D")
+        MatchParams(eyelids="3D")
+    with pytest.raises(FaceLabError, match="pass MatchParams"):
+        match_contours(V, F, [cam], [good], loops, "3d")
     behind = Camera.look_at([0, 0, -DIST], [0, 0, -2 * DIST], [0, 1, 0], 50, 36, 1920, 1080)
     with pytest.raises(FaceLabError, match="behind the camera"):
         match_contours(V, F, [behind], [good], loops)

@@ -49,7 +49,7 @@ from ..errors import FaceLabError
 from ..geometry.linsolve import small_dense_threads
 from ..geometry.mesh import grow_region, validate_mesh, vertex_adjacency
 from .bounded_lsq import box_least_squares
-from .matching import match_contours
+from .matching import MatchParams, match_contours
 
 __all__ = [
     "SolveParams", "FrameResult", "BlendshapeSolver", "contour_region", "ANCHOR_RINGS_MOUTH", "ANCHOR_EYE_RADIUS",
@@ -84,8 +84,9 @@ class SolveParams:
 
     Contours
     --------
-    eyelids : {"3d", "2d", "both"}
-        How eyelid curves are fitted (:func:`.matching.match_contours`): lifted
+    match : MatchParams
+        Contour selection and matching (:func:`.matching.match_contours`),
+        among them how eyelid curves are fitted (``match.eyelids``): lifted
         onto the eyeball as 3D targets (paper), as 2D curves, or both.
     contour_huber_px : float or None
         Huber threshold (pixels) on the inner-lip contour points: after the
@@ -129,7 +130,7 @@ class SolveParams:
     contour_weight: float = 1.0
     bundle_weight: float = 1.0
     regularization: float = 1e-6
-    eyelids: str = "3d"
+    match: MatchParams = MatchParams()
     contour_huber_px: float | None = 1.0
     robust_iterations: int = 2
     anchor_weight: float = 50.0
@@ -264,7 +265,7 @@ class BlendshapeSolver:
         self.anchor_noise_floor_px = float(params.anchor_noise_floor_px or 0.0)
         self.contour_huber_px = None if not params.contour_huber_px else float(params.contour_huber_px)
         self.robust_iterations = int(params.robust_iterations)
-        self.eyelids = params.eyelids
+        self.match_params = params.match
         D = np.asarray(deltas, dtype=np.float64)
         if D.ndim != 3 or D.shape[1:] != V0.shape or D.shape[0] == 0:
             raise FaceLabError(
@@ -385,8 +386,8 @@ class BlendshapeSolver:
                 "contour_loops(rest_vertices, faces) and pass loops= to BlendshapeSolver."
             )
         V = self._partial_vertices(np.asarray(weights, float)) if vertices is None else np.asarray(vertices, float)
-        return match_contours(V, self.faces, self.cameras, curves, self.loops, sliding=sliding,
-                              previous=None if sliding else previous, eyelids=self.eyelids)
+        return match_contours(V, self.faces, self.cameras, curves, self.loops, self.match_params,
+                              previous=None if sliding else previous, sliding=sliding)
 
     def _edge_model(self, corr):
         """Linear model (x0 (c,3), B (c,3,S)) of the correspondence points on mesh edges."""
@@ -529,8 +530,8 @@ class BlendshapeSolver:
                     Vc = self._partial_vertices(w)
                     # sliding: select and match afresh on the current mesh (a previous loop would win silhouette
                     # ties against the loop closest to the curve); fixed: keep the previous assignment
-                    corr = match_contours(Vc, self.faces, self.cameras, curves, self.loops, sliding=sliding,
-                                          previous=None if sliding else prev_corr, eyelids=self.eyelids)
+                    corr = match_contours(Vc, self.faces, self.cameras, curves, self.loops, self.match_params,
+                                          previous=None if sliding else prev_corr, sliding=sliding)
                     prev_corr = corr
                 w_new = self._solve_linear(w, *self._system(w, md, bd, corr), anchor=anchor if corr else None)
                 change = float(np.abs(w_new - w).max())

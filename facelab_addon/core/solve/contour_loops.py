@@ -123,7 +123,7 @@ class ContourLoops:
         Signed distance of every eyelid-loop vertex from its rest eyeball
         sphere, scene units (0 elsewhere): the lid margin's height over the
         eyeball (on ICT-FaceKit the eyelid rings lie 0.2 to 1.3 mm off the
-        fitted sphere). Used by ``match_contours(eyelid_height='rest')``;
+        fitted sphere). Used by ``match_contours`` with ``MatchParams(eyelid_height='rest')``;
         the default lifts with the height on the matched mesh instead (ICT's
         lids change height when blinking).
     default_loop : dict str -> int

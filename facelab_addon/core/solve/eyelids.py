@@ -1,8 +1,8 @@
 """Eyelid contour targets lifted onto the eyeball (Bhat et al. 2013, §4.1).
 
 "High Fidelity Facial Animation Capture and Retargeting With Contours": the
-eyelid curves are fitted as 3D targets on the cornea. With ``eyelids='3d'``
-or ``'both'``, :func:`~facelab_addon.core.solve.matching.match_contours`
+eyelid curves are fitted as 3D targets on the cornea. With
+``MatchParams(eyelids='3d')`` or ``'both'``, :func:`~facelab_addon.core.solve.matching.match_contours`
 hands its eyelid correspondences (pixel targets on mesh-edge points) to
 ``lift_eyelids``, which projects each target from its camera onto the
 eyeball sphere (:mod:`facelab_addon.core.geometry.sphere`, fitted to the
@@ -23,7 +23,7 @@ import numpy as np
 
 from ..geometry.sphere import fit_sphere, project_to_sphere
 
-__all__: list = []  # used through match_contours(eyelids='3d' or 'both')
+__all__: list = []  # used through match_contours(..., MatchParams(eyelids='3d' or 'both'))
 
 
 def _eyeball_sphere(V, loops, side):

@@ -61,11 +61,69 @@ from .eyelids import lift_eyelids
 from .occlusion import gather_corners, near_curve_counts, candidate_silhouettes
 
 __all__ = [
+    "MatchParams",
     "CurveCorrespondence",
     "match_contours",
     "contour_residuals",
     "contour_curve_distance",
 ]
+
+
+@dataclass(frozen=True)
+class MatchParams:
+    """Options of the contour selection and matching (:func:`match_contours`).
+
+    Attributes
+    ----------
+    eyelids : {'3d', '2d', 'both'}
+        Eyelid constraints as 3D targets on the eyeball (``camera=-1``; the
+        paper's corrective), as 2D pixel targets (the paper's blendshape
+        fit), or both.
+    eyelid_height : {'current', 'rest'}
+        Which sphere a 3D eyelid target is lifted onto. ``'current'``: the
+        eyeball sphere grown by the lid point's height over the eyeball on
+        the mesh being matched (the current fit), so the target keeps the
+        rig's lid thickness for this expression and only the tracked curve
+        moves it; a lid that matches the image is its own fixed point
+        (unbiased). ``'rest'``: grown by the rest-pose height
+        (``ContourLoops.eyelid_offset``); biased wherever the rig changes
+        the lid's height over the eye.
+    eyelid_min_cos : float
+        3D eyelid targets are kept only where the camera ray meets the
+        eyeball at an angle whose cosine (ray against sphere normal,
+        dimensionless) is at least this: towards the eyeball's limb seen from
+        that camera the lift is ill-conditioned, and lid points beyond it are
+        hidden by the eye.
+    curve_tolerance : float
+        Only silhouette edges within this fraction (dimensionless) of the
+        tracked curve's length, and at least 2 px, of the curve count for the
+        selection: a silhouette elsewhere (an outer outline of the lip, a
+        fold) cannot be what the tracker followed. When no candidate has a
+        silhouette edge near the curve, the one closest to the curve is used.
+    near_tie : float
+        Halves whose silhouette count is within this fraction (dimensionless)
+        of the best count are treated as tied; ties go to the previous loop,
+        then to the half whose projection is closest to the curve
+        (silhouettes of a tangled lip can spread over several rings with
+        similar counts).
+
+    Raises
+    ------
+    FaceLabError
+        ``eyelids`` or ``eyelid_height`` not one of the choices above.
+    """
+
+    eyelids: str = "3d"
+    eyelid_height: str = "current"
+    eyelid_min_cos: float = 0.25
+    curve_tolerance: float = 0.02
+    near_tie: float = 0.25
+
+    def __post_init__(self):
+        if self.eyelids not in ("3d", "2d", "both"):
+            raise FaceLabError(f"eyelids must be '3d', '2d' or 'both', got {self.eyelids!r}.")
+        if self.eyelid_height not in ("current", "rest"):
+            raise FaceLabError(f"eyelid_height must be 'current' or 'rest', got {self.eyelid_height!r}.")
 
 
 @dataclass
@@ -197,14 +255,10 @@ def match_contours(
     cameras,
     curves,
     loops: ContourLoops,
+    params: MatchParams = MatchParams(),
     *,
-    sliding: bool = True,
     previous=None,
-    eyelids: str = "3d",
-    eyelid_min_cos: float = 0.25,
-    curve_tolerance: float = 0.02,
-    near_tie: float = 0.25,
-    eyelid_height: str = "current",
+    sliding: bool = True,
 ) -> list:
     """Occluding contours of the current mesh matched to the tracked curves (Bhat et al. 2013, §4.2).
 
@@ -226,50 +280,24 @@ def match_contours(
     curves : list of TrackedCurve
     loops : ContourLoops
         From :func:`contour_loops` on the same topology.
+    params : MatchParams
+        Eyelid mode and lift, and the selection's curve tolerance and tie
+        fraction.
+    previous : list of CurveCorrespondence, optional
+        The previous frame's (or iteration's) correspondences. With
+        ``sliding=True`` the previous loop wins ties in the silhouette count.
     sliding : bool
         True (default): re-select the occluding contour and re-match. False:
         for curves present in ``previous`` keep its surface points and curve
         parameters (only the target positions are re-read from this frame's
         curve): the fixed contours of the paper's Fig. 6a.
-    previous : list of CurveCorrespondence, optional
-        The previous frame's (or iteration's) correspondences. With
-        ``sliding=True`` the previous loop wins ties in the silhouette count.
-    eyelids : {'3d', '2d', 'both'}
-        Eyelid constraints as 3D targets on the eyeball (``camera=-1``; the
-        paper's corrective), as 2D pixel targets (the paper's blendshape
-        fit), or both.
-    curve_tolerance : float
-        Only silhouette edges within this fraction of the tracked curve's
-        length (at least 2 px) of the curve count for the selection: a
-        silhouette elsewhere (an outer outline of the lip, a fold) cannot be
-        what the tracker followed. When no candidate has a silhouette edge
-        near the curve, the one closest to the curve is used.
-    near_tie : float
-        Halves whose count is within this fraction of the best count are
-        treated as tied; ties go to the previous loop, then to the half whose
-        projection is closest to the curve (silhouettes of a tangled lip can
-        spread over several rings with similar counts).
-    eyelid_min_cos : float
-        3D eyelid targets are kept only where the camera ray meets the
-        eyeball at an angle whose cosine (ray against sphere normal) is at
-        least this: towards the eyeball's limb seen from that camera the lift
-        is ill-conditioned, and lid points beyond it are hidden by the eye.
-    eyelid_height : {'current', 'rest'}
-        Which sphere a 3D eyelid target is lifted onto. ``'current'``
-        (default): the eyeball sphere grown by the lid point's height over
-        the eyeball on ``vertices`` (the current fit), so the target keeps
-        the rig's lid thickness for this expression and only the tracked
-        curve moves it; a lid that matches the image is its own fixed point
-        (unbiased). ``'rest'``: grown by the rest-pose height
-        (``loops.eyelid_offset``); biased wherever the rig changes the lid's
-        height over the eye (ICT blinks: ~0.4 mm RMS).
 
     Returns
     -------
     list of CurveCorrespondence
-        One per curve (two per eyelid curve with ``eyelids='both'``: 2D
+        One per curve (two per eyelid curve with ``params.eyelids='both'``: 2D
         first, then 3D), in the order of ``curves``. A 3D eyelid
-        correspondence holds only the kept points (``eyelid_min_cos``), and
+        correspondence holds only the kept points (``params.eyelid_min_cos``), and
         is left out when fewer than two remain.
 
     Raises
@@ -285,10 +313,9 @@ def match_contours(
             f"The mesh has {V.shape[0] if V.ndim == 2 else '?'} vertices but the contour loops were built for "
             f"{loops.n_vertices}; rebuild the loops (contour_loops) on this mesh."
         )
-    if eyelids not in ("3d", "2d", "both"):
-        raise FaceLabError(f"eyelids must be '3d', '2d' or 'both', got {eyelids!r}.")
-    if eyelid_height not in ("current", "rest"):
-        raise FaceLabError(f"eyelid_height must be 'current' or 'rest', got {eyelid_height!r}.")
+    if not isinstance(params, MatchParams):
+        raise FaceLabError(f"params must be a MatchParams, got {type(params).__name__}; pass MatchParams(...).")
+    eyelids, near_tie = params.eyelids, params.near_tie
     prev = {}
     for pc in previous or []:
         key = (pc.name, pc.source_camera if pc.source_camera >= 0 else pc.camera, pc.camera < 0)
@@ -339,7 +366,7 @@ def match_contours(
                 n_all = np.bincount(loops._pack.hid[sil[0]], minlength=loops._pack.n_halves)
                 counts_cache[ci] = (sil[0], sil[1], n_all)
             sil_idx, sil_mid, all_counts = counts_cache[ci]
-            tol = max(2.0, curve_tolerance * S[-1])
+            tol = max(2.0, params.curve_tolerance * S[-1])
             Cs = C if len(C) <= 128 else np.concatenate([C[:: len(C) // 64], C[-1:]])  # coarse, for ranking
             halves = loops.halves[name]
             # shortcut: a clear winner by count whose matched points already lie along the curve needs no more
@@ -376,7 +403,7 @@ def match_contours(
                 out.append(CurveCorrespondence(name, -1, pv, pb, targets=None, loop=k, curve_t=t, source_camera=ci,
                                                pixels=px))
     if lift:
-        lift_eyelids(V, cameras, loops, out, lift, eyelid_min_cos, eyelid_height)
+        lift_eyelids(V, cameras, loops, out, lift, params.eyelid_min_cos, params.eyelid_height)
         out = [c for c in out if not (c.camera < 0 and c.targets is None)]
     return out
 
