@@ -12,8 +12,12 @@ Method (Sumner & Popović §3-4, in the gradient-domain form of Botsch et al.
 
 * the source deformation of every source triangle is its deformation gradient
   ``S = D_d D_r^-1`` with the phantom fourth vertex (``core.geometry.gradients``);
-* every target triangle ``t`` takes the gradient of its corresponding source
-  triangle ``c(t)`` (identity when it has none), and the target positions
+* the target may sit anywhere, at another size or orientation: the
+  similarity ``x -> s R x + t`` that best maps the corresponding source points
+  onto the target (Umeyama) places the source in the target's frame, where
+  the source gradients become ``R S R^T`` and the displacements ``s R d``;
+* every target triangle ``t`` takes the (placed) gradient of its corresponding
+  source triangle ``c(t)`` (identity when it has none), and the target positions
   minimise ``sum_t area_t || grad_t(x) - S_c(t) ||^2`` over the target rest
   triangles: the Poisson system ``L x = D g`` of ``core.geometry.laplacian.poisson_operator``
   (``L`` is the target's cotangent Laplacian), factored once and solved for
@@ -21,10 +25,10 @@ Method (Sumner & Popović §3-4, in the gradient-domain form of Botsch et al.
 * the system only knows gradients, so each connected piece of the target is
   placed by translation: its mean displacement equals the mean *hint*
   displacement of its vertices, the source displacement carried over by the
-  correspondence (the same vertex for meshes that share topology) and moved
-  to the target vertex to first order with the local gradient,
-  ``d + (F - I)(x_target - x_source)``, which is exact for rigid motions and
-  similarities.
+  correspondence (the same vertex for meshes that share topology), placed,
+  and moved to the target vertex to first order with the local gradient,
+  ``s R d + (F - I)(x_target - (s R x_source + t))``, which is exact for
+  rigid motions and similarities and does not depend on the placement.
 
 For meshes that share topology the correspondence is the identity (a vertex
 map). For different topologies, :func:`triangle_correspondence_from_markers`
@@ -98,13 +102,22 @@ class DeformationTransfer:
     backend : str
         ``SPDFactor`` backend.
 
+    Attributes
+    ----------
+    placement : tuple (float, (3,3) ndarray, (3,) ndarray)
+        ``(s, R, t)``: the similarity ``x -> s R x + t`` (unitless scale and
+        rotation, translation in scene units) that best maps the source points
+        corresponding to the target vertices onto them.
+
     Notes
     -----
     The transfer is affine in the source gradients: for meshes that share
-    topology and rest shape it reproduces the source exactly, an identity
-    deformation gives the target rest exactly, and a global similarity
-    ``x -> s R x + t`` of the source gives exactly the same similarity of the
-    target, every piece included. A general affine map ``A`` is reproduced
+    topology and rest shape it reproduces the source exactly, and a copy of
+    the source moved by a similarity ``P`` (``placement``) receives exactly
+    ``s R d``. An identity deformation gives the target rest exactly, and a
+    global similarity ``M`` of the source gives exactly the similarity
+    ``P M P^-1`` of the target (``M`` itself when the target sits where the
+    source does), every piece included. A general affine map ``A`` is reproduced
     (up to translation) where the target triangles are parallel to the
     source ones: the phantom vertex makes a source gradient equal ``A`` on its
     triangle's plane only. The gradients are not linear in the positions (the
@@ -203,7 +216,14 @@ class DeformationTransfer:
             H = sp.diags(np.divide(1.0, s, out=np.zeros_like(s), where=s > 0)) @ H
             # target vertices with no corresponding triangle: nearest hinted neighbour through the mesh
             self._H = self._spread_hints(H.tocsr(), s > 0, Ft)
-        self._offset = Vt - self._H @ Vs  # (W,3) target minus corresponding source position
+        # placement of the target relative to the source: the similarity x -> s R x + t that best maps the
+        # corresponding source points onto the target; the transfer works in that frame, so it does not
+        # depend on where (or at which size and orientation) the target was modelled
+        hinted = np.asarray(self._H.sum(axis=1)).ravel() > 0
+        corresp = self._H @ Vs
+        s_, R_, t_ = _placement(corresp[hinted], Vt[hinted])
+        self.placement = (s_, R_, t_)
+        self._offset = Vt - (s_ * corresp @ R_.T + t_)  # (W,3) residual of the target from the placed source
         tf = Ft[tok]
         r = tf.ravel()
         c = np.repeat(np.arange(len(tf)), 3)
@@ -264,6 +284,8 @@ class DeformationTransfer:
         B = deformed.shape[0]
         G = self.source_gradients(deformed)  # (B,U,3,3)
         G[:, ~self._src_ok] = np.eye(3)
+        s_, R_, _ = self.placement
+        G = R_ @ G @ R_.T  # source gradients in the target's frame
         tri = self._tri_src[self._tgt_faces_idx]
         Ft = np.empty((B, len(tri), 3, 3))
         Ft[:, tri >= 0] = G[:, tri[tri >= 0]]
@@ -272,11 +294,12 @@ class DeformationTransfer:
         # g for coordinate c on triangle t is Ft[t, c, :] -> (3n, 3) per shape, shapes side by side
         g = Ft.transpose(1, 3, 0, 2).reshape(3 * n, B * 3)  # rows (t, axis j), cols (b, c)
         rhs = self._Dfree @ g - np.tile(self._Lrest, (1, B))
-        # hint: source displacement of the corresponding point, carried to the target vertex to first order
-        # with the local gradient (exact for affine deformations): d + (F_v - I)(x_t - x_s)
+        # hint: source displacement of the corresponding point in the target's frame, carried to the target
+        # vertex to first order with the local gradient (exact for affine deformations):
+        # s R d + (F_v - I)(x_t - (s R x_s + t)), F_v in the target's frame
         Fv = np.stack([self._avg @ Ft[b].reshape(n, 9) for b in range(B)]).reshape(B, -1, 3, 3) - np.eye(3)
         Fv[:, ~self._in_tri] = 0.0
-        hint = np.stack([self._H @ displacement[b] for b in range(B)])  # (B,W,3)
+        hint = np.stack([s_ * (self._H @ displacement[b]) @ R_.T for b in range(B)])  # (B,W,3)
         hint += np.einsum("bwij,wj->bwi", Fv, self._offset)
         Y = np.zeros((B, len(self.target_rest), 3))
         Y[:, self._pinned] = hint[:, self._pinned]
@@ -419,6 +442,18 @@ def _similarity(P, Q):
     var = (A**2).sum()
     s = float((S * np.diag(Dm)).sum() / var) if var > 0 else 1.0
     return s, R, mq - s * R @ mp
+
+
+def _placement(P, Q):
+    """Similarity ``Q ~ s R P + t`` placing source points P (n,3) on target points Q (n,3); (s, R, t).
+
+    Falls back to a translation when the points do not span a plane (the rotation is not determined).
+    """
+    A = P - P.mean(0)
+    sv = np.linalg.svd((Q - Q.mean(0)).T @ A, compute_uv=False)
+    if len(P) < 3 or sv[1] <= 1e-9 * max(sv[0], 1e-300) or not (A**2).sum() > 0:
+        return 1.0, np.eye(3), Q.mean(0) - P.mean(0)
+    return _similarity(P, Q)
 
 
 def _closest_points(P, V, F):
