@@ -14,8 +14,10 @@ Method (Sumner & Popović §3-4, in the gradient-domain form of Botsch et al.
   ``S = D_d D_r^-1`` with the phantom fourth vertex (``core.geometry.gradients``);
 * the target may sit anywhere, at another size or orientation: the
   similarity ``x -> s R x + t`` that best maps the corresponding source points
-  onto the target (Umeyama) places the source in the target's frame, where
-  the source gradients become ``R S R^T`` and the displacements ``s R d``;
+  onto the target (Umeyama) brings the target into the source's frame, the
+  system below is built and solved there, and its displacements are mapped
+  back (``s R``): in the target's frame the source gradients act as
+  ``R S R^T`` and a source displacement as ``s R d``;
 * every target triangle ``t`` takes the (placed) gradient of its corresponding
   source triangle ``c(t)`` (identity when it has none), and the target positions
   minimise ``sum_t area_t || grad_t(x) - S_c(t) ||^2`` over the target rest
@@ -176,10 +178,33 @@ class DeformationTransfer:
         self._tri_src = np.where(corr >= 0, pos[np.maximum(corr, 0)], -1)  # index into used, -1 = identity
         self._tri_src[(self._tri_src >= 0) & ~ok[np.maximum(self._tri_src, 0)]] = -1
 
+        # hints: target vertex displacement from source vertex displacements, (W, V) sparse
+        if self.same_topology:
+            self._H = sp.identity(len(Vt), format="csr")
+        else:
+            ft = np.flatnonzero(corr >= 0)
+            rows = np.repeat(Ft[ft], 3, axis=1).ravel()  # target vertex of each (tri corner, src corner)
+            cols = np.tile(Fs[corr[ft]], (1, 3)).ravel()
+            H = sp.coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(len(Vt), len(Vs))).tocsr()
+            s = np.asarray(H.sum(axis=1)).ravel()
+            H = sp.diags(np.divide(1.0, s, out=np.zeros_like(s), where=s > 0)) @ H
+            # target vertices with no corresponding triangle: nearest hinted neighbour through the mesh
+            self._H = self._spread_hints(H.tocsr(), s > 0, Ft)
+        # placement of the target relative to the source: the similarity x -> s R x + t that best maps the
+        # corresponding source points onto the target. The system is built and solved with the target brought
+        # into the source's frame (Vp), and its displacements are mapped back (s R), so the transfer does not
+        # depend on where, at which size or in which orientation the target was modelled.
+        hinted = np.asarray(self._H.sum(axis=1)).ravel() > 0
+        corresp = self._H @ Vs
+        s_, R_, t_ = _placement(corresp[hinted], Vt[hinted])
+        self.placement = (s_, R_, t_)
+        Vp = (Vt - t_) @ R_ / s_  # (W,3) target rest in the source's frame
+        self._offset = Vp - corresp  # (W,3) target minus corresponding source position, source frame
+
         # target Poisson system over its non-degenerate triangles
-        tok = _nondegenerate(Vt, Ft)
+        tok = _nondegenerate(Vp, Ft)
         self._tgt_faces_idx = np.flatnonzero(tok)
-        L, D = poisson_operator(Vt, Ft, self._tgt_faces_idx)
+        L, D = poisson_operator(Vp, Ft, self._tgt_faces_idx)
         self._L = L
         self._D = D
         n = len(Vt)
@@ -202,28 +227,8 @@ class DeformationTransfer:
         self._Lfp = Lrows[:, self._pinned].tocsr()
         self.factor = SPDFactor(self._Lff, backend=backend, what="deformation-transfer Poisson system")
         self._Dfree = D.tocsr()[self._free]
-        self._Lrest = (L @ Vt)[self._free]  # gradient of the rest shape (in-plane identity) pushed through D
+        self._Lrest = (L @ Vp)[self._free]  # gradient of the rest shape (in-plane identity) pushed through D
 
-        # hints: target vertex displacement from source vertex displacements, (W, V) sparse
-        if self.same_topology:
-            self._H = sp.identity(n, format="csr")
-        else:
-            ft = np.flatnonzero(corr >= 0)
-            rows = np.repeat(Ft[ft], 3, axis=1).ravel()  # target vertex of each (tri corner, src corner)
-            cols = np.tile(Fs[corr[ft]], (1, 3)).ravel()
-            H = sp.coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, len(Vs))).tocsr()
-            s = np.asarray(H.sum(axis=1)).ravel()
-            H = sp.diags(np.divide(1.0, s, out=np.zeros_like(s), where=s > 0)) @ H
-            # target vertices with no corresponding triangle: nearest hinted neighbour through the mesh
-            self._H = self._spread_hints(H.tocsr(), s > 0, Ft)
-        # placement of the target relative to the source: the similarity x -> s R x + t that best maps the
-        # corresponding source points onto the target; the transfer works in that frame, so it does not
-        # depend on where (or at which size and orientation) the target was modelled
-        hinted = np.asarray(self._H.sum(axis=1)).ravel() > 0
-        corresp = self._H @ Vs
-        s_, R_, t_ = _placement(corresp[hinted], Vt[hinted])
-        self.placement = (s_, R_, t_)
-        self._offset = Vt - (s_ * corresp @ R_.T + t_)  # (W,3) residual of the target from the placed source
         tf = Ft[tok]
         r = tf.ravel()
         c = np.repeat(np.arange(len(tf)), 3)
@@ -284,8 +289,6 @@ class DeformationTransfer:
         B = deformed.shape[0]
         G = self.source_gradients(deformed)  # (B,U,3,3)
         G[:, ~self._src_ok] = np.eye(3)
-        s_, R_, _ = self.placement
-        G = R_ @ G @ R_.T  # source gradients in the target's frame
         tri = self._tri_src[self._tgt_faces_idx]
         Ft = np.empty((B, len(tri), 3, 3))
         Ft[:, tri >= 0] = G[:, tri[tri >= 0]]
@@ -294,12 +297,11 @@ class DeformationTransfer:
         # g for coordinate c on triangle t is Ft[t, c, :] -> (3n, 3) per shape, shapes side by side
         g = Ft.transpose(1, 3, 0, 2).reshape(3 * n, B * 3)  # rows (t, axis j), cols (b, c)
         rhs = self._Dfree @ g - np.tile(self._Lrest, (1, B))
-        # hint: source displacement of the corresponding point in the target's frame, carried to the target
-        # vertex to first order with the local gradient (exact for affine deformations):
-        # s R d + (F_v - I)(x_t - (s R x_s + t)), F_v in the target's frame
+        # hint: source displacement of the corresponding point, carried to the (placed) target vertex to first
+        # order with the local gradient (exact for affine deformations): d + (F_v - I)(x_t - x_s)
         Fv = np.stack([self._avg @ Ft[b].reshape(n, 9) for b in range(B)]).reshape(B, -1, 3, 3) - np.eye(3)
         Fv[:, ~self._in_tri] = 0.0
-        hint = np.stack([s_ * (self._H @ displacement[b]) @ R_.T for b in range(B)])  # (B,W,3)
+        hint = np.stack([self._H @ displacement[b] for b in range(B)])  # (B,W,3)
         hint += np.einsum("bwij,wj->bwi", Fv, self._offset)
         Y = np.zeros((B, len(self.target_rest), 3))
         Y[:, self._pinned] = hint[:, self._pinned]
@@ -312,7 +314,8 @@ class DeformationTransfer:
             shift = self._piece_mean @ (hint[b] - Y[b])  # (pieces,3)
             Y[b] += shift[self._piece_of]
             Y[b, ~self._in_tri] = hint[b, ~self._in_tri]
-        return Y
+        s_, R_, _ = self.placement
+        return (s_ * Y) @ R_.T  # back to the target's frame
 
     def transfer_deltas(self, deltas) -> np.ndarray:
         """Transfer source shape deltas (blendshapes, correctives) to target deltas.
