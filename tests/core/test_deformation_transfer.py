@@ -103,6 +103,17 @@ def test_rotated_scaled_creature_gets_the_placed_source_deltas():
         assert np.abs(out[k] - exp).max() <= 1e-9 * np.abs(exp).max()
 
 
+def test_mirrored_creature_gets_the_mirrored_source_deltas():
+    """A mirror image of the actor (x -> -x, same vertex order) receives the mirrored deltas."""
+    V, F = two_pieces()
+    M = np.diag([-1.0, 1.0, 1.0])
+    d = bend(V) - V
+    dt = DeformationTransfer(V, F, V @ M + [5.0, 1.0, -2.0], F)
+    assert np.linalg.det(dt.placement[1]) < 0
+    out = dt.transfer_deltas(d)
+    assert np.abs(out - d @ M).max() <= 1e-9 * np.abs(d).max()
+
+
 def test_placement_of_a_warped_creature_does_not_change_its_transfer():
     """A different creature moved, turned and scaled receives the same deltas, turned and scaled."""
     V, F = grid(12)

@@ -17,7 +17,8 @@ Method (Sumner & Popović §3-4, in the gradient-domain form of Botsch et al.
   onto the target (Umeyama) brings the target into the source's frame, the
   system below is built and solved there, and its displacements are mapped
   back (``s R``): in the target's frame the source gradients act as
-  ``R S R^T`` and a source displacement as ``s R d``;
+  ``R S R^T`` and a source displacement as ``s R d`` (``R`` is a rotation,
+  or a reflection for a mirror image of the source);
 * every target triangle ``t`` takes the (placed) gradient of its corresponding
   source triangle ``c(t)`` (identity when it has none), and the target positions
   minimise ``sum_t area_t || grad_t(x) - S_c(t) ||^2`` over the target rest
@@ -107,9 +108,10 @@ class DeformationTransfer:
     Attributes
     ----------
     placement : tuple (float, (3,3) ndarray, (3,) ndarray)
-        ``(s, R, t)``: the similarity ``x -> s R x + t`` (unitless scale and
-        rotation, translation in scene units) that best maps the source points
-        corresponding to the target vertices onto them.
+        ``(s, R, t)``: the similarity ``x -> s R x + t`` (unitless scale,
+        (3,3) rotation or, for a mirror image, reflection; translation in
+        scene units) that best maps the source points corresponding to the
+        target vertices onto them.
 
     Notes
     -----
@@ -450,13 +452,27 @@ def _similarity(P, Q):
 def _placement(P, Q):
     """Similarity ``Q ~ s R P + t`` placing source points P (n,3) on target points Q (n,3); (s, R, t).
 
-    Falls back to a translation when the points do not span a plane (the rotation is not determined).
+    ``R`` is a rotation, or a reflection when that fits clearly better (a mirrored copy: residual
+    under a quarter of the rotation's). Falls back to a translation when the points do not span a
+    plane (the rotation is not determined).
     """
-    A = P - P.mean(0)
-    sv = np.linalg.svd((Q - Q.mean(0)).T @ A, compute_uv=False)
-    if len(P) < 3 or sv[1] <= 1e-9 * max(sv[0], 1e-300) or not (A**2).sum() > 0:
-        return 1.0, np.eye(3), Q.mean(0) - P.mean(0)
-    return _similarity(P, Q)
+    mp, mq = P.mean(0), Q.mean(0)
+    A, B = P - mp, Q - mq
+    U, S, Vt = np.linalg.svd(B.T @ A)
+    var = (A**2).sum()
+    if len(P) < 3 or not var > 0 or S[1] <= 1e-9 * max(S[0], 1e-300):
+        return 1.0, np.eye(3), mq - mp
+    d = np.sign(np.linalg.det(U @ Vt))
+    best = None
+    for sign in (d, -d):  # the rotation (det +1) first, then the reflection
+        Dm = np.diag([1.0, 1.0, sign])
+        R = U @ Dm @ Vt
+        sc = float((S * np.diag(Dm)).sum() / var)
+        res = float(((B - sc * A @ R.T) ** 2).sum())
+        if best is None or (sc > 0 and res < 0.25 * best[0]):
+            best = (res, sc, R)
+    _, sc, R = best
+    return sc, R, mq - sc * R @ mp
 
 
 def _closest_points(P, V, F):
