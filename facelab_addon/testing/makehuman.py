@@ -278,7 +278,7 @@ def makehuman_head(path=None, ict=None, expressions=EXPRESSIONS, *, use_cache: b
         raise FileNotFoundError(f"MakeHuman's base mesh is not available: {HOW_TO}")
     names = list(expressions)
     raw = path.read_bytes()
-    key = hashlib.sha1(raw + f"{NECK_BELOW_NOSE_CM}{names}v3".encode()).hexdigest()[:12]
+    key = hashlib.sha1(raw + f"{NECK_BELOW_NOSE_CM}{names}v4".encode()).hexdigest()[:12]
     cache = Path(os.environ.get("FACELAB_CACHE_DIR", Path.home() / ".cache" / "facelab")) / f"makehuman_{key}.npz"
     if use_cache and cache.exists():
         from .lip_truth import TruthLine
@@ -302,8 +302,8 @@ def makehuman_head(path=None, ict=None, expressions=EXPRESSIONS, *, use_cache: b
     Fs, Vs = sremap[sf], np.asarray(ict.neutral, np.float64)[su] / float(ict.scale)
     ms, mt = face_markers(Vs, Fs), face_markers(V, head.faces)
     order = list(ms)
-    # the transfer's hints carry a source displacement to the target to first order in their distance, so the
-    # head is moved onto ICT's (markers' centroids together) for the transfer and the offsets are kept
+    # the head is moved onto ICT's (markers' centroids together) for the transfer and the offsets are kept; the
+    # transfer itself fits the head's placement (DeformationTransfer.placement), so this only keeps numbers small
     c = V[[mt[k] for k in order]].mean(axis=0) - Vs[[ms[k] for k in order]].mean(axis=0)
     corr = triangle_correspondence_from_markers(Vs, Fs, V - c, head.faces, [ms[k] for k in order],
                                                 [mt[k] for k in order])

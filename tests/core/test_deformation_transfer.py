@@ -58,11 +58,71 @@ def test_identity_deformation_leaves_the_creature_unchanged():
 
 def test_similarity_transfers_exactly_on_every_piece():
     V, F = two_pieces()
-    C = warp(V)
     R, s, t = rotation([1, 2, 0.5], 0.7), 1.3, np.array([0.2, -0.1, 0.4])
-    out = deformation_transfer(V, F, s * V @ R.T + t, C, F)
-    # exact, including each piece's placement (first-order hint is exact for similarities)
-    np.testing.assert_allclose(out, s * C @ R.T + t, atol=1e-10)
+    # a target where the source is: the same similarity (about the world origin)
+    np.testing.assert_allclose(deformation_transfer(V, F, s * V @ R.T + t, V, F), s * V @ R.T + t, atol=1e-10)
+    # a warped creature: the similarity seen from the creature's placement P (best fit of the actor onto it),
+    # P M P^-1, exact including each piece's placement (the first-order hint is exact for similarities)
+    C = warp(V)
+    dt = DeformationTransfer(V, F, C, F)
+    sp_, Rp, tp = dt.placement
+    assert abs(sp_ - 1.0) > 1e-3 and np.abs(tp).max() > 1e-2  # a real placement, not the identity
+    local = (C - tp) @ Rp / sp_  # P^-1(C)
+    exp = sp_ * (s * local @ R.T + t) @ Rp.T + tp
+    np.testing.assert_allclose(dt.transfer(s * V @ R.T + t), exp, atol=1e-10)
+
+
+@pytest.mark.parametrize("offset", [[0.0, 50.0, 0.0], [3e3, -2e3, 1e3]])
+def test_translated_identical_creature_gets_the_source_deltas(offset):
+    """Where the creature was modelled does not matter: a translated copy receives the source deltas."""
+    V, F = two_pieces()
+    rng = np.random.default_rng(3)
+    d = np.stack([bend(V) - V, 0.02 * rng.standard_normal(V.shape), V * [0, 0.5, -0.3]])
+    dt = DeformationTransfer(V, F, V + offset, F)
+    s_, R_, t_ = dt.placement
+    assert abs(s_ - 1.0) < 1e-12 and np.abs(R_ - np.eye(3)).max() < 1e-12
+    np.testing.assert_allclose(t_, offset, atol=1e-12 * np.abs(offset).max())
+    out = dt.transfer_deltas(d)
+    for k in range(len(d)):
+        assert np.abs(out[k] - d[k]).max() <= 1e-9 * np.abs(d[k]).max()
+
+
+def test_rotated_scaled_creature_gets_the_placed_source_deltas():
+    """A copy turned 90 degrees and scaled 2x about an arbitrary point receives s R d (any shape)."""
+    V, F = two_pieces()
+    R, s, c = rotation([0.3, -1.0, 0.6], np.pi / 2), 2.0, np.array([4.0, -7.0, 2.5])
+    C = s * (V - c) @ R.T + c
+    rng = np.random.default_rng(4)
+    d = np.stack([bend(V) - V, 0.02 * rng.standard_normal(V.shape)])
+    dt = DeformationTransfer(V, F, C, F)
+    np.testing.assert_allclose(dt.placement[0], s, rtol=1e-12)
+    np.testing.assert_allclose(dt.placement[1], R, atol=1e-12)
+    out = dt.transfer_deltas(d)
+    for k in range(len(d)):
+        exp = s * d[k] @ R.T
+        assert np.abs(out[k] - exp).max() <= 1e-9 * np.abs(exp).max()
+
+
+def test_mirrored_creature_gets_the_mirrored_source_deltas():
+    """A mirror image of the actor (x -> -x, same vertex order) receives the mirrored deltas."""
+    V, F = two_pieces()
+    M = np.diag([-1.0, 1.0, 1.0])
+    d = bend(V) - V
+    dt = DeformationTransfer(V, F, V @ M + [5.0, 1.0, -2.0], F)
+    assert np.linalg.det(dt.placement[1]) < 0
+    out = dt.transfer_deltas(d)
+    assert np.abs(out - d @ M).max() <= 1e-9 * np.abs(d).max()
+
+
+def test_placement_of_a_warped_creature_does_not_change_its_transfer():
+    """A different creature moved, turned and scaled receives the same deltas, turned and scaled."""
+    V, F = grid(12)
+    C = warp(V)
+    R, s, c = rotation([1.0, 0.2, -0.4], 2.1), 0.5, np.array([-30.0, 12.0, 8.0])
+    d = bend(V) - V
+    ref = DeformationTransfer(V, F, C, F).transfer_deltas(d)
+    out = DeformationTransfer(V, F, s * (C - c) @ R.T + c, F).transfer_deltas(d)
+    np.testing.assert_allclose(out, s * ref @ R.T, atol=1e-9 * np.abs(ref).max())
 
 
 def test_general_affine_transfers_exactly_when_the_triangles_stay_parallel():

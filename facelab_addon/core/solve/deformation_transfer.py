@@ -12,8 +12,15 @@ Method (Sumner & Popović §3-4, in the gradient-domain form of Botsch et al.
 
 * the source deformation of every source triangle is its deformation gradient
   ``S = D_d D_r^-1`` with the phantom fourth vertex (``core.geometry.gradients``);
-* every target triangle ``t`` takes the gradient of its corresponding source
-  triangle ``c(t)`` (identity when it has none), and the target positions
+* the target may sit anywhere, at another size or orientation: the
+  similarity ``x -> s R x + t`` that best maps the corresponding source points
+  onto the target (Umeyama) brings the target into the source's frame, the
+  system below is built and solved there, and its displacements are mapped
+  back (``s R``): in the target's frame the source gradients act as
+  ``R S R^T`` and a source displacement as ``s R d`` (``R`` is a rotation,
+  or a reflection for a mirror image of the source);
+* every target triangle ``t`` takes the (placed) gradient of its corresponding
+  source triangle ``c(t)`` (identity when it has none), and the target positions
   minimise ``sum_t area_t || grad_t(x) - S_c(t) ||^2`` over the target rest
   triangles: the Poisson system ``L x = D g`` of ``core.geometry.laplacian.poisson_operator``
   (``L`` is the target's cotangent Laplacian), factored once and solved for
@@ -21,10 +28,10 @@ Method (Sumner & Popović §3-4, in the gradient-domain form of Botsch et al.
 * the system only knows gradients, so each connected piece of the target is
   placed by translation: its mean displacement equals the mean *hint*
   displacement of its vertices, the source displacement carried over by the
-  correspondence (the same vertex for meshes that share topology) and moved
-  to the target vertex to first order with the local gradient,
-  ``d + (F - I)(x_target - x_source)``, which is exact for rigid motions and
-  similarities.
+  correspondence (the same vertex for meshes that share topology), placed,
+  and moved to the target vertex to first order with the local gradient,
+  ``s R d + (F - I)(x_target - (s R x_source + t))``, which is exact for
+  rigid motions and similarities and does not depend on the placement.
 
 For meshes that share topology the correspondence is the identity (a vertex
 map). For different topologies, :func:`triangle_correspondence_from_markers`
@@ -98,13 +105,23 @@ class DeformationTransfer:
     backend : str
         ``SPDFactor`` backend.
 
+    Attributes
+    ----------
+    placement : tuple (float, (3,3) ndarray, (3,) ndarray)
+        ``(s, R, t)``: the similarity ``x -> s R x + t`` (unitless scale,
+        (3,3) rotation or, for a mirror image, reflection; translation in
+        scene units) that best maps the source points corresponding to the
+        target vertices onto them.
+
     Notes
     -----
     The transfer is affine in the source gradients: for meshes that share
-    topology and rest shape it reproduces the source exactly, an identity
-    deformation gives the target rest exactly, and a global similarity
-    ``x -> s R x + t`` of the source gives exactly the same similarity of the
-    target, every piece included. A general affine map ``A`` is reproduced
+    topology and rest shape it reproduces the source exactly, and a copy of
+    the source moved by a similarity ``P`` (``placement``) receives exactly
+    ``s R d``. An identity deformation gives the target rest exactly, and a
+    global similarity ``M`` of the source gives exactly the similarity
+    ``P M P^-1`` of the target (``M`` itself when the target sits where the
+    source does), every piece included. A general affine map ``A`` is reproduced
     (up to translation) where the target triangles are parallel to the
     source ones: the phantom vertex makes a source gradient equal ``A`` on its
     triangle's plane only. The gradients are not linear in the positions (the
@@ -163,10 +180,33 @@ class DeformationTransfer:
         self._tri_src = np.where(corr >= 0, pos[np.maximum(corr, 0)], -1)  # index into used, -1 = identity
         self._tri_src[(self._tri_src >= 0) & ~ok[np.maximum(self._tri_src, 0)]] = -1
 
+        # hints: target vertex displacement from source vertex displacements, (W, V) sparse
+        if self.same_topology:
+            self._H = sp.identity(len(Vt), format="csr")
+        else:
+            ft = np.flatnonzero(corr >= 0)
+            rows = np.repeat(Ft[ft], 3, axis=1).ravel()  # target vertex of each (tri corner, src corner)
+            cols = np.tile(Fs[corr[ft]], (1, 3)).ravel()
+            H = sp.coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(len(Vt), len(Vs))).tocsr()
+            s = np.asarray(H.sum(axis=1)).ravel()
+            H = sp.diags(np.divide(1.0, s, out=np.zeros_like(s), where=s > 0)) @ H
+            # target vertices with no corresponding triangle: nearest hinted neighbour through the mesh
+            self._H = self._spread_hints(H.tocsr(), s > 0, Ft)
+        # placement of the target relative to the source: the similarity x -> s R x + t that best maps the
+        # corresponding source points onto the target. The system is built and solved with the target brought
+        # into the source's frame (Vp), and its displacements are mapped back (s R), so the transfer does not
+        # depend on where, at which size or in which orientation the target was modelled.
+        hinted = np.asarray(self._H.sum(axis=1)).ravel() > 0
+        corresp = self._H @ Vs
+        s_, R_, t_ = _placement(corresp[hinted], Vt[hinted])
+        self.placement = (s_, R_, t_)
+        Vp = (Vt - t_) @ R_ / s_  # (W,3) target rest in the source's frame
+        self._offset = Vp - corresp  # (W,3) target minus corresponding source position, source frame
+
         # target Poisson system over its non-degenerate triangles
-        tok = _nondegenerate(Vt, Ft)
+        tok = _nondegenerate(Vp, Ft)
         self._tgt_faces_idx = np.flatnonzero(tok)
-        L, D = poisson_operator(Vt, Ft, self._tgt_faces_idx)
+        L, D = poisson_operator(Vp, Ft, self._tgt_faces_idx)
         self._L = L
         self._D = D
         n = len(Vt)
@@ -189,21 +229,8 @@ class DeformationTransfer:
         self._Lfp = Lrows[:, self._pinned].tocsr()
         self.factor = SPDFactor(self._Lff, backend=backend, what="deformation-transfer Poisson system")
         self._Dfree = D.tocsr()[self._free]
-        self._Lrest = (L @ Vt)[self._free]  # gradient of the rest shape (in-plane identity) pushed through D
+        self._Lrest = (L @ Vp)[self._free]  # gradient of the rest shape (in-plane identity) pushed through D
 
-        # hints: target vertex displacement from source vertex displacements, (W, V) sparse
-        if self.same_topology:
-            self._H = sp.identity(n, format="csr")
-        else:
-            ft = np.flatnonzero(corr >= 0)
-            rows = np.repeat(Ft[ft], 3, axis=1).ravel()  # target vertex of each (tri corner, src corner)
-            cols = np.tile(Fs[corr[ft]], (1, 3)).ravel()
-            H = sp.coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, len(Vs))).tocsr()
-            s = np.asarray(H.sum(axis=1)).ravel()
-            H = sp.diags(np.divide(1.0, s, out=np.zeros_like(s), where=s > 0)) @ H
-            # target vertices with no corresponding triangle: nearest hinted neighbour through the mesh
-            self._H = self._spread_hints(H.tocsr(), s > 0, Ft)
-        self._offset = Vt - self._H @ Vs  # (W,3) target minus corresponding source position
         tf = Ft[tok]
         r = tf.ravel()
         c = np.repeat(np.arange(len(tf)), 3)
@@ -272,8 +299,8 @@ class DeformationTransfer:
         # g for coordinate c on triangle t is Ft[t, c, :] -> (3n, 3) per shape, shapes side by side
         g = Ft.transpose(1, 3, 0, 2).reshape(3 * n, B * 3)  # rows (t, axis j), cols (b, c)
         rhs = self._Dfree @ g - np.tile(self._Lrest, (1, B))
-        # hint: source displacement of the corresponding point, carried to the target vertex to first order
-        # with the local gradient (exact for affine deformations): d + (F_v - I)(x_t - x_s)
+        # hint: source displacement of the corresponding point, carried to the (placed) target vertex to first
+        # order with the local gradient (exact for affine deformations): d + (F_v - I)(x_t - x_s)
         Fv = np.stack([self._avg @ Ft[b].reshape(n, 9) for b in range(B)]).reshape(B, -1, 3, 3) - np.eye(3)
         Fv[:, ~self._in_tri] = 0.0
         hint = np.stack([self._H @ displacement[b] for b in range(B)])  # (B,W,3)
@@ -289,7 +316,8 @@ class DeformationTransfer:
             shift = self._piece_mean @ (hint[b] - Y[b])  # (pieces,3)
             Y[b] += shift[self._piece_of]
             Y[b, ~self._in_tri] = hint[b, ~self._in_tri]
-        return Y
+        s_, R_, _ = self.placement
+        return (s_ * Y) @ R_.T  # back to the target's frame
 
     def transfer_deltas(self, deltas) -> np.ndarray:
         """Transfer source shape deltas (blendshapes, correctives) to target deltas.
@@ -419,6 +447,32 @@ def _similarity(P, Q):
     var = (A**2).sum()
     s = float((S * np.diag(Dm)).sum() / var) if var > 0 else 1.0
     return s, R, mq - s * R @ mp
+
+
+def _placement(P, Q):
+    """Similarity ``Q ~ s R P + t`` placing source points P (n,3) on target points Q (n,3); (s, R, t).
+
+    ``R`` is a rotation, or a reflection when that fits clearly better (a mirrored copy: residual
+    under a quarter of the rotation's). Falls back to a translation when the points do not span a
+    plane (the rotation is not determined).
+    """
+    mp, mq = P.mean(0), Q.mean(0)
+    A, B = P - mp, Q - mq
+    U, S, Vt = np.linalg.svd(B.T @ A)
+    var = (A**2).sum()
+    if len(P) < 3 or not var > 0 or S[1] <= 1e-9 * max(S[0], 1e-300):
+        return 1.0, np.eye(3), mq - mp
+    d = np.sign(np.linalg.det(U @ Vt))
+    best = None
+    for sign in (d, -d):  # the rotation (det +1) first, then the reflection
+        Dm = np.diag([1.0, 1.0, sign])
+        R = U @ Dm @ Vt
+        sc = float((S * np.diag(Dm)).sum() / var)
+        res = float(((B - sc * A @ R.T) ** 2).sum())
+        if best is None or (sc > 0 and res < 0.25 * best[0]):
+            best = (res, sc, R)
+    _, sc, R = best
+    return sc, R, mq - sc * R @ mp
 
 
 def _closest_points(P, V, F):
