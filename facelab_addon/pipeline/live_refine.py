@@ -25,7 +25,7 @@ viewport draws).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -76,6 +76,9 @@ class LiveUpdate:
         Largest displacement of the preview, world scene units.
     silhouette_px : float
         Mean distance of the sketch from the preview's silhouettes, pixels.
+    warnings : list of str
+        What the solve asks the artist to check (e.g. strokes that may sit on swapped layers); Accept's
+        Refine reports the same.
     """
 
     seconds: float
@@ -87,6 +90,7 @@ class LiveUpdate:
     n_free: int
     max_move: float
     silhouette_px: float
+    warnings: list = field(default_factory=list)
 
 
 def influence_to_mouth_widths(influence_mm: float, mouth_width: float, mm_per_unit: float) -> float:
@@ -232,7 +236,8 @@ class LiveRefine:
         return LiveUpdate(seconds=time.perf_counter() - t0, solve_seconds=solve_s, solves=int(info["solves"]),
                           rebuilt=bool(info["rebuilt"]), free_radius=r,
                           influence_mm=r * self.mouth_width * self.mm_per_unit, n_free=int(info["n_free"]),
-                          max_move=float(d.max()), silhouette_px=float(info["silhouette_px"][-1]))
+                          max_move=float(d.max()), silhouette_px=float(info["silhouette_px"][-1]),
+                          warnings=list(info.get("warnings", [])))
 
     def _write_preview(self, d_world):
         obj = self.obj

@@ -79,6 +79,8 @@ def live_update(scene) -> str:
         u = s.update()
         LIVE["message"] = (f"Live: {u.seconds * 1000:.0f} ms, {u.n_free} vertices free "
                            f"(Influence {u.influence_mm:.1f} mm)")
+        if u.warnings:  # e.g. strokes that may sit on swapped layers: shown while drawing, not only on Accept
+            LIVE["message"] += " | Check: " + " ".join(u.warnings)
     except FaceLabError as e:
         LIVE["message"] = f"Live: waiting ({e})"
     return LIVE["message"]
@@ -248,6 +250,8 @@ class FACELAB_OT_live_refine_accept(_WhileLive, bpy.types.Operator):
             stop_live()
         self.report({"INFO"}, f"Refined lips on frame {r.frame}: shape key '{r.shape_key}', {r.moved_vertices} "
                               "vertices moved")
+        for w in r.warnings:
+            self.report({"WARNING"}, w)
         return {"FINISHED"}
 
 

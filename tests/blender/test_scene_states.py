@@ -361,3 +361,26 @@ def test_strokes_on_swapped_layers_over_nearly_closed_lips_refine_with_a_warning
     assert len(rs.obj.data.shape_keys.key_blocks) == keys + 1
     assert len(r.warnings) == 1
     assert "overlap" in r.warnings[0] and "swapped layers" in r.warnings[0] and "undo" in r.warnings[0]
+
+
+def test_live_refine_shows_the_swapped_layers_warning_while_drawing(ict, addon):
+    """The same sketch under Live Refine: each update carries the warning Refine would report (the artist sees
+    it while drawing), and Accept's Refine reports it too."""
+    from facelab_addon.pipeline.live_refine import LiveRefine
+
+    frame = 1
+    rs = route(ict, error_mm=0.5)
+    rs.scene.frame_set(frame)
+    C = caches.evaluate_frames(rs.obj, [frame]).astype(np.float64)[0]
+    M = np.array(rs.obj.matrix_world)
+    cam = camera_from_blender(rs.scene, rs.scene.camera)
+    up, lo = truth_contours(rs, C @ M[:3, :3].T + M[:3, 3], cam)
+    gp = new_lip_sketch(rs.scene, rs.scene.camera)
+    write_stroke_pixels(gp, "Upper lip", frame, [lo], cam)
+    write_stroke_pixels(gp, "Lower lip", frame, [up], cam)
+    live = LiveRefine(rs.scene, rs.obj, frame, RefineSettings(), sketch=gp)
+    u = live.update()
+    assert len(u.warnings) == 1 and "swapped layers" in u.warnings[0]
+    r = live.accept()
+    assert r.warnings == u.warnings
+
