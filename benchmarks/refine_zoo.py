@@ -28,7 +28,8 @@ face's own expression shapes as :mod:`~facelab_addon.core.lips.span_prior`'s bas
 the truth's pose is not made of).
 
 Usage: ``PYTHONPATH=. python benchmarks/refine_zoo.py [--per-family 3]
-[--faces ict,ict-s1,ict-s2,remeshed[,makehuman]] [--oracle] [--png docs/images/refine_zoo.png] > benchmarks/results/refine_zoo.json``. About 2 minutes of CPU at
+[--faces ict,ict-s1,ict-s2,remeshed[,makehuman]] [--oracle] [--png docs/images/refine_zoo.png]
+> benchmarks/results/refine_zoo.json``. About 2 minutes of CPU at
 the defaults with ``--oracle`` (4 faces x 6 families x 3 cases = 72 cases, 4 solves each and the oracle). No Blender needed (the remeshed face is read from its
 cache, or built with ``bpy``).
 """
