@@ -31,6 +31,9 @@ Measures: :func:`lip_band` (the skin within 6 mm of the contact line, as ``testi
 :func:`best_possible_cut_pct` (the most any correction confined to ``FL_lips`` with its border held can cut: the
 error on the band outside its inside stays), :func:`contact_gap` (the lips' 3D distance along the contact).
 
+Faces: any ICT-like face model (:func:`zoo_face`); :func:`makehuman_zoo_face` is MakeHuman's head, which is not
+ICT's topology (its expressions transferred from ICT's).
+
 Units: positions in the face model's units; ``ZooFace.unit_mm`` converts millimetres. Pixels: top-left origin,
 y down.
 """
@@ -50,7 +53,7 @@ from .route import jitter_stroke
 
 __all__ = ["FAMILIES", "TUNING", "HELD_OUT", "POSES", "ONE_LINE_PX", "ZooFace", "ZooCase", "zoo_face",
            "sample_cases", "make_case", "truth_sketch", "hand_sketch", "lip_band", "rms_mm", "best_possible_cut_pct",
-           "contact_gap", "free_inside"]
+           "contact_gap", "free_inside", "makehuman_zoo_face"]
 
 FAMILIES = {
     "gap": "the lips held apart where they should seal (upper lip up, lower lip down), the truth's lips touching",
@@ -166,6 +169,24 @@ def zoo_face(face, name: str, identity_offset=None, unit_mm: float | None = None
 
 def _pose_names():
     return sorted({n for p in POSES.values() for n in p} | {"jawOpen"})
+
+
+def makehuman_zoo_face(ict=None) -> ZooFace:
+    """MakeHuman's CC0 head (:func:`facelab_addon.testing.makehuman.makehuman_head`) as a zoo face.
+
+    Its expressions are ICT-FaceKit's, carried over by deformation transfer: those of
+    :data:`~facelab_addon.testing.makehuman.EXPRESSIONS` and every one :data:`POSES` uses, so the zoo's poses are
+    made of the same shapes as on ICT. Centimetres (``unit_mm`` 0.1); the whole head is skin (nothing hidden).
+
+    Raises
+    ------
+    FileNotFoundError
+        Without the mesh (``FACELAB_MAKEHUMAN_OBJ``; the message says how to get it).
+    """
+    from .makehuman import EXPRESSIONS, makehuman_head
+
+    names = tuple(EXPRESSIONS) + tuple(n for n in _pose_names() if n not in EXPRESSIONS)
+    return zoo_face(makehuman_head(ict=ict, expressions=names), "MakeHuman (CC0, ICT shapes by DT)")
 
 
 @dataclass
