@@ -127,12 +127,16 @@ def prepare_sketch(camera: Camera, upper, lower, spacing: float = 1.0, where: st
                 f"No {name}-lip stroke{where}: draw both the upper and the lower inner-lip contour "
                 f"(layers 'Upper lip' and 'Lower lip') on this frame."
             )
-        samples = []
         for p in lines:
             if not np.isfinite(p).all():
                 raise SketchError(f"The {name}-lip stroke{where} has invalid (NaN) points; erase it and draw it again.")
-            if len(p) < 2 or np.linalg.norm(p.max(0) - p.min(0)) < 2.0:
-                raise SketchError(f"The {name}-lip stroke{where} is too short (under 2 px); draw the whole contour.")
+        # a piece under 2 px (a tap of the pen between pieces of a contour) carries no line: it is left out, and
+        # only a lip drawn as nothing but such pieces is refused
+        lines = [p for p in lines if len(p) >= 2 and np.linalg.norm(p.max(0) - p.min(0)) >= 2.0]
+        if not lines:
+            raise SketchError(f"The {name}-lip stroke{where} is too short (under 2 px); draw the whole contour.")
+        samples = []
+        for p in lines:
             bad = ~camera.in_frame(p, margin=-0.5)
             if bad.any():
                 q = p[np.flatnonzero(bad)[0]]
