@@ -312,7 +312,7 @@ def plate_file(cam_obj, frame: int):
     Raises
     ------
     PlateError
-        The plate is a movie file (this reads image sequences and stills; convert the movie to images),
+        The plate is a movie shown as an Image (a Movie Clip is read through ``blender.sketch_snap``),
         or the frame's file is missing.
     """
     shown = shown_footage(cam_obj)
@@ -320,9 +320,13 @@ def plate_file(cam_obj, frame: int):
         return None
     bg, footage = shown
     first = Path(bpy.path.abspath(footage.filepath))
+    if footage.source == "MOVIE" and bg.source == "IMAGE":
+        raise PlateError(f"The plate {first.name!r} is a movie shown as a background Image, which is read at its "
+                         "first frame only: load it as a Movie Clip (Load Plate does) or export it as PNG/JPEG "
+                         "images (a numbered sequence) and load that as the plate.")
     if footage.source == "MOVIE":
-        raise PlateError(f"The plate {first.name!r} is a movie file; snapping reads image sequences: export it "
-                         "as PNG/JPEG images (a numbered sequence) and load that as the plate.")
+        raise PlateError(f"The plate {first.name!r} is a movie file, which has no image file per frame: read its "
+                         "frames with blender.sketch_snap.plate_image, or export it as PNG/JPEG images.")
     if bg.source == "MOVIE_CLIP":
         n = _first_number(first) + int(frame) - int(footage.frame_start) + int(footage.frame_offset)
         path = _numbered(first, n)
