@@ -341,6 +341,19 @@ def test_a_camera_inside_the_head_is_named_as_the_problem(ict, addon):
 
 
 
+def swapped_capture_sketch(rs, frame):
+    """A lip sketch of the capture's own inner contours on ``frame``, each drawn on the other lip's layer."""
+    rs.scene.frame_set(frame)
+    C = caches.evaluate_frames(rs.obj, [frame]).astype(np.float64)[0]
+    M = np.array(rs.obj.matrix_world)
+    cam = camera_from_blender(rs.scene, rs.scene.camera)
+    up, lo = truth_contours(rs, C @ M[:3, :3].T + M[:3, 3], cam)
+    gp = new_lip_sketch(rs.scene, rs.scene.camera)
+    write_stroke_pixels(gp, "Upper lip", frame, [lo], cam)
+    write_stroke_pixels(gp, "Lower lip", frame, [up], cam)
+    return gp
+
+
 def test_strokes_on_swapped_layers_over_nearly_closed_lips_refine_with_a_warning(ict, addon):
     """The captured lips 1 mm apart (frame 1, a 0.5 mm capture error) and their contours drawn on swapped layers:
     the crossing (11 px, under 5 % of the mouth's width) could as well be lips overlapping in a view from above or
@@ -348,14 +361,7 @@ def test_strokes_on_swapped_layers_over_nearly_closed_lips_refine_with_a_warning
     (the Refine Lips operator reports it)."""
     frame = 1
     rs = route(ict, error_mm=0.5)
-    rs.scene.frame_set(frame)
-    C = caches.evaluate_frames(rs.obj, [frame]).astype(np.float64)[0]
-    M = np.array(rs.obj.matrix_world)
-    cam = camera_from_blender(rs.scene, rs.scene.camera)
-    up, lo = truth_contours(rs, C @ M[:3, :3].T + M[:3, 3], cam)  # the capture's own inner contours
-    gp = new_lip_sketch(rs.scene, rs.scene.camera)
-    write_stroke_pixels(gp, "Upper lip", frame, [lo], cam)
-    write_stroke_pixels(gp, "Lower lip", frame, [up], cam)
+    gp = swapped_capture_sketch(rs, frame)
     keys = len(rs.obj.data.shape_keys.key_blocks)
     r = refine(rs.scene, rs.obj, frame, RefineSettings(), sketch=gp)
     assert len(rs.obj.data.shape_keys.key_blocks) == keys + 1
@@ -370,14 +376,7 @@ def test_live_refine_shows_the_swapped_layers_warning_while_drawing(ict, addon):
 
     frame = 1
     rs = route(ict, error_mm=0.5)
-    rs.scene.frame_set(frame)
-    C = caches.evaluate_frames(rs.obj, [frame]).astype(np.float64)[0]
-    M = np.array(rs.obj.matrix_world)
-    cam = camera_from_blender(rs.scene, rs.scene.camera)
-    up, lo = truth_contours(rs, C @ M[:3, :3].T + M[:3, 3], cam)
-    gp = new_lip_sketch(rs.scene, rs.scene.camera)
-    write_stroke_pixels(gp, "Upper lip", frame, [lo], cam)
-    write_stroke_pixels(gp, "Lower lip", frame, [up], cam)
+    gp = swapped_capture_sketch(rs, frame)
     live = LiveRefine(rs.scene, rs.obj, frame, RefineSettings(), sketch=gp)
     u = live.update()
     assert len(u.warnings) == 1 and "swapped layers" in u.warnings[0]
