@@ -384,3 +384,19 @@ def test_live_refine_shows_the_swapped_layers_warning_while_drawing(ict, addon):
     r = live.accept()
     assert r.warnings == u.warnings
 
+
+
+# --------------------------------------------------------------------------- non-square pixels
+@pytest.mark.parametrize("axis", ["x", "y"])
+def test_non_square_pixels_refine_as_square_ones(ict, addon, axis):
+    """Render pixel aspect 2 (anamorphic footage): the sketch's pixels are twice as long along one image axis, and
+    Refine measured its strokes and tolerances in those pixels (measured 0.165 -> 0.193 mm with aspect x 2, worse
+    along the finer axis). The views are now solved in square pixels: the result is the square-pixel one."""
+    rs = route(ict)
+    gp, _, _ = sketch_truth(rs, FRAME, rs.cameras[0])
+    _, square = refine_error(rs, FRAME, gp)
+    rs = route(ict)
+    setattr(rs.scene.render, f"pixel_aspect_{axis}", 2.0)
+    gp, _, _ = sketch_truth(rs, FRAME, rs.cameras[0])
+    before, after = refine_error(rs, FRAME, gp)
+    assert after < 0.55 * before and abs(after - square) < 0.03 * square, (before, after, square)
