@@ -39,7 +39,7 @@ from ..core.capture import meshcache, pointcache
 from ..core.errors import CacheFileError, FaceLabError, MeshError
 from ..names import PREFIX
 from . import compat
-from .objects import disabled_modifiers, modifier_enabled
+from .objects import disabled_modifiers, evaluated_object, modifier_enabled
 from .ownership import (
     as_prefixes,
     correction_cache_prefix,
@@ -181,11 +181,7 @@ def iter_evaluated(obj, frames, *, mute_prefixes=(), progress=None, scene=None):
     scene = scene or bpy.context.scene
     n = len(obj.data.vertices)
     check_capture_files(obj)
-    if bpy.context.view_layer.objects.get(obj.name) is None:
-        raise MeshError(
-            f"'{obj.name}' is not in the active view layer, so Blender does not evaluate it; "
-            "link it to a collection of this scene (and do not exclude that collection)."
-        )
+    evaluated_object(obj, bpy.context.evaluated_depsgraph_get())  # refused before anything is muted or read
     T = len(frames)
     buf = np.empty(n * 3, dtype=np.float32)
     # FaceLab's correction caches are muted like its keys
@@ -193,7 +189,7 @@ def iter_evaluated(obj, frames, *, mute_prefixes=(), progress=None, scene=None):
         for i, f in enumerate(frames):
             set_frame(scene, float(f))
             dg = bpy.context.evaluated_depsgraph_get()
-            ev = obj.evaluated_get(dg)
+            ev = evaluated_object(obj, dg)
             me = ev.to_mesh()
             try:
                 m = len(me.vertices)

@@ -21,6 +21,7 @@ from ..core.errors import MeshError
 from ..core.geometry.weld import Weld, weld
 from ..core.lips.sketch_prior import separate_parts
 from ..names import FIXED_GROUP
+from .objects import evaluated_object
 
 __all__ = [
     "mesh_triangles",
@@ -177,9 +178,10 @@ def evaluated_vertices(obj, depsgraph, *, world: bool = True) -> np.ndarray:
     ------
     MeshError
         When modifiers change the vertex count (the correction could not be
-        mapped back to the mesh).
+        mapped back to the mesh), or Blender does not evaluate ``obj``
+        (:func:`~facelab_addon.blender.objects.evaluated_object`).
     """
-    ev = obj.evaluated_get(depsgraph)
+    ev = evaluated_object(obj, depsgraph)
     me = ev.to_mesh()
     try:
         n = len(me.vertices)

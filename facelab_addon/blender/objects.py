@@ -11,12 +11,34 @@ import os
 import bpy
 import numpy as np
 
-from ..core.errors import FaceLabError
+from ..core.errors import FaceLabError, MeshError
 from .camera import evaluated_depsgraph
 
 __all__ = ["NotEditableError", "require_editable", "ModifierState", "modifier_enabled", "disabled_modifiers",
            "world_affine", "world_matrices", "local_length", "tolerance_length", "RELATIVE_TOLERANCE",
-           "points_to_local", "triangle_uvs", "same_polygons"]
+           "points_to_local", "triangle_uvs", "same_polygons", "evaluated_object"]
+
+
+def evaluated_object(obj, depsgraph):
+    """``obj`` as ``depsgraph`` evaluated it (its shape keys, modifiers and animation on the current frame).
+
+    Raises
+    ------
+    MeshError
+        Blender does not evaluate ``obj``: it is not in the active view layer, or it (or a collection holding
+        it) is disabled in viewports (the monitor icon); ``evaluated_get`` then hands back the original object,
+        whose mesh is the undeformed one on every frame, never the face Blender shows when it is enabled.
+    """
+    ev = obj.evaluated_get(depsgraph)
+    if ev.is_evaluated:
+        return ev
+    if bpy.context.view_layer.objects.get(obj.name) is None:
+        raise MeshError(f"'{obj.name}' is not in the active view layer, so Blender does not evaluate it; "
+                        "link it to a collection of this scene (and do not exclude that collection).")
+    raise MeshError(f"'{obj.name}' is disabled in viewports (the monitor icon of the object or of a collection "
+                    "holding it), so Blender does not evaluate it and its undeformed mesh would be read instead of "
+                    "the performance; enable it in viewports (Object Properties > Visibility > Show In Viewports, "
+                    "and its collections') first.")
 
 
 class NotEditableError(FaceLabError):

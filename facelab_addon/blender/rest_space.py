@@ -25,6 +25,7 @@ import numpy as np
 from ..core.errors import MeshError
 from ..names import REST_SPACE_KEY
 from .caches import kept_frame, set_frame
+from .objects import evaluated_object
 from .ownership import is_correction_cache
 
 __all__ = ["deforming_modifiers", "require_same_vertex_count", "to_rest_space"]
@@ -42,7 +43,7 @@ def deforming_modifiers(obj) -> list:
 
 
 def _evaluated(obj, dg, n):
-    ev = obj.evaluated_get(dg)
+    ev = evaluated_object(obj, dg)
     me = ev.to_mesh()
     try:
         m = len(me.vertices)

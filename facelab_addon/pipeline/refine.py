@@ -48,7 +48,7 @@ from ..core.errors import CameraError
 from ..core.lips.refine_params import RefineParams
 from ..core.lips.sketch import refine_lips_views
 from ..core.lips.sketch_session import SketchSolver
-from ..core.lips.views import SketchView
+from ..core.lips.views import SketchView, square_pixels
 from ..names import FIXED_GROUP, LIPS_GROUP, MOUTH_GROUP, REFINE_PREFIX
 from .training import store_training_frame, uncorrected_frame
 from .settings import setting
@@ -415,13 +415,14 @@ def checked_view_sources(scene, frame, sketch, camera_obj, all_views) -> list:
 
 def read_views(scene, frame, pairs, depsgraph=None) -> list:
     """One :class:`~facelab_addon.core.lips.sketch.SketchView` per ``(sketch, camera object)`` of ``pairs``: the
-    camera and its lip strokes on ``frame``, read now."""
+    camera and its lip strokes on ``frame``, read now, in square pixels (:func:`~facelab_addon.core.lips.views.square_pixels`:
+    a render pixel aspect not 1 is undone, so the solve's pixel sizes mean one length across and along the image)."""
     dg = depsgraph if depsgraph is not None else evaluated_depsgraph(scene)
     views = []
     for gp, cam_obj in pairs:
         cam = camera_from_blender(scene, cam_obj, dg)
         strokes = read_lip_strokes(scene, cam, frame, gp_obj=gp, depsgraph=dg)
-        views.append(SketchView(cam, strokes["upper"], strokes["lower"], name=cam_obj.name))
+        views.append(square_pixels(SketchView(cam, strokes["upper"], strokes["lower"], name=cam_obj.name)))
     return views
 
 

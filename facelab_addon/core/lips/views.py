@@ -27,7 +27,7 @@ from .contact import contact_terms, one_line
 from .camera_checks import require_camera_outside
 from .swapped_strokes import check_swapped_strokes
 
-__all__ = ["SketchView", "ViewMatcher", "press_lips", "prepare_sketch"]
+__all__ = ["SketchView", "ViewMatcher", "press_lips", "prepare_sketch", "square_pixels"]
 
 
 @dataclass
@@ -47,6 +47,23 @@ class SketchView:
     upper: object
     lower: object
     name: str = ""
+
+
+def square_pixels(view: SketchView) -> SketchView:
+    """``view`` in square pixels: the camera's coarser pixel axis (the smaller focal length, a render pixel aspect
+    not 1) scaled up to the finer one, its strokes with it; the same rays, so every pixel size of the solve
+    (resampling, matching, tolerances) means the same length across and along the image. A view whose pixels
+    are square is returned as it is.
+    """
+    cam = view.camera
+    fx, fy = float(cam.K[0, 0]), float(cam.K[1, 1])
+    if abs(fx - fy) <= 1e-9 * max(fx, fy):
+        return view
+    s = np.array([max(fx, fy) / fx, max(fx, fy) / fy])
+    K = np.diag([s[0], s[1], 1.0]) @ cam.K
+    out = Camera(K, cam.R, cam.t, max(1, round(cam.width * s[0])), max(1, round(cam.height * s[1])))
+    return SketchView(out, [p * s for p in _as_polylines(view.upper)], [p * s for p in _as_polylines(view.lower)],
+                      name=view.name)
 
 
 def press_lips(upper, lower, overlap_upper=None, overlap_lower=None):
