@@ -39,7 +39,7 @@ from ..core.capture import meshcache, pointcache
 from ..core.errors import CacheFileError, FaceLabError, MeshError
 from ..names import PREFIX
 from . import compat
-from .objects import disabled_modifiers, evaluated_object, modifier_enabled
+from .objects import disabled_modifiers, enabled_modifier_names, evaluated_object, modifier_enabled
 from .ownership import (
     as_prefixes,
     correction_cache_prefix,
@@ -196,8 +196,9 @@ def iter_evaluated(obj, frames, *, mute_prefixes=(), progress=None, scene=None):
                 if m != n:
                     raise MeshError(
                         f"On frame {f:g} the evaluated '{obj.name}' has {m} vertices instead of {n}; "
-                        "disable modifiers that add or remove vertices (Subdivision, Decimate...) or use a "
-                        "cache with the mesh's topology."
+                        "disable the modifier that adds or removes vertices (Subdivision, Decimate...) among "
+                        f"its enabled modifiers ({enabled_modifier_names(obj)}) or use a cache with the mesh's "
+                        "topology."
                     )
                 me.vertices.foreach_get("co", buf)
             finally:

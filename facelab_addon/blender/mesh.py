@@ -21,7 +21,7 @@ from ..core.errors import MeshError
 from ..core.geometry.weld import Weld, weld
 from ..core.lips.sketch_prior import separate_parts
 from ..names import FIXED_GROUP
-from .objects import evaluated_object
+from .objects import enabled_modifier_names, evaluated_object
 
 __all__ = [
     "mesh_triangles",
@@ -192,7 +192,8 @@ def evaluated_vertices(obj, depsgraph, *, world: bool = True) -> np.ndarray:
     if n != len(obj.data.vertices):
         raise MeshError(
             f"The modifiers of '{obj.name}' change its vertex count ({len(obj.data.vertices)} -> {n}); "
-            "disable topology-changing modifiers (Subdivision, Decimate...) before using FaceLab."
+            f"disable the topology-changing one (Subdivision, Decimate...) among its enabled modifiers "
+            f"({enabled_modifier_names(obj)}) before using FaceLab."
         )
     co = co.reshape(-1, 3)
     if world:

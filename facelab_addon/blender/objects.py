@@ -14,7 +14,7 @@ import numpy as np
 from ..core.errors import FaceLabError, MeshError
 from .camera import evaluated_depsgraph
 
-__all__ = ["NotEditableError", "require_editable", "ModifierState", "modifier_enabled", "disabled_modifiers",
+__all__ = ["enabled_modifier_names", "NotEditableError", "require_editable", "ModifierState", "modifier_enabled", "disabled_modifiers",
            "world_affine", "world_matrices", "local_length", "tolerance_length", "RELATIVE_TOLERANCE",
            "points_to_local", "triangle_uvs", "same_polygons", "evaluated_object"]
 
@@ -270,3 +270,10 @@ def same_polygons(me_a, me_b) -> bool:
         me.polygons.foreach_get("loop_start", ls)
         out.append((lv, ls))
     return bool(np.array_equal(out[0][0], out[1][0]) and np.array_equal(out[0][1], out[1][1]))
+
+
+def enabled_modifier_names(obj) -> str:
+    """The names of ``obj``'s modifiers enabled in viewports, quoted and comma-separated, for messages that
+    ask the artist to disable one of them ("none enabled" when there is none)."""
+    return ", ".join(repr(m.name) for m in obj.modifiers if m.show_viewport) or "none enabled"
+

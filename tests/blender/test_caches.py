@@ -355,3 +355,19 @@ def test_alembic_bake_import_and_shape_key_ready(tmp_path, empty_scene):
     # a second call does not bake again, and the artist's modifier is never deleted
     assert "already" in cache_integrate.cache_to_shape_key_ready(ob, directory=tmp_path)
     assert len(ob.modifiers) == 2
+
+
+def test_a_vertex_count_changing_modifier_is_named_in_the_refusal(empty_scene):
+    """A Subdivision modifier the artist named 'Smooth Lips' on the face: both evaluated-mesh readers refuse
+    and name the enabled modifiers, so the artist knows which one to disable."""
+    from facelab_addon.blender.mesh import evaluated_vertices
+
+    ob = ico()
+    ob.modifiers.new("Smooth Lips", "SUBSURF").levels = 1
+    dg = bpy.context.evaluated_depsgraph_get()
+    with pytest.raises(MeshError, match="vertex count.*'Smooth Lips'"):
+        evaluated_vertices(ob, dg)
+    with pytest.raises(MeshError, match="instead of.*'Smooth Lips'"):
+        caches.evaluate_frames(ob, [1])
+    ob.modifiers["Smooth Lips"].show_viewport = False
+    assert caches.evaluate_frames(ob, [1]).shape == (1, len(ob.data.vertices), 3)
