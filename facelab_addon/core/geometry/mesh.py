@@ -22,6 +22,7 @@ __all__ = [
     "grow_region",
     "connected_components",
     "edge_length_graph",
+    "faces_within",
 ]
 
 
@@ -77,6 +78,15 @@ def validate_mesh(vertices, faces, *, name: str = "mesh", min_area: float = 0.0)
             "run Mesh > Clean Up > Degenerate Dissolve or fix the capture."
         )
     return V, F
+
+
+def faces_within(mask, faces, *, every: bool = True) -> np.ndarray:
+    """(F,) bool: the triangles with all three (``every``) or any (``every=False``) of their vertices in
+    ``mask`` (V,) bool; ``mask[faces].all(axis=1)`` (or ``.any``) without the reduction along the short axis."""
+    g = np.asarray(mask, bool)[np.asarray(faces)]
+    if every:
+        return g[:, 0] & g[:, 1] & g[:, 2]
+    return g[:, 0] | g[:, 1] | g[:, 2]
 
 
 def triangulate(poly_verts, poly_offsets):
