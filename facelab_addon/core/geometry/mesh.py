@@ -22,6 +22,7 @@ __all__ = [
     "grow_region",
     "connected_components",
     "edge_length_graph",
+    "faces_within",
 ]
 
 
@@ -79,6 +80,15 @@ def validate_mesh(vertices, faces, *, name: str = "mesh", min_area: float = 0.0)
     return V, F
 
 
+def faces_within(mask, faces, *, every: bool = True) -> np.ndarray:
+    """(F,) bool: the triangles with all three (``every``) or any (``every=False``) of their vertices in
+    ``mask`` (V,) bool; ``mask[faces].all(axis=1)`` (or ``.any``) without the reduction along the short axis."""
+    g = np.asarray(mask, bool)[np.asarray(faces)]
+    if every:
+        return g[:, 0] & g[:, 1] & g[:, 2]
+    return g[:, 0] | g[:, 1] | g[:, 2]
+
+
 def triangulate(poly_verts, poly_offsets):
     """Fan-triangulate polygons.
 
@@ -113,7 +123,16 @@ def face_areas(vertices, faces):
     """(F,) triangle areas, scene units squared."""
     V = np.asarray(vertices, dtype=np.float64)
     F = np.asarray(faces)
-    return 0.5 * np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]), axis=-1)
+    # per coordinate (1D gathers): the products and sums of np.cross and np.linalg.norm, in their order
+    X, Y, Z = (np.ascontiguousarray(V[:, k]) for k in range(3))
+    F0, F1, F2 = (np.ascontiguousarray(F[:, k]) for k in range(3))
+    x0, y0, z0 = X[F0], Y[F0], Z[F0]
+    ax, ay, az = X[F1] - x0, Y[F1] - y0, Z[F1] - z0
+    bx, by, bz = X[F2] - x0, Y[F2] - y0, Z[F2] - z0
+    c0 = ay * bz - az * by
+    c1 = az * bx - ax * bz
+    c2 = ax * by - ay * bx
+    return 0.5 * np.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
 
 
 def face_normals(vertices, faces, *, unit: bool = True):
@@ -148,13 +167,20 @@ def unique_edges(faces):
     face_edge : (F,3) int64
         Edge index of each triangle side ``(v0v1, v1v2, v2v0)``.
     """
-    F = np.asarray(faces, dtype=np.int64)
-    he = np.stack([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]], axis=1).reshape(-1, 2)
-    he.sort(axis=1)
-    base = np.int64(he.max() + 1) if len(he) else np.int64(1)
-    keys, inv = np.unique(he[:, 0] * base + he[:, 1], return_inverse=True)
+    keys, base = _side_keys(faces)
+    keys, inv = np.unique(keys, return_inverse=True)
     edges = np.stack([keys // base, keys % base], axis=1)
     return edges, inv.reshape(-1, 3)
+
+
+def _side_keys(faces):
+    """``(keys (3F,) int64, base)``: triangle side ``(v0v1, v1v2, v2v0)`` of each triangle in turn as
+    ``min * base + max`` of its two vertices."""
+    F = np.asarray(faces, dtype=np.int64)
+    a, b = F.reshape(-1), F[:, [1, 2, 0]].reshape(-1)
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    base = np.int64(hi.max() + 1) if len(hi) else np.int64(1)
+    return lo * base + hi, base
 
 
 def edge_faces(faces):
@@ -234,7 +260,9 @@ def edge_length_graph(vertices, faces, n_vertices: int | None = None, *, min_len
     """
     V = np.asarray(vertices, dtype=np.float64)
     n = len(V) if n_vertices is None else int(n_vertices)
-    E, _ = unique_edges(faces)
+    keys, base = _side_keys(faces)
+    keys = np.unique(keys)  # the edges of unique_edges, without their triangles
+    E = np.stack([keys // base, keys % base], axis=1)
     w = np.linalg.norm(V[E[:, 0]] - V[E[:, 1]], axis=1)
     if min_length > 0:
         w = np.maximum(w, min_length)

@@ -40,7 +40,7 @@ from scipy.sparse.csgraph import dijkstra
 
 from ..errors import UsageError
 from ..geometry.deform import PointConstraints
-from ..geometry.mesh import connected_components, edge_length_graph
+from ..geometry.mesh import connected_components, edge_length_graph, faces_within
 from ..geometry.rigid import rigid_fit
 
 __all__ = ["PRIORS", "BAND_RINGS", "separate_parts", "sketch_scale", "crop_faces", "local_faces", "free_region",
@@ -113,8 +113,10 @@ def crop_faces(vertices, faces, seeds, radius: float) -> np.ndarray:
     V = np.asarray(vertices, dtype=np.float64)
     P = V[np.asarray(seeds, bool)]
     lo, hi = P.min(0) - radius, P.max(0) + radius
-    inside = ((V >= lo) & (V <= hi)).all(axis=1)
-    return np.flatnonzero(inside[np.asarray(faces)].all(axis=1))
+    inside = (V[:, 0] >= lo[0]) & (V[:, 0] <= hi[0])
+    for k in (1, 2):
+        inside &= (V[:, k] >= lo[k]) & (V[:, k] <= hi[k])
+    return np.flatnonzero(faces_within(inside, faces))
 
 
 def local_faces(faces, region, rings: int = 2) -> np.ndarray:
@@ -125,10 +127,10 @@ def local_faces(faces, region, rings: int = 2) -> np.ndarray:
     """
     F = np.asarray(faces)
     m = np.asarray(region, bool).copy()
-    sel = m[F].any(axis=1)
+    sel = faces_within(m, F, every=False)
     for _ in range(int(rings) - 1):
         m[F[sel].ravel()] = True
-        sel = m[F].any(axis=1)
+        sel = faces_within(m, F, every=False)
     return np.flatnonzero(sel)
 
 
@@ -195,7 +197,7 @@ def free_region(vertices, faces, seeds, radius: float, *, fixed=None, lips=None,
     region = (d <= float(radius)) & ~fixed
     if lips is not None:
         lips = np.asarray(lips, bool)
-        inside = lips[F].all(axis=1)
+        inside = faces_within(lips, F)
         on_lip = np.zeros(n, bool)
         on_lip[F[inside].ravel()] = True
         outside = np.zeros(n, bool)

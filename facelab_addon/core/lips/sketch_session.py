@@ -255,6 +255,12 @@ class SketchSolver:
             With a message naming the fix (and the view, with several).
         """
         t0 = time.perf_counter()
+        # BLAS on one thread throughout: its work here is small (3x3 solves and products over the mesh, systems
+        # of a few hundred unknowns), where a second thread costs more to start and spin than it shares
+        with small_dense_threads(1):
+            return self._solve(views, start, free_radius, return_info, t0)
+
+    def _solve(self, views, start, free_radius, return_info, t0):
         views = list(views) if views is not None else []
         matchers = self.matchers(views)
         multi = len(matchers) > 1
@@ -287,55 +293,54 @@ class SketchSolver:
                                          p.basis_reg)
         turn = None
         counter = [0]
-        with small_dense_threads(1):
-            if not multi:
-                if with_basis or sysm.single is None:
-                    s1, turn = solver, None
-                    if self.rest_vertices is not None and p.rest_depth_reg > 0:
-                        # one view: the depth it cannot see follows the face's rest pose, turned with the head
-                        terms, turn = rest_depth_terms(ref, self.rest_vertices, matchers[0].camera, region,
-                                                       p.rest_depth_reg, mouth_width=W)
-                        if terms is not None:
-                            s1 = solver.with_terms(terms, ref)
-                    base = s1.unconstrained(ref, ref)  # E_pos and E_reg refer to ref: the same every iteration
-                    if not with_basis:
-                        sysm.single = (s1, base, turn)
-                else:
-                    s1, base, turn = sysm.single
-                X = ref if start is None else np.asarray(start, dtype=np.float64)
-                X, hist, matched = self._iterate(s1, base, ref, X, p.iterations,
-                                                 lambda Y: correspondences(Y), counter)
+        if not multi:
+            if with_basis or sysm.single is None:
+                s1, turn = solver, None
+                if self.rest_vertices is not None and p.rest_depth_reg > 0:
+                    # one view: the depth it cannot see follows the face's rest pose, turned with the head
+                    terms, turn = rest_depth_terms(ref, self.rest_vertices, matchers[0].camera, region,
+                                                   p.rest_depth_reg, mouth_width=W)
+                    if terms is not None:
+                        s1 = solver.with_terms(terms, ref)
+                base = s1.unconstrained(ref, ref)  # E_pos and E_reg refer to ref: the same every iteration
+                if not with_basis:
+                    sysm.single = (s1, base, turn)
             else:
-                if with_basis or sysm.multi is None:
-                    base0 = solver.unconstrained(ref, ref)
-                    s2, base2 = solver, base0
-                    if p.depth_reg > 0:
-                        # the depth along the main camera's rays bends stiffer (a fixed, coordinate-coupling term:
-                        # factored once into the solver the other views join)
-                        s2 = solver.with_terms(depth_terms(L, ref, matchers[0].camera, region,
-                                                           p.depth_reg * p.lambda_reg), ref)
-                        base2 = s2.unconstrained(ref, ref)
-                    if not with_basis:
-                        sysm.multi = (base0, s2, base2)
-                else:
-                    base0, s2, base2 = sysm.multi
-                X = ref if start is None else np.asarray(start, dtype=np.float64)
-                hist = []
-                if int(p.main_view_iterations) > 0:
-                    # the main (first) view alone first; its result is where the other views are matched from
-                    X, hist, matched = self._iterate(solver, base0, ref, X, int(p.main_view_iterations),
-                                                     lambda Y: correspondences(Y, upto=1), counter)
+                s1, base, turn = sysm.single
+            X = ref if start is None else np.asarray(start, dtype=np.float64)
+            X, hist, matched = self._iterate(s1, base, ref, X, p.iterations,
+                                             lambda Y: correspondences(Y), counter)
+        else:
+            if with_basis or sysm.multi is None:
+                base0 = solver.unconstrained(ref, ref)
+                s2, base2 = solver, base0
+                if p.depth_reg > 0:
+                    # the depth along the main camera's rays bends stiffer (a fixed, coordinate-coupling term:
+                    # factored once into the solver the other views join)
+                    s2 = solver.with_terms(depth_terms(L, ref, matchers[0].camera, region,
+                                                       p.depth_reg * p.lambda_reg), ref)
+                    base2 = s2.unconstrained(ref, ref)
+                if not with_basis:
+                    sysm.multi = (base0, s2, base2)
+            else:
+                base0, s2, base2 = sysm.multi
+            X = ref if start is None else np.asarray(start, dtype=np.float64)
+            hist = []
+            if int(p.main_view_iterations) > 0:
+                # the main (first) view alone first; its result is where the other views are matched from
+                X, hist, matched = self._iterate(solver, base0, ref, X, int(p.main_view_iterations),
+                                                 lambda Y: correspondences(Y, upto=1), counter)
 
-                def gated(Y):
-                    g = None
-                    if np.isfinite(keep):
-                        # the added views' sketch samples matched farther than views_keep x their median are left out
-                        d0 = [m.correspondences(Y, lam, rays)[1] for m in matchers[1:]]
-                        g = [None] + [(d <= keep * np.median(d)).astype(np.float64) for d in d0]
-                    return correspondences(Y, g)
+            def gated(Y):
+                g = None
+                if np.isfinite(keep):
+                    # the added views' sketch samples matched farther than views_keep x their median are left out
+                    d0 = [m.correspondences(Y, lam, rays)[1] for m in matchers[1:]]
+                    g = [None] + [(d <= keep * np.median(d)).astype(np.float64) for d in d0]
+                return correspondences(Y, g)
 
-                X, h2, matched = self._iterate(s2, base2, ref, X, p.iterations, gated, counter)
-                hist += h2
+            X, h2, matched = self._iterate(s2, base2, ref, X, p.iterations, gated, counter)
+            hist += h2
         if not np.isfinite(X).all():
             raise FaceLabError("The lip solve diverged (non-finite result); check the strokes and the camera.")
         if not return_info:

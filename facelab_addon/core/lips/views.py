@@ -20,7 +20,7 @@ import numpy as np
 from ..capture.camera import Camera
 from ..errors import CameraError, SketchError
 from ..geometry.deform import PointConstraints
-from ..geometry.mesh import edge_faces
+from ..geometry.mesh import edge_faces, faces_within
 from ..geometry.polyline import resample_polyline, y_at
 from ..geometry.silhouette import facing, projected_normals
 from .contact import contact_terms, one_line
@@ -185,15 +185,15 @@ def _envelope_y(x, a, b, upper: bool):
     return np.where(np.isfinite(env), env, np.nan)
 
 
-def _lip_silhouette_y(camera, X, faces, near, x):
+def _lip_silhouette_y(camera, X, faces, near, x, uv=None):
     """``(yu, yl)`` (N,) each: image y of the upper lip's lowest and the lower lip's highest silhouette of ``X``
     at image columns ``x`` (pixels, y down), NaN where that lip has no silhouette.
 
     The silhouette edges among ``faces`` with both ends in ``near`` are split into upper and lower
-    lip by their projected normals.
+    lip by their projected normals. ``uv`` (V,2): ``camera.project(X)`` if already made.
     """
     F = np.asarray(faces)
-    Fn = F[near[F].all(axis=1)]
+    Fn = F[faces_within(near, F)]
     none = np.full(len(x), np.nan)
     if len(Fn) == 0:
         return none, none
@@ -210,19 +210,19 @@ def _lip_silhouette_y(camera, X, faces, near, x):
     up_v[sil[side]] = True
     lo_v = np.zeros(len(X), bool)
     lo_v[sil[~side]] = True
-    uv = camera.project(X)
+    uv = camera.project(X) if uv is None else uv
     Eu, El = E[up_v[E].all(axis=1)], E[lo_v[E].all(axis=1)]
     return (_envelope_y(x, uv[Eu[:, 0]], uv[Eu[:, 1]], upper=True),
             _envelope_y(x, uv[El[:, 0]], uv[El[:, 1]], upper=False))
 
 
-def _lip_overlap_px(camera, X, faces, near, x):
+def _lip_overlap_px(camera, X, faces, near, x, uv=None):
     """(N,) how far (pixels) the lower lip's silhouette of ``X`` lies above the upper lip's at image columns ``x``.
 
     The upper lip's lowest silhouette minus the lower lip's highest one (:func:`_lip_silhouette_y`, image y
     down): positive where the lips overlap in the image, 0 where a lip has no silhouette.
     """
-    yu, yl = _lip_silhouette_y(camera, X, faces, near, x)
+    yu, yl = _lip_silhouette_y(camera, X, faces, near, x, uv)
     return np.nan_to_num(yu - yl)
 
 
@@ -456,7 +456,9 @@ class ViewMatcher:
         # the mouth area in this view: the sketch's box grown by a quarter of its width (at least reach_px)
         margin = max(reach_px, 40.0, 0.25 * width)
         lo, hi = sketch.min(0) - margin, sketch.max(0) + margin
-        box = (depth > 0) & np.isfinite(uv).all(1) & (uv >= lo).all(1) & (uv <= hi).all(1)
+        box = depth > 0
+        for k in (0, 1):  # inside the box, per image axis
+            box &= np.isfinite(uv[:, k]) & (uv[:, k] >= lo[k]) & (uv[:, k] <= hi[k])
         cand = box & ~fixed
         near = np.zeros(n, bool)
         if cand.any():
@@ -475,7 +477,7 @@ class ViewMatcher:
                 f"No part of the face projects near the lip strokes{where}; draw them over the mouth in this "
                 "camera's view (or pick the camera they were drawn in)."
             )
-        fs = facing(V0, F[cand[F].all(axis=1)], cam)  # judged on the whole mouth area, not only the lip edges
+        fs = facing(V0, F[faces_within(cand, F)], cam)  # judged on the whole mouth area, not only the lip edges
         if fs.size and (fs > 0).mean() < 0.3:
             raise CameraError(
                 f"The camera{where} sees the face from behind (the mouth area faces away from it); use a camera "
@@ -492,11 +494,11 @@ class ViewMatcher:
         if hi_x > lo_x:
             pad = 0.1 * (hi_x - lo_x)  # the corners, where the two strokes meet, say nothing of their order
             cols = np.linspace(lo_x + pad, hi_x - pad, 64)
-            self.warning = check_swapped_strokes(up_raw, lo_raw, *_lip_silhouette_y(cam, V0, F, near, cols), cols,
+            self.warning = check_swapped_strokes(up_raw, lo_raw, *_lip_silhouette_y(cam, V0, F, near, cols, uv), cols,
                                                  where)
 
         def overlap(x):
-            o = _lip_overlap_px(cam, V0, F, near, x)
+            o = _lip_overlap_px(cam, V0, F, near, x, uv)
             return o * np.clip(o / tol - 1.0, 0.0, 1.0)
 
         if press:
@@ -528,7 +530,7 @@ class ViewMatcher:
         """
         self.in_lip_region = bool(in_lip_region)
         F = np.asarray(faces)
-        rf = np.flatnonzero(region_vertices[F].all(axis=1))
+        rf = np.flatnonzero(faces_within(region_vertices, F))
         self.Fr = F[rf]
         edges, ef = edge_faces(self.Fr)
         inner = (ef >= 0).all(axis=1)
