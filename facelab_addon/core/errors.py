@@ -116,5 +116,10 @@ def _name_frames(labels, one="frame", many="frames", limit=8):
     return f"{many} " + ", ".join(names[:-1]) + f" and {names[-1]}"
 
 
+class TooManyShapesError(FaceLabError):
+    """Corrections that need more corrective shapes than allowed to stay within their tolerance
+    (``core.lips.regressor.reduced.StreamingBasis``); the caller may store them another way."""
+
+
 class OutputError(FaceLabError):
     """A file cannot be written: a read-only folder, a parent path that is a file, a full disk."""

@@ -5,7 +5,7 @@ streaming suggestion picks exactly what ``suggest_frames`` picks on the whole sh
 import numpy as np
 import pytest
 
-from facelab_addon.core.errors import FaceLabError
+from facelab_addon.core.errors import FaceLabError, TooManyShapesError
 from facelab_addon.core.geometry.compress import compress
 from facelab_addon.core.lips.regressor import LipRegressor
 from facelab_addon.core.lips.regressor.reduced import StreamingBasis
@@ -72,7 +72,7 @@ def test_streaming_basis_zero_shot_and_refusal():
     B, W = sb.finish()
     assert B.shape == (0, 10, 3) and W.shape == (7, 0)
     sb = StreamingBasis(50, 1e-5, max_rank=8)
-    with pytest.raises(FaceLabError, match="more than 8 corrective shapes"):
+    with pytest.raises(TooManyShapesError, match="more than 8 corrective shapes"):  # a FaceLabError
         sb.add(np.random.default_rng(1).standard_normal((20, 50, 3)))
 
 

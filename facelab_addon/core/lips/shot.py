@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import FaceLabError
+from ..errors import FaceLabError, TooManyShapesError
 from ..geometry.compress import StorageOutcome
 from .regressor.reduced import StreamingBasis
 from .suggest import SuggestScreen
@@ -155,7 +155,8 @@ class ShotCorrector:
         FrameError
             A frame with NaN coordinates, named by its position in the shot.
         FaceLabError
-            More chunks than ``training`` has frames; past ``max_key_shapes`` without ``patch_cache``.
+            More chunks than ``training`` has frames; past ``max_key_shapes`` without ``patch_cache``
+            (:class:`~facelab_addon.core.errors.TooManyShapesError`).
         """
         i = self.done
         j = i + len(used)
@@ -178,7 +179,7 @@ class ShotCorrector:
     def _add_key_offsets(self, offsets) -> None:
         try:
             self._basis.add(offsets)
-        except FaceLabError:  # StreamingBasis refuses a shape past max_key_shapes (its only error in add)
+        except TooManyShapesError:
             if not self.patch_cache:
                 raise
             self.outcome, self._basis = StorageOutcome.PATCH_CACHE, None

@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ...errors import FaceLabError, TooManyShapesError
+
 __all__ = ["thin_svd", "solve_theta", "choose_ridge", "loo_residuals", "loo_span_residuals", "MODELS",
            "StreamingBasis"]
 
@@ -214,12 +216,10 @@ class StreamingBasis:
     tol : float
         Largest reconstruction error of any vertex in any frame, scene units (> 0).
     max_rank : int
-        Most shapes kept; a shot that needs more raises :class:`~facelab_addon.core.errors.FaceLabError`.
+        Most shapes kept; a shot that needs more raises :class:`~facelab_addon.core.errors.TooManyShapesError`.
     """
 
     def __init__(self, n: int, tol: float, *, max_rank: int = 1024):
-        from ...errors import FaceLabError
-
         if not (tol > 0 and np.isfinite(tol)):
             raise FaceLabError(f"The compression tolerance must be a positive distance in scene units, got {tol}.")
         self.n, self.tol, self.max_rank = int(n), float(tol), int(max_rank)
@@ -238,9 +238,12 @@ class StreamingBasis:
         ----------
         deltas : (t, n, 3) array_like
             Per-frame offsets, scene units, in shot order.
-        """
-        from ...errors import FaceLabError
 
+        Raises
+        ------
+        TooManyShapesError
+            The frames need more than ``max_rank`` shapes.
+        """
         X = np.asarray(deltas, dtype=np.float64).reshape(len(deltas), 3 * self.n)
         t, gtol = len(X), 0.25 * self.tol
         U = self._U
@@ -265,7 +268,7 @@ class StreamingBasis:
             new.append(q)
             cols.append(c)
             if len(U) + len(new) > self.max_rank:
-                raise FaceLabError(
+                raise TooManyShapesError(
                     f"The corrections need more than {self.max_rank} corrective shapes to stay within "
                     f"{self.tol:.3g} scene units (they do not compress: a noisy capture?); smooth the capture's "
                     "lips or store the result as a point cache.")
