@@ -22,6 +22,7 @@ from . import cache_integrate
 from .caches import input_positions
 from .capture_stream import CaptureReader
 from .ownership import correction_cache, is_correction_cache
+from .shapekeys import rest_vertices
 
 __all__ = ["CAPTURE_CACHES", "WrittenCache", "capture_index", "write_correction_file"]
 
@@ -82,16 +83,12 @@ def write_correction_file(obj, prefix: str, path, layout: CacheLayout, read, ver
     caps = index > 0
     # over a capture cache in Integrate mode the deltas are key offsets (``cache_integrate``)
     integrate = caps and mods[index - 1].type == "MESH_CACHE" and mods[index - 1].deform_mode == "INTEGRATE"
-    V = len(obj.data.vertices)
-    rest = np.empty(V * 3, np.float64)
-    key = obj.data.shape_keys
-    (key.reference_key.data if key else obj.data.vertices).foreach_get("co", rest)
-    rest = rest.reshape(V, 3).astype(np.float32)
+    rest = rest_vertices(obj).astype(np.float32)
     if integrate and _under_capture_exact(obj, prefix, mods, index, read, layout.frames, vertices, tol):
         write_offset_cache(path, layout, read, rest, vertices)
         return WrittenCache(True, 0, "Integrate, under the capture cache: it holds only the correction as offsets "
                                      "from the mesh, and shape keys still add on top")
-    static = _write_whole(obj, prefix, path, layout, read, rest, vertices, integrate)
+    static = _write_whole(obj, prefix, index, path, layout, read, rest, vertices, integrate)
     return WrittenCache(static, None, "Integrate: shape keys still add on top" if static else
                         "Overwrite: it holds the whole corrected input; later shape-key edits show once the "
                         "modifier is off")
@@ -117,10 +114,10 @@ def _under_capture_exact(obj, prefix, mods, index, read, frames, vertices, tol) 
     return not any(np.abs(read(t, t + 1)).max() > tiny for t in np.flatnonzero(moved))
 
 
-def _write_whole(obj, prefix, path, layout, read, rest, vertices, integrate) -> bool:
-    """The file of a cache over the whole input (what the stack below it gives, plus the correction, mapped
-    through the capture's surface over an Integrate capture); whether that input is the static mesh."""
-    index = capture_index(obj, prefix)[1]
+def _write_whole(obj, prefix, index, path, layout, read, rest, vertices, integrate) -> bool:
+    """The file of a cache over the whole input (what the stack up to modifier ``index`` gives, plus the
+    correction, mapped through the capture's surface over an Integrate capture); whether that input is the
+    static mesh."""
     span = layout.span
     corners = cache_integrate.polygon_corners(obj.data) if integrate else None
     imap = cache_integrate.IntegrateMap(corners, vertices, rest) if integrate and vertices is not None else None
