@@ -3,7 +3,7 @@ camera shows on the frame (:func:`facelab_addon.core.lips.snap.snap_strokes`).
 
 A sketch asks for it with the custom property :data:`~facelab_addon.names.SNAP_PROP` (all its strokes), a
 stroke with the per-curve attribute :data:`~facelab_addon.names.SNAP_ATTR` of its drawing (+1 snapped,
--1 never, 0 as the sketch says: :func:`stroke_snap_choices`, :func:`set_stroke_snap`);
+-1 never, 0 as the sketch says: :func:`.strokes.stroke_snap_choices`, :func:`.strokes.set_stroke_snap`);
 :func:`.strokes.read_lip_strokes` then returns the snapped strokes (the strokes drawn are never changed)
 and writes what snapping did to :data:`~facelab_addon.names.SNAP_REPORT_PROP`. The plate is read with
 :func:`plate_image`: image sequences (as a Movie Clip or an Image) and stills by
@@ -22,62 +22,9 @@ import numpy as np
 
 from ..core.capture.camera import Camera
 from ..core.lips.snap import snap_lips
-from ..names import SNAP_ATTR
 from .plate import PlateError, plate_file, plate_pixels, shown_footage
 
-__all__ = ["movie_frame_pixels", "plate_image", "selected_strokes", "set_stroke_snap", "snap_to_plate",
-           "stroke_snap_choices"]
-
-
-def _n_curves(drawing) -> int:
-    return max(len(drawing.curve_offsets) - 1, 0)
-
-
-def stroke_snap_choices(drawing) -> np.ndarray:
-    """(C,) int8 per stroke (curve) of a GP v3 drawing: +1 snap it, -1 never, 0 as the sketch's option says
-    (all 0 when the drawing has no :data:`~facelab_addon.names.SNAP_ATTR`)."""
-    n = _n_curves(drawing)
-    attr = drawing.attributes.get(SNAP_ATTR)
-    out = np.zeros(n, np.int32)
-    if attr is not None and attr.domain == "CURVE" and len(attr.data) == n and n:
-        attr.data.foreach_get("value", out)
-    return np.sign(out).astype(np.int8)
-
-
-def set_stroke_snap(drawing, strokes, choice: int) -> int:
-    """Set the snap choice (+1 snap, -1 never, 0 as the sketch says) of the strokes ``strokes`` ((C,) bool mask
-    or indices) of a GP v3 drawing; creates the per-curve attribute (0 elsewhere). Returns how many strokes."""
-    n = _n_curves(drawing)
-    idx = np.flatnonzero(np.asarray(strokes, dtype=bool)) if np.asarray(strokes).dtype == bool \
-        else np.asarray(strokes, dtype=np.int64)
-    if n == 0 or len(idx) == 0:
-        return 0
-    attr = drawing.attributes.get(SNAP_ATTR)
-    if attr is not None and (attr.domain != "CURVE" or attr.data_type != "INT8"):
-        drawing.attributes.remove(attr)
-        attr = None
-    if attr is None:
-        attr = drawing.attributes.new(SNAP_ATTR, "INT8", "CURVE")
-    vals = np.zeros(n, np.int32)
-    attr.data.foreach_get("value", vals)
-    vals[idx] = int(np.sign(choice))
-    attr.data.foreach_set("value", vals)
-    return len(idx)
-
-
-def selected_strokes(drawing) -> np.ndarray:
-    """(C,) bool: the strokes of a GP v3 drawing with a selected point (or selected, in stroke selection)."""
-    n = _n_curves(drawing)
-    sel = drawing.attributes.get(".selection")
-    if sel is None or n == 0:
-        return np.zeros(n, bool)
-    vals = np.zeros(len(sel.data), bool)
-    sel.data.foreach_get("value", vals)
-    if sel.domain == "CURVE":
-        return vals
-    offsets = np.empty(n + 1, np.int32)
-    drawing.curve_offsets.foreach_get("value", offsets)
-    return np.logical_or.reduceat(vals, offsets[:-1]) & (np.diff(offsets) > 0) if len(vals) else np.zeros(n, bool)
+__all__ = ["movie_frame_pixels", "plate_image", "snap_to_plate"]
 
 
 def snap_to_plate(cam_obj, camera: Camera, frame: int, strokes: dict, only=None, **options) -> tuple:

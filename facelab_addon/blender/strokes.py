@@ -65,7 +65,7 @@ from mathutils import Matrix
 
 from ..core.capture.camera import Camera
 from ..core.errors import CameraError, SketchError
-from ..names import SKETCH_OBJECT, SNAP_PROP, SNAP_REPORT_PROP
+from ..names import SKETCH_OBJECT, SNAP_ATTR, SNAP_PROP, SNAP_REPORT_PROP
 from . import compat
 from .camera import evaluated_depsgraph
 from .lip_layers import (
@@ -78,9 +78,12 @@ from .lip_layers import (
     live_lip_layers,
     missing_layer_error,
 )
-from .sketch_snap import snap_to_plate, stroke_snap_choices
+from .sketch_snap import snap_to_plate
 
 __all__ = [
+    "stroke_snap_choices",
+    "set_stroke_snap",
+    "selected_strokes",
     "SKETCH_CAMERA_PROP",
     "sketch_camera",
     "sketch_name_for",
@@ -557,6 +560,52 @@ def _read_gp_object(obj, camera: Camera, frame: int, depsgraph, snap=None) -> di
     elif snap is None and SNAP_REPORT_PROP in obj:
         del obj[SNAP_REPORT_PROP]  # nothing snapped now: no report of an earlier snapping
     return out
+
+
+def stroke_snap_choices(drawing) -> np.ndarray:
+    """(C,) int8 per stroke (curve) of a GP v3 drawing: +1 snap it, -1 never, 0 as the sketch's option says
+    (all 0 when the drawing has no :data:`~facelab_addon.names.SNAP_ATTR`)."""
+    n = max(len(_curve_offsets(drawing)) - 1, 0)
+    attr = drawing.attributes.get(SNAP_ATTR)
+    out = np.zeros(n, np.int32)
+    if attr is not None and attr.domain == "CURVE" and len(attr.data) == n and n:
+        attr.data.foreach_get("value", out)
+    return np.sign(out).astype(np.int8)
+
+
+def set_stroke_snap(drawing, strokes, choice: int) -> int:
+    """Set the snap choice (+1 snap, -1 never, 0 as the sketch says) of the strokes ``strokes`` ((C,) bool mask
+    or indices) of a GP v3 drawing; creates the per-curve attribute (0 elsewhere). Returns how many strokes."""
+    n = max(len(_curve_offsets(drawing)) - 1, 0)
+    idx = np.flatnonzero(np.asarray(strokes, dtype=bool)) if np.asarray(strokes).dtype == bool \
+        else np.asarray(strokes, dtype=np.int64)
+    if n == 0 or len(idx) == 0:
+        return 0
+    attr = drawing.attributes.get(SNAP_ATTR)
+    if attr is not None and (attr.domain != "CURVE" or attr.data_type != "INT8"):
+        drawing.attributes.remove(attr)
+        attr = None
+    if attr is None:
+        attr = drawing.attributes.new(SNAP_ATTR, "INT8", "CURVE")
+    vals = np.zeros(n, np.int32)
+    attr.data.foreach_get("value", vals)
+    vals[idx] = int(np.sign(choice))
+    attr.data.foreach_set("value", vals)
+    return len(idx)
+
+
+def selected_strokes(drawing) -> np.ndarray:
+    """(C,) bool: the strokes of a GP v3 drawing with a selected point (or selected, in stroke selection)."""
+    offsets = _curve_offsets(drawing)
+    n = max(len(offsets) - 1, 0)
+    sel = drawing.attributes.get(".selection")
+    if sel is None or n == 0:
+        return np.zeros(n, bool)
+    vals = np.zeros(len(sel.data), bool)
+    sel.data.foreach_get("value", vals)
+    if sel.domain == "CURVE":
+        return vals
+    return np.logical_or.reduceat(vals, offsets[:-1]) & (np.diff(offsets) > 0) if len(vals) else np.zeros(n, bool)
 
 
 def _snap_choices(drawing) -> list:

@@ -294,7 +294,7 @@ class FACELAB_OT_snap_selected_strokes(bpy.types.Operator):
 
     def execute(self, context):
         from ..blender.lip_layers import live_lip_layers
-        from ..blender.sketch_snap import selected_strokes, set_stroke_snap
+        from ..blender.strokes import selected_strokes, set_stroke_snap
 
         gp = context.scene.facelab.sketch
         frame = context.scene.frame_current

@@ -205,7 +205,7 @@ def _select_strokes(gp, layer_name, frame, which):
 
 
 def test_snap_is_a_per_stroke_choice(sample):
-    from facelab_addon.blender.sketch_snap import stroke_snap_choices
+    from facelab_addon.blender.strokes import stroke_snap_choices
     from facelab_addon.testing.route import jitter_stroke
 
     data, scene, face, gp, cam, (up, lo) = _sketch(sample)
