@@ -436,13 +436,16 @@ def deformation_transfer(source_rest, source_faces, source_deformed, target_rest
 # --------------------------------------------------------------------------
 
 
-def _similarity(P, Q):
-    """Least-squares similarity ``Q ~ s R P + t`` (Umeyama); returns (s, R, t)."""
+def _similarity(P, Q, reflect: bool = False):
+    """Least-squares similarity ``Q ~ s R P + t`` (Umeyama) of points P, Q (n,3); returns (s, R, t).
+
+    ``R`` is the best rotation, or with ``reflect`` the best reflection (det -1).
+    """
     mp, mq = P.mean(0), Q.mean(0)
     A, B = P - mp, Q - mq
     U, S, Vt = np.linalg.svd(B.T @ A)
     d = np.sign(np.linalg.det(U @ Vt))
-    Dm = np.diag([1.0, 1.0, d])
+    Dm = np.diag([1.0, 1.0, -d if reflect else d])
     R = U @ Dm @ Vt
     var = (A**2).sum()
     s = float((S * np.diag(Dm)).sum() / var) if var > 0 else 1.0
@@ -458,21 +461,16 @@ def _placement(P, Q):
     """
     mp, mq = P.mean(0), Q.mean(0)
     A, B = P - mp, Q - mq
-    U, S, Vt = np.linalg.svd(B.T @ A)
-    var = (A**2).sum()
-    if len(P) < 3 or not var > 0 or S[1] <= 1e-9 * max(S[0], 1e-300):
+    S = np.linalg.svd(B.T @ A, compute_uv=False)
+    if len(P) < 3 or not (A**2).sum() > 0 or S[1] <= 1e-9 * max(S[0], 1e-300):
         return 1.0, np.eye(3), mq - mp
-    d = np.sign(np.linalg.det(U @ Vt))
     best = None
-    for sign in (d, -d):  # the rotation (det +1) first, then the reflection
-        Dm = np.diag([1.0, 1.0, sign])
-        R = U @ Dm @ Vt
-        sc = float((S * np.diag(Dm)).sum() / var)
+    for reflect in (False, True):
+        sc, R, t = _similarity(P, Q, reflect)
         res = float(((B - sc * A @ R.T) ** 2).sum())
         if best is None or (sc > 0 and res < 0.25 * best[0]):
-            best = (res, sc, R)
-    _, sc, R = best
-    return sc, R, mq - sc * R @ mp
+            best = (res, sc, R, t)
+    return best[1:]
 
 
 def _closest_points(P, V, F):
