@@ -35,6 +35,7 @@ import numpy as np
 from scipy import linalg, ndimage
 
 from ..errors import FaceLabError
+from ..geometry.polyline import arc_length
 
 __all__ = ["BEND", "BRIDGE_PX", "CREASE_PX", "LOWER_CORNER", "SEARCH_PX", "SHARP", "SnapResult", "grey",
            "image_noise", "prepare", "snap_lips", "snap_stroke", "snap_strokes"]
@@ -277,21 +278,21 @@ def snap_stroke(image, stroke_px, *, search_px: float = SEARCH_PX, sigma: float 
     meas[rows[on_path]], found[rows[on_path]] = pos[on_path], True
     # a few points without an edge between points with one (a faint stretch of the same edge): bridged by
     # the smoothing, not left behind as drawn
-    found = _long_runs(P, found, min_run_px)
-    moved = found | _gaps(P, found, bridge_px)
+    s_len = arc_length(P)
+    found = _long_runs(s_len, found, min_run_px)
+    moved = found | _gaps(s_len, found, bridge_px)
     d = _smooth(meas, found.astype(np.float64), smooth, free=moved & ~found)
     d = np.where(moved, d, 0.0)
     return SnapResult(P + d[:, None] * N, d, moved, polarity if moved.any() else 0)
 
 
-def _gaps(P, found, max_len) -> np.ndarray:
+def _gaps(s, found, max_len) -> np.ndarray:
     """(N,) bool: the points of the runs of False in ``found`` (N,) that have True on both sides and span
-    at most ``max_len`` pixels of the polyline ``P`` (N,2) between those two True points."""
+    at most ``max_len`` pixels of the stroke between those two True points (``s`` (N,): its arc length)."""
     out = np.zeros(len(found), bool)
     idx = np.flatnonzero(found)
     if len(idx) < 2 or max_len <= 0:
         return out
-    s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))]
     for a, b in zip(idx[:-1], idx[1:]):
         if b - a > 1 and s[b] - s[a] <= max_len:
             out[a + 1:b] = True
@@ -316,11 +317,10 @@ def _best_path(score, t, bend) -> np.ndarray:
     return t[k]
 
 
-def _long_runs(P, found, min_len) -> np.ndarray:
+def _long_runs(s, found, min_len) -> np.ndarray:
     """``found`` (N,) bool with the runs of consecutive True points spanning less than ``min_len`` pixels
-    of the polyline ``P`` (N,2) set False."""
+    of the stroke (``s`` (N,): its arc length) set False."""
     out = found.copy()
-    s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))]
     i, n = 0, len(found)
     while i < n:
         if not found[i]:
